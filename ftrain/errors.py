@@ -1,0 +1,11 @@
+"""The one exception type that means "the user gave us bad input".
+
+`cli.main` prints its message as a single line and exits with `EXIT_USAGE`; everything else is a bug
+and keeps its traceback.
+"""
+
+EXIT_USAGE = 2
+
+
+class UserError(Exception):
+    """Bad input: the message names the input and the fix, and fits on one line."""

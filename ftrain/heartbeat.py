@@ -1,0 +1,75 @@
+"""Heartbeat files: how workers tell the supervisor they are alive, and where they are.
+
+Each rank rewrites ``<dir>/rank-<R>.json`` atomically (temp file + rename, a local directory only) whenever
+its phase changes. The supervisor reads them without importing torch. Fields:
+
+- ``rank``, ``pid``: who wrote it.
+- ``iteration``: iterations completed when the phase began.
+- ``phase``: ``start`` (resumed or fresh, before the first iteration), ``rollout``, ``update``,
+  ``checkpoint``, ``done`` (all iterations finished), ``preempted`` (saved on request, exiting).
+- ``committed_step``: the newest checkpoint step this run has committed or resumed from (None if none).
+- ``resumed_step``: the step this process resumed from (None for a fresh start).
+- ``seq``: increases with every write, so a reader sees progress even when the clock does not move.
+- ``time``: wall-clock seconds, for humans and hang timing only; nothing trained depends on it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+ENV_DIR = "FTRAIN_HEARTBEAT_DIR"
+
+
+@dataclass
+class Heartbeat:
+    rank: int
+    pid: int
+    iteration: int
+    phase: str
+    committed_step: int | None
+    resumed_step: int | None
+    seq: int
+    time: float
+
+
+class HeartbeatWriter:
+    """Writes this rank's heartbeat; a no-op when no directory is configured."""
+
+    def __init__(self, directory: str | os.PathLike | None, rank: int) -> None:
+        self.path = Path(directory) / f"rank-{rank}.json" if directory else None
+        self.rank = rank
+        self.seq = 0
+        self.iteration = 0
+        self.committed_step: int | None = None
+        self.resumed_step: int | None = None
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+
+    def beat(self, phase: str, iteration: int | None = None) -> None:
+        if iteration is not None:
+            self.iteration = iteration
+        if self.path is None:
+            return
+        self.seq += 1
+        beat = Heartbeat(
+            self.rank, os.getpid(), self.iteration, phase, self.committed_step, self.resumed_step, self.seq, time.time()
+        )
+        tmp = self.path.with_suffix(f".tmp{os.getpid()}")
+        tmp.write_text(json.dumps(asdict(beat)))
+        os.replace(tmp, self.path)
+
+
+def read_heartbeats(directory: str | os.PathLike) -> dict[int, Heartbeat]:
+    """Every rank's latest heartbeat in ``directory`` (unreadable or half-written files are skipped)."""
+    beats: dict[int, Heartbeat] = {}
+    for path in Path(directory).glob("rank-*.json"):
+        try:
+            beat = Heartbeat(**json.loads(path.read_text()))
+        except (OSError, ValueError, TypeError):
+            continue
+        beats[beat.rank] = beat
+    return beats
