@@ -1,0 +1,297 @@
+"""Typed run configuration: YAML file + dotted ``key=value`` overrides, validated with one-line errors.
+
+Torch-free on purpose: the supervisor loads and validates the config before it launches anything.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import hashlib
+import json
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from ftrain.errors import UserError
+
+
+@dataclass
+class EnvConfig:
+    id: str = "HalfCheetah-v5"
+    num_envs: int = 16
+    """Environments per rank."""
+    kwargs: dict = field(default_factory=dict)
+    """Passed to ``gymnasium.make_vec`` (e.g. ``max_episode_steps``)."""
+
+
+@dataclass
+class PolicyConfig:
+    hidden_dims: list[int] = field(default_factory=lambda: [64, 64])
+    activation: str = "elu"
+    obs_normalization: bool = True
+    init_noise_std: float = 1.0
+
+
+@dataclass
+class AlgorithmConfig:
+    """Arguments of rsl-rl's PPO (and, for distillation, of its Distillation algorithm)."""
+
+    class_name: str = "PPO"
+    num_learning_epochs: int = 5
+    num_mini_batches: int = 4
+    clip_param: float = 0.2
+    gamma: float = 0.99
+    lam: float = 0.95
+    value_loss_coef: float = 1.0
+    entropy_coef: float = 0.0
+    learning_rate: float = 1e-3
+    max_grad_norm: float = 1.0
+    use_clipped_value_loss: bool = True
+    schedule: str = "adaptive"
+    desired_kl: float = 0.01
+    normalize_advantage_per_mini_batch: bool = False
+    gradient_length: int = 24
+    """Distillation only: steps per truncated back-propagation."""
+    loss_type: str = "mse"
+    """Distillation only: ``mse`` or ``huber``."""
+
+
+@dataclass
+class CheckpointConfig:
+    interval: int = 10
+    """Save every N iterations (the final iteration is always saved)."""
+    keep_last: int = 3
+    keep_best: int = 1
+    best_metric: str = "mean_return"
+    keep_every: int = 0
+    """Keep every step that is a multiple of this as a milestone (0: none)."""
+    pinned: list[int] = field(default_factory=list)
+    async_save: bool = True
+    retries: int = 4
+    """Retries of a transient storage error, with bounded exponential backoff."""
+
+
+@dataclass
+class StorageConfig:
+    url: str = ""
+    """Local path or fsspec URL; default ``runs/<name>``."""
+    options: dict = field(default_factory=dict)
+    """fsspec storage options (for s3: ``endpoint_url``, ``key``, ``secret``...)."""
+
+
+@dataclass
+class LogConfig:
+    console: bool = True
+    tensorboard: bool = True
+    csv: bool = True
+
+
+@dataclass
+class HookConfig:
+    target: str = ""
+    """Import path ``package.module:Class``."""
+    every: int = 1
+    kwargs: dict = field(default_factory=dict)
+
+
+@dataclass
+class Config:
+    name: str = ""
+    """Run name; default: the config file's stem."""
+    seed: int = 1
+    iterations: int = 300
+    """Total iterations of the run: a resumed run stops where an uninterrupted one would."""
+    num_steps_per_env: int = 24
+    torch_threads: int = 1
+    resume: str = "auto"
+    """``auto`` (newest verified checkpoint, else fresh), ``never``, or the URL of one checkpoint step."""
+    allow_config_change: bool = False
+    """Resume even though the checkpoint's training-relevant config differs (its state wins)."""
+    log_dir: str = ""
+    """Local directory for logs, metrics, heartbeats; default: the storage path if local, else ``runs/<name>``."""
+    dist_timeout: float = 60.0
+    """Seconds a collective may wait for a peer before failing."""
+    teacher: str = ""
+    """Distillation: URL of the teacher's checkpoint (a step or a run's storage)."""
+    env: EnvConfig = field(default_factory=EnvConfig)
+    policy: PolicyConfig = field(default_factory=PolicyConfig)
+    algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
+    checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
+    storage: StorageConfig = field(default_factory=StorageConfig)
+    log: LogConfig = field(default_factory=LogConfig)
+    hooks: list[HookConfig] = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def training_hash(self) -> str:
+        """Digest of everything that decides what is trained (not run length, storage, logging or retention)."""
+        data = self.to_dict()
+        for key in ("name", "iterations", "resume", "allow_config_change", "log_dir", "dist_timeout"):
+            data.pop(key)
+        for key in ("checkpoint", "storage", "log", "hooks"):
+            data.pop(key)
+        return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def load_config(path: str | None, overrides: list[str] = (), storage: str | None = None) -> Config:
+    """Read a YAML config (or the defaults when ``path`` is None), apply overrides, validate."""
+    data: dict = {}
+    if path is not None:
+        file = Path(path)
+        if not file.is_file():
+            raise UserError(f"config file {path!r} does not exist: pass the path of a YAML file such as configs/smoke.yaml")
+        try:
+            data = yaml.safe_load(file.read_text()) or {}
+        except yaml.YAMLError as exc:
+            line = getattr(getattr(exc, "problem_mark", None), "line", None)
+            where = f" (line {line + 1})" if line is not None else ""
+            raise UserError(f"config file {path!r} is not valid YAML{where}: fix the syntax") from None
+        if not isinstance(data, dict):
+            raise UserError(f"config file {path!r} must hold a mapping of keys to values")
+    for item in overrides:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise UserError(f"override {item!r} is not key=value: write it like env.num_envs=8")
+        _set_dotted(data, key.strip(), _parse_value(raw))
+    if storage is not None:
+        _set_dotted(data, "storage.url", storage)
+    config = _build(Config, data, prefix="")
+    if not config.name:
+        config.name = Path(path).stem if path else "run"
+    if not config.storage.url:
+        config.storage.url = f"runs/{config.name}"
+    if not config.log_dir:
+        config.log_dir = default_log_dir(config.storage.url, config.name)
+    validate(config)
+    return config
+
+
+def default_log_dir(storage_url: str, name: str) -> str:
+    """Logs go next to the checkpoints when storage is local, else to ``runs/<name>`` on this machine."""
+    if "://" not in storage_url:
+        return storage_url
+    if storage_url.startswith("file://"):
+        return storage_url[len("file://") :]
+    return f"runs/{name}"
+
+
+def validate(config: Config) -> None:
+    """Range checks that types alone cannot express."""
+    positive = {
+        "iterations": config.iterations,
+        "env.num_envs": config.env.num_envs,
+        "num_steps_per_env": config.num_steps_per_env,
+        "torch_threads": config.torch_threads,
+        "algorithm.num_learning_epochs": config.algorithm.num_learning_epochs,
+        "algorithm.num_mini_batches": config.algorithm.num_mini_batches,
+        "checkpoint.interval": config.checkpoint.interval,
+        "checkpoint.keep_last": config.checkpoint.keep_last,
+    }
+    for key, value in positive.items():
+        if value < 1:
+            raise UserError(f"{key}={value} must be at least 1")
+    for key, value in {"checkpoint.keep_best": config.checkpoint.keep_best, "checkpoint.keep_every": config.checkpoint.keep_every}.items():
+        if value < 0:
+            raise UserError(f"{key}={value} must be 0 or more")
+    if config.dist_timeout <= 0:
+        raise UserError(f"dist_timeout={config.dist_timeout} must be a positive number of seconds")
+    if config.algorithm.class_name not in ("PPO", "Distillation"):
+        raise UserError(f"algorithm.class_name={config.algorithm.class_name!r} is unknown: use PPO or Distillation")
+    if config.algorithm.class_name == "Distillation" and not config.teacher:
+        raise UserError("algorithm.class_name=Distillation needs a teacher: add teacher=<checkpoint URL>")
+    if config.algorithm.schedule not in ("adaptive", "fixed"):
+        raise UserError(f"algorithm.schedule={config.algorithm.schedule!r} is unknown: use adaptive or fixed")
+    if config.policy.activation not in ACTIVATIONS:
+        raise UserError(f"policy.activation={config.policy.activation!r} is unknown: use one of {', '.join(ACTIVATIONS)}")
+    for hook in config.hooks:
+        if ":" not in hook.target:
+            raise UserError(f"hook target {hook.target!r} must be an import path like package.module:Class")
+    check_env_id(config.env.id)
+
+
+ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "softplus", "gelu", "swish", "mish", "identity")
+
+
+def check_env_id(env_id: str) -> None:
+    from gymnasium.envs.registration import registry
+
+    if env_id not in registry:
+        near = difflib.get_close_matches(env_id, list(registry), n=1)
+        hint = f"did you mean {near[0]!r}?" if near else "see gymnasium's registry for valid ids"
+        raise UserError(f"env.id={env_id!r} is not a registered gymnasium environment: {hint}")
+
+
+def _parse_value(raw: str) -> Any:
+    try:
+        return yaml.safe_load(raw)
+    except yaml.YAMLError:
+        return raw
+
+
+def _set_dotted(data: dict, key: str, value: Any) -> None:
+    *parents, leaf = key.split(".")
+    node = data
+    for part in parents:
+        child = node.setdefault(part, {})
+        if not isinstance(child, dict):
+            raise UserError(f"override {key}: {part!r} is not a section")
+        node = child
+    node[leaf] = value
+
+
+def _build(cls: type, data: dict, prefix: str) -> Any:
+    """Instantiate dataclass ``cls`` from ``data``, converting and checking every value against its type."""
+    if not isinstance(data, dict):
+        raise UserError(f"{prefix.rstrip('.') or 'config'} must be a mapping, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    kwargs = {}
+    for key, value in data.items():
+        if key not in names:
+            near = difflib.get_close_matches(str(key), names, n=1, cutoff=0.5)
+            hint = f"did you mean {prefix}{near[0]}?" if near else f"valid keys: {', '.join(prefix + n for n in names)}"
+            raise UserError(f"unknown config key {prefix}{key!r}: {hint}")
+        kwargs[key] = _convert(hints[key], value, f"{prefix}{key}")
+    return cls(**kwargs)
+
+
+def _convert(kind: Any, value: Any, key: str) -> Any:
+    origin = typing.get_origin(kind)
+    if dataclasses.is_dataclass(kind):
+        return _build(kind, value if value is not None else {}, f"{key}.")
+    if origin is list:
+        (item_kind,) = typing.get_args(kind)
+        if not isinstance(value, list):
+            raise UserError(f"{key}={value!r} must be a list, e.g. {key}=[64,64]")
+        return [_convert(item_kind, item, f"{key}[{i}]") for i, item in enumerate(value)]
+    if origin in (typing.Union, types.UnionType):
+        return value
+    if kind is dict:
+        if not isinstance(value, dict):
+            raise UserError(f"{key}={value!r} must be a mapping, e.g. {key}={{a: 1}}")
+        return value
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise UserError(f"{key}={value!r} must be true or false")
+        return value
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise UserError(f"{key}={value!r} must be an integer")
+        return value
+    if kind is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise UserError(f"{key}={value!r} must be a number")
+        return float(value)
+    if kind is str:
+        if value is None:
+            return ""
+        if not isinstance(value, (str, int, float)) or isinstance(value, bool):
+            raise UserError(f"{key}={value!r} must be a string")
+        return str(value)
+    return value
