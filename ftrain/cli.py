@@ -1,0 +1,124 @@
+"""Command line: argument parsing only. Each subcommand is a thin call into a module below.
+
+Heavy modules (torch, rsl_rl, gymnasium) are imported inside the subcommand that needs them, so
+``ftrain --help`` and ``ftrain supervise`` start fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+import typing
+
+from ftrain.errors import EXIT_USAGE, UserError
+
+OVERRIDES_HELP = "config overrides as dotted key=value, values parsed as YAML (e.g. env.num_envs=8 policy.hidden_dims=[64,64])"
+
+
+def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("config", help="YAML config file, e.g. configs/halfcheetah.yaml")
+    parser.add_argument("--storage", help="where checkpoints go: a local path (default runs/<name>), file://, s3://...")
+    parser.add_argument("overrides", nargs="*", metavar="key=value", help=OVERRIDES_HELP)
+
+
+def _add_dataclass_arguments(parser: argparse.ArgumentParser, options_class: type) -> None:
+    """One ``--flag`` per dataclass field, typed by its default, documented by its ``help`` metadata."""
+    hints = typing.get_type_hints(options_class)
+    for field in dataclasses.fields(options_class):
+        flag = "--" + field.name.replace("_", "-")
+        kind = hints[field.name]
+        kind = kind if kind in (int, float) else str
+        parser.add_argument(flag, dest=field.name, type=kind, default=field.default, help=field.metadata.get("help", ""))
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from ftrain.supervisor import SupervisorOptions
+
+    parser = argparse.ArgumentParser(
+        prog="ftrain", description="Distributed, fault-tolerant PPO training on CPU (torchrun + gloo + rsl-rl)."
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    train = commands.add_parser(
+        "train",
+        help="train (run under torchrun for several processes)",
+        description="Train PPO. Under torchrun every rank runs this; alone it runs one process (world size 1).",
+    )
+    _add_run_arguments(train)
+
+    supervise = commands.add_parser(
+        "supervise",
+        help="launch torchrun and restart it from the newest verified checkpoint after a crash or hang",
+        description="Watchdog: launches torchrun, detects crashes, hangs and preemption, restarts from the newest "
+        "verified checkpoint. Exit codes: see README.",
+    )
+    _add_dataclass_arguments(supervise, SupervisorOptions)
+    _add_run_arguments(supervise)
+
+    ckpt = commands.add_parser("ckpt", help="inspect and repair checkpoint storage")
+    ckpt_commands = ckpt.add_subparsers(dest="ckpt_command", required=True, metavar="ACTION")
+    ls = ckpt_commands.add_parser("ls", help="list steps: verified / incomplete / corrupt / quarantined")
+    ls.add_argument("url")
+    verify = ckpt_commands.add_parser("verify", help="verify every file of a storage or of one step (exit 1 on failure)")
+    verify.add_argument("url")
+    show = ckpt_commands.add_parser("show", help="print the manifest of one step (default: newest verified)")
+    show.add_argument("url")
+    show.add_argument("--json", action="store_true", help="raw JSON")
+    prune = ckpt_commands.add_parser("prune", help="apply a retention policy")
+    prune.add_argument("url")
+    prune.add_argument("--keep-last", type=int, default=3)
+    prune.add_argument("--keep-best", type=int, default=0)
+    prune.add_argument("--best-metric", default="mean_return")
+    prune.add_argument("--keep-every", type=int, default=0)
+    prune.add_argument("--pin", type=int, action="append", default=[], help="a step to keep (repeatable)")
+    prune.add_argument("--dry-run", action="store_true", help="print what would be deleted, delete nothing")
+
+    bench = commands.add_parser("bench", help="throughput benchmark against rsl-rl and stable-baselines3")
+    bench.add_argument("--iterations", type=int, default=30)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return _dispatch(args)
+    except UserError as error:
+        print(f"ftrain: error: {error}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+def _dispatch(args: argparse.Namespace) -> int:
+    if args.command == "train":
+        from ftrain.config import load_config
+        from ftrain.trainer import train
+
+        return train(load_config(args.config, args.overrides, args.storage))
+    if args.command == "supervise":
+        from ftrain.supervisor import SupervisorOptions, supervise
+
+        options = SupervisorOptions(**{f.name: getattr(args, f.name) for f in dataclasses.fields(SupervisorOptions)})
+        return supervise(options, args.config, args.storage, args.overrides)
+    if args.command == "ckpt":
+        from ftrain import ckpt_commands
+
+        if args.ckpt_command == "ls":
+            return ckpt_commands.ls(args.url)
+        if args.ckpt_command == "verify":
+            return ckpt_commands.verify(args.url)
+        if args.ckpt_command == "show":
+            return ckpt_commands.show(args.url, as_json=args.json)
+        return ckpt_commands.prune(
+            args.url,
+            keep_last=args.keep_last,
+            keep_best=args.keep_best,
+            best_metric=args.best_metric,
+            keep_every=args.keep_every,
+            pinned=args.pin,
+            dry_run=args.dry_run,
+        )
+    if args.command == "bench":
+        from ftrain.bench import run_benchmark
+
+        return run_benchmark(args.iterations)
+    raise AssertionError(args.command)
