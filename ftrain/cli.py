@@ -13,7 +13,9 @@ import typing
 
 from ftrain.errors import EXIT_USAGE, UserError
 
-OVERRIDES_HELP = "config overrides as dotted key=value, values parsed as YAML (e.g. env.num_envs=8 policy.hidden_dims=[64,64])"
+OVERRIDES_HELP = (
+    "config overrides as dotted key=value, values parsed as YAML (e.g. env.num_envs=8 policy.hidden_dims=[64,64])"
+)
 
 
 def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -29,7 +31,9 @@ def _add_dataclass_arguments(parser: argparse.ArgumentParser, options_class: typ
         flag = "--" + field.name.replace("_", "-")
         kind = hints[field.name]
         kind = kind if kind in (int, float) else str
-        parser.add_argument(flag, dest=field.name, type=kind, default=field.default, help=field.metadata.get("help", ""))
+        parser.add_argument(
+            flag, dest=field.name, type=kind, default=field.default, help=field.metadata.get("help", "")
+        )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -60,7 +64,9 @@ def build_parser() -> argparse.ArgumentParser:
     ckpt_commands = ckpt.add_subparsers(dest="ckpt_command", required=True, metavar="ACTION")
     ls = ckpt_commands.add_parser("ls", help="list steps: verified / incomplete / corrupt / quarantined")
     ls.add_argument("url")
-    verify = ckpt_commands.add_parser("verify", help="verify every file of a storage or of one step (exit 1 on failure)")
+    verify = ckpt_commands.add_parser(
+        "verify", help="verify every file of a storage or of one step (exit 1 on failure)"
+    )
     verify.add_argument("url")
     show = ckpt_commands.add_parser("show", help="print the manifest of one step (default: newest verified)")
     show.add_argument("url")
@@ -91,9 +97,11 @@ def main(argv: list[str] | None = None) -> int:
 def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "train":
         from ftrain.config import load_config
+
+        config = load_config(args.config, args.overrides, args.storage)
         from ftrain.trainer import train
 
-        return train(load_config(args.config, args.overrides, args.storage))
+        return train(config)
     if args.command == "supervise":
         from ftrain.supervisor import SupervisorOptions, supervise
 

@@ -145,7 +145,9 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
     if path is not None:
         file = Path(path)
         if not file.is_file():
-            raise UserError(f"config file {path!r} does not exist: pass the path of a YAML file such as configs/smoke.yaml")
+            raise UserError(
+                f"config file {path!r} does not exist: pass the path of a YAML file such as configs/smoke.yaml"
+            )
         try:
             data = yaml.safe_load(file.read_text()) or {}
         except yaml.YAMLError as exc:
@@ -196,7 +198,10 @@ def validate(config: Config) -> None:
     for key, value in positive.items():
         if value < 1:
             raise UserError(f"{key}={value} must be at least 1")
-    for key, value in {"checkpoint.keep_best": config.checkpoint.keep_best, "checkpoint.keep_every": config.checkpoint.keep_every}.items():
+    for key, value in {
+        "checkpoint.keep_best": config.checkpoint.keep_best,
+        "checkpoint.keep_every": config.checkpoint.keep_every,
+    }.items():
         if value < 0:
             raise UserError(f"{key}={value} must be 0 or more")
     if config.dist_timeout <= 0:
@@ -208,14 +213,29 @@ def validate(config: Config) -> None:
     if config.algorithm.schedule not in ("adaptive", "fixed"):
         raise UserError(f"algorithm.schedule={config.algorithm.schedule!r} is unknown: use adaptive or fixed")
     if config.policy.activation not in ACTIVATIONS:
-        raise UserError(f"policy.activation={config.policy.activation!r} is unknown: use one of {', '.join(ACTIVATIONS)}")
+        raise UserError(
+            f"policy.activation={config.policy.activation!r} is unknown: use one of {', '.join(ACTIVATIONS)}"
+        )
     for hook in config.hooks:
         if ":" not in hook.target:
             raise UserError(f"hook target {hook.target!r} must be an import path like package.module:Class")
     check_env_id(config.env.id)
 
 
-ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "softplus", "gelu", "swish", "mish", "identity")
+ACTIVATIONS = (
+    "elu",
+    "selu",
+    "relu",
+    "crelu",
+    "lrelu",
+    "tanh",
+    "sigmoid",
+    "softplus",
+    "gelu",
+    "swish",
+    "mish",
+    "identity",
+)
 
 
 def check_env_id(env_id: str) -> None:

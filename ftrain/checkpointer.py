@@ -1,0 +1,250 @@
+"""Coordinated checkpoints across ranks: which step to resume, sharded asynchronous saves, commit, retention.
+
+The format and the single-process rules (digests, manifest, verification, retention plans) live in
+``checkpoint.py``; this module adds the distributed protocol on top:
+
+- Resume: rank 0 picks the step (newest that verifies, quarantining bad ones) and broadcasts its decision; every
+  rank then reads ``common.pt`` and its own shard, checking both against the manifest.
+- Save: at the iteration boundary each rank encodes its state to bytes (the snapshot; training may go on), then a
+  background thread writes the shard, the ranks gather their digests over a separate gloo group (async
+  collectives on the default group deadlocked in a probe), rank 0 commits the manifest and applies retention,
+  and broadcasts the outcome so every rank agrees whether the step counts.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import torch.distributed as dist
+
+from ftrain import checkpoint, distributed
+from ftrain.checkpoint import decode, encode
+from ftrain.config import Config
+from ftrain.errors import UserError
+from ftrain.storage import Storage
+
+if TYPE_CHECKING:
+    from ftrain.trainer import Trainer
+
+COMMON = "common.pt"
+MAX_FAILED_SAVES = 3
+"""Saves that may fail in a row (after the storage layer's own retries) before training stops with an error."""
+
+
+def shard_name(rank: int) -> str:
+    return f"rank-{rank:05d}.pt"
+
+
+class CheckpointError(RuntimeError):
+    """Saving keeps failing: training stops rather than run on without a way back."""
+
+
+class Checkpointer:
+    def __init__(self, config: Config, info: distributed.RankInfo, log: Callable[[str], None]) -> None:
+        self.config = config
+        self.info = info
+        self.log = log
+        self.storage = Storage.open(config.storage.url, config.storage.options)
+        self.save_group = dist.new_group(backend="gloo") if info.distributed else None
+        self.committed_step: int | None = None
+        self.on_commit: Callable[[int, dict], None] = lambda step, manifest: None
+        self._thread: threading.Thread | None = None
+        self._outcome: tuple | None = None
+        self._failures = 0
+        self.last_blocking_s = 0.0
+
+    # --- resume ------------------------------------------------------------------------------------------------
+
+    def restore(self, trainer: Trainer) -> int | None:
+        """Load the step rank 0 chose into ``trainer``; the step, or None for a fresh start."""
+        decision = self._decide_resume() if self.info.is_main else None
+        decision = distributed.broadcast_object(decision, self.info)
+        kind = decision[0]
+        if kind == "error":
+            raise UserError(decision[1])
+        if kind == "fresh":
+            self.log(decision[1])
+            return None
+        _, url, step, manifest = decision
+        storage = self.storage if url is None else Storage.open(url, self.config.storage.options)
+        common = decode(checkpoint.read_verified(storage, step, COMMON, manifest))
+        shard = decode(checkpoint.read_verified(storage, step, shard_name(self.info.rank), manifest))
+        trainer.load_state(common, shard)
+        if url is None:
+            self.committed_step = step
+        self.log(f"resumed from step {step} ({'this storage' if url is None else url}), iteration {trainer.iteration}")
+        return step
+
+    def _decide_resume(self) -> tuple:
+        """On rank 0: ("fresh", why) | ("resume", url or None, step, manifest) | ("error", message)."""
+        try:
+            resume = self.config.resume
+            if resume == "never":
+                if any(info.status == "verified" for info in checkpoint.scan(self.storage)):
+                    raise UserError(
+                        f"resume=never but {self.storage.display_url} already holds checkpoints: "
+                        "use resume=auto to continue, or a new --storage"
+                    )
+                return ("fresh", "resume=never: starting fresh")
+            if resume == "auto":
+                found = checkpoint.select_resume(self.storage, log=self.log)
+                if found is None:
+                    return ("fresh", f"no verified checkpoint in {self.storage.display_url}: starting fresh")
+                step, manifest = found
+                url = None
+            else:
+                _, step, manifest = checkpoint.resolve_checkpoint_url(resume, self.config.storage.options)
+                url = resume
+            self._check_compatible(step, manifest)
+            return ("resume", url, step, manifest)
+        except UserError as error:
+            return ("error", str(error))
+
+    def _check_compatible(self, step: int, manifest: dict) -> None:
+        if manifest["world_size"] != self.info.world_size:
+            raise UserError(
+                f"checkpoint step {step} was written by {manifest['world_size']} ranks but this run has "
+                f"{self.info.world_size}: run with --nproc-per-node={manifest['world_size']} "
+                "(environment state is per rank)"
+            )
+        if manifest["envs_per_rank"] != self.config.env.num_envs:
+            raise UserError(
+                f"checkpoint step {step} has env.num_envs={manifest['envs_per_rank']} per rank, "
+                f"the config has {self.config.env.num_envs}: set env.num_envs={manifest['envs_per_rank']}"
+            )
+        if manifest["config_hash"] != self.config.training_hash() and not self.config.allow_config_change:
+            raise UserError(
+                f"checkpoint step {step} was trained with a different config (hash {manifest['config_hash']}, "
+                f"now {self.config.training_hash()}): restore the config, or pass allow_config_change=true"
+            )
+
+    # --- save --------------------------------------------------------------------------------------------------
+
+    def save(self, trainer: Trainer, wait: bool = False) -> None:
+        """Snapshot now; write in the background unless ``wait`` or ``checkpoint.async_save=false``."""
+        started = time.perf_counter()
+        self._join()
+        step = trainer.iteration
+        if step == self.committed_step:
+            return
+        shard = encode(trainer.rank_state())
+        common = meta = None
+        if self.info.is_main:
+            state = trainer.common_state()
+            common = encode(state)
+            meta = self._meta(trainer, state)
+        self._thread = threading.Thread(target=self._write, args=(step, common, shard, meta), daemon=True)
+        self._thread.start()
+        if wait or not self.config.checkpoint.async_save:
+            self._join()
+        self.last_blocking_s = time.perf_counter() - started
+
+    def close(self) -> None:
+        """Wait for the save in flight."""
+        self._join()
+
+    def _meta(self, trainer: Trainer, state: dict) -> dict:
+        return {
+            "iteration": trainer.iteration,
+            "world_size": self.info.world_size,
+            "envs_per_rank": self.config.env.num_envs,
+            "env_id": self.config.env.id,
+            "config_hash": self.config.training_hash(),
+            "config": self.config.to_dict(),
+            "versions": _versions(),
+            "metrics": {key: value for key, value in trainer.metrics.items() if not key.endswith("_time")},
+            "state_sha256": trainer.learned_digest(),
+            "created": time.time(),
+        }
+
+    def _write(self, step: int, common: bytes | None, shard: bytes, meta: dict | None) -> None:
+        """Runs on every rank (normally in the background thread); the collectives use ``save_group``."""
+        entries, error = {}, None
+        try:
+            entries[shard_name(self.info.rank)] = checkpoint.write_file(
+                self.storage, step, shard_name(self.info.rank), shard
+            )
+            if common is not None:
+                entries[COMMON] = checkpoint.write_file(self.storage, step, COMMON, common)
+        except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
+            error = f"rank {self.info.rank}: {exc}"
+        reports = self._gather((entries, error))
+        outcome = None
+        if self.info.is_main:
+            outcome = self._commit(step, reports, meta)
+        self._outcome = self._broadcast(outcome)
+
+    def _commit(self, step: int, reports: list, meta: dict) -> tuple:
+        errors = [error for _, error in reports if error]
+        if errors:
+            return ("failed", step, "; ".join(errors))
+        files = {name: entry for entries, _ in reports for name, entry in entries.items()}
+        try:
+            manifest = checkpoint.commit(self.storage, step, files, meta)
+        except Exception as exc:
+            return ("failed", step, f"commit: {exc}")
+        try:
+            self._apply_retention()
+        except Exception as exc:
+            self.log(f"retention after step {step} failed (checkpoints kept): {exc}")
+        return ("committed", step, manifest)
+
+    def _apply_retention(self) -> None:
+        policy = self.config.checkpoint
+        steps = checkpoint.scan(self.storage)
+        doomed = checkpoint.retention_plan(
+            steps, policy.keep_last, policy.keep_best, policy.best_metric, policy.keep_every, policy.pinned
+        )
+        for step in doomed:
+            checkpoint.delete_step(self.storage, step)
+
+    def _gather(self, value: object) -> list:
+        if self.save_group is None:
+            return [value]
+        out: list = [None] * self.info.world_size
+        dist.all_gather_object(out, value, group=self.save_group)
+        return out
+
+    def _broadcast(self, value: object) -> object:
+        if self.save_group is None:
+            return value
+        box = [value]
+        dist.broadcast_object_list(box, src=0, group=self.save_group)
+        return box[0]
+
+    def _join(self) -> None:
+        """Wait for the save in flight and act on its agreed outcome (on the main thread)."""
+        if self._thread is None:
+            return
+        self._thread.join()
+        self._thread = None
+        outcome, self._outcome = self._outcome, None
+        if outcome is None:
+            raise CheckpointError("the checkpoint writer stopped without an outcome (a peer died mid-save?)")
+        kind, step, detail = outcome
+        if kind == "committed":
+            self._failures = 0
+            self.committed_step = step
+            self.on_commit(step, detail)
+            return
+        self._failures += 1
+        self.log(f"checkpoint step {step} failed ({self._failures}/{MAX_FAILED_SAVES}), earlier ones intact: {detail}")
+        if self._failures >= MAX_FAILED_SAVES:
+            raise CheckpointError(
+                f"{MAX_FAILED_SAVES} checkpoints in a row failed to save to "
+                f"{self.storage.display_url}; last error: {detail}"
+            )
+
+
+def _versions() -> dict:
+    versions = {}
+    for package in ("ftrain", "torch", "rsl-rl-lib", "gymnasium", "mujoco"):
+        try:
+            versions[package] = importlib.metadata.version(package)
+        except importlib.metadata.PackageNotFoundError:
+            versions[package] = None
+    return versions

@@ -1,0 +1,108 @@
+"""Process group (gloo, with a timeout), rank info, per-rank seeding and the few collectives ftrain needs."""
+
+from __future__ import annotations
+
+import datetime
+import os
+import random
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.distributed as dist
+
+
+@dataclass(frozen=True)
+class RankInfo:
+    rank: int
+    world_size: int
+    local_rank: int
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    @property
+    def distributed(self) -> bool:
+        return self.world_size > 1
+
+    def rsl_rl_cfg(self) -> dict | None:
+        """rsl-rl's ``multi_gpu`` config: with it, its algorithms average gradients over the default group."""
+        if not self.distributed:
+            return None
+        return {"global_rank": self.rank, "local_rank": self.local_rank, "world_size": self.world_size}
+
+
+def init(timeout_s: float) -> RankInfo:
+    """Join torchrun's process group over gloo; a plain ``python -m ftrain`` run is world size 1.
+
+    The timeout bounds every collective, so a dead peer fails the survivors fast instead of hanging them.
+    """
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    if world_size > 1 and not dist.is_initialized():
+        dist.init_process_group("gloo", timeout=datetime.timedelta(seconds=timeout_s))
+    return RankInfo(rank, world_size, local_rank)
+
+
+def shutdown() -> None:
+    if dist.is_initialized():
+        dist.destroy_process_group()
+
+
+def rank_seed(seed: int, rank: int) -> int:
+    """A well-mixed 31-bit seed per (seed, rank): nearby seeds or ranks never share streams."""
+    return int(np.random.SeedSequence([seed, rank]).generate_state(1)[0] >> 1)
+
+
+def seed_all(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed)
+    torch.manual_seed(seed)
+
+
+def rng_state() -> dict:
+    return {
+        "torch": torch.get_rng_state(),
+        "numpy": np.random.get_state(legacy=False),
+        "python": _python_rng_state(),
+    }
+
+
+def set_rng_state(state: dict) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(internal), gauss))
+
+
+def _python_rng_state() -> list:
+    version, internal, gauss = random.getstate()
+    return [version, list(internal), gauss]
+
+
+def all_reduce_sum(values: list[float], info: RankInfo) -> list[float]:
+    """Sum a few numbers over all ranks in one collective (float64, so counts stay exact)."""
+    if not info.distributed:
+        return list(values)
+    tensor = torch.tensor(values, dtype=torch.float64)
+    dist.all_reduce(tensor)
+    return tensor.tolist()
+
+
+def broadcast_object(value: object, info: RankInfo) -> object:
+    """Rank 0's ``value`` on every rank."""
+    if not info.distributed:
+        return value
+    box = [value]
+    dist.broadcast_object_list(box, src=0)
+    return box[0]
+
+
+def all_gather_object(value: object, info: RankInfo) -> list:
+    if not info.distributed:
+        return [value]
+    out: list = [None] * info.world_size
+    dist.all_gather_object(out, value)
+    return out

@@ -1,0 +1,132 @@
+"""Gymnasium MuJoCo vector environments as an rsl_rl ``VecEnv``, with exact state save and restore.
+
+What must be saved for a bitwise-exact continuation (measured, see DESIGN.md): MuJoCo's integration state
+(``mjSTATE_INTEGRATION``: ``mjSTATE_PHYSICS`` alone drifts by ~1e-15), the derived body positions ``xpos``/``xipos``
+that some rewards read after a step (Ant, Humanoid), each sub-env's RNG and time-limit counter, and this
+adapter's current observations and episode buffers.
+"""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+import torch
+from gymnasium.vector import AutoresetMode
+from gymnasium.wrappers import TimeLimit
+from rsl_rl.env import VecEnv
+from tensordict import TensorDict
+
+from ftrain.errors import UserError
+
+OBS_GROUP = "policy"
+_INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION
+
+
+class MujocoVecEnv(VecEnv):
+    """``num_envs`` synchronous copies of a gymnasium MuJoCo env, stepped with same-step autoreset.
+
+    ``step`` returns ``time_outs`` (truncated and not terminated) in ``extras`` for rsl-rl's value bootstrapping,
+    and the returns and lengths of the episodes that finished in ``extras["episodes"]``.
+    """
+
+    def __init__(self, env_id: str, num_envs: int, seed: int, kwargs: dict | None = None) -> None:
+        try:
+            self.envs = gym.make_vec(
+                env_id,
+                num_envs=num_envs,
+                vectorization_mode="sync",
+                vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP},
+                **(kwargs or {}),
+            )
+        except gym.error.Error as error:
+            raise UserError(f"env.id={env_id!r} cannot be made: {error}") from None
+        except TypeError as error:
+            raise UserError(f"env.kwargs for {env_id!r} are not accepted: {error}") from None
+        if not isinstance(self.envs.single_action_space, gym.spaces.Box):
+            raise UserError(f"env.id={env_id!r} has non-continuous actions: ftrain trains continuous-control envs")
+        self.env_id = env_id
+        self.num_envs = num_envs
+        self.num_actions = int(np.prod(self.envs.single_action_space.shape))
+        self.max_episode_length = self.envs.envs[0].spec.max_episode_steps or 0
+        self.device = "cpu"
+        self.cfg = {"env_id": env_id, "num_envs": num_envs}
+        self._low = self.envs.single_action_space.low
+        self._high = self.envs.single_action_space.high
+        obs, _ = self.envs.reset(seed=seed)
+        self.obs = torch.as_tensor(obs, dtype=torch.float32)
+        self.episode_length_buf = torch.zeros(num_envs, dtype=torch.long)
+        self.episode_return_buf = torch.zeros(num_envs, dtype=torch.float64)
+
+    @property
+    def num_obs(self) -> int:
+        return self.obs.shape[1]
+
+    def get_observations(self) -> TensorDict:
+        return TensorDict({OBS_GROUP: self.obs}, batch_size=[self.num_envs])
+
+    def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
+        clipped = np.clip(actions.numpy().astype(np.float64), self._low, self._high)
+        obs, rewards, terminated, truncated, _ = self.envs.step(clipped)
+        self.obs = torch.as_tensor(obs, dtype=torch.float32)
+        rewards_t = torch.as_tensor(rewards, dtype=torch.float32)
+        dones = torch.as_tensor(terminated | truncated)
+        self.episode_return_buf += torch.as_tensor(rewards)
+        self.episode_length_buf += 1
+        finished = dones.nonzero().flatten()
+        episodes = (self.episode_return_buf[finished].tolist(), self.episode_length_buf[finished].tolist())
+        self.episode_return_buf[finished] = 0
+        self.episode_length_buf[finished] = 0
+        extras = {"time_outs": torch.as_tensor(truncated & ~terminated), "episodes": episodes}
+        return self.get_observations(), rewards_t, dones, extras
+
+    def get_state(self) -> dict:
+        """Everything needed to continue bit for bit, as tensors, numbers and lists (weights_only-loadable)."""
+        subenvs = []
+        for env in self.envs.envs:
+            base = env.unwrapped
+            model, data = base.model, base.data
+            physics = np.empty(mujoco.mj_stateSize(model, _INTEGRATION))
+            mujoco.mj_getState(model, data, physics, _INTEGRATION)
+            subenvs.append(
+                {
+                    "physics": torch.from_numpy(physics),
+                    "xpos": torch.from_numpy(data.xpos.copy()),
+                    "xipos": torch.from_numpy(data.xipos.copy()),
+                    "rng": base.np_random.bit_generator.state,
+                    "elapsed_steps": _time_limit(env)._elapsed_steps,
+                }
+            )
+        return {
+            "env_id": self.env_id,
+            "subenvs": subenvs,
+            "obs": self.obs.clone(),
+            "episode_length": self.episode_length_buf.clone(),
+            "episode_return": self.episode_return_buf.clone(),
+        }
+
+    def set_state(self, state: dict) -> None:
+        if state["env_id"] != self.env_id or len(state["subenvs"]) != self.num_envs:
+            raise ValueError(
+                f"environment state is for {len(state['subenvs'])} x {state['env_id']}, "
+                f"this env is {self.num_envs} x {self.env_id}"
+            )
+        for env, saved in zip(self.envs.envs, state["subenvs"], strict=True):
+            base = env.unwrapped
+            mujoco.mj_setState(base.model, base.data, saved["physics"].numpy(), _INTEGRATION)
+            base.data.xpos[:] = saved["xpos"].numpy()
+            base.data.xipos[:] = saved["xipos"].numpy()
+            base.np_random.bit_generator.state = saved["rng"]
+            _time_limit(env)._elapsed_steps = saved["elapsed_steps"]
+        self.obs = state["obs"].clone()
+        self.episode_length_buf = state["episode_length"].clone()
+        self.episode_return_buf = state["episode_return"].clone()
+
+    def close(self) -> None:
+        self.envs.close()
+
+
+def _time_limit(env: gym.Env) -> TimeLimit:
+    while not isinstance(env, TimeLimit):
+        env = env.env
+    return env

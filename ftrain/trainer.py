@@ -1,0 +1,195 @@
+"""The training loop: rollout, returns, update, around rsl-rl's PPO, with hooks, heartbeats and checkpoints.
+
+One ``Trainer`` per rank. Everything that decides what is trained comes from the config and the per-rank seeds;
+wall-clock time only feeds logs and heartbeats.
+"""
+
+from __future__ import annotations
+
+import collections
+import os
+import signal
+import time
+from pathlib import Path
+
+import torch
+import yaml
+
+from ftrain import distributed
+from ftrain.algorithm import build_ppo, learned_state, load_learned_state, state_digest
+from ftrain.checkpointer import Checkpointer
+from ftrain.config import Config
+from ftrain.envs import MujocoVecEnv
+from ftrain.heartbeat import ENV_DIR, HeartbeatWriter
+from ftrain.hooks import build_hooks
+
+EPISODE_WINDOW = 100
+"""Completed episodes per rank that the mean return and length are taken over."""
+
+
+class Trainer:
+    def __init__(self, config: Config, info: distributed.RankInfo) -> None:
+        self.config = config
+        self.info = info
+        torch.set_num_threads(config.torch_threads)
+        distributed.seed_all(config.seed)  # identical model initialisation on every rank
+        seed = distributed.rank_seed(config.seed, info.rank)
+        self.env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs)
+        self.alg = build_ppo(config, self.env, info)
+        distributed.seed_all(seed)  # from here on, each rank samples its own actions and minibatches
+        self.hooks = build_hooks(config.hooks, config.log.console, config.log.tensorboard, config.log.csv)
+        self.iteration = 0
+        self.env_steps = 0
+        self.episodes: collections.deque[tuple[float, int]] = collections.deque(maxlen=EPISODE_WINDOW)
+        self.metrics: dict[str, float] = {}
+        self.heartbeat = HeartbeatWriter(os.environ.get(ENV_DIR), info.rank)
+        self.checkpointer = Checkpointer(config, info, self.log)
+        self.checkpointer.on_commit = lambda step, manifest: self.hooks.call("on_checkpoint", self, step, manifest)
+        self.stop_requested = False
+
+    def log(self, message: str) -> None:
+        if self.info.is_main:
+            print(f"[ftrain] {message}", flush=True)
+
+    # --- state -------------------------------------------------------------------------------------------------
+
+    def common_state(self) -> dict:
+        """Identical on every rank; saved once, by rank 0."""
+        return {
+            "learned": learned_state(self.alg),
+            "iteration": self.iteration,
+            "env_steps": self.env_steps,
+            "metrics": dict(self.metrics),
+            "hooks": self.hooks.state_dict(),
+            "config": self.config.to_dict(),
+        }
+
+    def rank_state(self) -> dict:
+        """What differs between ranks: environments, random streams, the episode window."""
+        return {
+            "env": self.env.get_state(),
+            "rng": distributed.rng_state(),
+            "episodes": [list(episode) for episode in self.episodes],
+        }
+
+    def load_state(self, common: dict, rank: dict) -> None:
+        load_learned_state(self.alg, common["learned"])
+        self.iteration = common["iteration"]
+        self.env_steps = common["env_steps"]
+        self.metrics = dict(common["metrics"])
+        self.hooks.load_state_dict(common["hooks"])
+        self.env.set_state(rank["env"])
+        distributed.set_rng_state(rank["rng"])
+        self.episodes.clear()
+        self.episodes.extend((float(ret), int(length)) for ret, length in rank["episodes"])
+
+    def learned_digest(self) -> str:
+        return state_digest(learned_state(self.alg))
+
+    # --- loop --------------------------------------------------------------------------------------------------
+
+    def run(self) -> int:
+        self.heartbeat.beat("start", 0)
+        resumed = self.checkpointer.restore(self)
+        if resumed is None and self.info.distributed:
+            self.alg.broadcast_parameters()
+        self.heartbeat.resumed_step = resumed
+        self.heartbeat.committed_step = resumed
+        self._write_resolved_config()
+        self._install_signal_handlers()
+        self.alg.train_mode()
+        self.hooks.call("on_start", self)
+        self.heartbeat.beat("start", self.iteration)
+        while self.iteration < self.config.iterations:
+            self._iterate()
+            stop = self._agree_on_stop()
+            if stop or self._checkpoint_due():
+                self.heartbeat.beat("checkpoint")
+                self.checkpointer.save(self, wait=stop)
+                self.heartbeat.committed_step = self.checkpointer.committed_step
+            if stop:
+                self.log(f"stop requested: saved step {self.iteration}, exiting")
+                break
+        self.checkpointer.close()
+        self.heartbeat.committed_step = self.checkpointer.committed_step
+        self.hooks.call("on_end", self)
+        self.heartbeat.beat("preempted" if self.iteration < self.config.iterations else "done")
+        return 0
+
+    def _iterate(self) -> None:
+        start = time.perf_counter()
+        self.heartbeat.beat("rollout", self.iteration)
+        obs = self.env.get_observations()
+        with torch.inference_mode():
+            for _ in range(self.config.num_steps_per_env):
+                actions = self.alg.act(obs)
+                obs, rewards, dones, extras = self.env.step(actions)
+                self.alg.process_env_step(obs, rewards, dones, extras)
+                self.episodes.extend(zip(*extras["episodes"], strict=True))
+            self.alg.compute_returns(obs)
+        self.hooks.call("after_rollout", self)
+        collected = time.perf_counter()
+        self.heartbeat.beat("update")
+        losses = self.alg.update()
+        self.hooks.call("after_update", self, losses)
+        learned = time.perf_counter()
+        self.iteration += 1
+        self._record_metrics(losses, collected - start, learned - collected)
+        self.hooks.call("after_iteration", self, self.metrics)
+
+    def _record_metrics(self, losses: dict[str, float], collect_time: float, learn_time: float) -> None:
+        """Global metrics: the episode window and the step count are summed over ranks in one collective."""
+        returns = sum(ret for ret, _ in self.episodes)
+        lengths = sum(length for _, length in self.episodes)
+        steps = self.env.num_envs * self.config.num_steps_per_env
+        stop = float(self.stop_requested)
+        total_returns, total_lengths, count, total_steps, self._stops = distributed.all_reduce_sum(
+            [returns, lengths, len(self.episodes), steps, stop], self.info
+        )
+        self.env_steps += int(total_steps)
+        previous = self.metrics
+        iteration_time = collect_time + learn_time
+        self.metrics = {
+            "mean_return": total_returns / count if count else previous.get("mean_return", 0.0),
+            "mean_length": total_lengths / count if count else previous.get("mean_length", 0.0),
+            "env_steps": float(self.env_steps),
+            **{f"loss/{key}": value for key, value in losses.items()},
+            "learning_rate": self.alg.learning_rate,
+            "action_std": self.alg.get_policy().output_std.mean().item(),
+            "steps_per_s": total_steps / iteration_time,
+            "collect_time": collect_time,
+            "learn_time": learn_time,
+            "iteration_time": iteration_time,
+        }
+
+    # --- stopping and checkpoints ------------------------------------------------------------------------------
+
+    def _install_signal_handlers(self) -> None:
+        def request_stop(signum: int, frame: object) -> None:
+            self.stop_requested = True
+
+        signal.signal(signal.SIGTERM, request_stop)
+        signal.signal(signal.SIGINT, request_stop)
+
+    def _agree_on_stop(self) -> bool:
+        """Every rank stops at the same iteration boundary if any rank was asked to (the flag rode in the
+        metrics all-reduce of this iteration)."""
+        return self._stops > 0
+
+    def _checkpoint_due(self) -> bool:
+        return self.iteration % self.config.checkpoint.interval == 0 or self.iteration == self.config.iterations
+
+    def _write_resolved_config(self) -> None:
+        if self.info.is_main:
+            log_dir = Path(self.config.log_dir)
+            log_dir.mkdir(parents=True, exist_ok=True)
+            (log_dir / "config.yaml").write_text(yaml.safe_dump(self.config.to_dict(), sort_keys=False))
+
+
+def train(config: Config) -> int:
+    """Entry point of ``ftrain train`` on every rank."""
+    info = distributed.init(config.dist_timeout)
+    try:
+        return Trainer(config, info).run()
+    finally:
+        distributed.shutdown()

@@ -1,0 +1,82 @@
+"""Config loading, overrides, and the one-line errors for bad input (exit code 2, no traceback)."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ftrain.config import load_config
+from ftrain.errors import UserError
+
+REPO = Path(__file__).resolve().parents[1]
+SMOKE = str(REPO / "configs" / "smoke.yaml")
+
+
+def test_overrides_are_typed_and_dotted() -> None:
+    config = load_config(SMOKE, ["env.num_envs=8", "policy.hidden_dims=[32,32]", "algorithm.learning_rate=3e-4"])
+    assert config.env.num_envs == 8
+    assert config.policy.hidden_dims == [32, 32]
+    assert config.algorithm.learning_rate == pytest.approx(3e-4)
+    assert config.name == "smoke"
+    assert config.storage.url == "runs/smoke"
+    assert config.log_dir == "runs/smoke"
+
+
+def test_storage_decides_log_dir() -> None:
+    assert load_config(SMOKE, [], storage="s3://bucket/runs/x").log_dir == "runs/smoke"
+    assert load_config(SMOKE, [], storage="file:///tmp/x").log_dir == "/tmp/x"
+    assert load_config(SMOKE, ["log_dir=elsewhere"], storage="s3://b/x").log_dir == "elsewhere"
+
+
+def test_training_hash_ignores_run_length_and_storage() -> None:
+    base = load_config(SMOKE).training_hash()
+    assert load_config(SMOKE, ["iterations=99", "checkpoint.interval=5"], storage="other").training_hash() == base
+    assert load_config(SMOKE, ["seed=2"]).training_hash() != base
+    assert load_config(SMOKE, ["algorithm.clip_param=0.1"]).training_hash() != base
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (["iteratons=3"], "did you mean iterations"),
+        (["algorithm.learning_rat=1"], "did you mean algorithm.learning_rate"),
+        (["iterations=abc"], "must be an integer"),
+        (["algorithm.gamma=high"], "must be a number"),
+        (["iterations=0"], "iterations=0 must be at least 1"),
+        (["env.num_envs=-2"], "env.num_envs=-2 must be at least 1"),
+        (["env.id=HalfCheeta-v5"], "did you mean 'HalfCheetah-v5'"),
+        (["noequals"], "is not key=value"),
+    ],
+)
+def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> None:
+    with pytest.raises(UserError, match=message):
+        load_config(SMOKE, overrides)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["configs/missing.yaml"], "config file 'configs/missing.yaml' does not exist"),
+        ([SMOKE, "iteratons=3"], "unknown config key 'iteratons': did you mean iterations?"),
+        ([SMOKE, "env.id=NoSuchEnv-v0"], "env.id='NoSuchEnv-v0' is not a registered gymnasium environment"),
+        ([SMOKE, "iterations=ten"], "iterations='ten' must be an integer"),
+        ([SMOKE, "env.num_envs=0"], "env.num_envs=0 must be at least 1"),
+    ],
+)
+def test_cli_bad_input_is_one_line_exit_2(args: list[str], message: str) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "ftrain", "train", *args], cwd=REPO, capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    assert lines == [f"ftrain: error: {lines[0].removeprefix('ftrain: error: ')}"], result.stderr
+    assert message in lines[0]
+    assert "Traceback" not in result.stderr
+
+
+def test_help_lists_every_subcommand() -> None:
+    result = subprocess.run([sys.executable, "-m", "ftrain", "--help"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0
+    for command in ("train", "supervise", "ckpt", "bench"):
+        assert command in result.stdout
