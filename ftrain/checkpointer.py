@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING
 import torch.distributed as dist
 
 from ftrain import checkpoint, distributed
-from ftrain.checkpoint import decode, encode
+from ftrain.checkpoint import encode
 from ftrain.config import Config
 from ftrain.errors import UserError
 from ftrain.storage import Storage
@@ -48,7 +48,7 @@ class Checkpointer:
         self.config = config
         self.info = info
         self.log = log
-        self.storage = Storage.open(config.storage.url, config.storage.options)
+        self.storage = Storage.open(config.storage.url, config.storage.options, retries=config.checkpoint.retries)
         self.save_group = dist.new_group(backend="gloo") if info.distributed else None
         self.committed_step: int | None = None
         self.on_commit: Callable[[int, dict], None] = lambda step, manifest: None
@@ -71,8 +71,8 @@ class Checkpointer:
             return None
         _, url, step, manifest = decision
         storage = self.storage if url is None else Storage.open(url, self.config.storage.options)
-        common = decode(checkpoint.read_verified(storage, step, COMMON, manifest))
-        shard = decode(checkpoint.read_verified(storage, step, shard_name(self.info.rank), manifest))
+        common = checkpoint.read_verified(storage, step, COMMON, manifest)
+        shard = checkpoint.read_verified(storage, step, shard_name(self.info.rank), manifest)
         trainer.load_state(common, shard)
         if url is None:
             self.committed_step = step
@@ -86,20 +86,24 @@ class Checkpointer:
             if resume == "never":
                 if any(info.status == "verified" for info in checkpoint.scan(self.storage)):
                     raise UserError(
-                        f"resume=never but {self.storage.display_url} already holds checkpoints: "
+                        f"resume=never but {self.storage.url} already holds checkpoints: "
                         "use resume=auto to continue, or a new --storage"
                     )
+                checkpoint.clear_newer(self.storage, 0, log=self.log)
                 return ("fresh", "resume=never: starting fresh")
             if resume == "auto":
                 found = checkpoint.select_resume(self.storage, log=self.log)
                 if found is None:
-                    return ("fresh", f"no verified checkpoint in {self.storage.display_url}: starting fresh")
+                    checkpoint.clear_newer(self.storage, 0, log=self.log)
+                    return ("fresh", f"no verified checkpoint in {self.storage.url}: starting fresh")
                 step, manifest = found
                 url = None
             else:
-                _, step, manifest = checkpoint.resolve_checkpoint_url(resume, self.config.storage.options)
+                _, step, manifest = checkpoint.resolve_checkpoint_url(resume, self.config.storage.options, self.log)
                 url = resume
             self._check_compatible(step, manifest)
+            # every save needs a fresh directory: abandoned or quarantined steps past the resume point must go
+            checkpoint.clear_newer(self.storage, step, log=self.log)
             return ("resume", url, step, manifest)
         except UserError as error:
             return ("error", str(error))
@@ -158,7 +162,6 @@ class Checkpointer:
             "versions": _versions(),
             "metrics": {key: value for key, value in trainer.metrics.items() if not key.endswith("_time")},
             "state_sha256": trainer.learned_digest(),
-            "created": time.time(),
         }
 
     def _write(self, step: int, common: bytes | None, shard: bytes, meta: dict | None) -> None:
@@ -235,8 +238,7 @@ class Checkpointer:
         self.log(f"checkpoint step {step} failed ({self._failures}/{MAX_FAILED_SAVES}), earlier ones intact: {detail}")
         if self._failures >= MAX_FAILED_SAVES:
             raise CheckpointError(
-                f"{MAX_FAILED_SAVES} checkpoints in a row failed to save to "
-                f"{self.storage.display_url}; last error: {detail}"
+                f"{MAX_FAILED_SAVES} checkpoints in a row failed to save to {self.storage.url}; last error: {detail}"
             )
 
 

@@ -63,23 +63,20 @@ def seed_all(seed: int) -> None:
 
 
 def rng_state() -> dict:
-    return {
-        "torch": torch.get_rng_state(),
-        "numpy": np.random.get_state(legacy=False),
-        "python": _python_rng_state(),
-    }
+    """torch, numpy and python RNG states as tensors and numbers (loadable with ``weights_only=True``)."""
+    numpy_state = np.random.get_state(legacy=False)
+    numpy_state["state"]["key"] = torch.from_numpy(numpy_state["state"]["key"].astype(np.int64))
+    version, internal, gauss = random.getstate()
+    return {"torch": torch.get_rng_state(), "numpy": numpy_state, "python": [version, list(internal), gauss]}
 
 
 def set_rng_state(state: dict) -> None:
     torch.set_rng_state(state["torch"])
-    np.random.set_state(state["numpy"])
+    numpy_state = dict(state["numpy"])
+    numpy_state["state"] = {**numpy_state["state"], "key": numpy_state["state"]["key"].numpy().astype(np.uint32)}
+    np.random.set_state(numpy_state)
     version, internal, gauss = state["python"]
     random.setstate((version, tuple(internal), gauss))
-
-
-def _python_rng_state() -> list:
-    version, internal, gauss = random.getstate()
-    return [version, list(internal), gauss]
 
 
 def all_reduce_sum(values: list[float], info: RankInfo) -> list[float]:

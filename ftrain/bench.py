@@ -1,0 +1,171 @@
+"""``ftrain bench``: PPO throughput on HalfCheetah-v5, ftrain against its peers, measured side by side in one run.
+
+Every case runs in its own process with one torch thread (the 2-rank case: two processes), with the same work per
+iteration: 16 envs x 24 steps per rank, 5 epochs x 4 minibatches, a 64x64 MLP. Each reports steady-state
+environment steps per second over the timed iterations, after warm-up iterations that are not counted:
+
+- ``raw``: gymnasium's vector env stepped with random actions, no learning: the limit;
+- ``rsl_rl``: rsl-rl's own OnPolicyRunner, one process;
+- ``sb3``: stable-baselines3 PPO with the same settings, one process (the ``bench`` extra);
+- ``ftrain-1``, ``ftrain-2``: ``ftrain train`` with 1 and 2 ranks (torchrun), no checkpoints in the timed window.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from ftrain.hooks import Hook
+
+ENV_ID = "HalfCheetah-v5"
+NUM_ENVS = 16
+STEPS = 24
+EPOCHS = 5
+MINIBATCHES = 4
+HIDDEN = [64, 64]
+WARMUP = 3
+CONFIG = Path(__file__).resolve().parents[1] / "configs" / "halfcheetah.yaml"
+
+
+class ThroughputHook(Hook):
+    """Rank 0 writes the steady-state global steps/s of the run (iterations after the warm-up) to ``path``."""
+
+    def __init__(self, path: str, warmup: int = WARMUP) -> None:
+        self.path = path
+        self.warmup = warmup
+        self.start: tuple[float, float] | None = None
+
+    def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        if trainer.iteration == self.warmup:
+            self.start = (time.perf_counter(), metrics["env_steps"])
+        elif self.start is not None and trainer.info.is_main:
+            elapsed = time.perf_counter() - self.start[0]
+            Path(self.path).write_text(json.dumps({"steps_per_s": (metrics["env_steps"] - self.start[1]) / elapsed}))
+
+
+def _timed(step_count: int, work) -> float:
+    start = time.perf_counter()
+    work()
+    return step_count / (time.perf_counter() - start)
+
+
+def measure_raw(iterations: int) -> float:
+    import gymnasium as gym
+    import numpy as np
+
+    envs = gym.make_vec(ENV_ID, num_envs=NUM_ENVS, vectorization_mode="sync")
+    envs.reset(seed=0)
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, size=(iterations * STEPS, NUM_ENVS, envs.single_action_space.shape[0]))
+
+    def work() -> None:
+        for action in actions:
+            envs.step(action)
+
+    return _timed(iterations * STEPS * NUM_ENVS, work)
+
+
+def measure_rsl_rl(iterations: int) -> float:
+    import contextlib
+    import io
+
+    from rsl_rl.runners import OnPolicyRunner
+
+    from ftrain.envs import MujocoVecEnv
+
+    env = MujocoVecEnv(ENV_ID, NUM_ENVS, seed=0)
+    model = {"class_name": "MLPModel", "hidden_dims": HIDDEN, "activation": "elu", "obs_normalization": True}
+    train_cfg = {
+        "num_steps_per_env": STEPS,
+        "save_interval": 10**9,
+        "obs_groups": {"actor": ["policy"], "critic": ["policy"]},
+        "actor": {**model, "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": 1.0}},
+        "critic": model,
+        "algorithm": {"class_name": "PPO", "num_learning_epochs": EPOCHS, "num_mini_batches": MINIBATCHES},
+    }
+    with contextlib.redirect_stdout(io.StringIO()):
+        runner = OnPolicyRunner(env, train_cfg, log_dir=None, device="cpu")
+        runner.learn(WARMUP)
+        return _timed(iterations * STEPS * NUM_ENVS, lambda: runner.learn(iterations))
+
+
+def measure_sb3(iterations: int) -> float:
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.env_util import make_vec_env
+
+    env = make_vec_env(ENV_ID, n_envs=NUM_ENVS, seed=0)
+    model = PPO(
+        "MlpPolicy",
+        env,
+        n_steps=STEPS,
+        batch_size=NUM_ENVS * STEPS // MINIBATCHES,
+        n_epochs=EPOCHS,
+        policy_kwargs={"net_arch": HIDDEN},
+        device="cpu",
+        seed=0,
+    )
+    model.learn(WARMUP * STEPS * NUM_ENVS)
+    steps = iterations * STEPS * NUM_ENVS
+    return _timed(steps, lambda: model.learn(steps, reset_num_timesteps=False))
+
+
+def measure_ftrain(iterations: int, ranks: int) -> float:
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "throughput.json"
+        hook = f"hooks=[{{target: 'ftrain.bench:ThroughputHook', kwargs: {{path: '{out}'}}}}]"
+        args = [
+            str(CONFIG),
+            "--storage",
+            str(Path(tmp) / "run"),
+            f"iterations={WARMUP + iterations}",
+            f"checkpoint.interval={10**6}",
+            "log.console=false",
+            "log.tensorboard=false",
+            "log.csv=false",
+            hook,
+        ]
+        launcher = ["-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={ranks}", "-m", "ftrain"]
+        cmd = [sys.executable, *(launcher if ranks > 1 else ["-m", "ftrain"]), "train", *args]
+        subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
+        return json.loads(out.read_text())["steps_per_s"]
+
+
+CASES = {
+    "raw": measure_raw,
+    "rsl_rl": measure_rsl_rl,
+    "sb3": measure_sb3,
+    "ftrain-1": lambda n: measure_ftrain(n, 1),
+    "ftrain-2": lambda n: measure_ftrain(n, 2),
+}
+
+
+def run_benchmark(iterations: int) -> int:
+    """Run every case in a fresh process, print steps/s and the ratios the targets are stated in."""
+    results = {}
+    for name in CASES:
+        code = f"import torch; torch.set_num_threads(1); from ftrain.bench import CASES; print(CASES[{name!r}]({iterations}))"
+        done = subprocess.run(
+            [sys.executable, "-c", code],
+            capture_output=True,
+            text=True,
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+        )
+        if done.returncode:
+            print(f"{name:>9}: failed\n{done.stderr[-2000:]}")
+            continue
+        results[name] = float(done.stdout.strip().splitlines()[-1])
+        print(f"{name:>9}: {results[name]:>8,.0f} steps/s", flush=True)
+    peers = [results[name] for name in ("rsl_rl", "sb3") if name in results]
+    if peers:
+        best = max(peers)
+        for name in ("ftrain-1", "ftrain-2"):
+            if name in results:
+                print(f"{name} / fastest peer: {results[name] / best:.2f}x")
+    if "raw" in results and "ftrain-1" in results:
+        print(f"ftrain-1 / raw stepping: {results['ftrain-1'] / results['raw']:.2f}x")
+    return 0 if len(results) == len(CASES) else 1
