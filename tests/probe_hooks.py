@@ -1,0 +1,41 @@
+"""Hooks that the training tests load into real runs by import path (``PYTHONPATH=tests``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from ftrain import distributed
+from ftrain.hooks import Hook
+
+
+class RankAgreementHook(Hook):
+    """After every iteration, gathers each rank's learned-state digest; rank 0 appends them to ``path``."""
+
+    def __init__(self, path: str) -> None:
+        self.path = Path(path)
+
+    def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        digests = distributed.all_gather_object(trainer.learned_digest(), trainer.info)
+        if trainer.info.is_main:
+            with self.path.open("a") as file:
+                file.write(json.dumps({"iteration": trainer.iteration, "digests": digests}) + "\n")
+
+
+class CountingHook(Hook):
+    """Counts the iterations it has seen; the count is hook state, so it must survive a resume."""
+
+    def __init__(self, path: str) -> None:
+        self.path = Path(path)
+        self.seen = 0
+
+    def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        self.seen += 1
+        if trainer.info.is_main:
+            self.path.write_text(json.dumps({"iteration": trainer.iteration, "seen": self.seen}))
+
+    def state_dict(self) -> dict:
+        return {"seen": self.seen}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.seen = state["seen"]

@@ -1,0 +1,91 @@
+"""Shared helpers for tests that run real ``ftrain train`` processes (plain or under torchrun)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+SMOKE = str(REPO / "configs" / "smoke.yaml")
+TIMING = ("steps_per_s", "collect_time", "learn_time", "iteration_time")
+"""Metrics that measure wall-clock time: the only ones allowed to differ between identical runs."""
+
+
+def train_command(storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE) -> list[str]:
+    launcher = [sys.executable, "-m", "ftrain"]
+    if ranks > 1:
+        launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={ranks}"]
+        launcher += ["-m", "ftrain"]
+    return [*launcher, "train", config, "--storage", str(storage), "log.console=false", *overrides]
+
+
+def child_env(extra: dict | None = None) -> dict:
+    return {**os.environ, "OMP_NUM_THREADS": "1", **(extra or {})}
+
+
+def run_train(
+    storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE, env: dict | None = None
+) -> subprocess.CompletedProcess:
+    """Run training to completion; fail the test with its output if it does not exit 0."""
+    result = subprocess.run(
+        train_command(storage, *overrides, ranks=ranks, config=config),
+        cwd=REPO,
+        env=child_env(env),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, (
+        f"training failed ({result.returncode}):\n{result.stdout[-3000:]}{result.stderr[-5000:]}"
+    )
+    return result
+
+
+def start_train(
+    storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE, env: dict | None = None
+) -> subprocess.Popen:
+    """Start training in a new session, so a test can kill the whole process tree like a lost machine."""
+    return subprocess.Popen(
+        train_command(storage, *overrides, ranks=ranks, config=config),
+        cwd=REPO,
+        env=child_env(env),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+
+
+def wait_for(predicate, what: str, timeout: float = 120.0, interval: float = 0.005):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def manifests(storage: str | Path) -> dict[int, dict]:
+    """Every committed step's manifest in a local storage, by step."""
+    found = {}
+    for path in Path(storage).glob("checkpoints/step-*/MANIFEST.json"):
+        found[int(path.parent.name.removeprefix("step-"))] = json.loads(path.read_text())
+    return found
+
+
+def final_manifest(storage: str | Path) -> dict:
+    steps = manifests(storage)
+    assert steps, f"no committed checkpoint in {storage}"
+    return steps[max(steps)]
+
+
+def metrics_by_iteration(log_dir: str | Path) -> dict[int, dict[str, str]]:
+    """``metrics.csv`` rows by iteration, the last row winning (a resumed run redoes some iterations)."""
+    with (Path(log_dir) / "metrics.csv").open() as file:
+        rows = {int(row["iteration"]): row for row in csv.DictReader(file)}
+    return {it: {k: v for k, v in row.items() if k not in TIMING} for it, row in rows.items()}
