@@ -148,7 +148,8 @@ def run_benchmark(iterations: int) -> int:
     """Run every case in a fresh process, print steps/s and the ratios the targets are stated in."""
     results = {}
     for name in CASES:
-        code = f"import torch; torch.set_num_threads(1); from ftrain.bench import CASES; print(CASES[{name!r}]({iterations}))"
+        code = "import torch; torch.set_num_threads(1); from ftrain.bench import CASES; "
+        code += f"print(CASES[{name!r}]({iterations}))"
         done = subprocess.run(
             [sys.executable, "-c", code],
             capture_output=True,

@@ -100,7 +100,7 @@ class Checkpointer:
                 url = None
             else:
                 _, step, manifest = checkpoint.resolve_checkpoint_url(resume, self.config.storage.options, self.log)
-                url = resume
+                url = checkpoint.parse_checkpoint_url(resume)[0]
             self._check_compatible(step, manifest)
             # every save needs a fresh directory: abandoned or quarantined steps past the resume point must go
             checkpoint.clear_newer(self.storage, step, log=self.log)

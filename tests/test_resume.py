@@ -4,7 +4,6 @@ same learned state and the same per-iteration metrics as an uninterrupted run.""
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 
@@ -16,6 +15,7 @@ from runs import (
     REPO,
     child_env,
     final_manifest,
+    kill_tree,
     manifests,
     metrics_by_iteration,
     run_train,
@@ -30,9 +30,11 @@ KILLS = [("rollout", 2), ("checkpoint", 4), ("update", 7)]
 """(phase, iteration): SIGKILL the whole process tree once rank 0 is in that phase at or after that iteration."""
 
 
-def kill_during(storage, phase: str, iteration: int, overrides: list[str], ranks: int) -> None:
-    heartbeats = storage.parent / f"{storage.name}-heartbeat"
-    proc = start_train(storage, *overrides, ranks=ranks, env={ENV_DIR: str(heartbeats)})
+def kill_during(
+    storage, phase: str, iteration: int, overrides: list[str], ranks: int, heartbeats=None, env: dict | None = None
+) -> None:
+    heartbeats = heartbeats or storage.parent / f"{storage.name}-heartbeat"
+    proc = start_train(storage, *overrides, ranks=ranks, env={**(env or {}), ENV_DIR: str(heartbeats)})
 
     def in_phase() -> bool:
         beat = read_heartbeats(heartbeats).get(0)
@@ -40,12 +42,11 @@ def kill_during(storage, phase: str, iteration: int, overrides: list[str], ranks
 
     try:
         wait_for(in_phase, f"rank 0 in {phase} at iteration {iteration}", interval=0.001)
-        os.killpg(proc.pid, signal.SIGKILL)
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
+        kill_tree(proc)
     assert proc.returncode == -signal.SIGKILL
+    committed = manifests(storage) if "://" not in str(storage) else {}
+    assert all(step <= iteration + 1 for step in committed), f"killed too late: {sorted(committed)}"
 
 
 @pytest.mark.parametrize(
@@ -61,7 +62,7 @@ def test_killed_anywhere_resumes_bit_for_bit(tmp_path, env_id: str, ranks: int) 
         # a synchronous save keeps the checkpoint phase open for the whole write, so the kill lands inside it
         kill_during(run, phase, iteration, [*overrides, "checkpoint.async_save=false"], ranks)
     result = run_train(run, *overrides, ranks=ranks)
-    assert "resumed from step" in result.stdout
+    assert "resumed from step 6 " in result.stdout or "resumed from step 8 " in result.stdout
 
     assert final_manifest(run)["state_sha256"] == reference["state_sha256"]
     assert metrics_by_iteration(run) == metrics_by_iteration(tmp_path / "reference")
@@ -96,3 +97,50 @@ def test_resume_refuses_other_world_size_and_config(tmp_path) -> None:
     result = run_train(storage, "iterations=4", "algorithm.clip_param=0.1", "allow_config_change=true")
     assert "resumed from step 2" in result.stdout
     assert json.loads((storage / "checkpoints/step-000000004/MANIFEST.json").read_text())["iteration"] == 4
+
+
+def test_two_ranks_on_s3_killed_and_resumed(tmp_path, s3_server, s3_env) -> None:
+    from conftest import create_bucket
+
+    url = f"s3://{create_bucket(s3_server)}/runs/hc"
+    overrides = ["iterations=8", f"log_dir={tmp_path / 'logs'}"]
+    run_train(tmp_path / "reference", "iterations=8", ranks=2)
+    kill_during(url, "update", 5, overrides, ranks=2, heartbeats=tmp_path / "heartbeat", env=s3_env)
+    result = run_train(url, *overrides, ranks=2, env=s3_env)
+    assert "resumed from step 4" in result.stdout
+    assert s3_server["secret"] not in result.stdout + result.stderr
+    assert (tmp_path / "logs" / "config.yaml").exists()
+    manifest = json.loads(_read_s3_manifest(url, 8, s3_env))
+    assert manifest["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
+    assert s3_server["secret"] not in json.dumps(manifest)
+
+
+def _read_s3_manifest(url: str, step: int, env: dict) -> str:
+    from ftrain.storage import Storage
+
+    options = {
+        "endpoint_url": env["AWS_ENDPOINT_URL"],
+        "key": env["AWS_ACCESS_KEY_ID"],
+        "secret": env["AWS_SECRET_ACCESS_KEY"],
+    }
+    return Storage.open(url, options).read(f"checkpoints/step-{step:09d}/MANIFEST.json").decode()
+
+
+def test_failed_saves_are_logged_training_goes_on_and_persistent_failure_stops(tmp_path) -> None:
+    storage = tmp_path / "run"
+    (storage / "checkpoints").mkdir(parents=True)
+    (storage / "checkpoints" / "step-000000004").write_text("a file where the step directory should go")
+    result = run_train(storage, "checkpoint.keep_last=10")
+    assert "checkpoint step 4 failed (1/3), earlier ones intact" in result.stdout
+    assert sorted(manifests(storage)) == [2, 6, 8]
+
+    blocked = tmp_path / "blocked"
+    (blocked / "checkpoints").mkdir(parents=True)
+    for step in (2, 4, 6):
+        (blocked / "checkpoints" / f"step-{step:09d}").write_text("not a directory")
+    failed = subprocess.run(
+        train_command(blocked), cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=300
+    )
+    assert failed.returncode != 0
+    assert "3 checkpoints in a row failed to save" in failed.stderr
+    assert manifests(blocked) == {}

@@ -1,0 +1,336 @@
+"""Checkpoint storage: an fsspec URL (local path, ``file://``, ``s3://``, ``memory://``...), one-object operations.
+
+Nothing is ever renamed (a rename on S3 is a copy + delete, not atomic): a commit is one object written with
+exclusive create. Transient errors (connection, timeout, 5xx, throttling) are retried here with bounded
+exponential backoff; the layers below (s3fs, botocore) are told not to retry so the bound is ours alone.
+Credentials never appear in a message, repr or log line: every text that leaves this module is scrubbed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import logging
+import os
+import re
+import time
+from collections.abc import Callable
+from typing import Any, TypeVar
+from urllib.parse import unquote, urlsplit, urlunsplit
+
+import fsspec
+from botocore.exceptions import BotoCoreError, HTTPClientError, NoCredentialsError
+from botocore.exceptions import ConnectionError as BotoConnectionError
+from fsspec.implementations.local import LocalFileSystem
+from s3fs import S3FileSystem
+
+from ftrain.errors import UserError
+
+log = logging.getLogger(__name__)
+
+T = TypeVar("T")
+
+DEFAULT_RETRIES = 4
+DEFAULT_BASE_DELAY = 0.2
+MAX_DELAY = 5.0
+
+_SECRET_OPTIONS = {
+    "key",
+    "secret",
+    "token",
+    "password",
+    "aws_access_key_id",
+    "aws_secret_access_key",
+    "aws_session_token",
+}
+_SECRET_ENV = ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN")
+_THROTTLING = {"SlowDown", "Throttling", "ThrottlingException", "RequestLimitExceeded", "TooManyRequestsException"}
+_PROTOCOL = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*$")
+
+
+class StorageError(Exception):
+    """A storage operation failed for good (after retrying when the cause looked transient)."""
+
+
+def display_url(url: str) -> str:
+    """``url`` without the credentials a URL may carry (``s3://key:secret@bucket/...`` -> ``s3://bucket/...``)."""
+    parts = urlsplit(url) if "://" in url else None
+    if parts is None or "@" not in parts.netloc:
+        return url
+    return urlunsplit(parts._replace(netloc=parts.netloc.rpartition("@")[2]))
+
+
+def is_transient(exc: BaseException) -> bool:
+    """Worth retrying: the connection failed or timed out, or the server was busy (5xx, 429, throttling)."""
+    if isinstance(exc, (ConnectionError, TimeoutError, asyncio.TimeoutError, BotoConnectionError, HTTPClientError)):
+        return True
+    response = getattr(exc.__cause__, "response", None) or getattr(exc, "response", None)
+    if not isinstance(response, dict):
+        return False
+    status = response.get("ResponseMetadata", {}).get("HTTPStatusCode", 0)
+    return status >= 500 or status == 429 or response.get("Error", {}).get("Code") in _THROTTLING
+
+
+class Storage:
+    """A storage root; every path below it is relative (``checkpoints/step-000000120/MANIFEST.json``)."""
+
+    def __init__(
+        self, fs: fsspec.AbstractFileSystem, root: str, url: str, secrets: list[str], retries: int, base_delay: float
+    ):
+        self.fs = fs
+        self.root = root.rstrip("/")
+        self.url = url
+        """The URL without credentials: safe to print."""
+        self.retries = retries
+        self.base_delay = base_delay
+        self._secrets = secrets
+
+    @classmethod
+    def open(
+        cls,
+        url: str,
+        options: dict | None = None,
+        retries: int = DEFAULT_RETRIES,
+        base_delay: float = DEFAULT_BASE_DELAY,
+    ) -> Storage:
+        """Open the storage at ``url`` with fsspec ``options``; on S3, check the bucket is reachable and exists.
+
+        ``retries`` is how often a transient error is retried (so at most ``retries + 1`` attempts), waiting
+        ``base_delay * 2**n`` seconds (at most ``MAX_DELAY``) before retry ``n + 1``.
+        """
+        if not isinstance(url, str) or not url.strip():
+            raise UserError("storage URL is empty: pass a local path or an fsspec URL such as s3://bucket/prefix")
+        if retries < 0:
+            raise UserError(f"checkpoint.retries={retries} must be 0 or more")
+        options = dict(options or {})
+        secrets = _secret_values(options) + _url_secrets(url) + [os.environ.get(name, "") for name in _SECRET_ENV]
+        protocol = url.split("://", 1)[0] if "://" in url else "file"
+        shown = display_url(url)
+        if not _PROTOCOL.match(protocol):
+            raise UserError(f"storage URL {shown!r} is malformed: use a local path or protocol://location")
+        try:
+            fsspec.get_filesystem_class(protocol)
+        except ValueError:
+            raise UserError(
+                f"storage URL {shown!r}: unknown protocol {protocol!r}; use a local path, s3:// or file://"
+            ) from None
+        except ImportError as exc:
+            raise UserError(f"storage URL {shown!r} needs a package that is not installed: {exc}") from None
+        if protocol in S3FileSystem.protocol:
+            url = _s3_options(url, options)
+        try:
+            fs, root = fsspec.core.url_to_fs(url, **options)
+        except Exception as exc:
+            raise UserError(f"cannot open storage {shown!r}: {_scrub(exc, secrets)}") from None
+        storage = cls(fs, root, shown, secrets, retries, base_delay)
+        if isinstance(fs, S3FileSystem):
+            fs.retries = 1  # s3fs's own retry loop: one attempt, ours does the retrying
+            storage._check_bucket()
+        return storage
+
+    def __repr__(self) -> str:
+        return f"Storage({self.url!r})"
+
+    @property
+    def is_local(self) -> bool:
+        return isinstance(self.fs, LocalFileSystem)
+
+    def write_exclusive(self, rel: str, data: bytes) -> None:
+        """Create ``rel`` holding ``data``; FileExistsError if it exists with other content.
+
+        Local: ``O_EXCL`` + fsync; S3: one PUT with ``If-None-Match: *``; memory and other protocols: fsspec's
+        ``mode="create"`` (an exists check, then a write: fine for one process). An object that already holds
+        exactly ``data`` counts as written: a retried PUT (ours or the HTTP client's) whose first attempt landed
+        finds its own bytes.
+        """
+        path = self._path(rel)
+
+        def create() -> None:
+            try:
+                if self.is_local:
+                    _write_local(path, data, os.O_EXCL)
+                else:
+                    self.fs.pipe_file(path, data, mode="create")
+            except FileExistsError:
+                if self.fs.cat_file(path) != data:
+                    raise
+
+        self._call("create", rel, create)
+
+    def write_replace(self, rel: str, data: bytes) -> None:
+        """Create or overwrite ``rel`` (not atomic: for markers and other objects that are not a commit)."""
+        path = self._path(rel)
+        if self.is_local:
+            self._call("write", rel, _write_local, path, data, os.O_TRUNC)
+        else:
+            self._call("write", rel, self.fs.pipe_file, path, data)
+
+    def read(self, rel: str) -> bytes:
+        return self._call("read", rel, self.fs.cat_file, self._path(rel))
+
+    def exists(self, rel: str) -> bool:
+        return self._call("check", rel, self.fs.exists, self._path(rel))
+
+    def size(self, rel: str) -> int:
+        return self._call("stat", rel, self.fs.size, self._path(rel))
+
+    def list_dirs(self, rel: str) -> list[str]:
+        """Sorted names of the directories directly under ``rel`` (none if ``rel`` does not exist)."""
+        return sorted(name for name, entry in self._list(rel).items() if entry["type"] == "directory")
+
+    def list_files(self, rel: str) -> dict[str, int]:
+        """Name -> size of the files directly under ``rel`` (one listing, no per-file requests)."""
+        return {name: int(entry["size"]) for name, entry in self._list(rel).items() if entry["type"] == "file"}
+
+    def delete(self, rel: str) -> None:
+        """Delete one object if it exists."""
+        with contextlib.suppress(FileNotFoundError):
+            self._call("delete", rel, self.fs.rm_file, self._path(rel))
+
+    def delete_tree(self, rel: str) -> None:
+        """Delete ``rel`` and everything below it, if it exists."""
+        with contextlib.suppress(FileNotFoundError):
+            self._call("delete", rel, self.fs.rm, self._path(rel), recursive=True)
+
+    def where(self, rel: str = "") -> str:
+        """The printable URL of ``rel``."""
+        return f"{self.url.rstrip('/')}/{rel}" if rel else self.url
+
+    def _path(self, rel: str) -> str:
+        return f"{self.root}/{rel.strip('/')}" if rel else self.root
+
+    def _list(self, rel: str) -> dict[str, dict]:
+        try:
+            entries = self._call("list", rel, self.fs.ls, self._path(rel), detail=True)
+        except FileNotFoundError:
+            return {}
+        prefix = self._path(rel).rstrip("/") + "/"
+        return {
+            e["name"].rstrip("/").rpartition("/")[2]: e for e in entries if e["name"].rstrip("/").startswith(prefix)
+        }
+
+    def _call(self, what: str, rel: str, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+        """``fn(*args, **kwargs)`` with retries; failures become StorageError or UserError with scrubbed text."""
+        try:
+            return self._retry(what, rel, fn, *args, **kwargs)
+        except FileNotFoundError:
+            raise FileNotFoundError(errno.ENOENT, "does not exist", self.where(rel)) from None
+        except FileExistsError:
+            raise FileExistsError(errno.EEXIST, "already exists", self.where(rel)) from None
+        except (PermissionError, NoCredentialsError) as exc:
+            raise self._access_error(exc) from None
+        except (OSError, BotoCoreError, asyncio.TimeoutError) as exc:
+            tries = f" after {self.retries + 1} attempts" if is_transient(exc) else ""
+            raise StorageError(f"{what} {self.where(rel)} failed{tries}: {self._scrub(exc)}") from None
+
+    def _retry(self, what: str, rel: str, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
+        attempt = 0
+        while True:
+            try:
+                return fn(*args, **kwargs)
+            except Exception as exc:
+                if attempt == self.retries or not is_transient(exc):
+                    raise
+                delay = min(self.base_delay * 2**attempt, MAX_DELAY)
+                attempt += 1
+                where, reason = self.where(rel), self._scrub(exc)
+                log.warning("%s %s: %s; retry %d/%d in %.2fs", what, where, reason, attempt, self.retries, delay)
+                time.sleep(delay)
+
+    def _check_bucket(self) -> None:
+        bucket = self.root.split("/", 1)[0]
+        if not bucket:
+            raise UserError(f"storage URL {self.url!r} names no bucket: use s3://bucket/prefix")
+        try:
+            self._retry("check", "", self.fs.call_s3, "head_bucket", Bucket=bucket)
+        except FileNotFoundError:
+            raise UserError(
+                f"S3 bucket {bucket!r} does not exist at {self._endpoint()}: create it or fix the URL"
+            ) from None
+        except (PermissionError, NoCredentialsError) as exc:
+            raise self._access_error(exc) from None
+        except Exception as exc:
+            if is_transient(exc):
+                raise UserError(
+                    f"cannot reach the S3 endpoint {self._endpoint()} for {self.url} "
+                    f"after {self.retries + 1} attempts: check AWS_ENDPOINT_URL or storage.options.endpoint_url "
+                    "and that the server is up"
+                ) from None
+            raise UserError(f"cannot open storage {self.url}: {self._scrub(exc)}") from None
+
+    def _endpoint(self) -> str:
+        return display_url(self.fs.s3.meta.endpoint_url)
+
+    def _access_error(self, exc: Exception) -> UserError:
+        if isinstance(exc, NoCredentialsError):
+            return UserError(
+                f"no credentials for {self.url}: set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY "
+                "or storage.options key and secret"
+            )
+        return UserError(f"access denied to {self.url} ({self._scrub(exc)}): check the credentials and permissions")
+
+    def _scrub(self, exc: BaseException) -> str:
+        return _scrub(exc, self._secrets)
+
+
+def _scrub(exc: BaseException, secrets: list[str]) -> str:
+    """One line naming the exception, with every secret blanked out."""
+    text = " ".join(f"{type(exc).__name__}: {exc}".split())
+    for secret in sorted({s for s in secrets if s}, key=len, reverse=True):
+        text = text.replace(secret, "***")
+    return text
+
+
+def _secret_values(options: dict) -> list[str]:
+    """Credential options, and the ``user:password`` part of any URL among the options (e.g. an endpoint)."""
+    values = []
+    for name, value in options.items():
+        if isinstance(value, dict):
+            values += _secret_values(value)
+        elif isinstance(value, str) and name in _SECRET_OPTIONS:
+            values.append(value)
+        elif isinstance(value, str) and "://" in value:
+            values += _url_secrets(value)
+    return values
+
+
+def _url_secrets(url: str) -> list[str]:
+    userinfo = urlsplit(url).netloc.rpartition("@")[0] if "://" in url else ""
+    return [userinfo, *(unquote(part) for part in userinfo.split(":"))] if userinfo else []
+
+
+def _s3_options(url: str, options: dict) -> str:
+    """Move ``key:secret@`` out of an S3 URL into ``options``; make s3fs list afresh and never retry on its own."""
+    parts = urlsplit(url)
+    if "@" in parts.netloc:
+        options.setdefault("key", unquote(parts.username or ""))
+        options.setdefault("secret", unquote(parts.password or ""))
+        url = display_url(url)
+    options.setdefault("use_listings_cache", False)
+    options.setdefault("skip_instance_cache", True)
+    config = dict(options.get("config_kwargs") or {})
+    config.setdefault("retries", {"total_max_attempts": 1})
+    options["config_kwargs"] = config
+    return url
+
+
+def _write_local(path: str, data: bytes, flag: int) -> None:
+    """Write and fsync a local file (and its directory); a failed exclusive create leaves no partial file."""
+    directory = os.path.dirname(path)
+    os.makedirs(directory, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | flag, 0o644)
+    try:
+        with os.fdopen(fd, "wb") as file:
+            file.write(data)
+            file.flush()
+            os.fsync(file.fileno())
+    except BaseException:
+        if flag == os.O_EXCL:
+            os.unlink(path)
+        raise
+    dir_fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)

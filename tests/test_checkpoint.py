@@ -1,0 +1,279 @@
+import json
+import pathlib
+
+import pytest
+import torch
+
+from ftrain import checkpoint as ck
+from ftrain.checkpoint import CorruptCheckpoint, StepInfo
+from ftrain.errors import UserError
+from ftrain.storage import Storage
+
+
+def make_step(storage: Storage, step: int, world_size: int = 2, metrics: dict | None = None) -> dict:
+    """Write and commit a small real checkpoint: common.pt and one shard per rank."""
+    common = {"policy": {"weight": torch.full((2, 3), float(step))}, "iteration": step, "lr": 1e-3}
+    files = {"common.pt": ck.write_file(storage, step, "common.pt", ck.encode(common))}
+    for rank in range(world_size):
+        shard = {"rank": rank, "rng": torch.arange(4) + rank, "env": [1.0, 2.0]}
+        files[f"rank-{rank:05d}.pt"] = ck.write_file(storage, step, f"rank-{rank:05d}.pt", ck.encode(shard))
+    meta = {"iteration": step, "world_size": world_size, "metrics": metrics or {"mean_return": float(step)}}
+    return ck.commit(storage, step, files, meta)
+
+
+def path(step: int, name: str) -> str:
+    return f"{ck.step_dir(step)}/{name}"
+
+
+@pytest.fixture
+def storage(tmp_path) -> Storage:
+    return Storage.open(str(tmp_path / "run"))
+
+
+def test_write_commit_verify_read_round_trip(storage_url):
+    storage = Storage.open(*storage_url)
+    manifest = make_step(storage, 120)
+    assert manifest["format_version"] == ck.FORMAT_VERSION and manifest["step"] == 120
+    assert manifest["world_size"] == 2 and manifest["metrics"] == {"mean_return": 120.0}
+    assert set(manifest["files"]) == {"common.pt", "rank-00000.pt", "rank-00001.pt"}
+
+    raw = storage.read(path(120, ck.MANIFEST)).decode()
+    assert json.loads(raw) == manifest
+    assert '\n  "step": 120,' in raw  # indented: readable by a human
+
+    result = ck.verify(storage, 120)
+    assert result.ok and result.manifest == manifest
+    common = ck.read_verified(storage, 120, "common.pt", manifest)
+    assert torch.equal(common["policy"]["weight"], torch.full((2, 3), 120.0))
+    assert ck.read_verified(storage, 120, "rank-00001.pt", manifest)["rank"] == 1
+    [info] = ck.scan(storage)
+    assert (info.step, info.status, info.metrics) == (120, ck.VERIFIED, {"mean_return": 120.0})
+    assert info.size == sum(storage.list_files(ck.step_dir(120)).values())
+
+
+def test_a_committed_step_cannot_be_written_again(storage_url):
+    storage = Storage.open(*storage_url)
+    manifest = make_step(storage, 10)
+    with pytest.raises(FileExistsError):
+        ck.write_file(storage, 10, "rank-00000.pt", ck.encode({"other": 1}))
+    entries = {name: ck.FileEntry(**entry) for name, entry in manifest["files"].items()}
+    with pytest.raises(FileExistsError):
+        ck.commit(storage, 10, entries, {"metrics": {"mean_return": -1.0}})
+    assert ck.read_manifest(storage, 10) == manifest
+
+
+def test_commit_refuses_a_file_that_is_not_there(storage):
+    entry = ck.write_file(storage, 5, "common.pt", b"data")
+    with pytest.raises(CorruptCheckpoint, match=r"rank-00000.pt is missing"):
+        ck.commit(storage, 5, {"common.pt": entry, "rank-00000.pt": entry}, {})
+    with pytest.raises(ValueError, match="step"):
+        ck.commit(storage, 5, {"common.pt": entry}, {"step": 6})
+    assert not storage.exists(path(5, ck.MANIFEST))
+
+
+def flip_byte(storage: Storage, step: int) -> None:
+    data = bytearray(storage.read(path(step, "rank-00001.pt")))
+    data[len(data) // 2] ^= 0xFF
+    storage.write_replace(path(step, "rank-00001.pt"), bytes(data))
+
+
+def truncate(storage: Storage, step: int) -> None:
+    storage.write_replace(path(step, "rank-00001.pt"), storage.read(path(step, "rank-00001.pt"))[:-10])
+
+
+def edit_manifest(storage: Storage, step: int, edit) -> None:
+    manifest = json.loads(storage.read(path(step, ck.MANIFEST)))
+    edit(manifest)
+    storage.write_replace(path(step, ck.MANIFEST), json.dumps(manifest).encode())
+
+
+CORRUPTIONS = {
+    "flipped byte": (flip_byte, "rank-00001.pt: sha256 mismatch"),
+    "truncated shard": (truncate, "rank-00001.pt: size mismatch"),
+    "missing shard": (lambda s, step: s.delete(path(step, "rank-00001.pt")), "rank-00001.pt: missing"),
+    "missing manifest": (lambda s, step: s.delete(path(step, ck.MANIFEST)), "MANIFEST.json: missing"),
+    "garbage manifest": (
+        lambda s, step: s.write_replace(path(step, ck.MANIFEST), b"\x00{garbage"),
+        "MANIFEST.json: unusable: not valid JSON",
+    ),
+    "manifest size disagrees": (
+        lambda s, step: edit_manifest(s, step, lambda m: m["files"]["rank-00001.pt"].update(size=1)),
+        "rank-00001.pt: size mismatch",
+    ),
+    "manifest of another step": (
+        lambda s, step: edit_manifest(s, step, lambda m: m.update(step=step + 1)),
+        "MANIFEST.json: unusable: wrong step",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", CORRUPTIONS)
+def test_damage_is_never_verified_and_the_reason_is_named(storage_url, case):
+    storage = Storage.open(*storage_url)
+    manifest = make_step(storage, 30)
+    damage, reason = CORRUPTIONS[case]
+    damage(storage, 30)
+    result = ck.verify(storage, 30)
+    assert not result.ok
+    assert any(str(problem).startswith(reason) for problem in result.problems), result.problems
+    [info] = ck.scan(storage, full=True)
+    assert info.status == (ck.INCOMPLETE if case == "missing manifest" else ck.CORRUPT)
+    if case in ("flipped byte", "truncated shard", "missing shard"):
+        with pytest.raises(CorruptCheckpoint, match=r"rank-00001.pt"):
+            ck.read_verified(storage, 30, "rank-00001.pt", manifest)
+
+
+def test_the_cheap_scan_checks_sizes_the_full_one_digests(storage):
+    make_step(storage, 10)
+    make_step(storage, 20)
+    flip_byte(storage, 10)
+    truncate(storage, 20)
+    assert [(i.step, i.status) for i in ck.scan(storage)] == [(20, ck.CORRUPT), (10, ck.VERIFIED)]
+    assert [(i.step, i.status) for i in ck.scan(storage, full=True)] == [(20, ck.CORRUPT), (10, ck.CORRUPT)]
+
+
+class Exploit:
+    def __init__(self, marker: pathlib.Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return pathlib.Path.touch, (self.marker,)
+
+
+def test_decode_refuses_pickled_code(tmp_path):
+    marker = tmp_path / "pwned"
+    with pytest.raises(CorruptCheckpoint, match=r"not loadable as plain data: .*Unsupported global"):
+        ck.decode(ck.encode({"payload": Exploit(marker)}))
+    assert not marker.exists()
+    with pytest.raises(CorruptCheckpoint, match="not loadable"):
+        ck.decode(b"not a checkpoint")
+    with pytest.raises(CorruptCheckpoint, match="not a dict"):
+        ck.decode(ck.encode([1, 2]))  # type: ignore[arg-type]
+
+
+def test_select_resume_falls_back_to_the_newest_verified_and_quarantines(storage_url):
+    storage = Storage.open(*storage_url)
+    for step in (10, 20, 30):
+        make_step(storage, step)
+    ck.write_file(storage, 40, "common.pt", b"a save that never committed")
+    flip_byte(storage, 30)
+    lines: list[str] = []
+
+    step, manifest = ck.select_resume(storage, log=lines.append)
+
+    assert (step, manifest) == (20, ck.read_manifest(storage, 20))
+    assert lines[0].startswith("skipping checkpoint step 40: incomplete (MANIFEST.json: missing")
+    assert lines[1].startswith("skipping checkpoint step 30: corrupt, quarantined (rank-00001.pt: sha256 mismatch")
+    statuses = {info.step: info.status for info in ck.scan(storage)}
+    assert statuses == {40: ck.INCOMPLETE, 30: ck.QUARANTINE, 20: ck.VERIFIED, 10: ck.VERIFIED}
+    assert storage.exists(path(30, "rank-00001.pt"))  # quarantine keeps the data
+
+    lines.clear()
+    assert ck.select_resume(storage, log=lines.append)[0] == 20
+    assert lines[1].startswith("skipping checkpoint step 30: quarantined (QUARANTINED.json: rank-00001.pt: sha256")
+
+
+def test_select_resume_without_a_verified_step(storage):
+    assert ck.select_resume(storage, log=print) is None
+    ck.write_file(storage, 10, "common.pt", b"x")
+    assert ck.select_resume(storage, log=lambda line: None) is None
+
+
+def test_resolve_checkpoint_url(tmp_path):
+    root = str(tmp_path / "run")
+    storage = Storage.open(root)
+    for step in (10, 20, 30):
+        make_step(storage, step)
+    flip_byte(storage, 30)
+
+    _, step, manifest = ck.resolve_checkpoint_url(f"{root}/checkpoints/step-000000010/")
+    assert (step, manifest["step"]) == (10, 10)
+    _, step, _ = ck.resolve_checkpoint_url(root, log=lambda line: None)
+    assert step == 20
+    assert not storage.exists(path(30, ck.QUARANTINED))  # resolving never writes
+    with pytest.raises(UserError, match=r"step-000000030 does not verify .*sha256 mismatch"):
+        ck.resolve_checkpoint_url(f"{root}/checkpoints/step-000000030")
+    with pytest.raises(UserError, match="no verified checkpoint under"):
+        ck.resolve_checkpoint_url(str(tmp_path / "empty"))
+
+
+@pytest.mark.parametrize(
+    ("url", "expected"),
+    [
+        ("runs/hc/checkpoints/step-000000120", ("runs/hc", 120)),
+        ("s3://bucket/run/checkpoints/step-000000120/", ("s3://bucket/run", 120)),
+        ("checkpoints/step-7", (".", 7)),
+        ("/checkpoints/step-7", ("/", 7)),
+        ("s3://bucket/run", ("s3://bucket/run", None)),
+        ("s3://bucket/mycheckpoints/step-1", ("s3://bucket/mycheckpoints/step-1", None)),
+    ],
+)
+def test_parse_checkpoint_url(url, expected):
+    assert ck.parse_checkpoint_url(url) == expected
+
+
+def infos(verified=(), incomplete=(), corrupt=(), quarantined=(), metrics=None) -> list[StepInfo]:
+    metrics = metrics or {}
+    steps = [StepInfo(s, ck.VERIFIED, manifest={"metrics": {"mean_return": metrics.get(s, 0.0)}}) for s in verified]
+    steps += [StepInfo(s, ck.INCOMPLETE) for s in incomplete]
+    steps += [StepInfo(s, ck.CORRUPT) for s in corrupt] + [StepInfo(s, ck.QUARANTINE) for s in quarantined]
+    return steps
+
+
+SIX = (10, 20, 30, 40, 50, 60)
+
+
+@pytest.mark.parametrize(
+    ("steps", "rules", "deleted"),
+    [
+        (infos(SIX), {"keep_last": 3}, [30, 20, 10]),
+        (infos(SIX, metrics={20: 9.0, 40: 5.0}), {"keep_last": 1, "keep_best": 2}, [50, 30, 10]),
+        (infos(SIX), {"keep_last": 1, "keep_every": 20}, [50, 30, 10]),
+        (infos(SIX), {"keep_last": 2, "pinned": [10]}, [40, 30, 20]),
+        (infos(SIX, metrics={10: 99.0}), {"keep_last": 0, "keep_best": 1}, [50, 40, 30, 20]),  # never the newest
+        (infos((10, 20), incomplete=(5, 15, 25)), {"keep_last": 1}, [15, 10, 5]),  # 25 may be a save in flight
+        (infos((10, 20), corrupt=(15,), quarantined=(25, 5)), {"keep_last": 1}, [10]),
+        (infos((10, 20), corrupt=(15,), quarantined=(25, 5)), {"keep_last": 1, "drop_bad": True}, [25, 15, 10, 5]),
+        (infos(incomplete=(5, 15), quarantined=(25,)), {"keep_last": 1}, []),  # nothing committed: touch nothing
+        (infos(SIX, metrics={10: float("nan")}), {"keep_last": 1, "keep_best": 1}, [50, 40, 30, 20, 10]),
+    ],
+)
+def test_retention_plan(steps, rules, deleted):
+    assert ck.retention_plan(steps, **rules) == deleted
+
+
+class RecordingStorage(Storage):
+    """Real local storage that also records the order of deletes."""
+
+    deleted: list[str]
+
+    def delete(self, rel: str) -> None:
+        self.deleted.append(rel.rpartition("/")[2])
+        super().delete(rel)
+
+
+def test_delete_step_removes_the_manifest_first_then_the_rest(tmp_path):
+    storage = RecordingStorage.open(str(tmp_path / "run"))
+    storage.deleted = []
+    make_step(storage, 10)
+    make_step(storage, 20)
+    ck.delete_step(storage, 10)
+    assert storage.deleted[0] == ck.MANIFEST
+    assert sorted(storage.deleted[1:]) == ["common.pt", "rank-00000.pt", "rank-00001.pt"]
+    assert storage.list_dirs(ck.CHECKPOINTS) == ["step-000000020"]
+    assert ck.verify(storage, 20).ok
+
+
+def test_clear_newer_makes_room_to_save_the_same_steps_again(storage):
+    make_step(storage, 10)
+    ck.write_file(storage, 20, "rank-00000.pt", b"killed mid-save")
+    make_step(storage, 30)
+    ck.quarantine(storage, 30, "test")
+    lines: list[str] = []
+    assert ck.clear_newer(storage, 10, log=lines.append) == [30, 20]
+    assert len(lines) == 2 and "step 30 (quarantined)" in lines[0]
+    assert [i.step for i in ck.scan(storage)] == [10]
+    make_step(storage, 20)  # the resumed run saves step 20 into a fresh directory
+    with pytest.raises(UserError, match="verified checkpoint step 20"):
+        ck.clear_newer(storage, 10)
+    assert ck.verify(storage, 20).ok
