@@ -92,6 +92,23 @@ class LogConfig:
 
 
 @dataclass
+class EvalConfig:
+    every: int = 0
+    """Evaluate every N iterations on rank 0 (0: never); the mean return becomes metric ``eval_return``."""
+    episodes: int = 5
+    seed: int = 10_000
+    """Evaluation episodes are seeded ``seed``, ``seed + 1``, ...: the same episodes every time."""
+
+
+@dataclass
+class SnapshotConfig:
+    every: int = 0
+    """Save a deployable policy to ``<storage>/policies/step-N/`` every N iterations (0: never)."""
+    keep_last: int = 5
+    formats: list[str] = field(default_factory=lambda: ["torchscript", "onnx"])
+
+
+@dataclass
 class HookConfig:
     target: str = ""
     """Import path ``package.module:Class``."""
@@ -124,6 +141,8 @@ class Config:
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     storage: StorageConfig = field(default_factory=StorageConfig)
     log: LogConfig = field(default_factory=LogConfig)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    snapshots: SnapshotConfig = field(default_factory=SnapshotConfig)
     hooks: list[HookConfig] = field(default_factory=list)
 
     def to_dict(self) -> dict:
@@ -134,7 +153,7 @@ class Config:
         data = self.to_dict()
         for key in ("name", "iterations", "resume", "allow_config_change", "log_dir", "dist_timeout"):
             data.pop(key)
-        for key in ("checkpoint", "storage", "log", "hooks"):
+        for key in ("checkpoint", "storage", "log", "eval", "snapshots", "hooks"):
             data.pop(key)
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
 

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ftrain.config import HookConfig
+from ftrain.config import Config
 from ftrain.errors import UserError
 
 if TYPE_CHECKING:
@@ -158,17 +158,27 @@ class CsvHook(Hook):
             self.file.close()
 
 
-def build_hooks(configs: list[HookConfig], console: bool, tensorboard: bool, csv_metrics: bool) -> Hooks:
+def build_hooks(config: Config) -> Hooks:
+    """Built-in hooks in the order their outputs feed each other (evaluation adds ``eval_return`` to the metrics
+    that the logging hooks then write), then the user's hooks from the config."""
     hooks: list[Hook] = []
-    if console:
+    if config.eval.every:
+        from ftrain.evaluation import EvalHook
+
+        hooks.append(EvalHook(config.eval))
+    if config.log.console:
         hooks.append(ConsoleHook())
-    if tensorboard:
+    if config.log.tensorboard:
         hooks.append(TensorBoardHook())
-    if csv_metrics:
+    if config.log.csv:
         hooks.append(CsvHook())
-    for config in configs:
-        hook = load_hook(config.target, config.kwargs)
-        hook.every = config.every
+    if config.snapshots.every:
+        from ftrain.snapshots import PolicySnapshotHook
+
+        hooks.append(PolicySnapshotHook(config.snapshots))
+    for hook_config in config.hooks:
+        hook = load_hook(hook_config.target, hook_config.kwargs)
+        hook.every = hook_config.every
         hooks.append(hook)
     return Hooks(hooks)
 

@@ -37,7 +37,7 @@ class Trainer:
         self.env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs)
         self.alg = build_ppo(config, self.env, info)
         distributed.seed_all(seed)  # from here on, each rank samples its own actions and minibatches
-        self.hooks = build_hooks(config.hooks, config.log.console, config.log.tensorboard, config.log.csv)
+        self.hooks = build_hooks(config)
         self.iteration = 0
         self.env_steps = 0
         self.episodes: collections.deque[tuple[float, int]] = collections.deque(maxlen=EPISODE_WINDOW)
