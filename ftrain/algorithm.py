@@ -1,9 +1,16 @@
-"""rsl-rl's PPO built from an ftrain config, with its data-parallel update using one collective per minibatch.
+"""rsl-rl's algorithms built from an ftrain config; PPO with cheaper synchronisation and less per-step overhead.
 
 rsl-rl's own multi-process update issues three collectives per minibatch (gradient all-reduce, KL all-reduce,
-learning-rate broadcast). :class:`FusedPPO` packs the KL into the gradient buffer and lets every rank apply the
-same adaptive learning-rate rule to the same global KL, which is what rank 0 would have broadcast: the update is
-mathematically the same synchronous data-parallel PPO with a third of the round trips.
+learning-rate broadcast) and three more per observation normalizer per iteration. :class:`FusedPPO` keeps the
+same synchronous data-parallel PPO and changes only how it communicates:
+
+- the KL rides in the gradient buffer, and every rank applies the adaptive learning-rate rule to the same global
+  KL, which is what rank 0 would have broadcast: one collective per minibatch;
+- on one machine that collective goes through shared memory (:mod:`ftrain.shm_allreduce`), not loopback TCP;
+- actor and critic normalize the same observations, so their statistics are reduced once, in two collectives.
+
+Its ``act`` computes what rsl-rl's does, on the one observation group ftrain's environments have, without the
+TensorDict round trips; Adam runs as one fused kernel.
 """
 
 from __future__ import annotations
@@ -12,20 +19,44 @@ import hashlib
 
 import torch
 import torch.distributed as dist
-from rsl_rl.algorithms import PPO
+from rsl_rl.algorithms import PPO, Distillation
 from rsl_rl.models import MLPModel
 from rsl_rl.storage import RolloutStorage
+from tensordict import TensorDict
 from torch import nn
 
 from ftrain.config import Config
 from ftrain.distributed import RankInfo
 from ftrain.envs import OBS_GROUP, MujocoVecEnv
+from ftrain.errors import UserError
+from ftrain.shm_allreduce import SharedMemoryAllReduce, same_host
 
 OBS_GROUPS = {"actor": [OBS_GROUP], "critic": [OBS_GROUP]}
 
 
 class FusedPPO(PPO):
-    """rsl-rl PPO (MLP policies) whose update averages gradients and KL in a single all-reduce per minibatch."""
+    """rsl-rl PPO (MLP policies) with one all-reduce per minibatch, over shared memory where ranks share a host."""
+
+    def __init__(self, *args, reducer: SharedMemoryAllReduce | None = None, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.reducer = reducer
+        params = [*self.actor.parameters(), *self.critic.parameters()]
+        self.optimizer = torch.optim.Adam(params, lr=self.learning_rate, fused=True)
+
+    def act(self, obs: TensorDict) -> torch.Tensor:
+        x = obs[OBS_GROUP]
+        actor, critic = self._raw_actor, self._raw_critic
+        distribution = actor.distribution
+        distribution.update(actor.mlp(actor.obs_normalizer(x)))
+        actions = distribution.sample()
+        transition = self.transition
+        transition.hidden_states = (None, None)
+        transition.actions = actions
+        transition.values = critic.mlp(critic.obs_normalizer(x))
+        transition.actions_log_prob = distribution.log_prob(actions)
+        transition.distribution_params = distribution.params
+        transition.observations = obs
+        return actions
 
     def update(self) -> dict[str, float]:
         sums = {"value": 0.0, "surrogate": 0.0, "entropy": 0.0}
@@ -72,9 +103,7 @@ class FusedPPO(PPO):
             sums["surrogate"] += surrogate_loss.item()
             sums["entropy"] += entropy.mean().item()
 
-        obs = self.storage.observations.flatten(0, 1)
-        self.actor.update_normalization(obs)
-        self.critic.update_normalization(obs)
+        self._update_normalizers(self.storage.observations[OBS_GROUP].flatten(0, 1))
         self.storage.clear()
         num_updates = self.num_learning_epochs * self.num_mini_batches
         return {key: value / num_updates for key, value in sums.items()}
@@ -83,14 +112,48 @@ class FusedPPO(PPO):
         """Average every gradient (and the KL, riding in the same buffer) over all ranks, in place."""
         grads = [p.grad.view(-1) for p in params if p.grad is not None]
         extra = [kl_mean.view(1).to(grads[0].dtype)] if kl_mean is not None else []
-        packed = torch.cat(grads + extra)
-        dist.all_reduce(packed)
-        packed /= self.gpu_world_size
+        packed = self._mean_over_ranks(torch.cat(grads + extra))
         offset = 0
         for grad in grads:
             grad.copy_(packed[offset : offset + grad.numel()])
             offset += grad.numel()
         return packed[offset] if kl_mean is not None else None
+
+    def _mean_over_ranks(self, tensor: torch.Tensor) -> torch.Tensor:
+        if self.reducer is not None:
+            return self.reducer.all_reduce_(tensor, average=True)
+        dist.all_reduce(tensor)
+        return tensor.div_(self.gpu_world_size)
+
+    def _update_normalizers(self, obs: torch.Tensor) -> None:
+        """rsl-rl's ``EmpiricalNormalization.update`` for actor and critic at once, from global batch moments.
+
+        Alone, each normalizer computes the moments itself; across ranks it would all-reduce three times, and
+        twice over. Here the global mean and variance are reduced once (two rounds, as rsl-rl's formula needs the
+        global mean before the variance around it) and applied to both with rsl-rl's update rule.
+        """
+        normalizers = [m.obs_normalizer for m in (self.actor, self.critic) if m.obs_normalization]
+        if not normalizers or not normalizers[0].training:
+            return
+        if not self.is_multi_gpu:
+            for normalizer in normalizers:
+                normalizer.update(obs)
+            return
+        local_count = obs.shape[0]
+        local_mean = obs.mean(dim=0, keepdim=True)
+        local_var = obs.var(dim=0, unbiased=False, keepdim=True)
+        count = round(self._mean_over_ranks(torch.tensor([float(local_count)])).item() * self.gpu_world_size)
+        mean = self._mean_over_ranks(local_mean * local_count) * self.gpu_world_size / count
+        var_sum = local_count * (local_var + (local_mean - mean).square())
+        var = self._mean_over_ranks(var_sum) * self.gpu_world_size / count
+        count_x = torch.tensor(count, dtype=torch.long)
+        for normalizer in normalizers:
+            normalizer.count += count_x
+            rate = count_x / normalizer.count
+            delta_mean = mean - normalizer._mean
+            normalizer._mean += rate * delta_mean
+            normalizer._var += rate * (var - normalizer._var + delta_mean * (mean - normalizer._mean))
+            normalizer._std = torch.sqrt(normalizer._var)
 
     def _adapt_learning_rate(self, kl_mean: torch.Tensor) -> None:
         """rsl-rl's adaptive schedule; every rank computes it from the same global KL, so no broadcast is needed."""
@@ -124,6 +187,10 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo) -> FusedPPO:
     critic = MLPModel(obs, OBS_GROUPS, "critic", 1, **policy_kwargs(config))
     storage = RolloutStorage("rl", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
     a = config.algorithm
+    reducer = None
+    if same_host(info):
+        capacity = sum(p.numel() for model in (actor, critic) for p in model.parameters()) + 1
+        reducer = SharedMemoryAllReduce(info, capacity, config.dist_timeout)
     return FusedPPO(
         actor,
         critic,
@@ -142,15 +209,60 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo) -> FusedPPO:
         desired_kl=a.desired_kl,
         normalize_advantage_per_mini_batch=a.normalize_advantage_per_mini_batch,
         multi_gpu_cfg=info.rsl_rl_cfg(),
+        reducer=reducer,
     )
 
 
-def learned_state(alg: PPO) -> dict:
+def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Distillation:
+    """rsl-rl's Distillation: a student like a PPO actor learns to imitate the teacher loaded from
+    ``config.teacher`` (any ftrain checkpoint URL, verified by its manifest; architecture from its own config)."""
+    from ftrain.policy import load_policy
+
+    teacher = load_policy(config.teacher, config.storage.options)
+    _check_teacher_fits(config, env, teacher)
+    obs = env.get_observations()
+    student = build_actor(config, obs, env.num_actions, obs_set="student")
+    storage = RolloutStorage("distillation", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
+    a = config.algorithm
+    alg = Distillation(
+        student,
+        teacher.actor,
+        storage,
+        num_learning_epochs=a.num_learning_epochs,
+        gradient_length=a.gradient_length,
+        learning_rate=a.learning_rate,
+        max_grad_norm=a.max_grad_norm,
+        loss_type=a.loss_type,
+        multi_gpu_cfg=info.rsl_rl_cfg(),
+    )
+    alg.teacher_loaded = True
+    alg.teacher_identity = {"source": teacher.source, "step": teacher.step, "digest": teacher.digest}
+    return alg
+
+
+def _check_teacher_fits(config: Config, env: MujocoVecEnv, teacher) -> None:
+    teacher_obs = teacher.actor.obs_dim
+    teacher_actions = teacher.actor.distribution.output_dim if teacher.actor.distribution else None
+    if teacher.config.env.id != config.env.id or teacher_obs != env.num_obs or teacher_actions != env.num_actions:
+        raise UserError(
+            f"teacher {teacher.source} was trained on {teacher.config.env.id} (observations {teacher_obs}, actions "
+            f"{teacher_actions}) but the student trains on {config.env.id} (observations {env.num_obs}, actions "
+            f"{env.num_actions}): pick a teacher trained on {config.env.id}"
+        )
+
+
+def build_algorithm(config: Config, env: MujocoVecEnv, info: RankInfo) -> PPO | Distillation:
+    if config.algorithm.class_name == "Distillation":
+        return build_distillation(config, env, info)
+    return build_ppo(config, env, info)
+
+
+def learned_state(alg: PPO | Distillation) -> dict:
     """What training has learned: models (with normalizers), optimizer, adaptive learning rate."""
     return {**alg.save(), "learning_rate": alg.learning_rate}
 
 
-def load_learned_state(alg: PPO, state: dict) -> None:
+def load_learned_state(alg: PPO | Distillation, state: dict) -> None:
     alg.load(state, load_cfg=None, strict=True)
     alg.learning_rate = state["learning_rate"]
     for group in alg.optimizer.param_groups:

@@ -162,6 +162,7 @@ class Checkpointer:
             "versions": _versions(),
             "metrics": {key: value for key, value in trainer.metrics.items() if not key.endswith("_time")},
             "state_sha256": trainer.learned_digest(),
+            **({"teacher": trainer.alg.teacher_identity} if hasattr(trainer.alg, "teacher_identity") else {}),
         }
 
     def _write(self, step: int, common: bytes | None, shard: bytes, meta: dict | None) -> None:

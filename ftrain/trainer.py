@@ -16,7 +16,7 @@ import torch
 import yaml
 
 from ftrain import distributed
-from ftrain.algorithm import build_ppo, learned_state, load_learned_state, state_digest
+from ftrain.algorithm import build_algorithm, learned_state, load_learned_state, state_digest
 from ftrain.checkpointer import Checkpointer
 from ftrain.config import Config
 from ftrain.envs import MujocoVecEnv
@@ -35,7 +35,7 @@ class Trainer:
         distributed.seed_all(config.seed)  # identical model initialisation on every rank
         seed = distributed.rank_seed(config.seed, info.rank)
         self.env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs)
-        self.alg = build_ppo(config, self.env, info)
+        self.alg = build_algorithm(config, self.env, info)
         distributed.seed_all(seed)  # from here on, each rank samples its own actions and minibatches
         self.hooks = build_hooks(config)
         self.iteration = 0
