@@ -54,9 +54,11 @@ class MujocoVecEnv(VecEnv):
         self._low = self.envs.single_action_space.low
         self._high = self.envs.single_action_space.high
         obs, _ = self.envs.reset(seed=seed)
-        self.obs = torch.as_tensor(obs, dtype=torch.float32)
-        self.episode_length_buf = torch.zeros(num_envs, dtype=torch.long)
-        self.episode_return_buf = torch.zeros(num_envs, dtype=torch.float64)
+        self.obs = torch.from_numpy(obs.astype(np.float32))
+        # episode bookkeeping in numpy (cheap per step); episode_length_buf is rsl-rl's view of the same memory
+        self._returns = np.zeros(num_envs, dtype=np.float64)
+        self._lengths = np.zeros(num_envs, dtype=np.int64)
+        self.episode_length_buf = torch.from_numpy(self._lengths)
 
     @property
     def num_obs(self) -> int:
@@ -66,19 +68,17 @@ class MujocoVecEnv(VecEnv):
         return TensorDict({OBS_GROUP: self.obs}, batch_size=[self.num_envs])
 
     def step(self, actions: torch.Tensor) -> tuple[TensorDict, torch.Tensor, torch.Tensor, dict]:
-        clipped = np.clip(actions.numpy().astype(np.float64), self._low, self._high)
-        obs, rewards, terminated, truncated, _ = self.envs.step(clipped)
-        self.obs = torch.as_tensor(obs, dtype=torch.float32)
-        rewards_t = torch.as_tensor(rewards, dtype=torch.float32)
-        dones = torch.as_tensor(terminated | truncated)
-        self.episode_return_buf += torch.as_tensor(rewards)
-        self.episode_length_buf += 1
-        finished = dones.nonzero().flatten()
-        episodes = (self.episode_return_buf[finished].tolist(), self.episode_length_buf[finished].tolist())
-        self.episode_return_buf[finished] = 0
-        self.episode_length_buf[finished] = 0
-        extras = {"time_outs": torch.as_tensor(truncated & ~terminated), "episodes": episodes}
-        return self.get_observations(), rewards_t, dones, extras
+        obs, rewards, terminated, truncated, _ = self.envs.step(np.clip(actions.numpy(), self._low, self._high))
+        self.obs = torch.from_numpy(obs.astype(np.float32))
+        done = terminated | truncated
+        self._returns += rewards
+        self._lengths += 1
+        finished = np.flatnonzero(done)
+        episodes = (self._returns[finished].tolist(), self._lengths[finished].tolist())
+        self._returns[finished] = 0
+        self._lengths[finished] = 0
+        extras = {"time_outs": torch.from_numpy(truncated & ~terminated), "episodes": episodes}
+        return self.get_observations(), torch.from_numpy(rewards.astype(np.float32)), torch.from_numpy(done), extras
 
     def get_state(self) -> dict:
         """Everything needed to continue bit for bit, as tensors, numbers and lists (weights_only-loadable)."""
@@ -101,8 +101,8 @@ class MujocoVecEnv(VecEnv):
             "env_id": self.env_id,
             "subenvs": subenvs,
             "obs": self.obs.clone(),
-            "episode_length": self.episode_length_buf.clone(),
-            "episode_return": self.episode_return_buf.clone(),
+            "episode_length": torch.from_numpy(self._lengths.copy()),
+            "episode_return": torch.from_numpy(self._returns.copy()),
         }
 
     def set_state(self, state: dict) -> None:
@@ -119,8 +119,8 @@ class MujocoVecEnv(VecEnv):
             base.np_random.bit_generator.state = saved["rng"]
             _time_limit(env)._elapsed_steps = saved["elapsed_steps"]
         self.obs = state["obs"].clone()
-        self.episode_length_buf = state["episode_length"].clone()
-        self.episode_return_buf = state["episode_return"].clone()
+        self._lengths[:] = state["episode_length"].numpy()
+        self._returns[:] = state["episode_return"].numpy()
 
     def close(self) -> None:
         self.envs.close()
