@@ -20,6 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import torch
+
 from ftrain.hooks import Hook
 
 ENV_ID = "HalfCheetah-v5"
@@ -33,19 +35,33 @@ CONFIG = Path(__file__).resolve().parents[1] / "configs" / "halfcheetah.yaml"
 
 
 class ThroughputHook(Hook):
-    """Rank 0 writes the steady-state global steps/s of the run (iterations after the warm-up) to ``path``."""
+    """Rank 0 writes, to ``path`` as JSON: the steady-state global steps/s (iterations after the warm-up), how
+    long each save blocked the loop, and the time of a plain ``torch.save`` of the same state, for reference."""
 
     def __init__(self, path: str, warmup: int = WARMUP) -> None:
         self.path = path
         self.warmup = warmup
         self.start: tuple[float, float] | None = None
+        self.blocking: list[float] = []
 
     def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
         if trainer.iteration == self.warmup:
             self.start = (time.perf_counter(), metrics["env_steps"])
-        elif self.start is not None and trainer.info.is_main:
-            elapsed = time.perf_counter() - self.start[0]
-            Path(self.path).write_text(json.dumps({"steps_per_s": (metrics["env_steps"] - self.start[1]) / elapsed}))
+        elif self.start is not None:
+            self.blocking.append(trainer.checkpointer.last_blocking_s)
+            trainer.checkpointer.last_blocking_s = 0.0
+            self.steps_per_s = (metrics["env_steps"] - self.start[1]) / (time.perf_counter() - self.start[0])
+
+    def on_end(self, trainer) -> None:
+        if not trainer.info.is_main:
+            return
+        state = {"common": trainer.common_state(), "rank": trainer.rank_state()}
+        started = time.perf_counter()
+        torch.save(state, Path(self.path).with_suffix(".pt"))
+        torch_save_s = time.perf_counter() - started
+        saves = [seconds for seconds in self.blocking if seconds > 0]
+        result = {"steps_per_s": self.steps_per_s, "blocking_s": saves, "torch_save_s": torch_save_s}
+        Path(self.path).write_text(json.dumps(result))
 
 
 def _timed(step_count: int, work) -> float:
@@ -114,25 +130,34 @@ def measure_sb3(iterations: int) -> float:
     return _timed(steps, lambda: model.learn(steps, reset_num_timesteps=False))
 
 
-def measure_ftrain(iterations: int, ranks: int) -> float:
+def run_ftrain(
+    iterations: int, ranks: int, storage: str | None = None, overrides: tuple[str, ...] = (), env: dict | None = None
+) -> dict:
+    """``ftrain train`` on the HalfCheetah config, measured by :class:`ThroughputHook`; its JSON report."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "throughput.json"
         hook = f"hooks=[{{target: 'ftrain.bench:ThroughputHook', kwargs: {{path: '{out}'}}}}]"
         args = [
             str(CONFIG),
             "--storage",
-            str(Path(tmp) / "run"),
+            storage or str(Path(tmp) / "run"),
             f"iterations={WARMUP + iterations}",
             f"checkpoint.interval={10**6}",
+            f"log_dir={Path(tmp) / 'logs'}",
             "log.console=false",
             "log.tensorboard=false",
             "log.csv=false",
             hook,
+            *overrides,
         ]
         launcher = ["-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={ranks}", "-m", "ftrain"]
         cmd = [sys.executable, *(launcher if ranks > 1 else ["-m", "ftrain"]), "train", *args]
-        subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1"})
-        return json.loads(out.read_text())["steps_per_s"]
+        subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1", **(env or {})})
+        return json.loads(out.read_text())
+
+
+def measure_ftrain(iterations: int, ranks: int) -> float:
+    return run_ftrain(iterations, ranks)["steps_per_s"]
 
 
 CASES = {

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING
 import torch.distributed as dist
 
 from ftrain import checkpoint, distributed
+from ftrain.algorithm import state_digest
 from ftrain.checkpoint import encode
 from ftrain.config import Config
 from ftrain.errors import UserError
@@ -56,6 +57,14 @@ class Checkpointer:
         self._outcome: tuple | None = None
         self._failures = 0
         self.last_blocking_s = 0.0
+        self._static_meta = {  # computed once: package metadata lookups cost ~10 ms
+            "world_size": info.world_size,
+            "envs_per_rank": config.env.num_envs,
+            "env_id": config.env.id,
+            "config_hash": config.training_hash(),
+            "config": config.to_dict(),
+            "versions": _versions(),
+        }
 
     # --- resume ------------------------------------------------------------------------------------------------
 
@@ -153,15 +162,10 @@ class Checkpointer:
 
     def _meta(self, trainer: Trainer, state: dict) -> dict:
         return {
+            **self._static_meta,
             "iteration": trainer.iteration,
-            "world_size": self.info.world_size,
-            "envs_per_rank": self.config.env.num_envs,
-            "env_id": self.config.env.id,
-            "config_hash": self.config.training_hash(),
-            "config": self.config.to_dict(),
-            "versions": _versions(),
             "metrics": {key: value for key, value in trainer.metrics.items() if not key.endswith("_time")},
-            "state_sha256": trainer.learned_digest(),
+            "state_sha256": state_digest(state["learned"]),
             **({"teacher": trainer.alg.teacher_identity} if hasattr(trainer.alg, "teacher_identity") else {}),
         }
 
