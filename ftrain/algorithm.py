@@ -241,6 +241,11 @@ def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Dis
 
 
 def _check_teacher_fits(config: Config, env: MujocoVecEnv, teacher) -> None:
+    if teacher.exported is not None:
+        raise UserError(
+            f"teacher {teacher.source} is an exported {teacher.exported} file: pass the checkpoint or policy "
+            "snapshot it came from (distillation needs the actor's weights)"
+        )
     teacher_obs = teacher.actor.obs_dim
     teacher_actions = teacher.actor.distribution.output_dim if teacher.actor.distribution else None
     if teacher.config.env.id != config.env.id or teacher_obs != env.num_obs or teacher_actions != env.num_actions:
