@@ -82,6 +82,36 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = commands.add_parser("bench", help="throughput benchmark against rsl-rl and stable-baselines3")
     bench.add_argument("--iterations", type=int, default=30)
+
+    policy_url = (
+        "a run's storage (newest verified checkpoint), a checkpoint step <root>/checkpoints/step-N "
+        "or a policy snapshot <root>/policies/step-N"
+    )
+    play = commands.add_parser(
+        "play",
+        help="roll out a policy and print its episode returns; --video renders it headless",
+        description="Roll out a policy in its environment and print the episode returns. --video renders it "
+        "headless (MUJOCO_GL=egl).",
+    )
+    play.add_argument("url", help=f"{policy_url}, or a file written by ftrain export")
+    play.add_argument("--episodes", type=int, default=1)
+    play.add_argument("--deterministic", action="store_true", help="take the mean action instead of sampling")
+    play.add_argument("--video", help="write a video: out.mp4 or out.gif")
+    play.add_argument("--seed", type=int, default=0, help="episodes are seeded seed, seed+1, ...")
+
+    export = commands.add_parser(
+        "export",
+        help="write a self-contained, verified policy file (TorchScript or ONNX)",
+        description="Export a policy with its observation normalizer; the file runs without ftrain. It is verified "
+        "by comparing its actions with the trained actor's on real observations.",
+    )
+    export.add_argument("url", help=policy_url)
+    export.add_argument("--format", required=True, metavar="torchscript|onnx")
+    export.add_argument("-o", "--output", help="file to write (default: <run name>-step-<N>.pt or .onnx here)")
+
+    plot = commands.add_parser("plot", help="learning curves of a run as a PNG, restarts marked")
+    plot.add_argument("run", help="the run's log directory (holds metrics.csv)")
+    plot.add_argument("-o", "--output", help="PNG to write (default: <run>/curves.png)")
     return parser
 
 
@@ -136,4 +166,24 @@ def _dispatch(args: argparse.Namespace) -> int:
         from ftrain.bench import run_benchmark
 
         return run_benchmark(args.iterations)
+    if args.command == "play":
+        from ftrain.policy import load_policy, play
+
+        play(load_policy(args.url, log=_stderr), args.episodes, args.deterministic, args.video, args.seed)
+        return 0
+    if args.command == "export":
+        from ftrain.policy import check_format, export, load_policy
+
+        check_format(args.format)
+        export(load_policy(args.url, log=_stderr), args.format, args.output)
+        return 0
+    if args.command == "plot":
+        from ftrain.plot import plot_run
+
+        plot_run(args.run, args.output)
+        return 0
     raise AssertionError(args.command)
+
+
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr)

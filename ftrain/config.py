@@ -324,6 +324,11 @@ def _convert(kind: Any, value: Any, key: str) -> Any:
             raise UserError(f"{key}={value!r} must be an integer")
         return value
     if kind is float:
+        if isinstance(value, str):  # YAML 1.1 reads 3e-4 (no dot) as a string
+            try:
+                return float(value)
+            except ValueError:
+                pass
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise UserError(f"{key}={value!r} must be a number")
         return float(value)

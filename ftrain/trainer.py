@@ -7,6 +7,7 @@ wall-clock time only feeds logs and heartbeats.
 from __future__ import annotations
 
 import collections
+import math
 import os
 import signal
 import time
@@ -150,8 +151,8 @@ class Trainer:
         previous = self.metrics
         iteration_time = collect_time + learn_time
         self.metrics = {
-            "mean_return": total_returns / count if count else previous.get("mean_return", 0.0),
-            "mean_length": total_lengths / count if count else previous.get("mean_length", 0.0),
+            "mean_return": total_returns / count if count else previous.get("mean_return", math.nan),
+            "mean_length": total_lengths / count if count else previous.get("mean_length", math.nan),
             "env_steps": float(self.env_steps),
             **{f"loss/{key}": value for key, value in losses.items()},
             "learning_rate": self.alg.learning_rate,
