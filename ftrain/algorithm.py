@@ -40,8 +40,9 @@ class FusedPPO(PPO):
     def __init__(self, *args, reducer: SharedMemoryAllReduce | None = None, **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.reducer = reducer
-        params = [*self.actor.parameters(), *self.critic.parameters()]
-        self.optimizer = torch.optim.Adam(params, lr=self.learning_rate, fused=True)
+        self._actor_params = list(self.actor.parameters())
+        self._critic_params = list(self.critic.parameters())
+        self.optimizer = torch.optim.Adam(self._actor_params + self._critic_params, lr=self.learning_rate, fused=True)
 
     def act(self, obs: TensorDict) -> torch.Tensor:
         x = obs[OBS_GROUP]
@@ -60,7 +61,7 @@ class FusedPPO(PPO):
 
     def update(self) -> dict[str, float]:
         sums = {"value": 0.0, "surrogate": 0.0, "entropy": 0.0}
-        params = [p for group in self.optimizer.param_groups for p in group["params"]]
+        params = self._actor_params + self._critic_params
         for batch in self.storage.mini_batch_generator(self.num_mini_batches, self.num_learning_epochs):
             if self.normalize_advantage_per_mini_batch:
                 with torch.no_grad():
@@ -95,8 +96,8 @@ class FusedPPO(PPO):
                 kl_mean = self._all_reduce_mean(params, kl_mean if adaptive else None)
             if adaptive:
                 self._adapt_learning_rate(kl_mean)
-            nn.utils.clip_grad_norm_(self.actor.parameters(), self.max_grad_norm)
-            nn.utils.clip_grad_norm_(self.critic.parameters(), self.max_grad_norm)
+            nn.utils.clip_grad_norm_(self._actor_params, self.max_grad_norm)
+            nn.utils.clip_grad_norm_(self._critic_params, self.max_grad_norm)
             self.optimizer.step()
 
             sums["value"] += value_loss.item()
