@@ -113,25 +113,26 @@ class FusedPPO(PPO):
         """Average every gradient (and the KL, riding in the same buffer) over all ranks, in place."""
         grads = [p.grad.view(-1) for p in params if p.grad is not None]
         extra = [kl_mean.view(1).to(grads[0].dtype)] if kl_mean is not None else []
-        packed = self._mean_over_ranks(torch.cat(grads + extra))
+        packed = self._sum_over_ranks(torch.cat(grads + extra)).div_(self.gpu_world_size)
         offset = 0
         for grad in grads:
             grad.copy_(packed[offset : offset + grad.numel()])
             offset += grad.numel()
         return packed[offset] if kl_mean is not None else None
 
-    def _mean_over_ranks(self, tensor: torch.Tensor) -> torch.Tensor:
+    def _sum_over_ranks(self, tensor: torch.Tensor) -> torch.Tensor:
         if self.reducer is not None:
-            return self.reducer.all_reduce_(tensor, average=True)
+            return self.reducer.all_reduce_(tensor)
         dist.all_reduce(tensor)
-        return tensor.div_(self.gpu_world_size)
+        return tensor
 
     def _update_normalizers(self, obs: torch.Tensor) -> None:
         """rsl-rl's ``EmpiricalNormalization.update`` for actor and critic at once, from global batch moments.
 
         Alone, each normalizer computes the moments itself; across ranks it would all-reduce three times, and
         twice over. Here the global mean and variance are reduced once (two rounds, as rsl-rl's formula needs the
-        global mean before the variance around it) and applied to both with rsl-rl's update rule.
+        global mean before the variance around it; the count rides with the mean) and applied to both with rsl-rl's
+        update rule.
         """
         normalizers = [m.obs_normalizer for m in (self.actor, self.critic) if m.obs_normalization]
         if not normalizers or not normalizers[0].training:
@@ -143,10 +144,10 @@ class FusedPPO(PPO):
         local_count = obs.shape[0]
         local_mean = obs.mean(dim=0, keepdim=True)
         local_var = obs.var(dim=0, unbiased=False, keepdim=True)
-        count = round(self._mean_over_ranks(torch.tensor([float(local_count)])).item() * self.gpu_world_size)
-        mean = self._mean_over_ranks(local_mean * local_count) * self.gpu_world_size / count
-        var_sum = local_count * (local_var + (local_mean - mean).square())
-        var = self._mean_over_ranks(var_sum) * self.gpu_world_size / count
+        sums = self._sum_over_ranks(torch.cat([(local_mean * local_count).view(-1), torch.tensor([local_count * 1.0])]))
+        count = round(sums[-1].item())
+        mean = (sums[:-1] / count).view(1, -1)
+        var = self._sum_over_ranks(local_count * (local_var + (local_mean - mean).square())) / count
         count_x = torch.tensor(count, dtype=torch.long)
         for normalizer in normalizers:
             normalizer.count += count_x

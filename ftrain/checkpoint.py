@@ -236,12 +236,13 @@ def select_resume(
 
 
 def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print) -> list[int]:
-    """Make room for a run starting from ``step`` (0 for a fresh start) to save the following steps again.
+    """Prepare a run starting from ``step`` (0 for a fresh start) to save the following steps again.
 
-    Every save needs a fresh directory, so the unverified step directories newer than ``step`` are deleted:
-    incomplete ones were abandoned by the run that died, corrupt and quarantined ones would make the save of
-    their step fail. A verified newer step means the storage holds another history: UserError, nothing deleted.
-    Call it on rank 0 before the first save, when no other process writes to this storage.
+    Every save needs a fresh directory. Incomplete steps newer than ``step`` were abandoned by the run that died
+    (never committed): they are deleted. Corrupt and quarantined ones are kept for a human to inspect and
+    returned: the run replaces each only when it saves that very step again (:func:`replace_bad`). A verified newer
+    step means the storage holds another history: UserError, nothing deleted. Call it on rank 0 before the first
+    save, when no other process writes to this storage.
     """
     newer = [info for info in scan(storage) if info.step > step]
     verified = [info.step for info in newer if info.status == VERIFIED]
@@ -251,9 +252,22 @@ def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print)
             "starts from: resume from the newest step or use another storage"
         )
     for info in newer:
-        log(f"deleting checkpoint step {info.step} ({info.status}): newer than step {step} this run starts from")
-        delete_step(storage, info.step)
-    return [info.step for info in newer]
+        if info.status == INCOMPLETE:
+            log(f"deleting checkpoint step {info.step} (incomplete): newer than step {step} this run starts from")
+            delete_step(storage, info.step)
+    return [info.step for info in newer if info.status != INCOMPLETE]
+
+
+def replace_bad(storage: Storage, step: int, log: Callable[[str], None] = print) -> None:
+    """Delete corrupt or quarantined ``step`` so that a run that reached it again can save it afresh."""
+    info = next((info for info in scan(storage) if info.step == step), None)
+    if info is None:
+        return
+    if info.status == VERIFIED:
+        raise UserError(f"{storage.where(step_dir(step))} is verified: refusing to replace it")
+    reasons = "; ".join(str(problem) for problem in info.problems)
+    log(f"replacing checkpoint step {step} ({info.status}: {reasons}) with a new save")
+    delete_step(storage, step)
 
 
 def resolve_checkpoint_url(

@@ -13,7 +13,9 @@ The format and the single-process rules (digests, manifest, verification, retent
 
 from __future__ import annotations
 
+import datetime
 import importlib.metadata
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -41,7 +43,7 @@ def shard_name(rank: int) -> str:
 
 
 class CheckpointError(RuntimeError):
-    """Saving keeps failing: training stops rather than run on without a way back."""
+    """Saving or loading a checkpoint failed in a way training must not run on from (one-line message)."""
 
 
 class Checkpointer:
@@ -50,70 +52,104 @@ class Checkpointer:
         self.info = info
         self.log = log
         self.storage = Storage.open(config.storage.url, config.storage.options, retries=config.checkpoint.retries)
-        self.save_group = dist.new_group(backend="gloo") if info.distributed else None
+        if info.distributed and self.storage.url.startswith("memory://"):
+            raise UserError(
+                f"storage {self.storage.url} lives inside one process, but this run has {info.world_size} ranks: "
+                "use a local path, file:// or s3://"
+            )
+        timeout = datetime.timedelta(seconds=config.dist_timeout)
+        self.save_group = dist.new_group(backend="gloo", timeout=timeout) if info.distributed else None
         self.committed_step: int | None = None
         self.on_commit: Callable[[int, dict], None] = lambda step, manifest: None
         self._thread: threading.Thread | None = None
         self._outcome: tuple | None = None
+        self._must_commit = False
         self._failures = 0
+        self._occupied: set[int] = set()
+        """Corrupt or quarantined steps past the resume point: replaced only when this run saves them again."""
+        self._checked_loadable = False
         self.last_blocking_s = 0.0
         self._static_meta = {  # computed once: package metadata lookups cost ~10 ms
             "world_size": info.world_size,
             "envs_per_rank": config.env.num_envs,
             "env_id": config.env.id,
             "config_hash": config.training_hash(),
-            "config": config.to_dict(),
+            "config": config.public_dict(),
             "versions": _versions(),
         }
 
     # --- resume ------------------------------------------------------------------------------------------------
 
     def restore(self, trainer: Trainer) -> int | None:
-        """Load the step rank 0 chose into ``trainer``; the step, or None for a fresh start."""
+        """Load the step rank 0 chose into ``trainer``; the step, or None for a fresh start.
+
+        Every rank reads and checks its own files; the ranks then agree whether all of them loaded, so a file that
+        fails on one rank stops all of them with the same message (and quarantines the step for the next try).
+        """
         decision = self._decide_resume() if self.info.is_main else None
         decision = distributed.broadcast_object(decision, self.info)
         kind = decision[0]
         if kind == "error":
             raise UserError(decision[1])
+        self._occupied = set(decision[-1])
         if kind == "fresh":
             self.log(decision[1])
             return None
-        _, url, step, manifest = decision
+        _, url, step, manifest, _ = decision
         storage = self.storage if url is None else Storage.open(url, self.config.storage.options)
-        common = checkpoint.read_verified(storage, step, COMMON, manifest)
-        shard = checkpoint.read_verified(storage, step, shard_name(self.info.rank), manifest)
-        trainer.load_state(common, shard)
+        try:
+            common = checkpoint.read_verified(storage, step, COMMON, manifest)
+            shard = checkpoint.read_verified(storage, step, shard_name(self.info.rank), manifest)
+            trainer.load_state(common, shard)
+            failure = None
+        except (checkpoint.CorruptCheckpoint, KeyError, ValueError, RuntimeError) as exc:
+            failure = f"rank {self.info.rank}: {exc}"
+        failures = [f for f in distributed.all_gather_object(failure, self.info) if f]
+        if failures:
+            where = storage.where(checkpoint.step_dir(step))
+            if url is None and self.info.is_main:
+                checkpoint.quarantine(self.storage, step, "; ".join(failures))
+            raise CheckpointError(
+                f"checkpoint {where} could not be loaded ({'; '.join(failures)}): quarantined, "
+                "the next start falls back to an older step"
+            )
         if url is None:
             self.committed_step = step
         self.log(f"resumed from step {step} ({'this storage' if url is None else url}), iteration {trainer.iteration}")
         return step
 
     def _decide_resume(self) -> tuple:
-        """On rank 0: ("fresh", why) | ("resume", url or None, step, manifest) | ("error", message)."""
+        """On rank 0: ("fresh", why, occupied) | ("resume", url or None, step, manifest, occupied) | ("error", why).
+
+        ``occupied``: corrupt or quarantined steps newer than the start, kept until this run saves them again.
+        """
         try:
             resume = self.config.resume
             if resume == "never":
-                if any(info.status == "verified" for info in checkpoint.scan(self.storage)):
+                if any(info.status == checkpoint.VERIFIED for info in checkpoint.scan(self.storage)):
                     raise UserError(
                         f"resume=never but {self.storage.url} already holds checkpoints: "
                         "use resume=auto to continue, or a new --storage"
                     )
-                checkpoint.clear_newer(self.storage, 0, log=self.log)
-                return ("fresh", "resume=never: starting fresh")
+                return ("fresh", "resume=never: starting fresh", checkpoint.clear_newer(self.storage, 0, self.log))
             if resume == "auto":
                 found = checkpoint.select_resume(self.storage, log=self.log)
                 if found is None:
-                    checkpoint.clear_newer(self.storage, 0, log=self.log)
-                    return ("fresh", f"no verified checkpoint in {self.storage.url}: starting fresh")
+                    occupied = checkpoint.clear_newer(self.storage, 0, log=self.log)
+                    if occupied:
+                        raise UserError(
+                            f"no checkpoint in {self.storage.url} verifies, and steps {sorted(occupied)} are corrupt: "
+                            f"inspect them (ftrain ckpt ls {self.storage.url}), then remove them (ftrain ckpt prune "
+                            "--drop-bad) to start over, or use another --storage"
+                        )
+                    return ("fresh", f"no verified checkpoint in {self.storage.url}: starting fresh", [])
                 step, manifest = found
                 url = None
             else:
                 _, step, manifest = checkpoint.resolve_checkpoint_url(resume, self.config.storage.options, self.log)
                 url = checkpoint.parse_checkpoint_url(resume)[0]
             self._check_compatible(step, manifest)
-            # every save needs a fresh directory: abandoned or quarantined steps past the resume point must go
-            checkpoint.clear_newer(self.storage, step, log=self.log)
-            return ("resume", url, step, manifest)
+            return ("resume", url, step, manifest, checkpoint.clear_newer(self.storage, step, log=self.log))
         except UserError as error:
             return ("error", str(error))
 
@@ -129,6 +165,13 @@ class Checkpointer:
                 f"checkpoint step {step} has env.num_envs={manifest['envs_per_rank']} per rank, "
                 f"the config has {self.config.env.num_envs}: set env.num_envs={manifest['envs_per_rank']}"
             )
+        saved = manifest["config"]
+        if saved["env"]["id"] != self.config.env.id or saved["policy"] != self.config.public_dict()["policy"]:
+            raise UserError(
+                f"checkpoint step {step} holds a {saved['env']['id']} policy {saved['policy']}, the config asks for "
+                f"a {self.config.env.id} policy {self.config.public_dict()['policy']}: they cannot be loaded into "
+                "each other (not even with allow_config_change=true): use another --storage"
+            )
         if manifest["config_hash"] != self.config.training_hash() and not self.config.allow_config_change:
             raise UserError(
                 f"checkpoint step {step} was trained with a different config (hash {manifest['config_hash']}, "
@@ -137,24 +180,54 @@ class Checkpointer:
 
     # --- save --------------------------------------------------------------------------------------------------
 
-    def save(self, trainer: Trainer, wait: bool = False) -> None:
-        """Snapshot now; write in the background unless ``wait`` or ``checkpoint.async_save=false``."""
+    def save(self, trainer: Trainer, wait: bool = False, must_commit: bool = False) -> None:
+        """Snapshot now; write in the background unless ``wait`` or ``checkpoint.async_save=false``.
+
+        ``must_commit``: the save that ends a run (the last iteration, or a stop): if it fails, CheckpointError
+        when it is waited for, instead of training on.
+        """
         started = time.perf_counter()
         self._join()
         step = trainer.iteration
         if step == self.committed_step:
             return
+        if step in self._occupied:
+            self._replace_occupied(step)
         shard = encode(trainer.rank_state())
         common = meta = None
         if self.info.is_main:
             state = trainer.common_state()
             common = encode(state)
             meta = self._meta(trainer, state)
+        if not self._checked_loadable:
+            self._check_loadable(common, shard)
+        self._must_commit = must_commit
         self._thread = threading.Thread(target=self._write, args=(step, common, shard, meta), daemon=True)
         self._thread.start()
         if wait or not self.config.checkpoint.async_save:
             self._join()
         self.last_blocking_s = time.perf_counter() - started
+
+    def _replace_occupied(self, step: int) -> None:
+        """A corrupt or quarantined directory holds this step: rank 0 deletes it; no rank writes before that."""
+        if self.info.is_main:
+            checkpoint.replace_bad(self.storage, step, log=self.log)
+        if self.save_group is not None:
+            dist.barrier(group=self.save_group)
+        self._occupied.discard(step)
+
+    def _check_loadable(self, *encoded: bytes | None) -> None:
+        """Once per run: what is saved must load back with ``weights_only=True`` (a numpy value in a hook's state or
+        in the metrics would be saved and verified, yet never loadable)."""
+        for data in encoded:
+            if data is not None:
+                try:
+                    checkpoint.decode(data, "the state to save")
+                except checkpoint.CorruptCheckpoint as exc:
+                    raise CheckpointError(
+                        f"{exc}: hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
+                    ) from None
+        self._checked_loadable = True
 
     def close(self) -> None:
         """Wait for the save in flight."""
@@ -164,9 +237,13 @@ class Checkpointer:
         return {
             **self._static_meta,
             "iteration": trainer.iteration,
-            "metrics": {key: value for key, value in trainer.metrics.items() if not key.endswith("_time")},
+            "metrics": {  # JSON has no NaN: a metric not measured yet is null
+                key: value if math.isfinite(value) else None
+                for key, value in trainer.metrics.items()
+                if not key.endswith("_time")
+            },
             "state_sha256": state_digest(state["learned"]),
-            **({"teacher": trainer.alg.teacher_identity} if hasattr(trainer.alg, "teacher_identity") else {}),
+            **({"teacher": state["teacher"]} if "teacher" in state else {}),
         }
 
     def _write(self, step: int, common: bytes | None, shard: bytes, meta: dict | None) -> None:
@@ -241,6 +318,10 @@ class Checkpointer:
             return
         self._failures += 1
         self.log(f"checkpoint step {step} failed ({self._failures}/{MAX_FAILED_SAVES}), earlier ones intact: {detail}")
+        if self._must_commit:
+            raise CheckpointError(
+                f"the final checkpoint, step {step}, could not be saved to {self.storage.url}: {detail}"
+            )
         if self._failures >= MAX_FAILED_SAVES:
             raise CheckpointError(
                 f"{MAX_FAILED_SAVES} checkpoints in a row failed to save to {self.storage.url}; last error: {detail}"

@@ -96,7 +96,7 @@ def prune(
     storage, step = _open(url, options)
     if step is not None:
         raise UserError(f"prune works on a run's storage, not one step: pass {storage.url}")
-    infos = ck.scan(storage)
+    infos = ck.scan(storage, full=True)  # digests too: a bit-rotted step must not pass for the newest good one
     doomed = set(ck.retention_plan(infos, keep_last, keep_best, best_metric, keep_every, pinned, drop_bad))
     for info in infos:
         if info.step in doomed:

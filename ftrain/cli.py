@@ -79,6 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     prune.add_argument("--keep-every", type=int, default=0)
     prune.add_argument("--pin", type=int, action="append", default=[], help="a step to keep (repeatable)")
     prune.add_argument("--dry-run", action="store_true", help="print what would be deleted, delete nothing")
+    prune.add_argument("--drop-bad", action="store_true", help="also delete corrupt and quarantined steps")
 
     bench = commands.add_parser("bench", help="throughput benchmark against rsl-rl and stable-baselines3")
     bench.add_argument("--iterations", type=int, default=30)
@@ -161,6 +162,7 @@ def _dispatch(args: argparse.Namespace) -> int:
             keep_every=args.keep_every,
             pinned=args.pin,
             dry_run=args.dry_run,
+            drop_bad=args.drop_bad,
         )
     if args.command == "bench":
         from ftrain.bench import run_benchmark

@@ -18,6 +18,7 @@ from typing import Any
 import yaml
 
 from ftrain.errors import UserError
+from ftrain.redact import display_url, redact_options
 
 
 @dataclass
@@ -148,6 +149,15 @@ class Config:
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
+    def public_dict(self) -> dict:
+        """``to_dict`` without credentials: what may be logged, saved in checkpoints or shipped in a policy."""
+        data = self.to_dict()
+        data["storage"]["url"] = display_url(self.storage.url)
+        data["storage"]["options"] = redact_options(self.storage.options)
+        data["teacher"] = display_url(self.teacher)
+        data["resume"] = display_url(self.resume)
+        return data
+
     def training_hash(self) -> str:
         """Digest of everything that decides what is trained (not run length, storage, logging or retention)."""
         data = self.to_dict()
@@ -217,12 +227,35 @@ def validate(config: Config) -> None:
     for key, value in positive.items():
         if value < 1:
             raise UserError(f"{key}={value} must be at least 1")
-    for key, value in {
+    non_negative = {
         "checkpoint.keep_best": config.checkpoint.keep_best,
         "checkpoint.keep_every": config.checkpoint.keep_every,
-    }.items():
+        "checkpoint.retries": config.checkpoint.retries,
+        "eval.every": config.eval.every,
+        "snapshots.every": config.snapshots.every,
+    }
+    for key, value in non_negative.items():
         if value < 0:
             raise UserError(f"{key}={value} must be 0 or more")
+    at_least_one = {
+        "algorithm.gradient_length": config.algorithm.gradient_length,
+        "eval.episodes": config.eval.episodes,
+        "snapshots.keep_last": config.snapshots.keep_last,
+    }
+    for key, value in at_least_one.items():
+        if value < 1:
+            raise UserError(f"{key}={value} must be at least 1")
+    batch = config.env.num_envs * config.num_steps_per_env
+    if config.algorithm.num_mini_batches > batch:
+        raise UserError(
+            f"algorithm.num_mini_batches={config.algorithm.num_mini_batches} is more than the {batch} samples of a "
+            f"rollout (env.num_envs x num_steps_per_env): use at most {batch}"
+        )
+    if config.algorithm.loss_type not in ("mse", "huber"):
+        raise UserError(f"algorithm.loss_type={config.algorithm.loss_type!r} is unknown: use mse or huber")
+    for fmt in config.snapshots.formats:
+        if fmt not in ("torchscript", "onnx"):
+            raise UserError(f"snapshots.formats: {fmt!r} is unknown: use torchscript and/or onnx")
     if config.dist_timeout <= 0:
         raise UserError(f"dist_timeout={config.dist_timeout} must be a positive number of seconds")
     if config.algorithm.class_name not in ("PPO", "Distillation"):

@@ -8,6 +8,7 @@ User hooks come from the config: ``hooks: [{target: "package.module:Class", ever
 
 from __future__ import annotations
 
+import collections
 import csv
 import importlib
 import math
@@ -65,17 +66,23 @@ class Hooks:
             getattr(hook, point)(trainer, *args)
 
     def state_dict(self) -> dict:
-        return {_key(i, hook): hook.state_dict() for i, hook in enumerate(self.hooks)}
+        return {key: hook.state_dict() for key, hook in self._keyed()}
 
     def load_state_dict(self, state: dict) -> None:
-        for i, hook in enumerate(self.hooks):
-            saved = state.get(_key(i, hook))
-            if saved is not None:
-                hook.load_state_dict(saved)
+        for key, hook in self._keyed():
+            if key in state:
+                hook.load_state_dict(state[key])
 
-
-def _key(index: int, hook: Hook) -> str:
-    return f"{index}:{type(hook).__module__}.{type(hook).__qualname__}"
+    def _keyed(self) -> list[tuple[str, Hook]]:
+        """Each hook's key in a checkpoint: its class and its rank among hooks of that class, so turning a built-in
+        hook on or off between runs does not hand one hook's state to another."""
+        seen: collections.Counter[str] = collections.Counter()
+        keyed = []
+        for hook in self.hooks:
+            name = f"{type(hook).__module__}.{type(hook).__qualname__}"
+            keyed.append((f"{name}#{seen[name]}", hook))
+            seen[name] += 1
+        return keyed
 
 
 class ConsoleHook(Hook):

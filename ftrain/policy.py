@@ -184,7 +184,7 @@ def encode(policy: Policy, fmt: str, observations: torch.Tensor) -> bytes:
             "source": policy.source,
             "state_sha256": policy.digest,
             "obs_dim": int(observations.shape[1]),
-            "config": policy.config.to_dict(),
+            "config": policy.config.public_dict(),
         }
     )
     data = _torchscript(policy.actor, metadata) if fmt == "torchscript" else _onnx(policy.actor, metadata)

@@ -51,41 +51,48 @@ class SharedMemoryAllReduce:
         prefix = broadcast_object(prefix, info)
         segment, pipes = f"{prefix}.shm", [f"{prefix}-{rank}.fifo" for rank in range(self.world)]
         size = 2 * self.world * capacity * 4
-        if self.rank == 0:
-            fd = os.open(segment, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
-            os.ftruncate(fd, size)
+        try:
+            if self.rank == 0:
+                fd = os.open(segment, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+                os.ftruncate(fd, size)
+                os.close(fd)
+                for pipe in pipes:
+                    os.mkfifo(pipe, 0o600)
+            dist.barrier()
+            fd = os.open(segment, os.O_RDWR)
+            self._map = mmap.mmap(fd, size)
             os.close(fd)
-            for pipe in pipes:
-                os.mkfifo(pipe, 0o600)
-        dist.barrier()
-        fd = os.open(segment, os.O_RDWR)
-        self._map = mmap.mmap(fd, size)
-        os.close(fd)
-        self._slots = torch.frombuffer(self._map, dtype=torch.float32).view(2, self.world, capacity)
-        # reading end first, non-blocking, so opening never waits; then every peer's writing end
-        self._inbox = os.open(pipes[self.rank], os.O_RDONLY | os.O_NONBLOCK)
-        dist.barrier()
-        self._peers = [os.open(pipes[rank], os.O_WRONLY) for rank in range(self.world) if rank != self.rank]
+            self._slots = torch.frombuffer(self._map, dtype=torch.float32).view(2, self.world, capacity)
+            # the reading end first, non-blocking, so opening never waits; then every peer's writing end, also
+            # non-blocking: a peer that died in between makes the open fail (ENXIO) instead of waiting forever
+            self._inbox = os.open(pipes[self.rank], os.O_RDONLY | os.O_NONBLOCK)
+            dist.barrier()
+            self._peers = [
+                os.open(pipes[rank], os.O_WRONLY | os.O_NONBLOCK) for rank in range(self.world) if rank != self.rank
+            ]
+            dist.barrier()
+        finally:  # once every rank has opened them (or failed), the names go: nothing is left behind
+            if self.rank == 0:
+                for path in (segment, *pipes):
+                    with contextlib.suppress(FileNotFoundError):
+                        os.unlink(path)
         self._poll = select.poll()
         self._poll.register(self._inbox, select.POLLIN)
-        dist.barrier()
-        if self.rank == 0:
-            for path in (segment, *pipes):
-                os.unlink(path)
         self._round = 0
 
-    def all_reduce_(self, tensor: torch.Tensor, average: bool = False) -> torch.Tensor:
+    def all_reduce_(self, tensor: torch.Tensor) -> torch.Tensor:
         """In place: ``tensor`` (float32, contiguous, at most ``capacity`` elements) becomes the sum over ranks."""
         n = tensor.numel()
         slots = self._slots[self._round % 2, :, :n]
         self._round += 1
         slots[self.rank].copy_(tensor.view(-1))
-        for peer in self._peers:
-            os.write(peer, b"\x01")
+        try:
+            for peer in self._peers:
+                os.write(peer, b"\x01")
+        except BrokenPipeError:
+            raise PeerLost("a peer rank exited during an all-reduce") from None
         self._await(self.world - 1)
         torch.sum(slots, dim=0, out=tensor.view(-1))
-        if average:
-            tensor /= self.world
         return tensor
 
     def _await(self, count: int) -> None:
@@ -99,13 +106,6 @@ class SharedMemoryAllReduce:
             if not got:
                 raise PeerLost("a peer rank exited during an all-reduce")
             count -= len(got)
-
-    def close(self) -> None:
-        for fd in (self._inbox, *self._peers):
-            os.close(fd)
-        self._slots = None
-        with contextlib.suppress(BufferError):  # a caller may still hold a view; the mapping goes with the process
-            self._map.close()
 
 
 def _shared_dir() -> str:

@@ -109,7 +109,7 @@ def write_snapshot(
         "formats": {fmt: FILE_NAMES[fmt] for fmt in formats},
         "state_sha256": policy.digest,
         "config_hash": policy.config.training_hash(),
-        "config": policy.config.to_dict(),
+        "config": policy.config.public_dict(),
     }
     return checkpoint.commit(storage, step, files, meta)
 

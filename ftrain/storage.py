@@ -17,7 +17,7 @@ import re
 import time
 from collections.abc import Callable
 from typing import Any, TypeVar
-from urllib.parse import unquote, urlsplit, urlunsplit
+from urllib.parse import unquote, urlsplit
 
 import fsspec
 from botocore.exceptions import BotoCoreError, HTTPClientError, NoCredentialsError
@@ -26,6 +26,7 @@ from fsspec.implementations.local import LocalFileSystem
 from s3fs import S3FileSystem
 
 from ftrain.errors import UserError
+from ftrain.redact import SECRET_OPTIONS, display_url
 
 log = logging.getLogger(__name__)
 
@@ -35,15 +36,6 @@ DEFAULT_RETRIES = 4
 DEFAULT_BASE_DELAY = 0.2
 MAX_DELAY = 5.0
 
-_SECRET_OPTIONS = {
-    "key",
-    "secret",
-    "token",
-    "password",
-    "aws_access_key_id",
-    "aws_secret_access_key",
-    "aws_session_token",
-}
 _SECRET_ENV = ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN")
 _THROTTLING = {"SlowDown", "Throttling", "ThrottlingException", "RequestLimitExceeded", "TooManyRequestsException"}
 _PROTOCOL = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*$")
@@ -51,14 +43,6 @@ _PROTOCOL = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*$")
 
 class StorageError(Exception):
     """A storage operation failed for good (after retrying when the cause looked transient)."""
-
-
-def display_url(url: str) -> str:
-    """``url`` without the credentials a URL may carry (``s3://key:secret@bucket/...`` -> ``s3://bucket/...``)."""
-    parts = urlsplit(url) if "://" in url else None
-    if parts is None or "@" not in parts.netloc:
-        return url
-    return urlunsplit(parts._replace(netloc=parts.netloc.rpartition("@")[2]))
 
 
 def is_transient(exc: BaseException) -> bool:
@@ -288,7 +272,7 @@ def _secret_values(options: dict) -> list[str]:
     for name, value in options.items():
         if isinstance(value, dict):
             values += _secret_values(value)
-        elif isinstance(value, str) and name in _SECRET_OPTIONS:
+        elif isinstance(value, str) and name in SECRET_OPTIONS:
             values.append(value)
         elif isinstance(value, str) and "://" in value:
             values += _url_secrets(value)

@@ -10,6 +10,7 @@ import collections
 import math
 import os
 import signal
+import sys
 import time
 from pathlib import Path
 
@@ -18,20 +19,44 @@ import yaml
 
 from ftrain import distributed
 from ftrain.algorithm import build_algorithm, learned_state, load_learned_state, state_digest
-from ftrain.checkpointer import Checkpointer
+from ftrain.checkpointer import Checkpointer, CheckpointError
 from ftrain.config import Config
 from ftrain.envs import MujocoVecEnv
 from ftrain.heartbeat import ENV_DIR, HeartbeatWriter
 from ftrain.hooks import build_hooks
 
+EXIT_CHECKPOINT = 1
+"""Exit code when a checkpoint cannot be saved or loaded (the supervisor restarts; its crash-loop rule stops it)."""
 EPISODE_WINDOW = 100
 """Completed episodes per rank that the mean return and length are taken over."""
 
 
+class StopRequest:
+    """SIGTERM or SIGINT: stop at the next iteration boundary (the ranks agree, save, and exit 0).
+
+    Installed before anything slow starts, so an early signal is not lost. Repeated SIGTERMs are one request (a
+    scheduler and torchrun may both forward it); a second SIGINT (Ctrl-C twice) stops at once.
+    """
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def install(self) -> None:
+        signal.signal(signal.SIGTERM, self._handle)
+        signal.signal(signal.SIGINT, self._handle)
+
+    def _handle(self, signum: int, frame: object) -> None:
+        if self.requested and signum == signal.SIGINT:
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            raise KeyboardInterrupt
+        self.requested = True
+
+
 class Trainer:
-    def __init__(self, config: Config, info: distributed.RankInfo) -> None:
+    def __init__(self, config: Config, info: distributed.RankInfo, stop: StopRequest | None = None) -> None:
         self.config = config
         self.info = info
+        self.stop = stop or StopRequest()
         torch.set_num_threads(config.torch_threads)
         distributed.seed_all(config.seed)  # identical model initialisation on every rank
         seed = distributed.rank_seed(config.seed, info.rank)
@@ -46,7 +71,7 @@ class Trainer:
         self.heartbeat = HeartbeatWriter(os.environ.get(ENV_DIR), info.rank)
         self.checkpointer = Checkpointer(config, info, self.log)
         self.checkpointer.on_commit = lambda step, manifest: self.hooks.call("on_checkpoint", self, step, manifest)
-        self.stop_requested = False
+        self._stop_votes = 0.0
 
     def log(self, message: str) -> None:
         if self.info.is_main:
@@ -62,7 +87,8 @@ class Trainer:
             "env_steps": self.env_steps,
             "metrics": dict(self.metrics),
             "hooks": self.hooks.state_dict(),
-            "config": self.config.to_dict(),
+            "config": self.config.public_dict(),
+            **({"teacher": self.alg.teacher_identity} if hasattr(self.alg, "teacher_identity") else {}),
         }
 
     def rank_state(self) -> dict:
@@ -79,6 +105,13 @@ class Trainer:
         self.env_steps = common["env_steps"]
         self.metrics = dict(common["metrics"])
         self.hooks.load_state_dict(common["hooks"])
+        if "teacher" in common:  # the teacher's weights come from the checkpoint: so does its identity
+            if common["teacher"]["digest"] != self.alg.teacher_identity["digest"]:
+                self.log(
+                    f"teacher {self.config.teacher} has changed since this run started: keeping the teacher "
+                    f"it started with ({common['teacher']['source']}, step {common['teacher']['step']})"
+                )
+            self.alg.teacher_identity = common["teacher"]
         self.env.set_state(rank["env"])
         distributed.set_rng_state(rank["rng"])
         self.episodes.clear()
@@ -97,7 +130,6 @@ class Trainer:
         self.heartbeat.resumed_step = resumed
         self.heartbeat.committed_step = resumed
         self._write_resolved_config()
-        self._install_signal_handlers()
         self.alg.train_mode()
         self.hooks.call("on_start", self)
         self.heartbeat.beat("start", self.iteration)
@@ -105,8 +137,8 @@ class Trainer:
             self._iterate()
             stop = self._agree_on_stop()
             if stop or self._checkpoint_due():
-                self.heartbeat.beat("checkpoint")
-                self.checkpointer.save(self, wait=stop)
+                self.heartbeat.beat("checkpoint", self.iteration)
+                self.checkpointer.save(self, wait=stop, must_commit=stop or self.iteration == self.config.iterations)
                 self.heartbeat.committed_step = self.checkpointer.committed_step
             if stop:
                 self.log(f"stop requested: saved step {self.iteration}, exiting")
@@ -114,7 +146,7 @@ class Trainer:
         self.checkpointer.close()
         self.heartbeat.committed_step = self.checkpointer.committed_step
         self.hooks.call("on_end", self)
-        self.heartbeat.beat("preempted" if self.iteration < self.config.iterations else "done")
+        self.heartbeat.beat("preempted" if self.iteration < self.config.iterations else "done", self.iteration)
         return 0
 
     def _iterate(self) -> None:
@@ -143,8 +175,8 @@ class Trainer:
         returns = sum(ret for ret, _ in self.episodes)
         lengths = sum(length for _, length in self.episodes)
         steps = self.env.num_envs * self.config.num_steps_per_env
-        stop = float(self.stop_requested)
-        total_returns, total_lengths, count, total_steps, self._stops = distributed.all_reduce_sum(
+        stop = float(self.stop.requested)
+        total_returns, total_lengths, count, total_steps, self._stop_votes = distributed.all_reduce_sum(
             [returns, lengths, len(self.episodes), steps, stop], self.info
         )
         self.env_steps += int(total_steps)
@@ -165,17 +197,10 @@ class Trainer:
 
     # --- stopping and checkpoints ------------------------------------------------------------------------------
 
-    def _install_signal_handlers(self) -> None:
-        def request_stop(signum: int, frame: object) -> None:
-            self.stop_requested = True
-
-        signal.signal(signal.SIGTERM, request_stop)
-        signal.signal(signal.SIGINT, request_stop)
-
     def _agree_on_stop(self) -> bool:
-        """Every rank stops at the same iteration boundary if any rank was asked to (the flag rode in the
+        """Every rank stops at the same iteration boundary if any rank was asked to (the votes rode in the
         metrics all-reduce of this iteration)."""
-        return self._stops > 0
+        return self._stop_votes > 0
 
     def _checkpoint_due(self) -> bool:
         return self.iteration % self.config.checkpoint.interval == 0 or self.iteration == self.config.iterations
@@ -184,13 +209,18 @@ class Trainer:
         if self.info.is_main:
             log_dir = Path(self.config.log_dir)
             log_dir.mkdir(parents=True, exist_ok=True)
-            (log_dir / "config.yaml").write_text(yaml.safe_dump(self.config.to_dict(), sort_keys=False))
+            (log_dir / "config.yaml").write_text(yaml.safe_dump(self.config.public_dict(), sort_keys=False))
 
 
 def train(config: Config) -> int:
-    """Entry point of ``ftrain train`` on every rank."""
+    """Entry point of ``ftrain train`` on every rank: 0 when done or stopped on request, 1 when checkpoints fail."""
+    stop = StopRequest()
+    stop.install()
     info = distributed.init(config.dist_timeout)
     try:
-        return Trainer(config, info).run()
+        return Trainer(config, info, stop).run()
+    except CheckpointError as error:
+        print(f"ftrain: error: {error}", file=sys.stderr, flush=True)
+        return EXIT_CHECKPOINT
     finally:
         distributed.shutdown()

@@ -33,3 +33,20 @@ def test_fused_ppo_matches_rsl_rl_ppo(tmp_path, ranks: int) -> None:
     # rsl-rl broadcasts the learning rate as float32; fused Adam rounds differently from the per-tensor loop
     assert report["learning_rates"][0] == pytest.approx(report["learning_rates"][1], rel=1e-6)
     assert report["max_param_diff"] < 1e-5
+
+
+def test_shared_memory_all_reduce_is_exact_leaves_nothing_and_notices_a_dead_peer(tmp_path) -> None:
+    out = tmp_path / "report.json"
+    launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node=2"]
+    subprocess.run(
+        [*launcher, str(REPO / "tests" / "shm_worker.py"), str(out)],
+        cwd=REPO,
+        env=child_env(),
+        capture_output=True,
+        timeout=120,
+    )
+    report = json.loads(out.read_text())
+    assert report["exact"], "the shared-memory sum must equal gloo's bit for bit"
+    assert report["leftovers"] == [], "segment and pipes must be unlinked once every rank has opened them"
+    assert report["peer_lost"] == "a peer rank exited during an all-reduce"
+    assert report["seconds"] < 5, "a dead peer must be noticed at once, not after the timeout"

