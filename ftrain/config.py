@@ -203,6 +203,11 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
     return config
 
 
+def config_from_dict(data: dict) -> Config:
+    """The Config a checkpoint or an exported policy recorded (``Config.public_dict()``), typed and checked."""
+    return _build(Config, data, prefix="")
+
+
 def default_log_dir(storage_url: str, name: str) -> str:
     """Logs go next to the checkpoints when storage is local, else to ``runs/<name>`` on this machine."""
     if "://" not in storage_url:

@@ -29,7 +29,7 @@ import torch
 from ftrain import checkpoint
 from ftrain.algorithm import build_actor
 from ftrain.checkpointer import COMMON
-from ftrain.config import Config, _build
+from ftrain.config import Config, config_from_dict
 from ftrain.envs import MujocoVecEnv
 from ftrain.errors import UserError
 from ftrain.evaluation import actor_actions, make_env, rollout
@@ -92,7 +92,7 @@ def load_policy(url: str, options: dict | None = None, log: Callable[[str], None
             state = learned.get("student_state_dict", learned.get("actor_state_dict"))
     except checkpoint.CorruptCheckpoint as exc:
         raise UserError(f"{url} does not verify ({exc}): pick another step") from None
-    config = _build(Config, manifest["config"], prefix="")
+    config = config_from_dict(manifest["config"])
     source = storage.where(checkpoint.step_dir(step))
     return Policy(_actor(config, state), config, source, step, manifest, manifest["state_sha256"])
 
@@ -142,7 +142,7 @@ def _from_file(data: bytes, where: str) -> Policy:
     if fmt == "onnx":
         actor = _OnnxActor(data)
     meta = json.loads(metadata)
-    config = _build(Config, meta["config"], prefix="")
+    config = config_from_dict(meta["config"])
     return Policy(actor, config, where, meta["step"], None, hashlib.sha256(data).hexdigest(), exported=fmt)
 
 
