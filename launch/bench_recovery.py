@@ -1,0 +1,250 @@
+"""Recovery benchmark of ``ftrain supervise``: real faults injected into a supervised 2-rank run of configs/smoke.yaml.
+
+    .venv/bin/python launch/bench_recovery.py [--trials 10] [--scenarios kill-rank0-iteration hang ...]
+
+Scenarios: SIGKILL of rank 0 or rank 1 in the middle of an iteration or of a checkpoint save (a step directory
+without its manifest yet, or the ``checkpoint`` phase), SIGSTOP of rank 1 (a hang, ``--hang-timeout 3``), SIGTERM to
+the supervisor (preemption) followed by the same command again, and, on two supervisors as two nodes on 127.0.0.1,
+SIGKILL of node 1's worker. Recovery is the time from the fault to the next completed iteration (the supervisor's
+``recovered`` event; for preemption, the rerun's first iteration); lost iterations are those completed before the
+fault and not in the step resumed from. The kill and hang scenarios inject every trial into one long run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from ftrain.heartbeat import read_heartbeats  # noqa: E402
+from ftrain.supervisor import EXIT_PREEMPTED, _free_port  # noqa: E402
+
+OVERRIDES = ["iterations=1000000", "dist_timeout=10", "log.console=false"]
+HANG_TIMEOUT = 3
+SCENARIOS = (
+    "kill-rank0-iteration",
+    "kill-rank1-iteration",
+    "kill-rank0-save",
+    "kill-rank1-save",
+    "hang",
+    "preempt",
+    "two-nodes-kill",
+)
+
+
+class Supervised:
+    """One ``ftrain supervise`` process on ``storage`` (which is its log directory too)."""
+
+    def __init__(self, storage: Path, *options: str, node: int | None = None) -> None:
+        self.storage = storage
+        self.node = node
+        self.heartbeats = storage / "heartbeat" / (f"node-{node}" if node is not None else "")
+        command = [sys.executable, "-m", "ftrain", "supervise", "--hang-timeout", str(HANG_TIMEOUT), *options]
+        command += ["configs/smoke.yaml", "--storage", str(storage), *OVERRIDES]
+        self._read = 0
+        self._events: list[dict] = []
+        self.earlier_resumes = len(self.events("resumed"))  # of earlier runs on the same storage
+        log = open(f"{storage}.log", "ab")  # noqa: SIM115 - the child writes to it for its whole life
+        self.proc = subprocess.Popen(command, cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+
+    def events(self, name: str) -> list[dict]:
+        """This node's ``name`` events so far (read incrementally: polling must not steal the workers' CPU)."""
+        path = self.storage / "events.jsonl"
+        if path.exists():
+            with path.open("rb") as file:
+                file.seek(self._read)
+                data = file.read()
+            complete = data[: data.rfind(b"\n") + 1]
+            self._read += len(complete)
+            self._events += [json.loads(line) for line in complete.splitlines()]
+        return [e for e in self._events if e["event"] == name and (self.node is None or e.get("node") == self.node)]
+
+    def next_event(self, name: str, seen: int, timeout: float = 180) -> dict:
+        """The first ``name`` event after the ``seen`` ones."""
+        return wait_for(lambda: self.events(name)[seen:], timeout, f"a {name} event", interval=0.02)[0]
+
+    def training(self, past: int, ranks: int = 2, timeout: float = 120) -> dict:
+        """Heartbeats once every rank trains beyond iteration ``past``."""
+
+        def ready():
+            beats = read_heartbeats(self.heartbeats)
+            busy = [b for b in beats.values() if b.iteration > past and b.phase in ("rollout", "update")]
+            return beats if len(busy) == ranks else None
+
+        return wait_for(ready, timeout, f"training past iteration {past}")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            self.proc.wait(timeout=120)
+
+
+def wait_for(predicate, timeout: float, what: str, interval: float = 0.005):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise TimeoutError(f"timed out after {timeout} s waiting for {what}")
+
+
+def save_in_flight(storage: Path, beats_dir: Path) -> bool:
+    """A checkpoint is being written: a step directory without its manifest, or a rank in the checkpoint phase."""
+    checkpoints = storage / "checkpoints"
+    if checkpoints.exists():
+        for step in os.scandir(checkpoints):
+            if not os.path.exists(os.path.join(step.path, "MANIFEST.json")):
+                return True
+    return any(beat.phase == "checkpoint" for beat in read_heartbeats(beats_dir).values())
+
+
+def resumed_step(run: Supervised) -> int:
+    """The step this supervisor's first attempt resumed from (0: fresh)."""
+    return run.next_event("resumed", run.earlier_resumes)["step"] or 0
+
+
+def fault_trials(scenario: str, trials: int, work: Path) -> list[dict]:
+    """Every trial into one long supervised run: inject, wait for the ``recovered`` event, repeat."""
+    storage = work / scenario / "run"
+    storage.parent.mkdir(parents=True)
+    run = Supervised(storage, "--nproc-per-node", "2", "--max-restarts", str(trials + 5))
+    results = []
+    try:
+        for _ in range(trials):
+            recovered = len(run.events("recovered"))
+            restarts = len(run.events("restart"))
+            base = resumed_step(run) if not results else results[-1]["step"]
+            beats = run.training(base + 2)
+            rank = 0 if "rank0" in scenario else 1
+            if scenario.endswith("-save"):
+                wait_for(lambda: save_in_flight(storage, run.heartbeats), 60, "a save in flight", interval=0.0005)
+                beats = read_heartbeats(run.heartbeats)
+            at = time.time()
+            os.kill(beats[rank].pid, signal.SIGSTOP if scenario == "hang" else signal.SIGKILL)
+            event = run.next_event("recovered", recovered)
+            results.append(
+                {
+                    "seconds": event["time"] - at,
+                    "lost": event["lost"],
+                    "restarts": len(run.events("restart")) - restarts,
+                    "step": event["step"],
+                }
+            )
+            print(f"  {scenario} trial {len(results)}: {format_trial(results[-1])}", flush=True)
+    finally:
+        run.stop()
+    return results
+
+
+def preempt_trials(trials: int, work: Path) -> list[dict]:
+    """SIGTERM to the supervisor, then the same command again; every trial continues the same storage."""
+    storage = work / "preempt" / "run"
+    storage.parent.mkdir(parents=True)
+    results = []
+    for _ in range(trials):
+        run = Supervised(storage, "--nproc-per-node", "2")
+        beats = run.training(resumed_step(run) + 2)
+        completed = max(beat.iteration for beat in beats.values())
+        at = time.time()
+        run.proc.send_signal(signal.SIGTERM)
+        assert run.proc.wait(timeout=120) == EXIT_PREEMPTED
+        rerun = Supervised(storage, "--nproc-per-node", "2")
+        step = resumed_step(rerun)
+        rerun.training(step)
+        lost = max(0, completed - step)
+        results.append({"seconds": time.time() - at, "lost": lost, "restarts": 1, "step": step})
+        print(f"  preempt trial {len(results)}: {format_trial(results[-1])}", flush=True)
+        rerun.stop()
+    return results
+
+
+def two_node_trials(trials: int, work: Path) -> list[dict]:
+    """Two supervisors as two nodes on 127.0.0.1 (one rank each); SIGKILL node 1's worker, both must recover."""
+    storage = work / "two-nodes" / "run"
+    storage.parent.mkdir(parents=True)
+    endpoint = f"127.0.0.1:{_free_port()}"
+    nodes = [
+        Supervised(
+            storage,
+            *("--nproc-per-node", "1", "--nnodes", "2", "--node-rank", str(node), "--rdzv-endpoint", endpoint),
+            *("--max-restarts", str(trials + 5)),
+            node=node,
+        )
+        for node in (0, 1)
+    ]
+    results = []
+    try:
+        for _ in range(trials):
+            recovered = [len(node.events("recovered")) for node in nodes]
+            restarts = [len(node.events("restart")) for node in nodes]
+            base = resumed_step(nodes[1]) if not results else results[-1]["step"]
+            beats = nodes[1].training(base + 2, ranks=1)
+            at = time.time()
+            os.kill(beats[1].pid, signal.SIGKILL)
+            events = [node.next_event("recovered", count) for node, count in zip(nodes, recovered, strict=True)]
+            results.append(
+                {
+                    "seconds": max(event["time"] for event in events) - at,
+                    "lost": max(event["lost"] for event in events),
+                    "restarts": max(len(n.events("restart")) - r for n, r in zip(nodes, restarts, strict=True)),
+                    "step": events[0]["step"],
+                }
+            )
+            print(f"  two-nodes-kill trial {len(results)}: {format_trial(results[-1])}", flush=True)
+    finally:
+        for node in nodes:
+            node.stop()
+    return results
+
+
+def format_trial(result: dict) -> str:
+    return f"{result['seconds']:.2f} s, {result['lost']} iterations lost, {result['restarts']} restart(s)"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--trials", type=int, default=10)
+    parser.add_argument("--scenarios", nargs="+", choices=SCENARIOS, default=list(SCENARIOS))
+    parser.add_argument("--keep", action="store_true", help="keep the run directories (printed)")
+    args = parser.parse_args()
+    work = Path(tempfile.mkdtemp(prefix="ftrain-bench-recovery-"))
+    summary = {}
+    for scenario in args.scenarios:
+        print(f"{scenario}:", flush=True)
+        if scenario == "preempt":
+            summary[scenario] = preempt_trials(args.trials, work)
+        elif scenario == "two-nodes-kill":
+            summary[scenario] = two_node_trials(args.trials, work)
+        else:
+            summary[scenario] = fault_trials(scenario, args.trials, work)
+    header = ("scenario", "trials", "median s", "worst s", "lost med", "lost max", "1st restart")
+    print("\n{:<22} {:>6} {:>9} {:>8} {:>9} {:>9} {:>12}".format(*header))
+    for scenario, results in summary.items():
+        seconds = [r["seconds"] for r in results]
+        lost = [r["lost"] for r in results]
+        first = sum(r["restarts"] == 1 for r in results)
+        print(
+            f"{scenario:<22} {len(results):>6} {statistics.median(seconds):>9.2f} {max(seconds):>8.2f} "
+            f"{statistics.median(lost):>9g} {max(lost):>9} {first:>6}/{len(results):<5}"
+        )
+    if args.keep:
+        print(f"runs kept in {work}")
+    else:
+        shutil.rmtree(work, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,215 @@
+"""Chaos: supervised 2-rank runs of configs/smoke.yaml, hit from outside by real signals, must end with the same
+``state_sha256`` as an uninterrupted run, and ``events.jsonl`` must show every detection.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from ftrain import supervisor
+from ftrain.heartbeat import read_heartbeats
+
+pytestmark = pytest.mark.slow
+
+REPO = Path(__file__).resolve().parent.parent
+CONFIG = "configs/smoke.yaml"
+OVERRIDES = ["iterations=100", "dist_timeout=10", "log.console=false"]
+DEFAULTS = ["--nproc-per-node", "2", "--backoff-initial", "0.2", "--stop-grace", "20"]
+
+
+LAUNCHED: list[subprocess.Popen] = []
+
+
+@pytest.fixture(autouse=True)
+def stop_leftovers():
+    """A failed test must not leave a supervisor (and its workers) running: two SIGTERMs stop everything at once."""
+    yield
+    while LAUNCHED:
+        proc = LAUNCHED.pop()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=60)
+
+
+def start(storage: Path, *options: str, log: str = "supervise") -> subprocess.Popen:
+    """``ftrain supervise`` (2 ranks, unless in ``options``) on ``storage``; output: ``<storage>.<log>.log``."""
+    command = [sys.executable, "-m", "ftrain", "supervise", *DEFAULTS, *options, CONFIG, "--storage", str(storage)]
+    output = open(f"{storage}.{log}.log", "ab")  # noqa: SIM115 - the child writes to it for its whole life
+    LAUNCHED.append(subprocess.Popen([*command, *OVERRIDES], cwd=REPO, stdout=output, stderr=subprocess.STDOUT))
+    return LAUNCHED[-1]
+
+
+def finish(proc: subprocess.Popen, timeout: float = 180) -> int:
+    try:
+        return proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise
+
+
+def wait_for(predicate, what: str, timeout: float = 90):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(0.02)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def events(storage: Path) -> list[dict]:
+    path = storage / "events.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+
+def wait_event(storage: Path, name: str, count: int) -> dict:
+    def found():
+        matching = [event for event in events(storage) if event["event"] == name]
+        return matching[count - 1] if len(matching) >= count else None
+
+    return wait_for(found, f"{count} {name} events")
+
+
+def training(heartbeat_dir: Path, iteration: int, ranks: int = 2) -> dict:
+    """The heartbeats of all ``ranks`` once they train past ``iteration`` iterations (in rollout or update)."""
+
+    def ready():
+        beats = read_heartbeats(heartbeat_dir)
+        training = [b for b in beats.values() if b.iteration >= iteration and b.phase in ("rollout", "update")]
+        return beats if len(training) == ranks else None
+
+    return wait_for(ready, f"iteration {iteration} in {heartbeat_dir}")
+
+
+def newest_step(storage: Path) -> tuple[int, dict]:
+    manifests = sorted((storage / "checkpoints").glob("step-*/MANIFEST.json"))
+    return int(manifests[-1].parent.name.removeprefix("step-")), json.loads(manifests[-1].read_text())
+
+
+def torchrun_pid(supervisor_pid: int) -> int:
+    def find():
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                parent = int(stat.read_text().rpartition(")")[2].split()[1])
+                cmdline = (stat.parent / "cmdline").read_bytes()
+            except OSError:
+                continue
+            if parent == supervisor_pid and b"torch.distributed.run" in cmdline:
+                return int(stat.parent.name)
+        return None
+
+    return wait_for(find, "torchrun")
+
+
+def flip_byte(path: Path) -> None:
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> str:
+    """``state_sha256`` of the final step of an uninterrupted supervised run."""
+    storage = tmp_path_factory.mktemp("reference") / "run"
+    assert finish(start(storage)) == 0
+    step, manifest = newest_step(storage)
+    assert step == 100
+    return manifest["state_sha256"]
+
+
+def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
+    storage = tmp_path / "run"
+    heartbeats = storage / "heartbeat"
+    proc = start(storage, "--hang-timeout", "3")
+
+    # 1. SIGKILL of one worker
+    beats = training(heartbeats, 4)
+    os.kill(beats[1].pid, signal.SIGKILL)
+    recovered = wait_event(storage, "recovered", 1)
+
+    # 2. SIGKILL of the torchrun agent: its workers are orphans, they save on the supervisor's SIGTERM
+    training(heartbeats, recovered["step"] + 3)
+    os.kill(torchrun_pid(proc.pid), signal.SIGKILL)
+    recovered = wait_event(storage, "recovered", 2)
+
+    # 3. SIGSTOP of one worker: a hang
+    beats = training(heartbeats, recovered["step"] + 3)
+    os.kill(beats[0].pid, signal.SIGSTOP)
+    recovered = wait_event(storage, "recovered", 3)
+
+    # 4. the newest checkpoint corrupted before the restart: freeze both ranks, flip a byte of a shard, kill
+    beats = training(heartbeats, recovered["step"] + 5)
+    for beat in beats.values():
+        os.kill(beat.pid, signal.SIGSTOP)
+    corrupted, _ = newest_step(storage)
+    flip_byte(storage / "checkpoints" / f"step-{corrupted:09d}" / "rank-00001.pt")
+    os.kill(beats[1].pid, signal.SIGKILL)
+    os.kill(beats[0].pid, signal.SIGCONT)
+    recovered = wait_event(storage, "recovered", 4)
+    assert recovered["step"] < corrupted
+
+    # 5. SIGTERM to the supervisor: the workers save, it exits 143; the same command continues
+    training(heartbeats, recovered["step"] + 3)
+    proc.send_signal(signal.SIGTERM)
+    assert finish(proc) == supervisor.EXIT_PREEMPTED
+    saved, _ = newest_step(storage)
+    assert finish(start(storage, log="rerun")) == 0
+
+    step, manifest = newest_step(storage)
+    assert (step, manifest["state_sha256"]) == (100, reference)
+    log = events(storage)
+    causes = [event["cause"] for event in log if event["event"] == "exit"]
+    assert causes[:4] == [
+        "rank 1 killed by SIGKILL",
+        "torchrun killed by SIGKILL",
+        "killed: rank 0 hung",
+        "rank 1 killed by SIGKILL",
+    ]
+    hangs = [event for event in log if event["event"] == "hang"]
+    assert len(hangs) == 1 and hangs[0]["processes"]["0"] == "T" and hangs[0]["seconds"] >= 3
+    preempted = [event for event in log if event["event"] == "preempted"]
+    assert len(preempted) == 1
+    resumed = [event["step"] for event in log if event["event"] == "resumed"]
+    assert resumed[-1] == saved  # the rerun lost nothing
+    summary = [event for event in log if event["event"] == "summary"]
+    assert [event["restarts"] for event in summary] == [4, 0]
+
+
+def test_two_nodes_both_recover_when_one_loses_its_worker(tmp_path, reference):
+    storage = tmp_path / "run"
+    endpoint = f"127.0.0.1:{supervisor._free_port()}"
+    nodes = [
+        start(
+            storage,
+            "--nproc-per-node",
+            "1",
+            "--nnodes",
+            "2",
+            "--node-rank",
+            str(node),
+            "--rdzv-endpoint",
+            endpoint,
+            log=f"node{node}",
+        )
+        for node in (0, 1)
+    ]
+    beats = training(storage / "heartbeat" / "node-1", 4, ranks=1)
+    os.kill(beats[1].pid, signal.SIGKILL)
+    assert [finish(node) for node in nodes] == [0, 0]
+    step, manifest = newest_step(storage)
+    assert (step, manifest["state_sha256"]) == (100, reference)
+    log = events(storage)
+    for node in (0, 1):
+        mine = [event for event in log if event["node"] == node]
+        assert [event["attempt"] for event in mine if event["event"] == "start"] == [0, 1]
+        assert sum(event["event"] == "recovered" for event in mine) == 1
+    assert any(event["event"] == "exit" and event["cause"] == "rank 1 killed by SIGKILL" for event in log)
