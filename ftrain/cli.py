@@ -36,6 +36,22 @@ def _add_dataclass_arguments(parser: argparse.ArgumentParser, options_class: typ
         )
 
 
+def _config_keys_help() -> str:
+    """Every config key with its default, for ``ftrain train --help`` (the README explains them)."""
+    from ftrain.config import Config
+
+    def flatten(data: dict, prefix: str = "") -> list[str]:
+        lines = []
+        for key, value in data.items():
+            if isinstance(value, dict) and value and key not in ("kwargs", "options"):
+                lines += flatten(value, f"{prefix}{key}.")
+            else:
+                lines.append(f"  {prefix}{key}={value!r}")
+        return lines
+
+    return "config keys and their defaults (override any as key=value):\n" + "\n".join(flatten(Config().to_dict()))
+
+
 def build_parser() -> argparse.ArgumentParser:
     from ftrain.supervisor import SupervisorOptions
 
@@ -48,6 +64,8 @@ def build_parser() -> argparse.ArgumentParser:
         "train",
         help="train (run under torchrun for several processes)",
         description="Train PPO. Under torchrun every rank runs this; alone it runs one process (world size 1).",
+        epilog=_config_keys_help(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _add_run_arguments(train)
 

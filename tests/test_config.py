@@ -80,3 +80,10 @@ def test_help_lists_every_subcommand() -> None:
     assert result.returncode == 0
     for command in ("train", "supervise", "ckpt", "bench"):
         assert command in result.stdout
+
+
+def test_train_help_lists_every_config_key_with_its_default() -> None:
+    result = subprocess.run([sys.executable, "-m", "ftrain", "train", "--help"], capture_output=True, text=True)
+    assert result.returncode == 0
+    for line in ("--storage", "env.num_envs=16", "checkpoint.keep_last=3", "algorithm.clip_param=0.2", "resume='auto'"):
+        assert line in result.stdout
