@@ -16,11 +16,13 @@ from __future__ import annotations
 import datetime
 import importlib.metadata
 import math
+import queue
 import threading
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+import torch
 import torch.distributed as dist
 
 from ftrain import checkpoint, distributed
@@ -61,13 +63,20 @@ class Checkpointer:
         self.save_group = dist.new_group(backend="gloo", timeout=timeout) if info.distributed else None
         self.committed_step: int | None = None
         self.on_commit: Callable[[int, dict], None] = lambda step, manifest: None
-        self._thread: threading.Thread | None = None
+        # one long-lived writer thread: starting a thread per save would block the loop until the new thread, which
+        # starts by encoding (holding the GIL), lets go of it
+        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
+        self._done = threading.Event()
+        self._in_flight = False
+        self._writer_thread = threading.Thread(target=self._writer, name="ftrain-checkpoint-writer", daemon=True)
+        self._writer_thread.start()
         self._outcome: tuple | None = None
         self._must_commit = False
         self._failures = 0
         self._occupied: set[int] = set()
         """Corrupt or quarantined steps past the resume point: replaced only when this run saves them again."""
         self._checked_loadable = False
+        self._unloadable: str | None = None
         self.last_blocking_s = 0.0
         self._static_meta = {  # computed once: package metadata lookups cost ~10 ms
             "world_size": info.world_size,
@@ -181,7 +190,9 @@ class Checkpointer:
     # --- save --------------------------------------------------------------------------------------------------
 
     def save(self, trainer: Trainer, wait: bool = False, must_commit: bool = False) -> None:
-        """Snapshot now; write in the background unless ``wait`` or ``checkpoint.async_save=false``.
+        """Snapshot now (a copy of every tensor, well under a millisecond); encode, digest and write in the
+        background unless ``wait`` or ``checkpoint.async_save=false``. The first save of a run is waited for: it
+        checks that what is saved loads back.
 
         ``must_commit``: the save that ends a run (the last iteration, or a stop): if it fails, CheckpointError
         when it is waited for, instead of training on.
@@ -193,20 +204,34 @@ class Checkpointer:
             return
         if step in self._occupied:
             self._replace_occupied(step)
-        shard = encode(trainer.rank_state())
-        common = meta = None
+        shard_state = _snapshot(trainer.rank_state())
+        common_state = meta = None
         if self.info.is_main:
-            state = trainer.common_state()
-            common = encode(state)
-            meta = self._meta(trainer, state)
-        if not self._checked_loadable:
-            self._check_loadable(common, shard)
+            common_state = _snapshot(trainer.common_state())
+            meta = self._meta(trainer)
         self._must_commit = must_commit
-        self._thread = threading.Thread(target=self._write, args=(step, common, shard, meta), daemon=True)
-        self._thread.start()
-        if wait or not self.config.checkpoint.async_save:
+        self._done.clear()
+        self._in_flight = True
+        self._jobs.put((step, common_state, shard_state, meta))
+        if wait or not self.config.checkpoint.async_save or not self._checked_loadable:
             self._join()
         self.last_blocking_s = time.perf_counter() - started
+
+    def close(self) -> None:
+        """Wait for the save in flight and act on its outcome."""
+        self._join()
+
+    def stop_writer(self) -> None:
+        """Let the writer thread end (after any save in flight): the process must not exit under it."""
+        self._jobs.put(None)
+        self._writer_thread.join()
+
+    def _writer(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            try:
+                self._write(*job)
+            finally:
+                self._done.set()
 
     def _replace_occupied(self, step: int) -> None:
         """A corrupt or quarantined directory holds this step: rank 0 deletes it; no rank writes before that."""
@@ -216,24 +241,7 @@ class Checkpointer:
             dist.barrier(group=self.save_group)
         self._occupied.discard(step)
 
-    def _check_loadable(self, *encoded: bytes | None) -> None:
-        """Once per run: what is saved must load back with ``weights_only=True`` (a numpy value in a hook's state or
-        in the metrics would be saved and verified, yet never loadable)."""
-        for data in encoded:
-            if data is not None:
-                try:
-                    checkpoint.decode(data, "the state to save")
-                except checkpoint.CorruptCheckpoint as exc:
-                    raise CheckpointError(
-                        f"{exc}: hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
-                    ) from None
-        self._checked_loadable = True
-
-    def close(self) -> None:
-        """Wait for the save in flight."""
-        self._join()
-
-    def _meta(self, trainer: Trainer, state: dict) -> dict:
+    def _meta(self, trainer: Trainer) -> dict:
         return {
             **self._static_meta,
             "iteration": trainer.iteration,
@@ -242,19 +250,22 @@ class Checkpointer:
                 for key, value in trainer.metrics.items()
                 if not key.endswith("_time")
             },
-            "state_sha256": state_digest(state["learned"]),
-            **({"teacher": state["teacher"]} if "teacher" in state else {}),
         }
 
-    def _write(self, step: int, common: bytes | None, shard: bytes, meta: dict | None) -> None:
+    def _write(self, step: int, common_state: dict | None, shard_state: dict, meta: dict | None) -> None:
         """Runs on every rank (normally in the background thread); the collectives use ``save_group``."""
         entries, error = {}, None
         try:
-            entries[shard_name(self.info.rank)] = checkpoint.write_file(
-                self.storage, step, shard_name(self.info.rank), shard
-            )
-            if common is not None:
-                entries[COMMON] = checkpoint.write_file(self.storage, step, COMMON, common)
+            encoded = {shard_name(self.info.rank): encode(shard_state)}
+            if common_state is not None:
+                encoded[COMMON] = encode(common_state)
+                meta["state_sha256"] = state_digest(common_state["learned"])
+                if "teacher" in common_state:
+                    meta["teacher"] = common_state["teacher"]
+            if not self._checked_loadable:
+                self._check_loadable(encoded)
+            for name, data in encoded.items():
+                entries[name] = checkpoint.write_file(self.storage, step, name, data)
         except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
             error = f"rank {self.info.rank}: {exc}"
         reports = self._gather((entries, error))
@@ -262,6 +273,19 @@ class Checkpointer:
         if self.info.is_main:
             outcome = self._commit(step, reports, meta)
         self._outcome = self._broadcast(outcome)
+
+    def _check_loadable(self, encoded: dict[str, bytes]) -> None:
+        """Once per run: what is saved must load back with ``weights_only=True`` (a numpy value in a hook's state or
+        in the metrics would be saved and verified, yet never loadable)."""
+        for name, data in encoded.items():
+            try:
+                checkpoint.decode(data, name)
+            except checkpoint.CorruptCheckpoint as exc:
+                self._unloadable = (
+                    f"{exc}: hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
+                )
+                raise
+        self._checked_loadable = True
 
     def _commit(self, step: int, reports: list, meta: dict) -> tuple:
         errors = [error for _, error in reports if error]
@@ -303,13 +327,15 @@ class Checkpointer:
 
     def _join(self) -> None:
         """Wait for the save in flight and act on its agreed outcome (on the main thread)."""
-        if self._thread is None:
+        if not self._in_flight:
             return
-        self._thread.join()
-        self._thread = None
+        self._done.wait()
+        self._in_flight = False
         outcome, self._outcome = self._outcome, None
         if outcome is None:
             raise CheckpointError("the checkpoint writer stopped without an outcome (a peer died mid-save?)")
+        if self._unloadable:
+            raise CheckpointError(self._unloadable)
         kind, step, detail = outcome
         if kind == "committed":
             self._failures = 0
@@ -326,6 +352,17 @@ class Checkpointer:
             raise CheckpointError(
                 f"{MAX_FAILED_SAVES} checkpoints in a row failed to save to {self.storage.url}; last error: {detail}"
             )
+
+
+def _snapshot(state: object) -> object:
+    """A copy of ``state`` that training can no longer change: every tensor cloned, containers rebuilt."""
+    if isinstance(state, torch.Tensor):
+        return state.detach().clone()
+    if isinstance(state, dict):
+        return {key: _snapshot(value) for key, value in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(_snapshot(value) for value in state)
+    return state
 
 
 def _versions() -> dict:

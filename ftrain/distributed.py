@@ -67,7 +67,8 @@ def rng_state() -> dict:
     numpy_state = np.random.get_state(legacy=False)
     numpy_state["state"]["key"] = torch.from_numpy(numpy_state["state"]["key"].astype(np.int64))
     version, internal, gauss = random.getstate()
-    return {"torch": torch.get_rng_state(), "numpy": numpy_state, "python": [version, list(internal), gauss]}
+    python_state = [version, torch.tensor(internal, dtype=torch.int64), gauss]  # one tensor, not 625 ints
+    return {"torch": torch.get_rng_state(), "numpy": numpy_state, "python": python_state}
 
 
 def set_rng_state(state: dict) -> None:
@@ -76,7 +77,7 @@ def set_rng_state(state: dict) -> None:
     numpy_state["state"] = {**numpy_state["state"], "key": numpy_state["state"]["key"].numpy().astype(np.uint32)}
     np.random.set_state(numpy_state)
     version, internal, gauss = state["python"]
-    random.setstate((version, tuple(internal), gauss))
+    random.setstate((version, tuple(internal.tolist()), gauss))
 
 
 def all_reduce_sum(values: list[float], info: RankInfo) -> list[float]:

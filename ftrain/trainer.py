@@ -217,10 +217,14 @@ def train(config: Config) -> int:
     stop = StopRequest()
     stop.install()
     info = distributed.init(config.dist_timeout)
+    trainer = None
     try:
-        return Trainer(config, info, stop).run()
+        trainer = Trainer(config, info, stop)
+        return trainer.run()
     except CheckpointError as error:
         print(f"ftrain: error: {error}", file=sys.stderr, flush=True)
         return EXIT_CHECKPOINT
     finally:
+        if trainer is not None:
+            trainer.checkpointer.stop_writer()
         distributed.shutdown()

@@ -39,3 +39,15 @@ class CountingHook(Hook):
 
     def load_state_dict(self, state: dict) -> None:
         self.seen = state["seen"]
+
+
+class NumpyStateHook(Hook):
+    """Keeps a numpy value in its state: saved fine, but not loadable with weights_only, so it must be refused."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+
+    def state_dict(self) -> dict:
+        import numpy as np
+
+        return {"best": np.float64(1.5)}

@@ -246,3 +246,13 @@ def test_a_failed_final_save_is_an_error_not_success(tmp_path) -> None:
     errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
     assert len(errors) == 1 and "the final checkpoint, step 8, could not be saved" in errors[0]
     assert "Traceback" not in result.stderr
+
+
+def test_state_that_would_not_load_back_is_refused_at_the_first_save(tmp_path) -> None:
+    hook = f"hooks=[{{target: 'probe_hooks:NumpyStateHook', kwargs: {{path: '{tmp_path}'}}}}]"
+    env = child_env({"PYTHONPATH": str(REPO / "tests")})
+    result = subprocess.run(train_command(tmp_path / "run", hook), cwd=REPO, env=env, capture_output=True, text=True)
+    assert result.returncode == 1
+    errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
+    assert len(errors) == 1 and "hooks and metrics must keep plain data" in errors[0], result.stderr
+    assert manifests(tmp_path / "run") == {}
