@@ -106,7 +106,7 @@ class ConsoleHook(Hook):
         losses = " ".join(f"{k.removeprefix('loss/')} {v:.3g}" for k, v in metrics.items() if k.startswith("loss/"))
         print(
             f"it {trainer.iteration}/{total} | {metrics['steps_per_s']:,.0f} steps/s"
-            f" | return {metrics['mean_return']:.2f} | len {metrics['mean_length']:.0f}"
+            f" | return {_number(metrics['mean_return'], '.2f')} | len {_number(metrics['mean_length'], '.0f')}"
             f" | {losses} | lr {metrics['learning_rate']:.2e} | ETA {eta}",
             flush=True,
         )
@@ -203,6 +203,11 @@ def load_hook(target: str, kwargs: dict) -> Hook:
     if not isinstance(hook, Hook):
         raise UserError(f"hook {target!r} is not a subclass of ftrain.hooks.Hook")
     return hook
+
+
+def _number(value: float, spec: str) -> str:
+    """``value`` formatted, or ``-`` while it is not measured yet (no episode has finished)."""
+    return format(value, spec) if math.isfinite(value) else "-"
 
 
 def _duration(seconds: float) -> str:
