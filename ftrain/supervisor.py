@@ -284,7 +284,8 @@ class EventLog:
 
 
 class HangWatch:
-    """Times every rank's heartbeat ``seq`` and names the rank that has been silent longest, if too long."""
+    """Times every rank's heartbeat ``seq``; when one has been silent too long, names the hung rank: a stopped
+    (T) or uninterruptible (D) process if there is one, else the rank silent longest."""
 
     def __init__(self, timeout: float | None, startup_grace: float, ranks: int) -> None:
         self.timeout = timeout
@@ -330,15 +331,24 @@ class HangWatch:
         since, rank = min(active)
         if now - since <= self.limit():
             return None
+        states = {r: _process_state(b.pid) for r, b in sorted(beats.items())}
+        # the others wait for it in a collective and may have been silent longer: name a stopped rank if any
+        rank = next((r for r, state in states.items() if state in ("T", "t", "D")), rank)
         beat = beats[rank]
         return {
             "rank": rank,
             "phase": beat.phase,
             "iteration": beat.iteration,
-            "seconds": round(now - since, 1),
+            "seconds": round(now - self.changed[rank][1], 1),
             "limit": round(self.limit(), 1),
-            "processes": {str(r): _process_state(b.pid) for r, b in sorted(beats.items())},
+            "processes": {str(r): state for r, state in states.items()},
         }
+
+
+def _describe_hang(hang: dict) -> str:
+    if "ranks_seen" in hang:
+        return f"not every rank got past start-up within {hang['limit']:g} s (--startup-grace)"
+    return f"rank {hang['rank']} silent for {hang['seconds']} s in phase {hang['phase']} (limit {hang['limit']} s)"
 
 
 def _process_state(pid: int) -> str:
@@ -380,9 +390,10 @@ class Attempt:
         self.proc = subprocess.Popen(command, env=env, stderr=subprocess.PIPE, start_new_session=True)
         self.failures: dict[int, int] = {}
         """Global rank -> exit code of every failed worker, from torchrun's ChildFailedError report."""
-        self.root_rank: int | None = None
-        self.first_dead: int | None = None
-        """The rank the supervisor saw die first (torchrun notices later, and only after the others fail too)."""
+        self.dead: list[int] = []
+        """Ranks the supervisor saw die mid-training."""
+        self.killed: set[int] = set()
+        """Ranks the supervisor then SIGKILLed: doomed by the dead ones."""
         self.completed = 0
         self.committed: int | None = None
         self.resumed: int | None = None
@@ -393,35 +404,30 @@ class Attempt:
         self._copier.start()
 
     def _copy_stderr(self) -> None:
-        section, rank = None, None
+        in_report, rank = False, None
         for raw in self.proc.stderr:
             line = raw.decode(errors="replace")
             sys.stderr.write(line)
             sys.stderr.flush()
             if line.startswith("Failures:"):
-                section = "other"
-            elif line.startswith("Root Cause (first observed failure)"):
-                section = "root"
-            elif section and (match := re.match(r"\s*rank\s*:\s*(\d+)", line)):
+                in_report = True
+            elif in_report and (match := re.match(r"\s*rank\s*:\s*(\d+)", line)):
                 rank = int(match[1])
-            elif section and rank is not None and (match := re.match(r"\s*exitcode\s*:\s*(-?\d+)", line)):
+            elif in_report and rank is not None and (match := re.match(r"\s*exitcode\s*:\s*(-?\d+)", line)):
                 self.failures[rank] = int(match[1])
-                if section == "root":
-                    self.root_rank = rank
 
     def culprit(self) -> tuple[int, int] | None:
-        """(rank, exit code) to blame: the rank seen dying first, else a worker killed by a signal, since the others
-        then fail on the broken group (torchrun's root cause is only the first it noticed), else torchrun's root
-        cause. SIGTERM deaths do not count: torchrun sends SIGTERM to the survivors, which may die of it while
-        exiting on their own error."""
-        if self.first_dead in self.failures:
-            return self.first_dead, self.failures[self.first_dead]
-        killed = sorted((rank, code) for rank, code in self.failures.items() if code < 0 and code != -signal.SIGTERM)
-        if killed:
-            return killed[0]
-        if self.root_rank is not None:
-            return self.root_rank, self.failures[self.root_rank]
-        return None
+        """(rank, exit code) to blame. Ranks the supervisor killed do not count. Of the others, a rank killed by a
+        signal comes first (someone killed it; the rest then failed on the broken group), then a specific exit code
+        before 1 (what a broken group gives) or SIGTERM (what torchrun sends the survivors), then the lowest rank.
+        torchrun's own root cause is only the first failure it noticed, arbitrary when several die within a poll."""
+        own = {rank: code for rank, code in self.failures.items() if rank not in self.killed} or self.failures
+
+        def order(item: tuple[int, int]) -> tuple[bool, bool, int]:
+            rank, code = item
+            return (not (code < 0 and code != -signal.SIGTERM), code in (1, -signal.SIGTERM), rank)
+
+        return min(own.items(), key=order) if own else None
 
     def terminate(self) -> None:
         """SIGTERM every worker (each saves at the next iteration boundary), or torchrun before it has any."""
@@ -586,12 +592,18 @@ class Supervisor:
     def _next_plan(self, previous: Plan | None) -> Plan:
         """The next attempt to run (on several nodes: wait until node 0 has moved on from ``previous``)."""
         deadline = time.monotonic() + self.options.rdzv_timeout
+        waiting = False
         while True:
             self._raise_if_signalled()
             try:
                 plan = self.link.ask("plan")
-            except OSError:
+            except OSError as error:
                 plan = None
+                if not waiting:
+                    waiting = True
+                    timeout = self.options.rdzv_timeout
+                    message = f"waiting up to {timeout:g} s for node 0 at {self.options.rdzv_endpoint} ({error})"
+                    print(f"ftrain supervise: {message}", file=sys.stderr, flush=True)
             if plan is not None and plan.final is not None:
                 raise _Stop("peer_ended", plan.final, f"another node ended the run with exit code {plan.final}")
             if plan is not None and (previous is None or _key(plan) != _key(previous)):
@@ -652,7 +664,7 @@ class Supervisor:
             code = attempt.proc.poll()
             if code is not None:
                 return self._exited(attempt, code)
-            if attempt.first_dead is None:
+            if not attempt.dead:
                 self._check_workers(attempt, beats)
             if self.signals and preempt_deadline is None:
                 preempt_deadline = now + self.options.stop_grace
@@ -665,8 +677,7 @@ class Supervisor:
             if hang is not None:
                 self.events(
                     "hang",
-                    f"attempt {attempt.plan.attempt}: rank {hang['rank']} silent for {hang['seconds']} s in "
-                    f"phase {hang['phase']} (limit {hang['limit']} s); killing the workers",
+                    f"attempt {attempt.plan.attempt}: {_describe_hang(hang)}; killing the workers",
                     attempt=attempt.plan.attempt,
                     **hang,
                 )
@@ -684,16 +695,17 @@ class Supervisor:
         """A worker that died mid-training dooms the others (no collective can complete): SIGKILL them now rather
         than wait for them to fail on the broken group and for torchrun to notice (1-2 s measured here); torchrun
         still reports every exit code."""
-        for rank, beat in sorted(beats.items()):
-            if beat.phase in QUIET_PHASES or _process_state(beat.pid) not in ("gone", "Z"):
-                continue
-            last = read_heartbeats(self.heartbeat_dir).get(rank, beat)  # it may have finished since we looked
-            if last.phase not in QUIET_PHASES:
-                attempt.first_dead = rank
-                self.events("worker_died", attempt=attempt.plan.attempt, rank=rank, pid=beat.pid, phase=beat.phase)
-                for pid in attempt.workers():
-                    _kill(pid, signal.SIGKILL)
-                return
+        dead = [r for r, b in beats.items() if b.phase not in QUIET_PHASES and _process_state(b.pid) in ("gone", "Z")]
+        if dead:
+            latest = read_heartbeats(self.heartbeat_dir)  # a rank may have finished since we looked
+            dead = [rank for rank in dead if latest.get(rank, beats[rank]).phase not in QUIET_PHASES]
+        if not dead:
+            return
+        attempt.dead = sorted(dead)
+        attempt.killed = set(beats) - set(dead)
+        self.events("worker_died", attempt=attempt.plan.attempt, ranks=attempt.dead)
+        for pid in attempt.workers():
+            _kill(pid, signal.SIGKILL)
 
     def _check_peers(self, attempt: Attempt, now: float) -> Outcome | None:
         """Several nodes: stop this node's group when another node failed the attempt or ended the run."""

@@ -329,8 +329,7 @@ def test_stopped_worker_is_a_hang(tmp_path):
     assert finish(proc) == supervisor.EXIT_DONE
     assert_finished(run)
     hang = next(event for event in events(run) if event["event"] == "hang")
-    assert hang["limit"] == 2 and hang["seconds"] >= 2
-    assert hang["processes"]["1"] == "T"  # the kernel's "stopped", reported for diagnosis
+    assert hang["limit"] == 2 and hang["rank"] == 1 and hang["processes"]["1"] == "T"  # the kernel's "stopped"
     assert "recovered" in names(run)
 
 
