@@ -104,3 +104,12 @@ def storage_url(request, tmp_path, monkeypatch):
 
 
 # --- end of storage fixtures ---
+
+
+@pytest.fixture(autouse=True)
+def stop_leftover_supervisors():
+    """A failed test must not leave a supervisor (and its workers) running."""
+    yield
+    from runs import stop_launched
+
+    stop_launched()

@@ -62,6 +62,58 @@ def start_train(
     )
 
 
+LAUNCHED: list[subprocess.Popen] = []
+"""Supervisors the tests started; conftest stops any still running after each test."""
+
+
+def launch(command: list[str], **popen: object) -> subprocess.Popen:
+    """Start a long-lived process (a supervisor) that must not outlive the test that started it."""
+    LAUNCHED.append(subprocess.Popen(command, **popen))
+    return LAUNCHED[-1]
+
+
+def stop_launched() -> None:
+    """Two SIGTERMs stop a supervisor and its workers at once."""
+    while LAUNCHED:
+        proc = LAUNCHED.pop()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=60)
+
+
+def finish(proc: subprocess.Popen, timeout: float = 180) -> int:
+    """The exit code of ``proc``; killed (and the test failed) if it takes longer than ``timeout``."""
+    try:
+        return proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise
+
+
+def events(log_dir: str | Path) -> list[dict]:
+    """The supervisor's ``events.jsonl`` of a run, one dict per decision."""
+    path = Path(log_dir) / "events.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+
+def torchrun_pid(supervisor_pid: int) -> int:
+    """The torchrun agent a supervisor launched (waits until there is one)."""
+
+    def find() -> int | None:
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                parent = int(stat.read_text().rpartition(")")[2].split()[1])
+                cmdline = (stat.parent / "cmdline").read_bytes()
+            except OSError:
+                continue
+            if parent == supervisor_pid and b"torch.distributed.run" in cmdline:
+                return int(stat.parent.name)
+        return None
+
+    return wait_for(find, "torchrun")
+
+
 def descendants(pid: int) -> list[int]:
     """Every live process below ``pid`` (torchrun starts each worker in a session of its own, so a process group
     kill does not reach them)."""

@@ -9,13 +9,14 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
 from ftrain import supervisor
 from ftrain.heartbeat import read_heartbeats
+
+from runs import events, finish, launch, torchrun_pid, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -25,50 +26,11 @@ OVERRIDES = ["iterations=100", "dist_timeout=10", "log.console=false"]
 DEFAULTS = ["--nproc-per-node", "2", "--backoff-initial", "0.2", "--stop-grace", "20"]
 
 
-LAUNCHED: list[subprocess.Popen] = []
-
-
-@pytest.fixture(autouse=True)
-def stop_leftovers():
-    """A failed test must not leave a supervisor (and its workers) running: two SIGTERMs stop everything at once."""
-    yield
-    while LAUNCHED:
-        proc = LAUNCHED.pop()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            proc.send_signal(signal.SIGTERM)
-            proc.wait(timeout=60)
-
-
 def start(storage: Path, *options: str, log: str = "supervise") -> subprocess.Popen:
     """``ftrain supervise`` (2 ranks, unless in ``options``) on ``storage``; output: ``<storage>.<log>.log``."""
     command = [sys.executable, "-m", "ftrain", "supervise", *DEFAULTS, *options, CONFIG, "--storage", str(storage)]
     output = open(f"{storage}.{log}.log", "ab")  # noqa: SIM115 - the child writes to it for its whole life
-    LAUNCHED.append(subprocess.Popen([*command, *OVERRIDES], cwd=REPO, stdout=output, stderr=subprocess.STDOUT))
-    return LAUNCHED[-1]
-
-
-def finish(proc: subprocess.Popen, timeout: float = 180) -> int:
-    try:
-        return proc.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        raise
-
-
-def wait_for(predicate, what: str, timeout: float = 90):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.02)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-
-
-def events(storage: Path) -> list[dict]:
-    path = storage / "events.jsonl"
-    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+    return launch([*command, *OVERRIDES], cwd=REPO, stdout=output, stderr=subprocess.STDOUT)
 
 
 def wait_event(storage: Path, name: str, count: int) -> dict:
@@ -93,21 +55,6 @@ def training(heartbeat_dir: Path, iteration: int, ranks: int = 2) -> dict:
 def newest_step(storage: Path) -> tuple[int, dict]:
     manifests = sorted((storage / "checkpoints").glob("step-*/MANIFEST.json"))
     return int(manifests[-1].parent.name.removeprefix("step-")), json.loads(manifests[-1].read_text())
-
-
-def torchrun_pid(supervisor_pid: int) -> int:
-    def find():
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                parent = int(stat.read_text().rpartition(")")[2].split()[1])
-                cmdline = (stat.parent / "cmdline").read_bytes()
-            except OSError:
-                continue
-            if parent == supervisor_pid and b"torch.distributed.run" in cmdline:
-                return int(stat.parent.name)
-        return None
-
-    return wait_for(find, "torchrun")
 
 
 def flip_byte(path: Path) -> None:

@@ -24,6 +24,8 @@ import pytest
 from ftrain import supervisor
 from ftrain.heartbeat import ENV_DIR, Heartbeat, HeartbeatWriter, read_heartbeats
 
+from runs import events, finish, launch, torchrun_pid, wait_for
+
 REPO = Path(__file__).resolve().parent.parent
 TESTS = Path(__file__).resolve().parent
 ITERATIONS = 16
@@ -123,21 +125,6 @@ def write_config(tmp_path: Path) -> Path:
     return path
 
 
-LAUNCHED: list[subprocess.Popen] = []
-
-
-@pytest.fixture(autouse=True)
-def stop_leftovers():
-    """A failed test must not leave a supervisor (and its workers) running: two SIGTERMs stop everything at once."""
-    yield
-    while LAUNCHED:
-        proc = LAUNCHED.pop()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGTERM)
-            proc.send_signal(signal.SIGTERM)
-            proc.wait(timeout=60)
-
-
 def start_supervisor(tmp_path: Path, *options: str, fault: str = "", run: str = "run") -> subprocess.Popen:
     env = {
         **os.environ,
@@ -147,23 +134,7 @@ def start_supervisor(tmp_path: Path, *options: str, fault: str = "", run: str = 
     }
     command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", "--backoff-initial", "0.2"]
     command += [*options, str(write_config(tmp_path)), "--storage", str(tmp_path / run)]
-    LAUNCHED.append(subprocess.Popen(command, cwd=REPO, env=env))
-    return LAUNCHED[-1]
-
-
-def wait_for(predicate, timeout: float = 60, what: str = "condition"):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
-
-
-def events(log_dir: Path) -> list[dict]:
-    path = log_dir / "events.jsonl"
-    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+    return launch(command, cwd=REPO, env=env)
 
 
 def names(log_dir: Path) -> list[str]:
@@ -178,29 +149,6 @@ def beat_at(heartbeat_dir: Path, rank: int, iteration: int):
         return beat if beat and beat.iteration >= iteration and beat.phase in ("rollout", "update") else None
 
     return wait_for(ready, what=f"rank {rank} at iteration {iteration}")
-
-
-def finish(proc: subprocess.Popen, timeout: float = 120) -> int:
-    try:
-        return proc.wait(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        raise
-
-
-def torchrun_pid(supervisor_pid: int) -> int:
-    def find():
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                fields = stat.read_text().rpartition(")")[2].split()
-                cmdline = (stat.parent / "cmdline").read_bytes()
-            except OSError:
-                continue
-            if int(fields[1]) == supervisor_pid and b"torch.distributed.run" in cmdline:
-                return int(stat.parent.name)
-        return None
-
-    return wait_for(find, what="torchrun")
 
 
 def assert_finished(run: Path) -> None:
