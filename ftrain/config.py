@@ -219,37 +219,27 @@ def default_log_dir(storage_url: str, name: str) -> str:
 
 def validate(config: Config) -> None:
     """Range checks that types alone cannot express."""
-    positive = {
-        "iterations": config.iterations,
-        "env.num_envs": config.env.num_envs,
-        "num_steps_per_env": config.num_steps_per_env,
-        "torch_threads": config.torch_threads,
-        "algorithm.num_learning_epochs": config.algorithm.num_learning_epochs,
-        "algorithm.num_mini_batches": config.algorithm.num_mini_batches,
-        "checkpoint.interval": config.checkpoint.interval,
-        "checkpoint.keep_last": config.checkpoint.keep_last,
+    minimums = {  # key: (value, smallest allowed)
+        "iterations": (config.iterations, 1),
+        "env.num_envs": (config.env.num_envs, 1),
+        "num_steps_per_env": (config.num_steps_per_env, 1),
+        "torch_threads": (config.torch_threads, 1),
+        "algorithm.num_learning_epochs": (config.algorithm.num_learning_epochs, 1),
+        "algorithm.num_mini_batches": (config.algorithm.num_mini_batches, 1),
+        "algorithm.gradient_length": (config.algorithm.gradient_length, 1),
+        "checkpoint.interval": (config.checkpoint.interval, 1),
+        "checkpoint.keep_last": (config.checkpoint.keep_last, 1),
+        "checkpoint.keep_best": (config.checkpoint.keep_best, 0),
+        "checkpoint.keep_every": (config.checkpoint.keep_every, 0),
+        "checkpoint.retries": (config.checkpoint.retries, 0),
+        "eval.every": (config.eval.every, 0),
+        "eval.episodes": (config.eval.episodes, 1),
+        "snapshots.every": (config.snapshots.every, 0),
+        "snapshots.keep_last": (config.snapshots.keep_last, 1),
     }
-    for key, value in positive.items():
-        if value < 1:
-            raise UserError(f"{key}={value} must be at least 1")
-    non_negative = {
-        "checkpoint.keep_best": config.checkpoint.keep_best,
-        "checkpoint.keep_every": config.checkpoint.keep_every,
-        "checkpoint.retries": config.checkpoint.retries,
-        "eval.every": config.eval.every,
-        "snapshots.every": config.snapshots.every,
-    }
-    for key, value in non_negative.items():
-        if value < 0:
-            raise UserError(f"{key}={value} must be 0 or more")
-    at_least_one = {
-        "algorithm.gradient_length": config.algorithm.gradient_length,
-        "eval.episodes": config.eval.episodes,
-        "snapshots.keep_last": config.snapshots.keep_last,
-    }
-    for key, value in at_least_one.items():
-        if value < 1:
-            raise UserError(f"{key}={value} must be at least 1")
+    for key, (value, minimum) in minimums.items():
+        if value < minimum:
+            raise UserError(f"{key}={value} must be {'at least 1' if minimum else '0 or more'}")
     batch = config.env.num_envs * config.num_steps_per_env
     if config.algorithm.num_mini_batches > batch:
         raise UserError(
