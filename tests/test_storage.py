@@ -137,6 +137,8 @@ class FlakyProxy:
         self.endpoint = f"http://127.0.0.1:{self.listener.getsockname()[1]}"
         self.up = threading.Event()
         self.up.set()
+        self.refused = threading.Event()
+        """Set once a connection was dropped during an outage: the client has really seen it."""
         self.live: list[socket.socket] = []
         self.lose_responses = 0
         threading.Thread(target=self._accept, daemon=True).start()
@@ -159,6 +161,7 @@ class FlakyProxy:
                 return
             if not self.up.is_set():
                 client.close()
+                self.refused.set()
                 continue
             upstream = socket.create_connection(self.target)
             self.live += [client, upstream]
@@ -199,7 +202,13 @@ def test_transient_outage_is_retried(flaky_s3, caplog):
     storage.write_exclusive("checkpoints/step-1/MANIFEST.json", b"{}")
     caplog.set_level(logging.WARNING, logger="ftrain.storage")
     proxy.down()
-    threading.Timer(0.3, proxy.up.set).start()
+
+    def outage_ends() -> None:  # after the client has hit it (a timer could fire before a slow machine reads)
+        proxy.refused.wait(30)
+        time.sleep(0.2)
+        proxy.up.set()
+
+    threading.Thread(target=outage_ends, daemon=True).start()
     assert storage.read("checkpoints/step-1/MANIFEST.json") == b"{}"
     assert 1 <= len(caplog.records) <= 6
     assert "retry 1/6" in caplog.text and S3_SECRET not in caplog.text
