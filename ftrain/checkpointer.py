@@ -268,11 +268,11 @@ class Checkpointer:
                 entries[name] = checkpoint.write_file(self.storage, step, name, data)
         except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
             error = f"rank {self.info.rank}: {exc}"
-        reports = self._gather((entries, error))
+        reports = distributed.all_gather_object((entries, error), self.info, self.save_group)
         outcome = None
         if self.info.is_main:
             outcome = self._commit(step, reports, meta)
-        self._outcome = self._broadcast(outcome)
+        self._outcome = distributed.broadcast_object(outcome, self.info, self.save_group)
 
     def _check_loadable(self, encoded: dict[str, bytes]) -> None:
         """Once per run: what is saved must load back with ``weights_only=True`` (a numpy value in a hook's state or
@@ -310,20 +310,6 @@ class Checkpointer:
         )
         for step in doomed:
             checkpoint.delete_step(self.storage, step)
-
-    def _gather(self, value: object) -> list:
-        if self.save_group is None:
-            return [value]
-        out: list = [None] * self.info.world_size
-        dist.all_gather_object(out, value, group=self.save_group)
-        return out
-
-    def _broadcast(self, value: object) -> object:
-        if self.save_group is None:
-            return value
-        box = [value]
-        dist.broadcast_object_list(box, src=0, group=self.save_group)
-        return box[0]
 
     def _join(self) -> None:
         """Wait for the save in flight and act on its agreed outcome (on the main thread)."""
