@@ -15,8 +15,6 @@ TensorDict round trips; Adam runs as one fused kernel.
 
 from __future__ import annotations
 
-import hashlib
-
 import torch
 import torch.distributed as dist
 from rsl_rl.algorithms import PPO, Distillation
@@ -274,28 +272,3 @@ def load_learned_state(alg: PPO | Distillation, state: dict) -> None:
     alg.learning_rate = state["learning_rate"]
     for group in alg.optimizer.param_groups:
         group["lr"] = alg.learning_rate
-
-
-def state_digest(state: object) -> str:
-    """SHA-256 over every tensor and number in ``state``, in a canonical order: equal iff bitwise equal."""
-    digest = hashlib.sha256()
-    _feed(digest, state)
-    return digest.hexdigest()
-
-
-def _feed(digest: hashlib._Hash, value: object) -> None:
-    if isinstance(value, torch.Tensor):
-        tensor = value.detach().contiguous().cpu()
-        digest.update(f"T{tensor.dtype}{tuple(tensor.shape)}".encode())
-        digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
-    elif isinstance(value, dict):
-        digest.update(b"D")
-        for key in sorted(value, key=str):
-            digest.update(repr(key).encode())
-            _feed(digest, value[key])
-    elif isinstance(value, (list, tuple)):
-        digest.update(b"L")
-        for item in value:
-            _feed(digest, item)
-    else:
-        digest.update(repr(value).encode())

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -35,22 +36,32 @@ CONFIG = Path(__file__).resolve().parents[1] / "configs" / "halfcheetah.yaml"
 
 
 class ThroughputHook(Hook):
-    """Rank 0 writes, to ``path`` as JSON: the steady-state global steps/s (iterations after the warm-up), how
-    long each save blocked the loop, and the time of a plain ``torch.save`` of the same state, for reference."""
+    """Rank 0 writes, to ``path`` as JSON: the steady-state global steps/s (iterations after the warm-up), the same
+    from the median iteration time (robust to the bursts of other work that these machines see), how long each
+    save blocked the loop, and the time of a plain ``torch.save`` of the same state, for reference."""
 
     def __init__(self, path: str, warmup: int = WARMUP) -> None:
         self.path = path
         self.warmup = warmup
         self.start: tuple[float, float] | None = None
+        self.last: tuple[float, float] | None = None
         self.blocking: list[float] = []
+        self.iterations: list[tuple[float, float]] = []
+        """(seconds, env steps) of each timed iteration, save included."""
+
+    def on_start(self, trainer) -> None:
+        trainer.checkpointer.wait_ready()  # the save helper's start-up is not part of the steady state
 
     def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        now = (time.perf_counter(), metrics["env_steps"])
         if trainer.iteration == self.warmup:
-            self.start = (time.perf_counter(), metrics["env_steps"])
+            self.start = now
         elif self.start is not None:
             self.blocking.append(trainer.checkpointer.last_blocking_s)
             trainer.checkpointer.last_blocking_s = 0.0
-            self.steps_per_s = (metrics["env_steps"] - self.start[1]) / (time.perf_counter() - self.start[0])
+            self.steps_per_s = (now[1] - self.start[1]) / (now[0] - self.start[0])
+            self.iterations.append((now[0] - self.last[0], now[1] - self.last[1]))
+        self.last = now
 
     def on_end(self, trainer) -> None:
         if not trainer.info.is_main:
@@ -60,7 +71,14 @@ class ThroughputHook(Hook):
         torch.save(state, Path(self.path).with_suffix(".pt"))
         torch_save_s = time.perf_counter() - started
         saves = [seconds for seconds in self.blocking if seconds > 0]
-        result = {"steps_per_s": self.steps_per_s, "blocking_s": saves, "torch_save_s": torch_save_s}
+        seconds = statistics.median(seconds for seconds, _ in self.iterations)
+        steps = statistics.median(steps for _, steps in self.iterations)
+        result = {
+            "steps_per_s": self.steps_per_s,
+            "median_steps_per_s": steps / seconds,
+            "blocking_s": saves,
+            "torch_save_s": torch_save_s,
+        }
         Path(self.path).write_text(json.dumps(result))
 
 

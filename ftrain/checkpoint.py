@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 
 import torch
 
+from ftrain import packing
 from ftrain.errors import UserError
 from ftrain.storage import Storage
 
@@ -29,6 +30,8 @@ FORMAT_VERSION = 1
 CHECKPOINTS = "checkpoints"
 MANIFEST = "MANIFEST.json"
 QUARANTINED = "QUARANTINED.json"
+COMMON = "common.pt"
+"""The state every rank shares (models, optimizer, counters, hooks), written once."""
 VERIFIED, INCOMPLETE, CORRUPT, QUARANTINE = "verified", "incomplete", "corrupt", "quarantined"
 
 _STEP_DIR = re.compile(r"^step-(\d+)$")
@@ -82,6 +85,11 @@ class StepInfo:
         return (self.manifest or {}).get("metrics") or {}
 
 
+def shard_name(rank: int) -> str:
+    """The file of what differs per rank (environments, random streams)."""
+    return f"rank-{rank:05d}.pt"
+
+
 def step_dir(step: int) -> str:
     return f"{CHECKPOINTS}/step-{step:09d}"
 
@@ -103,13 +111,19 @@ def encode(state: dict) -> bytes:
 
 
 def decode(data: bytes, name: str = "checkpoint data") -> dict:
-    """Load with ``weights_only=True``: tensors, numbers, strings, lists and dicts; anything else is refused."""
+    """Load with ``weights_only=True``: tensors, numbers, strings, lists and dicts; anything else is refused.
+    A packed state (see ``packing.py``) comes back unpacked."""
     try:
         state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:
         raise CorruptCheckpoint(f"{name} is not loadable as plain data: {_load_failure(exc)}") from None
     if not isinstance(state, dict):
         raise CorruptCheckpoint(f"{name} holds a {type(state).__name__}, not a dict")
+    if packing.is_packed(state):
+        try:
+            return packing.unpack(state)
+        except ValueError as exc:
+            raise CorruptCheckpoint(f"{name}: {exc}") from None
     return state
 
 
@@ -327,10 +341,8 @@ def retention_plan(
 
 
 def delete_step(storage: Storage, step: int) -> None:
-    """Delete the manifest first (the step stops being committed), then the other files, then the directory."""
+    """Delete the manifest first (the step stops being committed), then the directory with the other files."""
     storage.delete(f"{step_dir(step)}/{MANIFEST}")
-    for name in storage.list_files(step_dir(step)):
-        storage.delete(f"{step_dir(step)}/{name}")
     storage.delete_tree(step_dir(step))
 
 

@@ -5,43 +5,37 @@ The format and the single-process rules (digests, manifest, verification, retent
 
 - Resume: rank 0 picks the step (newest that verifies, quarantining bad ones) and broadcasts its decision; every
   rank then reads ``common.pt`` and its own shard, checking both against the manifest.
-- Save: at the iteration boundary each rank encodes its state to bytes (the snapshot; training may go on), then a
-  background thread writes the shard, the ranks gather their digests over a separate gloo group (async
-  collectives on the default group deadlocked in a probe), rank 0 commits the manifest and applies retention,
-  and broadcasts the outcome so every rank agrees whether the step counts.
+- Save: at the iteration boundary each rank packs its state (one copy of every tensor, which training can no
+  longer change: the snapshot; see ``packing.py``) and hands it to its save helper, a process at idle CPU
+  priority (``saver.py``). The helpers encode and write the shards, gather their digests in their own gloo group,
+  and rank 0's helper commits the manifest and applies retention; every rank reads the agreed outcome back at
+  its next save (or at once, for a synchronous save), so all ranks agree whether the step counts.
 """
 
 from __future__ import annotations
 
-import datetime
+import collections
 import importlib.metadata
 import math
-import queue
-import threading
 import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-import torch
-import torch.distributed as dist
-
-from ftrain import checkpoint, distributed
-from ftrain.algorithm import state_digest
-from ftrain.checkpoint import encode
+from ftrain import checkpoint, distributed, packing
+from ftrain.checkpoint import COMMON, shard_name
 from ftrain.config import Config
 from ftrain.errors import UserError
+from ftrain.saver import SaverClient, SaverGone
 from ftrain.storage import Storage
 
 if TYPE_CHECKING:
     from ftrain.trainer import Trainer
 
-COMMON = "common.pt"
 MAX_FAILED_SAVES = 3
 """Saves that may fail in a row (after the storage layer's own retries) before training stops with an error."""
-
-
-def shard_name(rank: int) -> str:
-    return f"rank-{rank:05d}.pt"
+MAX_IN_FLIGHT = 2
+"""Saves handed to the helper and not yet settled: with two, the helper, which only gets CPU time that training
+leaves, may fall one save behind without blocking the loop."""
 
 
 class CheckpointError(RuntimeError):
@@ -59,24 +53,16 @@ class Checkpointer:
                 f"storage {self.storage.url} lives inside one process, but this run has {info.world_size} ranks: "
                 "use a local path, file:// or s3://"
             )
-        timeout = datetime.timedelta(seconds=config.dist_timeout)
-        self.save_group = dist.new_group(backend="gloo", timeout=timeout) if info.distributed else None
+        self._saver = SaverClient(config, info)
+        """Encoding, writing, agreeing and committing: a helper process at idle priority (see saver.py)."""
         self.committed_step: int | None = None
         self.on_commit: Callable[[int, dict], None] = lambda step, manifest: None
-        # one long-lived writer thread: starting a thread per save would block the loop until the new thread, which
-        # starts by encoding (holding the GIL), lets go of it
-        self._jobs: queue.SimpleQueue = queue.SimpleQueue()
-        self._done = threading.Event()
-        self._in_flight = False
-        self._writer_thread = threading.Thread(target=self._writer, name="ftrain-checkpoint-writer", daemon=True)
-        self._writer_thread.start()
-        self._outcome: tuple | None = None
-        self._must_commit = False
+        self._pending: collections.deque[tuple[int, bool]] = collections.deque()
+        """(step, must commit) of the saves handed to the helper whose outcome has not been acted on yet."""
         self._failures = 0
         self._occupied: set[int] = set()
         """Corrupt or quarantined steps past the resume point: replaced only when this run saves them again."""
         self._checked_loadable = False
-        self._unloadable: str | None = None
         self.last_blocking_s = 0.0
         self._static_meta = {  # computed once: package metadata lookups cost ~10 ms
             "world_size": info.world_size,
@@ -190,56 +176,54 @@ class Checkpointer:
     # --- save --------------------------------------------------------------------------------------------------
 
     def save(self, trainer: Trainer, wait: bool = False, must_commit: bool = False) -> None:
-        """Snapshot now (a copy of every tensor, well under a millisecond); encode, digest and write in the
-        background unless ``wait`` or ``checkpoint.async_save=false``. The first save of a run is waited for: it
-        checks that what is saved loads back.
+        """Snapshot now (every tensor packed into a copy, well under a millisecond) and hand it to the save helper,
+        which encodes, writes and commits it in the background; up to ``MAX_IN_FLIGHT`` saves may be in flight.
+        Waited for: with ``wait``, with ``checkpoint.async_save=false``, the first save of a run (it checks that what
+        is saved loads back), and after a failed save until one commits.
 
         ``must_commit``: the save that ends a run (the last iteration, or a stop): if it fails, CheckpointError
         when it is waited for, instead of training on.
         """
         started = time.perf_counter()
-        self._join()
         step = trainer.iteration
-        if step == self.committed_step:
+        if step == self.committed_step or step in (pending for pending, _ in self._pending):
             return
-        if step in self._occupied:
-            self._replace_occupied(step)
-        shard_state = _snapshot(trainer.rank_state())
-        common_state = meta = None
+        self._settle(MAX_IN_FLIGHT - 1)
+        replace = step in self._occupied
+        self._occupied.discard(step)
+        files = {shard_name(self.info.rank): packing.pack(trainer.rank_state())}
+        meta = None
         if self.info.is_main:
-            common_state = _snapshot(trainer.common_state())
+            files[COMMON] = packing.pack(trainer.common_state())
             meta = self._meta(trainer)
-        self._must_commit = must_commit
-        self._done.clear()
-        self._in_flight = True
-        self._jobs.put((step, common_state, shard_state, meta))
-        if wait or not self.config.checkpoint.async_save or not self._checked_loadable:
-            self._join()
+        first = not self._checked_loadable
+        self._send((step, files, meta, first, replace))
+        self._checked_loadable = True
+        self._pending.append((step, must_commit))
+        if wait or not self.config.checkpoint.async_save or first or self._failures:  # after a failure: one at a time
+            self._settle(0)
         self.last_blocking_s = time.perf_counter() - started
 
     def close(self) -> None:
-        """Wait for the save in flight and act on its outcome."""
-        self._join()
+        """Wait for the saves in flight and act on their outcomes."""
+        self._settle(0)
 
-    def stop_writer(self) -> None:
-        """Let the writer thread end (after any save in flight): the process must not exit under it."""
-        self._jobs.put(None)
-        self._writer_thread.join()
+    def wait_ready(self) -> None:
+        """Wait until the save helper is ready (for measurements of the steady state; saves wait by themselves)."""
+        try:
+            self._saver.wait_ready()
+        except SaverGone as exc:
+            raise CheckpointError(str(exc)) from None
 
-    def _writer(self) -> None:
-        while (job := self._jobs.get()) is not None:
-            try:
-                self._write(*job)
-            finally:
-                self._done.set()
+    def shutdown(self) -> None:
+        """Let the save helper finish and end: the rank must not exit under it."""
+        self._saver.close()
 
-    def _replace_occupied(self, step: int) -> None:
-        """A corrupt or quarantined directory holds this step: rank 0 deletes it; no rank writes before that."""
-        if self.info.is_main:
-            checkpoint.replace_bad(self.storage, step, log=self.log)
-        if self.save_group is not None:
-            dist.barrier(group=self.save_group)
-        self._occupied.discard(step)
+    def _send(self, job: tuple) -> None:
+        try:
+            self._saver.send(job)
+        except SaverGone as exc:
+            raise CheckpointError(str(exc)) from None
 
     def _meta(self, trainer: Trainer) -> dict:
         return {
@@ -252,77 +236,20 @@ class Checkpointer:
             },
         }
 
-    def _write(self, step: int, common_state: dict | None, shard_state: dict, meta: dict | None) -> None:
-        """Runs on every rank (normally in the background thread); the collectives use ``save_group``."""
-        entries, error = {}, None
+    def _settle(self, keep: int) -> None:
+        """Act on the agreed outcomes of the oldest saves in flight until at most ``keep`` are left (and on any
+        that are already there: the newest committed step is known as soon as possible)."""
         try:
-            encoded = {shard_name(self.info.rank): encode(shard_state)}
-            if common_state is not None:
-                encoded[COMMON] = encode(common_state)
-                meta["state_sha256"] = state_digest(common_state["learned"])
-                if "teacher" in common_state:
-                    meta["teacher"] = common_state["teacher"]
-            if not self._checked_loadable:
-                self._check_loadable(encoded)
-            for name, data in encoded.items():
-                entries[name] = checkpoint.write_file(self.storage, step, name, data)
-        except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
-            error = f"rank {self.info.rank}: {exc}"
-        reports = distributed.all_gather_object((entries, error), self.info, self.save_group)
-        outcome = None
-        if self.info.is_main:
-            outcome = self._commit(step, reports, meta)
-        self._outcome = distributed.broadcast_object(outcome, self.info, self.save_group)
+            while len(self._pending) > keep or (self._pending and self._saver.has_message()):
+                _, must_commit = self._pending.popleft()
+                self._act_on(self._saver.receive(), must_commit)
+        except SaverGone as exc:
+            raise CheckpointError(f"{exc}; a peer may have died mid-save") from None
 
-    def _check_loadable(self, encoded: dict[str, bytes]) -> None:
-        """Once per run: what is saved must load back with ``weights_only=True`` (a numpy value in a hook's state or
-        in the metrics would be saved and verified, yet never loadable)."""
-        for name, data in encoded.items():
-            try:
-                checkpoint.decode(data, name)
-            except checkpoint.CorruptCheckpoint as exc:
-                self._unloadable = (
-                    f"{exc}: hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
-                )
-                raise
-        self._checked_loadable = True
-
-    def _commit(self, step: int, reports: list, meta: dict) -> tuple:
-        errors = [error for _, error in reports if error]
-        if errors:
-            return ("failed", step, "; ".join(errors))
-        files = {name: entry for entries, _ in reports for name, entry in entries.items()}
-        try:
-            manifest = checkpoint.commit(self.storage, step, files, meta)
-        except Exception as exc:
-            return ("failed", step, f"commit: {exc}")
-        try:
-            self._apply_retention()
-        except Exception as exc:
-            self.log(f"retention after step {step} failed (checkpoints kept): {exc}")
-        return ("committed", step, manifest)
-
-    def _apply_retention(self) -> None:
-        policy = self.config.checkpoint
-        steps = checkpoint.scan(self.storage)
-        doomed = checkpoint.retention_plan(
-            steps, policy.keep_last, policy.keep_best, policy.best_metric, policy.keep_every, policy.pinned
-        )
-        for step in doomed:
-            checkpoint.delete_step(self.storage, step)
-
-    def _join(self) -> None:
-        """Wait for the save in flight and act on its agreed outcome (on the main thread)."""
-        if not self._in_flight:
-            return
-        self._done.wait()
-        self._in_flight = False
-        outcome, self._outcome = self._outcome, None
-        if outcome is None:
-            raise CheckpointError("the checkpoint writer stopped without an outcome (a peer died mid-save?)")
-        if self._unloadable:
-            raise CheckpointError(self._unloadable)
+    def _act_on(self, outcome: tuple, must_commit: bool) -> None:
         kind, step, detail = outcome
+        if kind == "unloadable":
+            raise CheckpointError(detail)
         if kind == "committed":
             self._failures = 0
             self.committed_step = step
@@ -330,7 +257,7 @@ class Checkpointer:
             return
         self._failures += 1
         self.log(f"checkpoint step {step} failed ({self._failures}/{MAX_FAILED_SAVES}), earlier ones intact: {detail}")
-        if self._must_commit:
+        if must_commit:
             raise CheckpointError(
                 f"the final checkpoint, step {step}, could not be saved to {self.storage.url}: {detail}"
             )
@@ -338,17 +265,6 @@ class Checkpointer:
             raise CheckpointError(
                 f"{MAX_FAILED_SAVES} checkpoints in a row failed to save to {self.storage.url}; last error: {detail}"
             )
-
-
-def _snapshot(state: object) -> object:
-    """A copy of ``state`` that training can no longer change: every tensor cloned, containers rebuilt."""
-    if isinstance(state, torch.Tensor):
-        return state.detach().clone()
-    if isinstance(state, dict):
-        return {key: _snapshot(value) for key, value in state.items()}
-    if isinstance(state, (list, tuple)):
-        return type(state)(_snapshot(value) for value in state)
-    return state
 
 
 def _versions() -> dict:

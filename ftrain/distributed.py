@@ -89,19 +89,19 @@ def all_reduce_sum(values: list[float], info: RankInfo) -> list[float]:
     return tensor.tolist()
 
 
-def broadcast_object(value: object, info: RankInfo, group: dist.ProcessGroup | None = None) -> object:
-    """Rank 0's ``value`` on every rank (over ``group``, default the default group)."""
+def broadcast_object(value: object, info: RankInfo) -> object:
+    """Rank 0's ``value`` on every rank."""
     if not info.distributed:
         return value
     box = [value]
-    dist.broadcast_object_list(box, src=0, group=group)
+    dist.broadcast_object_list(box, src=0)
     return box[0]
 
 
-def all_gather_object(value: object, info: RankInfo, group: dist.ProcessGroup | None = None) -> list:
-    """Every rank's ``value``, in rank order (over ``group``, default the default group)."""
+def all_gather_object(value: object, info: RankInfo) -> list:
+    """Every rank's ``value``, in rank order."""
     if not info.distributed:
         return [value]
     out: list = [None] * info.world_size
-    dist.all_gather_object(out, value, group=group)
+    dist.all_gather_object(out, value)
     return out

@@ -28,7 +28,6 @@ import torch
 
 from ftrain import checkpoint
 from ftrain.algorithm import build_actor
-from ftrain.checkpointer import COMMON
 from ftrain.config import Config, config_from_dict
 from ftrain.envs import MujocoVecEnv
 from ftrain.errors import UserError
@@ -87,7 +86,7 @@ def load_policy(url: str, options: dict | None = None, log: Callable[[str], None
             return _from_file(*file)
         else:
             storage, step, manifest = checkpoint.resolve_checkpoint_url(url, options, log)
-            learned = checkpoint.read_verified(storage, step, COMMON, manifest)["learned"]
+            learned = checkpoint.read_verified(storage, step, checkpoint.COMMON, manifest)["learned"]
             # a distillation checkpoint holds the student (and the teacher it learned from): the student is the policy
             state = learned.get("student_state_dict", learned.get("actor_state_dict"))
     except checkpoint.CorruptCheckpoint as exc:

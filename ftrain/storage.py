@@ -198,7 +198,7 @@ class Storage:
         """``fn(*args, **kwargs)`` with retries; failures become StorageError or UserError with scrubbed text."""
         try:
             return self._retry(what, rel, fn, *args, **kwargs)
-        except FileNotFoundError:
+        except (FileNotFoundError, NotADirectoryError):  # a path below a plain file does not exist either
             raise FileNotFoundError(errno.ENOENT, "does not exist", self.where(rel)) from None
         except FileExistsError:
             raise FileExistsError(errno.EEXIST, "already exists", self.where(rel)) from None

@@ -17,8 +17,8 @@ from pathlib import Path
 import torch
 import yaml
 
-from ftrain import distributed
-from ftrain.algorithm import build_algorithm, learned_state, load_learned_state, state_digest
+from ftrain import distributed, packing
+from ftrain.algorithm import build_algorithm, learned_state, load_learned_state
 from ftrain.checkpointer import Checkpointer, CheckpointError
 from ftrain.config import Config
 from ftrain.envs import MujocoVecEnv
@@ -118,7 +118,7 @@ class Trainer:
         self.episodes.extend((float(ret), int(length)) for ret, length in rank["episodes"])
 
     def learned_digest(self) -> str:
-        return state_digest(learned_state(self.alg))
+        return packing.digest(learned_state(self.alg))
 
     # --- loop --------------------------------------------------------------------------------------------------
 
@@ -226,5 +226,5 @@ def train(config: Config) -> int:
         return EXIT_CHECKPOINT
     finally:
         if trainer is not None:
-            trainer.checkpointer.stop_writer()
+            trainer.checkpointer.shutdown()
         distributed.shutdown()

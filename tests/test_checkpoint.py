@@ -251,6 +251,10 @@ class RecordingStorage(Storage):
         self.deleted.append(rel.rpartition("/")[2])
         super().delete(rel)
 
+    def delete_tree(self, rel: str) -> None:
+        self.deleted.append(f"tree of {sorted(self.list_files(rel))}")
+        super().delete_tree(rel)
+
 
 def test_delete_step_removes_the_manifest_first_then_the_rest(tmp_path):
     storage = RecordingStorage.open(str(tmp_path / "run"))
@@ -258,8 +262,7 @@ def test_delete_step_removes_the_manifest_first_then_the_rest(tmp_path):
     make_step(storage, 10)
     make_step(storage, 20)
     ck.delete_step(storage, 10)
-    assert storage.deleted[0] == ck.MANIFEST
-    assert sorted(storage.deleted[1:]) == ["common.pt", "rank-00000.pt", "rank-00001.pt"]
+    assert storage.deleted == [ck.MANIFEST, "tree of ['common.pt', 'rank-00000.pt', 'rank-00001.pt']"]
     assert storage.list_dirs(ck.CHECKPOINTS) == ["step-000000020"]
     assert ck.verify(storage, 20).ok
 

@@ -151,6 +151,22 @@ def test_failed_saves_are_logged_training_goes_on_and_persistent_failure_stops(t
     assert manifests(blocked) == {}
 
 
+def test_retention_across_a_resume_cleans_abandoned_and_failed_steps(tmp_path) -> None:
+    """Retention works from what the run knows (one scan at start, then its own saves): steps found at start,
+    an abandoned directory older than the resume point, and a save of this run that failed are all handled."""
+    storage = tmp_path / "run"
+    keep = ("checkpoint.keep_last=2", "checkpoint.keep_best=0", "checkpoint.keep_every=8", "checkpoint.pinned=[2]")
+    run_train(storage, "iterations=4", *keep)
+    steps = storage / "checkpoints"
+    (steps / "step-000000003").mkdir()
+    (steps / "step-000000003" / "rank-00000.pt").write_bytes(b"abandoned by a save that was killed")
+    (steps / "step-000000006").write_text("a file where the step directory should go")
+    result = run_train(storage, "iterations=12", *keep)
+    assert "checkpoint step 6 failed" in result.stdout
+    assert sorted(manifests(storage)) == [2, 8, 10, 12]  # pinned, every 8th, the last 2; 4 was found at start
+    assert sorted(path.name for path in steps.iterdir()) == [f"step-{s:09d}" for s in (2, 8, 10, 12)]
+
+
 def test_corrupt_newest_step_is_quarantined_kept_and_skipped(tmp_path) -> None:
     storage = tmp_path / "run"
     run_train(storage, "iterations=6", "checkpoint.keep_last=5")

@@ -78,7 +78,7 @@ def test_snapshots_are_verified_with_their_own_retention(runs, capsys) -> None:
         assert set(manifest["files"]) == FILES and manifest["config_hash"] == checkpoint["config_hash"]
         story = lineage(run, step)
         assert story["step"] == step and story["config_hash"] == checkpoint["config_hash"]
-        assert story["committed_checkpoint"]["step"] in (step - 4, step - 2)
+        assert story["committed_checkpoint"]["step"] in (step - 6, step - 4, step - 2)  # two saves may be in flight
         assert story["metrics"]["eval_return"] == float(metrics_by_iteration(run)[step]["eval_return"])
     assert lineage(run, 8)["state_sha256"] == checkpoint["state_sha256"], "the same training state as step 8"
 

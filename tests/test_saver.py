@@ -1,0 +1,80 @@
+"""The save helper next to each rank: idle priority, not a supervised worker, dies with its rank, survives a
+SIGTERM sent to every process (as Slurm does) so that the stop save still commits."""
+
+from __future__ import annotations
+
+import os
+import signal
+from pathlib import Path
+
+from ftrain import checkpoint
+from ftrain.storage import Storage
+
+from runs import descendants, finish, kill_tree, manifests, start_train, wait_for
+
+SCHED_IDLE = 5
+LONG = ("iterations=100000", "checkpoint.interval=2")
+
+
+def helpers_and_ranks(torchrun: int) -> tuple[dict[int, int], list[int]]:
+    """{helper pid: its rank's pid}, and the rank pids (torchrun's children)."""
+    parents = {}
+    for pid in descendants(torchrun):
+        try:
+            parents[pid] = int(Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[1])
+        except OSError:
+            continue
+    ranks = [pid for pid, parent in parents.items() if parent == torchrun]
+    helpers = {pid: parent for pid, parent in parents.items() if parent in ranks and _is_helper(pid)}
+    return helpers, ranks
+
+
+def _is_helper(pid: int) -> bool:
+    try:
+        return b"ftrain.saver" in Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:
+        return False
+
+
+def scheduling_policy(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[38])
+
+
+def test_helper_runs_at_idle_priority_unmarked_and_dies_with_its_rank(tmp_path) -> None:
+    storage = tmp_path / "run"
+    proc = start_train(storage, *LONG, ranks=2, env={"FTRAIN_ATTEMPT_TOKEN": "test-token"})
+    try:
+        wait_for(lambda: manifests(storage), "a committed checkpoint")
+        helpers, ranks = helpers_and_ranks(proc.pid)
+        assert len(ranks) == 2 and sorted(helpers.values()) == sorted(ranks), (helpers, ranks)
+        for helper in helpers:
+            assert scheduling_policy(helper) == SCHED_IDLE
+            assert b"FTRAIN_ATTEMPT_TOKEN" not in Path(f"/proc/{helper}/environ").read_bytes()
+        for rank in ranks:
+            assert scheduling_policy(rank) == 0  # training itself keeps normal priority
+        helper, rank = next(iter(helpers.items()))
+        os.kill(rank, signal.SIGKILL)
+        wait_for(lambda: not Path(f"/proc/{helper}").exists() or _zombie(helper), "the helper to die", timeout=10)
+    finally:
+        kill_tree(proc)
+
+
+def test_sigterm_to_every_process_still_commits_the_stop_save(tmp_path) -> None:
+    storage = tmp_path / "run"
+    proc = start_train(storage, *LONG, ranks=2)
+    before = max(wait_for(lambda: manifests(storage), "a committed checkpoint"))
+    helpers, ranks = helpers_and_ranks(proc.pid)
+    assert len(helpers) == 2
+    for pid in [*ranks, *helpers]:  # what Slurm does at the end of a job step
+        os.kill(pid, signal.SIGTERM)
+    assert finish(proc) == 0, "the stop save must commit although its helpers were sent SIGTERM too"
+    newest = max(manifests(storage))
+    assert newest >= before
+    assert checkpoint.verify(Storage.open(str(storage)), newest).ok
+
+
+def _zombie(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0] == "Z"
+    except OSError:
+        return True
