@@ -27,6 +27,9 @@ from ftrain.errors import UserError
 from ftrain.storage import Storage
 
 FORMAT_VERSION = 1
+STATE_FORMAT = 2
+"""Layout of the training state inside the files, in every manifest as ``state_format`` (none before 2: one
+tensor per sub-env field, unpacked). Resume refuses another layout; policies load from any."""
 CHECKPOINTS = "checkpoints"
 MANIFEST = "MANIFEST.json"
 QUARANTINED = "QUARANTINED.json"

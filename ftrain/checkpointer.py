@@ -65,6 +65,7 @@ class Checkpointer:
         self._checked_loadable = False
         self.last_blocking_s = 0.0
         self._static_meta = {  # computed once: package metadata lookups cost ~10 ms
+            "state_format": checkpoint.STATE_FORMAT,
             "world_size": info.world_size,
             "envs_per_rank": config.env.num_envs,
             "env_id": config.env.id,
@@ -149,6 +150,13 @@ class Checkpointer:
             return ("error", str(error))
 
     def _check_compatible(self, step: int, manifest: dict) -> None:
+        written = manifest.get("state_format", 1)
+        if written != checkpoint.STATE_FORMAT:
+            raise UserError(
+                f"checkpoint step {step} holds training state in format {written}, this ftrain resumes format "
+                f"{checkpoint.STATE_FORMAT}: resume it with the ftrain version that wrote it ({manifest['versions']}), "
+                "or start another --storage (its policy still loads)"
+            )
         if manifest["world_size"] != self.info.world_size:
             raise UserError(
                 f"checkpoint step {step} was written by {manifest['world_size']} ranks but this run has "

@@ -11,6 +11,7 @@ import subprocess
 
 import pytest
 
+from ftrain.checkpoint import QUARANTINED
 from ftrain.heartbeat import ENV_DIR, read_heartbeats
 
 from runs import (
@@ -98,6 +99,13 @@ def test_resume_refuses_other_world_size_and_config(tmp_path) -> None:
         if ranks == 1:  # under torchrun, torchrun itself reports the failed worker with a traceback
             assert "Traceback" not in result.stderr
     assert sorted(manifests(storage)) == [2], "a refused resume must not touch the checkpoints"
+    manifest_file = storage / "checkpoints/step-000000002/MANIFEST.json"
+    current = manifest_file.read_text()
+    manifest_file.write_text(json.dumps({**json.loads(current), "state_format": 1}))  # an older ftrain's step
+    result = subprocess.run(train_command(storage, "iterations=4"), cwd=REPO, env=child_env(), capture_output=True)
+    assert result.returncode == 2 and b"holds training state in format 1" in result.stderr
+    assert not (storage / "checkpoints/step-000000002" / QUARANTINED).exists(), "refused, not quarantined"
+    manifest_file.write_text(current)
     result = run_train(storage, "iterations=4", "algorithm.clip_param=0.1", "allow_config_change=true")
     assert "resumed from step 2" in result.stdout
     assert json.loads((storage / "checkpoints/step-000000004/MANIFEST.json").read_text())["iteration"] == 4
