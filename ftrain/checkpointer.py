@@ -7,9 +7,9 @@ The format and the single-process rules (digests, manifest, verification, retent
   rank then reads ``common.pt`` and its own shard, checking both against the manifest.
 - Save: at the iteration boundary each rank packs its state (one copy of every tensor, which training can no
   longer change: the snapshot; see ``packing.py``) and hands it to its save helper, a process at idle CPU
-  priority (``saver.py``). The helpers encode and write the shards, gather their digests in their own gloo group,
-  and rank 0's helper commits the manifest and applies retention; every rank reads the agreed outcome back at
-  its next save (or at once, for a synchronous save), so all ranks agree whether the step counts.
+  priority (``saver.py``). The helpers encode and write the shards, gather their digests through torchrun's
+  key-value store, and rank 0's helper commits the manifest and applies retention; every rank reads the agreed
+  outcome back at a later save (or at once, for a synchronous one), so all ranks agree whether the step counts.
 """
 
 from __future__ import annotations

@@ -248,6 +248,8 @@ def validate(config: Config) -> None:
         )
     if config.algorithm.loss_type not in ("mse", "huber"):
         raise UserError(f"algorithm.loss_type={config.algorithm.loss_type!r} is unknown: use mse or huber")
+    if not config.snapshots.formats:
+        raise UserError("snapshots.formats is empty: list torchscript and/or onnx")
     for fmt in config.snapshots.formats:
         if fmt not in ("torchscript", "onnx"):
             raise UserError(f"snapshots.formats: {fmt!r} is unknown: use torchscript and/or onnx")

@@ -20,7 +20,6 @@ from tensordict import TensorDict
 
 from ftrain.config import EnvConfig, EvalConfig
 from ftrain.envs import OBS_GROUP
-from ftrain.errors import UserError
 from ftrain.hooks import Hook
 
 if TYPE_CHECKING:
@@ -91,10 +90,6 @@ class EvalHook(Hook):
     """
 
     def __init__(self, config: EvalConfig) -> None:
-        if config.every < 0:
-            raise UserError(f"eval.every={config.every} must be 0 (never) or more")
-        if config.episodes < 1:
-            raise UserError(f"eval.episodes={config.episodes} must be at least 1")
         self.config = config
         self.env: gym.Env | None = None
 

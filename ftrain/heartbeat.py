@@ -22,6 +22,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 ENV_DIR = "FTRAIN_HEARTBEAT_DIR"
+TOKEN_ENV = "FTRAIN_ATTEMPT_TOKEN"
+"""Set by the supervisor in every worker's environment: how it finds all processes of an attempt."""
 
 
 @dataclass

@@ -36,11 +36,10 @@ import torch.distributed as dist
 from ftrain import checkpoint, distributed, packing
 from ftrain.checkpoint import COMMON
 from ftrain.config import Config
+from ftrain.heartbeat import TOKEN_ENV
 from ftrain.storage import Storage
 
 PR_SET_PDEATHSIG = 1
-_TOKEN_ENV = "FTRAIN_ATTEMPT_TOKEN"
-"""The supervisor's mark of a worker process (see supervisor.py): the helper is not a worker, so it goes unmarked."""
 UNLOADABLE_HINT = "hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
 
 
@@ -73,26 +72,31 @@ class Saver:
             error = f"rank {self.info.rank}: {exc}"
         if replace:
             self.meeting.replaced(step)  # nobody writes into the directory before rank 0 has deleted it
-        try:
-            if error is None:
-                encoded = {name: checkpoint.encode(state) for name, state in files.items()}
-                if check_loadable:
-                    for name, data in encoded.items():
-                        checkpoint.decode(data, name)
-                if COMMON in files:
-                    common = packing.unpack(files[COMMON])
-                    fields["state_sha256"] = packing.digest(common["learned"])
-                    if "teacher" in common:
-                        fields["teacher"] = common["teacher"]
-                for name, data in encoded.items():
-                    entries[name] = checkpoint.write_file(self.storage, step, name, data)
-        except checkpoint.CorruptCheckpoint as exc:  # only the loadability check raises it
-            error, unloadable = f"rank {self.info.rank}: {exc}: {UNLOADABLE_HINT}", True
-        except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
-            error = f"rank {self.info.rank}: {exc}"
+        if error is None:
+            try:
+                entries, fields = self._write(step, files, check_loadable)
+            except checkpoint.CorruptCheckpoint as exc:  # only the loadability check raises it
+                error, unloadable = f"rank {self.info.rank}: {exc}: {UNLOADABLE_HINT}", True
+            except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
+                error = f"rank {self.info.rank}: {exc}"
         reports = self.meeting.gather(step, (entries, fields, error, unloadable))
         outcome = self._commit(step, reports, meta) if self.info.is_main else None
         return self.meeting.share(step, outcome)
+
+    def _write(self, step: int, files: dict[str, dict], check_loadable: bool) -> tuple[dict, dict]:
+        """Encode and write ``files``: their manifest entries, and the manifest fields that come from common.pt."""
+        encoded = {name: checkpoint.encode(state) for name, state in files.items()}
+        if check_loadable:
+            for name, data in encoded.items():
+                checkpoint.decode(data, name)
+        fields = {}
+        if COMMON in files:
+            common = packing.unpack(files[COMMON])
+            fields["state_sha256"] = packing.digest(common["learned"])
+            if "teacher" in common:
+                fields["teacher"] = common["teacher"]
+        entries = {name: checkpoint.write_file(self.storage, step, name, data) for name, data in encoded.items()}
+        return entries, fields
 
     def _prepare(self, step: int, replace: bool) -> None:
         """Rank 0: scan the storage at the first save; delete the corrupt or quarantined directory of ``step``."""
@@ -210,7 +214,7 @@ class SaverClient:
                 "import os; os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0)); "
                 f"from ftrain.saver import helper_main; helper_main({theirs.fileno()}, {os.getpid()})"
             )
-            env = {key: value for key, value in os.environ.items() if key != _TOKEN_ENV}
+            env = {key: value for key, value in os.environ.items() if key != TOKEN_ENV}  # not a worker
             self._proc = subprocess.Popen(
                 [sys.executable, "-c", code], pass_fds=(theirs.fileno(),), env=env, stdin=subprocess.DEVNULL
             )
@@ -252,7 +256,7 @@ class SaverClient:
         except OSError:
             message = None
         if message is None:
-            raise SaverGone("the checkpoint save helper is gone (it died, or its group with the other ranks broke)")
+            raise SaverGone("the checkpoint save helper is gone (it died)")
         return message
 
     def close(self) -> None:
@@ -306,7 +310,7 @@ def log(message: str) -> None:
 
 
 def _store_prefix() -> str:
-    """Keys of the helpers' group in torchrun's store: apart from the ranks' own, and from an earlier restart's."""
+    """Keys of the helpers in torchrun's store: apart from the ranks' own, and from an earlier restart's."""
     return f"ftrain-saver/{os.environ.get('TORCHELASTIC_RUN_ID', '')}/{os.environ.get('TORCHELASTIC_RESTART_COUNT', 0)}"
 
 

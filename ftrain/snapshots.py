@@ -26,7 +26,7 @@ from ftrain.config import SnapshotConfig
 from ftrain.envs import OBS_GROUP
 from ftrain.errors import UserError
 from ftrain.hooks import Hook
-from ftrain.policy import FORMATS, Policy, check_format, encode
+from ftrain.policy import Policy, encode
 from ftrain.storage import Storage, StorageError
 
 if TYPE_CHECKING:
@@ -124,14 +124,6 @@ class PolicySnapshotHook(Hook):
     """Every ``snapshots.every`` iterations, on rank 0, a verified snapshot of the policy, then retention."""
 
     def __init__(self, config: SnapshotConfig) -> None:
-        if config.every < 0:
-            raise UserError(f"snapshots.every={config.every} must be 0 (never) or more")
-        if not config.formats:
-            raise UserError(f"snapshots.formats is empty: list one or more of {', '.join(FORMATS)}")
-        for fmt in config.formats:
-            check_format(fmt)
-        if config.keep_last < 1:
-            raise UserError(f"snapshots.keep_last={config.keep_last} must be at least 1")
         if "onnx" in config.formats:
             try:
                 import onnxruntime  # noqa: F401 - every ONNX snapshot is run once to verify it

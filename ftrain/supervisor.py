@@ -67,7 +67,7 @@ from pathlib import Path
 
 from ftrain.config import load_config
 from ftrain.errors import EXIT_USAGE, UserError
-from ftrain.heartbeat import ENV_DIR, Heartbeat, read_heartbeats
+from ftrain.heartbeat import ENV_DIR, TOKEN_ENV, Heartbeat, read_heartbeats
 
 EXIT_DONE = 0
 EXIT_CRASH_LOOP = 3
@@ -76,7 +76,6 @@ EXIT_PEER_LOST = 5
 EXIT_PREEMPTED = 128 + signal.SIGTERM
 
 WORKER_MODULE_ENV = "FTRAIN_WORKER_MODULE"
-TOKEN_ENV = "FTRAIN_ATTEMPT_TOKEN"
 
 POLL = 0.1
 """Seconds between two looks at torchrun and the heartbeats."""
@@ -343,6 +342,10 @@ class HangWatch:
             "limit": round(self.limit(), 1),
             "processes": {str(r): state for r, state in states.items()},
         }
+
+
+def _hang_cause(hang: dict) -> str:
+    return "killed: start-up hung" if "ranks_seen" in hang else f"killed: rank {hang['rank']} hung"
 
 
 def _describe_hang(hang: dict) -> str:
@@ -683,7 +686,7 @@ class Supervisor:
                 )
                 self._failed(attempt, now)
                 attempt.kill()
-                self._log_exit(attempt, f"killed: rank {hang['rank']} hung")
+                self._log_exit(attempt, _hang_cause(hang))
                 return Outcome("failed", None, "hang")
             if self.nnodes > 1 and now >= next_peer_check:
                 next_peer_check = now + PEER_POLL
@@ -751,12 +754,13 @@ class Supervisor:
             # coming save-and-exit reads as a restart there, not as a preemption; then let the orphans save.
             self._failed(attempt, now)
         if orphans:
-            attempt.stop(self.options.stop_grace)
-        attempt.kill()
+            attempt.stop(self.options.stop_grace)  # ends with kill() too
+        else:
+            attempt.kill()
         phases = self._phases(attempt)
         cause = attempt.cause(code) if code or orphans else "exit code 0"
         outcome = self._classify(attempt, code, cause, bool(orphans), phases)
-        self._log_exit(attempt, cause, f"attempt {attempt.plan.attempt}: {cause}" if outcome.failed else "")
+        self._log_exit(attempt, cause, f"attempt {attempt.plan.attempt}: {cause}" if outcome.failed else "", phases)
         if outcome.failed:
             self._failed(attempt, now)
         return outcome
@@ -767,7 +771,8 @@ class Supervisor:
         self._account(attempt, beats, time.monotonic())
         return {beat.phase for beat in beats.values()}
 
-    def _log_exit(self, attempt: Attempt, cause: str, message: str = "") -> None:
+    def _log_exit(self, attempt: Attempt, cause: str, message: str = "", phases: set[str] | None = None) -> None:
+        """The ``exit`` event; ``phases``: the final heartbeat phases, if the caller has read them already."""
         self.events(
             "exit",
             message,
@@ -775,7 +780,7 @@ class Supervisor:
             code=attempt.proc.returncode,
             cause=cause,
             failures={str(rank): code for rank, code in sorted(attempt.failures.items())},
-            phases=sorted(self._phases(attempt)),
+            phases=sorted(self._phases(attempt) if phases is None else phases),
         )
 
     def _classify(self, attempt: Attempt, code: int, cause: str, orphans: bool, phases: set[str]) -> Outcome:

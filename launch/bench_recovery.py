@@ -27,6 +27,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from ftrain.checkpoint import CHECKPOINTS, MANIFEST  # noqa: E402
 from ftrain.heartbeat import read_heartbeats  # noqa: E402
 from ftrain.supervisor import EXIT_PREEMPTED, _free_port  # noqa: E402
 
@@ -102,10 +103,10 @@ def wait_for(predicate, timeout: float, what: str, interval: float = 0.005):
 
 def save_in_flight(storage: Path, beats_dir: Path) -> bool:
     """A checkpoint is being written: a step directory without its manifest, or a rank in the checkpoint phase."""
-    checkpoints = storage / "checkpoints"
+    checkpoints = storage / CHECKPOINTS
     if checkpoints.exists():
         for step in os.scandir(checkpoints):
-            if not os.path.exists(os.path.join(step.path, "MANIFEST.json")):
+            if not os.path.exists(os.path.join(step.path, MANIFEST)):
                 return True
     return any(beat.phase == "checkpoint" for beat in read_heartbeats(beats_dir).values())
 

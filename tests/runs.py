@@ -158,6 +158,13 @@ def manifests(storage: str | Path) -> dict[int, dict]:
     return found
 
 
+def flip_byte(path: Path) -> None:
+    """Damage a file the way bit rot does: one byte in the middle inverted."""
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
 def final_manifest(storage: str | Path) -> dict:
     steps = manifests(storage)
     assert steps, f"no committed checkpoint in {storage}"

@@ -4,7 +4,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess
@@ -12,11 +11,12 @@ import sys
 from pathlib import Path
 
 import pytest
+from conftest import free_port
 
 from ftrain import supervisor
 from ftrain.heartbeat import read_heartbeats
 
-from runs import events, finish, launch, torchrun_pid, wait_for
+from runs import events, final_manifest, finish, flip_byte, launch, torchrun_pid, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -38,7 +38,7 @@ def wait_event(storage: Path, name: str, count: int) -> dict:
         matching = [event for event in events(storage) if event["event"] == name]
         return matching[count - 1] if len(matching) >= count else None
 
-    return wait_for(found, f"{count} {name} events")
+    return wait_for(found, f"{count} {name} events", interval=0.05)  # each look re-reads the whole log
 
 
 def training(heartbeat_dir: Path, iteration: int, ranks: int = 2) -> dict:
@@ -52,23 +52,13 @@ def training(heartbeat_dir: Path, iteration: int, ranks: int = 2) -> dict:
     return wait_for(ready, f"iteration {iteration} in {heartbeat_dir}")
 
 
-def newest_step(storage: Path) -> tuple[int, dict]:
-    manifests = sorted((storage / "checkpoints").glob("step-*/MANIFEST.json"))
-    return int(manifests[-1].parent.name.removeprefix("step-")), json.loads(manifests[-1].read_text())
-
-
-def flip_byte(path: Path) -> None:
-    data = bytearray(path.read_bytes())
-    data[len(data) // 2] ^= 0xFF
-    path.write_bytes(bytes(data))
-
-
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory) -> str:
     """``state_sha256`` of the final step of an uninterrupted supervised run."""
     storage = tmp_path_factory.mktemp("reference") / "run"
     assert finish(start(storage)) == 0
-    step, manifest = newest_step(storage)
+    manifest = final_manifest(storage)
+    step = manifest["step"]
     assert step == 100
     return manifest["state_sha256"]
 
@@ -97,7 +87,7 @@ def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
     beats = training(heartbeats, recovered["step"] + 5)
     for beat in beats.values():
         os.kill(beat.pid, signal.SIGSTOP)
-    corrupted, _ = newest_step(storage)
+    corrupted = final_manifest(storage)["step"]
     flip_byte(storage / "checkpoints" / f"step-{corrupted:09d}" / "rank-00001.pt")
     os.kill(beats[1].pid, signal.SIGKILL)
     os.kill(beats[0].pid, signal.SIGCONT)
@@ -108,10 +98,11 @@ def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
     training(heartbeats, recovered["step"] + 3)
     proc.send_signal(signal.SIGTERM)
     assert finish(proc) == supervisor.EXIT_PREEMPTED
-    saved, _ = newest_step(storage)
+    saved = final_manifest(storage)["step"]
     assert finish(start(storage, log="rerun")) == 0
 
-    step, manifest = newest_step(storage)
+    manifest = final_manifest(storage)
+    step = manifest["step"]
     assert (step, manifest["state_sha256"]) == (100, reference)
     log = events(storage)
     causes = [event["cause"] for event in log if event["event"] == "exit"]
@@ -133,7 +124,7 @@ def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
 
 def test_two_nodes_both_recover_when_one_loses_its_worker(tmp_path, reference):
     storage = tmp_path / "run"
-    endpoint = f"127.0.0.1:{supervisor._free_port()}"
+    endpoint = f"127.0.0.1:{free_port()}"
     nodes = [
         start(
             storage,
@@ -152,7 +143,8 @@ def test_two_nodes_both_recover_when_one_loses_its_worker(tmp_path, reference):
     beats = training(storage / "heartbeat" / "node-1", 4, ranks=1)
     os.kill(beats[1].pid, signal.SIGKILL)
     assert [finish(node) for node in nodes] == [0, 0]
-    step, manifest = newest_step(storage)
+    manifest = final_manifest(storage)
+    step = manifest["step"]
     assert (step, manifest["state_sha256"]) == (100, reference)
     log = events(storage)
     for node in (0, 1):

@@ -19,7 +19,7 @@ from ftrain.cli import main
 from ftrain.errors import UserError
 from ftrain.policy import load_policy, play, sample_observations
 
-from runs import final_manifest, run_train
+from runs import final_manifest, flip_byte, run_train
 
 EPISODE_STEPS = 20
 STANDALONE = r"""
@@ -122,10 +122,7 @@ def test_play_an_exported_policy_like_its_checkpoint(trained, tmp_path) -> None:
 def test_a_corrupt_newest_step_is_skipped_and_a_corrupt_step_refused(trained, tmp_path) -> None:
     run = tmp_path / "run"
     shutil.copytree(trained, run)
-    common = Path(step_url(run, 4)) / "common.pt"
-    data = bytearray(common.read_bytes())
-    data[len(data) // 2] ^= 0xFF
-    common.write_bytes(bytes(data))
+    flip_byte(Path(step_url(run, 4)) / "common.pt")
     heard: list[str] = []
     assert load_policy(str(run), log=heard.append).step == 2
     assert heard and "skipping checkpoint step 4" in heard[0]

@@ -18,6 +18,7 @@ from runs import (
     REPO,
     child_env,
     final_manifest,
+    flip_byte,
     kill_tree,
     manifests,
     metrics_by_iteration,
@@ -178,10 +179,7 @@ def test_retention_across_a_resume_cleans_abandoned_and_failed_steps(tmp_path) -
 def test_corrupt_newest_step_is_quarantined_kept_and_skipped(tmp_path) -> None:
     storage = tmp_path / "run"
     run_train(storage, "iterations=6", "checkpoint.keep_last=5")
-    shard = storage / "checkpoints/step-000000006/rank-00000.pt"
-    data = bytearray(shard.read_bytes())
-    data[len(data) // 2] ^= 0xFF
-    shard.write_bytes(bytes(data))
+    flip_byte(storage / "checkpoints/step-000000006/rank-00000.pt")
 
     result = run_train(storage, "iterations=6", "checkpoint.keep_last=5")
     assert "skipping checkpoint step 6: corrupt, quarantined" in result.stdout

@@ -8,6 +8,7 @@ import signal
 from pathlib import Path
 
 from ftrain import checkpoint
+from ftrain.heartbeat import TOKEN_ENV
 from ftrain.storage import Storage
 
 from runs import descendants, finish, kill_tree, manifests, start_train, wait_for
@@ -16,14 +17,17 @@ SCHED_IDLE = 5
 LONG = ("iterations=100000", "checkpoint.interval=2")
 
 
+def stat(pid: int) -> list[str]:
+    """The fields of ``/proc/<pid>/stat`` after the command name (state first); empty once the process is gone."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return []
+
+
 def helpers_and_ranks(torchrun: int) -> tuple[dict[int, int], list[int]]:
     """{helper pid: its rank's pid}, and the rank pids (torchrun's children)."""
-    parents = {}
-    for pid in descendants(torchrun):
-        try:
-            parents[pid] = int(Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[1])
-        except OSError:
-            continue
+    parents = {pid: int(fields[1]) for pid in descendants(torchrun) if (fields := stat(pid))}
     ranks = [pid for pid, parent in parents.items() if parent == torchrun]
     helpers = {pid: parent for pid, parent in parents.items() if parent in ranks and _is_helper(pid)}
     return helpers, ranks
@@ -37,24 +41,24 @@ def _is_helper(pid: int) -> bool:
 
 
 def scheduling_policy(pid: int) -> int:
-    return int(Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[38])
+    return int(stat(pid)[38])
 
 
 def test_helper_runs_at_idle_priority_unmarked_and_dies_with_its_rank(tmp_path) -> None:
     storage = tmp_path / "run"
-    proc = start_train(storage, *LONG, ranks=2, env={"FTRAIN_ATTEMPT_TOKEN": "test-token"})
+    proc = start_train(storage, *LONG, ranks=2, env={TOKEN_ENV: "test-token"})
     try:
         wait_for(lambda: manifests(storage), "a committed checkpoint")
         helpers, ranks = helpers_and_ranks(proc.pid)
         assert len(ranks) == 2 and sorted(helpers.values()) == sorted(ranks), (helpers, ranks)
         for helper in helpers:
             assert scheduling_policy(helper) == SCHED_IDLE
-            assert b"FTRAIN_ATTEMPT_TOKEN" not in Path(f"/proc/{helper}/environ").read_bytes()
+            assert TOKEN_ENV.encode() not in Path(f"/proc/{helper}/environ").read_bytes()
         for rank in ranks:
             assert scheduling_policy(rank) == 0  # training itself keeps normal priority
         helper, rank = next(iter(helpers.items()))
         os.kill(rank, signal.SIGKILL)
-        wait_for(lambda: not Path(f"/proc/{helper}").exists() or _zombie(helper), "the helper to die", timeout=10)
+        wait_for(lambda: stat(helper)[:1] in ([], ["Z"]), "the helper to die", timeout=10)
     finally:
         kill_tree(proc)
 
@@ -71,10 +75,3 @@ def test_sigterm_to_every_process_still_commits_the_stop_save(tmp_path) -> None:
     newest = max(manifests(storage))
     assert newest >= before
     assert checkpoint.verify(Storage.open(str(storage)), newest).ok
-
-
-def _zombie(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0] == "Z"
-    except OSError:
-        return True

@@ -20,11 +20,12 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import free_port
 
 from ftrain import supervisor
 from ftrain.heartbeat import ENV_DIR, Heartbeat, HeartbeatWriter, read_heartbeats
 
-from runs import events, finish, launch, torchrun_pid, wait_for
+from runs import events, final_manifest, finish, launch, manifests, torchrun_pid, wait_for
 
 REPO = Path(__file__).resolve().parent.parent
 TESTS = Path(__file__).resolve().parent
@@ -43,11 +44,6 @@ def expected_state(iterations: int) -> str:
     for iteration in range(iterations):
         state = chain(state, iteration)
     return state
-
-
-def newest_manifest(storage: Path) -> dict | None:
-    steps = sorted((storage / "checkpoints").glob("step-*/MANIFEST.json"))
-    return json.loads(steps[-1].read_text()) if steps else None
 
 
 def fake_worker(argv: list[str]) -> int:
@@ -81,7 +77,8 @@ def fake_worker(argv: list[str]) -> int:
         if rank == 0:
             print("ftrain: error: stand-in bad input", file=sys.stderr)
         return 2
-    manifest = newest_manifest(storage)
+    steps = manifests(storage)
+    manifest = steps[max(steps)] if steps else None
     iteration, state = (manifest["step"], manifest["state"]) if manifest else (0, "seed")
     heartbeat.resumed_step = heartbeat.committed_step = manifest["step"] if manifest else None
     stop = []
@@ -152,7 +149,7 @@ def beat_at(heartbeat_dir: Path, rank: int, iteration: int):
 
 
 def assert_finished(run: Path) -> None:
-    manifest = newest_manifest(run)
+    manifest = final_manifest(run)
     assert manifest == {"step": ITERATIONS, "state": expected_state(ITERATIONS)}
 
 
@@ -289,7 +286,7 @@ def test_sigterm_saves_and_the_same_command_continues(tmp_path):
     assert finish(proc) == supervisor.EXIT_PREEMPTED
     preempted = [event for event in events(run) if event["event"] == "exit"][-1]
     assert preempted["phases"] == ["preempted"]
-    saved = newest_manifest(run)["step"]
+    saved = final_manifest(run)["step"]
     assert 5 <= saved < ITERATIONS
     assert finish(start_supervisor(tmp_path)) == supervisor.EXIT_DONE
     assert_finished(run)
@@ -305,7 +302,7 @@ def test_crash_loop_stops_with_its_own_code(tmp_path):
     assert log[-2]["event"] == "crash_loop" and log[-1]["restarts"] == 2
     backoffs = [event["backoff"] for event in log if event["event"] == "restart"]
     assert backoffs == [0, 0]  # every attempt completed iterations: restarted at once
-    assert newest_manifest(run)["step"] == 4
+    assert final_manifest(run)["step"] == 4
 
 
 def test_max_restarts_stops_with_its_own_code(tmp_path):
@@ -325,7 +322,7 @@ def test_worker_bad_input_is_not_restarted(tmp_path):
 
 
 def test_two_nodes_both_restart_after_one_node_loses_a_worker(tmp_path):
-    endpoint = f"127.0.0.1:{supervisor._free_port()}"
+    endpoint = f"127.0.0.1:{free_port()}"
     nodes = [
         start_supervisor(tmp_path, "--nnodes", "2", "--node-rank", str(node), "--rdzv-endpoint", endpoint)
         for node in (0, 1)
