@@ -16,7 +16,7 @@ from conftest import free_port
 from ftrain import supervisor
 from ftrain.heartbeat import read_heartbeats
 
-from runs import events, final_manifest, finish, flip_byte, launch, torchrun_pid, wait_for
+from runs import descendants, events, final_manifest, finish, flip_byte, launch, torchrun_pid, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -83,13 +83,16 @@ def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
     os.kill(beats[0].pid, signal.SIGSTOP)
     recovered = wait_event(storage, "recovered", 3)
 
-    # 4. the newest checkpoint corrupted before the restart: freeze both ranks, flip a byte of a shard, kill
+    # 4. the newest checkpoint corrupted before the restart: freeze both ranks and their save helpers (which would
+    # go on committing a save in flight), flip a byte of a shard, kill rank 1 and the helpers
     beats = training(heartbeats, recovered["step"] + 5)
-    for beat in beats.values():
-        os.kill(beat.pid, signal.SIGSTOP)
+    helpers = [pid for beat in beats.values() for pid in descendants(beat.pid)]
+    for pid in [*(beat.pid for beat in beats.values()), *helpers]:
+        os.kill(pid, signal.SIGSTOP)
     corrupted = final_manifest(storage)["step"]
     flip_byte(storage / "checkpoints" / f"step-{corrupted:09d}" / "rank-00001.pt")
-    os.kill(beats[1].pid, signal.SIGKILL)
+    for pid in [beats[1].pid, *helpers]:
+        os.kill(pid, signal.SIGKILL)
     os.kill(beats[0].pid, signal.SIGCONT)
     recovered = wait_event(storage, "recovered", 4)
     assert recovered["step"] < corrupted
