@@ -5,11 +5,12 @@ The format and the single-process rules (digests, manifest, verification, retent
 
 - Resume: rank 0 picks the step (newest that verifies, quarantining bad ones) and broadcasts its decision; every
   rank then reads ``common.pt`` and its own shard, checking both against the manifest.
-- Save: at the iteration boundary each rank packs its state (one copy of every tensor, which training can no
-  longer change: the snapshot; see ``packing.py``) and hands it to its save helper, a process at idle CPU
-  priority (``saver.py``). The helpers encode and write the shards, gather their digests through torchrun's
-  key-value store, and rank 0's helper commits the manifest and applies retention; every rank reads the agreed
-  outcome back at a later save (or at once, for a synchronous one), so all ranks agree whether the step counts.
+- Save: at the iteration boundary each rank packs its state into memory it shares with its save helper (one copy
+  of every tensor, which training can no longer change: the snapshot; see ``packing.py``) and hands it over; the
+  helper is a process at idle CPU priority (``saver.py``). The helpers encode and write the shards, gather their
+  digests through torchrun's key-value store, and rank 0's helper commits the manifest and applies retention;
+  every rank reads the agreed outcome back at a later save (or at once, for a synchronous one), so all ranks agree
+  whether the step counts.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from ftrain import checkpoint, distributed, packing
+from ftrain import checkpoint, distributed
 from ftrain.checkpoint import COMMON, shard_name
 from ftrain.config import Config
 from ftrain.errors import UserError
@@ -199,13 +200,16 @@ class Checkpointer:
         self._settle(MAX_IN_FLIGHT - 1)
         replace = step in self._occupied
         self._occupied.discard(step)
-        files = {shard_name(self.info.rank): packing.pack(trainer.rank_state())}
+        states = {shard_name(self.info.rank): trainer.rank_state()}
         meta = None
         if self.info.is_main:
-            files[COMMON] = packing.pack(trainer.common_state())
+            states[COMMON] = trainer.common_state()
             meta = self._meta(trainer)
         first = not self._checked_loadable
-        self._send((step, files, meta, first, replace))
+        try:
+            self._saver.save(step, states, meta, first, replace)
+        except SaverGone as exc:
+            raise CheckpointError(str(exc)) from None
         self._checked_loadable = True
         self._pending.append((step, must_commit))
         if wait or not self.config.checkpoint.async_save or first or self._failures:  # after a failure: one at a time
@@ -226,12 +230,6 @@ class Checkpointer:
     def shutdown(self) -> None:
         """Let the save helper finish and end: the rank must not exit under it."""
         self._saver.close()
-
-    def _send(self, job: tuple) -> None:
-        try:
-            self._saver.send(job)
-        except SaverGone as exc:
-            raise CheckpointError(str(exc)) from None
 
     def _meta(self, trainer: Trainer) -> dict:
         return {

@@ -67,7 +67,7 @@ def rng_state() -> dict:
     numpy_state = np.random.get_state(legacy=False)
     numpy_state["state"]["key"] = torch.from_numpy(numpy_state["state"]["key"].astype(np.int64))
     version, internal, gauss = random.getstate()
-    python_state = [version, torch.tensor(internal, dtype=torch.int64), gauss]  # one tensor, not 625 ints
+    python_state = [version, torch.from_numpy(np.array(internal, dtype=np.int64)), gauss]  # one tensor, not 625 ints
     return {"torch": torch.get_rng_state(), "numpy": numpy_state, "python": python_state}
 
 

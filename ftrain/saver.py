@@ -7,25 +7,30 @@ measured here. The helper runs at idle CPU priority (``SCHED_IDLE``), so it work
 wait. It dies with its rank (``PR_SET_PDEATHSIG``), ignores SIGTERM and SIGINT (a stop request is for the rank,
 whose stop save the helper then writes) and is not marked as a worker for the supervisor.
 
-Protocol, over a socket pair (each message a pickle in an anonymous memory file whose descriptor is sent, so
-that handing over a large state never waits for the helper): the rank sends ``(config, rank info, store prefix)``
-and the helper answers ``("ready", None)`` or ``("error", why)``; then the rank sends one ``(step, files, meta,
-check_loadable, replace)`` per save and reads the outcomes back in order when it wants them: ``("committed",
-step, manifest)``, ``("failed", step, why)`` or ``("unloadable", step, why)``. The helpers of all ranks meet in
-torchrun's key-value store (:class:`Meeting`), so a save never touches the training group. For ``memory://``
-storage (one process only) the same loop runs on a thread instead.
+Protocol, over a socket pair, each message a pickle in an anonymous shared memory file whose descriptor is sent:
+the rank sends ``(config, rank info, store prefix)`` and the helper answers ``("ready", None)`` or ``("error",
+why)``; then the rank sends one ``(step, files, meta, check_loadable, replace)`` per save and reads the outcomes back
+in order when it wants them: ``("committed", step, manifest)``, ``("failed", step, why)`` or ``("unloadable", step,
+why)``. A save's state is packed straight into the shared memory (:class:`Slot`) and its flat tensors travel as
+offsets into it, so handing over a save is one copy of the tensors, a small pickle and a few system calls; the rank
+reuses a slot once the save's outcome is back. The helpers of all ranks meet in torchrun's key-value store
+(:class:`Meeting`), so a save never touches the training group. For ``memory://`` storage (one process only) the
+same loop runs on a thread instead.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import ctypes
 import datetime
+import mmap
 import os
 import pickle
 import select
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -40,6 +45,10 @@ from ftrain.heartbeat import TOKEN_ENV
 from ftrain.storage import Storage
 
 PR_SET_PDEATHSIG = 1
+HEADER = struct.Struct("<QQ")
+"""What goes over the socket with a shared memory file's descriptor: the message's offset and length in it."""
+ALIGNMENT = 64
+"""Of everything placed in a :class:`Slot` (any dtype's alignment, and a cache line)."""
 UNLOADABLE_HINT = "hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
 
 
@@ -91,10 +100,10 @@ class Saver:
                 checkpoint.decode(data, name)
         fields = {}
         if COMMON in files:
-            common = packing.unpack(files[COMMON])
-            fields["state_sha256"] = packing.digest(common["learned"])
-            if "teacher" in common:
-                fields["teacher"] = common["teacher"]
+            common = files[COMMON]
+            fields["state_sha256"] = packing.digest(common, "learned")
+            if "teacher" in common["tree"]:  # plain data: source, step, digest
+                fields["teacher"] = common["tree"]["teacher"]
         entries = {name: checkpoint.write_file(self.storage, step, name, data) for name, data in encoded.items()}
         return entries, fields
 
@@ -220,11 +229,27 @@ class SaverClient:
             )
             theirs.close()
         self._ready = False
-        self.send((config, info, _store_prefix()))
+        self._free: list[Slot] = []
+        self._busy: collections.deque[Slot] = collections.deque()
+        """The slots of the saves sent whose outcome has not been received, oldest first."""
+        self._send((config, info, _store_prefix()))
 
-    def send(self, message: object) -> None:
+    def save(self, step: int, states: dict[str, dict], meta: dict | None, check_loadable: bool, replace: bool) -> None:
+        """Snapshot ``states`` (file name to state) into shared memory and send them as the save of ``step``."""
+        layouts = {name: packing.Layout(state) for name, state in states.items()}
+        slot = self._free.pop() if self._free else Slot()
+        slot.clear(sum(layout.nbytes + layout.allocations * ALIGNMENT for layout in layouts.values()))
+        files = {}
+        for name, layout in layouts.items():
+            packed = layout.fill(slot.allocate)
+            placed = {dtype: slot.reference(flat) for dtype, flat in packed["tensors"].items()}
+            files[name] = packed | {"index": slot.reference(packed["index"]), "tensors": placed}
+        self._send((step, files, meta, check_loadable, replace), slot)
+        self._busy.append(slot)
+
+    def _send(self, message: object, slot: Slot | None = None) -> None:
         try:
-            _send(self._sock, message)
+            _send(self._sock, message, slot)
         except OSError as exc:
             raise SaverGone(f"the checkpoint save helper is gone ({exc})") from None
 
@@ -246,18 +271,20 @@ class SaverClient:
         return self.has_message()
 
     def receive(self) -> object:
-        """The outcome of the oldest save sent and not yet received."""
+        """The outcome of the oldest save sent and not yet received (its slot is free again)."""
         self.wait_ready()
-        return self._receive()
+        outcome = self._receive()
+        self._free.append(self._busy.popleft())
+        return outcome
 
     def _receive(self) -> object:
         try:
-            message = _receive(self._sock)
+            received = _receive(self._sock)
         except OSError:
-            message = None
-        if message is None:
+            received = None
+        if received is None:
             raise SaverGone("the checkpoint save helper is gone (it died)")
-        return message
+        return received[0]
 
     def close(self) -> None:
         """Let the helper finish what it was sent and end (it ends when the socket closes)."""
@@ -272,6 +299,8 @@ class SaverClient:
         if self._thread is not None:
             self._thread.join(timeout=60)
         self._sock.close()
+        for slot in (*self._free, *self._busy):
+            slot.close()
 
 
 def helper_main(fd: int, parent: int) -> None:
@@ -288,7 +317,7 @@ def helper_main(fd: int, parent: int) -> None:
 
 def serve(sock: socket.socket) -> None:
     """Run saves from ``sock`` until the rank closes it; reply to each with its agreed outcome."""
-    config, info, prefix = _receive(sock)
+    (config, info, prefix), _ = _receive(sock)
     try:
         saver = Saver(config, info, prefix)
     except Exception as exc:
@@ -297,12 +326,14 @@ def serve(sock: socket.socket) -> None:
         return
     _send(sock, ("ready", None))
     with contextlib.closing(sock):
-        while (request := _receive(sock)) is not None:
+        while (received := _receive(sock)) is not None:
+            (step, files, *rest), memory = received
+            files = {name: _placed_tensors(packed, memory) for name, packed in files.items()}
             try:
-                outcome = saver.save(*request)
+                outcome = saver.save(step, files, *rest)
             except Exception as exc:  # the meeting failed (a peer's helper died, the store went away): not committed
-                outcome = ("failed", request[0], f"rank {info.rank}: {type(exc).__name__}: {exc}")
-            _send(sock, outcome)
+                outcome = ("failed", step, f"rank {info.rank}: {type(exc).__name__}: {exc}")
+            _send(sock, outcome)  # the rank reuses the slot once it has this: the save no longer reads it
 
 
 def log(message: str) -> None:
@@ -314,27 +345,98 @@ def _store_prefix() -> str:
     return f"ftrain-saver/{os.environ.get('TORCHELASTIC_RUN_ID', '')}/{os.environ.get('TORCHELASTIC_RESTART_COUNT', 0)}"
 
 
-def _send(sock: socket.socket, message: object) -> None:
-    """One message: pickled into an anonymous memory file whose descriptor goes over the socket, so that sending a
-    large state never waits for the helper (a socket buffer holds a few hundred kB at most)."""
+class Slot:
+    """Shared memory that messages are written into: an anonymous memory file, mapped, reused save after save. The
+    receiver maps the same file: tensors placed in it travel as ``(offset, numel)`` references, resolved by
+    :func:`_placed_tensors` into tensors over the shared memory itself."""
+
+    def __init__(self, size: int = 1 << 20) -> None:
+        self.fd = -1
+        self.used = 0
+        self._map(size)
+
+    def clear(self, capacity: int) -> None:
+        """Forget what was placed, and make room for ``capacity`` bytes."""
+        self.used = 0
+        if capacity > len(self.memory):
+            self._map(2 * capacity)
+
+    def allocate(self, dtype: torch.dtype, numel: int) -> torch.Tensor:
+        """An empty 1-D tensor of ``numel`` x ``dtype`` placed in the slot (a :data:`ftrain.packing.Allocate`).
+        Fill it before the next placement: one that does not fit moves the slot's contents to a larger file."""
+        start = self._reserve(numel * dtype.itemsize)
+        return self.bytes[start : self.used].view(dtype)
+
+    @staticmethod
+    def reference(tensor: torch.Tensor) -> tuple[str, int, int]:
+        """Where a tensor from :meth:`allocate` lies: ``(dtype, byte offset, numel)``."""
+        return str(tensor.dtype).removeprefix("torch."), tensor.storage_offset() * tensor.element_size(), tensor.numel()
+
+    def append(self, data: bytes) -> int:
+        """Copy ``data`` in; its offset."""
+        start = self._reserve(len(data))
+        self.memory[start : self.used] = data
+        return start
+
+    def _reserve(self, nbytes: int) -> int:
+        start = -(-self.used // ALIGNMENT) * ALIGNMENT
+        if start + nbytes > len(self.memory):
+            self._map(2 * (start + nbytes))
+        self.used = start + nbytes
+        return start
+
+    def _map(self, size: int) -> None:
+        """Move to a new file of ``size`` bytes, what was placed at the same offsets."""
+        fd = os.memfd_create("ftrain-save", os.MFD_CLOEXEC)
+        os.ftruncate(fd, size)
+        memory = mmap.mmap(fd, size)
+        placed = torch.frombuffer(memory, dtype=torch.uint8)
+        if self.fd >= 0:
+            placed[: self.used].copy_(self.bytes[: self.used])
+            os.close(self.fd)  # the old mapping lives on while tensors over it do
+        self.fd, self.memory, self.bytes = fd, memory, placed
+
+    def close(self) -> None:
+        os.close(self.fd)
+
+
+def _send(sock: socket.socket, message: object, slot: Slot | None = None) -> None:
+    """Pickle ``message`` into ``slot`` after the tensors placed there and send the slot's descriptor; without a
+    slot, into a fresh one (a message the receiver may read late, such as an outcome). Sending never waits for the
+    receiver: a socket buffer holds a few hundred kB at most, a state can be larger."""
     data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
-    fd = os.memfd_create("ftrain-save", os.MFD_CLOEXEC)
+    own = slot is None
+    slot = Slot(len(data)) if own else slot
     try:
-        view = memoryview(data)
-        while view:
-            view = view[os.write(fd, view) :]
-        socket.send_fds(sock, [len(data).to_bytes(8, "little")], [fd])
+        offset = slot.append(data)
+        socket.send_fds(sock, [HEADER.pack(offset, len(data))], [slot.fd])
     finally:
-        os.close(fd)
+        if own:
+            slot.close()
 
 
-def _receive(sock: socket.socket) -> object | None:
-    """The next message, or None once the other side has closed the socket."""
-    header, fds, _, _ = socket.recv_fds(sock, 8, 1)
+def _receive(sock: socket.socket) -> tuple[object, mmap.mmap] | None:
+    """The next message and the shared memory it came in, or None once the other side has closed the socket."""
+    header, fds, _, _ = socket.recv_fds(sock, HEADER.size, 1)
     if not header:
         return None
     try:
-        data = os.pread(fds[0], int.from_bytes(header, "little"), 0)
+        memory = mmap.mmap(fds[0], os.fstat(fds[0]).st_size)
     finally:
         os.close(fds[0])
-    return pickle.loads(data)
+    offset, length = HEADER.unpack(header)
+    return pickle.loads(memory[offset : offset + length]), memory
+
+
+def _placed_tensors(packed: dict, memory: mmap.mmap) -> dict:
+    """A packed state whose tensors are :meth:`Slot.reference` s into ``memory``, with tensors over ``memory``."""
+    tensors = {name: _placed(reference, memory) for name, reference in packed["tensors"].items()}
+    return packed | {"index": _placed(packed["index"], memory), "tensors": tensors}
+
+
+def _placed(reference: tuple[str, int, int], memory: mmap.mmap) -> torch.Tensor:
+    name, offset, numel = reference
+    dtype = getattr(torch, name)
+    if numel == 0:  # frombuffer refuses an empty range
+        return torch.empty(0, dtype=dtype)
+    return torch.frombuffer(memory, dtype=dtype, count=numel, offset=offset)

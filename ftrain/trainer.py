@@ -7,6 +7,7 @@ wall-clock time only feeds logs and heartbeats.
 from __future__ import annotations
 
 import collections
+import json
 import math
 import os
 import signal
@@ -72,6 +73,8 @@ class Trainer:
         self.checkpointer = Checkpointer(config, info, self.log)
         self.checkpointer.on_commit = lambda step, manifest: self.hooks.call("on_checkpoint", self, step, manifest)
         self._stop_votes = 0.0
+        self._config_json = json.dumps(config.public_dict())
+        """The config as saved in common.pt: one string, made once (the manifest has it as a mapping)."""
 
     def log(self, message: str) -> None:
         if self.info.is_main:
@@ -87,7 +90,7 @@ class Trainer:
             "env_steps": self.env_steps,
             "metrics": dict(self.metrics),
             "hooks": self.hooks.state_dict(),
-            "config": self.config.public_dict(),
+            "config": self._config_json,
             **({"teacher": self.alg.teacher_identity} if hasattr(self.alg, "teacher_identity") else {}),
         }
 
@@ -118,7 +121,8 @@ class Trainer:
         self.episodes.extend((float(ret), int(length)) for ret, length in rank["episodes"])
 
     def learned_digest(self) -> str:
-        return packing.digest(learned_state(self.alg))
+        """What a checkpoint of this state records as ``state_sha256``."""
+        return packing.digest(packing.pack(self.common_state()), "learned")
 
     # --- loop --------------------------------------------------------------------------------------------------
 

@@ -64,26 +64,66 @@ def test_pack_is_a_snapshot_that_training_cannot_change() -> None:
     assert unpacked["episodes"][0] == [1.5, 10]
 
 
-def test_a_reference_outside_the_packed_tensors_is_corrupt_not_loaded() -> None:
+@pytest.mark.parametrize(
+    ("damage", "reason"),
+    [
+        (lambda packed: packed["index"].__setitem__(2, 10**6), "does not fit the packed tensors"),
+        (lambda packed: packed.__setitem__("index", packed["index"][:-3]), "malformed|more tensors than its index"),
+        (lambda packed: packed["tree"].__setitem__("extra", packing.TENSOR), "more tensors than its index"),
+        (lambda packed: packed["tree"].__setitem__("counts", 3), "more tensors than the tree"),
+        (lambda packed: packed["dtypes"].reverse(), "does not fit|malformed"),
+    ],
+)
+def test_a_packed_state_whose_index_does_not_fit_is_corrupt_not_loaded(damage, reason) -> None:
     packed = packing.pack(sample_state())
-    packed["tree"]["counts"][packing.TENSOR][1] = 10**6
-    with pytest.raises(checkpoint.CorruptCheckpoint, match="does not fit the packed tensors"):
+    damage(packed)
+    with pytest.raises(checkpoint.CorruptCheckpoint, match=reason):
         checkpoint.decode(checkpoint.encode(packed), "common.pt")
+
+
+def test_version_1_packing_still_loads() -> None:
+    flat = torch.tensor([1.0, 2.0, 3.0, 4.0])
+    packed = {
+        "ftrain_packed": 1,
+        "tree": {"w": {"__tensor__": ["float32", 1, [3]]}, "n": 2},
+        "tensors": {"float32": flat},
+    }
+    state = checkpoint.decode(checkpoint.encode(packed))
+    assert state["n"] == 2 and torch.equal(state["w"], flat[1:])
+
+
+def digest(state: dict, key: str | None = None) -> str:
+    return packing.digest(packing.pack(state), key)
 
 
 def test_digest_is_equal_iff_bitwise_equal() -> None:
     state = sample_state()
-    reordered = dict(reversed(list(state.items())))
-    assert packing.digest(reordered) == packing.digest(state)
+    assert digest(sample_state()) == digest(state)
 
     nudged = sample_state()
-    assert packing.digest(nudged) == packing.digest(state)
     bias = nudged["model"]["bias"]
     bias[0] = torch.nextafter(bias[0], torch.tensor(1.0))  # one bit in the last place
-    assert packing.digest(nudged) != packing.digest(state)
+    assert digest(nudged) != digest(state)
 
     reshaped = sample_state()
     reshaped["counts"] = reshaped["counts"].reshape(3, 1)  # same bytes, another shape
-    assert packing.digest(reshaped) != packing.digest(state)
+    assert digest(reshaped) != digest(state)
     retyped = {"x": torch.zeros(2, dtype=torch.int32)}
-    assert packing.digest(retyped) != packing.digest({"x": torch.zeros(2, dtype=torch.float32)})
+    assert digest(retyped) != digest({"x": torch.zeros(2, dtype=torch.float32)})
+    renamed = sample_state()
+    renamed["name"] = "Ant-v5"
+    assert digest(renamed) != digest(state)
+
+
+def test_digest_of_one_entry_sees_only_that_entry() -> None:
+    state = sample_state()
+    other = sample_state()
+    other["optimizer"]["state"][0]["exp_avg"] += 1  # float32 like "model", right after it in the flat tensor
+    other["counts"] += 1
+    other["rng"] = torch.zeros_like(other["rng"])
+    other["episodes"].append([3.5, 30])
+    assert digest(other, "model") == digest(state, "model")
+    assert digest(other) != digest(state)
+
+    other["model"]["weight"][0, 0] = -1.0
+    assert digest(other, "model") != digest(state, "model")
