@@ -59,6 +59,9 @@ class MujocoVecEnv(VecEnv):
         self._returns = np.zeros(num_envs, dtype=np.float64)
         self._lengths = np.zeros(num_envs, dtype=np.int64)
         self.episode_length_buf = torch.from_numpy(self._lengths)
+        self._bases = [env.unwrapped for env in self.envs.envs]
+        self._time_limits = [_time_limit(env) for env in self.envs.envs]
+        self._state_size = mujoco.mj_stateSize(self._bases[0].model, _INTEGRATION)
 
     @property
     def num_obs(self) -> int:
@@ -85,8 +88,8 @@ class MujocoVecEnv(VecEnv):
 
         One row per sub-env in a few stacked tensors: a checkpoint's encoding time grows with its tensor count.
         """
-        bases = [env.unwrapped for env in self.envs.envs]
-        physics = np.empty((self.num_envs, mujoco.mj_stateSize(bases[0].model, _INTEGRATION)))
+        bases = self._bases
+        physics = np.empty((self.num_envs, self._state_size))
         for row, base in zip(physics, bases, strict=True):
             mujoco.mj_getState(base.model, base.data, row, _INTEGRATION)
         return {
@@ -94,8 +97,8 @@ class MujocoVecEnv(VecEnv):
             "physics": torch.from_numpy(physics),
             "xpos": torch.from_numpy(np.stack([base.data.xpos for base in bases])),
             "xipos": torch.from_numpy(np.stack([base.data.xipos for base in bases])),
-            "rng": [base.np_random.bit_generator.state for base in bases],
-            "elapsed_steps": [_time_limit(env)._elapsed_steps for env in self.envs.envs],
+            "rng": _rng_state([base.np_random.bit_generator for base in bases]),
+            "elapsed_steps": [limit._elapsed_steps for limit in self._time_limits],
             "obs": self.obs.clone(),
             "episode_length": torch.from_numpy(self._lengths.copy()),
             "episode_return": torch.from_numpy(self._returns.copy()),
@@ -108,19 +111,59 @@ class MujocoVecEnv(VecEnv):
                 f"environment state is for {saved_envs} x {state['env_id']}, "
                 f"this env is {self.num_envs} x {self.env_id}"
             )
-        for index, env in enumerate(self.envs.envs):
-            base = env.unwrapped
+        for index, (base, limit) in enumerate(zip(self._bases, self._time_limits, strict=True)):
             mujoco.mj_setState(base.model, base.data, state["physics"][index].numpy(), _INTEGRATION)
             base.data.xpos[:] = state["xpos"][index].numpy()
             base.data.xipos[:] = state["xipos"][index].numpy()
-            base.np_random.bit_generator.state = state["rng"][index]
-            _time_limit(env)._elapsed_steps = state["elapsed_steps"][index]
+            limit._elapsed_steps = state["elapsed_steps"][index]
+        _set_rng_state([base.np_random.bit_generator for base in self._bases], state["rng"])
         self.obs = state["obs"].clone()
         self._lengths[:] = state["episode_length"].numpy()
         self._returns[:] = state["episode_return"].numpy()
 
     def close(self) -> None:
         self.envs.close()
+
+
+def _rng_state(generators: list[np.random.BitGenerator]) -> torch.Tensor | list[dict]:
+    """The sub-envs' random states. PCG64 (gymnasium's) as one int64 tensor, a row per sub-env: the 128-bit state
+    and increment as two 64-bit words each, then ``has_uint32`` and ``uinteger``; a tensor costs a save far less
+    than 16 nested dicts of big ints. Any other bit generator: numpy's state dicts as they are."""
+    states = [generator.state for generator in generators]
+    if any(state["bit_generator"] != "PCG64" for state in states):
+        return states
+    rows = [
+        [*_words(state["state"]["state"]), *_words(state["state"]["inc"]), state["has_uint32"], state["uinteger"]]
+        for state in states
+    ]
+    return torch.tensor(rows, dtype=torch.int64)
+
+
+def _set_rng_state(generators: list[np.random.BitGenerator], saved: torch.Tensor | list[dict]) -> None:
+    if not isinstance(saved, torch.Tensor):  # state dicts (also what checkpoints of state format 2 hold)
+        for generator, state in zip(generators, saved, strict=True):
+            generator.state = state
+        return
+    for generator, row in zip(generators, saved.tolist(), strict=True):
+        state_high, state_low, inc_high, inc_low, has_uint32, uinteger = row
+        generator.state = {
+            "bit_generator": "PCG64",
+            "state": {"state": _join(state_high, state_low), "inc": _join(inc_high, inc_low)},
+            "has_uint32": has_uint32,
+            "uinteger": uinteger,
+        }
+
+
+_MASK64 = (1 << 64) - 1
+
+
+def _words(value: int) -> tuple[int, int]:
+    """A 128-bit unsigned integer as two int64 words (high, low), each the two's complement of its 64 bits."""
+    return tuple(word - (1 << 64) if word >= 1 << 63 else word for word in (value >> 64, value & _MASK64))
+
+
+def _join(high: int, low: int) -> int:
+    return ((high & _MASK64) << 64) | (low & _MASK64)
 
 
 def _time_limit(env: gym.Env) -> TimeLimit:

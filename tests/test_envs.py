@@ -63,3 +63,27 @@ def test_state_of_another_env_is_refused() -> None:
     state = MujocoVecEnv("Hopper-v5", 2, seed=1).get_state()
     with pytest.raises(ValueError, match="Hopper-v5"):
         MujocoVecEnv("Walker2d-v5", 2, seed=1).set_state(state)
+
+
+def test_random_states_survive_as_words_at_the_edges_of_128_bits() -> None:
+    env = MujocoVecEnv("HalfCheetah-v5", 2, seed=1)
+    generators = [base.np_random.bit_generator for base in env._bases]
+    edges = [(2**128 - 1, 2**127 + 1, 1, 2**32 - 1), (2**63, 2**64 - 1, 0, 0)]  # the increment is always odd
+    for generator, (state, inc, has_uint32, uinteger) in zip(generators, edges, strict=True):
+        generator.state = {
+            "bit_generator": "PCG64",
+            "state": {"state": state, "inc": inc},
+            "has_uint32": has_uint32,
+            "uinteger": uinteger,
+        }
+    expected = [generator.state for generator in generators]
+    saved = env.get_state()
+    assert saved["rng"].dtype == torch.int64 and saved["rng"].shape == (2, 6)
+
+    fresh = MujocoVecEnv("HalfCheetah-v5", 2, seed=2)
+    fresh.set_state(saved)
+    assert [base.np_random.bit_generator.state for base in fresh._bases] == expected
+
+    older = MujocoVecEnv("HalfCheetah-v5", 2, seed=3)
+    older.set_state({**saved, "rng": expected})  # state format 2 kept numpy's state dicts
+    assert [base.np_random.bit_generator.state for base in older._bases] == expected
