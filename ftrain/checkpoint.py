@@ -27,9 +27,11 @@ from ftrain.errors import UserError
 from ftrain.storage import Storage
 
 FORMAT_VERSION = 1
-STATE_FORMAT = 2
+STATE_FORMAT = 3
 """Layout of the training state inside the files, in every manifest as ``state_format`` (none before 2: one
-tensor per sub-env field, unpacked). Resume refuses another layout; policies load from any."""
+tensor per sub-env field, unpacked; 3: the sub-envs' PCG64 states in one tensor). Resume refuses a layout not in
+``RESUMABLE_STATE_FORMATS``; policies load from any."""
+RESUMABLE_STATE_FORMATS = (2, 3)
 CHECKPOINTS = "checkpoints"
 MANIFEST = "MANIFEST.json"
 QUARANTINED = "QUARANTINED.json"
@@ -137,8 +139,9 @@ def write_file(storage: Storage, step: int, name: str, data: bytes) -> FileEntry
     return FileEntry(len(data), hashlib.sha256(data).hexdigest())
 
 
-def commit(storage: Storage, step: int, files: dict[str, FileEntry], meta: dict) -> dict:
-    """Commit ``step``: check every file is there with its size, then create MANIFEST.json (exclusive, last).
+def commit(storage: Storage, step: int, files: dict[str, FileEntry], meta: dict, check_present: bool = True) -> dict:
+    """Commit ``step``: check every file is there with its size (one listing; skipped without ``check_present``),
+    then create MANIFEST.json (exclusive, last).
 
     ``meta`` adds fields to the manifest (iteration, world_size, config, metrics, ...); ``created`` (UTC,
     ISO 8601) is filled in unless given.
@@ -146,9 +149,10 @@ def commit(storage: Storage, step: int, files: dict[str, FileEntry], meta: dict)
     clash = _RESERVED & meta.keys()
     if clash:
         raise ValueError(f"meta must not set {sorted(clash)}: commit writes them")
-    present = storage.list_files(step_dir(step))
-    for name, entry in files.items():
+    for name in files:
         _check_name(name)
+    present = storage.list_files(step_dir(step)) if check_present else {name: e.size for name, e in files.items()}
+    for name, entry in files.items():
         actual = present.get(name)
         if actual != entry.size:
             found = "missing" if actual is None else f"{actual} bytes"

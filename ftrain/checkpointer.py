@@ -152,10 +152,11 @@ class Checkpointer:
 
     def _check_compatible(self, step: int, manifest: dict) -> None:
         written = manifest.get("state_format", 1)
-        if written != checkpoint.STATE_FORMAT:
+        if written not in checkpoint.RESUMABLE_STATE_FORMATS:
+            formats = " and ".join(map(str, checkpoint.RESUMABLE_STATE_FORMATS))
             raise UserError(
-                f"checkpoint step {step} holds training state in format {written}, this ftrain resumes format "
-                f"{checkpoint.STATE_FORMAT}: resume it with the ftrain version that wrote it ({manifest['versions']}), "
+                f"checkpoint step {step} holds training state in format {written}, this ftrain resumes formats "
+                f"{formats}: resume it with the ftrain version that wrote it ({manifest['versions']}), "
                 "or start another --storage (its policy still loads)"
             )
         if manifest["world_size"] != self.info.world_size:

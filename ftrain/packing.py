@@ -60,7 +60,7 @@ class Layout:
         tensors = {}
         for dtype, parts in self.parts.items():
             flat = torch.empty(0, dtype=dtype) if allocate is None else allocate(dtype, self.numels[dtype])
-            tensors[_dtype_name(dtype)] = torch.cat(parts, out=flat)
+            tensors[dtype_name(dtype)] = torch.cat(parts, out=flat)
         index = torch.tensor(self._index, dtype=torch.int64)
         if allocate is not None:
             index = allocate(torch.int64, index.numel()).copy_(index)
@@ -183,7 +183,8 @@ def _count_tensors(value: object) -> int:
     return int(type(value) is str and value == TENSOR)
 
 
-def _dtype_name(dtype: torch.dtype) -> str:
+def dtype_name(dtype: torch.dtype) -> str:
+    """``torch.float32`` -> ``"float32"``: how packed files name dtypes."""
     return str(dtype).removeprefix("torch.")
 
 

@@ -68,6 +68,10 @@ class Saver:
         """Rank 0: the steps in storage, scanned at the first save and then kept up to date by this run's own saves
         and deletions, so that retention needs no listing after every commit."""
         self._scanned = False
+        self._listed = False
+        """Rank 0: whether a commit has listed its step directory. The first one does: a storage that the ranks do
+        not share (node-local directories on several nodes) shows there, once. Later commits trust the writers'
+        own successful exclusive creates (a listing is a request per save on S3)."""
 
     def save(self, step: int, files: dict[str, dict], meta: dict | None, check_loadable: bool, replace: bool) -> tuple:
         """Write this rank's packed ``files`` of ``step``, then agree with the other ranks on the outcome.
@@ -126,7 +130,8 @@ class Saver:
         fields = {key: value for _, written, *_ in reports for key, value in written.items()}  # from common.pt
         if not errors:
             try:
-                manifest = checkpoint.commit(self.storage, step, files, meta | fields)
+                manifest = checkpoint.commit(self.storage, step, files, meta | fields, check_present=not self._listed)
+                self._listed = True
             except Exception as exc:
                 errors = [f"commit: {exc}"]
         if errors:
@@ -370,7 +375,7 @@ class Slot:
     @staticmethod
     def reference(tensor: torch.Tensor) -> tuple[str, int, int]:
         """Where a tensor from :meth:`allocate` lies: ``(dtype, byte offset, numel)``."""
-        return str(tensor.dtype).removeprefix("torch."), tensor.storage_offset() * tensor.element_size(), tensor.numel()
+        return packing.dtype_name(tensor.dtype), tensor.storage_offset() * tensor.element_size(), tensor.numel()
 
     def append(self, data: bytes) -> int:
         """Copy ``data`` in; its offset."""

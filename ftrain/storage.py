@@ -14,6 +14,7 @@ import errno
 import logging
 import os
 import re
+import shutil
 import time
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -175,7 +176,10 @@ class Storage:
     def delete_tree(self, rel: str) -> None:
         """Delete ``rel`` and everything below it, if it exists."""
         with contextlib.suppress(FileNotFoundError):
-            self._call("delete", rel, self.fs.rm, self._path(rel), recursive=True)
+            if self.is_local:  # fsspec would walk the tree first, then delete entry by entry
+                self._call("delete", rel, _delete_local, self._path(rel))
+            else:
+                self._call("delete", rel, self.fs.rm, self._path(rel), recursive=True)
 
     def where(self, rel: str = "") -> str:
         """The printable URL of ``rel``."""
@@ -297,6 +301,13 @@ def _s3_options(url: str, options: dict) -> str:
     config.setdefault("retries", {"total_max_attempts": 1})
     options["config_kwargs"] = config
     return url
+
+
+def _delete_local(path: str) -> None:
+    if os.path.isdir(path) and not os.path.islink(path):
+        shutil.rmtree(path)
+    else:
+        os.remove(path)
 
 
 def _write_local(path: str, data: bytes, flag: int) -> None:
