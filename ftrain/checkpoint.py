@@ -30,7 +30,9 @@ FORMAT_VERSION = 1
 STATE_FORMAT = 3
 """Layout of the training state inside the files, in every manifest as ``state_format`` (none before 2: one
 tensor per sub-env field, unpacked; 3: the sub-envs' PCG64 states in one tensor). Resume refuses a layout not in
-``RESUMABLE_STATE_FORMATS``; policies load from any."""
+``RESUMABLE_STATE_FORMATS``; policies load from any. From 3 on, ``state_sha256`` is :func:`ftrain.packing.digest`
+of the packed learned state (dict order counts), and ``common.pt`` holds the config as JSON text; the digests of
+format 2 steps were made another way and do not compare with them."""
 RESUMABLE_STATE_FORMATS = (2, 3)
 CHECKPOINTS = "checkpoints"
 MANIFEST = "MANIFEST.json"
@@ -151,12 +153,15 @@ def commit(storage: Storage, step: int, files: dict[str, FileEntry], meta: dict,
         raise ValueError(f"meta must not set {sorted(clash)}: commit writes them")
     for name in files:
         _check_name(name)
-    present = storage.list_files(step_dir(step)) if check_present else {name: e.size for name, e in files.items()}
-    for name, entry in files.items():
-        actual = present.get(name)
-        if actual != entry.size:
-            found = "missing" if actual is None else f"{actual} bytes"
-            raise CorruptCheckpoint(f"cannot commit step {step}: {name} is {found} in storage, {entry.size} expected")
+    if check_present:
+        present = storage.list_files(step_dir(step))
+        for name, entry in files.items():
+            actual = present.get(name)
+            if actual != entry.size:
+                found = "missing" if actual is None else f"{actual} bytes"
+                raise CorruptCheckpoint(
+                    f"cannot commit step {step}: {name} is {found} in storage, {entry.size} expected"
+                )
     manifest = {"format_version": FORMAT_VERSION, "step": step, "created": _now()} | meta
     manifest["files"] = {name: {"size": e.size, "sha256": e.sha256} for name, e in sorted(files.items())}
     data = _manifest_text(manifest).encode()

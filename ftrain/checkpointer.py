@@ -186,7 +186,7 @@ class Checkpointer:
     # --- save --------------------------------------------------------------------------------------------------
 
     def save(self, trainer: Trainer, wait: bool = False, must_commit: bool = False) -> None:
-        """Snapshot now (every tensor packed into a copy, well under a millisecond) and hand it to the save helper,
+        """Snapshot now (every tensor packed into shared memory, about a millisecond) and hand it to the save helper,
         which encodes, writes and commits it in the background; up to ``MAX_IN_FLIGHT`` saves may be in flight.
         Waited for: with ``wait``, with ``checkpoint.async_save=false``, the first save of a run (it checks that what
         is saved loads back), and after a failed save until one commits.

@@ -64,7 +64,8 @@ class Layout:
         index = torch.tensor(self._index, dtype=torch.int64)
         if allocate is not None:
             index = allocate(torch.int64, index.numel()).copy_(index)
-        return {PACKED: VERSION, "tree": self.tree, "dtypes": list(tensors), "index": index, "tensors": tensors}
+        dtypes = [dtype_name(dtype) for dtype in self._positions]  # the order the index refers to
+        return {PACKED: VERSION, "tree": self.tree, "dtypes": dtypes, "index": index, "tensors": tensors}
 
     def _walk(self, value: object) -> object:
         kind = type(value)
@@ -79,6 +80,8 @@ class Layout:
             self.parts.setdefault(dtype, []).append(value.detach().reshape(-1))
             self.numels[dtype] = self.numels.get(dtype, 0) + value.numel()
             return TENSOR
+        if kind is str and value == TENSOR:
+            raise ValueError(f"the state holds the string {TENSOR!r}, which marks a tensor in a packed state")
         if isinstance(value, dict):  # OrderedDict (state dicts) and other mappings: saved as plain dicts
             return {key: self._walk(item) for key, item in value.items()}
         if isinstance(value, (list, tuple)):
@@ -115,7 +118,9 @@ def unpack(packed: dict) -> dict:
         return value
 
     tensors = packed["tensors"]
-    state = walk(packed.get("tree"))
+    if not isinstance(packed.get("tree"), dict):
+        raise ValueError("the packed tree is not a dict")
+    state = walk(packed["tree"])
     if next(places, None) is not None:
         raise ValueError("the packed index has more tensors than the tree")
     return state
@@ -146,14 +151,16 @@ def digest(packed: dict, key: str | None = None) -> str:
 def _places(packed: dict) -> Iterator[tuple[str, int, list[int]]]:
     """(dtype, offset in its flat tensor, shape) of each tensor, in tree order; ValueError if they do not fit."""
     if packed.get(PACKED) != VERSION:
-        raise ValueError(f"packed format {packed.get(PACKED)!r} is not {VERSION}")
+        raise ValueError(f"packed format {packed.get(PACKED)!r} is not one this ftrain reads (1 and {VERSION})")
     dtypes, index, tensors = packed.get("dtypes"), packed.get("index"), packed.get("tensors")
-    if (
-        not isinstance(dtypes, list)
-        or not isinstance(index, torch.Tensor)
-        or index.dtype != torch.int64
-        or not isinstance(tensors, dict)
-        or not all(isinstance(tensors.get(dtype), torch.Tensor) for dtype in dtypes)
+    if not (
+        isinstance(dtypes, list)
+        and all(isinstance(name, str) for name in dtypes)
+        and isinstance(index, torch.Tensor)
+        and index.dtype == torch.int64
+        and index.dim() == 1
+        and isinstance(tensors, dict)
+        and all(_is_flat(tensors.get(name), name) for name in dtypes)
     ):
         raise ValueError("packed 'dtypes', 'index' or 'tensors' are malformed")
     numbers = index.tolist()
@@ -161,10 +168,12 @@ def _places(packed: dict) -> Iterator[tuple[str, int, list[int]]]:
     cursor = 0
     places = []
     while cursor < len(numbers):
-        position, ndim = [*numbers[cursor : cursor + 2], -1, -1][:2]  # -1: the index ends mid-entry
+        if cursor + 2 > len(numbers):
+            raise ValueError("the packed index ends in the middle of an entry")
+        position, ndim = numbers[cursor : cursor + 2]
         shape = numbers[cursor + 2 : cursor + 2 + ndim]
-        if not 0 <= position < len(dtypes) or len(shape) != ndim or min(shape, default=0) < 0:
-            raise ValueError(f"packed index entry {len(places)} ({numbers[cursor : cursor + 2 + ndim]}) is malformed")
+        if not 0 <= position < len(dtypes) or not 0 <= ndim == len(shape) or min(shape, default=0) < 0:
+            raise ValueError(f"packed index entry {len(places)} (dtype {position}, ndim {ndim}) is malformed")
         cursor += 2 + ndim
         dtype = dtypes[position]
         offset = offsets[dtype]
@@ -173,6 +182,10 @@ def _places(packed: dict) -> Iterator[tuple[str, int, list[int]]]:
             raise ValueError(f"packed tensor {len(places)} ({dtype}, shape {shape}) does not fit the packed tensors")
         places.append((dtype, offset, shape))
     return iter(places)
+
+
+def _is_flat(tensor: object, name: str) -> bool:
+    return isinstance(tensor, torch.Tensor) and tensor.dim() == 1 and dtype_name(tensor.dtype) == name
 
 
 def _count_tensors(value: object) -> int:

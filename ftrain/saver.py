@@ -241,15 +241,12 @@ class SaverClient:
 
     def save(self, step: int, states: dict[str, dict], meta: dict | None, check_loadable: bool, replace: bool) -> None:
         """Snapshot ``states`` (file name to state) into shared memory and send them as the save of ``step``."""
-        layouts = {name: packing.Layout(state) for name, state in states.items()}
         slot = self._free.pop() if self._free else Slot()
-        slot.clear(sum(layout.nbytes + layout.allocations * ALIGNMENT for layout in layouts.values()))
-        files = {}
-        for name, layout in layouts.items():
-            packed = layout.fill(slot.allocate)
-            placed = {dtype: slot.reference(flat) for dtype, flat in packed["tensors"].items()}
-            files[name] = packed | {"index": slot.reference(packed["index"]), "tensors": placed}
-        self._send((step, files, meta, check_loadable, replace), slot)
+        try:
+            self._send((step, _place(states, slot), meta, check_loadable, replace), slot)
+        except BaseException:
+            self._free.append(slot)
+            raise
         self._busy.append(slot)
 
     def _send(self, message: object, slot: Slot | None = None) -> None:
@@ -306,6 +303,8 @@ class SaverClient:
         self._sock.close()
         for slot in (*self._free, *self._busy):
             slot.close()
+        self._free.clear()
+        self._busy.clear()
 
 
 def helper_main(fd: int, parent: int) -> None:
@@ -352,8 +351,8 @@ def _store_prefix() -> str:
 
 class Slot:
     """Shared memory that messages are written into: an anonymous memory file, mapped, reused save after save. The
-    receiver maps the same file: tensors placed in it travel as ``(offset, numel)`` references, resolved by
-    :func:`_placed_tensors` into tensors over the shared memory itself."""
+    receiver maps the same file: tensors placed in it travel as ``(dtype, byte offset, numel)`` references, resolved
+    by :func:`_placed_tensors` into tensors over the shared memory itself."""
 
     def __init__(self, size: int = 1 << 20) -> None:
         self.fd = -1
@@ -393,16 +392,35 @@ class Slot:
     def _map(self, size: int) -> None:
         """Move to a new file of ``size`` bytes, what was placed at the same offsets."""
         fd = os.memfd_create("ftrain-save", os.MFD_CLOEXEC)
-        os.ftruncate(fd, size)
-        memory = mmap.mmap(fd, size)
+        try:
+            os.ftruncate(fd, size)
+            memory = mmap.mmap(fd, size)
+        except BaseException:
+            os.close(fd)
+            raise
         placed = torch.frombuffer(memory, dtype=torch.uint8)
         if self.fd >= 0:
             placed[: self.used].copy_(self.bytes[: self.used])
-            os.close(self.fd)  # the old mapping lives on while tensors over it do
+        self.close()
         self.fd, self.memory, self.bytes = fd, memory, placed
 
     def close(self) -> None:
-        os.close(self.fd)
+        """Give the file back (its mapping lives on while tensors over it do)."""
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
+
+
+def _place(states: dict[str, dict], slot: Slot) -> dict[str, dict]:
+    """Pack ``states`` (file name to state) into ``slot``: the packed states, each tensor a :meth:`Slot.reference`."""
+    layouts = {name: packing.Layout(state) for name, state in states.items()}
+    slot.clear(sum(layout.nbytes + layout.allocations * ALIGNMENT for layout in layouts.values()))
+    files = {}
+    for name, layout in layouts.items():
+        packed = layout.fill(slot.allocate)
+        placed = {dtype: slot.reference(flat) for dtype, flat in packed["tensors"].items()}
+        files[name] = packed | {"index": slot.reference(packed["index"]), "tensors": placed}
+    return files
 
 
 def _send(sock: socket.socket, message: object, slot: Slot | None = None) -> None:

@@ -122,7 +122,7 @@ class Trainer:
 
     def learned_digest(self) -> str:
         """What a checkpoint of this state records as ``state_sha256``."""
-        return packing.digest(packing.pack(self.common_state()), "learned")
+        return packing.digest(packing.pack({"learned": learned_state(self.alg)}), "learned")  # as in common.pt
 
     # --- loop --------------------------------------------------------------------------------------------------
 

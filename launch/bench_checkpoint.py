@@ -110,9 +110,13 @@ def main() -> None:
     def median(name: str, key: str) -> float:
         return statistics.median(result[key] for result in results[name])
 
+    def spread(name: str, key: str) -> str:
+        ratios = [result[key] for result in results[name]]
+        return f"{min(ratios):.0%}-{max(ratios):.0%}"
+
     print(
-        f"{'case':<12} {'steps/s':>9} {'vs none':>8} {'median iter.':>13} {'blocked/save (median, max)':>28} "
-        f"{'moto CPU/save':>14}"
+        f"{'case':<12} {'steps/s':>9} {'vs none':>8} {'rounds':>9} {'median iter.':>13} "
+        f"{'blocked/save (median, max)':>28} {'moto CPU/save':>14}"
     )
     for name, (where, _) in cases.items():
         blocking = [seconds for result in results[name] for seconds in result["blocking_s"]]
@@ -120,10 +124,12 @@ def main() -> None:
         moto = f"{median(name, 'moto_cpu_per_save_s') * 1e3:8.1f} ms" if where == "s3" else "-"
         print(
             f"{name:<12} {median(name, 'steps_per_s'):>9,.0f} {median(name, 'steps_per_s/none'):>7.1%} "
-            f"{median(name, 'median_steps_per_s/none'):>12.1%} {blocked:>28} {moto:>14}"
+            f"{spread(name, 'steps_per_s/none'):>9} {median(name, 'median_steps_per_s/none'):>12.1%} {blocked:>28} "
+            f"{moto:>14}"
         )
-    print("(vs none: throughput over the timed window; median iter.: from the median iteration time, which bursts")
-    print(" of other work on the machine disturb less; both are medians over rounds of ratios within a round)")
+    print("(vs none: throughput over the timed window, median over rounds of the ratio within a round; rounds: the")
+    print(" lowest and highest of those ratios; median iter.: the same from the median iteration time, which bursts")
+    print(" of other work on the machine disturb less)")
     print(f"plain torch.save of the same state (rank 0, local file): {median('none', 'torch_save_s') * 1e3:.2f} ms")
     for where in ("local", "s3"):
         ratio = median(f"{where} async", "blocking_median_s") / median(f"{where} sync", "blocking_median_s")

@@ -68,10 +68,15 @@ def test_pack_is_a_snapshot_that_training_cannot_change() -> None:
     ("damage", "reason"),
     [
         (lambda packed: packed["index"].__setitem__(2, 10**6), "does not fit the packed tensors"),
-        (lambda packed: packed.__setitem__("index", packed["index"][:-3]), "malformed|more tensors than its index"),
+        (lambda packed: packed.__setitem__("index", packed["index"][:-3]), "index ends in the middle|malformed"),
+        (lambda packed: packed.__setitem__("index", packed["index"].view(1, -1)), "malformed"),
+        (lambda packed: packed["index"].__setitem__(0, 99), "entry 0 .* is malformed"),
         (lambda packed: packed["tree"].__setitem__("extra", packing.TENSOR), "more tensors than its index"),
         (lambda packed: packed["tree"].__setitem__("counts", 3), "more tensors than the tree"),
         (lambda packed: packed["dtypes"].reverse(), "does not fit|malformed"),
+        (lambda packed: packed["tensors"].__setitem__("float32", torch.zeros(40, dtype=torch.int32)), "malformed"),
+        (lambda packed: packed.__setitem__("tree", None), "not a dict"),
+        (lambda packed: packed.__setitem__("ftrain_packed", 3), "packed format 3 is not one this ftrain reads"),
     ],
 )
 def test_a_packed_state_whose_index_does_not_fit_is_corrupt_not_loaded(damage, reason) -> None:
@@ -81,7 +86,12 @@ def test_a_packed_state_whose_index_does_not_fit_is_corrupt_not_loaded(damage, r
         checkpoint.decode(checkpoint.encode(packed), "common.pt")
 
 
-def test_version_1_packing_still_loads() -> None:
+def test_the_marker_string_in_a_state_is_refused_at_pack_time() -> None:
+    with pytest.raises(ValueError, match="marks a tensor"):
+        packing.pack({"hooks": {"note": packing.TENSOR}})
+
+
+def test_version_1_packing_still_loads_and_is_checked() -> None:
     flat = torch.tensor([1.0, 2.0, 3.0, 4.0])
     packed = {
         "ftrain_packed": 1,
@@ -90,6 +100,9 @@ def test_version_1_packing_still_loads() -> None:
     }
     state = checkpoint.decode(checkpoint.encode(packed))
     assert state["n"] == 2 and torch.equal(state["w"], flat[1:])
+    packed["tree"]["w"]["__tensor__"][1] = 2  # three elements from offset 2 do not fit four
+    with pytest.raises(checkpoint.CorruptCheckpoint, match="does not fit the packed tensors"):
+        checkpoint.decode(checkpoint.encode(packed), "common.pt")
 
 
 def digest(state: dict, key: str | None = None) -> str:

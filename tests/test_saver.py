@@ -5,9 +5,12 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 from pathlib import Path
 
-from ftrain import checkpoint
+import torch
+
+from ftrain import checkpoint, packing, saver
 from ftrain.heartbeat import TOKEN_ENV
 from ftrain.storage import Storage
 
@@ -75,3 +78,40 @@ def test_sigterm_to_every_process_still_commits_the_stop_save(tmp_path) -> None:
     newest = max(manifests(storage))
     assert newest >= before
     assert checkpoint.verify(Storage.open(str(storage)), newest).ok
+
+
+def test_a_save_travels_through_shared_memory_intact_even_when_the_slot_grows() -> None:
+    """The rank's end packs into a slot far too small, so placing and then the message's pickle both grow it; the
+    helper's end reads every tensor back bitwise, over the shared memory, whatever its dtype or layout."""
+    weight = torch.randn(5, 7)
+    states = {
+        "rank-00000.pt": {
+            "t": weight.t(),  # not contiguous
+            "mask": torch.tensor([True, False, True]),
+            "half": torch.randn(3, dtype=torch.bfloat16),
+            "empty": torch.empty(0, 5, dtype=torch.float64),
+            "scalar": torch.tensor(3, dtype=torch.int64),
+            "note": "x" * 10_000,  # a pickle larger than the placed tensors: the slot grows with what it holds
+        },
+        "common.pt": {"learned": {"w": weight, "steps": torch.arange(4)}, "iteration": 7},
+    }
+    slot = saver.Slot(64)
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    with ours, theirs:
+        saver._send(ours, ("save", saver._place(states, slot)), slot)
+        (kind, files), memory = saver._receive(theirs)
+    assert kind == "save" and len(slot.memory) > 10_000
+    received = {name: saver._placed_tensors(packed, memory) for name, packed in files.items()}
+    for name, state in states.items():
+        got = packing.unpack(received[name])
+        assert got.keys() == state.keys()
+        for key, value in state.items():
+            if isinstance(value, torch.Tensor):
+                assert got[key].dtype == value.dtype and torch.equal(got[key], value), key
+            elif key != "learned":
+                assert got[key] == value
+    learned = packing.unpack(received["common.pt"])["learned"]
+    assert torch.equal(learned["w"], weight) and torch.equal(learned["steps"], torch.arange(4))
+    expected = packing.digest(packing.pack(states["common.pt"]), "learned")
+    assert packing.digest(received["common.pt"], "learned") == expected
+    slot.close()
