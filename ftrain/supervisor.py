@@ -65,6 +65,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ftrain import procfs
 from ftrain.config import load_config
 from ftrain.errors import EXIT_USAGE, UserError
 from ftrain.heartbeat import ENV_DIR, TOKEN_ENV, Heartbeat, read_heartbeats
@@ -356,25 +357,14 @@ def _describe_hang(hang: dict) -> str:
 
 def _process_state(pid: int) -> str:
     """The kernel's state letter for ``pid`` (R running, S sleeping, T stopped, ...), or ``gone``."""
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()[0]
-    except (OSError, IndexError):
-        return "gone"
+    fields = procfs.stat_fields(pid)
+    return fields[0] if fields else "gone"
 
 
 def _processes_with(token: str) -> list[int]:
     """Live processes whose environment carries this attempt's token (zombies have no readable environment)."""
     needle = f"{TOKEN_ENV}={token}".encode()
-    pids = []
-    for entry in os.scandir("/proc"):
-        if entry.name.isdigit():
-            try:
-                environ = Path(entry.path, "environ").read_bytes()
-            except OSError:
-                continue
-            if needle in environ.split(b"\0"):
-                pids.append(int(entry.name))
-    return pids
+    return [pid for pid in procfs.pids() if needle in procfs.read(pid, "environ").split(b"\0")]
 
 
 def _signal_name(number: int) -> str:

@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
-import os
 import socket
 import statistics
 import subprocess
@@ -25,9 +24,9 @@ import sys
 import tempfile
 import time
 import uuid
-from pathlib import Path
 
 from ftrain.bench import WARMUP, run_ftrain
+from ftrain.procfs import cpu_seconds
 
 KEY, SECRET = "bench-key", "bench-secret"
 
@@ -69,12 +68,6 @@ def moto_server():
     finally:
         proc.terminate()
         proc.wait()
-
-
-def cpu_seconds(pid: int) -> float:
-    """User plus system CPU time of process ``pid`` so far."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def main() -> None:

@@ -12,6 +12,8 @@ import sys
 import time
 from pathlib import Path
 
+from ftrain import procfs
+
 REPO = Path(__file__).resolve().parents[1]
 SMOKE = str(REPO / "configs" / "smoke.yaml")
 TIMING = ("steps_per_s", "collect_time", "learn_time", "iteration_time")
@@ -101,14 +103,10 @@ def torchrun_pid(supervisor_pid: int) -> int:
     """The torchrun agent a supervisor launched (waits until there is one)."""
 
     def find() -> int | None:
-        for stat in Path("/proc").glob("[0-9]*/stat"):
-            try:
-                parent = int(stat.read_text().rpartition(")")[2].split()[1])
-                cmdline = (stat.parent / "cmdline").read_bytes()
-            except OSError:
-                continue
-            if parent == supervisor_pid and b"torch.distributed.run" in cmdline:
-                return int(stat.parent.name)
+        for pid in procfs.pids():
+            fields = procfs.stat_fields(pid)
+            if fields and int(fields[1]) == supervisor_pid and b"torch.distributed.run" in procfs.read(pid, "cmdline"):
+                return pid
         return None
 
     return wait_for(find, "torchrun")
@@ -118,12 +116,9 @@ def descendants(pid: int) -> list[int]:
     """Every live process below ``pid`` (torchrun starts each worker in a session of its own, so a process group
     kill does not reach them)."""
     children: dict[int, list[int]] = {}
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    for child in procfs.pids():
+        if fields := procfs.stat_fields(child):
+            children.setdefault(int(fields[1]), []).append(child)
     found, todo = [], [pid]
     while todo:
         for child in children.get(todo.pop(), []):

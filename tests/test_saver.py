@@ -6,11 +6,10 @@ from __future__ import annotations
 import os
 import signal
 import socket
-from pathlib import Path
 
 import torch
 
-from ftrain import checkpoint, packing, saver
+from ftrain import checkpoint, packing, procfs, saver
 from ftrain.heartbeat import TOKEN_ENV
 from ftrain.storage import Storage
 
@@ -20,31 +19,20 @@ SCHED_IDLE = 5
 LONG = ("iterations=100000", "checkpoint.interval=2")
 
 
-def stat(pid: int) -> list[str]:
-    """The fields of ``/proc/<pid>/stat`` after the command name (state first); empty once the process is gone."""
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
-    except OSError:
-        return []
-
-
 def helpers_and_ranks(torchrun: int) -> tuple[dict[int, int], list[int]]:
     """{helper pid: its rank's pid}, and the rank pids (torchrun's children)."""
-    parents = {pid: int(fields[1]) for pid in descendants(torchrun) if (fields := stat(pid))}
+    parents = {pid: int(fields[1]) for pid in descendants(torchrun) if (fields := procfs.stat_fields(pid))}
     ranks = [pid for pid, parent in parents.items() if parent == torchrun]
     helpers = {pid: parent for pid, parent in parents.items() if parent in ranks and _is_helper(pid)}
     return helpers, ranks
 
 
 def _is_helper(pid: int) -> bool:
-    try:
-        return b"ftrain.saver" in Path(f"/proc/{pid}/cmdline").read_bytes()
-    except OSError:
-        return False
+    return b"ftrain.saver" in procfs.read(pid, "cmdline")
 
 
 def scheduling_policy(pid: int) -> int:
-    return int(stat(pid)[38])
+    return int(procfs.stat_fields(pid)[38])
 
 
 def test_helper_runs_at_idle_priority_unmarked_and_dies_with_its_rank(tmp_path) -> None:
@@ -56,12 +44,12 @@ def test_helper_runs_at_idle_priority_unmarked_and_dies_with_its_rank(tmp_path) 
         assert len(ranks) == 2 and sorted(helpers.values()) == sorted(ranks), (helpers, ranks)
         for helper in helpers:
             assert scheduling_policy(helper) == SCHED_IDLE
-            assert TOKEN_ENV.encode() not in Path(f"/proc/{helper}/environ").read_bytes()
+            assert TOKEN_ENV.encode() not in procfs.read(helper, "environ")
         for rank in ranks:
             assert scheduling_policy(rank) == 0  # training itself keeps normal priority
         helper, rank = next(iter(helpers.items()))
         os.kill(rank, signal.SIGKILL)
-        wait_for(lambda: stat(helper)[:1] in ([], ["Z"]), "the helper to die", timeout=10)
+        wait_for(lambda: procfs.stat_fields(helper)[:1] in ([], ["Z"]), "the helper to die", timeout=10)
     finally:
         kill_tree(proc)
 

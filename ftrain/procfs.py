@@ -1,0 +1,35 @@
+"""What Linux's ``/proc`` says about a process: the supervisor, the benchmarks and the tests read it the same way."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def stat_fields(pid: int) -> list[str]:
+    """The fields of ``/proc/<pid>/stat`` after the command name, state first (``[0]``), parent pid ``[1]``, user
+    and system CPU ticks ``[11]``, ``[12]``; empty once the process is gone. The command name, in parentheses, may
+    itself hold spaces and parentheses: the fields start after the last ``)``."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return []
+
+
+def cpu_seconds(pid: int) -> float:
+    """User plus system CPU time of process ``pid`` so far."""
+    fields = stat_fields(pid)
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def read(pid: int, name: str) -> bytes:
+    """``/proc/<pid>/<name>`` (``cmdline``, ``environ``, ...); empty once the process is gone or if it is not ours."""
+    try:
+        return Path(f"/proc/{pid}/{name}").read_bytes()
+    except OSError:
+        return b""
+
+
+def pids() -> list[int]:
+    """Every process's pid, as /proc lists them now."""
+    return [int(entry.name) for entry in Path("/proc").iterdir() if entry.name.isdigit()]
