@@ -13,7 +13,7 @@ from ftrain import checkpoint, packing, procfs, saver
 from ftrain.heartbeat import TOKEN_ENV
 from ftrain.storage import Storage
 
-from runs import descendants, finish, kill_tree, manifests, start_train, wait_for
+from runs import REPO, descendants, finish, kill_tree, manifests, start_train, wait_for
 
 SCHED_IDLE = 5
 LONG = ("iterations=100000", "checkpoint.interval=2")
@@ -103,3 +103,24 @@ def test_a_save_travels_through_shared_memory_intact_even_when_the_slot_grows() 
     expected = packing.digest(packing.pack(states["common.pt"]), "learned")
     assert packing.digest(received["common.pt"], "learned") == expected
     slot.close()
+
+
+def test_a_memory_run_saves_through_a_helper_thread_and_its_steps_verify(tmp_path) -> None:
+    """memory:// storage lives inside one process, so the save loop runs on a thread of the rank there."""
+    import uuid
+
+    from ftrain.config import load_config
+    from ftrain.trainer import train
+
+    url = f"memory://ftrain-test/{uuid.uuid4().hex}"
+    overrides = ["iterations=4", "checkpoint.interval=2", f"log_dir={tmp_path}", "log.console=false"]
+    config = load_config(str(REPO / "configs/smoke.yaml"), overrides, storage=url)
+    handlers = {number: signal.getsignal(number) for number in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        assert train(config) == 0
+    finally:
+        for number, handler in handlers.items():
+            signal.signal(number, handler)
+    steps = checkpoint.scan(Storage.open(url), full=True)
+    assert [(info.step, info.status) for info in steps] == [(4, checkpoint.VERIFIED), (2, checkpoint.VERIFIED)]
+    assert steps[0].manifest["iteration"] == 4
