@@ -97,7 +97,7 @@ class MujocoVecEnv(VecEnv):
             "physics": torch.from_numpy(physics),
             "xpos": torch.from_numpy(np.stack([base.data.xpos for base in bases])),
             "xipos": torch.from_numpy(np.stack([base.data.xipos for base in bases])),
-            "rng": _rng_state([base.np_random.bit_generator for base in bases]),
+            "rng": _rng_state(self._bit_generators()),
             "elapsed_steps": [limit._elapsed_steps for limit in self._time_limits],
             "obs": self.obs.clone(),
             "episode_length": torch.from_numpy(self._lengths.copy()),
@@ -116,13 +116,17 @@ class MujocoVecEnv(VecEnv):
             base.data.xpos[:] = state["xpos"][index].numpy()
             base.data.xipos[:] = state["xipos"][index].numpy()
             limit._elapsed_steps = state["elapsed_steps"][index]
-        _set_rng_state([base.np_random.bit_generator for base in self._bases], state["rng"])
+        _set_rng_state(self._bit_generators(), state["rng"])
         self.obs = state["obs"].clone()
         self._lengths[:] = state["episode_length"].numpy()
         self._returns[:] = state["episode_return"].numpy()
 
     def close(self) -> None:
         self.envs.close()
+
+    def _bit_generators(self) -> list[np.random.BitGenerator]:
+        """Looked up each time: a reset with a seed gives a sub-env a new generator."""
+        return [base.np_random.bit_generator for base in self._bases]
 
 
 def _rng_state(generators: list[np.random.BitGenerator]) -> torch.Tensor | list[dict]:

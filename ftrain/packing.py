@@ -68,11 +68,10 @@ class Layout:
         return {PACKED: VERSION, "tree": self.tree, "dtypes": dtypes, "index": index, "tensors": tensors}
 
     def _walk(self, value: object) -> object:
-        kind = type(value)
-        if kind is dict:
+        if isinstance(value, dict):  # OrderedDict (state dicts) and other mappings too: saved as plain dicts
             return {key: self._walk(item) for key, item in value.items()}
-        if kind is list or kind is tuple:
-            return kind(self._walk(item) for item in value)
+        if isinstance(value, (list, tuple)):
+            return type(value)(self._walk(item) for item in value)
         if isinstance(value, torch.Tensor):
             dtype = value.dtype
             position = self._positions.setdefault(dtype, len(self._positions))
@@ -80,12 +79,8 @@ class Layout:
             self.parts.setdefault(dtype, []).append(value.detach().reshape(-1))
             self.numels[dtype] = self.numels.get(dtype, 0) + value.numel()
             return TENSOR
-        if kind is str and value == TENSOR:
+        if type(value) is str and value == TENSOR:
             raise ValueError(f"the state holds the string {TENSOR!r}, which marks a tensor in a packed state")
-        if isinstance(value, dict):  # OrderedDict (state dicts) and other mappings: saved as plain dicts
-            return {key: self._walk(item) for key, item in value.items()}
-        if isinstance(value, (list, tuple)):
-            return type(value)(self._walk(item) for item in value)
         return value
 
 
