@@ -1,0 +1,73 @@
+"""ftrain.ptfile: packed states written as torch.save files without torch.save, read back by torch.load."""
+
+import io
+import math
+import struct
+import zipfile
+
+import torch
+
+from ftrain import checkpoint, packing, ptfile
+
+
+def every_dtype_state() -> dict:
+    generator = torch.Generator().manual_seed(3)
+    tensors = {str(dtype): (torch.randn(4, 3, generator=generator) * 100).to(dtype) for dtype in ptfile.STORAGE_TYPES}
+    return {
+        "tensors": tensors,
+        "empty": torch.zeros(0, 5),
+        "scalar": torch.tensor(2.5, dtype=torch.float64),
+        "strided": torch.arange(12.0).reshape(3, 4).t(),
+        "plain": [1, -7, 2**70, -(2**65), 0.5, math.inf, None, True, "ünïcode", (1, "two"), {"k": [[]]}],
+    }
+
+
+def bitwise_equal(a: object, b: object) -> bool:
+    if isinstance(a, torch.Tensor):
+        same = a.dtype == b.dtype and a.shape == b.shape
+        return same and torch.equal(a.reshape(-1).view(torch.uint8), b.reshape(-1).view(torch.uint8))
+    if isinstance(a, dict):
+        return a.keys() == b.keys() and all(bitwise_equal(a[key], b[key]) for key in a)
+    if isinstance(a, (list, tuple)):
+        return type(a) is type(b) and len(a) == len(b) and all(map(bitwise_equal, a, b))
+    return a == b
+
+
+def test_a_packed_state_loads_back_bitwise_with_weights_only():
+    state = every_dtype_state()
+    packed = packing.pack(state)
+    assert ptfile.can_write(packed)
+    data = ptfile.write(packed)
+    loaded = torch.load(io.BytesIO(data), weights_only=True)
+    assert bitwise_equal(packing.unpack(loaded), state)
+    assert packing.digest(loaded) == packing.digest(packed)
+    assert checkpoint.encode(packed) == data  # what checkpoints are written with
+
+
+def test_the_file_is_a_valid_zip_with_aligned_records_like_torch_saves():
+    packed = packing.pack(every_dtype_state())
+    archive = zipfile.ZipFile(io.BytesIO(ptfile.write(packed)))
+    assert archive.testzip() is None  # every CRC-32 matches
+    reference = io.BytesIO()
+    torch.save(packed, reference)
+    expected = set(zipfile.ZipFile(reference).namelist()) - {"archive/.data/serialization_id"}
+    assert set(archive.namelist()) == expected
+    raw = archive.fp.getvalue()
+    for info in archive.infolist():
+        name_length, extra_length = struct.unpack_from("<HH", raw, info.header_offset + 26)
+        assert (info.header_offset + 30 + name_length + extra_length) % ptfile.ALIGNMENT == 0, info.filename
+
+
+def test_the_file_loads_memory_mapped(tmp_path):
+    state = every_dtype_state()
+    path = tmp_path / "state.pt"
+    path.write_bytes(ptfile.write(packing.pack(state)))
+    loaded = torch.load(path, weights_only=True, mmap=True)
+    assert bitwise_equal(packing.unpack(loaded), state)
+
+
+def test_states_it_does_not_take_go_through_torch_save():
+    odd = packing.pack({"x": torch.arange(4).to(torch.uint16), "y": torch.ones(2)})
+    assert not ptfile.can_write(odd)
+    assert not ptfile.can_write({packing.PACKED: 1, "tree": {}, "tensors": {}})  # version 1
+    assert bitwise_equal(checkpoint.decode(checkpoint.encode(odd)), packing.unpack(odd))
