@@ -7,15 +7,15 @@ measured here. The helper runs at idle CPU priority (``SCHED_IDLE``), so it work
 wait. It dies with its rank (``PR_SET_PDEATHSIG``), ignores SIGTERM and SIGINT (a stop request is for the rank,
 whose stop save the helper then writes) and is not marked as a worker for the supervisor.
 
-Protocol, over a socket pair, each message a pickle in an anonymous shared memory file whose descriptor is sent:
-the rank sends ``(config, rank info, store prefix)`` and the helper answers ``("ready", None)`` or ``("error",
-why)``; then the rank sends one ``(step, files, meta, check_loadable, replace)`` per save and reads the outcomes back
-in order when it wants them: ``("committed", step, manifest)``, ``("failed", step, why)`` or ``("unloadable", step,
-why)``. A save's state is packed straight into the shared memory (:class:`Slot`) and its flat tensors travel as
-offsets into it, so handing over a save is one copy of the tensors, a small pickle and a few system calls; the rank
-reuses a slot once the save's outcome is back. The helpers of all ranks meet in torchrun's key-value store
-(:class:`Meeting`), so a save never touches the training group. For ``memory://`` storage (one process only) the
-same loop runs on a thread instead.
+Protocol, over a socket pair, each message a pickle: inline in the packet when it is small, else in an anonymous
+shared memory file whose descriptor is sent. The rank sends ``(config, rank info, store prefix)`` and the helper
+answers ``("ready", None)`` or ``("error", why)``; then the rank sends one ``(step, files, meta, check_loadable,
+replace)`` per save and reads the outcomes back in order when it wants them: ``("committed", step, manifest)``,
+``("failed", step, why)`` or ``("unloadable", step, why)``. A save's state is packed straight into the shared
+memory (:class:`Slot`) and its flat tensors travel as offsets into it, so handing over a save is one copy of the
+tensors, a small pickle and a few system calls; the rank reuses a slot once the save's outcome is back. The helpers
+of all ranks meet in torchrun's key-value store (:class:`Meeting`), so a save never touches the training group. For
+``memory://`` storage (one process only) the same loop runs on a thread instead.
 """
 
 from __future__ import annotations
@@ -47,6 +47,8 @@ from ftrain.storage import Storage
 PR_SET_PDEATHSIG = 1
 HEADER = struct.Struct("<QQ")
 """What goes over the socket with a shared memory file's descriptor: the message's offset and length in it."""
+INLINE_LIMIT = 1 << 16
+"""A message without a slot up to this size travels in the socket packet itself (one system call on each side)."""
 ALIGNMENT = 64
 """Of everything placed in a :class:`Slot` (any dtype's alignment, and a cache line)."""
 UNLOADABLE_HINT = "hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
@@ -424,10 +426,13 @@ def _place(states: dict[str, dict], slot: Slot) -> dict[str, dict]:
 
 
 def _send(sock: socket.socket, message: object, slot: Slot | None = None) -> None:
-    """Pickle ``message`` into ``slot`` after the tensors placed there and send the slot's descriptor; without a
-    slot, into a fresh one (a message the receiver may read late, such as an outcome). Sending never waits for the
-    receiver: a socket buffer holds a few hundred kB at most, a state can be larger."""
+    """Send ``message``: pickled into ``slot`` after the tensors placed there, with the slot's descriptor; without a
+    slot, a small message (an outcome, the start-up) goes inline in the packet, a larger one in a fresh slot.
+    Sending never waits for the receiver: the socket's buffer, a few hundred kB, holds a few inline messages."""
     data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
+    if slot is None and len(data) <= INLINE_LIMIT:
+        sock.sendmsg([data])
+        return
     own = slot is None
     slot = Slot(len(data)) if own else slot
     try:
@@ -438,16 +443,19 @@ def _send(sock: socket.socket, message: object, slot: Slot | None = None) -> Non
             slot.close()
 
 
-def _receive(sock: socket.socket) -> tuple[object, mmap.mmap] | None:
-    """The next message and the shared memory it came in, or None once the other side has closed the socket."""
-    header, fds, _, _ = socket.recv_fds(sock, HEADER.size, 1)
-    if not header:
+def _receive(sock: socket.socket) -> tuple[object, mmap.mmap | None] | None:
+    """The next message and the shared memory it came in (None if inline), or None once the other side has closed
+    the socket."""
+    data, fds, _, _ = socket.recv_fds(sock, INLINE_LIMIT, 1)
+    if not data:
         return None
+    if not fds:
+        return pickle.loads(data), None
     try:
         memory = mmap.mmap(fds[0], os.fstat(fds[0]).st_size)
     finally:
         os.close(fds[0])
-    offset, length = HEADER.unpack(header)
+    offset, length = HEADER.unpack(data)
     return pickle.loads(memory[offset : offset + length]), memory
 
 

@@ -105,6 +105,19 @@ def test_a_save_travels_through_shared_memory_intact_even_when_the_slot_grows() 
     slot.close()
 
 
+def test_messages_without_a_slot_go_inline_when_small_and_through_shared_memory_when_large() -> None:
+    small, large = ("committed", 4, {"metrics": {"x": 1.0}}), ("failed", 6, "y" * (2 * saver.INLINE_LIMIT))
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_SEQPACKET)
+    with ours, theirs:
+        saver._send(ours, small)
+        saver._send(ours, large)
+        ours.shutdown(socket.SHUT_WR)
+        assert saver._receive(theirs) == (small, None)  # no shared memory for it
+        message, memory = saver._receive(theirs)
+        assert message == large and len(memory) >= 2 * saver.INLINE_LIMIT
+        assert saver._receive(theirs) is None  # closed
+
+
 def test_a_memory_run_saves_through_a_helper_thread_and_its_steps_verify(tmp_path) -> None:
     """memory:// storage lives inside one process, so the save loop runs on a thread of the rank there."""
     import uuid
