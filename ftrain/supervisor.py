@@ -126,9 +126,9 @@ def supervise(options: SupervisorOptions, config_path: str, storage: str | None,
     """Run training under supervision until it finishes or gives up; returns the exit code (see module doc)."""
     config = load_config(config_path, overrides, storage)
     hang_timeout = _parse_hang_timeout(options.hang_timeout)
-    nnodes = _parse_nnodes(options)
+    nnodes, endpoint = _parse_nodes(options)
     train_args = [config_path, *(["--storage", storage] if storage is not None else []), *overrides]
-    supervisor = Supervisor(options, nnodes, Path(config.log_dir), hang_timeout, train_args)
+    supervisor = Supervisor(options, nnodes, endpoint, Path(config.log_dir), hang_timeout, train_args)
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         return supervisor.run()
@@ -150,19 +150,21 @@ def _parse_hang_timeout(value: str) -> float | None:
     return seconds
 
 
-def _parse_nnodes(options: SupervisorOptions) -> int:
+def _parse_nodes(options: SupervisorOptions) -> tuple[int, tuple[str, int] | None]:
+    """The number of nodes, and node 0's ``(host, port)`` when there are several."""
     if not options.nnodes.isdigit() or int(options.nnodes) < 1:
         raise UserError(f"--nnodes={options.nnodes!r} must be a number of nodes (elastic MIN:MAX is not supported)")
     nnodes = int(options.nnodes)
     if options.nproc_per_node < 1:
         raise UserError(f"--nproc-per-node={options.nproc_per_node} must be at least 1")
-    if nnodes > 1:
-        if not 0 <= options.node_rank < nnodes:
-            raise UserError(f"--node-rank={options.node_rank} must be between 0 and {nnodes - 1}")
-        host, _, port = options.rdzv_endpoint.rpartition(":")
-        if not host or not port.isdigit():
-            raise UserError("several nodes need --rdzv-endpoint=HOST:PORT, node 0's address and a free port")
-    return nnodes
+    if nnodes == 1:
+        return nnodes, None
+    if not 0 <= options.node_rank < nnodes:
+        raise UserError(f"--node-rank={options.node_rank} must be between 0 and {nnodes - 1}")
+    host, _, port = options.rdzv_endpoint.rpartition(":")
+    if not host or not port.isdigit():
+        raise UserError("several nodes need --rdzv-endpoint=HOST:PORT, node 0's address and a free port")
+    return nnodes, (host, int(port))
 
 
 @dataclass
@@ -304,8 +306,8 @@ class HangWatch:
             return self.timeout
         return max(HANG_FLOOR, HANG_FACTOR * self.longest)
 
-    def check(self, beats: dict[int, Heartbeat], now: float) -> dict | None:
-        """Record progress in ``beats``; return a description of the hung rank, or None."""
+    def check(self, beats: dict[int, Heartbeat], now: float) -> Hang | None:
+        """Record progress in ``beats``; return the hang if there is one."""
         for rank, beat in beats.items():
             seq, since = self.changed.get(rank, (None, now))
             if beat.seq != seq:
@@ -318,13 +320,8 @@ class HangWatch:
             if now - self.launched <= self.startup_grace:
                 return None
             starting = [rank for rank, beat in beats.items() if beat.phase == "start"]
-            return {
-                "rank": min(starting) if starting else None,
-                "phase": "start",
-                "seconds": round(now - self.launched, 1),
-                "limit": self.startup_grace,
-                "ranks_seen": len(beats),
-            }
+            rank = min(starting) if starting else None
+            return Hang(rank, "start", round(now - self.launched, 1), self.startup_grace, ranks_seen=len(beats))
         active = [(self.changed[rank][1], rank) for rank, beat in beats.items() if beat.phase not in QUIET_PHASES]
         if not active:
             return None
@@ -335,24 +332,35 @@ class HangWatch:
         # the others wait for it in a collective and may have been silent longer: name a stopped rank if any
         rank = next((r for r, state in states.items() if state in ("T", "t", "D")), rank)
         beat = beats[rank]
-        return {
-            "rank": rank,
-            "phase": beat.phase,
-            "iteration": beat.iteration,
-            "seconds": round(now - self.changed[rank][1], 1),
-            "limit": round(self.limit(), 1),
-            "processes": {str(r): state for r, state in states.items()},
-        }
+        seconds, limit = round(now - self.changed[rank][1], 1), round(self.limit(), 1)
+        processes = {str(r): state for r, state in states.items()}
+        return Hang(rank, beat.phase, seconds, limit, iteration=beat.iteration, processes=processes)
 
 
-def _hang_cause(hang: dict) -> str:
-    return "killed: start-up hung" if "ranks_seen" in hang else f"killed: rank {hang['rank']} hung"
+@dataclass
+class Hang:
+    """A rank silent for longer than the limit, or a start-up that took longer than the grace (``ranks_seen`` set)."""
 
+    rank: int | None
+    phase: str
+    seconds: float
+    limit: float
+    iteration: int | None = None
+    processes: dict[str, str] | None = None
+    """Each rank's process state letter: a stopped (T) or uninterruptible (D) one is named as the hung rank."""
+    ranks_seen: int | None = None
 
-def _describe_hang(hang: dict) -> str:
-    if "ranks_seen" in hang:
-        return f"not every rank got past start-up within {hang['limit']:g} s (--startup-grace)"
-    return f"rank {hang['rank']} silent for {hang['seconds']} s in phase {hang['phase']} (limit {hang['limit']} s)"
+    def fields(self) -> dict:
+        """For the event log: the fields that apply."""
+        return {key: value for key, value in dataclasses.asdict(self).items() if value is not None}
+
+    def cause(self) -> str:
+        return "killed: start-up hung" if self.ranks_seen is not None else f"killed: rank {self.rank} hung"
+
+    def describe(self) -> str:
+        if self.ranks_seen is not None:
+            return f"not every rank got past start-up within {self.limit:g} s (--startup-grace)"
+        return f"rank {self.rank} silent for {self.seconds} s in phase {self.phase} (limit {self.limit} s)"
 
 
 def _process_state(pid: int) -> str:
@@ -493,8 +501,15 @@ class _Stop(Exception):
 
 class Supervisor:
     def __init__(
-        self, options: SupervisorOptions, nnodes: int, log_dir: Path, hang_timeout: float | None, train_args: list[str]
+        self,
+        options: SupervisorOptions,
+        nnodes: int,
+        endpoint: tuple[str, int] | None,
+        log_dir: Path,
+        hang_timeout: float | None,
+        train_args: list[str],
     ) -> None:
+        """``endpoint``: node 0's ``(host, port)`` when there are several nodes."""
         self.options = options
         self.nnodes = nnodes
         self.train_args = train_args
@@ -502,11 +517,10 @@ class Supervisor:
         self.heartbeat_dir = (log_dir / "heartbeat" / (f"node-{options.node_rank}" if multi else "")).resolve()
         self.events = EventLog(log_dir / "events.jsonl", options.node_rank if multi else None)
         self.hangs = HangWatch(hang_timeout, options.startup_grace, options.nproc_per_node)
-        host, _, port = options.rdzv_endpoint.rpartition(":")
-        self.host = host
+        self.endpoint = endpoint
         self.coordinator = Coordinator(multi) if options.node_rank == 0 or not multi else None
-        self.server = self.coordinator.serve(int(port)) if multi and self.coordinator else None
-        self.link = Link(options.node_rank, self.coordinator, (host, int(port)) if multi else None)
+        self.server = self.coordinator.serve(endpoint[1]) if multi and self.coordinator else None
+        self.link = Link(options.node_rank, self.coordinator, endpoint)
         self.signals: list[int] = []
         self.restarts = 0
         self.lost = 0
@@ -640,7 +654,7 @@ class Supervisor:
             f"--nnodes={self.nnodes}",
             f"--node-rank={self.options.node_rank}",
             "--rdzv-backend=static",
-            f"--master-addr={self.host}",
+            f"--master-addr={self.endpoint[0]}",
             f"--master-port={plan.port}",
             f"--rdzv-id=ftrain-{plan.token}-{plan.attempt}",
             f"--rdzv-conf=timeout={math.ceil(self.options.rdzv_timeout)}",
@@ -670,13 +684,13 @@ class Supervisor:
             if hang is not None:
                 self.events(
                     "hang",
-                    f"attempt {attempt.plan.attempt}: {_describe_hang(hang)}; killing the workers",
+                    f"attempt {attempt.plan.attempt}: {hang.describe()}; killing the workers",
                     attempt=attempt.plan.attempt,
-                    **hang,
+                    **hang.fields(),
                 )
                 self._failed(attempt, now)
                 attempt.kill()
-                self._log_exit(attempt, _hang_cause(hang))
+                self._log_exit(attempt, hang.cause())
                 return Outcome("failed", None, "hang")
             if self.nnodes > 1 and now >= next_peer_check:
                 next_peer_check = now + PEER_POLL

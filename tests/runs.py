@@ -10,9 +10,11 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterable
 from pathlib import Path
 
 from ftrain import procfs
+from ftrain.heartbeat import read_heartbeats
 
 REPO = Path(__file__).resolve().parents[1]
 SMOKE = str(REPO / "configs" / "smoke.yaml")
@@ -143,6 +145,19 @@ def wait_for(predicate, what: str, timeout: float = 120.0, interval: float = 0.0
             return value
         time.sleep(interval)
     raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def training(heartbeat_dir: str | Path, iteration: int, ranks: Iterable[int] = (0, 1)) -> dict:
+    """The heartbeats in ``heartbeat_dir`` once each of ``ranks`` has completed ``iteration`` iterations and trains
+    on (in rollout or update)."""
+    ranks = list(ranks)
+
+    def ready() -> dict | None:
+        beats = read_heartbeats(Path(heartbeat_dir))
+        past = [beats.get(rank) for rank in ranks]
+        return beats if all(b and b.iteration >= iteration and b.phase in ("rollout", "update") for b in past) else None
+
+    return wait_for(ready, f"ranks {ranks} at iteration {iteration} in {heartbeat_dir}")
 
 
 def manifests(storage: str | Path) -> dict[int, dict]:

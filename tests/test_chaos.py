@@ -14,9 +14,8 @@ import pytest
 from conftest import free_port
 
 from ftrain import supervisor
-from ftrain.heartbeat import read_heartbeats
 
-from runs import descendants, events, final_manifest, finish, flip_byte, launch, torchrun_pid, wait_for
+from runs import descendants, events, final_manifest, finish, flip_byte, launch, torchrun_pid, training, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -39,17 +38,6 @@ def wait_event(storage: Path, name: str, count: int) -> dict:
         return matching[count - 1] if len(matching) >= count else None
 
     return wait_for(found, f"{count} {name} events", interval=0.05)  # each look re-reads the whole log
-
-
-def training(heartbeat_dir: Path, iteration: int, ranks: int = 2) -> dict:
-    """The heartbeats of all ``ranks`` once they train past ``iteration`` iterations (in rollout or update)."""
-
-    def ready():
-        beats = read_heartbeats(heartbeat_dir)
-        training = [b for b in beats.values() if b.iteration >= iteration and b.phase in ("rollout", "update")]
-        return beats if len(training) == ranks else None
-
-    return wait_for(ready, f"iteration {iteration} in {heartbeat_dir}")
 
 
 @pytest.fixture(scope="module")
@@ -143,7 +131,7 @@ def test_two_nodes_both_recover_when_one_loses_its_worker(tmp_path, reference):
         )
         for node in (0, 1)
     ]
-    beats = training(storage / "heartbeat" / "node-1", 4, ranks=1)
+    beats = training(storage / "heartbeat" / "node-1", 4, ranks=[1])
     os.kill(beats[1].pid, signal.SIGKILL)
     assert [finish(node) for node in nodes] == [0, 0]
     manifest = final_manifest(storage)

@@ -23,9 +23,9 @@ import pytest
 from conftest import free_port
 
 from ftrain import supervisor
-from ftrain.heartbeat import ENV_DIR, Heartbeat, HeartbeatWriter, read_heartbeats
+from ftrain.heartbeat import ENV_DIR, Heartbeat, HeartbeatWriter
 
-from runs import events, final_manifest, finish, launch, manifests, torchrun_pid, wait_for
+from runs import events, final_manifest, finish, launch, manifests, torchrun_pid, training
 
 REPO = Path(__file__).resolve().parent.parent
 TESTS = Path(__file__).resolve().parent
@@ -138,16 +138,6 @@ def names(log_dir: Path) -> list[str]:
     return [event["event"] for event in events(log_dir)]
 
 
-def beat_at(heartbeat_dir: Path, rank: int, iteration: int):
-    """The heartbeat of ``rank`` once it has completed ``iteration`` iterations (in rollout or update)."""
-
-    def ready():
-        beat = read_heartbeats(heartbeat_dir).get(rank)
-        return beat if beat and beat.iteration >= iteration and beat.phase in ("rollout", "update") else None
-
-    return wait_for(ready, what=f"rank {rank} at iteration {iteration}")
-
-
 def assert_finished(run: Path) -> None:
     manifest = final_manifest(run)
     assert manifest == {"step": ITERATIONS, "state": expected_state(ITERATIONS)}
@@ -165,7 +155,8 @@ def test_hang_watch_grace_then_auto_limit():
     watch.restart(now=0)
     assert watch.check({0: beat(0, 1, "start")}, now=9) is None
     late = watch.check({0: beat(0, 1, "start")}, now=11)
-    assert late["phase"] == "start" and late["limit"] == 10 and late["ranks_seen"] == 1
+    assert (late.phase, late.limit, late.ranks_seen) == ("start", 10, 1)
+    assert late.cause() == "killed: start-up hung" and "iteration" not in late.fields()
     watch.restart(now=100)
     assert watch.check({0: beat(0, 1), 1: beat(1, 1)}, now=100) is None  # both past start: grace over
     assert watch.check({0: beat(0, 2), 1: beat(1, 2)}, now=104) is None  # a 4 s gap observed
@@ -174,7 +165,9 @@ def test_hang_watch_grace_then_auto_limit():
     assert watch.limit() == max(supervisor.HANG_FLOOR, supervisor.HANG_FACTOR * 6)
     assert watch.check({0: beat(0, 3), 1: beat(1, 2)}, now=164) is None
     hung = watch.check({0: beat(0, 3), 1: beat(1, 2)}, now=165)
-    assert (hung["rank"], hung["phase"], hung["seconds"], hung["limit"]) == (1, "rollout", 61, 60)
+    assert (hung.rank, hung.phase, hung.seconds, hung.limit) == (1, "rollout", 61, 60)
+    assert hung.describe() == "rank 1 silent for 61 s in phase rollout (limit 60.0 s)"
+    assert "ranks_seen" not in hung.fields()
     assert watch.check({0: beat(0, 3, "done"), 1: beat(1, 2, "done")}, now=500) is None
 
 
@@ -240,7 +233,7 @@ def test_clean_run_finishes_with_exit_0(tmp_path):
 def test_worker_sigkill_restarts_from_newest_checkpoint(tmp_path, rank):
     proc = start_supervisor(tmp_path)
     run = tmp_path / "run"
-    victim = beat_at(run / "heartbeat", rank, 6)
+    victim = training(run / "heartbeat", 6, [rank])[rank]
     os.kill(victim.pid, signal.SIGKILL)
     assert finish(proc) == supervisor.EXIT_DONE
     assert_finished(run)
@@ -255,7 +248,7 @@ def test_worker_sigkill_restarts_from_newest_checkpoint(tmp_path, rank):
 def test_torchrun_sigkill_lets_orphans_save_then_restarts(tmp_path):
     proc = start_supervisor(tmp_path)
     run = tmp_path / "run"
-    beat_at(run / "heartbeat", 0, 5)
+    training(run / "heartbeat", 5, [0])
     os.kill(torchrun_pid(proc.pid), signal.SIGKILL)
     assert finish(proc) == supervisor.EXIT_DONE
     assert_finished(run)
@@ -269,7 +262,7 @@ def test_torchrun_sigkill_lets_orphans_save_then_restarts(tmp_path):
 def test_stopped_worker_is_a_hang(tmp_path):
     proc = start_supervisor(tmp_path, "--hang-timeout", "2")
     run = tmp_path / "run"
-    victim = beat_at(run / "heartbeat", 1, 6)
+    victim = training(run / "heartbeat", 6, [1])[1]
     os.kill(victim.pid, signal.SIGSTOP)
     assert finish(proc) == supervisor.EXIT_DONE
     assert_finished(run)
@@ -281,7 +274,7 @@ def test_stopped_worker_is_a_hang(tmp_path):
 def test_sigterm_saves_and_the_same_command_continues(tmp_path):
     proc = start_supervisor(tmp_path)
     run = tmp_path / "run"
-    beat_at(run / "heartbeat", 0, 5)
+    training(run / "heartbeat", 5, [0])
     proc.send_signal(signal.SIGTERM)
     assert finish(proc) == supervisor.EXIT_PREEMPTED
     preempted = [event for event in events(run) if event["event"] == "exit"][-1]
@@ -329,7 +322,7 @@ def test_two_nodes_both_restart_after_one_node_loses_a_worker(tmp_path):
     ]
     run = tmp_path / "run"
     # 2 processes per node: node 1 runs global ranks 2 and 3
-    victim = beat_at(run / "heartbeat" / "node-1", 3, 6)
+    victim = training(run / "heartbeat" / "node-1", 6, [3])[3]
     os.kill(victim.pid, signal.SIGKILL)
     assert [finish(node) for node in nodes] == [0, 0]
     assert_finished(run)
