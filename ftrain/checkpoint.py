@@ -91,6 +91,11 @@ class StepInfo:
     def metrics(self) -> dict:
         return (self.manifest or {}).get("metrics") or {}
 
+    @property
+    def files(self) -> list[str]:
+        """The files its manifest lists (none without a manifest)."""
+        return list((self.manifest or {}).get("files") or {})
+
 
 def shard_name(rank: int) -> str:
     """The file of what differs per rank (environments, random streams)."""
@@ -355,10 +360,13 @@ def retention_plan(
     ]
 
 
-def delete_step(storage: Storage, step: int) -> None:
-    """Delete the manifest first (the step stops being committed), then the directory with the other files."""
+def delete_step(storage: Storage, step: int, files: Iterable[str] = ()) -> None:
+    """Delete the manifest first (the step stops being committed), then the rest: given the names of its other
+    ``files`` (its manifest's list), those without a listing (a request less on S3), else the directory's tree."""
     storage.delete(f"{step_dir(step)}/{MANIFEST}")
-    storage.delete_tree(step_dir(step))
+    files = list(files)
+    if not files or not storage.delete_files(step_dir(step), files):
+        storage.delete_tree(step_dir(step))
 
 
 def _verify(storage: Storage, step: int, present: dict[str, int], full: bool) -> Verification:

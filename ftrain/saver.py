@@ -157,7 +157,7 @@ class Saver:
         )
         for step in doomed:
             try:
-                checkpoint.delete_step(self.storage, step)
+                checkpoint.delete_step(self.storage, step, self._steps[step].files)
             except Exception as exc:
                 log(f"retention: checkpoint step {step} could not be deleted (kept for now): {exc}")
                 continue

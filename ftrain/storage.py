@@ -16,7 +16,7 @@ import os
 import re
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import Any, TypeVar
 from urllib.parse import unquote, urlsplit
 
@@ -173,6 +173,19 @@ class Storage:
         with contextlib.suppress(FileNotFoundError):
             self._call("delete", rel, self.fs.rm_file, self._path(rel))
 
+    def delete_files(self, rel: str, names: Iterable[str]) -> bool:
+        """Delete the files ``names`` directly under ``rel``, absent ones included, without listing ``rel``: locally
+        one by one and then the directory, if that leaves it empty; on S3 in one request. False if that was not
+        possible: something else is left in a local directory, or the storage has directories but no way to tell
+        (delete the tree then)."""
+        paths = [self._path(f"{rel}/{name}") for name in names]
+        if self.is_local:
+            return self._call("delete", rel, _delete_local_files, self._path(rel), paths)
+        if isinstance(self.fs, S3FileSystem):  # no directories, and a batch delete takes absent keys
+            self._call("delete", rel, self.fs.rm, paths)
+            return True
+        return False
+
     def delete_tree(self, rel: str) -> None:
         """Delete ``rel`` and everything below it, if it exists."""
         with contextlib.suppress(FileNotFoundError):
@@ -308,6 +321,21 @@ def _delete_local(path: str) -> None:
         shutil.rmtree(path)
     else:
         os.remove(path)
+
+
+def _delete_local_files(directory: str, paths: list[str]) -> bool:
+    for path in paths:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
+    try:
+        os.rmdir(directory)
+    except FileNotFoundError:
+        pass
+    except OSError as error:
+        if error.errno != errno.ENOTEMPTY:
+            raise
+        return False
+    return True
 
 
 def _write_local(path: str, data: bytes, flag: int) -> None:

@@ -255,6 +255,11 @@ class RecordingStorage(Storage):
         self.deleted.append(f"tree of {sorted(self.list_files(rel))}")
         super().delete_tree(rel)
 
+    def delete_files(self, rel: str, names) -> bool:
+        names = sorted(names)
+        self.deleted.append(f"files {names}")
+        return super().delete_files(rel, names)
+
 
 def test_delete_step_removes_the_manifest_first_then_the_rest(tmp_path):
     storage = RecordingStorage.open(str(tmp_path / "run"))
@@ -264,6 +269,27 @@ def test_delete_step_removes_the_manifest_first_then_the_rest(tmp_path):
     ck.delete_step(storage, 10)
     assert storage.deleted == [ck.MANIFEST, "tree of ['common.pt', 'rank-00000.pt', 'rank-00001.pt']"]
     assert storage.list_dirs(ck.CHECKPOINTS) == ["step-000000020"]
+    assert ck.verify(storage, 20).ok
+
+
+def test_delete_step_by_its_manifests_files_needs_no_listing_unless_something_else_is_there(tmp_path):
+    storage = RecordingStorage.open(str(tmp_path / "run"))
+    storage.deleted = []
+    files = sorted(make_step(storage, 10)["files"])
+    make_step(storage, 20)
+    storage.write_replace(f"{ck.step_dir(20)}/stray.txt", b"left by someone")
+    ck.delete_step(storage, 10, files)
+    ck.delete_step(storage, 20, files)
+    assert storage.deleted == [ck.MANIFEST, f"files {files}", ck.MANIFEST, f"files {files}", "tree of ['stray.txt']"]
+    assert storage.list_dirs(ck.CHECKPOINTS) == []
+
+
+def test_delete_step_by_files_on_every_backend(storage_url):
+    storage = Storage.open(*storage_url)
+    files = list(make_step(storage, 10)["files"])
+    make_step(storage, 20)
+    ck.delete_step(storage, 10, files)
+    assert [info.step for info in ck.scan(storage)] == [20]
     assert ck.verify(storage, 20).ok
 
 
