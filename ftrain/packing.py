@@ -25,6 +25,7 @@ import math
 from collections.abc import Callable, Iterator
 
 import torch
+from torch._utils import _flatten_dense_tensors  # each tensor flattened and all concatenated, in one C++ call
 
 PACKED = "ftrain_packed"
 VERSION = 2
@@ -58,9 +59,11 @@ class Layout:
     def fill(self, allocate: Allocate | None = None) -> dict:
         """The packed state, its flat tensors from ``allocate`` (new tensors if None): a copy training cannot change."""
         tensors = {}
-        for dtype, parts in self.parts.items():
-            flat = torch.empty(0, dtype=dtype) if allocate is None else allocate(dtype, self.numels[dtype])
-            tensors[dtype_name(dtype)] = torch.cat(parts, out=flat)
+        with torch.no_grad():  # parameters require grad; a copy needs no graph
+            for dtype, parts in self.parts.items():
+                numel = self.numels[dtype]
+                flat = torch.empty(numel, dtype=dtype) if allocate is None else allocate(dtype, numel)
+                tensors[dtype_name(dtype)] = flat.copy_(_flatten_dense_tensors(parts))
         index = torch.tensor(self._index, dtype=torch.int64)
         if allocate is not None:
             index = allocate(torch.int64, index.numel()).copy_(index)
@@ -76,7 +79,7 @@ class Layout:
             dtype = value.dtype
             position = self._positions.setdefault(dtype, len(self._positions))
             self._index += (position, value.dim(), *value.shape)
-            self.parts.setdefault(dtype, []).append(value.detach().reshape(-1))
+            self.parts.setdefault(dtype, []).append(value)
             self.numels[dtype] = self.numels.get(dtype, 0) + value.numel()
             return TENSOR
         if type(value) is str and value == TENSOR:

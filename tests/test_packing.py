@@ -54,13 +54,19 @@ def test_round_trip_through_a_file_is_lossless_with_one_tensor_per_dtype() -> No
 
 
 def test_pack_is_a_snapshot_that_training_cannot_change() -> None:
-    state = sample_state()
+    state = sample_state() | {"parameter": torch.nn.Parameter(torch.ones(2, dtype=torch.float16))}
     expected = state["model"]["weight"].clone()
     packed = packing.pack(state)
     state["model"]["weight"].add_(1.0)
+    state["mask"].logical_not_()  # the only tensor of its dtype
+    with torch.no_grad():
+        state["parameter"].mul_(3.0)  # a parameter (requires grad), the only one of its dtype
     state["episodes"][0].append("later")
     unpacked = packing.unpack(packed)
     assert torch.equal(unpacked["model"]["weight"], expected)
+    assert torch.equal(unpacked["mask"], torch.tensor([True, False]))
+    assert torch.equal(unpacked["parameter"], torch.ones(2, dtype=torch.float16))
+    assert not unpacked["parameter"].requires_grad
     assert unpacked["episodes"][0] == [1.5, 10]
 
 
