@@ -131,16 +131,15 @@ class MujocoVecEnv(VecEnv):
 
 def _rng_state(generators: list[np.random.BitGenerator]) -> torch.Tensor | list[dict]:
     """The sub-envs' random states. PCG64 (gymnasium's) as one int64 tensor, a row per sub-env: the 128-bit state
-    and increment as two 64-bit words each, then ``has_uint32`` and ``uinteger``; a tensor costs a save far less
-    than 16 nested dicts of big ints. Any other bit generator: numpy's state dicts as they are."""
+    and increment as two 64-bit words each (high, low; two's complement), then ``has_uint32`` and ``uinteger``; a
+    tensor costs a save far less than 16 nested dicts of big ints. Any other bit generator: numpy's state dicts."""
     states = [generator.state for generator in generators]
     if any(state["bit_generator"] != "PCG64" for state in states):
         return states
-    rows = [
-        [*_words(state["state"]["state"]), *_words(state["state"]["inc"]), state["has_uint32"], state["uinteger"]]
-        for state in states
-    ]
-    return torch.tensor(rows, dtype=torch.int64)
+    numbers = b"".join(state["state"][key].to_bytes(16, "little") for state in states for key in ("state", "inc"))
+    words = np.frombuffer(numbers, dtype="<i8").reshape(-1, 2, 2)[:, :, ::-1].reshape(-1, 4)  # (low, high) reversed
+    flags = np.array([(state["has_uint32"], state["uinteger"]) for state in states], dtype=np.int64)
+    return torch.from_numpy(np.concatenate([words, flags], axis=1))
 
 
 def _set_rng_state(generators: list[np.random.BitGenerator], saved: torch.Tensor | list[dict]) -> None:
@@ -159,11 +158,6 @@ def _set_rng_state(generators: list[np.random.BitGenerator], saved: torch.Tensor
 
 
 _MASK64 = (1 << 64) - 1
-
-
-def _words(value: int) -> tuple[int, int]:
-    """A 128-bit unsigned integer as two int64 words (high, low), each the two's complement of its 64 bits."""
-    return tuple(word - (1 << 64) if word >= 1 << 63 else word for word in (value >> 64, value & _MASK64))
 
 
 def _join(high: int, low: int) -> int:

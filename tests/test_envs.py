@@ -79,6 +79,7 @@ def test_random_states_survive_as_words_at_the_edges_of_128_bits() -> None:
     expected = [generator.state for generator in generators]
     saved = env.get_state()
     assert saved["rng"].dtype == torch.int64 and saved["rng"].shape == (2, 6)
+    assert saved["rng"].tolist() == [[-1, -1, -(2**63), 1, 1, 2**32 - 1], [0, -(2**63), 0, -1, 0, 0]]  # format 3
 
     fresh = MujocoVecEnv("HalfCheetah-v5", 2, seed=2)
     fresh.set_state(saved)
