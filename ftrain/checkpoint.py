@@ -86,6 +86,8 @@ class StepInfo:
     """Bytes of all files in the step directory."""
     manifest: dict | None = None
     problems: list[Problem] = field(default_factory=list)
+    strays: bool = False
+    """Its directory holds files that its manifest does not list (a scan's listing saw them)."""
 
     @property
     def metrics(self) -> dict:
@@ -93,8 +95,9 @@ class StepInfo:
 
     @property
     def files(self) -> list[str]:
-        """The files its manifest lists (none without a manifest)."""
-        return list((self.manifest or {}).get("files") or {})
+        """The files besides the manifest, if all are known: its manifest's list (none with strays or no manifest:
+        for :func:`delete_step`, which then deletes the directory's tree)."""
+        return [] if self.strays else list((self.manifest or {}).get("files") or {})
 
 
 def shard_name(rank: int) -> str:
@@ -117,9 +120,10 @@ def parse_checkpoint_url(url: str) -> tuple[str, int | None]:
 
 
 def encode(state: dict) -> bytes:
-    """The bytes of ``torch.save(state)``; a packed state is written by :mod:`ftrain.ptfile`, several times faster."""
-    if packing.is_packed(state) and ptfile.can_write(state):
-        return ptfile.write(state)
+    """A ``torch.save`` file of ``state``; a packed state's is written by :mod:`ftrain.ptfile`, several times faster."""
+    data = ptfile.write(state) if packing.is_packed(state) else None
+    if data is not None:
+        return data
     buffer = io.BytesIO()
     torch.save(state, buffer)
     return buffer.getvalue()
@@ -235,7 +239,8 @@ def scan(storage: Storage, full: bool = False) -> list[StepInfo]:
             continue
         result = _verify(storage, step, present, full)
         status = VERIFIED if result.ok else INCOMPLETE if MANIFEST not in present else CORRUPT
-        infos.append(StepInfo(step, status, size, result.manifest, result.problems))
+        strays = bool(result.manifest) and bool(present.keys() - result.manifest["files"].keys() - {MANIFEST})
+        infos.append(StepInfo(step, status, size, result.manifest, result.problems, strays))
     return sorted(infos, key=lambda info: info.step, reverse=True)
 
 

@@ -33,6 +33,11 @@ TENSOR = "\x00ftrain-tensor"
 """The place of a tensor in a packed tree."""
 TENSOR_V1 = "__tensor__"
 
+FLATTEN_LIMIT = 1 << 22
+"""Bytes of one dtype up to which :meth:`Layout.fill` flattens its tensors in one C++ call into a temporary and
+copies that into place: for small tensors a Python call each costs more than the extra copy, for large ones the
+copy costs more (they are concatenated straight into place then)."""
+
 Allocate = Callable[[torch.dtype, int], torch.Tensor]
 """Where the flat tensor of a dtype goes: ``allocate(dtype, numel)`` returns an empty 1-D tensor of that size."""
 
@@ -63,7 +68,11 @@ class Layout:
             for dtype, parts in self.parts.items():
                 numel = self.numels[dtype]
                 flat = torch.empty(numel, dtype=dtype) if allocate is None else allocate(dtype, numel)
-                tensors[dtype_name(dtype)] = flat.copy_(_flatten_dense_tensors(parts))
+                if numel * dtype.itemsize <= FLATTEN_LIMIT:
+                    flat.copy_(_flatten_dense_tensors(parts))
+                else:
+                    torch.cat([part.reshape(-1) for part in parts], out=flat)
+                tensors[dtype_name(dtype)] = flat
         index = torch.tensor(self._index, dtype=torch.int64)
         if allocate is not None:
             index = allocate(torch.int64, index.numel()).copy_(index)

@@ -1,16 +1,20 @@
-"""A packed state (see ``packing.py``) as the bytes of a ``torch.save`` file, written without ``torch.save``.
+"""A packed state (see ``packing.py``) as a ``torch.save`` file, written without ``torch.save``.
 
 ``torch.save`` calls a Python ``persistent_id`` for every object it pickles: most of the time it spends on a
 packed state, whose few tensors sit in a tree of a few hundred small objects. Here the plain part is pickled by
-the C pickler alone, and the tensors' opcodes, which refer to their storages, are appended by hand: the result is
-what ``torch.save`` writes (a zip of ``data.pkl``, one record per storage, and the version records, data aligned
-to 64 bytes), and ``torch.load(weights_only=True)`` reads it like any other checkpoint.
+the C pickler alone, and the tensors' opcodes, which refer to their storages, are appended by hand. The file is a
+zip like the ones ``torch.save`` writes (``data.pkl``, a record per storage in the order the pickle refers to them,
+``byteorder`` and ``version``; data aligned to 64 bytes) and ``torch.load(weights_only=True)`` reads it like any
+other checkpoint. It declares no ``.format_version``: that would promise miniz's exact record layout (data
+descriptors after each record), from which torch may compute offsets instead of reading them from the zip.
 """
 
 from __future__ import annotations
 
+import io
 import pickle
 import struct
+import sys
 import zlib
 
 import torch
@@ -39,39 +43,61 @@ _ZIP_LIMIT = 0xFFFFFFFF
 _DOS_DATE = 33  # 1980-01-01, the first date a zip entry can carry
 
 
-def can_write(packed: dict) -> bool:
-    """Whether :func:`write` takes ``packed``: a packed state of the current version whose tensors are 1-D,
-    contiguous and of dtypes in ``STORAGE_TYPES``, small enough to need no zip64 records."""
+class _TreePickler(pickle.Pickler):
+    """Pickles the plain part of a packed state; a tensor or storage in it (one the packing does not reach: in a set,
+    as a dict key, inside an object) needs ``torch.save``'s persistent ids. Only objects that are not plain data get
+    here, so plain data costs nothing extra."""
+
+    def reducer_override(self, obj: object) -> object:
+        if isinstance(obj, (torch.Tensor, torch.UntypedStorage, torch.TypedStorage)):
+            raise _NeedsTorchSave
+        return NotImplemented
+
+
+class _NeedsTorchSave(Exception):
+    pass
+
+
+def write(packed: dict) -> bytes | None:
+    """The ``torch.save`` file of a packed state (``{"ftrain_packed", "tree", "dtypes", "index", "tensors"}``), or
+    None if it needs ``torch.save``: not of the current packing version, a tensor that is not 1-D, contiguous, on
+    the CPU, free of autograd and of a dtype in ``STORAGE_TYPES``, a tensor in the plain part, or a file that
+    needs zip64 records."""
     if packed.get(packing.PACKED) != packing.VERSION:
-        return False
-    tensors = [packed["index"], *packed["tensors"].values()]
-    return (
-        all(tensor.dtype in STORAGE_TYPES and tensor.dim() == 1 and tensor.is_contiguous() for tensor in tensors)
-        and sum(tensor.nbytes for tensor in tensors) < _ZIP_LIMIT // 2  # the rest: the pickled tree
+        return None
+    storages = [packed["index"], *packed["tensors"].values()]  # in the order the pickle refers to them
+    if not all(_writable(tensor) for tensor in storages):
+        return None
+    buffer = io.BytesIO()
+    try:
+        _TreePickler(buffer, protocol=2).dump({key: packed[key] for key in packed if key not in ("index", "tensors")})
+    except _NeedsTorchSave:
+        return None
+    head = buffer.getbuffer()[:-1]  # PROTO 2 and the dict, left on the stack; STOP comes last
+    flats = b"".join(
+        _string(name) + _tensor_opcodes(str(key), flat) for key, (name, flat) in enumerate(packed["tensors"].items(), 1)
     )
-
-
-def write(packed: dict) -> bytes:
-    """The ``torch.save`` file of a packed state (``{"ftrain_packed", "tree", "dtypes", "index", "tensors"}``)."""
-    storages: list[torch.Tensor] = []
-
-    def tensor(value: torch.Tensor) -> bytes:
-        storages.append(value)
-        return _tensor_opcodes(str(len(storages) - 1), value)
-
-    plain = {key: value for key, value in packed.items() if key not in ("index", "tensors")}
-    head = pickle.dumps(plain, protocol=2)[:-1]  # PROTO 2 and the dict, left on the stack; no STOP yet
-    flats = b"".join(_string(name) + tensor(flat) for name, flat in packed["tensors"].items())
-    tail = b"(" + _string("index") + tensor(packed["index"]) + _string("tensors") + b"}(" + flats + b"uu."
+    tail = b"(" + _string("index") + _tensor_opcodes("0", storages[0]) + _string("tensors") + b"}(" + flats + b"uu."
     records = [
-        ("data.pkl", head + tail),
-        (".format_version", b"1"),
+        ("data.pkl", bytes(head) + tail),
         (".storage_alignment", str(ALIGNMENT).encode()),
-        ("byteorder", b"little"),
-        *((f"data/{key}", value.view(torch.uint8).numpy().data) for key, value in enumerate(storages)),
+        ("byteorder", sys.byteorder.encode()),  # the tensors' bytes are the machine's own
+        *((f"data/{key}", tensor.view(torch.uint8).numpy().data) for key, tensor in enumerate(storages)),
         ("version", b"3\n"),
     ]
+    if sum(len(data) for _, data in records) >= _ZIP_LIMIT // 2:  # headers and padding stay far below the rest
+        return None
     return _zip(records)
+
+
+def _writable(tensor: torch.Tensor) -> bool:
+    return (
+        tensor.dtype in STORAGE_TYPES
+        and tensor.dim() == 1
+        and tensor.is_contiguous()
+        and tensor.device.type == "cpu"
+        and not tensor.requires_grad
+    )
 
 
 def _tensor_opcodes(key: str, value: torch.Tensor) -> bytes:

@@ -24,6 +24,7 @@ import collections
 import contextlib
 import ctypes
 import datetime
+import errno
 import mmap
 import os
 import pickle
@@ -431,8 +432,12 @@ def _send(sock: socket.socket, message: object, slot: Slot | None = None) -> Non
     Sending never waits for the receiver: the socket's buffer, a few hundred kB, holds a few inline messages."""
     data = pickle.dumps(message, protocol=pickle.HIGHEST_PROTOCOL)
     if slot is None and len(data) <= INLINE_LIMIT:
-        sock.sendmsg([data])
-        return
+        try:
+            sock.sendmsg([data])
+            return
+        except OSError as error:  # a socket buffer smaller than the limit: the shared memory way then
+            if error.errno != errno.EMSGSIZE:
+                raise
     own = slot is None
     slot = Slot(len(data)) if own else slot
     try:
@@ -446,7 +451,11 @@ def _send(sock: socket.socket, message: object, slot: Slot | None = None) -> Non
 def _receive(sock: socket.socket) -> tuple[object, mmap.mmap | None] | None:
     """The next message and the shared memory it came in (None if inline), or None once the other side has closed
     the socket."""
-    data, fds, _, _ = socket.recv_fds(sock, INLINE_LIMIT, 1)
+    data, fds, flags, _ = socket.recv_fds(sock, INLINE_LIMIT, 1)
+    if flags & (socket.MSG_TRUNC | socket.MSG_CTRUNC):
+        for fd in fds:
+            os.close(fd)
+        raise OSError(errno.EMSGSIZE, "a message or its file descriptor did not arrive whole")
     if not data:
         return None
     if not fds:

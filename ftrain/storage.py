@@ -175,9 +175,9 @@ class Storage:
 
     def delete_files(self, rel: str, names: Iterable[str]) -> bool:
         """Delete the files ``names`` directly under ``rel``, absent ones included, without listing ``rel``: locally
-        one by one and then the directory, if that leaves it empty; on S3 in one request. False if that was not
-        possible: something else is left in a local directory, or the storage has directories but no way to tell
-        (delete the tree then)."""
+        one by one, then the directory if that leaves it empty; on S3 in one request (other objects under ``rel``
+        stay). False if the directory is not gone: something else is left in a local one, or the storage has
+        directories of its own (delete the tree then)."""
         paths = [self._path(f"{rel}/{name}") for name in names]
         if self.is_local:
             return self._call("delete", rel, _delete_local_files, self._path(rel), paths)
@@ -332,7 +332,7 @@ def _delete_local_files(directory: str, paths: list[str]) -> bool:
     except FileNotFoundError:
         pass
     except OSError as error:
-        if error.errno != errno.ENOTEMPTY:
+        if error.errno not in (errno.ENOTEMPTY, errno.EEXIST):  # POSIX allows either for a non-empty directory
             raise
         return False
     return True

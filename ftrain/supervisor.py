@@ -351,8 +351,8 @@ class Hang:
     ranks_seen: int | None = None
 
     def fields(self) -> dict:
-        """For the event log: the fields that apply."""
-        return {key: value for key, value in dataclasses.asdict(self).items() if value is not None}
+        """For the event log: the fields that apply (``rank`` always, None if no rank was to blame)."""
+        return {key: value for key, value in dataclasses.asdict(self).items() if value is not None or key == "rank"}
 
     def cause(self) -> str:
         return "killed: start-up hung" if self.ranks_seen is not None else f"killed: rank {self.rank} hung"

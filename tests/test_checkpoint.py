@@ -260,6 +260,10 @@ class RecordingStorage(Storage):
         self.deleted.append(f"files {names}")
         return super().delete_files(rel, names)
 
+    def _list(self, rel: str) -> dict[str, dict]:
+        self.listings = getattr(self, "listings", 0) + 1
+        return super()._list(rel)
+
 
 def test_delete_step_removes_the_manifest_first_then_the_rest(tmp_path):
     storage = RecordingStorage.open(str(tmp_path / "run"))
@@ -278,8 +282,13 @@ def test_delete_step_by_its_manifests_files_needs_no_listing_unless_something_el
     files = sorted(make_step(storage, 10)["files"])
     make_step(storage, 20)
     storage.write_replace(f"{ck.step_dir(20)}/stray.txt", b"left by someone")
-    ck.delete_step(storage, 10, files)
-    ck.delete_step(storage, 20, files)
+    infos = {info.step: info for info in ck.scan(storage)}
+    assert (infos[10].strays, sorted(infos[10].files)) == (False, files)
+    assert (infos[20].strays, infos[20].files) == (True, [])  # its tree is deleted, strays and all
+    listings = storage.listings
+    ck.delete_step(storage, 10, infos[10].files)
+    assert storage.listings == listings
+    ck.delete_step(storage, 20, files)  # told only the manifest's files: the stray is found and deleted too
     assert storage.deleted == [ck.MANIFEST, f"files {files}", ck.MANIFEST, f"files {files}", "tree of ['stray.txt']"]
     assert storage.list_dirs(ck.CHECKPOINTS) == []
 

@@ -70,6 +70,14 @@ def test_pack_is_a_snapshot_that_training_cannot_change() -> None:
     assert unpacked["episodes"][0] == [1.5, 10]
 
 
+def test_large_tensors_are_concatenated_straight_into_place(monkeypatch) -> None:
+    monkeypatch.setattr(packing, "FLATTEN_LIMIT", 0)
+    state = sample_state()
+    unpacked = packing.unpack(packing.pack(state | {"parameter": torch.nn.Parameter(torch.ones(3))}))
+    assert torch.equal(unpacked.pop("parameter"), torch.ones(3))
+    assert_same(unpacked, state)
+
+
 @pytest.mark.parametrize(
     ("damage", "reason"),
     [

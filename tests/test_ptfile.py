@@ -36,8 +36,8 @@ def bitwise_equal(a: object, b: object) -> bool:
 def test_a_packed_state_loads_back_bitwise_with_weights_only():
     state = every_dtype_state()
     packed = packing.pack(state)
-    assert ptfile.can_write(packed)
     data = ptfile.write(packed)
+    assert data is not None
     loaded = torch.load(io.BytesIO(data), weights_only=True)
     assert bitwise_equal(packing.unpack(loaded), state)
     assert packing.digest(loaded) == packing.digest(packed)
@@ -50,7 +50,8 @@ def test_the_file_is_a_valid_zip_with_aligned_records_like_torch_saves():
     assert archive.testzip() is None  # every CRC-32 matches
     reference = io.BytesIO()
     torch.save(packed, reference)
-    expected = set(zipfile.ZipFile(reference).namelist()) - {"archive/.data/serialization_id"}
+    own = {"archive/.data/serialization_id", "archive/.format_version"}  # see the module docstring for the latter
+    expected = set(zipfile.ZipFile(reference).namelist()) - own
     assert set(archive.namelist()) == expected
     raw = archive.fp.getvalue()
     for info in archive.infolist():
@@ -66,8 +67,30 @@ def test_the_file_loads_memory_mapped(tmp_path):
     assert bitwise_equal(packing.unpack(loaded), state)
 
 
+def test_loads_that_compute_offsets_or_only_read_metadata_work(tmp_path, monkeypatch):
+    """torch.load on the meta device, with its debug checks, and with offsets computed from the zip's layout."""
+    from torch.utils.serialization import config
+
+    state = every_dtype_state()
+    path = tmp_path / "state.pt"
+    path.write_bytes(ptfile.write(packing.pack(state)))
+    meta = torch.load(path, weights_only=True, map_location="meta")
+    assert meta["tensors"]["float32"].device.type == "meta"
+    monkeypatch.setenv("TORCH_SERIALIZATION_DEBUG", "1")
+    with config.patch({"load.calculate_storage_offsets": True}):
+        assert bitwise_equal(packing.unpack(torch.load(path, weights_only=True, mmap=True)), state)
+        assert bitwise_equal(packing.unpack(torch.load(path, weights_only=True)), state)
+
+
 def test_states_it_does_not_take_go_through_torch_save():
     odd = packing.pack({"x": torch.arange(4).to(torch.uint16), "y": torch.ones(2)})
-    assert not ptfile.can_write(odd)
-    assert not ptfile.can_write({packing.PACKED: 1, "tree": {}, "tensors": {}})  # version 1
+    assert ptfile.write(odd) is None
     assert bitwise_equal(checkpoint.decode(checkpoint.encode(odd)), packing.unpack(odd))
+    assert ptfile.write({packing.PACKED: 1, "tree": {}, "tensors": {}}) is None  # version 1
+    grad = packing.pack({"y": torch.ones(2)})
+    grad["tensors"]["float32"].requires_grad_()
+    assert ptfile.write(grad) is None
+    hidden = packing.pack({"y": torch.ones(2)})
+    hidden["tree"]["keys"] = {(torch.zeros(1), 1): "a tensor the packing does not reach"}
+    assert ptfile.write(hidden) is None
+    assert isinstance(checkpoint.encode(hidden), bytes)
