@@ -105,7 +105,7 @@ def prune(
             )
             print(f"{'would delete' if dry_run else 'deleting'} step {info.step} ({why})")
             if not dry_run:
-                ck.delete_step(storage, info.step)
+                ck.delete_step(storage, info.step, info.files)
     kept = [str(info.step) for info in infos if info.step not in doomed]
     print(f"{'would keep' if dry_run else 'kept'} {len(kept)} steps: {', '.join(kept) or '-'}")
     return 0

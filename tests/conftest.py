@@ -7,6 +7,7 @@ import uuid
 
 import boto3
 import pytest
+import torch
 
 # --- Storage backends: a real S3 API server (moto) on 127.0.0.1, plus local, file:// and memory:// URLs ---
 
@@ -113,3 +114,24 @@ def stop_leftover_supervisors():
     from runs import stop_launched
 
     stop_launched()
+
+
+# --- Comparing states ---
+
+
+def assert_same(actual: object, expected: object) -> None:
+    """Same nesting, types, dict order and values; tensors of the same dtype and shape with the same bytes."""
+    assert type(actual) is type(expected)
+    if isinstance(expected, torch.Tensor):
+        assert actual.dtype == expected.dtype and actual.shape == expected.shape
+        assert torch.equal(actual.reshape(-1).view(torch.uint8), expected.reshape(-1).view(torch.uint8))
+    elif isinstance(expected, dict):
+        assert list(actual) == list(expected)
+        for key in expected:
+            assert_same(actual[key], expected[key])
+    elif isinstance(expected, (list, tuple)):
+        assert len(actual) == len(expected)
+        for a, e in zip(actual, expected, strict=True):
+            assert_same(a, e)
+    else:
+        assert actual == expected

@@ -6,6 +6,7 @@ import io
 
 import pytest
 import torch
+from conftest import assert_same
 
 from ftrain import checkpoint, packing
 
@@ -26,23 +27,6 @@ def sample_state() -> dict:
         "name": "HalfCheetah-v5",
         "nothing": None,
     }
-
-
-def assert_same(actual: object, expected: object) -> None:
-    assert type(actual) is type(expected)
-    if isinstance(expected, torch.Tensor):
-        assert actual.dtype == expected.dtype and actual.shape == expected.shape
-        assert torch.equal(actual, expected)
-    elif isinstance(expected, dict):
-        assert list(actual) == list(expected)
-        for key in expected:
-            assert_same(actual[key], expected[key])
-    elif isinstance(expected, (list, tuple)):
-        assert len(actual) == len(expected)
-        for a, e in zip(actual, expected, strict=True):
-            assert_same(a, e)
-    else:
-        assert actual == expected
 
 
 def test_round_trip_through_a_file_is_lossless_with_one_tensor_per_dtype() -> None:

@@ -6,6 +6,7 @@ import struct
 import zipfile
 
 import torch
+from conftest import assert_same
 
 from ftrain import checkpoint, packing, ptfile
 
@@ -22,24 +23,13 @@ def every_dtype_state() -> dict:
     }
 
 
-def bitwise_equal(a: object, b: object) -> bool:
-    if isinstance(a, torch.Tensor):
-        same = a.dtype == b.dtype and a.shape == b.shape
-        return same and torch.equal(a.reshape(-1).view(torch.uint8), b.reshape(-1).view(torch.uint8))
-    if isinstance(a, dict):
-        return a.keys() == b.keys() and all(bitwise_equal(a[key], b[key]) for key in a)
-    if isinstance(a, (list, tuple)):
-        return type(a) is type(b) and len(a) == len(b) and all(map(bitwise_equal, a, b))
-    return a == b
-
-
 def test_a_packed_state_loads_back_bitwise_with_weights_only():
     state = every_dtype_state()
     packed = packing.pack(state)
     data = ptfile.write(packed)
     assert data is not None
     loaded = torch.load(io.BytesIO(data), weights_only=True)
-    assert bitwise_equal(packing.unpack(loaded), state)
+    assert_same(packing.unpack(loaded), state)
     assert packing.digest(loaded) == packing.digest(packed)
     assert checkpoint.encode(packed) == data  # what checkpoints are written with
 
@@ -64,7 +54,7 @@ def test_the_file_loads_memory_mapped(tmp_path):
     path = tmp_path / "state.pt"
     path.write_bytes(ptfile.write(packing.pack(state)))
     loaded = torch.load(path, weights_only=True, mmap=True)
-    assert bitwise_equal(packing.unpack(loaded), state)
+    assert_same(packing.unpack(loaded), state)
 
 
 def test_loads_that_compute_offsets_or_only_read_metadata_work(tmp_path, monkeypatch):
@@ -78,14 +68,14 @@ def test_loads_that_compute_offsets_or_only_read_metadata_work(tmp_path, monkeyp
     assert meta["tensors"]["float32"].device.type == "meta"
     monkeypatch.setenv("TORCH_SERIALIZATION_DEBUG", "1")
     with config.patch({"load.calculate_storage_offsets": True}):
-        assert bitwise_equal(packing.unpack(torch.load(path, weights_only=True, mmap=True)), state)
-        assert bitwise_equal(packing.unpack(torch.load(path, weights_only=True)), state)
+        assert_same(packing.unpack(torch.load(path, weights_only=True, mmap=True)), state)
+        assert_same(packing.unpack(torch.load(path, weights_only=True)), state)
 
 
 def test_states_it_does_not_take_go_through_torch_save():
     odd = packing.pack({"x": torch.arange(4).to(torch.uint16), "y": torch.ones(2)})
     assert ptfile.write(odd) is None
-    assert bitwise_equal(checkpoint.decode(checkpoint.encode(odd)), packing.unpack(odd))
+    assert_same(checkpoint.decode(checkpoint.encode(odd)), packing.unpack(odd))
     assert ptfile.write({packing.PACKED: 1, "tree": {}, "tensors": {}}) is None  # version 1
     grad = packing.pack({"y": torch.ones(2)})
     grad["tensors"]["float32"].requires_grad_()

@@ -8,6 +8,7 @@ import signal
 import socket
 
 import torch
+from conftest import assert_same
 
 from ftrain import checkpoint, packing, procfs, saver
 from ftrain.heartbeat import TOKEN_ENV
@@ -91,15 +92,7 @@ def test_a_save_travels_through_shared_memory_intact_even_when_the_slot_grows() 
     assert kind == "save" and len(slot.memory) > 10_000
     received = {name: saver._placed_tensors(packed, memory) for name, packed in files.items()}
     for name, state in states.items():
-        got = packing.unpack(received[name])
-        assert got.keys() == state.keys()
-        for key, value in state.items():
-            if isinstance(value, torch.Tensor):
-                assert got[key].dtype == value.dtype and torch.equal(got[key], value), key
-            elif key != "learned":
-                assert got[key] == value
-    learned = packing.unpack(received["common.pt"])["learned"]
-    assert torch.equal(learned["w"], weight) and torch.equal(learned["steps"], torch.arange(4))
+        assert_same(packing.unpack(received[name]), state)
     expected = packing.digest(packing.pack(states["common.pt"]), "learned")
     assert packing.digest(received["common.pt"], "learned") == expected
     slot.close()
