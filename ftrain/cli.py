@@ -53,7 +53,7 @@ def _config_keys_help() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ftrain.supervisor import SupervisorOptions
+    from ftrain.supervise.options import SupervisorOptions
 
     parser = argparse.ArgumentParser(
         prog="ftrain", description="Distributed, fault-tolerant PPO training on CPU (torchrun + gloo + rsl-rl)."
@@ -155,16 +155,17 @@ def _dispatch(args: argparse.Namespace) -> int:
         from ftrain.config import load_config
 
         config = load_config(args.config, args.overrides, args.storage)
-        from ftrain.trainer import train
+        from ftrain.train.trainer import train
 
         return train(config)
     if args.command == "supervise":
-        from ftrain.supervisor import SupervisorOptions, supervise
+        from ftrain.supervise.options import SupervisorOptions
+        from ftrain.supervise.supervisor import supervise
 
         options = SupervisorOptions(**{f.name: getattr(args, f.name) for f in dataclasses.fields(SupervisorOptions)})
         return supervise(options, args.config, args.storage, args.overrides)
     if args.command == "ckpt":
-        from ftrain import ckpt_commands
+        from ftrain.ckpt import commands as ckpt_commands
 
         if args.ckpt_command == "ls":
             return ckpt_commands.ls(args.url)
@@ -183,22 +184,24 @@ def _dispatch(args: argparse.Namespace) -> int:
             drop_bad=args.drop_bad,
         )
     if args.command == "bench":
-        from ftrain.bench import run_benchmark
+        from ftrain.tools.bench import run_benchmark
 
         return run_benchmark(args.iterations)
     if args.command == "play":
-        from ftrain.policy import load_policy, play
+        from ftrain.policy.load import load_policy
+        from ftrain.policy.play import play
 
         play(load_policy(args.url, log=_stderr), args.episodes, args.deterministic, args.video, args.seed)
         return 0
     if args.command == "export":
-        from ftrain.policy import check_format, export, load_policy
+        from ftrain.policy.export import check_format, export
+        from ftrain.policy.load import load_policy
 
         check_format(args.format)
         export(load_policy(args.url, log=_stderr), args.format, args.output)
         return 0
     if args.command == "plot":
-        from ftrain.plot import plot_run
+        from ftrain.tools.plot import plot_run
 
         plot_run(args.run, args.output)
         return 0

@@ -25,8 +25,8 @@ import tempfile
 import time
 import uuid
 
-from ftrain.bench import WARMUP, run_ftrain
-from ftrain.procfs import cpu_seconds
+from ftrain.supervise.procfs import cpu_seconds
+from ftrain.tools.bench import WARMUP, run_ftrain
 
 KEY, SECRET = "bench-key", "bench-secret"
 

@@ -27,9 +27,10 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from ftrain.checkpoint import CHECKPOINTS, MANIFEST  # noqa: E402
+from ftrain.ckpt.format import CHECKPOINTS, MANIFEST  # noqa: E402
 from ftrain.heartbeat import read_heartbeats  # noqa: E402
-from ftrain.supervisor import EXIT_PREEMPTED, _free_port  # noqa: E402
+from ftrain.supervise.coordinator import free_port  # noqa: E402
+from ftrain.supervise.options import EXIT_PREEMPTED  # noqa: E402
 
 OVERRIDES = ["iterations=1000000", "dist_timeout=10", "log.console=false"]
 HANG_TIMEOUT = 3
@@ -175,7 +176,7 @@ def two_node_trials(trials: int, work: Path) -> list[dict]:
     """Two supervisors as two nodes on 127.0.0.1 (one rank each); SIGKILL node 1's worker, both must recover."""
     storage = work / "two-nodes" / "run"
     storage.parent.mkdir(parents=True)
-    endpoint = f"127.0.0.1:{_free_port()}"
+    endpoint = f"127.0.0.1:{free_port()}"
     nodes = [
         Supervised(
             storage,

@@ -5,8 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from ftrain import distributed
-from ftrain.hooks import Hook
+from ftrain.dist import group
+from ftrain.train.hooks import Hook
 
 
 class RankAgreementHook(Hook):
@@ -16,7 +16,7 @@ class RankAgreementHook(Hook):
         self.path = Path(path)
 
     def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
-        digests = distributed.all_gather_object(trainer.learned_digest(), trainer.info)
+        digests = group.all_gather_object(trainer.learned_digest(), trainer.info)
         if trainer.info.is_main:
             with self.path.open("a") as file:
                 file.write(json.dumps({"iteration": trainer.iteration, "digests": digests}) + "\n")

@@ -2,15 +2,13 @@
 
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
 from ftrain.config import load_config
 from ftrain.errors import UserError
 
-REPO = Path(__file__).resolve().parents[1]
-SMOKE = str(REPO / "configs" / "smoke.yaml")
+from helpers import REPO, SMOKE
 
 
 def test_overrides_are_typed_and_dotted() -> None:

@@ -1,0 +1,298 @@
+"""Checkpoint format: sharded step directories committed by a manifest, and their verification.
+
+Layout under a storage root::
+
+    checkpoints/step-000000120/{common.pt, rank-00000.pt, ..., MANIFEST.json}
+
+A step is committed when its MANIFEST.json exists; the manifest is written last, with exclusive create, and
+lists every file with its size and SHA-256. Verified = the manifest parses and every listed file has its size
+and digest. Readers trust nothing else. Single process: ``manager.py`` does the collectives around these calls;
+``steps.py`` looks at whole storages, ``retention.py`` deletes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import re
+import time
+from dataclasses import dataclass, field
+
+import torch
+
+from ftrain.ckpt import packing, ptfile
+from ftrain.ckpt.storage import Storage
+
+FORMAT_VERSION = 1
+STATE_FORMAT = 3
+"""Layout of the training state inside the files, in every manifest as ``state_format`` (none before 2: one
+tensor per sub-env field, unpacked; 3: the sub-envs' PCG64 states in one tensor). Resume refuses a layout not in
+``RESUMABLE_STATE_FORMATS``; policies load from any. From 3 on, ``state_sha256`` is :func:`ftrain.ckpt.packing.digest`
+of the packed learned state (dict order counts), and ``common.pt`` holds the config as JSON text; the digests of
+format 2 steps were made another way and do not compare with them."""
+RESUMABLE_STATE_FORMATS = (2, 3)
+CHECKPOINTS = "checkpoints"
+MANIFEST = "MANIFEST.json"
+QUARANTINED = "QUARANTINED.json"
+COMMON = "common.pt"
+"""The state every rank shares (models, optimizer, counters, hooks), written once."""
+VERIFIED, INCOMPLETE, CORRUPT, QUARANTINE = "verified", "incomplete", "corrupt", "quarantined"
+
+STEP_DIR = re.compile(r"^step-(\d+)$")
+_SHA256 = re.compile(r"^[0-9a-f]{64}$")
+_RESERVED = {"format_version", "step", "files"}
+
+
+class CorruptCheckpoint(Exception):
+    """A checkpoint file or manifest does not match what was committed, or is not plain data."""
+
+
+@dataclass(frozen=True)
+class FileEntry:
+    size: int
+    sha256: str
+
+
+@dataclass(frozen=True)
+class Problem:
+    file: str
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.file}: {self.reason}"
+
+
+@dataclass
+class Verification:
+    step: int
+    problems: list[Problem] = field(default_factory=list)
+    manifest: dict | None = None
+    """The parsed manifest, if it parsed."""
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+@dataclass
+class StepInfo:
+    step: int
+    status: str
+    """``verified``, ``incomplete`` (no manifest), ``corrupt`` or ``quarantined``."""
+    size: int = 0
+    """Bytes of all files in the step directory."""
+    manifest: dict | None = None
+    problems: list[Problem] = field(default_factory=list)
+    strays: bool = False
+    """Its directory holds files that its manifest does not list (a scan's listing saw them)."""
+
+    @property
+    def metrics(self) -> dict:
+        return (self.manifest or {}).get("metrics") or {}
+
+    @property
+    def files(self) -> list[str]:
+        """The files besides the manifest, if all are known: its manifest's list (none with strays or no manifest:
+        for :func:`delete_step`, which then deletes the directory's tree)."""
+        return [] if self.strays else list((self.manifest or {}).get("files") or {})
+
+
+def shard_name(rank: int) -> str:
+    """The file of what differs per rank (environments, random streams)."""
+    return f"rank-{rank:05d}.pt"
+
+
+def step_dir(step: int) -> str:
+    return f"{CHECKPOINTS}/step-{step:09d}"
+
+
+def parse_checkpoint_url(url: str) -> tuple[str, int | None]:
+    """Split the URL of one step (``<root>/checkpoints/step-000000120``) into root and step; else ``(url, None)``."""
+    head, _, last = url.rstrip("/").rpartition("/")
+    match = STEP_DIR.match(last)
+    if match is None or (head != CHECKPOINTS and not head.endswith("/" + CHECKPOINTS)):
+        return url, None
+    root = head[: -len(CHECKPOINTS)].rstrip("/") or ("/" if head.startswith("/") else ".")
+    return root, int(match[1])
+
+
+def encode(state: dict) -> bytes:
+    """A ``torch.save`` file of ``state``; a packed state's is written by :mod:`.ptfile`, several times faster."""
+    data = ptfile.write(state) if packing.is_packed(state) else None
+    if data is not None:
+        return data
+    buffer = io.BytesIO()
+    torch.save(state, buffer)
+    return buffer.getvalue()
+
+
+def decode(data: bytes, name: str = "checkpoint data") -> dict:
+    """Load with ``weights_only=True``: tensors, numbers, strings, lists and dicts; anything else is refused.
+    A packed state (see ``packing.py``) comes back unpacked."""
+    try:
+        state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise CorruptCheckpoint(f"{name} is not loadable as plain data: {_load_failure(exc)}") from None
+    if not isinstance(state, dict):
+        raise CorruptCheckpoint(f"{name} holds a {type(state).__name__}, not a dict")
+    if packing.is_packed(state):
+        try:
+            return packing.unpack(state)
+        except ValueError as exc:
+            raise CorruptCheckpoint(f"{name}: {exc}") from None
+    return state
+
+
+def write_file(storage: Storage, step: int, name: str, data: bytes) -> FileEntry:
+    """Create one file of ``step`` (exclusive: FileExistsError if it exists) and return its manifest entry."""
+    _check_name(name)
+    storage.write_exclusive(f"{step_dir(step)}/{name}", data)
+    return FileEntry(len(data), hashlib.sha256(data).hexdigest())
+
+
+def commit(storage: Storage, step: int, files: dict[str, FileEntry], meta: dict, check_present: bool = True) -> dict:
+    """Commit ``step``: check every file is there with its size (one listing; skipped without ``check_present``),
+    then create MANIFEST.json (exclusive, last).
+
+    ``meta`` adds fields to the manifest (iteration, world_size, config, metrics, ...); ``created`` (UTC,
+    ISO 8601) is filled in unless given.
+    """
+    clash = _RESERVED & meta.keys()
+    if clash:
+        raise ValueError(f"meta must not set {sorted(clash)}: commit writes them")
+    for name in files:
+        _check_name(name)
+    if check_present:
+        present = storage.list_files(step_dir(step))
+        for name, entry in files.items():
+            actual = present.get(name)
+            if actual != entry.size:
+                found = "missing" if actual is None else f"{actual} bytes"
+                raise CorruptCheckpoint(
+                    f"cannot commit step {step}: {name} is {found} in storage, {entry.size} expected"
+                )
+    manifest = {"format_version": FORMAT_VERSION, "step": step, "created": now()} | meta
+    manifest["files"] = {name: {"size": e.size, "sha256": e.sha256} for name, e in sorted(files.items())}
+    data = _manifest_text(manifest).encode()
+    storage.write_exclusive(f"{step_dir(step)}/{MANIFEST}", data)
+    return manifest
+
+
+def read_manifest(storage: Storage, step: int) -> dict:
+    """The manifest of ``step``: FileNotFoundError if there is none, CorruptCheckpoint if it is not valid."""
+    data = storage.read(f"{step_dir(step)}/{MANIFEST}")
+    try:
+        manifest = json.loads(data)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CorruptCheckpoint(f"not valid JSON ({exc})") from None
+    if not isinstance(manifest, dict):
+        raise CorruptCheckpoint("not a JSON object")
+    if manifest.get("format_version") != FORMAT_VERSION:
+        raise CorruptCheckpoint(f"format_version {manifest.get('format_version')!r} is not {FORMAT_VERSION}")
+    if manifest.get("step") != step:
+        raise CorruptCheckpoint(f"wrong step: says {manifest.get('step')!r}, directory is step {step}")
+    files = manifest.get("files")
+    if not isinstance(files, dict) or not all(_valid_entry(n, e) for n, e in files.items()):
+        raise CorruptCheckpoint("'files' is not a mapping of file name to {size, sha256}")
+    return manifest
+
+
+def verify_step(storage: Storage, step: int, full: bool = True) -> Verification:
+    """Check ``step`` against its manifest: sizes always, SHA-256 digests too when ``full``."""
+    return verify_listed(storage, step, storage.list_files(step_dir(step)), full)
+
+
+def read_verified(storage: Storage, step: int, name: str, manifest: dict) -> dict:
+    """Read one file of ``step``, check its size and SHA-256 against ``manifest``, then decode it."""
+    entry = manifest["files"].get(name)
+    where = storage.where(f"{step_dir(step)}/{name}")
+    if entry is None:
+        raise CorruptCheckpoint(f"{where} is not listed in the manifest of step {step}")
+    try:
+        data = storage.read(f"{step_dir(step)}/{name}")
+    except FileNotFoundError:
+        raise CorruptCheckpoint(f"{where} is missing") from None
+    problem = _content_problem(name, data, entry)
+    if problem:
+        raise CorruptCheckpoint(f"{where}: {problem.reason}")
+    return decode(data, where)
+
+
+def verify_listed(storage: Storage, step: int, present: dict[str, int], full: bool) -> Verification:
+    """``verify_step`` with the directory's listing ``present`` (name -> size) already at hand."""
+    result = Verification(step)
+    if MANIFEST not in present:
+        result.problems.append(Problem(MANIFEST, "missing: the step was never committed"))
+        return result
+    try:
+        result.manifest = read_manifest(storage, step)
+    except FileNotFoundError:
+        result.problems.append(Problem(MANIFEST, "missing: the step was never committed"))
+        return result
+    except CorruptCheckpoint as exc:
+        result.problems.append(Problem(MANIFEST, f"unusable: {exc}"))
+        return result
+    for name, entry in result.manifest["files"].items():
+        if name not in present:
+            result.problems.append(Problem(name, "missing"))
+        elif present[name] != entry["size"]:
+            result.problems.append(
+                Problem(name, f"size mismatch: {present[name]} bytes, manifest says {entry['size']}")
+            )
+        elif full:
+            try:
+                problem = _content_problem(name, storage.read(f"{step_dir(step)}/{name}"), entry)
+            except FileNotFoundError:
+                problem = Problem(name, "missing")
+            if problem:
+                result.problems.append(problem)
+    return result
+
+
+def _content_problem(name: str, data: bytes, entry: dict) -> Problem | None:
+    if len(data) != entry["size"]:
+        return Problem(name, f"size mismatch: {len(data)} bytes, manifest says {entry['size']}")
+    digest = hashlib.sha256(data).hexdigest()
+    if digest != entry["sha256"]:
+        return Problem(name, f"sha256 mismatch: {digest[:12]}..., manifest says {entry['sha256'][:12]}...")
+    return None
+
+
+def _check_name(name: str) -> None:
+    if not _plain_name(name) or name in (MANIFEST, QUARANTINED):
+        raise ValueError(f"{name!r} is not a valid checkpoint file name")
+
+
+def _plain_name(name: object) -> bool:
+    return isinstance(name, str) and name not in ("", ".", "..") and "/" not in name and "\\" not in name
+
+
+def _valid_entry(name: object, entry: object) -> bool:
+    return (
+        _plain_name(name)
+        and isinstance(entry, dict)
+        and isinstance(entry.get("size"), int)
+        and entry["size"] >= 0
+        and isinstance(entry.get("sha256"), str)
+        and _SHA256.match(entry["sha256"]) is not None
+    )
+
+
+def _load_failure(exc: Exception) -> str:
+    """The useful line of a torch.load error (the weights_only ones are a page long)."""
+    text = str(exc)
+    match = re.search(r"WeightsUnpickler error:\s*(.*?)(?: was not an allowed|\.? Please|\n\n|$)", text, re.S)
+    reason = match[1] if match else text.split(". ")[0]
+    return f"{type(exc).__name__}: {' '.join(reason.split())}"
+
+
+def _manifest_text(manifest: dict) -> str:
+    """One top-level key per line, each value compact: readable, and written by the C encoder (``indent`` would
+    take the pure-Python one, a good part of a save's CPU time with the config in the manifest)."""
+    lines = (f"  {json.dumps(key)}: {json.dumps(value)}" for key, value in manifest.items())
+    return "{\n" + ",\n".join(lines) + "\n}\n"
+
+
+def now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())

@@ -1,0 +1,113 @@
+"""All-reduce through shared memory for ranks on one machine: ~30 us where gloo over loopback TCP takes 0.3-1.5 ms.
+
+PPO's data-parallel update needs one gradient all-reduce per minibatch (20 per iteration in the default config),
+so on one machine the latency of gloo's TCP round trips, each a wake-up of gloo's I/O thread and then of the
+caller, dominates the update. Here every rank copies its buffer into its own slot of a shared memory segment,
+tells each peer through a named pipe (one byte, a blocking read: no busy waiting), waits for the peers' bytes,
+and sums the slots in rank order, so every rank computes the bitwise same result. Two slot sets alternate, so a
+rank can write round k+1 while a slower peer still reads round k; it cannot get further ahead, because round
+k+1 needs that peer's byte, which the peer sends only after it has finished reading round k.
+
+The segment and the pipes are unlinked as soon as every rank has opened them: nothing is left behind, even
+after SIGKILL. A peer that dies closes its end of the pipes: with two ranks the survivor sees end-of-file at
+once; otherwise it waits at most ``timeout_s``, like a gloo collective.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import mmap
+import os
+import select
+import tempfile
+import uuid
+
+import torch
+import torch.distributed as dist
+
+from ftrain.dist.group import RankInfo, broadcast_object
+
+
+class PeerLost(RuntimeError):
+    """A peer died or stopped answering in the middle of an all-reduce."""
+
+
+def same_host(info: RankInfo) -> bool:
+    """Whether all ranks run on this machine (torchrun's LOCAL_WORLD_SIZE covers the whole world)."""
+    return info.distributed and int(os.environ.get("LOCAL_WORLD_SIZE", "0")) == info.world_size
+
+
+class SharedMemoryAllReduce:
+    """Sum (or average) float32 buffers of up to ``capacity`` elements over all ranks of one machine.
+
+    Construct it on every rank at the same point (it uses the default process group once, to agree on names).
+    """
+
+    def __init__(self, info: RankInfo, capacity: int, timeout_s: float) -> None:
+        self.rank, self.world = info.rank, info.world_size
+        self.capacity = capacity
+        self.timeout_ms = int(timeout_s * 1000)
+        prefix = os.path.join(_shared_dir(), f"ftrain-{uuid.uuid4().hex}") if info.is_main else None
+        prefix = broadcast_object(prefix, info)
+        segment, pipes = f"{prefix}.shm", [f"{prefix}-{rank}.fifo" for rank in range(self.world)]
+        size = 2 * self.world * capacity * 4
+        try:
+            if self.rank == 0:
+                fd = os.open(segment, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
+                os.ftruncate(fd, size)
+                os.close(fd)
+                for pipe in pipes:
+                    os.mkfifo(pipe, 0o600)
+            dist.barrier()
+            fd = os.open(segment, os.O_RDWR)
+            self._map = mmap.mmap(fd, size)
+            os.close(fd)
+            self._slots = torch.frombuffer(self._map, dtype=torch.float32).view(2, self.world, capacity)
+            # the reading end first, non-blocking, so opening never waits; then every peer's writing end, also
+            # non-blocking: a peer that died in between makes the open fail (ENXIO) instead of waiting forever
+            self._inbox = os.open(pipes[self.rank], os.O_RDONLY | os.O_NONBLOCK)
+            dist.barrier()
+            self._peers = [
+                os.open(pipes[rank], os.O_WRONLY | os.O_NONBLOCK) for rank in range(self.world) if rank != self.rank
+            ]
+            dist.barrier()
+        finally:  # once every rank has opened them (or failed), the names go: nothing is left behind
+            if self.rank == 0:
+                for path in (segment, *pipes):
+                    with contextlib.suppress(FileNotFoundError):
+                        os.unlink(path)
+        self._poll = select.poll()
+        self._poll.register(self._inbox, select.POLLIN)
+        self._round = 0
+
+    def all_reduce_(self, tensor: torch.Tensor) -> torch.Tensor:
+        """In place: ``tensor`` (float32, contiguous, at most ``capacity`` elements) becomes the sum over ranks."""
+        n = tensor.numel()
+        slots = self._slots[self._round % 2, :, :n]
+        self._round += 1
+        slots[self.rank].copy_(tensor.view(-1))
+        try:
+            for peer in self._peers:
+                os.write(peer, b"\x01")
+        except BrokenPipeError:
+            raise PeerLost("a peer rank exited during an all-reduce") from None
+        self._await(self.world - 1)
+        torch.sum(slots, dim=0, out=tensor.view(-1))
+        return tensor
+
+    def _await(self, count: int) -> None:
+        while count:
+            if not self._poll.poll(self.timeout_ms):
+                raise PeerLost(f"no answer from the other ranks within {self.timeout_ms / 1000:.0f} s")
+            try:
+                got = os.read(self._inbox, count)
+            except BlockingIOError:
+                continue
+            if not got:
+                raise PeerLost("a peer rank exited during an all-reduce")
+            count -= len(got)
+
+
+def _shared_dir() -> str:
+    """RAM-backed /dev/shm where there is one, else the temp directory (the page cache serves it the same)."""
+    return "/dev/shm" if os.path.isdir("/dev/shm") and os.access("/dev/shm", os.W_OK) else tempfile.gettempdir()

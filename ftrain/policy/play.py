@@ -1,0 +1,98 @@
+"""Play: roll a policy out in its environment, print the returns, optionally render a video headless."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ftrain.errors import UserError
+from ftrain.policy.load import Policy
+from ftrain.policy.rollout import make_env, rollout
+
+VIDEO_SUFFIXES = (".mp4", ".gif")
+
+
+@dataclass
+class PlayResult:
+    returns: list[float]
+    lengths: list[int]
+    frames: int
+    """Video frames written: one per observation, ``sum(length + 1)`` (0 without a video)."""
+
+
+def play(
+    policy: Policy, episodes: int = 1, deterministic: bool = False, video: str | Path | None = None, seed: int = 0
+) -> PlayResult:
+    """Roll ``policy`` out for ``episodes`` episodes (seeded ``seed``, ``seed + 1``, ...) in an environment of its
+    own; print each return and the mean. ``video`` (``.mp4`` or ``.gif``) renders it headless (MUJOCO_GL=egl)."""
+    if episodes < 1:
+        raise UserError(f"--episodes {episodes}: play at least 1 episode")
+    if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
+        raise UserError(f"video {str(video)!r} must end in {' or '.join(VIDEO_SUFFIXES)}")
+    if video is not None:
+        os.environ.setdefault("MUJOCO_GL", "egl")  # read when the first renderer is made: headless, no display
+    deterministic = deterministic or policy.exported is not None
+    mode = "deterministic (mean) actions" if deterministic else "sampled actions"
+    if policy.exported is not None:
+        mode += f" (an exported {policy.exported} policy has no others)"
+    print(f"playing {policy.source} (step {policy.step}, {policy.config.env.id}) with {mode}")
+    torch.manual_seed(seed)
+    env = make_env(policy.config.env, render=video is not None)
+    writer = None if video is None else _VideoWriter(Path(video), env)
+    try:
+        results = rollout(
+            env,
+            lambda obs: policy.act(obs, deterministic),
+            episodes,
+            seed,
+            on_observation=None if writer is None else writer.add_frame,
+        )
+    finally:
+        env.close()
+        if writer is not None:
+            writer.close()
+    for index, episode in enumerate(results, start=1):
+        print(f"episode {index}: return {episode.ret:.2f}, length {episode.length}")
+    returns = [episode.ret for episode in results]
+    print(f"mean return over {episodes} episodes: {np.mean(returns):.2f} (std {np.std(returns):.2f})")
+    frames = 0 if writer is None else writer.frames
+    if writer is not None:
+        height, width = writer.size
+        print(f"video: {video} ({frames} frames of {width}x{height} at {writer.fps:g} fps)")
+    return PlayResult(returns, [episode.length for episode in results], frames)
+
+
+class _VideoWriter:
+    """Renders the environment at every observation and streams the frames to an mp4 (ffmpeg) or a gif."""
+
+    def __init__(self, path: Path, env) -> None:
+        import imageio.v2 as imageio
+
+        self.env = env
+        self.fps = float(env.metadata.get("render_fps", 30))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if path.suffix.lower() == ".gif":
+            self.writer = imageio.get_writer(path, mode="I", duration=1000 / self.fps, loop=0)
+        else:
+            self.writer = imageio.get_writer(path, fps=self.fps)
+        self.frames = 0
+        self.size = (0, 0)
+
+    def add_frame(self, obs: np.ndarray) -> None:
+        try:
+            frame = self.env.render()
+        except Exception as exc:  # no usable OpenGL: the error type depends on the backend and what is missing
+            raise UserError(
+                f"headless rendering failed ({type(exc).__name__}: {exc}): install Debian's Mesa EGL "
+                "(apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri) and keep MUJOCO_GL=egl"
+            ) from None
+        self.writer.append_data(frame)
+        self.frames += 1
+        self.size = frame.shape[:2]
+
+    def close(self) -> None:
+        self.writer.close()

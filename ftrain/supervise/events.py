@@ -1,0 +1,32 @@
+"""``events.jsonl``: one JSON line per supervisor decision, the ones with a message printed as well.
+
+Record. One JSON line per decision in ``<log_dir>/events.jsonl``: ``start``, ``resumed``, ``worker_died``,
+``exit``, ``hang``, ``superseded``, ``restart``, ``recovered``, ``preempt``, and the ending (``done``,
+``preempted``, ``crash_loop``, ``max_restarts``, ``usage``, ``peer_lost``, ``peer_ended``), then ``summary``
+(restarts, iterations lost, downtime).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+
+class EventLog:
+    """Appends one JSON line per decision; decisions with a message are also printed."""
+
+    def __init__(self, path: Path, node: int | None) -> None:
+        self.path = path
+        self.node = node
+        path.parent.mkdir(parents=True, exist_ok=True)
+
+    def __call__(self, event: str, message: str = "", **fields) -> None:
+        record = {"time": round(time.time(), 3), "event": event, **fields}
+        if self.node is not None:
+            record["node"] = self.node
+        with self.path.open("a") as file:
+            file.write(json.dumps(record) + "\n")
+        if message:
+            print(f"ftrain supervise: {message}", file=sys.stderr, flush=True)

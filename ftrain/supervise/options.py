@@ -1,0 +1,86 @@
+"""``ftrain supervise``'s options, exit codes and their parsing (one-line errors for bad values).
+
+Exit codes:
+
+- 0: training finished.
+- 2: bad input (config or options, or a worker exited with 2); nothing is restarted.
+- 3: crash loop: ``--crash-loop`` restarts in a row committed no new checkpoint.
+- 4: ``--max-restarts`` exhausted.
+- 5: several nodes: node 0's supervisor was unreachable for ``--rdzv-timeout`` seconds.
+- 143: preempted (SIGTERM/SIGINT): the workers saved; run the same command again to continue. 128 + SIGTERM,
+  so schedulers that retry signal exits (e.g. Kubernetes' ``ExitCode`` restart policy) run it again.
+"""
+
+from __future__ import annotations
+
+import signal
+from dataclasses import dataclass, field
+
+from ftrain.errors import UserError
+
+EXIT_DONE = 0
+EXIT_CRASH_LOOP = 3
+EXIT_MAX_RESTARTS = 4
+EXIT_PEER_LOST = 5
+EXIT_PREEMPTED = 128 + signal.SIGTERM
+
+
+@dataclass
+class SupervisorOptions:
+    nproc_per_node: int = field(default=1, metadata={"help": "worker processes on this node"})
+    nnodes: str = field(default="1", metadata={"help": "number of nodes; run the same command on every node"})
+    node_rank: int = field(default=0, metadata={"help": "this node's rank, 0 .. nnodes-1 (node 0 coordinates)"})
+    rdzv_endpoint: str = field(
+        default="", metadata={"help": "several nodes: HOST:PORT, node 0's address and a free port for its supervisor"}
+    )
+    rdzv_timeout: float = field(
+        default=600.0, metadata={"help": "several nodes: seconds to wait for the other nodes (then exit 5)"}
+    )
+    max_restarts: int = field(default=10, metadata={"help": "restarts before giving up (exit 4)"})
+    hang_timeout: str = field(
+        default="auto",
+        metadata={"help": "seconds without a heartbeat before a rank counts as hung, or auto (from observed gaps)"},
+    )
+    startup_grace: float = field(
+        default=300.0, metadata={"help": "seconds an attempt may take to reach its first iteration on every rank"}
+    )
+    backoff_initial: float = field(
+        default=1.0,
+        metadata={"help": "seconds before restarting an attempt that completed no iteration (doubles each time)"},
+    )
+    backoff_max: float = field(default=60.0, metadata={"help": "longest back-off in seconds"})
+    crash_loop: int = field(
+        default=3, metadata={"help": "stop (exit 3) after this many restarts in a row commit no new step (0: never)"}
+    )
+    stop_grace: float = field(
+        default=30.0, metadata={"help": "seconds between SIGTERM and SIGKILL when stopping workers (time to save)"}
+    )
+
+
+def parse_hang_timeout(value: str) -> float | None:
+    if value == "auto":
+        return None
+    try:
+        seconds = float(value)
+    except ValueError:
+        seconds = -1.0
+    if not seconds > 0:
+        raise UserError(f"--hang-timeout={value!r} must be auto or a positive number of seconds")
+    return seconds
+
+
+def parse_nodes(options: SupervisorOptions) -> tuple[int, tuple[str, int] | None]:
+    """The number of nodes, and node 0's ``(host, port)`` when there are several."""
+    if not options.nnodes.isdigit() or int(options.nnodes) < 1:
+        raise UserError(f"--nnodes={options.nnodes!r} must be a number of nodes (elastic MIN:MAX is not supported)")
+    nnodes = int(options.nnodes)
+    if options.nproc_per_node < 1:
+        raise UserError(f"--nproc-per-node={options.nproc_per_node} must be at least 1")
+    if nnodes == 1:
+        return nnodes, None
+    if not 0 <= options.node_rank < nnodes:
+        raise UserError(f"--node-rank={options.node_rank} must be between 0 and {nnodes - 1}")
+    host, _, port = options.rdzv_endpoint.rpartition(":")
+    if not host or not port.isdigit():
+        raise UserError("several nodes need --rdzv-endpoint=HOST:PORT, node 0's address and a free port")
+    return nnodes, (host, int(port))

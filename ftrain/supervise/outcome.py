@@ -1,0 +1,55 @@
+"""How an attempt ended, from what the supervisor saw: finished, preempted, bad input, or failed (restart)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ftrain.errors import EXIT_USAGE
+from ftrain.supervise.options import EXIT_DONE, EXIT_PREEMPTED
+
+
+@dataclass
+class Outcome:
+    """How an attempt ended: ``failed`` (restart) or one of the endings, with its exit code and event name."""
+
+    event: str
+    code: int | None
+    message: str
+
+    @property
+    def failed(self) -> bool:
+        return self.event == "failed"
+
+
+def classify(
+    code: int,
+    cause: str,
+    culprit: tuple[int, int] | None,
+    signalled: bool,
+    orphans: bool,
+    phases: set[str],
+    superseded: bool,
+    committed: int | None,
+) -> Outcome:
+    """The outcome of an attempt whose torchrun exited with ``code``.
+
+    ``cause``: what to blame, in words; ``culprit``: (rank, exit code) of the worker to blame, if any;
+    ``signalled``: the supervisor was asked to stop; ``orphans``: workers outlived torchrun; ``phases``: the final
+    heartbeat phases; ``superseded``: several nodes, and another node has failed this attempt; ``committed``: the
+    newest step committed.
+    """
+    if signalled:
+        saved = bool(phases) and phases <= {"preempted", "done"}
+        how = "the workers saved" if saved else "the workers did not all confirm a save"
+        return Outcome("preempted", EXIT_PREEMPTED, f"preempted: {how} (newest step {committed})")
+    if orphans:
+        return Outcome("failed", None, cause)
+    if code == 0 and "preempted" not in phases:
+        return Outcome("done", EXIT_DONE, f"training finished (step {committed})")
+    if code == 0:
+        if superseded:
+            return Outcome("failed", None, "stopped because another node failed")
+        return Outcome("preempted", EXIT_PREEMPTED, f"preempted: the workers saved step {committed}; rerun to continue")
+    if culprit is not None and culprit[1] == EXIT_USAGE:
+        return Outcome("usage", EXIT_USAGE, f"{cause}: bad input (see the error above); not restarting")
+    return Outcome("failed", None, cause)

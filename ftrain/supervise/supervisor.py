@@ -1,0 +1,393 @@
+"""``ftrain supervise``: launch torchrun, watch its workers, restart them from the newest verified checkpoint.
+
+Stdlib only (plus the torch-free config and heartbeat modules): the supervisor launches and watches processes.
+
+Launch. Every attempt is a new ``torchrun --max-restarts=0`` in its own session, with ``FTRAIN_HEARTBEAT_DIR``
+set, and a rendezvous nothing has used before: ``--standalone`` on one node (a new TCP store on a free port);
+on several nodes a static rendezvous on a new port per attempt (see "Several nodes"). torchrun's own restarts
+keep one TCP store, from which restarted workers read stale gloo peer addresses; a new torchrun cannot.
+
+Detect. Crash: torchrun exits non-zero, or is killed (its workers, each in a session of its own, are then
+orphans: the supervisor finds every process of an attempt by the ``FTRAIN_ATTEMPT_TOKEN`` in its environment).
+Hang: a rank's heartbeat ``seq`` does not change within the hang timeout (``auto``: max(30 s, 10 x the longest gap
+seen between two heartbeats of a rank), and ``--startup-grace`` until every rank is past its ``start`` heartbeat).
+
+Recover. A worker that died mid-training dooms the others: they get SIGKILL at once. Orphans of a killed
+torchrun get SIGTERM (they agree, save, exit), then SIGKILL after ``--stop-grace``. A hung group gets SIGKILL at
+once (its collectives cannot agree on a save; commits are crash-safe). Then back off (not after an attempt that
+completed iterations; ``--backoff-initial`` after one that completed none, doubled for each further one, at most
+``--backoff-max``) and launch again; the workers resume from the newest verified checkpoint themselves.
+
+Preemption. SIGTERM or SIGINT to the supervisor: SIGTERM to the workers, which agree at the next iteration
+boundary, save and exit 0; SIGKILL after ``--stop-grace``; a second signal kills at once. No restart.
+
+Several nodes: see ``coordinator.py``. Records: ``events.py``. Exit codes: ``options.py``.
+
+Test hook (private): ``FTRAIN_WORKER_MODULE`` names the module torchrun runs as ``-m MODULE train ...`` (default
+``ftrain``), so the tests can supervise a small stand-in that speaks the heartbeat protocol.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+from ftrain.config import load_config
+from ftrain.heartbeat import ENV_DIR, TOKEN_ENV, Heartbeat, read_heartbeats
+from ftrain.supervise.attempt import Attempt, kill, signal_name, torchrun_command
+from ftrain.supervise.coordinator import Coordinator, Link, Plan, plan_key, rendezvous_args
+from ftrain.supervise.events import EventLog
+from ftrain.supervise.hang import QUIET_PHASES, HangWatch, process_state
+from ftrain.supervise.ledger import Ledger
+from ftrain.supervise.options import (
+    EXIT_CRASH_LOOP,
+    EXIT_DONE,
+    EXIT_MAX_RESTARTS,
+    EXIT_PEER_LOST,
+    EXIT_PREEMPTED,
+    SupervisorOptions,
+    parse_hang_timeout,
+    parse_nodes,
+)
+from ftrain.supervise.outcome import Outcome, classify
+
+WORKER_MODULE_ENV = "FTRAIN_WORKER_MODULE"
+
+POLL = 0.1
+"""Seconds between two looks at torchrun and the heartbeats."""
+PEER_POLL = 0.5
+"""Seconds between two questions to node 0 while an attempt runs."""
+LINGER = 30.0
+"""Seconds node 0 keeps answering after the end, until every node has learnt the outcome."""
+
+
+def supervise(options: SupervisorOptions, config_path: str, storage: str | None, overrides: list[str]) -> int:
+    """Run training under supervision until it finishes or gives up; returns the exit code (see module doc)."""
+    config = load_config(config_path, overrides, storage)
+    hang_timeout = parse_hang_timeout(options.hang_timeout)
+    nnodes, endpoint = parse_nodes(options)
+    train_args = [config_path, *(["--storage", storage] if storage is not None else []), *overrides]
+    supervisor = Supervisor(options, nnodes, endpoint, Path(config.log_dir), hang_timeout, train_args)
+    previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        return supervisor.run()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        supervisor.close()
+
+
+class _Stop(Exception):
+    def __init__(self, event: str, code: int, message: str) -> None:
+        super().__init__(message)
+        self.event, self.code, self.message = event, code, message
+
+
+class Supervisor:
+    def __init__(
+        self,
+        options: SupervisorOptions,
+        nnodes: int,
+        endpoint: tuple[str, int] | None,
+        log_dir: Path,
+        hang_timeout: float | None,
+        train_args: list[str],
+    ) -> None:
+        """``endpoint``: node 0's ``(host, port)`` when there are several nodes."""
+        self.options = options
+        self.nnodes = nnodes
+        self.train_args = train_args
+        multi = nnodes > 1
+        self.heartbeat_dir = (log_dir / "heartbeat" / (f"node-{options.node_rank}" if multi else "")).resolve()
+        self.events = EventLog(log_dir / "events.jsonl", options.node_rank if multi else None)
+        self.hangs = HangWatch(hang_timeout, options.startup_grace, options.nproc_per_node)
+        self.endpoint = endpoint
+        self.coordinator = Coordinator(multi) if options.node_rank == 0 or not multi else None
+        self.server = self.coordinator.serve(endpoint[1]) if multi and self.coordinator else None
+        self.link = Link(options.node_rank, self.coordinator, endpoint)
+        self.signals: list[int] = []
+        self.restarts = 0
+        self.best_committed: int | None = None
+        self.ledger = Ledger(options.nproc_per_node, self.events)
+
+    def on_signal(self, number: int, frame: object) -> None:
+        self.signals.append(number)
+
+    def close(self) -> None:
+        if self.server is not None:
+            self.server.shutdown()
+            self.server.server_close()
+
+    def run(self) -> int:
+        try:
+            self._loop()
+        except _Stop as stop:
+            return self._end(stop.event, stop.code, stop.message)
+        raise AssertionError("the supervision loop only ends by _Stop")
+
+    def _loop(self) -> None:
+        plan = self._next_plan(None)
+        no_commit = no_progress = 0
+        while True:
+            attempt = self._launch(plan)
+            outcome = self._watch(attempt)
+            if not outcome.failed:
+                raise _Stop(outcome.event, outcome.code, outcome.message)
+            new_commit = attempt.committed is not None and (
+                self.best_committed is None or attempt.committed > self.best_committed
+            )
+            if attempt.committed is not None:
+                self.best_committed = max(attempt.committed, self.best_committed or 0)
+            no_commit = 0 if new_commit or self.restarts == 0 else no_commit + 1
+            no_progress = 0 if attempt.progressed else no_progress + 1
+            if self.restarts >= self.options.max_restarts:
+                raise _Stop("max_restarts", EXIT_MAX_RESTARTS, f"giving up after {self.restarts} restarts")
+            if self.options.crash_loop and no_commit >= self.options.crash_loop:
+                step = self.best_committed
+                raise _Stop(
+                    "crash_loop",
+                    EXIT_CRASH_LOOP,
+                    f"crash loop: {no_commit} restarts in a row committed no new checkpoint (newest: step {step}); "
+                    "fix the cause above and run the same command again",
+                )
+            delay = (
+                min(self.options.backoff_max, self.options.backoff_initial * 2 ** (no_progress - 1))
+                if no_progress
+                else 0.0
+            )
+            self._sleep(delay)
+            plan = self._next_plan(plan)
+            self.restarts += 1
+            self.events(
+                "restart",
+                f"restart {self.restarts} (attempt {plan.attempt}) after {delay:.1f} s back-off",
+                attempt=plan.attempt,
+                restarts=self.restarts,
+                backoff=round(delay, 2),
+            )
+
+    def _sleep(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self._raise_if_signalled()
+            time.sleep(min(POLL, max(0.0, deadline - time.monotonic())))
+        self._raise_if_signalled()
+
+    def _raise_if_signalled(self) -> None:
+        if self.signals:
+            self.events("preempt", signal=signal_name(self.signals[0]))
+            raise _Stop("preempted", EXIT_PREEMPTED, "stopped by a signal while no workers ran; rerun to continue")
+
+    def _next_plan(self, previous: Plan | None) -> Plan:
+        """The next attempt to run (on several nodes: wait until node 0 has moved on from ``previous``)."""
+        deadline = time.monotonic() + self.options.rdzv_timeout
+        waiting = False
+        while True:
+            self._raise_if_signalled()
+            try:
+                plan = self.link.ask("plan")
+            except OSError as error:
+                plan = None
+                if not waiting:
+                    waiting = True
+                    timeout = self.options.rdzv_timeout
+                    message = f"waiting up to {timeout:g} s for node 0 at {self.options.rdzv_endpoint} ({error})"
+                    print(f"ftrain supervise: {message}", file=sys.stderr, flush=True)
+            if plan is not None and plan.final is not None:
+                raise _Stop("peer_ended", plan.final, f"another node ended the run with exit code {plan.final}")
+            if plan is not None and (previous is None or plan_key(plan) != plan_key(previous)):
+                return plan
+            if time.monotonic() > deadline:
+                raise _Stop("peer_lost", EXIT_PEER_LOST, f"node 0 at {self.options.rdzv_endpoint} did not answer")
+            time.sleep(PEER_POLL / 5)
+
+    def _launch(self, plan: Plan) -> Attempt:
+        self.heartbeat_dir.mkdir(parents=True, exist_ok=True)
+        for stale in self.heartbeat_dir.glob("rank-*"):
+            stale.unlink(missing_ok=True)
+        token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
+        env = {
+            **os.environ,
+            ENV_DIR: str(self.heartbeat_dir),
+            TOKEN_ENV: token,
+            "TORCH_ELASTIC_SHUTDOWN_TIMEOUT": str(math.ceil(self.options.stop_grace)),
+        }
+        rendezvous = (
+            ["--standalone"] if self.nnodes == 1 else rendezvous_args(plan, self.nnodes, self.options, self.endpoint)
+        )
+        module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
+        command = torchrun_command(self.options.nproc_per_node, rendezvous, module, self.train_args)
+        self.events("start", f"attempt {plan.attempt}: launching torchrun", attempt=plan.attempt, command=command)
+        self.hangs.restart(time.monotonic())
+        return Attempt(plan, command, env, token)
+
+    def _watch(self, attempt: Attempt) -> Outcome:
+        preempt_deadline = None
+        next_peer_check = time.monotonic() + PEER_POLL
+        while True:
+            time.sleep(POLL)
+            now = time.monotonic()
+            beats = read_heartbeats(self.heartbeat_dir)
+            self.ledger.observe(attempt, beats, now)
+            code = attempt.proc.poll()
+            if code is not None:
+                return self._exited(attempt, code)
+            if not attempt.dead:
+                self._check_workers(attempt, beats)
+            if self.signals and preempt_deadline is None:
+                preempt_deadline = now + self.options.stop_grace
+                self._preempt(attempt)
+            if preempt_deadline is not None:
+                if len(self.signals) > 1 or now > preempt_deadline:
+                    attempt.kill()
+                continue
+            hang = self.hangs.check(beats, now)
+            if hang is not None:
+                self.events(
+                    "hang",
+                    f"attempt {attempt.plan.attempt}: {hang.describe()}; killing the workers",
+                    attempt=attempt.plan.attempt,
+                    **hang.fields(),
+                )
+                self._failed(attempt, now)
+                attempt.kill()
+                self._log_exit(attempt, hang.cause())
+                return Outcome("failed", None, "hang")
+            if self.nnodes > 1 and now >= next_peer_check:
+                next_peer_check = now + PEER_POLL
+                outcome = self._check_peers(attempt, now)
+                if outcome is not None:
+                    return outcome
+
+    def _check_workers(self, attempt: Attempt, beats: dict[int, Heartbeat]) -> None:
+        """A worker that died mid-training dooms the others (no collective can complete): SIGKILL them now rather
+        than wait for them to fail on the broken group and for torchrun to notice (1-2 s measured here); torchrun
+        still reports every exit code."""
+        dead = [r for r, b in beats.items() if b.phase not in QUIET_PHASES and process_state(b.pid) in ("gone", "Z")]
+        if dead:
+            latest = read_heartbeats(self.heartbeat_dir)  # a rank may have finished since we looked
+            dead = [rank for rank in dead if latest.get(rank, beats[rank]).phase not in QUIET_PHASES]
+        if not dead:
+            return
+        attempt.dead = sorted(dead)
+        attempt.killed = set(beats) - set(dead)
+        self.events("worker_died", attempt=attempt.plan.attempt, ranks=attempt.dead)
+        for pid in attempt.workers():
+            kill(pid, signal.SIGKILL)
+
+    def _check_peers(self, attempt: Attempt, now: float) -> Outcome | None:
+        """Several nodes: stop this node's group when another node failed the attempt or ended the run."""
+        try:
+            plan = self.link.ask("plan")
+        except OSError:
+            return None
+        if plan.final in (EXIT_DONE, EXIT_PREEMPTED):
+            return None
+        if plan.final is not None:
+            attempt.stop(self.options.stop_grace)
+            self._log_exit(attempt, "stopped: another node ended the run")
+            return Outcome("peer_ended", plan.final, f"another node ended the run with exit code {plan.final}")
+        if plan_key(plan) == plan_key(attempt.plan):
+            return None
+        self.events(
+            "superseded",
+            f"attempt {attempt.plan.attempt}: another node failed; stopping this node's workers",
+            attempt=attempt.plan.attempt,
+        )
+        self._failed(attempt, now)
+        attempt.stop(self.options.stop_grace)
+        self._log_exit(attempt, "stopped: another node failed")
+        return Outcome("failed", None, "superseded")
+
+    def _preempt(self, attempt: Attempt) -> None:
+        name = signal_name(self.signals[0])
+        self.events(
+            "preempt",
+            f"{name}: asking the workers to save and exit (SIGKILL in {self.options.stop_grace:g} s)",
+            attempt=attempt.plan.attempt,
+            signal=name,
+        )
+        if self.nnodes > 1:
+            self._tell("finish", code=EXIT_PREEMPTED)
+        attempt.terminate()
+
+    def _exited(self, attempt: Attempt, code: int) -> Outcome:
+        now = time.monotonic()
+        orphans = attempt.workers()
+        if orphans and not self.signals:
+            # torchrun itself died and its workers still train. Tell the other nodes first, so that their workers'
+            # coming save-and-exit reads as a restart there, not as a preemption; then let the orphans save.
+            self._failed(attempt, now)
+        if orphans:
+            attempt.stop(self.options.stop_grace)  # ends with kill() too
+        else:
+            attempt.kill()
+        phases = self._phases(attempt)
+        cause = attempt.cause(code) if code or orphans else "exit code 0"
+        superseded = (
+            code == 0 and self.nnodes > 1 and plan_key(self._current_plan(attempt.plan)) != plan_key(attempt.plan)
+        )
+        outcome = classify(
+            code, cause, attempt.culprit(), bool(self.signals), bool(orphans), phases, superseded, attempt.committed
+        )
+        self._log_exit(attempt, cause, f"attempt {attempt.plan.attempt}: {cause}" if outcome.failed else "", phases)
+        if outcome.failed:
+            self._failed(attempt, now)
+        return outcome
+
+    def _phases(self, attempt: Attempt) -> set[str]:
+        """The phases of the final heartbeats (after the attempt's processes are gone)."""
+        beats = read_heartbeats(self.heartbeat_dir)
+        self.ledger.observe(attempt, beats, time.monotonic())
+        return {beat.phase for beat in beats.values()}
+
+    def _log_exit(self, attempt: Attempt, cause: str, message: str = "", phases: set[str] | None = None) -> None:
+        """The ``exit`` event; ``phases``: the final heartbeat phases, if the caller has read them already."""
+        self.events(
+            "exit",
+            message,
+            attempt=attempt.plan.attempt,
+            code=attempt.proc.returncode,
+            cause=cause,
+            failures={str(rank): code for rank, code in sorted(attempt.failures.items())},
+            phases=sorted(self._phases(attempt) if phases is None else phases),
+        )
+
+    def _current_plan(self, fallback: Plan) -> Plan:
+        try:
+            return self.link.ask("plan")
+        except OSError:
+            return fallback
+
+    def _failed(self, attempt: Attempt, now: float) -> None:
+        """Once per attempt: remember the failure for the summary and tell node 0 (one node: the local counter)."""
+        if attempt.reported:
+            return
+        attempt.reported = True
+        self.ledger.failed(attempt.completed, now)
+        self._tell("fail", **plan_key(attempt.plan))
+
+    def _tell(self, op: str, **fields) -> None:
+        with contextlib.suppress(OSError):
+            self.link.ask(op, **fields)
+
+    def _end(self, event: str, code: int, message: str) -> int:
+        self.events(event, message, code=code)
+        if self.nnodes > 1:
+            self._tell("finish", code=code)
+            if self.coordinator is not None:
+                self.coordinator.wait_informed(self.nnodes, LINGER)
+        lost, downtime = self.ledger.lost, self.ledger.downtime
+        summary = {"restarts": self.restarts, "iterations_lost": lost, "downtime": round(downtime, 2)}
+        self.events(
+            "summary",
+            f"{event} (exit {code}): {self.restarts} restarts, {lost} iterations lost, {downtime:.1f} s downtime",
+            code=code,
+            **summary,
+        )
+        return code

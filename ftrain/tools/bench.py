@@ -1,0 +1,214 @@
+"""``ftrain bench``: PPO throughput on HalfCheetah-v5, ftrain against its peers, measured side by side in one run.
+
+Every case runs in its own process with one torch thread (the 2-rank case: two processes), with the same work per
+iteration: 16 envs x 24 steps per rank, 5 epochs x 4 minibatches, a 64x64 MLP. Each reports steady-state
+environment steps per second over the timed iterations, after warm-up iterations that are not counted:
+
+- ``raw``: gymnasium's vector env stepped with random actions, no learning: the limit;
+- ``rsl_rl``: rsl-rl's own OnPolicyRunner, one process;
+- ``sb3``: stable-baselines3 PPO with the same settings, one process (the ``bench`` extra);
+- ``ftrain-1``, ``ftrain-2``: ``ftrain train`` with 1 and 2 ranks (torchrun), no checkpoints in the timed window.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from ftrain.train.envs import MujocoVecEnv
+from ftrain.train.hooks import Hook
+
+ENV_ID = "HalfCheetah-v5"
+NUM_ENVS = 16
+STEPS = 24
+EPOCHS = 5
+MINIBATCHES = 4
+HIDDEN = [64, 64]
+WARMUP = 3
+CONFIG = Path(__file__).resolve().parents[2] / "configs" / "halfcheetah.yaml"
+
+
+class ThroughputHook(Hook):
+    """Rank 0 writes, to ``path`` as JSON: the steady-state global steps/s (iterations after the warm-up), the same
+    from the median iteration time (robust to the bursts of other work that these machines see), how long each
+    save blocked the loop, and the time of a plain ``torch.save`` of the same state, for reference."""
+
+    def __init__(self, path: str, warmup: int = WARMUP) -> None:
+        self.path = path
+        self.warmup = warmup
+        self.start: tuple[float, float] | None = None
+        self.last: tuple[float, float] | None = None
+        self.blocking: list[float] = []
+        self.iterations: list[tuple[float, float]] = []
+        """(seconds, env steps) of each timed iteration, save included."""
+
+    def on_start(self, trainer) -> None:
+        trainer.checkpointer.wait_ready()  # the save helper's start-up is not part of the steady state
+
+    def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        now = (time.perf_counter(), metrics["env_steps"])
+        if trainer.iteration == self.warmup:
+            self.start = now
+        elif self.start is not None:
+            self.blocking.append(trainer.checkpointer.last_blocking_s)
+            trainer.checkpointer.last_blocking_s = 0.0
+            self.steps_per_s = (now[1] - self.start[1]) / (now[0] - self.start[0])
+            self.iterations.append((now[0] - self.last[0], now[1] - self.last[1]))
+        self.last = now
+
+    def on_end(self, trainer) -> None:
+        if not trainer.info.is_main:
+            return
+        state = {"common": trainer.common_state(), "rank": trainer.rank_state()}
+        started = time.perf_counter()
+        torch.save(state, Path(self.path).with_suffix(".pt"))
+        torch_save_s = time.perf_counter() - started
+        saves = [seconds for seconds in self.blocking if seconds > 0]
+        seconds = statistics.median(seconds for seconds, _ in self.iterations)
+        steps = statistics.median(steps for _, steps in self.iterations)
+        result = {
+            "steps_per_s": self.steps_per_s,
+            "median_steps_per_s": steps / seconds,
+            "blocking_s": saves,
+            "torch_save_s": torch_save_s,
+        }
+        Path(self.path).write_text(json.dumps(result))
+
+
+def _timed(step_count: int, work) -> float:
+    start = time.perf_counter()
+    work()
+    return step_count / (time.perf_counter() - start)
+
+
+def measure_raw(iterations: int) -> float:
+    import gymnasium as gym
+    import numpy as np
+
+    envs = gym.make_vec(ENV_ID, num_envs=NUM_ENVS, vectorization_mode="sync")
+    envs.reset(seed=0)
+    rng = np.random.default_rng(0)
+    actions = rng.uniform(-1, 1, size=(iterations * STEPS, NUM_ENVS, envs.single_action_space.shape[0]))
+
+    def work() -> None:
+        for action in actions:
+            envs.step(action)
+
+    return _timed(iterations * STEPS * NUM_ENVS, work)
+
+
+def measure_rsl_rl(iterations: int) -> float:
+    import contextlib
+    import io
+
+    from rsl_rl.runners import OnPolicyRunner
+
+    env = MujocoVecEnv(ENV_ID, NUM_ENVS, seed=0)
+    model = {"class_name": "MLPModel", "hidden_dims": HIDDEN, "activation": "elu", "obs_normalization": True}
+    train_cfg = {
+        "num_steps_per_env": STEPS,
+        "save_interval": 10**9,
+        "obs_groups": {"actor": ["policy"], "critic": ["policy"]},
+        "actor": {**model, "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": 1.0}},
+        "critic": model,
+        "algorithm": {"class_name": "PPO", "num_learning_epochs": EPOCHS, "num_mini_batches": MINIBATCHES},
+    }
+    with contextlib.redirect_stdout(io.StringIO()):
+        runner = OnPolicyRunner(env, train_cfg, log_dir=None, device="cpu")
+        runner.learn(WARMUP)
+        return _timed(iterations * STEPS * NUM_ENVS, lambda: runner.learn(iterations))
+
+
+def measure_sb3(iterations: int) -> float:
+    from stable_baselines3 import PPO
+    from stable_baselines3.common.env_util import make_vec_env
+
+    env = make_vec_env(ENV_ID, n_envs=NUM_ENVS, seed=0)
+    model = PPO(
+        "MlpPolicy",
+        env,
+        n_steps=STEPS,
+        batch_size=NUM_ENVS * STEPS // MINIBATCHES,
+        n_epochs=EPOCHS,
+        policy_kwargs={"net_arch": HIDDEN},
+        device="cpu",
+        seed=0,
+    )
+    model.learn(WARMUP * STEPS * NUM_ENVS)
+    steps = iterations * STEPS * NUM_ENVS
+    return _timed(steps, lambda: model.learn(steps, reset_num_timesteps=False))
+
+
+def run_ftrain(
+    iterations: int, ranks: int, storage: str | None = None, overrides: tuple[str, ...] = (), env: dict | None = None
+) -> dict:
+    """``ftrain train`` on the HalfCheetah config, measured by :class:`ThroughputHook`; its JSON report."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "throughput.json"
+        hook = f"hooks=[{{target: 'ftrain.tools.bench:ThroughputHook', kwargs: {{path: '{out}'}}}}]"
+        args = [
+            str(CONFIG),
+            "--storage",
+            storage or str(Path(tmp) / "run"),
+            f"iterations={WARMUP + iterations}",
+            f"checkpoint.interval={10**6}",
+            f"log_dir={Path(tmp) / 'logs'}",
+            "log.console=false",
+            "log.tensorboard=false",
+            "log.csv=false",
+            hook,
+            *overrides,
+        ]
+        launcher = ["-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={ranks}", "-m", "ftrain"]
+        cmd = [sys.executable, *(launcher if ranks > 1 else ["-m", "ftrain"]), "train", *args]
+        subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1", **(env or {})})
+        return json.loads(out.read_text())
+
+
+def measure_ftrain(iterations: int, ranks: int) -> float:
+    return run_ftrain(iterations, ranks)["steps_per_s"]
+
+
+CASES = {
+    "raw": measure_raw,
+    "rsl_rl": measure_rsl_rl,
+    "sb3": measure_sb3,
+    "ftrain-1": lambda n: measure_ftrain(n, 1),
+    "ftrain-2": lambda n: measure_ftrain(n, 2),
+}
+
+
+def run_benchmark(iterations: int) -> int:
+    """Run every case in a fresh process, print steps/s and the ratios the targets are stated in."""
+    results = {}
+    for name in CASES:
+        code = "import torch; torch.set_num_threads(1); from ftrain.tools.bench import CASES; "
+        code += f"print(CASES[{name!r}]({iterations}))"
+        done = subprocess.run(
+            [sys.executable, "-c", code],
+            capture_output=True,
+            text=True,
+            env={**os.environ, "OMP_NUM_THREADS": "1"},
+        )
+        if done.returncode:
+            print(f"{name:>9}: failed\n{done.stderr[-2000:]}")
+            continue
+        results[name] = float(done.stdout.strip().splitlines()[-1])
+        print(f"{name:>9}: {results[name]:>8,.0f} steps/s", flush=True)
+    peers = [results[name] for name in ("rsl_rl", "sb3") if name in results]
+    if peers:
+        best = max(peers)
+        for name in ("ftrain-1", "ftrain-2"):
+            if name in results:
+                print(f"{name} / fastest peer: {results[name] / best:.2f}x")
+    if "raw" in results and "ftrain-1" in results:
+        print(f"ftrain-1 / raw stepping: {results['ftrain-1'] / results['raw']:.2f}x")
+    return 0 if len(results) == len(CASES) else 1

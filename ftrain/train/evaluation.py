@@ -1,0 +1,51 @@
+"""Policy rollouts in an environment of their own, and the evaluation hook that scores training with them.
+
+Evaluation never touches what training continues from: it steps a separate environment seeded on its own, takes the
+actor's deterministic (mean) actions, so no random number is drawn, and only reads the observation normalizer.
+Training with and without evaluation therefore learns bit for bit the same.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import gymnasium as gym
+
+from ftrain.config import EvalConfig
+from ftrain.policy.model import actor_actions
+from ftrain.policy.rollout import make_env, rollout
+from ftrain.train.hooks import Hook
+
+if TYPE_CHECKING:
+    from ftrain.train.trainer import Trainer
+
+
+class EvalHook(Hook):
+    """Every ``eval.every`` iterations, on rank 0: ``eval.episodes`` deterministic episodes with fixed seeds.
+
+    Their mean return becomes ``metrics["eval_return"]``, which the logging hooks after this one write and the
+    checkpoint manifest stores (so keep-best retention can rank by it). On the iterations in between the metric
+    is NaN: present from the first iteration on (the CSV header is written then) but never a stale score that
+    keep-best could mistake for a measurement of that step.
+    """
+
+    def __init__(self, config: EvalConfig) -> None:
+        self.config = config
+        self.env: gym.Env | None = None
+
+    def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
+        if not trainer.info.is_main:
+            return
+        if trainer.iteration % self.config.every:
+            metrics["eval_return"] = math.nan
+            return
+        if self.env is None:
+            self.env = make_env(trainer.config.env)
+        actor = trainer.alg.get_policy()
+        episodes = rollout(self.env, lambda obs: actor_actions(actor, obs), self.config.episodes, self.config.seed)
+        metrics["eval_return"] = sum(e.ret for e in episodes) / len(episodes)
+
+    def on_end(self, trainer: Trainer) -> None:
+        if self.env is not None:
+            self.env.close()

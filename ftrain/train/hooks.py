@@ -1,0 +1,193 @@
+"""Hook protocol and the built-in hooks (console line, TensorBoard, CSV metrics).
+
+A hook is any object derived from :class:`Hook`; it may carry state (``state_dict``/``load_state_dict``) that the
+checkpoint saves from rank 0 and restores on every rank. Hooks run on every rank: ``trainer.info.is_main`` tells
+rank 0. ``every`` thins out ``after_iteration`` (called when the completed iteration count is a multiple of it).
+User hooks come from the config: ``hooks: [{target: "package.module:Class", every: 10, kwargs: {...}}]``.
+"""
+
+from __future__ import annotations
+
+import collections
+import csv
+import importlib
+import math
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from ftrain.errors import UserError
+
+if TYPE_CHECKING:
+    from ftrain.train.trainer import Trainer
+
+
+class Hook:
+    """Override the hook points you need; all default to doing nothing."""
+
+    every: int = 1
+
+    def on_start(self, trainer: Trainer) -> None:
+        """After set-up and resume, before the first iteration of this process."""
+
+    def after_rollout(self, trainer: Trainer) -> None:
+        """After the rollout and the return computation of an iteration."""
+
+    def after_update(self, trainer: Trainer, losses: dict[str, float]) -> None:
+        """After the policy update of an iteration."""
+
+    def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
+        """After an iteration; ``metrics`` are global (averaged over ranks where it matters)."""
+
+    def on_checkpoint(self, trainer: Trainer, step: int, manifest: dict) -> None:
+        """On every rank, on the main thread, once all ranks agree that checkpoint ``step`` was committed."""
+
+    def on_end(self, trainer: Trainer) -> None:
+        """After the last iteration of this process (completed or preempted)."""
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore what ``state_dict`` returned."""
+
+
+class Hooks:
+    """The ordered hooks of a run; ``call`` dispatches one hook point to all of them."""
+
+    def __init__(self, hooks: list[Hook]) -> None:
+        self.hooks = hooks
+
+    def call(self, point: str, trainer: Trainer, *args: object) -> None:
+        for hook in self.hooks:
+            if point == "after_iteration" and trainer.iteration % max(1, hook.every):
+                continue
+            getattr(hook, point)(trainer, *args)
+
+    def state_dict(self) -> dict:
+        return {key: hook.state_dict() for key, hook in self._keyed()}
+
+    def load_state_dict(self, state: dict) -> None:
+        for key, hook in self._keyed():
+            if key in state:
+                hook.load_state_dict(state[key])
+
+    def _keyed(self) -> list[tuple[str, Hook]]:
+        """Each hook's key in a checkpoint: its class and its rank among hooks of that class, so turning a built-in
+        hook on or off between runs does not hand one hook's state to another."""
+        seen: collections.Counter[str] = collections.Counter()
+        keyed = []
+        for hook in self.hooks:
+            name = f"{type(hook).__module__}.{type(hook).__qualname__}"
+            keyed.append((f"{name}#{seen[name]}", hook))
+            seen[name] += 1
+        return keyed
+
+
+class ConsoleHook(Hook):
+    """One line per iteration on rank 0: progress, throughput, returns, losses, learning rate, ETA."""
+
+    def __init__(self) -> None:
+        self._last: float | None = None
+        self._seconds_per_iteration: float | None = None
+
+    def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
+        if not trainer.info.is_main:
+            return
+        now = time.perf_counter()
+        if self._last is not None:
+            elapsed = (now - self._last) / max(1, self.every)
+            smooth = self._seconds_per_iteration
+            self._seconds_per_iteration = elapsed if smooth is None else 0.9 * smooth + 0.1 * elapsed
+        self._last = now
+        total = trainer.config.iterations
+        eta = _duration((total - trainer.iteration) * (self._seconds_per_iteration or metrics["iteration_time"]))
+        losses = " ".join(f"{k.removeprefix('loss/')} {v:.3g}" for k, v in metrics.items() if k.startswith("loss/"))
+        print(
+            f"it {trainer.iteration}/{total} | {metrics['steps_per_s']:,.0f} steps/s"
+            f" | return {_number(metrics['mean_return'], '.2f')} | len {_number(metrics['mean_length'], '.0f')}"
+            f" | {losses} | lr {metrics['learning_rate']:.2e} | ETA {eta}",
+            flush=True,
+        )
+
+
+class TensorBoardHook(Hook):
+    """Scalars under ``<log_dir>/tensorboard`` on rank 0, indexed by iteration."""
+
+    def __init__(self) -> None:
+        self.writer = None
+
+    def on_start(self, trainer: Trainer) -> None:
+        if trainer.info.is_main:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.writer = SummaryWriter(log_dir=str(Path(trainer.config.log_dir) / "tensorboard"), flush_secs=10)
+
+    def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
+        if self.writer is not None:
+            for key, value in metrics.items():
+                self.writer.add_scalar(key, value, trainer.iteration)
+
+    def on_end(self, trainer: Trainer) -> None:
+        if self.writer is not None:
+            self.writer.close()
+
+
+class CsvHook(Hook):
+    """``<log_dir>/metrics.csv`` on rank 0; a resumed run appends, so an iteration redone after a crash appears
+    twice and readers keep its last row."""
+
+    def __init__(self) -> None:
+        self.file = None
+        self.writer: csv.DictWriter | None = None
+
+    def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
+        if not trainer.info.is_main:
+            return
+        if self.writer is None:
+            path = Path(trainer.config.log_dir) / "metrics.csv"
+            fields = ["iteration", *metrics]
+            if path.exists() and path.stat().st_size:
+                with path.open() as existing:
+                    fields = next(csv.reader(existing))
+                self.file = path.open("a", newline="")
+                self.writer = csv.DictWriter(self.file, fields, extrasaction="ignore")
+            else:
+                self.file = path.open("w", newline="")
+                self.writer = csv.DictWriter(self.file, fields, extrasaction="ignore")
+                self.writer.writeheader()
+        self.writer.writerow({"iteration": trainer.iteration, **metrics})
+        self.file.flush()
+
+    def on_end(self, trainer: Trainer) -> None:
+        if self.file is not None:
+            self.file.close()
+
+
+def load_hook(target: str, kwargs: dict) -> Hook:
+    module_name, _, class_name = target.partition(":")
+    try:
+        cls = getattr(importlib.import_module(module_name), class_name)
+    except (ImportError, AttributeError) as error:
+        raise UserError(f"hook target {target!r} cannot be imported ({error}): fix the import path") from None
+    try:
+        hook = cls(**kwargs)
+    except TypeError as error:
+        raise UserError(f"hook {target!r} rejects its kwargs: {error}") from None
+    if not isinstance(hook, Hook):
+        raise UserError(f"hook {target!r} is not a subclass of ftrain.train.hooks.Hook")
+    return hook
+
+
+def _number(value: float, spec: str) -> str:
+    """``value`` formatted, or ``-`` while it is not measured yet (no episode has finished)."""
+    return format(value, spec) if math.isfinite(value) else "-"
+
+
+def _duration(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "?"
+    seconds = int(seconds)
+    hours, rest = divmod(seconds, 3600)
+    minutes, secs = divmod(rest, 60)
+    return f"{hours}h{minutes:02d}m" if hours else f"{minutes}m{secs:02d}s"

@@ -1,0 +1,258 @@
+"""rsl-rl's algorithms built from an ftrain config; PPO with cheaper synchronisation and less per-step overhead.
+
+rsl-rl's own multi-process update issues three collectives per minibatch (gradient all-reduce, KL all-reduce,
+learning-rate broadcast) and three more per observation normalizer per iteration. :class:`FusedPPO` keeps the
+same synchronous data-parallel PPO and changes only how it communicates:
+
+- the KL rides in the gradient buffer, and every rank applies the adaptive learning-rate rule to the same global
+  KL, which is what rank 0 would have broadcast: one collective per minibatch;
+- on one machine that collective goes through shared memory (:mod:`ftrain.dist.shm_allreduce`), not loopback TCP;
+- actor and critic normalize the same observations, so their statistics are reduced once, in two collectives.
+
+Its ``act`` computes what rsl-rl's does, on the one observation group ftrain's environments have, without the
+TensorDict round trips; Adam runs as one fused kernel.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.distributed as dist
+from rsl_rl.algorithms import PPO, Distillation
+from rsl_rl.models import MLPModel
+from rsl_rl.storage import RolloutStorage
+from tensordict import TensorDict
+from torch import nn
+
+from ftrain.config import Config
+from ftrain.dist.group import RankInfo
+from ftrain.dist.shm_allreduce import SharedMemoryAllReduce, same_host
+from ftrain.errors import UserError
+from ftrain.policy.load import load_policy
+from ftrain.policy.model import OBS_GROUP, build_actor, policy_kwargs
+from ftrain.train.envs import MujocoVecEnv
+
+OBS_GROUPS = {"actor": [OBS_GROUP], "critic": [OBS_GROUP]}
+
+
+class FusedPPO(PPO):
+    """rsl-rl PPO (MLP policies) with one all-reduce per minibatch, over shared memory where ranks share a host."""
+
+    def __init__(self, *args, reducer: SharedMemoryAllReduce | None = None, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.reducer = reducer
+        self._actor_params = list(self.actor.parameters())
+        self._critic_params = list(self.critic.parameters())
+        self.optimizer = torch.optim.Adam(self._actor_params + self._critic_params, lr=self.learning_rate, fused=True)
+
+    def act(self, obs: TensorDict) -> torch.Tensor:
+        x = obs[OBS_GROUP]
+        actor, critic = self._raw_actor, self._raw_critic
+        distribution = actor.distribution
+        distribution.update(actor.mlp(actor.obs_normalizer(x)))
+        actions = distribution.sample()
+        transition = self.transition
+        transition.hidden_states = (None, None)
+        transition.actions = actions
+        transition.values = critic.mlp(critic.obs_normalizer(x))
+        transition.actions_log_prob = distribution.log_prob(actions)
+        transition.distribution_params = distribution.params
+        transition.observations = obs
+        return actions
+
+    def update(self) -> dict[str, float]:
+        sums = {"value": 0.0, "surrogate": 0.0, "entropy": 0.0}
+        params = self._actor_params + self._critic_params
+        for batch in self.storage.mini_batch_generator(self.num_mini_batches, self.num_learning_epochs):
+            if self.normalize_advantage_per_mini_batch:
+                with torch.no_grad():
+                    batch.advantages = (batch.advantages - batch.advantages.mean()) / (batch.advantages.std() + 1e-8)
+            self.actor(batch.observations, stochastic_output=True)
+            actions_log_prob = self.actor.get_output_log_prob(batch.actions)
+            values = self.critic(batch.observations)
+            entropy = self.actor.output_entropy
+            adaptive = self.desired_kl is not None and self.schedule == "adaptive"
+            if adaptive:
+                with torch.inference_mode():
+                    kl = self.actor.get_kl_divergence(
+                        batch.old_distribution_params, self.actor.output_distribution_params
+                    )
+                    kl_mean = torch.mean(kl)
+
+            ratio = torch.exp(actions_log_prob - torch.squeeze(batch.old_actions_log_prob))
+            advantages = torch.squeeze(batch.advantages)
+            surrogate = -advantages * ratio
+            surrogate_clipped = -advantages * torch.clamp(ratio, 1.0 - self.clip_param, 1.0 + self.clip_param)
+            surrogate_loss = torch.max(surrogate, surrogate_clipped).mean()
+            if self.use_clipped_value_loss:
+                value_clipped = batch.values + (values - batch.values).clamp(-self.clip_param, self.clip_param)
+                value_loss = torch.max((values - batch.returns).pow(2), (value_clipped - batch.returns).pow(2)).mean()
+            else:
+                value_loss = (batch.returns - values).pow(2).mean()
+            loss = surrogate_loss + self.value_loss_coef * value_loss - self.entropy_coef * entropy.mean()
+
+            self.optimizer.zero_grad()
+            loss.backward()
+            if self.is_multi_gpu:
+                kl_mean = self._all_reduce_mean(params, kl_mean if adaptive else None)
+            if adaptive:
+                self._adapt_learning_rate(kl_mean)
+            nn.utils.clip_grad_norm_(self._actor_params, self.max_grad_norm)
+            nn.utils.clip_grad_norm_(self._critic_params, self.max_grad_norm)
+            self.optimizer.step()
+
+            sums["value"] += value_loss.item()
+            sums["surrogate"] += surrogate_loss.item()
+            sums["entropy"] += entropy.mean().item()
+
+        self._update_normalizers(self.storage.observations[OBS_GROUP].flatten(0, 1))
+        self.storage.clear()
+        num_updates = self.num_learning_epochs * self.num_mini_batches
+        return {key: value / num_updates for key, value in sums.items()}
+
+    def _all_reduce_mean(self, params: list[nn.Parameter], kl_mean: torch.Tensor | None) -> torch.Tensor | None:
+        """Average every gradient (and the KL, riding in the same buffer) over all ranks, in place."""
+        grads = [p.grad.view(-1) for p in params if p.grad is not None]
+        extra = [kl_mean.view(1).to(grads[0].dtype)] if kl_mean is not None else []
+        packed = self._sum_over_ranks(torch.cat(grads + extra)).div_(self.gpu_world_size)
+        offset = 0
+        for grad in grads:
+            grad.copy_(packed[offset : offset + grad.numel()])
+            offset += grad.numel()
+        return packed[offset] if kl_mean is not None else None
+
+    def _sum_over_ranks(self, tensor: torch.Tensor) -> torch.Tensor:
+        if self.reducer is not None:
+            return self.reducer.all_reduce_(tensor)
+        dist.all_reduce(tensor)
+        return tensor
+
+    def _update_normalizers(self, obs: torch.Tensor) -> None:
+        """rsl-rl's ``EmpiricalNormalization.update`` for actor and critic at once, from global batch moments.
+
+        Alone, each normalizer computes the moments itself; across ranks it would all-reduce three times, and
+        twice over. Here the global mean and variance are reduced once (two rounds, as rsl-rl's formula needs the
+        global mean before the variance around it; the count rides with the mean) and applied to both with rsl-rl's
+        update rule.
+        """
+        normalizers = [m.obs_normalizer for m in (self.actor, self.critic) if m.obs_normalization]
+        if not normalizers or not normalizers[0].training:
+            return
+        if not self.is_multi_gpu:
+            for normalizer in normalizers:
+                normalizer.update(obs)
+            return
+        local_count = obs.shape[0]
+        local_mean = obs.mean(dim=0, keepdim=True)
+        local_var = obs.var(dim=0, unbiased=False, keepdim=True)
+        sums = self._sum_over_ranks(torch.cat([(local_mean * local_count).view(-1), torch.tensor([local_count * 1.0])]))
+        count = round(sums[-1].item())
+        mean = (sums[:-1] / count).view(1, -1)
+        var = self._sum_over_ranks(local_count * (local_var + (local_mean - mean).square())) / count
+        count_x = torch.tensor(count, dtype=torch.long)
+        for normalizer in normalizers:
+            normalizer.count += count_x
+            rate = count_x / normalizer.count
+            delta_mean = mean - normalizer._mean
+            normalizer._mean += rate * delta_mean
+            normalizer._var += rate * (var - normalizer._var + delta_mean * (mean - normalizer._mean))
+            normalizer._std = torch.sqrt(normalizer._var)
+
+    def _adapt_learning_rate(self, kl_mean: torch.Tensor) -> None:
+        """rsl-rl's adaptive schedule; every rank computes it from the same global KL, so no broadcast is needed."""
+        if kl_mean > self.desired_kl * 2.0:
+            self.learning_rate = max(1e-5, self.learning_rate / 1.5)
+        elif kl_mean < self.desired_kl / 2.0 and kl_mean > 0.0:
+            self.learning_rate = min(1e-2, self.learning_rate * 1.5)
+        for group in self.optimizer.param_groups:
+            group["lr"] = self.learning_rate
+
+
+def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo) -> FusedPPO:
+    obs = env.get_observations()
+    actor = build_actor(config, obs, env.num_actions)
+    critic = MLPModel(obs, OBS_GROUPS, "critic", 1, **policy_kwargs(config))
+    storage = RolloutStorage("rl", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
+    a = config.algorithm
+    reducer = None
+    if same_host(info):
+        capacity = sum(p.numel() for model in (actor, critic) for p in model.parameters()) + 1
+        reducer = SharedMemoryAllReduce(info, capacity, config.dist_timeout)
+    return FusedPPO(
+        actor,
+        critic,
+        storage,
+        num_learning_epochs=a.num_learning_epochs,
+        num_mini_batches=a.num_mini_batches,
+        clip_param=a.clip_param,
+        gamma=a.gamma,
+        lam=a.lam,
+        value_loss_coef=a.value_loss_coef,
+        entropy_coef=a.entropy_coef,
+        learning_rate=a.learning_rate,
+        max_grad_norm=a.max_grad_norm,
+        use_clipped_value_loss=a.use_clipped_value_loss,
+        schedule=a.schedule,
+        desired_kl=a.desired_kl,
+        normalize_advantage_per_mini_batch=a.normalize_advantage_per_mini_batch,
+        multi_gpu_cfg=info.rsl_rl_cfg(),
+        reducer=reducer,
+    )
+
+
+def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Distillation:
+    """rsl-rl's Distillation: a student like a PPO actor learns to imitate the teacher loaded from
+    ``config.teacher`` (any ftrain checkpoint URL, verified by its manifest; architecture from its own config)."""
+    teacher = load_policy(config.teacher, config.storage.options)
+    _check_teacher_fits(config, env, teacher)
+    obs = env.get_observations()
+    student = build_actor(config, obs, env.num_actions, obs_set="student")
+    storage = RolloutStorage("distillation", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
+    a = config.algorithm
+    alg = Distillation(
+        student,
+        teacher.actor,
+        storage,
+        num_learning_epochs=a.num_learning_epochs,
+        gradient_length=a.gradient_length,
+        learning_rate=a.learning_rate,
+        max_grad_norm=a.max_grad_norm,
+        loss_type=a.loss_type,
+        multi_gpu_cfg=info.rsl_rl_cfg(),
+    )
+    alg.teacher_loaded = True
+    alg.teacher_identity = {"source": teacher.source, "step": teacher.step, "digest": teacher.digest}
+    return alg
+
+
+def _check_teacher_fits(config: Config, env: MujocoVecEnv, teacher) -> None:
+    if teacher.exported is not None:
+        raise UserError(
+            f"teacher {teacher.source} is an exported {teacher.exported} file: pass the checkpoint or policy "
+            "snapshot it came from (distillation needs the actor's weights)"
+        )
+    teacher_obs = teacher.actor.obs_dim
+    teacher_actions = teacher.actor.distribution.output_dim if teacher.actor.distribution else None
+    if teacher.config.env.id != config.env.id or teacher_obs != env.num_obs or teacher_actions != env.num_actions:
+        raise UserError(
+            f"teacher {teacher.source} was trained on {teacher.config.env.id} (observations {teacher_obs}, actions "
+            f"{teacher_actions}) but the student trains on {config.env.id} (observations {env.num_obs}, actions "
+            f"{env.num_actions}): pick a teacher trained on {config.env.id}"
+        )
+
+
+def build_algorithm(config: Config, env: MujocoVecEnv, info: RankInfo) -> PPO | Distillation:
+    if config.algorithm.class_name == "Distillation":
+        return build_distillation(config, env, info)
+    return build_ppo(config, env, info)
+
+
+def learned_state(alg: PPO | Distillation) -> dict:
+    """What training has learned: models (with normalizers), optimizer, adaptive learning rate."""
+    return {**alg.save(), "learning_rate": alg.learning_rate}
+
+
+def load_learned_state(alg: PPO | Distillation, state: dict) -> None:
+    alg.load(state, load_cfg=None, strict=True)
+    alg.learning_rate = state["learning_rate"]
+    for group in alg.optimizer.param_groups:
+        group["lr"] = alg.learning_rate

@@ -1,0 +1,258 @@
+"""The training loop: rollout, returns, update, around rsl-rl's PPO, with hooks, heartbeats and checkpoints.
+
+One ``Trainer`` per rank. Everything that decides what is trained comes from the config and the per-rank seeds;
+wall-clock time only feeds logs and heartbeats.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import math
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+
+import torch
+import yaml
+
+from ftrain.ckpt import packing
+from ftrain.ckpt.manager import Checkpointer, CheckpointError
+from ftrain.config import Config
+from ftrain.dist import group
+from ftrain.heartbeat import ENV_DIR, HeartbeatWriter
+from ftrain.train.envs import MujocoVecEnv
+from ftrain.train.evaluation import EvalHook
+from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
+from ftrain.train.ppo import build_algorithm, learned_state, load_learned_state
+from ftrain.train.snapshot_hook import PolicySnapshotHook
+
+EXIT_CHECKPOINT = 1
+"""Exit code when a checkpoint cannot be saved or loaded (the supervisor restarts; its crash-loop rule stops it)."""
+EPISODE_WINDOW = 100
+"""Completed episodes per rank that the mean return and length are taken over."""
+
+
+class StopRequest:
+    """SIGTERM or SIGINT: stop at the next iteration boundary (the ranks agree, save, and exit 0).
+
+    Installed before anything slow starts, so an early signal is not lost. Repeated SIGTERMs are one request (a
+    scheduler and torchrun may both forward it); a second SIGINT (Ctrl-C twice) stops at once.
+    """
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def install(self) -> None:
+        signal.signal(signal.SIGTERM, self._handle)
+        signal.signal(signal.SIGINT, self._handle)
+
+    def _handle(self, signum: int, frame: object) -> None:
+        if self.requested and signum == signal.SIGINT:
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            raise KeyboardInterrupt
+        self.requested = True
+
+
+class Trainer:
+    def __init__(self, config: Config, info: group.RankInfo, stop: StopRequest | None = None) -> None:
+        self.config = config
+        self.info = info
+        self.stop = stop or StopRequest()
+        torch.set_num_threads(config.torch_threads)
+        group.seed_all(config.seed)  # identical model initialisation on every rank
+        seed = group.rank_seed(config.seed, info.rank)
+        self.env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs)
+        self.alg = build_algorithm(config, self.env, info)
+        group.seed_all(seed)  # from here on, each rank samples its own actions and minibatches
+        self.hooks = build_hooks(config)
+        self.iteration = 0
+        self.env_steps = 0
+        self.episodes: collections.deque[tuple[float, int]] = collections.deque(maxlen=EPISODE_WINDOW)
+        self.metrics: dict[str, float] = {}
+        self.heartbeat = HeartbeatWriter(os.environ.get(ENV_DIR), info.rank)
+        self.checkpointer = Checkpointer(config, info, self.log)
+        self.checkpointer.on_commit = lambda step, manifest: self.hooks.call("on_checkpoint", self, step, manifest)
+        self._stop_votes = 0.0
+        self._config_json = json.dumps(config.public_dict())
+        """The config as saved in common.pt: one string, made once (the manifest has it as a mapping)."""
+
+    def log(self, message: str) -> None:
+        if self.info.is_main:
+            print(f"[ftrain] {message}", flush=True)
+
+    # --- state -------------------------------------------------------------------------------------------------
+
+    def common_state(self) -> dict:
+        """Identical on every rank; saved once, by rank 0."""
+        return {
+            "learned": learned_state(self.alg),
+            "iteration": self.iteration,
+            "env_steps": self.env_steps,
+            "metrics": dict(self.metrics),
+            "hooks": self.hooks.state_dict(),
+            "config": self._config_json,
+            **({"teacher": self.alg.teacher_identity} if hasattr(self.alg, "teacher_identity") else {}),
+        }
+
+    def rank_state(self) -> dict:
+        """What differs between ranks: environments, random streams, the episode window."""
+        return {
+            "env": self.env.get_state(),
+            "rng": group.rng_state(),
+            "episodes": [list(episode) for episode in self.episodes],
+        }
+
+    def load_state(self, common: dict, rank: dict) -> None:
+        load_learned_state(self.alg, common["learned"])
+        self.iteration = common["iteration"]
+        self.env_steps = common["env_steps"]
+        self.metrics = dict(common["metrics"])
+        self.hooks.load_state_dict(common["hooks"])
+        if "teacher" in common:  # the teacher's weights come from the checkpoint: so does its identity
+            if common["teacher"]["digest"] != self.alg.teacher_identity["digest"]:
+                self.log(
+                    f"teacher {self.config.teacher} has changed since this run started: keeping the teacher "
+                    f"it started with ({common['teacher']['source']}, step {common['teacher']['step']})"
+                )
+            self.alg.teacher_identity = common["teacher"]
+        self.env.set_state(rank["env"])
+        group.set_rng_state(rank["rng"])
+        self.episodes.clear()
+        self.episodes.extend((float(ret), int(length)) for ret, length in rank["episodes"])
+
+    def learned_digest(self) -> str:
+        """What a checkpoint of this state records as ``state_sha256``."""
+        return packing.digest(packing.pack({"learned": learned_state(self.alg)}), "learned")  # as in common.pt
+
+    # --- loop --------------------------------------------------------------------------------------------------
+
+    def run(self) -> int:
+        self.heartbeat.beat("start", 0)
+        resumed = self.checkpointer.restore(self)
+        if resumed is None and self.info.distributed:
+            self.alg.broadcast_parameters()
+        self.heartbeat.resumed_step = resumed
+        self.heartbeat.committed_step = resumed
+        self._write_resolved_config()
+        self.alg.train_mode()
+        self.hooks.call("on_start", self)
+        self.heartbeat.beat("start", self.iteration)
+        while self.iteration < self.config.iterations:
+            self._iterate()
+            stop = self._agree_on_stop()
+            if stop or self._checkpoint_due():
+                self.heartbeat.beat("checkpoint", self.iteration)
+                self.checkpointer.save(self, wait=stop, must_commit=stop or self.iteration == self.config.iterations)
+                self.heartbeat.committed_step = self.checkpointer.committed_step
+            if stop:
+                self.log(f"stop requested: saved step {self.iteration}, exiting")
+                break
+        self.checkpointer.close()
+        self.heartbeat.committed_step = self.checkpointer.committed_step
+        self.hooks.call("on_end", self)
+        self.heartbeat.beat("preempted" if self.iteration < self.config.iterations else "done", self.iteration)
+        return 0
+
+    def _iterate(self) -> None:
+        start = time.perf_counter()
+        self.heartbeat.beat("rollout", self.iteration)
+        obs = self.env.get_observations()
+        with torch.inference_mode():
+            for _ in range(self.config.num_steps_per_env):
+                actions = self.alg.act(obs)
+                obs, rewards, dones, extras = self.env.step(actions)
+                self.alg.process_env_step(obs, rewards, dones, extras)
+                self.episodes.extend(zip(*extras["episodes"], strict=True))
+            self.alg.compute_returns(obs)
+        self.hooks.call("after_rollout", self)
+        collected = time.perf_counter()
+        self.heartbeat.beat("update")
+        losses = self.alg.update()
+        self.hooks.call("after_update", self, losses)
+        learned = time.perf_counter()
+        self.iteration += 1
+        self._record_metrics(losses, collected - start, learned - collected)
+        self.hooks.call("after_iteration", self, self.metrics)
+
+    def _record_metrics(self, losses: dict[str, float], collect_time: float, learn_time: float) -> None:
+        """Global metrics: the episode window and the step count are summed over ranks in one collective."""
+        returns = sum(ret for ret, _ in self.episodes)
+        lengths = sum(length for _, length in self.episodes)
+        steps = self.env.num_envs * self.config.num_steps_per_env
+        stop = float(self.stop.requested)
+        total_returns, total_lengths, count, total_steps, self._stop_votes = group.all_reduce_sum(
+            [returns, lengths, len(self.episodes), steps, stop], self.info
+        )
+        self.env_steps += int(total_steps)
+        previous = self.metrics
+        iteration_time = collect_time + learn_time
+        self.metrics = {
+            "mean_return": total_returns / count if count else previous.get("mean_return", math.nan),
+            "mean_length": total_lengths / count if count else previous.get("mean_length", math.nan),
+            "env_steps": float(self.env_steps),
+            **{f"loss/{key}": value for key, value in losses.items()},
+            "learning_rate": self.alg.learning_rate,
+            "action_std": self.alg.get_policy().output_std.mean().item(),
+            "steps_per_s": total_steps / iteration_time,
+            "collect_time": collect_time,
+            "learn_time": learn_time,
+            "iteration_time": iteration_time,
+        }
+
+    # --- stopping and checkpoints ------------------------------------------------------------------------------
+
+    def _agree_on_stop(self) -> bool:
+        """Every rank stops at the same iteration boundary if any rank was asked to (the votes rode in the
+        metrics all-reduce of this iteration)."""
+        return self._stop_votes > 0
+
+    def _checkpoint_due(self) -> bool:
+        return self.iteration % self.config.checkpoint.interval == 0 or self.iteration == self.config.iterations
+
+    def _write_resolved_config(self) -> None:
+        if self.info.is_main:
+            log_dir = Path(self.config.log_dir)
+            log_dir.mkdir(parents=True, exist_ok=True)
+            (log_dir / "config.yaml").write_text(yaml.safe_dump(self.config.public_dict(), sort_keys=False))
+
+
+def build_hooks(config: Config) -> Hooks:
+    """Built-in hooks in the order their outputs feed each other (evaluation adds ``eval_return`` to the metrics
+    that the logging hooks then write), then the user's hooks from the config."""
+    hooks: list[Hook] = []
+    if config.eval.every:
+        hooks.append(EvalHook(config.eval))
+    if config.log.console:
+        hooks.append(ConsoleHook())
+    if config.log.tensorboard:
+        hooks.append(TensorBoardHook())
+    if config.log.csv:
+        hooks.append(CsvHook())
+    if config.snapshots.every:
+        hooks.append(PolicySnapshotHook(config.snapshots))
+    for hook_config in config.hooks:
+        hook = load_hook(hook_config.target, hook_config.kwargs)
+        hook.every = hook_config.every
+        hooks.append(hook)
+    return Hooks(hooks)
+
+
+def train(config: Config) -> int:
+    """Entry point of ``ftrain train`` on every rank: 0 when done or stopped on request, 1 when checkpoints fail."""
+    stop = StopRequest()
+    stop.install()
+    info = group.init(config.dist_timeout)
+    trainer = None
+    try:
+        trainer = Trainer(config, info, stop)
+        return trainer.run()
+    except CheckpointError as error:
+        print(f"ftrain: error: {error}", file=sys.stderr, flush=True)
+        return EXIT_CHECKPOINT
+    finally:
+        if trainer is not None:
+            trainer.checkpointer.shutdown()
+        group.shutdown()

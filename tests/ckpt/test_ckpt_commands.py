@@ -1,0 +1,112 @@
+import json
+
+import pytest
+
+from ftrain.ckpt import commands as ckpt_commands
+from ftrain.ckpt.format import read_manifest, write_file
+from ftrain.ckpt.steps import scan
+from ftrain.ckpt.storage import Storage
+from ftrain.errors import UserError
+
+from helpers import flip_shard_byte, make_step, truncate_shard
+
+
+def build_tree(storage: Storage) -> None:
+    """Verified 10, 20, 30; corrupt 25 (truncated shard); incomplete 40 (a save in flight)."""
+    for step in (10, 20, 25, 30):
+        make_step(storage, step, metrics={"mean_return": float(step), "mean_length": 1000})
+    truncate_shard(storage, 25)
+    write_file(storage, 40, "common.pt", b"half a save")
+
+
+@pytest.fixture
+def run(tmp_path) -> str:
+    url = str(tmp_path / "run")
+    build_tree(Storage.open(url))
+    return url
+
+
+def lines_by_step(text: str) -> dict[int, str]:
+    return {int(line.split()[0]): line for line in text.splitlines()[1:]}
+
+
+def test_ls(run, capsys):
+    assert ckpt_commands.ls(run) == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].split()[:3] == ["step", "status", "size"]
+    rows = lines_by_step(out)
+    assert list(rows) == [40, 30, 25, 20, 10]
+    assert rows[30].split()[1] == "verified" and "mean_return=30 mean_length=1000" in rows[30]
+    assert "KiB" in rows[30] and "T" in rows[30].split()[4]  # size, created time
+    assert rows[25].split()[1] == "corrupt" and "rank-00001.pt: size mismatch" in rows[25]
+    assert rows[40].split()[1] == "incomplete" and "MANIFEST.json: missing" in rows[40]
+
+
+def test_verify_a_run_and_single_steps(run, capsys):
+    assert ckpt_commands.verify(run) == 1
+    out = capsys.readouterr().out
+    assert "step 30: ok" in out and "step 25: FAILED" in out and "step 40: FAILED" in out
+    assert "checkpoints/step-000000025/rank-00001.pt: size mismatch" in out
+    assert out.splitlines()[-1] == "3 of 5 steps verified"
+
+    assert ckpt_commands.verify(f"{run}/checkpoints/step-000000020") == 0
+    assert capsys.readouterr().out.splitlines() == ["step 20: ok", "1 of 1 steps verified"]
+
+    flip_shard_byte(Storage.open(run), 20)
+    assert ckpt_commands.verify(f"{run}/checkpoints/step-000000020") == 1
+    assert "checkpoints/step-000000020/rank-00001.pt: sha256 mismatch" in capsys.readouterr().out
+
+
+def test_show(run, capsys):
+    assert ckpt_commands.show(f"{run}/checkpoints/step-000000020") == 0
+    out = capsys.readouterr().out
+    assert out.splitlines()[0].endswith("checkpoints/step-000000020 (verified)")
+    assert "step: 20" in out and "  mean_return: 20.0" in out and "  common.pt " in out
+
+    assert ckpt_commands.show(run, as_json=True) == 0  # the newest verified step
+    assert json.loads(capsys.readouterr().out) == read_manifest(Storage.open(run), 30)
+
+    assert ckpt_commands.show(f"{run}/checkpoints/step-000000025") == 0
+    assert "(NOT verified: rank-00001.pt: size mismatch" in capsys.readouterr().out
+
+
+def test_prune(run, capsys):
+    assert ckpt_commands.prune(run, keep_last=1, dry_run=True) == 0
+    out = capsys.readouterr().out
+    assert (
+        "would delete step 20 (verified, outside retention)" in out
+        and "would delete step 10 (verified, outside retention)" in out
+    )
+    assert out.splitlines()[-1] == "would keep 3 steps: 40, 30, 25"
+    assert len(scan(Storage.open(run))) == 5
+
+    assert ckpt_commands.prune(run, keep_last=1, pinned=[10]) == 0
+    assert "deleting step 20 (verified, outside retention)" in capsys.readouterr().out
+    assert [info.step for info in scan(Storage.open(run))] == [40, 30, 25, 10]
+
+    assert ckpt_commands.prune(run, keep_last=1, drop_bad=True) == 0
+    assert [info.step for info in scan(Storage.open(run))] == [40, 30]
+
+
+def test_bad_input_is_a_user_error(run, tmp_path):
+    with pytest.raises(UserError, match="no checkpoints under"):
+        ckpt_commands.ls(str(tmp_path / "nothing"))
+    with pytest.raises(UserError, match="step-000000099 does not exist"):
+        ckpt_commands.verify(f"{run}/checkpoints/step-000000099")
+    with pytest.raises(UserError, match="not one step"):
+        ckpt_commands.prune(f"{run}/checkpoints/step-000000010", keep_last=1)
+    with pytest.raises(UserError, match="keep-last=-1"):
+        ckpt_commands.prune(run, keep_last=-1)
+    with pytest.raises(UserError, match="no usable manifest"):
+        ckpt_commands.show(f"{run}/checkpoints/step-000000040")
+
+
+def test_commands_on_s3(s3_url, capsys):
+    url, options = s3_url
+    build_tree(Storage.open(url, options))
+    assert ckpt_commands.ls(url, options) == 0
+    assert lines_by_step(capsys.readouterr().out)[25].split()[1] == "corrupt"
+    assert ckpt_commands.verify(f"{url}/checkpoints/step-000000030", options) == 0
+    assert ckpt_commands.verify(url, options) == 1
+    assert ckpt_commands.prune(url, keep_last=2, options=options) == 0
+    assert [info.step for info in scan(Storage.open(url, options))] == [40, 30, 25, 20]

@@ -1,0 +1,321 @@
+import json
+import pathlib
+
+import pytest
+import torch
+
+from ftrain.ckpt.format import (
+    CHECKPOINTS,
+    CORRUPT,
+    FORMAT_VERSION,
+    INCOMPLETE,
+    MANIFEST,
+    QUARANTINE,
+    QUARANTINED,
+    VERIFIED,
+    CorruptCheckpoint,
+    FileEntry,
+    StepInfo,
+    commit,
+    decode,
+    encode,
+    parse_checkpoint_url,
+    read_manifest,
+    read_verified,
+    step_dir,
+    verify_step,
+    write_file,
+)
+from ftrain.ckpt.retention import delete_step, retention_plan
+from ftrain.ckpt.steps import clear_newer, quarantine, replace_bad, resolve_checkpoint_url, scan, select_resume
+from ftrain.ckpt.storage import Storage
+from ftrain.errors import UserError
+
+from helpers import flip_shard_byte, make_step, step_path, truncate_shard
+
+
+@pytest.fixture
+def storage(tmp_path) -> Storage:
+    return Storage.open(str(tmp_path / "run"))
+
+
+def test_write_commit_verify_read_round_trip(storage_url):
+    storage = Storage.open(*storage_url)
+    manifest = make_step(storage, 120)
+    assert manifest["format_version"] == FORMAT_VERSION and manifest["step"] == 120
+    assert manifest["world_size"] == 2 and manifest["metrics"] == {"mean_return": 120.0}
+    assert set(manifest["files"]) == {"common.pt", "rank-00000.pt", "rank-00001.pt"}
+
+    raw = storage.read(step_path(120, MANIFEST)).decode()
+    assert json.loads(raw) == manifest
+    assert '\n  "step": 120,' in raw  # indented: readable by a human
+
+    result = verify_step(storage, 120)
+    assert result.ok and result.manifest == manifest
+    common = read_verified(storage, 120, "common.pt", manifest)
+    assert torch.equal(common["policy"]["weight"], torch.full((2, 3), 120.0))
+    assert read_verified(storage, 120, "rank-00001.pt", manifest)["rank"] == 1
+    [info] = scan(storage)
+    assert (info.step, info.status, info.metrics) == (120, VERIFIED, {"mean_return": 120.0})
+    assert info.size == sum(storage.list_files(step_dir(120)).values())
+
+
+def test_a_committed_step_cannot_be_written_again(storage_url):
+    storage = Storage.open(*storage_url)
+    manifest = make_step(storage, 10)
+    with pytest.raises(FileExistsError):
+        write_file(storage, 10, "rank-00000.pt", encode({"other": 1}))
+    entries = {name: FileEntry(**entry) for name, entry in manifest["files"].items()}
+    with pytest.raises(FileExistsError):
+        commit(storage, 10, entries, {"metrics": {"mean_return": -1.0}})
+    assert read_manifest(storage, 10) == manifest
+
+
+def test_commit_refuses_a_file_that_is_not_there(storage):
+    entry = write_file(storage, 5, "common.pt", b"data")
+    with pytest.raises(CorruptCheckpoint, match=r"rank-00000.pt is missing"):
+        commit(storage, 5, {"common.pt": entry, "rank-00000.pt": entry}, {})
+    with pytest.raises(ValueError, match="step"):
+        commit(storage, 5, {"common.pt": entry}, {"step": 6})
+    assert not storage.exists(step_path(5, MANIFEST))
+
+
+def edit_manifest(storage: Storage, step: int, edit) -> None:
+    manifest = json.loads(storage.read(step_path(step, MANIFEST)))
+    edit(manifest)
+    storage.write_replace(step_path(step, MANIFEST), json.dumps(manifest).encode())
+
+
+CORRUPTIONS = {
+    "flipped byte": (flip_shard_byte, "rank-00001.pt: sha256 mismatch"),
+    "truncated shard": (truncate_shard, "rank-00001.pt: size mismatch"),
+    "missing shard": (lambda s, step: s.delete(step_path(step, "rank-00001.pt")), "rank-00001.pt: missing"),
+    "missing manifest": (lambda s, step: s.delete(step_path(step, MANIFEST)), "MANIFEST.json: missing"),
+    "garbage manifest": (
+        lambda s, step: s.write_replace(step_path(step, MANIFEST), b"\x00{garbage"),
+        "MANIFEST.json: unusable: not valid JSON",
+    ),
+    "manifest size disagrees": (
+        lambda s, step: edit_manifest(s, step, lambda m: m["files"]["rank-00001.pt"].update(size=1)),
+        "rank-00001.pt: size mismatch",
+    ),
+    "manifest of another step": (
+        lambda s, step: edit_manifest(s, step, lambda m: m.update(step=step + 1)),
+        "MANIFEST.json: unusable: wrong step",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", CORRUPTIONS)
+def test_damage_is_never_verified_and_the_reason_is_named(storage_url, case):
+    storage = Storage.open(*storage_url)
+    manifest = make_step(storage, 30)
+    damage, reason = CORRUPTIONS[case]
+    damage(storage, 30)
+    result = verify_step(storage, 30)
+    assert not result.ok
+    assert any(str(problem).startswith(reason) for problem in result.problems), result.problems
+    [info] = scan(storage, full=True)
+    assert info.status == (INCOMPLETE if case == "missing manifest" else CORRUPT)
+    if case in ("flipped byte", "truncated shard", "missing shard"):
+        with pytest.raises(CorruptCheckpoint, match=r"rank-00001.pt"):
+            read_verified(storage, 30, "rank-00001.pt", manifest)
+
+
+def test_the_cheap_scan_checks_sizes_the_full_one_digests(storage):
+    make_step(storage, 10)
+    make_step(storage, 20)
+    flip_shard_byte(storage, 10)
+    truncate_shard(storage, 20)
+    assert [(i.step, i.status) for i in scan(storage)] == [(20, CORRUPT), (10, VERIFIED)]
+    assert [(i.step, i.status) for i in scan(storage, full=True)] == [(20, CORRUPT), (10, CORRUPT)]
+
+
+class Exploit:
+    def __init__(self, marker: pathlib.Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return pathlib.Path.touch, (self.marker,)
+
+
+def test_decode_refuses_pickled_code(tmp_path):
+    marker = tmp_path / "pwned"
+    with pytest.raises(CorruptCheckpoint, match=r"not loadable as plain data: .*Unsupported global"):
+        decode(encode({"payload": Exploit(marker)}))
+    assert not marker.exists()
+    with pytest.raises(CorruptCheckpoint, match="not loadable"):
+        decode(b"not a checkpoint")
+    with pytest.raises(CorruptCheckpoint, match="not a dict"):
+        decode(encode([1, 2]))  # type: ignore[arg-type]
+
+
+def test_select_resume_falls_back_to_the_newest_verified_and_quarantines(storage_url):
+    storage = Storage.open(*storage_url)
+    for step in (10, 20, 30):
+        make_step(storage, step)
+    write_file(storage, 40, "common.pt", b"a save that never committed")
+    flip_shard_byte(storage, 30)
+    lines: list[str] = []
+
+    step, manifest = select_resume(storage, log=lines.append)
+
+    assert (step, manifest) == (20, read_manifest(storage, 20))
+    assert lines[0].startswith("skipping checkpoint step 40: incomplete (MANIFEST.json: missing")
+    assert lines[1].startswith("skipping checkpoint step 30: corrupt, quarantined (rank-00001.pt: sha256 mismatch")
+    statuses = {info.step: info.status for info in scan(storage)}
+    assert statuses == {40: INCOMPLETE, 30: QUARANTINE, 20: VERIFIED, 10: VERIFIED}
+    assert storage.exists(step_path(30, "rank-00001.pt"))  # quarantine keeps the data
+
+    lines.clear()
+    assert select_resume(storage, log=lines.append)[0] == 20
+    assert lines[1].startswith("skipping checkpoint step 30: quarantined (QUARANTINED.json: rank-00001.pt: sha256")
+
+
+def test_select_resume_without_a_verified_step(storage):
+    assert select_resume(storage, log=print) is None
+    write_file(storage, 10, "common.pt", b"x")
+    assert select_resume(storage, log=lambda line: None) is None
+
+
+def test_resolve_checkpoint_url(tmp_path):
+    root = str(tmp_path / "run")
+    storage = Storage.open(root)
+    for step in (10, 20, 30):
+        make_step(storage, step)
+    flip_shard_byte(storage, 30)
+
+    _, step, manifest = resolve_checkpoint_url(f"{root}/checkpoints/step-000000010/")
+    assert (step, manifest["step"]) == (10, 10)
+    _, step, _ = resolve_checkpoint_url(root, log=lambda line: None)
+    assert step == 20
+    assert not storage.exists(step_path(30, QUARANTINED))  # resolving never writes
+    with pytest.raises(UserError, match=r"step-000000030 does not verify .*sha256 mismatch"):
+        resolve_checkpoint_url(f"{root}/checkpoints/step-000000030")
+    with pytest.raises(UserError, match="no verified checkpoint under"):
+        resolve_checkpoint_url(str(tmp_path / "empty"))
+
+
+@pytest.mark.parametrize(
+    ("url", "expected"),
+    [
+        ("runs/hc/checkpoints/step-000000120", ("runs/hc", 120)),
+        ("s3://bucket/run/checkpoints/step-000000120/", ("s3://bucket/run", 120)),
+        ("checkpoints/step-7", (".", 7)),
+        ("/checkpoints/step-7", ("/", 7)),
+        ("s3://bucket/run", ("s3://bucket/run", None)),
+        ("s3://bucket/mycheckpoints/step-1", ("s3://bucket/mycheckpoints/step-1", None)),
+    ],
+)
+def test_parse_checkpoint_url(url, expected):
+    assert parse_checkpoint_url(url) == expected
+
+
+def infos(verified=(), incomplete=(), corrupt=(), quarantined=(), metrics=None) -> list[StepInfo]:
+    metrics = metrics or {}
+    steps = [StepInfo(s, VERIFIED, manifest={"metrics": {"mean_return": metrics.get(s, 0.0)}}) for s in verified]
+    steps += [StepInfo(s, INCOMPLETE) for s in incomplete]
+    steps += [StepInfo(s, CORRUPT) for s in corrupt] + [StepInfo(s, QUARANTINE) for s in quarantined]
+    return steps
+
+
+SIX = (10, 20, 30, 40, 50, 60)
+
+
+@pytest.mark.parametrize(
+    ("steps", "rules", "deleted"),
+    [
+        (infos(SIX), {"keep_last": 3}, [30, 20, 10]),
+        (infos(SIX, metrics={20: 9.0, 40: 5.0}), {"keep_last": 1, "keep_best": 2}, [50, 30, 10]),
+        (infos(SIX), {"keep_last": 1, "keep_every": 20}, [50, 30, 10]),
+        (infos(SIX), {"keep_last": 2, "pinned": [10]}, [40, 30, 20]),
+        (infos(SIX, metrics={10: 99.0}), {"keep_last": 0, "keep_best": 1}, [50, 40, 30, 20]),  # never the newest
+        (infos((10, 20), incomplete=(5, 15, 25)), {"keep_last": 1}, [15, 10, 5]),  # 25 may be a save in flight
+        (infos((10, 20), corrupt=(15,), quarantined=(25, 5)), {"keep_last": 1}, [10]),
+        (infos((10, 20), corrupt=(15,), quarantined=(25, 5)), {"keep_last": 1, "drop_bad": True}, [25, 15, 10, 5]),
+        (infos(incomplete=(5, 15), quarantined=(25,)), {"keep_last": 1}, []),  # nothing committed: touch nothing
+        (infos(SIX, metrics={10: float("nan")}), {"keep_last": 1, "keep_best": 1}, [50, 40, 30, 20, 10]),
+    ],
+)
+def test_retention_plan(steps, rules, deleted):
+    assert retention_plan(steps, **rules) == deleted
+
+
+class RecordingStorage(Storage):
+    """Real local storage that also records the order of deletes."""
+
+    deleted: list[str]
+
+    def delete(self, rel: str) -> None:
+        self.deleted.append(rel.rpartition("/")[2])
+        super().delete(rel)
+
+    def delete_tree(self, rel: str) -> None:
+        self.deleted.append(f"tree of {sorted(self.list_files(rel))}")
+        super().delete_tree(rel)
+
+    def delete_files(self, rel: str, names) -> bool:
+        names = sorted(names)
+        self.deleted.append(f"files {names}")
+        return super().delete_files(rel, names)
+
+    def _list(self, rel: str) -> dict[str, dict]:
+        self.listings = getattr(self, "listings", 0) + 1
+        return super()._list(rel)
+
+
+def test_delete_step_removes_the_manifest_first_then_the_rest(tmp_path):
+    storage = RecordingStorage.open(str(tmp_path / "run"))
+    storage.deleted = []
+    make_step(storage, 10)
+    make_step(storage, 20)
+    delete_step(storage, 10)
+    assert storage.deleted == [MANIFEST, "tree of ['common.pt', 'rank-00000.pt', 'rank-00001.pt']"]
+    assert storage.list_dirs(CHECKPOINTS) == ["step-000000020"]
+    assert verify_step(storage, 20).ok
+
+
+def test_delete_step_by_its_manifests_files_needs_no_listing_unless_something_else_is_there(tmp_path):
+    storage = RecordingStorage.open(str(tmp_path / "run"))
+    storage.deleted = []
+    files = sorted(make_step(storage, 10)["files"])
+    make_step(storage, 20)
+    storage.write_replace(f"{step_dir(20)}/stray.txt", b"left by someone")
+    infos = {info.step: info for info in scan(storage)}
+    assert (infos[10].strays, sorted(infos[10].files)) == (False, files)
+    assert (infos[20].strays, infos[20].files) == (True, [])  # its tree is deleted, strays and all
+    listings = storage.listings
+    delete_step(storage, 10, infos[10].files)
+    assert storage.listings == listings
+    delete_step(storage, 20, files)  # told only the manifest's files: the stray is found and deleted too
+    assert storage.deleted == [MANIFEST, f"files {files}", MANIFEST, f"files {files}", "tree of ['stray.txt']"]
+    assert storage.list_dirs(CHECKPOINTS) == []
+
+
+def test_delete_step_by_files_on_every_backend(storage_url):
+    storage = Storage.open(*storage_url)
+    files = list(make_step(storage, 10)["files"])
+    make_step(storage, 20)
+    delete_step(storage, 10, files)
+    assert [info.step for info in scan(storage)] == [20]
+    assert verify_step(storage, 20).ok
+
+
+def test_clear_newer_deletes_abandoned_steps_and_keeps_bad_ones_until_resaved(storage):
+    make_step(storage, 10)
+    write_file(storage, 20, "rank-00000.pt", b"killed mid-save")
+    make_step(storage, 30)
+    quarantine(storage, 30, "test")
+    lines: list[str] = []
+    assert clear_newer(storage, 10, log=lines.append) == [30]
+    assert len(lines) == 1 and "step 20 (incomplete)" in lines[0]
+    assert [i.step for i in scan(storage)] == [30, 10]
+    make_step(storage, 20)  # the resumed run saves step 20 into a fresh directory
+    with pytest.raises(UserError, match="verified checkpoint step 20"):
+        clear_newer(storage, 10)
+    assert verify_step(storage, 20).ok
+    replace_bad(storage, 30, log=lines.append)  # the run reached step 30 again
+    assert "replacing checkpoint step 30 (quarantined: " in lines[-1]
+    assert [i.step for i in scan(storage)] == [20, 10]
+    with pytest.raises(UserError, match="is verified"):
+        replace_bad(storage, 20)

@@ -1,0 +1,254 @@
+import contextlib
+import logging
+import socket
+import threading
+import time
+from urllib.parse import urlsplit
+
+import pytest
+
+from ftrain.ckpt.storage import Storage, StorageError
+from ftrain.errors import UserError
+from ftrain.redact import display_url
+
+from helpers import S3_KEY, S3_SECRET, create_bucket, free_port
+
+
+def test_round_trip(storage_url):
+    url, options = storage_url
+    storage = Storage.open(url, options)
+    storage.write_exclusive("checkpoints/step-1/a.pt", b"alpha")
+    storage.write_exclusive("checkpoints/step-2/b.pt", b"beta!")
+    assert storage.read("checkpoints/step-1/a.pt") == b"alpha"
+    assert storage.exists("checkpoints/step-1/a.pt")
+    assert not storage.exists("checkpoints/step-1/zzz")
+    assert storage.size("checkpoints/step-2/b.pt") == 5
+    assert storage.list_dirs("checkpoints") == ["step-1", "step-2"]
+    assert storage.list_dirs("nothing/here") == []
+    assert storage.list_files("checkpoints/step-2") == {"b.pt": 5}
+
+    storage.write_replace("checkpoints/step-1/marker", b"one")
+    storage.write_replace("checkpoints/step-1/marker", b"two")
+    assert storage.read("checkpoints/step-1/marker") == b"two"
+
+    storage.delete("checkpoints/step-1/a.pt")
+    storage.delete("checkpoints/step-1/a.pt")  # already gone: no error
+    assert storage.list_files("checkpoints/step-1") == {"marker": 3}
+    storage.delete_tree("checkpoints/step-1")
+    storage.delete_tree("checkpoints/step-1")
+    assert storage.list_dirs("checkpoints") == ["step-2"]
+
+    with pytest.raises(FileNotFoundError, match=r"a.pt"):
+        storage.read("checkpoints/step-1/a.pt")
+
+
+def test_exclusive_create_refuses_overwrite(storage_url):
+    url, options = storage_url
+    storage = Storage.open(url, options)
+    storage.write_exclusive("d/MANIFEST.json", b"first")
+    with pytest.raises(FileExistsError, match=r"MANIFEST.json"):
+        storage.write_exclusive("d/MANIFEST.json", b"second")
+    assert storage.read("d/MANIFEST.json") == b"first"
+
+
+def test_a_new_storage_sees_what_another_wrote(storage_url):
+    """No stale listings: a second handle (another rank, a later process) lists what the first just wrote."""
+    url, options = storage_url
+    first, second = Storage.open(url, options), Storage.open(url, options)
+    assert second.list_dirs("checkpoints") == []
+    first.write_exclusive("checkpoints/step-5/x", b"x")
+    assert second.list_dirs("checkpoints") == ["step-5"]
+    assert second.list_files("checkpoints/step-5") == {"x": 1}
+
+
+@pytest.mark.parametrize(
+    ("url", "message"),
+    [("", "empty"), ("nosuchproto://x/y", "unknown protocol"), ("1x://a", "malformed")],
+)
+def test_bad_url_is_a_user_error(url, message):
+    with pytest.raises(UserError, match=message):
+        Storage.open(url)
+
+
+def test_s3_without_bucket_or_with_a_missing_one(s3_url):
+    _, options = s3_url
+    with pytest.raises(UserError, match="names no bucket"):
+        Storage.open("s3://", options)
+    with pytest.raises(UserError, match="'no-such-bucket' does not exist"):
+        Storage.open("s3://no-such-bucket/run", options)
+
+
+def test_s3_credentials_from_environment(s3_url, s3_env, monkeypatch):
+    url, _ = s3_url
+    for name, value in s3_env.items():
+        monkeypatch.setenv(name, value)
+    storage = Storage.open(url)
+    storage.write_exclusive("x", b"1")
+    assert storage.read("x") == b"1"
+
+
+def test_s3_missing_credentials(s3_url, tmp_path, monkeypatch):
+    url, options = s3_url
+    for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN", "AWS_PROFILE"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.setenv("AWS_SHARED_CREDENTIALS_FILE", str(tmp_path / "none"))
+    monkeypatch.setenv("AWS_CONFIG_FILE", str(tmp_path / "none"))
+    monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")
+    with pytest.raises(UserError, match=r"no credentials for s3://.*AWS_ACCESS_KEY_ID"):
+        Storage.open(url, {"endpoint_url": options["endpoint_url"]})
+
+
+def test_credentials_in_url_work_and_never_show(s3_server):
+    bucket = create_bucket(s3_server)
+    url = f"s3://{S3_KEY}:{S3_SECRET}@{bucket}/run"
+    storage = Storage.open(url, {"endpoint_url": s3_server["endpoint_url"]})
+    storage.write_exclusive("x", b"1")
+    assert storage.read("x") == b"1"
+    assert storage.url == f"s3://{bucket}/run" == display_url(url)
+    assert S3_SECRET not in repr(storage) and S3_KEY not in repr(storage)
+    with pytest.raises(FileNotFoundError) as missing:
+        storage.read("nothing")
+    with pytest.raises(UserError) as no_bucket:
+        Storage.open(f"s3://{S3_KEY}:{S3_SECRET}@no-such-bucket/run", {"endpoint_url": s3_server["endpoint_url"]})
+    for text in (str(missing.value), str(no_bucket.value)):
+        assert S3_SECRET not in text and S3_KEY not in text
+
+
+def test_unreachable_endpoint_is_a_user_error_after_bounded_attempts(caplog):
+    """Nothing listens on the port."""
+    options = {"endpoint_url": f"http://127.0.0.1:{free_port()}"}
+    caplog.set_level(logging.WARNING, logger="ftrain.ckpt.storage")
+    start = time.monotonic()
+    with pytest.raises(UserError, match=r"cannot reach the S3 endpoint .* after 3 attempts") as error:
+        Storage.open(f"s3://{S3_KEY}:{S3_SECRET}@bucket/run", options, retries=2, base_delay=0.01)
+    assert time.monotonic() - start < 5
+    assert len(caplog.records) == 2
+    for text in (str(error.value), caplog.text):
+        assert S3_SECRET not in text and S3_KEY not in text
+
+
+class FlakyProxy:
+    """A TCP proxy in front of the S3 server. While down it cuts live connections and drops new ones: what a
+    network outage or a restarting server looks like to the client. ``lose_responses`` swallows that many
+    final responses (the request was served) and cuts their connections."""
+
+    def __init__(self, target: str):
+        self.target = (urlsplit(target).hostname, urlsplit(target).port)
+        self.listener = socket.create_server(("127.0.0.1", 0))
+        self.endpoint = f"http://127.0.0.1:{self.listener.getsockname()[1]}"
+        self.up = threading.Event()
+        self.up.set()
+        self.refused = threading.Event()
+        """Set once a connection was dropped during an outage: the client has really seen it."""
+        self.live: list[socket.socket] = []
+        self.lose_responses = 0
+        threading.Thread(target=self._accept, daemon=True).start()
+
+    def down(self) -> None:
+        self.up.clear()
+        for sock in self.live:
+            _cut(sock)
+        self.live.clear()
+
+    def close(self) -> None:
+        self.down()
+        self.listener.close()
+
+    def _accept(self) -> None:
+        while True:
+            try:
+                client, _ = self.listener.accept()
+            except OSError:
+                return
+            if not self.up.is_set():
+                client.close()
+                self.refused.set()
+                continue
+            upstream = socket.create_connection(self.target)
+            self.live += [client, upstream]
+            for src, dst, is_response in ((client, upstream, False), (upstream, client, True)):
+                threading.Thread(target=self._pump, args=(src, dst, is_response), daemon=True).start()
+
+    def _pump(self, src: socket.socket, dst: socket.socket, is_response: bool) -> None:
+        try:
+            while data := src.recv(65536):
+                if is_response and self.lose_responses > 0 and not data.startswith(b"HTTP/1.1 100"):
+                    self.lose_responses -= 1
+                    break
+                dst.sendall(data)
+        except OSError:
+            pass
+        _cut(src)
+        _cut(dst)
+
+
+def _cut(sock: socket.socket) -> None:
+    """Shut down (this wakes a thread blocked in recv and tells the peer), then close."""
+    with contextlib.suppress(OSError):
+        sock.shutdown(socket.SHUT_RDWR)
+    sock.close()
+
+
+@pytest.fixture
+def flaky_s3(s3_server):
+    """``(proxy, url)``: a bucket reached through a FlakyProxy, with credentials in the URL."""
+    proxy = FlakyProxy(s3_server["endpoint_url"])
+    yield proxy, f"s3://{S3_KEY}:{S3_SECRET}@{create_bucket(s3_server)}/run"
+    proxy.close()
+
+
+def test_transient_outage_is_retried(flaky_s3, caplog):
+    proxy, url = flaky_s3
+    storage = Storage.open(url, {"endpoint_url": proxy.endpoint}, retries=6, base_delay=0.05)
+    storage.write_exclusive("checkpoints/step-1/MANIFEST.json", b"{}")
+    caplog.set_level(logging.WARNING, logger="ftrain.ckpt.storage")
+    proxy.down()
+
+    def outage_ends() -> None:  # after the client has hit it (a timer could fire before a slow machine reads)
+        proxy.refused.wait(30)
+        time.sleep(0.2)
+        proxy.up.set()
+
+    threading.Thread(target=outage_ends, daemon=True).start()
+    assert storage.read("checkpoints/step-1/MANIFEST.json") == b"{}"
+    assert 1 <= len(caplog.records) <= 6
+    assert "retry 1/6" in caplog.text and S3_SECRET not in caplog.text
+
+
+def test_persistent_outage_raises_storage_error_after_bounded_attempts(flaky_s3, caplog):
+    proxy, url = flaky_s3
+    storage = Storage.open(url, {"endpoint_url": proxy.endpoint}, retries=3, base_delay=0.02)
+    caplog.set_level(logging.WARNING, logger="ftrain.ckpt.storage")
+    proxy.down()
+    start = time.monotonic()
+    with pytest.raises(StorageError, match=r"read s3://.*/run/x failed after 4 attempts") as error:
+        storage.read("x")
+    assert time.monotonic() - start < 5
+    assert len(caplog.records) == 3
+    for text in (str(error.value), caplog.text):
+        assert S3_SECRET not in text and S3_KEY not in text
+
+
+def test_a_retried_create_whose_first_attempt_landed_succeeds(flaky_s3):
+    """The first PUT lands but its response is lost; the retry is refused (the object exists) and finds its own
+    bytes there: success. Other bytes under the same name stay a FileExistsError."""
+    proxy, url = flaky_s3
+    storage = Storage.open(url, {"endpoint_url": proxy.endpoint}, retries=2, base_delay=0.01)
+    proxy.lose_responses = 1
+    storage.write_exclusive("a", b"same")
+    assert proxy.lose_responses == 0
+    assert storage.read("a") == b"same"
+    with pytest.raises(FileExistsError):
+        storage.write_exclusive("a", b"other")
+
+
+def test_display_url_strips_credentials():
+    assert display_url("s3://k:s@bucket/p") == "s3://bucket/p"
+    assert display_url("s3://bucket/p") == "s3://bucket/p"
+    assert display_url("runs/hc") == "runs/hc"
+    assert display_url("s3://") == "s3://"
+
+
+def test_negative_retries_is_a_user_error(tmp_path):
+    with pytest.raises(UserError, match="retries=-1"):
+        Storage.open(str(tmp_path), retries=-1)

@@ -1,0 +1,300 @@
+"""The tests' one module of shared helpers: paths, real training processes (plain, under torchrun or supervised),
+the S3 API server, checkpoint steps to damage, and bitwise state comparison."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import uuid
+from collections.abc import Iterable
+from pathlib import Path
+
+import boto3
+import torch
+
+from ftrain.ckpt.format import FileEntry, commit, encode, step_dir, write_file
+from ftrain.ckpt.storage import Storage
+from ftrain.heartbeat import read_heartbeats
+from ftrain.supervise import procfs
+
+REPO = Path(__file__).resolve().parents[1]
+TESTS = REPO / "tests"
+SMOKE = str(REPO / "configs" / "smoke.yaml")
+TIMING = ("steps_per_s", "collect_time", "learn_time", "iteration_time")
+"""Metrics that measure wall-clock time: the only ones allowed to differ between identical runs."""
+
+
+def train_command(storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE) -> list[str]:
+    launcher = [sys.executable, "-m", "ftrain"]
+    if ranks > 1:
+        launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={ranks}"]
+        launcher += ["-m", "ftrain"]
+    return [*launcher, "train", config, "--storage", str(storage), "log.console=false", *overrides]
+
+
+def child_env(extra: dict | None = None) -> dict:
+    return {**os.environ, "OMP_NUM_THREADS": "1", **(extra or {})}
+
+
+def run_train(
+    storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE, env: dict | None = None
+) -> subprocess.CompletedProcess:
+    """Run training to completion; fail the test with its output if it does not exit 0."""
+    result = subprocess.run(
+        train_command(storage, *overrides, ranks=ranks, config=config),
+        cwd=REPO,
+        env=child_env(env),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert result.returncode == 0, (
+        f"training failed ({result.returncode}):\n{result.stdout[-3000:]}{result.stderr[-5000:]}"
+    )
+    return result
+
+
+def start_train(
+    storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE, env: dict | None = None
+) -> subprocess.Popen:
+    """Start training in a new session, so a test can kill the whole process tree like a lost machine."""
+    return subprocess.Popen(
+        train_command(storage, *overrides, ranks=ranks, config=config),
+        cwd=REPO,
+        env=child_env(env),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+
+
+LAUNCHED: list[subprocess.Popen] = []
+"""Supervisors the tests started; conftest stops any still running after each test."""
+
+
+def launch(command: list[str], **popen: object) -> subprocess.Popen:
+    """Start a long-lived process (a supervisor) that must not outlive the test that started it."""
+    LAUNCHED.append(subprocess.Popen(command, **popen))
+    return LAUNCHED[-1]
+
+
+def stop_launched() -> None:
+    """Two SIGTERMs stop a supervisor and its workers at once."""
+    while LAUNCHED:
+        proc = LAUNCHED.pop()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+            proc.send_signal(signal.SIGTERM)
+            proc.wait(timeout=60)
+
+
+def finish(proc: subprocess.Popen, timeout: float = 180) -> int:
+    """The exit code of ``proc``; killed (and the test failed) if it takes longer than ``timeout``."""
+    try:
+        return proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise
+
+
+def events(log_dir: str | Path) -> list[dict]:
+    """The supervisor's ``events.jsonl`` of a run, one dict per decision."""
+    path = Path(log_dir) / "events.jsonl"
+    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+
+
+def torchrun_pid(supervisor_pid: int) -> int:
+    """The torchrun agent a supervisor launched (waits until there is one)."""
+
+    def find() -> int | None:
+        for pid in procfs.pids():
+            fields = procfs.stat_fields(pid)
+            if fields and int(fields[1]) == supervisor_pid and b"torch.distributed.run" in procfs.read(pid, "cmdline"):
+                return pid
+        return None
+
+    return wait_for(find, "torchrun")
+
+
+def descendants(pid: int) -> list[int]:
+    """Every live process below ``pid`` (torchrun starts each worker in a session of its own, so a process group
+    kill does not reach them)."""
+    children: dict[int, list[int]] = {}
+    for child in procfs.pids():
+        if fields := procfs.stat_fields(child):
+            children.setdefault(int(fields[1]), []).append(child)
+    found, todo = [], [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found.append(child)
+            todo.append(child)
+    return found
+
+
+def kill_tree(proc: subprocess.Popen) -> None:
+    """SIGKILL a launched process and everything below it at once, like a machine that lost power."""
+    for pid in [proc.pid, *descendants(proc.pid)]:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    proc.wait()
+
+
+def wait_for(predicate, what: str, timeout: float = 120.0, interval: float = 0.005):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def training(heartbeat_dir: str | Path, iteration: int, ranks: Iterable[int] = (0, 1)) -> dict:
+    """The heartbeats in ``heartbeat_dir`` once each of ``ranks`` has completed ``iteration`` iterations and trains
+    on (in rollout or update)."""
+    ranks = list(ranks)
+
+    def ready() -> dict | None:
+        beats = read_heartbeats(Path(heartbeat_dir))
+        past = [beats.get(rank) for rank in ranks]
+        return beats if all(b and b.iteration >= iteration and b.phase in ("rollout", "update") for b in past) else None
+
+    return wait_for(ready, f"ranks {ranks} at iteration {iteration} in {heartbeat_dir}")
+
+
+def manifests(storage: str | Path) -> dict[int, dict]:
+    """Every committed step's manifest in a local storage, by step."""
+    found = {}
+    for path in Path(storage).glob("checkpoints/step-*/MANIFEST.json"):
+        found[int(path.parent.name.removeprefix("step-"))] = json.loads(path.read_text())
+    return found
+
+
+def flip_byte(path: Path) -> None:
+    """Damage a file the way bit rot does: one byte in the middle inverted."""
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def final_manifest(storage: str | Path) -> dict:
+    steps = manifests(storage)
+    assert steps, f"no committed checkpoint in {storage}"
+    return steps[max(steps)]
+
+
+def metrics_by_iteration(log_dir: str | Path) -> dict[int, dict[str, str]]:
+    """``metrics.csv`` rows by iteration, the last row winning (a resumed run redoes some iterations)."""
+    with (Path(log_dir) / "metrics.csv").open() as file:
+        rows = {int(row["iteration"]): row for row in csv.DictReader(file)}
+    return {it: {k: v for k, v in row.items() if k not in TIMING} for it, row in rows.items()}
+
+
+# --- The S3 API server (moto) on 127.0.0.1 ---
+
+S3_KEY = "ftrain-test-access-key"
+S3_SECRET = "ftrain-test-secret-Wq7vT2pL9"
+S3_REGION = "us-east-1"
+BACKENDS = ("local", "file", "memory", "s3")
+
+
+def free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def start_moto(port: int, log_path) -> subprocess.Popen:
+    """Start moto's S3 server on 127.0.0.1:``port`` and wait until it accepts connections."""
+    log = open(log_path, "ab")  # noqa: SIM115 - the server writes to it for its whole life
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)], stdout=log, stderr=log
+    )
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"moto server exited with {proc.returncode}: see {log_path}")
+        with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), timeout=0.5):
+            return proc
+        time.sleep(0.05)
+    proc.kill()
+    raise RuntimeError(f"moto server did not listen on port {port} within 30 s: see {log_path}")
+
+
+def stop(proc: subprocess.Popen) -> None:
+    proc.terminate()
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
+def create_bucket(server: dict) -> str:
+    bucket = f"ftrain-{uuid.uuid4().hex[:12]}"
+    client = boto3.client(
+        "s3",
+        endpoint_url=server["endpoint_url"],
+        aws_access_key_id=server["key"],
+        aws_secret_access_key=server["secret"],
+        region_name=server["region"],
+    )
+    client.create_bucket(Bucket=bucket)
+    return bucket
+
+
+# --- Checkpoint steps to inspect and damage ---
+
+
+def make_step(storage: Storage, step: int, world_size: int = 2, metrics: dict | None = None) -> dict:
+    """Write and commit a small real checkpoint: common.pt and one shard per rank."""
+    common = {"policy": {"weight": torch.full((2, 3), float(step))}, "iteration": step, "lr": 1e-3}
+    files: dict[str, FileEntry] = {"common.pt": write_file(storage, step, "common.pt", encode(common))}
+    for rank in range(world_size):
+        shard = {"rank": rank, "rng": torch.arange(4) + rank, "env": [1.0, 2.0]}
+        files[f"rank-{rank:05d}.pt"] = write_file(storage, step, f"rank-{rank:05d}.pt", encode(shard))
+    meta = {"iteration": step, "world_size": world_size, "metrics": metrics or {"mean_return": float(step)}}
+    return commit(storage, step, files, meta)
+
+
+def step_path(step: int, name: str) -> str:
+    return f"{step_dir(step)}/{name}"
+
+
+def flip_shard_byte(storage: Storage, step: int) -> None:
+    """Damage rank 1's shard of ``step`` like bit rot: one byte in the middle inverted."""
+    data = bytearray(storage.read(step_path(step, "rank-00001.pt")))
+    data[len(data) // 2] ^= 0xFF
+    storage.write_replace(step_path(step, "rank-00001.pt"), bytes(data))
+
+
+def truncate_shard(storage: Storage, step: int) -> None:
+    storage.write_replace(step_path(step, "rank-00001.pt"), storage.read(step_path(step, "rank-00001.pt"))[:-10])
+
+
+# --- Comparing states ---
+
+
+def assert_same(actual: object, expected: object) -> None:
+    """Same nesting, types, dict order and values; tensors of the same dtype and shape with the same bytes."""
+    assert type(actual) is type(expected)
+    if isinstance(expected, torch.Tensor):
+        assert actual.dtype == expected.dtype and actual.shape == expected.shape
+        assert torch.equal(actual.reshape(-1).view(torch.uint8), expected.reshape(-1).view(torch.uint8))
+    elif isinstance(expected, dict):
+        assert list(actual) == list(expected)
+        for key in expected:
+            assert_same(actual[key], expected[key])
+    elif isinstance(expected, (list, tuple)):
+        assert len(actual) == len(expected)
+        for a, e in zip(actual, expected, strict=True):
+            assert_same(a, e)
+    else:
+        assert actual == expected

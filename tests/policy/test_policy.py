@@ -1,0 +1,159 @@
+"""Policies from a real training run: loading, export that runs without ftrain, play with video, bad input."""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from ftrain.cli import main
+from ftrain.errors import UserError
+from ftrain.policy.export import sample_observations
+from ftrain.policy.load import load_policy
+from ftrain.policy.play import play
+
+from helpers import final_manifest, flip_byte, run_train
+
+EPISODE_STEPS = 20
+STANDALONE = r"""
+import sys
+sys.modules.update(ftrain=None, rsl_rl=None)  # importing either now fails: the exported files must not need them
+import numpy as np, onnxruntime, torch
+obs = np.load(sys.argv[1])
+torchscript = torch.jit.load(sys.argv[2])(torch.from_numpy(obs)).detach().numpy()
+onnx = onnxruntime.InferenceSession(sys.argv[3]).run(None, {"obs": obs})[0]
+np.save(sys.argv[4], np.stack([torchscript, onnx]))
+"""
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> Path:
+    """A tiny policy: 4 iterations, checkpoints at steps 2 and 4, episodes of 20 steps."""
+    run = tmp_path_factory.mktemp("policy") / "run"
+    run_train(run, "iterations=4", f"env.kwargs={{max_episode_steps: {EPISODE_STEPS}}}")
+    return run
+
+
+def step_url(run: Path, step: int) -> str:
+    return str(run / "checkpoints" / f"step-{step:09d}")
+
+
+def test_load_from_a_run_or_a_step(trained) -> None:
+    newest = load_policy(str(trained))
+    manifest = final_manifest(trained)
+    assert (newest.step, newest.digest, newest.exported) == (4, manifest["state_sha256"], None)
+    assert newest.source == step_url(trained, 4) and newest.manifest == manifest
+    assert newest.config.env.kwargs == {"max_episode_steps": EPISODE_STEPS}
+    assert not newest.actor.training
+
+    older = load_policy(step_url(trained, 2))
+    assert older.step == 2 and older.digest != newest.digest
+    obs = sample_observations(newest)
+    assert obs.shape[1] == 17 and len(obs) == 3 * (EPISODE_STEPS + 1)
+    assert not torch.equal(older.act(obs), newest.act(obs))
+    torch.manual_seed(0)
+    assert not torch.equal(newest.act(obs, deterministic=False), newest.act(obs)), "sampling must add noise"
+
+
+def test_exports_run_without_ftrain_and_match_the_actor(trained, tmp_path, capsys) -> None:
+    files = {"torchscript": tmp_path / "policy.pt", "onnx": tmp_path / "policy.onnx"}
+    for fmt, path in files.items():
+        assert main(["export", str(trained), "--format", fmt, "-o", str(path)]) == 0
+        assert f"wrote {path}: {fmt} policy of step 4" in capsys.readouterr().out
+    policy = load_policy(str(trained))
+    obs = sample_observations(policy, episodes=2, seed=7)
+    np.save(tmp_path / "obs.npy", obs.numpy())
+    subprocess.run(
+        [sys.executable, "-I", "-c", STANDALONE, "obs.npy", files["torchscript"], files["onnx"], "out.npy"],
+        cwd=tmp_path,
+        check=True,
+    )
+    expected = policy.act(obs).numpy()
+    for actions in np.load(tmp_path / "out.npy"):
+        np.testing.assert_allclose(actions, expected, atol=1e-5, rtol=1e-5)
+
+    for fmt, path in files.items():
+        exported = load_policy(str(path))
+        assert (exported.exported, exported.step) == (fmt, 4)
+        assert exported.digest == hashlib.sha256(path.read_bytes()).hexdigest()
+        assert exported.config.to_dict() == policy.config.to_dict()
+        torch.testing.assert_close(exported.act(obs), policy.act(obs), atol=1e-5, rtol=1e-5)
+
+
+def check_video(path: Path, frames: int) -> None:
+    decoded = imageio.mimread(path, memtest=False)
+    assert len(decoded) == frames
+    assert {frame.shape[:2] for frame in decoded} == {(480, 480)}
+    assert min(frame[..., :3].std() for frame in decoded) > 10, "a blank frame"
+    assert not np.array_equal(decoded[0], decoded[-1]), "nothing moves"
+
+
+@pytest.mark.slow
+def test_play_renders_mp4_and_gif(trained, tmp_path, capsys) -> None:
+    video = tmp_path / "cheetah.mp4"
+    assert main(["play", str(trained), "--episodes", "2", "--deterministic", "--video", str(video)]) == 0
+    out = capsys.readouterr().out
+    lengths = [int(length) for length in re.findall(r"episode \d: return -?[\d.]+, length (\d+)", out)]
+    assert lengths == [EPISODE_STEPS, EPISODE_STEPS]
+    assert "mean return over 2 episodes" in out
+    check_video(video, sum(length + 1 for length in lengths))  # a frame after the reset and after each step
+
+    gif = tmp_path / "cheetah.gif"
+    result = play(load_policy(str(trained)), episodes=1, video=gif)
+    assert result.frames == EPISODE_STEPS + 1 and result.lengths == [EPISODE_STEPS]
+    check_video(gif, result.frames)
+
+
+def test_play_an_exported_policy_like_its_checkpoint(trained, tmp_path) -> None:
+    path = tmp_path / "policy.onnx"
+    assert main(["export", step_url(trained, 2), "--format", "onnx", "-o", str(path)]) == 0
+    from_checkpoint = play(load_policy(step_url(trained, 2)), episodes=2, deterministic=True, seed=3)
+    from_file = play(load_policy(str(path)), episodes=2, seed=3)  # an exported policy always acts deterministically
+    assert from_file.lengths == from_checkpoint.lengths
+    assert from_file.returns == pytest.approx(from_checkpoint.returns, rel=1e-4)
+
+
+def test_a_corrupt_newest_step_is_skipped_and_a_corrupt_step_refused(trained, tmp_path) -> None:
+    run = tmp_path / "run"
+    shutil.copytree(trained, run)
+    flip_byte(Path(step_url(run, 4)) / "common.pt")
+    heard: list[str] = []
+    assert load_policy(str(run), log=heard.append).step == 2
+    assert heard and "skipping checkpoint step 4" in heard[0]
+    with pytest.raises(UserError, match="does not verify"):
+        load_policy(step_url(run, 4))
+
+
+def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> None:
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a policy\n")
+    exported = tmp_path / "policy.onnx"
+    assert main(["export", str(trained), "--format", "onnx", "-o", str(exported)]) == 0
+    anonymous = onnx.load(exported)
+    del anonymous.metadata_props[:]
+    onnx.save(anonymous, tmp_path / "anonymous.onnx")
+    cases = {
+        "a directory without checkpoints": (["play", str(tmp_path / "empty")], "no verified checkpoint under"),
+        "an unknown format": (["export", str(trained), "--format", "tflite"], "unknown policy format 'tflite'"),
+        "a text file": (["play", str(notes)], "is neither a TorchScript nor an ONNX file"),
+        "a checkpoint file": (["play", str(Path(step_url(trained, 2)) / "common.pt")], "is not a TorchScript policy"),
+        "an ONNX model of someone else": (["play", str(tmp_path / "anonymous.onnx")], "not an ftrain policy"),
+        "a step that does not exist": (["play", step_url(trained, 3)], "does not verify"),
+        "an unknown video format": (["play", str(trained), "--video", "out.avi"], "must end in .mp4 or .gif"),
+        "no episodes": (["play", str(trained), "--episodes", "0"], "play at least 1 episode"),
+        "an exported policy to export": (["export", str(exported), "--format", "torchscript"], "exported onnx policy"),
+    }
+    for case, (argv, message) in cases.items():
+        assert main(argv) == 2, case
+        err = capsys.readouterr().err
+        assert err.startswith("ftrain: error: ") and err.count("\n") == 1, f"{case}: {err!r}"
+        assert message in err, f"{case}: {err!r}"

@@ -1,0 +1,120 @@
+"""Evaluation and policy snapshots in real training runs: no effect on what is learned, keep-best by eval_return,
+verified snapshots with their own retention, and snapshots redone after a resume."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from ftrain.cli import main
+from ftrain.errors import UserError
+from ftrain.policy import snapshots
+from ftrain.policy.export import sample_observations
+from ftrain.policy.load import load_policy
+from ftrain.policy.rollout import make_env, rollout
+
+from helpers import final_manifest, manifests, metrics_by_iteration, run_train
+
+EVAL = ("eval.every=2", "eval.episodes=2", "checkpoint.best_metric=eval_return", "checkpoint.keep_last=1")
+SNAPSHOTS = ("snapshots.every=2", "snapshots.keep_last=2")
+FILES = {"policy.pt", "policy.onnx", "actor.pt", "lineage.json"}
+RANKS = 2
+"""The hooks run on rank 0 only, while the other rank goes on: it must neither wait forever nor learn otherwise."""
+
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory) -> Path:
+    """The smoke run (8 iterations, a checkpoint every 2, 2 ranks) with evaluation and snapshots, and without."""
+    root = tmp_path_factory.mktemp("runs")
+    run_train(root / "eval", *EVAL, *SNAPSHOTS, ranks=RANKS)
+    run_train(root / "plain", ranks=RANKS)
+    return root
+
+
+def snapshot_url(run: Path, step: int) -> str:
+    return str(run / "policies" / f"step-{step:09d}")
+
+
+def lineage(run: Path, step: int) -> dict:
+    return json.loads((Path(snapshot_url(run, step)) / "lineage.json").read_text())
+
+
+def test_evaluation_and_snapshots_leave_training_unchanged(runs) -> None:
+    assert final_manifest(runs / "eval")["state_sha256"] == final_manifest(runs / "plain")["state_sha256"]
+    evaluated = metrics_by_iteration(runs / "eval")
+    for row in evaluated.values():
+        row.pop("eval_return")
+    assert evaluated == metrics_by_iteration(runs / "plain")
+
+
+def test_eval_return_every_n_iterations_feeds_keep_best(runs) -> None:
+    run = runs / "eval"
+    scores = {it: float(row["eval_return"]) for it, row in metrics_by_iteration(run).items()}
+    assert [it for it, score in scores.items() if not math.isnan(score)] == [2, 4, 6, 8]
+    best = max((2, 4, 6, 8), key=scores.get)
+    kept = manifests(run)
+    assert set(kept) == {8, best}, "keep_last=1 and keep_best=1 by eval_return"
+    for step, manifest in kept.items():
+        assert manifest["metrics"]["eval_return"] == scores[step]
+
+    # the score is a function of the weights alone: the checkpoint's policy, evaluated again, gets it exactly
+    policy = load_policy(str(run / "checkpoints" / f"step-{best:09d}"))
+    env = make_env(policy.config.env)
+    episodes = rollout(env, policy.act, policy.config.eval.episodes, policy.config.eval.seed)
+    assert sum(e.ret for e in episodes) / len(episodes) == scores[best]
+
+
+@pytest.mark.filterwarnings("ignore:`torch.jit.load` is deprecated:DeprecationWarning")
+def test_snapshots_are_verified_with_their_own_retention(runs, capsys) -> None:
+    run = runs / "eval"
+    assert sorted(p.name for p in (run / "policies").iterdir()) == ["step-000000006", "step-000000008"]
+    checkpoint = final_manifest(run)
+    for step in (6, 8):
+        _, _, manifest = snapshots.open_snapshot(snapshot_url(run, step))
+        assert set(manifest["files"]) == FILES and manifest["config_hash"] == checkpoint["config_hash"]
+        story = lineage(run, step)
+        assert story["step"] == step and story["config_hash"] == checkpoint["config_hash"]
+        assert story["committed_checkpoint"]["step"] in (step - 6, step - 4, step - 2)  # two saves may be in flight
+        assert story["metrics"]["eval_return"] == float(metrics_by_iteration(run)[step]["eval_return"])
+    assert lineage(run, 8)["state_sha256"] == checkpoint["state_sha256"], "the same training state as step 8"
+
+    snapshot = load_policy(snapshot_url(run, 8))
+    trained = load_policy(str(run))
+    assert (snapshot.step, snapshot.digest) == (8, checkpoint["state_sha256"])
+    obs = sample_observations(trained)
+    assert torch.equal(snapshot.act(obs), trained.act(obs))
+    with torch.inference_mode():
+        scripted = torch.jit.load(Path(snapshot_url(run, 8)) / "policy.pt")(obs)
+    torch.testing.assert_close(scripted, trained.act(obs), atol=1e-5, rtol=1e-5)
+
+    assert main(["play", snapshot_url(run, 8), "--deterministic"]) == 0
+    assert "episode 1: return" in capsys.readouterr().out
+
+    onnx_file = Path(snapshot_url(run, 6)) / "policy.onnx"
+    data = bytearray(onnx_file.read_bytes())
+    data[-1] ^= 0xFF
+    onnx_file.write_bytes(bytes(data))
+    with pytest.raises(UserError, match=r"policy snapshot .*step-000000006 does not verify \(policy.onnx: sha256"):
+        load_policy(snapshot_url(run, 6))
+
+
+def test_a_resumed_run_redoes_the_snapshots_past_its_checkpoint(runs, tmp_path) -> None:
+    """Lose the newest checkpoint: the run resumes from an older one and writes the snapshots it redoes afresh."""
+    run = tmp_path / "run"
+    shutil.copytree(runs / "eval", run)
+    before = lineage(run, 8)
+    shutil.rmtree(run / "checkpoints" / "step-000000008")
+    result = run_train(run, *EVAL, *SNAPSHOTS, "iterations=10", ranks=RANKS)
+    assert "deleting policy snapshot step 8 (verified)" in result.stdout
+    assert sorted(p.name for p in (run / "policies").iterdir()) == ["step-000000008", "step-000000010"]
+    redone = lineage(run, 8)
+    assert redone["state_sha256"] == before["state_sha256"], "the redone iterations learn exactly the same"
+    snapshots.open_snapshot(snapshot_url(run, 10))

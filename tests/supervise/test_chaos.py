@@ -1,0 +1,155 @@
+"""Chaos: supervised 2-rank runs of configs/smoke.yaml, hit from outside by real signals, must end with the same
+``state_sha256`` as an uninterrupted run, and ``events.jsonl`` must show every detection.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ftrain.supervise.options import EXIT_PREEMPTED
+
+from helpers import (
+    REPO,
+    descendants,
+    events,
+    final_manifest,
+    finish,
+    flip_byte,
+    free_port,
+    launch,
+    torchrun_pid,
+    training,
+    wait_for,
+)
+
+pytestmark = pytest.mark.slow
+
+CONFIG = "configs/smoke.yaml"
+OVERRIDES = ["iterations=100", "dist_timeout=10", "log.console=false"]
+DEFAULTS = ["--nproc-per-node", "2", "--backoff-initial", "0.2", "--stop-grace", "20"]
+
+
+def start(storage: Path, *options: str, log: str = "supervise") -> subprocess.Popen:
+    """``ftrain supervise`` (2 ranks, unless in ``options``) on ``storage``; output: ``<storage>.<log>.log``."""
+    command = [sys.executable, "-m", "ftrain", "supervise", *DEFAULTS, *options, CONFIG, "--storage", str(storage)]
+    output = open(f"{storage}.{log}.log", "ab")  # noqa: SIM115 - the child writes to it for its whole life
+    return launch([*command, *OVERRIDES], cwd=REPO, stdout=output, stderr=subprocess.STDOUT)
+
+
+def wait_event(storage: Path, name: str, count: int) -> dict:
+    def found():
+        matching = [event for event in events(storage) if event["event"] == name]
+        return matching[count - 1] if len(matching) >= count else None
+
+    return wait_for(found, f"{count} {name} events", interval=0.05)  # each look re-reads the whole log
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> str:
+    """``state_sha256`` of the final step of an uninterrupted supervised run."""
+    storage = tmp_path_factory.mktemp("reference") / "run"
+    assert finish(start(storage)) == 0
+    manifest = final_manifest(storage)
+    step = manifest["step"]
+    assert step == 100
+    return manifest["state_sha256"]
+
+
+def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
+    storage = tmp_path / "run"
+    heartbeats = storage / "heartbeat"
+    proc = start(storage, "--hang-timeout", "3")
+
+    # 1. SIGKILL of one worker
+    beats = training(heartbeats, 4)
+    os.kill(beats[1].pid, signal.SIGKILL)
+    recovered = wait_event(storage, "recovered", 1)
+
+    # 2. SIGKILL of the torchrun agent: its workers are orphans, they save on the supervisor's SIGTERM
+    training(heartbeats, recovered["step"] + 3)
+    os.kill(torchrun_pid(proc.pid), signal.SIGKILL)
+    recovered = wait_event(storage, "recovered", 2)
+
+    # 3. SIGSTOP of one worker: a hang
+    beats = training(heartbeats, recovered["step"] + 3)
+    os.kill(beats[0].pid, signal.SIGSTOP)
+    recovered = wait_event(storage, "recovered", 3)
+
+    # 4. the newest checkpoint corrupted before the restart: freeze both ranks and their save helpers (which would
+    # go on committing a save in flight), flip a byte of a shard, kill rank 1 and the helpers
+    beats = training(heartbeats, recovered["step"] + 5)
+    helpers = [pid for beat in beats.values() for pid in descendants(beat.pid)]
+    for pid in [*(beat.pid for beat in beats.values()), *helpers]:
+        os.kill(pid, signal.SIGSTOP)
+    corrupted = final_manifest(storage)["step"]
+    flip_byte(storage / "checkpoints" / f"step-{corrupted:09d}" / "rank-00001.pt")
+    for pid in [beats[1].pid, *helpers]:
+        os.kill(pid, signal.SIGKILL)
+    os.kill(beats[0].pid, signal.SIGCONT)
+    recovered = wait_event(storage, "recovered", 4)
+    assert recovered["step"] < corrupted
+
+    # 5. SIGTERM to the supervisor: the workers save, it exits 143; the same command continues
+    training(heartbeats, recovered["step"] + 3)
+    proc.send_signal(signal.SIGTERM)
+    assert finish(proc) == EXIT_PREEMPTED
+    saved = final_manifest(storage)["step"]
+    assert finish(start(storage, log="rerun")) == 0
+
+    manifest = final_manifest(storage)
+    step = manifest["step"]
+    assert (step, manifest["state_sha256"]) == (100, reference)
+    log = events(storage)
+    causes = [event["cause"] for event in log if event["event"] == "exit"]
+    assert causes[:4] == [
+        "rank 1 killed by SIGKILL",
+        "torchrun killed by SIGKILL",
+        "killed: rank 0 hung",
+        "rank 1 killed by SIGKILL",
+    ]
+    hangs = [event for event in log if event["event"] == "hang"]
+    assert len(hangs) == 1 and hangs[0]["processes"]["0"] == "T" and hangs[0]["limit"] == 3
+    preempted = [event for event in log if event["event"] == "preempted"]
+    assert len(preempted) == 1
+    resumed = [event["step"] for event in log if event["event"] == "resumed"]
+    assert resumed[-1] == saved  # the rerun lost nothing
+    summary = [event for event in log if event["event"] == "summary"]
+    assert [event["restarts"] for event in summary] == [4, 0]
+
+
+def test_two_nodes_both_recover_when_one_loses_its_worker(tmp_path, reference):
+    storage = tmp_path / "run"
+    endpoint = f"127.0.0.1:{free_port()}"
+    nodes = [
+        start(
+            storage,
+            "--nproc-per-node",
+            "1",
+            "--nnodes",
+            "2",
+            "--node-rank",
+            str(node),
+            "--rdzv-endpoint",
+            endpoint,
+            log=f"node{node}",
+        )
+        for node in (0, 1)
+    ]
+    beats = training(storage / "heartbeat" / "node-1", 4, ranks=[1])
+    os.kill(beats[1].pid, signal.SIGKILL)
+    assert [finish(node) for node in nodes] == [0, 0]
+    manifest = final_manifest(storage)
+    step = manifest["step"]
+    assert (step, manifest["state_sha256"]) == (100, reference)
+    log = events(storage)
+    for node in (0, 1):
+        mine = [event for event in log if event["node"] == node]
+        assert [event["attempt"] for event in mine if event["event"] == "start"] == [0, 1]
+        assert sum(event["event"] == "recovered" for event in mine) == 1
+    assert any(event["event"] == "exit" and event["cause"] == "rank 1 killed by SIGKILL" for event in log)

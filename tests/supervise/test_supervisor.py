@@ -1,0 +1,348 @@
+"""``ftrain supervise`` against a small stand-in worker, hit by real signals.
+
+The stand-in (``python -m test_supervisor train CONFIG --storage DIR``, picked through the supervisor's
+``FTRAIN_WORKER_MODULE`` hook) speaks the heartbeat protocol like the trainer and joins a real gloo process group,
+but its "training" is a SHA-256 chain over iterations and a checkpoint is a MANIFEST.json holding the chain. It
+resumes from the newest manifest, saves on SIGTERM at the next iteration boundary (all ranks agree through an
+all-reduce), and can inject a fault from ``FAKE_FAULT=kind:rank:iteration`` (crash / crash-always / usage;
+rank -1: every rank).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from ftrain.heartbeat import ENV_DIR, Heartbeat, HeartbeatWriter
+from ftrain.supervise import hang, options
+from ftrain.supervise.coordinator import Coordinator, Link
+from ftrain.supervise.supervisor import WORKER_MODULE_ENV
+
+from helpers import REPO, TESTS, events, final_manifest, finish, free_port, launch, manifests, torchrun_pid, training
+
+HERE = Path(__file__).resolve().parent
+ITERATIONS = 16
+PHASE_SECONDS = 0.05
+
+# --- the stand-in worker -----------------------------------------------------------------------------------------
+
+
+def chain(state: str, iteration: int) -> str:
+    return hashlib.sha256(f"{state}:{iteration}".encode()).hexdigest()
+
+
+def expected_state(iterations: int) -> str:
+    state = "seed"
+    for iteration in range(iterations):
+        state = chain(state, iteration)
+    return state
+
+
+def fake_worker(argv: list[str]) -> int:
+    import datetime
+
+    import torch
+    import torch.distributed as dist
+
+    from ftrain.config import load_config
+
+    _, config_path, _, storage_url, *overrides = argv
+    config = load_config(config_path, overrides, storage_url)
+    storage = Path(config.storage.url)
+    rank = int(os.environ["RANK"])
+    kind, fault_rank, fault_iteration = (os.environ.get("FAKE_FAULT") or "none:-1:-1").split(":")
+    marker = storage / f"fault-{kind}-{fault_rank}-{fault_iteration}"
+
+    def fault_due(iteration: int) -> bool:
+        if int(fault_rank) not in (rank, -1) or int(fault_iteration) != iteration:
+            return False
+        if kind == "crash":  # once per run
+            if marker.exists():
+                return False
+            marker.touch()
+        return True
+
+    heartbeat = HeartbeatWriter(os.environ.get(ENV_DIR), rank)
+    heartbeat.beat("start", 0)
+    dist.init_process_group("gloo", timeout=datetime.timedelta(seconds=config.dist_timeout))
+    if kind == "usage":  # like the trainer's UserError: every rank exits 2, rank 0 says why
+        if rank == 0:
+            print("ftrain: error: stand-in bad input", file=sys.stderr)
+        return 2
+    steps = manifests(storage)
+    manifest = steps[max(steps)] if steps else None
+    iteration, state = (manifest["step"], manifest["state"]) if manifest else (0, "seed")
+    heartbeat.resumed_step = heartbeat.committed_step = manifest["step"] if manifest else None
+    stop = []
+    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
+    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
+    heartbeat.beat("start", iteration)
+    while iteration < config.iterations:
+        heartbeat.beat("rollout", iteration)
+        if kind.startswith("crash") and fault_due(iteration):
+            os._exit(1)
+        time.sleep(PHASE_SECONDS)
+        heartbeat.beat("update")
+        time.sleep(PHASE_SECONDS)
+        state = chain(state, iteration)
+        iteration += 1
+        flag = torch.tensor([float(bool(stop))])
+        dist.all_reduce(flag)
+        if flag.item() or iteration % config.checkpoint.interval == 0 or iteration == config.iterations:
+            heartbeat.beat("checkpoint")
+            dist.barrier()
+            if rank == 0:
+                step_dir = storage / "checkpoints" / f"step-{iteration:09d}"
+                step_dir.mkdir(parents=True, exist_ok=True)
+                (step_dir / "MANIFEST.json").write_text(json.dumps({"step": iteration, "state": state}))
+            dist.barrier()
+            heartbeat.committed_step = iteration
+        if flag.item():
+            break
+    heartbeat.beat("preempted" if iteration < config.iterations else "done")
+    dist.destroy_process_group()
+    return 0
+
+
+# --- helpers -------------------------------------------------------------------------------------------------------
+
+
+def write_config(tmp_path: Path) -> Path:
+    path = tmp_path / "config.yaml"
+    if not path.exists():
+        path.write_text(json.dumps({"iterations": ITERATIONS, "checkpoint": {"interval": 4}, "dist_timeout": 10}))
+    return path
+
+
+def start_supervisor(tmp_path: Path, *options: str, fault: str = "", run: str = "run") -> subprocess.Popen:
+    env = {
+        **os.environ,
+        "PYTHONPATH": os.pathsep.join([str(HERE), str(TESTS), str(REPO)]),  # this module, helpers, ftrain
+        WORKER_MODULE_ENV: "test_supervisor",
+        "FAKE_FAULT": fault,
+    }
+    command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", "--backoff-initial", "0.2"]
+    command += [*options, str(write_config(tmp_path)), "--storage", str(tmp_path / run)]
+    return launch(command, cwd=REPO, env=env)
+
+
+def names(log_dir: Path) -> list[str]:
+    return [event["event"] for event in events(log_dir)]
+
+
+def assert_finished(run: Path) -> None:
+    manifest = final_manifest(run)
+    assert manifest == {"step": ITERATIONS, "state": expected_state(ITERATIONS)}
+
+
+# --- in-process units ----------------------------------------------------------------------------------------------
+
+
+def beat(rank: int, seq: int, phase: str = "rollout", iteration: int = 1) -> Heartbeat:
+    return Heartbeat(rank, os.getpid(), iteration, phase, None, None, seq, 0.0)
+
+
+def test_hang_watch_grace_then_auto_limit():
+    watch = hang.HangWatch(timeout=None, startup_grace=10, ranks=2)
+    watch.restart(now=0)
+    assert watch.check({0: beat(0, 1, "start")}, now=9) is None
+    late = watch.check({0: beat(0, 1, "start")}, now=11)
+    assert (late.phase, late.limit, late.ranks_seen) == ("start", 10, 1)
+    assert late.cause() == "killed: start-up hung" and "iteration" not in late.fields()
+    watch.restart(now=100)
+    assert watch.check({0: beat(0, 1), 1: beat(1, 1)}, now=100) is None  # both past start: grace over
+    assert watch.check({0: beat(0, 2), 1: beat(1, 2)}, now=104) is None  # a 4 s gap observed
+    assert watch.limit() == max(hang.HANG_FLOOR, hang.HANG_FACTOR * 4)
+    assert watch.check({0: beat(0, 3), 1: beat(1, 2)}, now=110) is None  # a 6 s gap: limit 60 s
+    assert watch.limit() == max(hang.HANG_FLOOR, hang.HANG_FACTOR * 6)
+    assert watch.check({0: beat(0, 3), 1: beat(1, 2)}, now=164) is None
+    hung = watch.check({0: beat(0, 3), 1: beat(1, 2)}, now=165)
+    assert (hung.rank, hung.phase, hung.seconds, hung.limit) == (1, "rollout", 61, 60)
+    assert hung.describe() == "rank 1 silent for 61 s in phase rollout (limit 60.0 s)"
+    assert "ranks_seen" not in hung.fields()
+    assert watch.check({0: beat(0, 3, "done"), 1: beat(1, 2, "done")}, now=500) is None
+
+
+def test_coordinator_moves_every_node_to_one_new_attempt(tmp_path):
+    coordinator = Coordinator(multi_node=True)
+    server = coordinator.serve(0)
+    try:
+        remote = Link(1, None, ("127.0.0.1", server.server_address[1]))
+        local = Link(0, coordinator, None)
+        first = remote.ask("plan")
+        assert first == local.ask("plan") and first.attempt == 0 and first.port
+        key = {"token": first.token, "attempt": 0}
+        second = remote.ask("fail", **key)
+        assert local.ask("fail", **key) == second  # a second report of the same failure changes nothing
+        assert second.attempt == 1 and second.port != first.port
+        assert remote.ask("finish", code=3).final == 3
+        coordinator.wait_informed(2, timeout=0)
+        assert local.ask("finish", code=0).final == 3  # the first ending wins
+    finally:
+        server.shutdown()
+        server.server_close()
+
+
+@pytest.mark.parametrize(
+    ("options", "overrides", "fragment"),
+    [
+        (["--hang-timeout", "soon"], [], "--hang-timeout"),
+        (["--nnodes", "1:2"], [], "--nnodes"),
+        (["--nnodes", "2"], [], "--rdzv-endpoint"),
+        ([], ["iterations=zero"], "iterations"),
+    ],
+)
+def test_bad_input_fails_before_launch(tmp_path, options, overrides, fragment):
+    command = [sys.executable, "-m", "ftrain", "supervise", *options, str(write_config(tmp_path))]
+    done = subprocess.run(
+        [*command, "--storage", str(tmp_path / "run"), *overrides], cwd=REPO, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 2, done.stderr
+    assert fragment in done.stderr and "Traceback" not in done.stderr
+    assert not (tmp_path / "run").exists()
+
+
+# --- supervised runs -----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_clean_run_finishes_with_exit_0(tmp_path):
+    proc = start_supervisor(tmp_path)
+    assert finish(proc) == options.EXIT_DONE
+    run = tmp_path / "run"
+    assert_finished(run)
+    assert names(run) == ["start", "resumed", "exit", "done", "summary"]
+    assert events(run)[-1] | {"time": 0} == {
+        "time": 0,
+        "event": "summary",
+        "code": 0,
+        "restarts": 0,
+        "iterations_lost": 0,
+        "downtime": 0.0,
+    }
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rank", [0, 1])
+def test_worker_sigkill_restarts_from_newest_checkpoint(tmp_path, rank):
+    proc = start_supervisor(tmp_path)
+    run = tmp_path / "run"
+    victim = training(run / "heartbeat", 6, [rank])[rank]
+    os.kill(victim.pid, signal.SIGKILL)
+    assert finish(proc) == options.EXIT_DONE
+    assert_finished(run)
+    log = events(run)
+    failure = next(event for event in log if event["event"] == "exit")
+    assert failure["cause"] == f"rank {rank} killed by SIGKILL"
+    recovered = next(event for event in log if event["event"] == "recovered")
+    assert recovered["step"] == 4 and recovered["lost"] >= 2
+    assert log[-1]["restarts"] == 1 and log[-1]["iterations_lost"] == recovered["lost"]
+
+
+@pytest.mark.slow
+def test_torchrun_sigkill_lets_orphans_save_then_restarts(tmp_path):
+    proc = start_supervisor(tmp_path)
+    run = tmp_path / "run"
+    training(run / "heartbeat", 5, [0])
+    os.kill(torchrun_pid(proc.pid), signal.SIGKILL)
+    assert finish(proc) == options.EXIT_DONE
+    assert_finished(run)
+    log = events(run)
+    failure = next(event for event in log if event["event"] == "exit")
+    assert failure["cause"] == "torchrun killed by SIGKILL" and failure["phases"] == ["preempted"]
+    recovered = next(event for event in log if event["event"] == "recovered")
+    assert recovered["lost"] == 0 and recovered["step"] >= 5  # the orphans saved on SIGTERM
+
+
+@pytest.mark.slow
+def test_stopped_worker_is_a_hang(tmp_path):
+    proc = start_supervisor(tmp_path, "--hang-timeout", "2")
+    run = tmp_path / "run"
+    victim = training(run / "heartbeat", 6, [1])[1]
+    os.kill(victim.pid, signal.SIGSTOP)
+    assert finish(proc) == options.EXIT_DONE
+    assert_finished(run)
+    hang = next(event for event in events(run) if event["event"] == "hang")
+    assert hang["limit"] == 2 and hang["rank"] == 1 and hang["processes"]["1"] == "T"  # the kernel's "stopped"
+    assert "recovered" in names(run)
+
+
+@pytest.mark.slow
+def test_sigterm_saves_and_the_same_command_continues(tmp_path):
+    proc = start_supervisor(tmp_path)
+    run = tmp_path / "run"
+    training(run / "heartbeat", 5, [0])
+    proc.send_signal(signal.SIGTERM)
+    assert finish(proc) == options.EXIT_PREEMPTED
+    preempted = [event for event in events(run) if event["event"] == "exit"][-1]
+    assert preempted["phases"] == ["preempted"]
+    saved = final_manifest(run)["step"]
+    assert 5 <= saved < ITERATIONS
+    assert finish(start_supervisor(tmp_path)) == options.EXIT_DONE
+    assert_finished(run)
+    resumed = [event for event in events(run) if event["event"] == "resumed"]
+    assert resumed[-1]["step"] == saved  # nothing lost: the rerun starts where the preempted run stopped
+
+
+@pytest.mark.slow
+def test_crash_loop_stops_with_its_own_code(tmp_path):
+    proc = start_supervisor(tmp_path, "--crash-loop", "2", fault="crash-always:1:6")
+    assert finish(proc) == options.EXIT_CRASH_LOOP
+    run = tmp_path / "run"
+    log = events(run)
+    assert log[-2]["event"] == "crash_loop" and log[-1]["restarts"] == 2
+    backoffs = [event["backoff"] for event in log if event["event"] == "restart"]
+    assert backoffs == [0, 0]  # every attempt completed iterations: restarted at once
+    assert final_manifest(run)["step"] == 4
+
+
+@pytest.mark.slow
+def test_max_restarts_stops_with_its_own_code(tmp_path):
+    proc = start_supervisor(tmp_path, "--max-restarts", "1", "--crash-loop", "0", fault="crash-always:0:0")
+    assert finish(proc) == options.EXIT_MAX_RESTARTS
+    log = events(tmp_path / "run")
+    assert [event["event"] for event in log[-2:]] == ["max_restarts", "summary"]
+    assert [event["backoff"] for event in log if event["event"] == "restart"] == [0.2]  # no iteration completed
+
+
+@pytest.mark.slow
+def test_worker_bad_input_is_not_restarted(tmp_path):
+    proc = start_supervisor(tmp_path, fault="usage:-1:0")
+    assert finish(proc) == 2
+    log = [event for event in events(tmp_path / "run") if event["event"] != "worker_died"]
+    assert [event["event"] for event in log] == ["start", "exit", "usage", "summary"]
+    assert log[1]["cause"] in ("rank 0 exited with code 2", "rank 1 exited with code 2")
+
+
+@pytest.mark.slow
+def test_two_nodes_both_restart_after_one_node_loses_a_worker(tmp_path):
+    endpoint = f"127.0.0.1:{free_port()}"
+    nodes = [
+        start_supervisor(tmp_path, "--nnodes", "2", "--node-rank", str(node), "--rdzv-endpoint", endpoint)
+        for node in (0, 1)
+    ]
+    run = tmp_path / "run"
+    # 2 processes per node: node 1 runs global ranks 2 and 3
+    victim = training(run / "heartbeat" / "node-1", 6, [3])[3]
+    os.kill(victim.pid, signal.SIGKILL)
+    assert [finish(node) for node in nodes] == [0, 0]
+    assert_finished(run)
+    log = events(run)
+    for node in (0, 1):
+        mine = [event for event in log if event["node"] == node]
+        assert [event["attempt"] for event in mine if event["event"] == "start"] == [0, 1]
+        assert any(event["event"] == "recovered" for event in mine)
+        assert mine[-1]["restarts"] == 1
+    assert any(event["event"] == "exit" and event["cause"] == "rank 3 killed by SIGKILL" for event in log)
+
+
+if __name__ == "__main__":
+    sys.exit(fake_worker(sys.argv[1:]))

@@ -1,0 +1,131 @@
+"""The architecture as the code must keep it: packages import one way, no cycles, small modules, a torch-free
+supervisor."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+from helpers import REPO
+
+PACKAGE = REPO / "ftrain"
+LAYERS = {
+    "__main__": {"cli"},
+    "cli": {"supervise", "train", "policy", "tools", "ckpt", "config", "errors"},
+    "tools": {"train", "config", "errors"},
+    "supervise": {"config", "errors", "heartbeat", "redact"},
+    "train": {"policy", "ckpt", "dist", "config", "errors", "heartbeat"},
+    "policy": {"ckpt", "config", "errors"},
+    "ckpt": {"dist", "config", "errors", "heartbeat", "redact"},
+    "dist": set(),
+    "config": {"errors", "redact"},
+    "heartbeat": set(),
+    "redact": set(),
+    "errors": set(),
+}
+"""What each package (or top-level module) of ftrain may import from the others."""
+LAZY_IMPORTS_ALLOWED = {"ftrain.cli"}
+"""The CLI imports each subcommand's package when it runs, so that ``ftrain --help`` starts fast."""
+MAX_LINES = 400
+
+
+def modules() -> dict[str, Path]:
+    return {
+        ".".join(path.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__"): path
+        for path in sorted(PACKAGE.rglob("*.py"))
+    }
+
+
+def ftrain_imports(path: Path) -> list[tuple[str, bool, bool]]:
+    """``(module, at module level, only for type checking)`` of every ``ftrain`` import in ``path``."""
+    tree = ast.parse(path.read_text())
+    found = []
+
+    def visit(node: ast.AST, top: bool, typing_only: bool) -> None:
+        for child in ast.iter_child_nodes(node):
+            if isinstance(child, ast.If) and ast.unparse(child.test) == "TYPE_CHECKING":
+                visit(child, top, True)
+            elif isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                visit(child, False, typing_only)
+            elif isinstance(child, ast.ImportFrom) and child.module and child.module.split(".")[0] == "ftrain":
+                for alias in child.names:
+                    name = f"{child.module}.{alias.name}"
+                    found.append((name if name in modules() else child.module, top, typing_only))
+            elif isinstance(child, ast.Import):
+                found.extend((a.name, top, typing_only) for a in child.names if a.name.split(".")[0] == "ftrain")
+            else:
+                visit(child, top, typing_only)
+
+    visit(tree, True, False)
+    return found
+
+
+def layer(module: str) -> str:
+    return module.split(".")[1] if "." in module else "ftrain"
+
+
+def test_packages_import_one_way() -> None:
+    wrong = []
+    for module, path in modules().items():
+        for imported, _, _ in ftrain_imports(path):
+            source, target = layer(module), layer(imported)
+            if source != target and target != "ftrain" and target not in LAYERS[source]:
+                wrong.append(f"{module} imports {imported}")
+    assert not wrong, "imports against the layering:\n" + "\n".join(wrong)
+
+
+def test_no_import_cycles_and_no_imports_hidden_in_functions() -> None:
+    graph = {module: set() for module in modules()}
+    hidden = []
+    for module, path in modules().items():
+        for imported, top, typing_only in ftrain_imports(path):
+            if not top and module not in LAZY_IMPORTS_ALLOWED:
+                hidden.append(f"{module} imports {imported} inside a function")
+            if top and not typing_only and imported in graph and imported != module:
+                graph[module].add(imported)
+    assert not hidden, "\n".join(hidden)
+
+    cycles = []
+    state: dict[str, str] = {}
+
+    def walk(module: str, trail: list[str]) -> None:
+        state[module] = "open"
+        for imported in sorted(graph[module]):
+            if state.get(imported) == "open":
+                cycles.append(" -> ".join([*trail[trail.index(imported) :], imported]))
+            elif imported not in state:
+                walk(imported, [*trail, imported])
+        state[module] = "done"
+
+    for module in sorted(graph):
+        if module not in state:
+            walk(module, [module])
+    assert not cycles, "import cycles:\n" + "\n".join(cycles)
+
+
+def test_modules_are_small() -> None:
+    long = {
+        str(path.relative_to(REPO)): n
+        for path in modules().values()
+        if (n := len(path.read_text().splitlines())) > MAX_LINES
+    }
+    assert not long, f"modules over {MAX_LINES} lines: {long}"
+
+
+def test_every_package_says_what_lives_there_and_what_it_may_import() -> None:
+    for init in PACKAGE.glob("*/__init__.py"):
+        doc = ast.get_docstring(ast.parse(init.read_text()))
+        assert doc and "May import" in doc, f"{init.relative_to(REPO)} needs a docstring with 'May import'"
+
+
+def test_the_supervisor_imports_no_torch_mujoco_or_rsl_rl() -> None:
+    """In a fresh interpreter: the supervisor must start fast and survive a broken training install."""
+    supervise = [m for m in modules() if m.startswith("ftrain.supervise")]
+    code = (
+        f"import sys; import ftrain.cli; {'; '.join(f'import {m}' for m in supervise)}; "
+        "print(sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'mujoco', 'rsl_rl', 'gymnasium', 'numpy'}))"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=REPO)
+    assert result.stdout.strip() == "[]", f"the supervisor imported {result.stdout.strip()}"

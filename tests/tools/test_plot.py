@@ -1,0 +1,78 @@
+"""``ftrain plot`` on a real run that lost its newest checkpoint and resumed from an older one."""
+
+from __future__ import annotations
+
+import csv
+import shutil
+import struct
+from pathlib import Path
+
+import pytest
+
+from ftrain.cli import main
+from ftrain.supervise.supervisor import EventLog
+from ftrain.tools.plot import plot_run, read_metrics
+
+from helpers import run_train
+
+PANELS = ["Episode return", "Episode length", "Losses", "Throughput"]
+
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def resumed(tmp_path_factory) -> Path:
+    """Iterations 1-6, checkpoint 6 lost, then 5-8 again from checkpoint 4: metrics.csv holds 5 and 6 twice."""
+    run = tmp_path_factory.mktemp("plot") / "run"
+    run_train(run, "iterations=6", "eval.every=2", "eval.episodes=1")
+    shutil.rmtree(run / "checkpoints" / "step-000000006")
+    run_train(run, "iterations=8", "eval.every=2", "eval.episodes=1")
+    return run
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR", f"{path} is not a PNG"
+    return struct.unpack(">II", data[16:24])
+
+
+def test_last_row_of_each_iteration_wins(resumed) -> None:
+    with (resumed / "metrics.csv").open() as file:
+        raw = list(csv.DictReader(file))
+    assert [int(row["iteration"]) for row in raw] == [1, 2, 3, 4, 5, 6, 5, 6, 7, 8]
+    columns, restarts = read_metrics(resumed)
+    assert columns["iteration"] == [1, 2, 3, 4, 5, 6, 7, 8]
+    assert columns["steps_per_s"][4:6] == [float(row["steps_per_s"]) for row in raw[6:8]]
+    assert restarts == [4]
+
+
+def test_plot_marks_the_restart(resumed, tmp_path) -> None:
+    plot = plot_run(resumed, tmp_path / "curves.png")
+    assert plot.panels == PANELS and plot.restarts == [4]
+    assert png_size(plot.path) == (1200, 800)
+    assert plot.path.stat().st_size > 30_000, "a PNG with four panels of curves and text"
+
+
+def test_plot_adds_the_supervisors_restarts(resumed, tmp_path) -> None:
+    run = tmp_path / "supervised"
+    run.mkdir()
+    shutil.copy(resumed / "metrics.csv", run)
+    events = EventLog(run / "events.jsonl", None)
+    events("start", attempt=1)
+    events("resumed", attempt=1, step=None)  # a fresh start
+    events("restart", attempt=2, restarts=1)
+    events("resumed", attempt=2, step=2)
+    with (run / "events.jsonl").open("a") as file:
+        file.write('{"time": 1.0, "event": "resu')  # cut short when the supervisor itself was killed
+    assert plot_run(run).restarts == [2, 4]
+    assert (run / "curves.png").is_file()
+
+
+def test_cli(resumed, tmp_path, capsys) -> None:
+    out = tmp_path / "c.png"
+    assert main(["plot", str(resumed), "-o", str(out)]) == 0
+    assert png_size(out) == (1200, 800)
+    assert main(["plot", str(tmp_path / "nothing")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "metrics.csv does not exist: pass a run's log directory" in err

@@ -1,0 +1,53 @@
+"""Student-teacher distillation with rsl-rl's Distillation: a real teacher checkpoint, 2 real ranks."""
+
+from __future__ import annotations
+
+import subprocess
+
+import pytest
+
+from helpers import REPO, child_env, final_manifest, metrics_by_iteration, run_train, train_command
+
+pytestmark = pytest.mark.slow
+
+DISTILL = str(REPO / "configs" / "distill_halfcheetah.yaml")
+SMALL = [
+    "env.num_envs=4",
+    "env.kwargs={max_episode_steps: 50}",
+    "num_steps_per_env=16",
+    "policy.hidden_dims=[32,32]",
+    "algorithm.gradient_length=16",
+    "checkpoint.interval=4",
+]
+
+
+def test_student_learns_from_teacher_and_resumes_exactly(tmp_path) -> None:
+    teacher = tmp_path / "teacher"
+    run_train(teacher, "iterations=12")
+    teacher_manifest = final_manifest(teacher)
+
+    straight = tmp_path / "straight"
+    run_train(straight, f"teacher={teacher}", "iterations=12", *SMALL, ranks=2, config=DISTILL)
+    behavior = {it: float(row["loss/behavior"]) for it, row in metrics_by_iteration(straight).items()}
+    assert behavior[12] < 0.5 * behavior[1], f"behaviour loss did not fall: {behavior}"
+    manifest = final_manifest(straight)
+    assert manifest["teacher"]["digest"] == teacher_manifest["state_sha256"]
+    assert manifest["teacher"]["step"] == 12
+
+    resumed = tmp_path / "resumed"
+    run_train(resumed, f"teacher={teacher}", "iterations=8", *SMALL, ranks=2, config=DISTILL)
+    result = run_train(resumed, f"teacher={teacher}", "iterations=12", *SMALL, ranks=2, config=DISTILL)
+    assert "resumed from step 8" in result.stdout
+    assert final_manifest(resumed)["state_sha256"] == manifest["state_sha256"]
+
+
+def test_teacher_from_another_environment_is_one_clear_error(tmp_path) -> None:
+    teacher = tmp_path / "hopper"
+    run_train(teacher, "iterations=2", "env.id=Hopper-v5")
+    command = train_command(tmp_path / "student", f"teacher={teacher}", *SMALL, config=DISTILL)
+    result = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
+    assert len(errors) == 1 and "Traceback" not in result.stderr
+    assert "trained on Hopper-v5 (observations 11, actions 3)" in errors[0]
+    assert "student trains on HalfCheetah-v5 (observations 17, actions 6)" in errors[0]

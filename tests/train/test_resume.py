@@ -1,0 +1,284 @@
+"""Exact resume: runs killed with SIGKILL from outside (mid-rollout, mid-update, mid-save) and resumed end with the
+same learned state and the same per-iteration metrics as an uninterrupted run."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+
+import pytest
+
+from ftrain.ckpt.format import QUARANTINED
+from ftrain.heartbeat import ENV_DIR, read_heartbeats
+
+from helpers import (
+    REPO,
+    TESTS,
+    child_env,
+    final_manifest,
+    flip_byte,
+    kill_tree,
+    manifests,
+    metrics_by_iteration,
+    run_train,
+    start_train,
+    train_command,
+    wait_for,
+)
+
+pytestmark = pytest.mark.slow
+
+KILLS = [("rollout", 2, True), ("checkpoint", 4, False), ("rollout", 6, True), ("update", 7, True)]
+"""(phase, iteration, async save): SIGKILL the whole process tree once rank 0 is in that phase at or after that
+iteration. A synchronous save keeps the checkpoint phase open for the whole write, so that kill lands inside it;
+the rollout right after an asynchronous save (iteration 6) runs while the background thread writes step 6."""
+
+
+def kill_during(
+    storage, phase: str, iteration: int, overrides: list[str], ranks: int, heartbeats=None, env: dict | None = None
+) -> None:
+    heartbeats = heartbeats or storage.parent / f"{storage.name}-heartbeat"
+    proc = start_train(storage, *overrides, ranks=ranks, env={**(env or {}), ENV_DIR: str(heartbeats)})
+
+    def in_phase() -> bool:
+        beat = read_heartbeats(heartbeats).get(0)
+        return beat is not None and beat.phase == phase and beat.iteration >= iteration
+
+    try:
+        wait_for(in_phase, f"rank 0 in {phase} at iteration {iteration}", interval=0.001)
+    finally:
+        kill_tree(proc)
+    assert proc.returncode == -signal.SIGKILL
+    committed = manifests(storage) if "://" not in str(storage) else {}
+    assert all(step < 10 for step in committed), f"killed too late: {sorted(committed)}"
+
+
+@pytest.mark.parametrize(
+    ("env_id", "ranks"), [("HalfCheetah-v5", 1), ("HalfCheetah-v5", 2), ("Ant-v5", 1), ("Ant-v5", 2)]
+)
+def test_killed_anywhere_resumes_bit_for_bit(tmp_path, env_id: str, ranks: int) -> None:
+    overrides = [f"env.id={env_id}", "iterations=10", "checkpoint.interval=2", "env.num_envs=8", "num_steps_per_env=32"]
+    run_train(tmp_path / "reference", *overrides, ranks=ranks)
+    reference = final_manifest(tmp_path / "reference")
+
+    run = tmp_path / "run"
+    for phase, iteration, async_save in KILLS:
+        kill_during(run, phase, iteration, [*overrides, f"checkpoint.async_save={str(async_save).lower()}"], ranks)
+    result = run_train(run, *overrides, ranks=ranks)
+    resumed = re.search(r"resumed from step (\d+) ", result.stdout)
+    assert resumed and 0 < int(resumed[1]) < 10, result.stdout  # which step depends on how far the async saves got
+
+    assert final_manifest(run)["state_sha256"] == reference["state_sha256"]
+    assert metrics_by_iteration(run) == metrics_by_iteration(tmp_path / "reference")
+
+
+def test_async_and_sync_saves_write_the_same_checkpoints(tmp_path) -> None:
+    run_train(tmp_path / "async", "checkpoint.async_save=true", "checkpoint.keep_last=10")
+    run_train(tmp_path / "sync", "checkpoint.async_save=false", "checkpoint.keep_last=10")
+    left, right = manifests(tmp_path / "async"), manifests(tmp_path / "sync")
+    assert sorted(left) == sorted(right) == [2, 4, 6, 8]
+    for step in left:
+        assert left[step]["state_sha256"] == right[step]["state_sha256"]
+        assert left[step]["files"]["rank-00000.pt"] == right[step]["files"]["rank-00000.pt"]
+
+
+def test_resume_refuses_other_world_size_and_config(tmp_path) -> None:
+    storage = tmp_path / "run"
+    run_train(storage, "iterations=2")
+    for overrides, ranks, message in [
+        (["iterations=4"], 2, "written by 1 ranks but this run has 2: run with --nproc-per-node=1"),
+        (["iterations=4", "env.num_envs=3"], 1, "set env.num_envs=4"),
+        (["iterations=4", "algorithm.clip_param=0.1"], 1, "pass allow_config_change=true"),
+    ]:
+        result = subprocess.run(
+            train_command(storage, *overrides, ranks=ranks), cwd=REPO, env=child_env(), capture_output=True, text=True
+        )
+        assert result.returncode != 0
+        assert message in result.stderr
+        if ranks == 1:  # under torchrun, torchrun itself reports the failed worker with a traceback
+            assert "Traceback" not in result.stderr
+    assert sorted(manifests(storage)) == [2], "a refused resume must not touch the checkpoints"
+    manifest_file = storage / "checkpoints/step-000000002/MANIFEST.json"
+    current = manifest_file.read_text()
+    manifest_file.write_text(json.dumps({**json.loads(current), "state_format": 1}))  # an older ftrain's step
+    result = subprocess.run(train_command(storage, "iterations=4"), cwd=REPO, env=child_env(), capture_output=True)
+    assert result.returncode == 2 and b"holds training state in format 1" in result.stderr
+    assert not (storage / "checkpoints/step-000000002" / QUARANTINED).exists(), "refused, not quarantined"
+    manifest_file.write_text(current)
+    result = run_train(storage, "iterations=4", "algorithm.clip_param=0.1", "allow_config_change=true")
+    assert "resumed from step 2" in result.stdout
+    assert json.loads((storage / "checkpoints/step-000000004/MANIFEST.json").read_text())["iteration"] == 4
+
+
+def test_two_ranks_on_s3_killed_and_resumed(tmp_path, s3_server, s3_env) -> None:
+    from conftest import create_bucket
+
+    url = f"s3://{create_bucket(s3_server)}/runs/hc"
+    overrides = ["iterations=8", f"log_dir={tmp_path / 'logs'}"]
+    run_train(tmp_path / "reference", "iterations=8", ranks=2)
+    kill_during(url, "update", 5, overrides, ranks=2, heartbeats=tmp_path / "heartbeat", env=s3_env)
+    result = run_train(url, *overrides, ranks=2, env=s3_env)
+    # step 4 if its save had committed when the kill came, step 2 if it was still being written to S3
+    assert re.search(r"resumed from step [24] ", result.stdout), result.stdout
+    assert s3_server["secret"] not in result.stdout + result.stderr
+    assert (tmp_path / "logs" / "config.yaml").exists()
+    manifest = json.loads(_read_s3_manifest(url, 8, s3_env))
+    assert manifest["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
+    assert s3_server["secret"] not in json.dumps(manifest)
+
+
+def _read_s3_manifest(url: str, step: int, env: dict) -> str:
+    from ftrain.ckpt.storage import Storage
+
+    options = {
+        "endpoint_url": env["AWS_ENDPOINT_URL"],
+        "key": env["AWS_ACCESS_KEY_ID"],
+        "secret": env["AWS_SECRET_ACCESS_KEY"],
+    }
+    return Storage.open(url, options).read(f"checkpoints/step-{step:09d}/MANIFEST.json").decode()
+
+
+def test_failed_saves_are_logged_training_goes_on_and_persistent_failure_stops(tmp_path) -> None:
+    storage = tmp_path / "run"
+    (storage / "checkpoints").mkdir(parents=True)
+    (storage / "checkpoints" / "step-000000004").write_text("a file where the step directory should go")
+    result = run_train(storage, "checkpoint.keep_last=10")
+    assert "checkpoint step 4 failed (1/3), earlier ones intact" in result.stdout
+    assert sorted(manifests(storage)) == [2, 6, 8]
+
+    blocked = tmp_path / "blocked"
+    (blocked / "checkpoints").mkdir(parents=True)
+    for step in (2, 4, 6):
+        (blocked / "checkpoints" / f"step-{step:09d}").write_text("not a directory")
+    failed = subprocess.run(
+        train_command(blocked), cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=300
+    )
+    assert failed.returncode != 0
+    assert "3 checkpoints in a row failed to save" in failed.stderr
+    assert manifests(blocked) == {}
+
+
+def test_retention_across_a_resume_cleans_abandoned_and_failed_steps(tmp_path) -> None:
+    """Retention works from what the run knows (one scan at start, then its own saves): steps found at start,
+    an abandoned directory older than the resume point, and a save of this run that failed are all handled."""
+    storage = tmp_path / "run"
+    keep = ("checkpoint.keep_last=2", "checkpoint.keep_best=0", "checkpoint.keep_every=8", "checkpoint.pinned=[2]")
+    run_train(storage, "iterations=4", *keep)
+    steps = storage / "checkpoints"
+    (steps / "step-000000003").mkdir()
+    (steps / "step-000000003" / "rank-00000.pt").write_bytes(b"abandoned by a save that was killed")
+    (steps / "step-000000006").write_text("a file where the step directory should go")
+    result = run_train(storage, "iterations=12", *keep)
+    assert "checkpoint step 6 failed" in result.stdout
+    assert sorted(manifests(storage)) == [2, 8, 10, 12]  # pinned, every 8th, the last 2; 4 was found at start
+    assert sorted(path.name for path in steps.iterdir()) == [f"step-{s:09d}" for s in (2, 8, 10, 12)]
+
+
+def test_corrupt_newest_step_is_quarantined_kept_and_skipped(tmp_path) -> None:
+    storage = tmp_path / "run"
+    run_train(storage, "iterations=6", "checkpoint.keep_last=5")
+    flip_byte(storage / "checkpoints/step-000000006/rank-00000.pt")
+
+    result = run_train(storage, "iterations=6", "checkpoint.keep_last=5")
+    assert "skipping checkpoint step 6: corrupt, quarantined" in result.stdout
+    assert "resumed from step 4" in result.stdout
+    assert "replacing checkpoint step 6 (quarantined" in result.stdout  # kept until the run saved step 6 again
+    run_train(tmp_path / "reference", "iterations=6")
+    assert final_manifest(storage)["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
+
+
+def test_no_verified_step_but_corrupt_ones_is_refused_not_wiped(tmp_path) -> None:
+    storage = tmp_path / "run"
+    run_train(storage, "iterations=2")
+    (storage / "checkpoints/step-000000002/MANIFEST.json").write_text("{ not json")
+    result = subprocess.run(train_command(storage), cwd=REPO, env=child_env(), capture_output=True, text=True)
+    assert result.returncode == 2
+    assert "no checkpoint in" in result.stderr and "steps [2] are corrupt" in result.stderr
+    assert (storage / "checkpoints/step-000000002/rank-00000.pt").exists(), "the evidence must survive"
+
+
+def test_sigterm_to_one_worker_stops_both_ranks_at_one_boundary_and_the_rerun_continues(tmp_path) -> None:
+    overrides = ["iterations=40", "checkpoint.interval=10"]
+    heartbeats = tmp_path / "heartbeat"
+    proc = start_train(tmp_path / "run", *overrides, ranks=2, env={ENV_DIR: str(heartbeats)})
+    try:
+        beat = wait_for(lambda: (b := read_heartbeats(heartbeats).get(1)) and b.iteration >= 3 and b, "iteration 3")
+        os.kill(beat.pid, signal.SIGTERM)  # one rank only: the other learns it through the agreement
+        assert proc.wait(timeout=120) == 0
+    finally:
+        if proc.poll() is None:
+            kill_tree(proc)
+    beats = read_heartbeats(heartbeats)
+    assert {b.phase for b in beats.values()} == {"preempted"}
+    stopped = {b.iteration for b in beats.values()}
+    assert len(stopped) == 1, f"ranks stopped at different iterations: {stopped}"
+    (step,) = stopped
+    assert 3 < step < 40 and step in manifests(tmp_path / "run"), "the stop must save the iteration it stopped at"
+
+    result = run_train(tmp_path / "run", *overrides, ranks=2)
+    assert f"resumed from step {step} " in result.stdout
+    run_train(tmp_path / "reference", *overrides, ranks=2)
+    assert final_manifest(tmp_path / "run")["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
+
+
+def test_credentials_never_reach_logs_checkpoints_or_policies(tmp_path, s3_server) -> None:
+    from conftest import create_bucket
+
+    secret = s3_server["secret"]
+    options = (
+        f"storage.options={{endpoint_url: '{s3_server['endpoint_url']}', key: {s3_server['key']}, secret: {secret}}}"
+    )
+    url = f"s3://{create_bucket(s3_server)}/run"
+    result = run_train(url, options, "iterations=2", f"log_dir={tmp_path / 'logs'}", "log.tensorboard=true")
+    exported = subprocess.run(
+        [*train_command(url)[:3], "export", url, "--format", "torchscript", "-o", str(tmp_path / "policy.pt")],
+        cwd=REPO,
+        env=child_env(
+            {
+                "AWS_ENDPOINT_URL": s3_server["endpoint_url"],
+                "AWS_ACCESS_KEY_ID": s3_server["key"],
+                "AWS_SECRET_ACCESS_KEY": secret,
+            }
+        ),
+        capture_output=True,
+        text=True,
+    )
+    assert exported.returncode == 0, exported.stderr
+    assert secret not in result.stdout + result.stderr + exported.stdout + exported.stderr
+    for path in [*tmp_path.rglob("*")]:
+        if path.is_file():
+            assert secret.encode() not in path.read_bytes(), f"credentials leaked into {path}"
+    manifest = _read_s3_manifest(
+        url,
+        2,
+        {
+            "AWS_ENDPOINT_URL": s3_server["endpoint_url"],
+            "AWS_ACCESS_KEY_ID": s3_server["key"],
+            "AWS_SECRET_ACCESS_KEY": secret,
+        },
+    )
+    assert secret not in manifest and '"secret": "***"' in manifest
+
+
+def test_a_failed_final_save_is_an_error_not_success(tmp_path) -> None:
+    storage = tmp_path / "run"
+    (storage / "checkpoints").mkdir(parents=True)
+    (storage / "checkpoints" / "step-000000008").write_text("a file where the final step directory should go")
+    result = subprocess.run(train_command(storage), cwd=REPO, env=child_env(), capture_output=True, text=True)
+    assert result.returncode == 1
+    errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
+    assert len(errors) == 1 and "the final checkpoint, step 8, could not be saved" in errors[0]
+    assert "Traceback" not in result.stderr
+
+
+def test_state_that_would_not_load_back_is_refused_at_the_first_save(tmp_path) -> None:
+    hook = f"hooks=[{{target: 'probe_hooks:NumpyStateHook', kwargs: {{path: '{tmp_path}'}}}}]"
+    env = child_env({"PYTHONPATH": str(TESTS)})
+    result = subprocess.run(train_command(tmp_path / "run", hook), cwd=REPO, env=env, capture_output=True, text=True)
+    assert result.returncode == 1
+    errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
+    assert len(errors) == 1 and "hooks and metrics must keep plain data" in errors[0], result.stderr
+    assert manifests(tmp_path / "run") == {}
