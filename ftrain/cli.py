@@ -97,7 +97,13 @@ def build_parser() -> argparse.ArgumentParser:
     prune.add_argument("--keep-every", type=int, default=0)
     prune.add_argument("--pin", type=int, action="append", default=[], help="a step to keep (repeatable)")
     prune.add_argument("--dry-run", action="store_true", help="print what would be deleted, delete nothing")
-    prune.add_argument("--drop-bad", action="store_true", help="also delete corrupt and quarantined steps")
+    prune.add_argument(
+        "--drop-bad", action="store_true", help="also delete corrupt, quarantined and set-aside steps (the only way)"
+    )
+    unquarantine = ckpt_commands.add_parser(
+        "unquarantine", help="lift the quarantine of one step if it verifies (exit 1 if it does not)"
+    )
+    unquarantine.add_argument("url", help="one step: <root>/checkpoints/step-N")
 
     bench = commands.add_parser("bench", help="throughput benchmark against rsl-rl and stable-baselines3")
     bench.add_argument("--iterations", type=int, default=30)
@@ -173,6 +179,8 @@ def _dispatch(args: argparse.Namespace) -> int:
             return ckpt_commands.verify(args.url)
         if args.ckpt_command == "show":
             return ckpt_commands.show(args.url, as_json=args.json)
+        if args.ckpt_command == "unquarantine":
+            return ckpt_commands.unquarantine(args.url)
         return ckpt_commands.prune(
             args.url,
             keep_last=args.keep_last,

@@ -51,3 +51,13 @@ class NumpyStateHook(Hook):
         import numpy as np
 
         return {"best": np.float64(1.5)}
+
+
+class FailingLoadHook(Hook):
+    """Saves a state that verifies, but refuses to load it back: a hook changed between runs."""
+
+    def state_dict(self) -> dict:
+        return {"version": 1}
+
+    def load_state_dict(self, state: dict) -> None:
+        raise ValueError("hook refuses its old state")

@@ -1,4 +1,5 @@
-"""``ftrain ckpt ls|verify|show|prune``: inspect and tidy the checkpoints of a run. Each returns an exit code.
+"""``ftrain ckpt ls|verify|show|prune|unquarantine``: inspect and tidy the checkpoints of a run; each returns an
+exit code.
 
 A URL is a run's storage root (the directory holding ``checkpoints/``) or one step directory
 (``<root>/checkpoints/step-000000120``). Bad input raises UserError.
@@ -13,6 +14,7 @@ from collections.abc import Iterable
 from ftrain.ckpt.format import (
     CHECKPOINTS,
     INCOMPLETE,
+    QUARANTINE,
     VERIFIED,
     Verification,
     parse_checkpoint_url,
@@ -20,7 +22,8 @@ from ftrain.ckpt.format import (
     verify_step,
 )
 from ftrain.ckpt.retention import delete_step, retention_plan
-from ftrain.ckpt.steps import scan, select_resume
+from ftrain.ckpt.steps import ASIDE, scan, select_resume, set_aside_steps
+from ftrain.ckpt.steps import unquarantine as unquarantine_step
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
 
@@ -37,6 +40,9 @@ def ls(url: str, options: dict | None = None) -> int:
         detail = "; ".join(field for field in fields if field)
         created = str((info.manifest or {}).get("created", "-"))
         print(f"{info.step:>10}  {info.status:<11}  {_size(info.size):>9}  {created:<20}  {detail}")
+    if step is None:
+        for directory, reason in set_aside_steps(storage):
+            print(f"set aside: {storage.where(f'{ASIDE}/{directory}')} ({reason})")
     return 0
 
 
@@ -116,8 +122,34 @@ def prune(
             print(f"{'would delete' if dry_run else 'deleting'} step {info.step} ({why})")
             if not dry_run:
                 delete_step(storage, info.step, info.files)
+    if drop_bad:
+        for directory, reason in set_aside_steps(storage):
+            print(f"{'would delete' if dry_run else 'deleting'} {ASIDE}/{directory} (set aside: {reason})")
+            if not dry_run:
+                storage.delete_tree(f"{ASIDE}/{directory}")
     kept = [str(info.step) for info in infos if info.step not in doomed]
     print(f"{'would keep' if dry_run else 'kept'} {len(kept)} steps: {', '.join(kept) or '-'}")
+    return 0
+
+
+def unquarantine(url: str, options: dict | None = None) -> int:
+    """Lift the quarantine of one step if all its files verify (full digests): 0 if lifted, 1 if it does not
+    verify (the step stays quarantined)."""
+    storage, step = _open(url, options)
+    if step is None:
+        raise UserError(
+            f"unquarantine works on one step: pass {storage.url}/{CHECKPOINTS}/step-<N> (see ftrain ckpt ls)"
+        )
+    info = next(info for info in scan(storage) if info.step == step)
+    if info.status != QUARANTINE:
+        raise UserError(f"{storage.where(step_dir(step))} is {info.status}, not quarantined: nothing to lift")
+    result = unquarantine_step(storage, step)
+    if not result.ok:
+        print(f"{storage.where(step_dir(step))} stays quarantined: it does not verify")
+        for problem in result.problems:
+            print(f"  {problem}")
+        return 1
+    print(f"{storage.where(step_dir(step))} verifies: quarantine lifted (was: {info.problems[0].reason})")
     return 0
 
 

@@ -21,17 +21,16 @@ from dataclasses import dataclass, field
 
 import torch
 
-from ftrain.ckpt import packing, ptfile
 from ftrain.ckpt.storage import Storage
 
 FORMAT_VERSION = 1
-STATE_FORMAT = 3
-"""Layout of the training state inside the files, in every manifest as ``state_format`` (none before 2: one
-tensor per sub-env field, unpacked; 3: the sub-envs' PCG64 states in one tensor). Resume refuses a layout not in
-``RESUMABLE_STATE_FORMATS``; policies load from any. From 3 on, ``state_sha256`` is :func:`ftrain.ckpt.packing.digest`
-of the packed learned state (dict order counts), and ``common.pt`` holds the config as JSON text; the digests of
-format 2 steps were made another way and do not compare with them."""
-RESUMABLE_STATE_FORMATS = (2, 3)
+STATE_FORMAT = 4
+"""Layout of the training state inside the files, in every manifest as ``state_format``. 4: plain state dicts
+written by ``torch.save``; ``common.pt`` has rsl-rl's own keys at the top level (``actor_state_dict``,
+``critic_state_dict``, ``optimizer_state_dict``, ``iter``, ``infos``), so rsl-rl's ``OnPolicyRunner.load()`` opens
+it, and ftrain's state under ``ftrain``. ``state_sha256`` is :func:`state_digest` of :func:`learned_state`."""
+PACKED_STATE_FORMATS = (2, 3)
+"""ftrain 0.1's packed tensors (one flat tensor per dtype): refused with one line, never quarantined."""
 CHECKPOINTS = "checkpoints"
 MANIFEST = "MANIFEST.json"
 QUARANTINED = "QUARANTINED.json"
@@ -118,30 +117,50 @@ def parse_checkpoint_url(url: str) -> tuple[str, int | None]:
 
 
 def encode(state: dict) -> bytes:
-    """A ``torch.save`` file of ``state``; a packed state's is written by :mod:`.ptfile`, several times faster."""
-    data = ptfile.write(state) if packing.is_packed(state) else None
-    if data is not None:
-        return data
+    """``state`` as a ``torch.save`` file."""
     buffer = io.BytesIO()
     torch.save(state, buffer)
     return buffer.getvalue()
 
 
 def decode(data: bytes, name: str = "checkpoint data") -> dict:
-    """Load with ``weights_only=True``: tensors, numbers, strings, lists and dicts; anything else is refused.
-    A packed state (see ``packing.py``) comes back unpacked."""
+    """Load with ``weights_only=True``: tensors, numbers, strings, lists and dicts; anything else is refused."""
     try:
         state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:
         raise CorruptCheckpoint(f"{name} is not loadable as plain data: {_load_failure(exc)}") from None
     if not isinstance(state, dict):
         raise CorruptCheckpoint(f"{name} holds a {type(state).__name__}, not a dict")
-    if packing.is_packed(state):
-        try:
-            return packing.unpack(state)
-        except ValueError as exc:
-            raise CorruptCheckpoint(f"{name}: {exc}") from None
     return state
+
+
+def learned_state(common: dict) -> dict:
+    """What training has learned, in ``common.pt``: rsl-rl's model and optimizer state dicts (the observation
+    normalizers and the learning rate are inside them)."""
+    return {key: value for key, value in common.items() if key.endswith("_state_dict")}
+
+
+def state_digest(state: dict) -> str:
+    """SHA-256 of every tensor and plain value in ``state``, in a canonical order: sorted by path (dict keys and list
+    positions joined with ``/``), each path followed by its type, and for a tensor its dtype, shape and bytes (C
+    order). It depends on the values only, not on dict order or on how a file encodes them."""
+    digest = hashlib.sha256()
+    for path, value in sorted(_leaves(state, ""), key=lambda leaf: leaf[0]):
+        if isinstance(value, torch.Tensor):
+            tensor = value.detach().cpu().contiguous()
+            digest.update(f"{path}\0tensor\0{tensor.dtype}\0{list(tensor.shape)}\0".encode())
+            digest.update(tensor.reshape(-1).view(torch.uint8).numpy().tobytes())
+        else:
+            digest.update(f"{path}\0{type(value).__name__}\0{value!r}\0".encode())
+    return digest.hexdigest()
+
+
+def _leaves(value: object, path: str) -> list[tuple[str, object]]:
+    if isinstance(value, dict):
+        return [leaf for key, item in value.items() for leaf in _leaves(item, f"{path}/{key}")]
+    if isinstance(value, (list, tuple)):
+        return [leaf for index, item in enumerate(value) for leaf in _leaves(item, f"{path}/{index}")]
+    return [(path, value)]
 
 
 def write_file(storage: Storage, step: int, name: str, data: bytes) -> FileEntry:

@@ -1,16 +1,10 @@
-"""Coordinated checkpoints across ranks: which step to resume, sharded asynchronous saves, commit, retention.
+"""A rank's checkpoints: resume at the start, and saves at iteration boundaries, coordinated across ranks.
 
-The format and the single-process rules (digests, manifest, verification, retention plans) live in
-``format.py``, ``steps.py`` and ``retention.py``; this module adds the distributed protocol on top:
-
-- Resume: rank 0 picks the step (newest that verifies, quarantining bad ones) and broadcasts its decision; every
-  rank then reads ``common.pt`` and its own shard, checking both against the manifest.
-- Save: at the iteration boundary each rank packs its state into memory it shares with its save helper (one copy
-  of every tensor, which training can no longer change: the snapshot; see ``packing.py``) and hands it over; the
-  helper is a process at idle CPU priority (``helper.py``). The helpers encode and write the shards, gather their
-  digests through torchrun's key-value store, and rank 0's helper commits the manifest and applies retention;
-  every rank reads the agreed outcome back at a later save (or at once, for a synchronous one), so all ranks agree
-  whether the step counts.
+Resuming is ``resume.py``; one save is ``save.py``. This module decides when a save waits and acts on what the
+ranks agreed: a committed step (hooks hear of it), a failed one (training goes on; too many in a row, or a failed
+final save, stop it), an unloadable one (stop). With ``checkpoint.async_save`` (the default) a save is a snapshot
+handed to the rank's writer thread, and up to ``MAX_IN_FLIGHT`` may be in flight; without it, the rank writes and
+agrees inline, a plain ``torch.save`` per file.
 """
 
 from __future__ import annotations
@@ -20,21 +14,11 @@ import importlib.metadata
 import math
 import time
 from collections.abc import Callable
-from typing import Protocol
 
-from ftrain.ckpt.format import (
-    COMMON,
-    RESUMABLE_STATE_FORMATS,
-    STATE_FORMAT,
-    VERIFIED,
-    CorruptCheckpoint,
-    parse_checkpoint_url,
-    read_verified,
-    shard_name,
-    step_dir,
-)
-from ftrain.ckpt.helper import SaverClient, SaverGone
-from ftrain.ckpt.steps import clear_newer, quarantine, resolve_checkpoint_url, scan, select_resume
+from ftrain.ckpt import resume
+from ftrain.ckpt.format import COMMON, STATE_FORMAT, shard_name
+from ftrain.ckpt.resume import Checkpointable, CheckpointError
+from ftrain.ckpt.save import BackgroundWriter, Outcome, StepWriter, snapshot
 from ftrain.ckpt.storage import Storage
 from ftrain.config import Config
 from ftrain.dist import group
@@ -43,28 +27,10 @@ from ftrain.errors import UserError
 MAX_FAILED_SAVES = 3
 """Saves that may fail in a row (after the storage layer's own retries) before training stops with an error."""
 MAX_IN_FLIGHT = 2
-"""Saves handed to the helper and not yet settled: with two, the helper, which only gets CPU time that training
-leaves, may fall one save behind without blocking the loop."""
-
-
-class Checkpointable(Protocol):
-    """What a checkpoint saves and restores: the trainer, as this package sees it."""
-
-    iteration: int
-    metrics: dict[str, float]
-
-    def common_state(self) -> dict:
-        """The state all ranks share, saved once by rank 0 (``common.pt``)."""
-
-    def rank_state(self) -> dict:
-        """This rank's own state (its shard)."""
-
-    def load_state(self, common: dict, rank: dict) -> None:
-        """Restore what ``common_state`` and ``rank_state`` returned."""
-
-
-class CheckpointError(RuntimeError):
-    """Saving or loading a checkpoint failed in a way training must not run on from (one-line message)."""
+"""Saves handed to the writer thread and not yet settled: with two, it may fall one save behind without blocking
+the loop."""
+WAIT_BEAT = 0.5
+"""Seconds between two calls of ``while_waiting`` while a rank waits for a save (its heartbeat: not a hang)."""
 
 
 class Checkpointer:
@@ -78,15 +44,16 @@ class Checkpointer:
                 f"storage {self.storage.url} lives inside one process, but this run has {info.world_size} ranks: "
                 "use a local path, file:// or s3://"
             )
-        self._saver = SaverClient(config, info)
-        """Encoding, writing, agreeing and committing: a helper process at idle priority (see helper.py)."""
+        background = config.checkpoint.async_save
+        collectives = group.new_group(config.dist_timeout, info) if background else None
+        self._writer = StepWriter(self.storage, config.checkpoint, info, collectives, log)
+        self._background = BackgroundWriter(self._writer) if background else None
         self.committed_step: int | None = None
         self.on_commit: Callable[[int, dict], None] = lambda step, manifest: None
+        self.while_waiting: Callable[[], None] = lambda: None
         self._pending: collections.deque[tuple[int, bool]] = collections.deque()
-        """(step, must commit) of the saves handed to the helper whose outcome has not been acted on yet."""
+        """(step, must commit) of the saves handed to the writer thread whose outcome has not been acted on yet."""
         self._failures = 0
-        self._occupied: set[int] = set()
-        """Corrupt or quarantined steps past the resume point: replaced only when this run saves them again."""
         self._checked_loadable = False
         self.last_blocking_s = 0.0
         self._static_meta = {  # computed once: package metadata lookups cost ~10 ms
@@ -99,122 +66,18 @@ class Checkpointer:
             "versions": _versions(),
         }
 
-    # --- resume ------------------------------------------------------------------------------------------------
-
     def restore(self, trainer: Checkpointable) -> int | None:
-        """Load the step rank 0 chose into ``trainer``; the step, or None for a fresh start.
-
-        Every rank reads and checks its own files; the ranks then agree whether all of them loaded, so a file that
-        fails on one rank stops all of them with the same message (and quarantines the step for the next try).
-        """
-        decision = self._decide_resume() if self.info.is_main else None
-        decision = group.broadcast_object(decision, self.info)
-        kind = decision[0]
-        if kind == "error":
-            raise UserError(decision[1])
-        self._occupied = set(decision[-1])
-        if kind == "fresh":
-            self.log(decision[1])
-            return None
-        _, url, step, manifest, _ = decision
-        storage = self.storage if url is None else Storage.open(url, self.config.storage.options)
-        try:
-            common = read_verified(storage, step, COMMON, manifest)
-            shard = read_verified(storage, step, shard_name(self.info.rank), manifest)
-            trainer.load_state(common, shard)
-            failure = None
-        except (CorruptCheckpoint, KeyError, ValueError, RuntimeError) as exc:
-            failure = f"rank {self.info.rank}: {exc}"
-        failures = [f for f in group.all_gather_object(failure, self.info) if f]
-        if failures:
-            where = storage.where(step_dir(step))
-            if url is None and self.info.is_main:
-                quarantine(self.storage, step, "; ".join(failures))
-            raise CheckpointError(
-                f"checkpoint {where} could not be loaded ({'; '.join(failures)}): quarantined, "
-                "the next start falls back to an older step"
-            )
-        if url is None:
+        """Load the step to start from into ``trainer`` (see ``resume.py``); the step, or None for a fresh start."""
+        step, own = resume.restore(trainer, self.config, self.info, self.storage, self.log)
+        if own:
             self.committed_step = step
-        self.log(f"resumed from step {step} ({'this storage' if url is None else url}), iteration {trainer.iteration}")
         return step
 
-    def _decide_resume(self) -> tuple:
-        """On rank 0: ("fresh", why, occupied) | ("resume", url or None, step, manifest, occupied) | ("error", why).
-
-        ``occupied``: corrupt or quarantined steps newer than the start, kept until this run saves them again.
-        """
-        try:
-            resume = self.config.resume
-            if resume == "never":
-                if any(info.status == VERIFIED for info in scan(self.storage)):
-                    raise UserError(
-                        f"resume=never but {self.storage.url} already holds checkpoints: "
-                        "use resume=auto to continue, or a new --storage"
-                    )
-                return ("fresh", "resume=never: starting fresh", clear_newer(self.storage, 0, self.log))
-            if resume == "auto":
-                found = select_resume(self.storage, log=self.log)
-                if found is None:
-                    occupied = clear_newer(self.storage, 0, log=self.log)
-                    if occupied:
-                        raise UserError(
-                            f"no checkpoint in {self.storage.url} verifies, and steps {sorted(occupied)} are corrupt: "
-                            f"inspect them (ftrain ckpt ls {self.storage.url}), then remove them (ftrain ckpt prune "
-                            "--drop-bad) to start over, or use another --storage"
-                        )
-                    return ("fresh", f"no verified checkpoint in {self.storage.url}: starting fresh", [])
-                step, manifest = found
-                url = None
-            else:
-                _, step, manifest = resolve_checkpoint_url(resume, self.config.storage.options, self.log)
-                url = parse_checkpoint_url(resume)[0]
-            self._check_compatible(step, manifest)
-            return ("resume", url, step, manifest, clear_newer(self.storage, step, log=self.log))
-        except UserError as error:
-            return ("error", str(error))
-
-    def _check_compatible(self, step: int, manifest: dict) -> None:
-        written = manifest.get("state_format", 1)
-        if written not in RESUMABLE_STATE_FORMATS:
-            formats = " and ".join(map(str, RESUMABLE_STATE_FORMATS))
-            raise UserError(
-                f"checkpoint step {step} holds training state in format {written}, this ftrain resumes formats "
-                f"{formats}: resume it with the ftrain version that wrote it ({manifest['versions']}), "
-                "or start another --storage (its policy still loads)"
-            )
-        if manifest["world_size"] != self.info.world_size:
-            raise UserError(
-                f"checkpoint step {step} was written by {manifest['world_size']} ranks but this run has "
-                f"{self.info.world_size}: run with --nproc-per-node={manifest['world_size']} "
-                "(environment state is per rank)"
-            )
-        if manifest["envs_per_rank"] != self.config.env.num_envs:
-            raise UserError(
-                f"checkpoint step {step} has env.num_envs={manifest['envs_per_rank']} per rank, "
-                f"the config has {self.config.env.num_envs}: set env.num_envs={manifest['envs_per_rank']}"
-            )
-        saved = manifest["config"]
-        if saved["env"]["id"] != self.config.env.id or saved["policy"] != self.config.public_dict()["policy"]:
-            raise UserError(
-                f"checkpoint step {step} holds a {saved['env']['id']} policy {saved['policy']}, the config asks for "
-                f"a {self.config.env.id} policy {self.config.public_dict()['policy']}: they cannot be loaded into "
-                "each other (not even with allow_config_change=true): use another --storage"
-            )
-        if manifest["config_hash"] != self.config.training_hash() and not self.config.allow_config_change:
-            raise UserError(
-                f"checkpoint step {step} was trained with a different config (hash {manifest['config_hash']}, "
-                f"now {self.config.training_hash()}): restore the config, or pass allow_config_change=true"
-            )
-
-    # --- save --------------------------------------------------------------------------------------------------
-
     def save(self, trainer: Checkpointable, wait: bool = False, must_commit: bool = False) -> None:
-        """Snapshot now (every tensor packed into shared memory, about a millisecond) and hand it to the save helper,
-        which encodes, writes and commits it in the background; up to ``MAX_IN_FLIGHT`` saves may be in flight.
-        Waited for: with ``wait``, with ``checkpoint.async_save=false``, the first save of a run (it checks that what
-        is saved loads back), and after a failed save until one commits.
+        """Save the state of ``trainer`` as step ``trainer.iteration``.
 
+        In the background: snapshot now, the writer thread does the rest. Waited for: with ``wait``, the first save
+        of a run (it checks that what is saved loads back), and after a failed save until one commits.
         ``must_commit``: the save that ends a run (the last iteration, or a stop): if it fails, CheckpointError
         when it is waited for, instead of training on.
         """
@@ -223,38 +86,31 @@ class Checkpointer:
         if step == self.committed_step or step in (pending for pending, _ in self._pending):
             return
         self._settle(MAX_IN_FLIGHT - 1)
-        replace = step in self._occupied
-        self._occupied.discard(step)
-        states = {shard_name(self.info.rank): trainer.rank_state()}
+        files = {shard_name(self.info.rank): trainer.rank_state()}
         meta = None
         if self.info.is_main:
-            states[COMMON] = trainer.common_state()
+            files[COMMON] = trainer.common_state()
             meta = self._meta(trainer)
         first = not self._checked_loadable
-        try:
-            self._saver.save(step, states, meta, first, replace)
-        except SaverGone as exc:
-            raise CheckpointError(str(exc)) from None
         self._checked_loadable = True
-        self._pending.append((step, must_commit))
-        if wait or not self.config.checkpoint.async_save or first or self._failures:  # after a failure: one at a time
-            self._settle(0)
+        if self._background is None:
+            self._act_on(self._writer.save(step, files, meta, first), must_commit)
+        else:
+            self._background.submit(step, snapshot(files), meta, first)
+            self._pending.append((step, must_commit))
+            if wait or first or self._failures:  # after a failure: one at a time
+                self._settle(0)
         self.last_blocking_s = time.perf_counter() - started
 
     def close(self) -> None:
         """Wait for the saves in flight and act on their outcomes."""
         self._settle(0)
 
-    def wait_ready(self) -> None:
-        """Wait until the save helper is ready (for measurements of the steady state; saves wait by themselves)."""
-        try:
-            self._saver.wait_ready()
-        except SaverGone as exc:
-            raise CheckpointError(str(exc)) from None
-
     def shutdown(self) -> None:
-        """Let the save helper finish and end: the rank must not exit under it."""
-        self._saver.close()
+        """Let the writer thread end: at once if nothing is in flight, else after its saves (bounded by the
+        collectives' timeout, as a dead peer fails them)."""
+        if self._background is not None:
+            self._background.close(timeout=self.config.dist_timeout + 5)
 
     def _meta(self, trainer: Checkpointable) -> dict:
         return {
@@ -270,23 +126,22 @@ class Checkpointer:
     def _settle(self, keep: int) -> None:
         """Act on the agreed outcomes of the oldest saves in flight until at most ``keep`` are left (and on any
         that are already there: the newest committed step is known as soon as possible)."""
-        try:
-            while len(self._pending) > keep or (self._pending and self._saver.has_message()):
-                _, must_commit = self._pending.popleft()
-                self._act_on(self._saver.receive(), must_commit)
-        except SaverGone as exc:
-            raise CheckpointError(f"{exc}; a peer may have died mid-save") from None
+        while self._pending and (len(self._pending) > keep or self._background.ready()):
+            _, must_commit = self._pending.popleft()
+            while (outcome := self._background.take(WAIT_BEAT)) is None:
+                self.while_waiting()
+            self._act_on(outcome, must_commit)
 
-    def _act_on(self, outcome: tuple, must_commit: bool) -> None:
-        kind, step, detail = outcome
-        if kind == "unloadable":
-            raise CheckpointError(detail)
-        if kind == "committed":
+    def _act_on(self, outcome: Outcome, must_commit: bool) -> None:
+        if outcome.kind == "unloadable":
+            raise CheckpointError(outcome.detail)
+        if outcome.kind == "committed":
             self._failures = 0
-            self.committed_step = step
-            self.on_commit(step, detail)
+            self.committed_step = outcome.step
+            self.on_commit(outcome.step, outcome.detail)
             return
         self._failures += 1
+        step, detail = outcome.step, outcome.detail
         self.log(f"checkpoint step {step} failed ({self._failures}/{MAX_FAILED_SAVES}), earlier ones intact: {detail}")
         if must_commit:
             raise CheckpointError(

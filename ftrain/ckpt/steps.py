@@ -1,7 +1,9 @@
 """What is in a storage: the state of every step, resume selection, quarantine, and clearing for a new save.
 
-Rules (see ``format.py`` for what "verified" means): a corrupt committed step is quarantined, never loaded and
-never deleted except by an explicit prune; an incomplete one (no manifest) was abandoned and may be deleted.
+Rules (see ``format.py`` for what "verified" means): a committed step that fails verification (a missing or
+damaged file) is quarantined, never loaded, and never deleted except by an explicit ``ftrain ckpt prune
+--drop-bad``; a run that needs its step number again sets it aside under ``quarantine/``. An incomplete step (no
+manifest) was abandoned and may be deleted. A step that verifies is never quarantined.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from ftrain.ckpt.format import (
     CorruptCheckpoint,
     Problem,
     StepInfo,
+    Verification,
     now,
     parse_checkpoint_url,
     read_manifest,
@@ -31,6 +34,9 @@ from ftrain.ckpt.format import (
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
+
+ASIDE = "quarantine"
+"""Where corrupt and quarantined steps go when a run needs their step number again (see :func:`set_aside`)."""
 
 
 def scan(storage: Storage, full: bool = False) -> list[StepInfo]:
@@ -62,6 +68,15 @@ def quarantine(storage: Storage, step: int, reason: str) -> None:
     storage.write_replace(f"{step_dir(step)}/{QUARANTINED}", (json.dumps(marker, indent=2) + "\n").encode())
 
 
+def unquarantine(storage: Storage, step: int) -> Verification:
+    """Lift the quarantine of ``step`` if every file verifies against its manifest (full digests); the verification
+    either way (the marker stays unless it is ok)."""
+    result = verify_step(storage, step, full=True)
+    if result.ok:
+        storage.delete(f"{step_dir(step)}/{QUARANTINED}")
+    return result
+
+
 def select_resume(
     storage: Storage, log: Callable[[str], None] = print, quarantine_bad: bool = True
 ) -> tuple[int, dict] | None:
@@ -86,14 +101,13 @@ def select_resume(
     return None
 
 
-def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print) -> list[int]:
+def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print) -> None:
     """Prepare a run starting from ``step`` (0 for a fresh start) to save the following steps again.
 
     Every save needs a fresh directory. Incomplete steps newer than ``step`` were abandoned by the run that died
-    (never committed): they are deleted. Corrupt and quarantined ones are kept for a human to inspect and
-    returned: the run replaces each only when it saves that very step again (:func:`replace_bad`). A verified newer
-    step means the storage holds another history: UserError, nothing deleted. Call it on rank 0 before the first
-    save, when no other process writes to this storage.
+    (never committed): they are deleted. Corrupt and quarantined ones are set aside (:func:`set_aside`), never
+    deleted. A verified newer step means the storage holds another history: UserError, nothing touched. Call it on
+    rank 0 before the first save, when no other process writes to this storage.
     """
     newer = [info for info in scan(storage) if info.step > step]
     verified = [info.step for info in newer if info.status == VERIFIED]
@@ -106,19 +120,34 @@ def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print)
         if info.status == INCOMPLETE:
             log(f"deleting checkpoint step {info.step} (incomplete): newer than step {step} this run starts from")
             delete_step(storage, info.step)
-    return [info.step for info in newer if info.status != INCOMPLETE]
+        else:
+            where = set_aside(storage, info)
+            log(f"checkpoint step {info.step} ({info.status}) moved to {where}: the run saves that step again")
 
 
-def replace_bad(storage: Storage, step: int, log: Callable[[str], None] = print) -> None:
-    """Delete corrupt or quarantined ``step`` so that a run that reached it again can save it afresh."""
-    info = next((info for info in scan(storage) if info.step == step), None)
-    if info is None:
-        return
-    if info.status == VERIFIED:
-        raise UserError(f"{storage.where(step_dir(step))} is verified: refusing to replace it")
-    reasons = "; ".join(str(problem) for problem in info.problems)
-    log(f"replacing checkpoint step {step} ({info.status}: {reasons}) with a new save")
-    delete_step(storage, step)
+def set_aside(storage: Storage, info: StepInfo) -> str:
+    """Move a corrupt or quarantined step out of ``checkpoints/`` into ``quarantine/`` (quarantining it first if it
+    is merely corrupt), so that a run can save that step number again; its printable new URL. Every file is copied
+    before the original directory goes, so nothing is lost if this fails halfway. Only ``ftrain ckpt prune
+    --drop-bad`` deletes what lies there."""
+    if info.status == CORRUPT:
+        quarantine(storage, info.step, "; ".join(str(problem) for problem in info.problems))
+    names = storage.list_files(step_dir(info.step))
+    taken = set(storage.list_dirs(ASIDE))
+    target = next(f"{ASIDE}/{name}" for n in range(len(taken) + 1) if (name := _aside_name(info.step, n)) not in taken)
+    for name in names:
+        storage.write_exclusive(f"{target}/{name}", storage.read(f"{step_dir(info.step)}/{name}"))
+    storage.delete_tree(step_dir(info.step))
+    return storage.where(target)
+
+
+def set_aside_steps(storage: Storage) -> list[tuple[str, str]]:
+    """``(directory, quarantine reason)`` of every step set aside under ``quarantine/``."""
+    return [(name, _quarantine_reason(storage, name, ASIDE)) for name in storage.list_dirs(ASIDE)]
+
+
+def _aside_name(step: int, n: int) -> str:
+    return f"step-{step:09d}" + (f".{n}" if n else "")
 
 
 def resolve_checkpoint_url(
@@ -140,9 +169,10 @@ def resolve_checkpoint_url(
     return storage, step, result.manifest
 
 
-def _quarantine_reason(storage: Storage, step: int) -> str:
+def _quarantine_reason(storage: Storage, step: int | str, parent: str = CHECKPOINTS) -> str:
+    directory = step_dir(step) if parent == CHECKPOINTS else f"{parent}/{step}"
     try:
-        return str(json.loads(storage.read(f"{step_dir(step)}/{QUARANTINED}"))["reason"])
+        return str(json.loads(storage.read(f"{directory}/{QUARANTINED}"))["reason"])
     except (FileNotFoundError, ValueError, TypeError, KeyError):
         return "quarantined (marker unreadable)"
 

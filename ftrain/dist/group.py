@@ -1,8 +1,12 @@
-"""Process group (gloo, with a timeout), rank info, per-rank seeding and the few collectives ftrain needs."""
+"""Process group (gloo, with a timeout), rank info, per-rank seeding and the few collectives ftrain needs.
+
+Objects travel between ranks as JSON, never as pickles: a peer sends data, not code.
+"""
 
 from __future__ import annotations
 
 import datetime
+import json
 import os
 import random
 from dataclasses import dataclass
@@ -51,6 +55,14 @@ def shutdown() -> None:
         dist.destroy_process_group()
 
 
+def new_group(timeout_s: float, info: RankInfo) -> dist.ProcessGroup | None:
+    """A gloo group of all ranks besides the training one, for collectives of another thread (checkpoint saves);
+    None at world size 1. Every rank must call it at the same point."""
+    if not info.distributed:
+        return None
+    return dist.new_group(backend="gloo", timeout=datetime.timedelta(seconds=timeout_s))
+
+
 def rank_seed(seed: int, rank: int) -> int:
     """A well-mixed 31-bit seed per (seed, rank): nearby seeds or ranks never share streams."""
     return int(np.random.SeedSequence([seed, rank]).generate_state(1)[0] >> 1)
@@ -89,19 +101,39 @@ def all_reduce_sum(values: list[float], info: RankInfo) -> list[float]:
     return tensor.tolist()
 
 
-def broadcast_object(value: object, info: RankInfo) -> object:
-    """Rank 0's ``value`` on every rank."""
+def broadcast_object(value: object, info: RankInfo, group: dist.ProcessGroup | None = None) -> object:
+    """Rank 0's JSON-able ``value`` on every rank."""
     if not info.distributed:
         return value
-    box = [value]
-    dist.broadcast_object_list(box, src=0)
-    return box[0]
+    size = torch.zeros(1, dtype=torch.int64)
+    data = _encode(value) if info.is_main else torch.empty(0, dtype=torch.uint8)
+    size[0] = data.numel()
+    dist.broadcast(size, src=0, group=group)
+    if not info.is_main:
+        data = torch.empty(int(size[0]), dtype=torch.uint8)
+    dist.broadcast(data, src=0, group=group)
+    return _decode(data)
 
 
-def all_gather_object(value: object, info: RankInfo) -> list:
-    """Every rank's ``value``, in rank order."""
+def all_gather_object(value: object, info: RankInfo, group: dist.ProcessGroup | None = None) -> list:
+    """Every rank's JSON-able ``value``, in rank order."""
     if not info.distributed:
         return [value]
-    out: list = [None] * info.world_size
-    dist.all_gather_object(out, value)
-    return out
+    data = _encode(value)
+    sizes = [torch.zeros(1, dtype=torch.int64) for _ in range(info.world_size)]
+    dist.all_gather(sizes, torch.tensor([data.numel()], dtype=torch.int64), group=group)
+    longest = max(int(size[0]) for size in sizes)
+    padded = torch.zeros(longest, dtype=torch.uint8)
+    padded[: data.numel()] = data
+    gathered = [torch.empty(longest, dtype=torch.uint8) for _ in range(info.world_size)]
+    dist.all_gather(gathered, padded, group=group)
+    return [_decode(chunk[: int(size[0])]) for chunk, size in zip(gathered, sizes, strict=True)]
+
+
+def _encode(value: object) -> torch.Tensor:
+    """As JSON: what peers send is data, never code (``broadcast_object_list`` would unpickle it)."""
+    return torch.frombuffer(bytearray(json.dumps(value).encode()), dtype=torch.uint8)
+
+
+def _decode(data: torch.Tensor) -> object:
+    return json.loads(data.numpy().tobytes())

@@ -24,7 +24,14 @@ from dataclasses import dataclass
 import torch
 from tensordict import TensorDict
 
-from ftrain.ckpt.format import COMMON, CorruptCheckpoint, parse_checkpoint_url, read_verified, step_dir
+from ftrain.ckpt.format import (
+    COMMON,
+    PACKED_STATE_FORMATS,
+    CorruptCheckpoint,
+    parse_checkpoint_url,
+    read_verified,
+    step_dir,
+)
 from ftrain.ckpt.steps import resolve_checkpoint_url
 from ftrain.ckpt.storage import Storage
 from ftrain.config import Config, config_from_dict
@@ -74,14 +81,24 @@ def load_policy(url: str, options: dict | None = None, log: Callable[[str], None
             return policy_from_file(*file)
         else:
             storage, step, manifest = resolve_checkpoint_url(url, options, log)
-            learned = read_verified(storage, step, COMMON, manifest)["learned"]
+            _refuse_packed(storage.where(step_dir(step)), manifest)
+            common = read_verified(storage, step, COMMON, manifest)
             # a distillation checkpoint holds the student (and the teacher it learned from): the student is the policy
-            state = learned.get("student_state_dict", learned.get("actor_state_dict"))
+            state = common.get("student_state_dict", common.get("actor_state_dict"))
     except CorruptCheckpoint as exc:
         raise UserError(f"{url} does not verify ({exc}): pick another step") from None
     config = config_from_dict(manifest["config"])
     source = storage.where(step_dir(step))
     return Policy(_actor(config, state), config, source, step, manifest, manifest["state_sha256"])
+
+
+def _refuse_packed(where: str, manifest: dict) -> None:
+    written = manifest.get("state_format")
+    if written in PACKED_STATE_FORMATS:
+        raise UserError(
+            f"{where} is in ftrain 0.1's packed format (state format {written}), which this ftrain no longer reads: "
+            f"load it with the ftrain that wrote it ({manifest.get('versions')})"
+        )
 
 
 def _policy_file(url: str, options: dict | None) -> tuple[bytes, str] | None:

@@ -21,11 +21,34 @@ def policy_kwargs(config: Config) -> dict:
     }
 
 
+def distribution_cfg(config: Config) -> dict:
+    """rsl-rl's config of the actor's action distribution."""
+    return {"class_name": "GaussianDistribution", "init_std": config.policy.init_noise_std}
+
+
 def build_actor(config: Config, obs, num_actions: int, obs_set: str = "actor") -> MLPModel:
-    distribution = {"class_name": "GaussianDistribution", "init_std": config.policy.init_noise_std}
     return MLPModel(
-        obs, {obs_set: [OBS_GROUP]}, obs_set, num_actions, **policy_kwargs(config), distribution_cfg=distribution
+        obs,
+        {obs_set: [OBS_GROUP]},
+        obs_set,
+        num_actions,
+        **policy_kwargs(config),
+        distribution_cfg=distribution_cfg(config),
     )
+
+
+def rsl_rl_runner_cfg(config: Config) -> dict:
+    """The ``train_cfg`` with which rsl-rl's ``OnPolicyRunner`` builds the models of ``config`` as ftrain does, so that
+    its ``load()`` opens ftrain's ``common.pt`` (PPO runs) unchanged."""
+    model = {"class_name": "MLPModel", **policy_kwargs(config)}
+    return {
+        "num_steps_per_env": config.num_steps_per_env,
+        "save_interval": config.checkpoint.interval,
+        "obs_groups": {"actor": [OBS_GROUP], "critic": [OBS_GROUP]},
+        "actor": {**model, "distribution_cfg": distribution_cfg(config)},
+        "critic": model,
+        "algorithm": {"class_name": "PPO", "learning_rate": config.algorithm.learning_rate},
+    }
 
 
 def actor_actions(actor: MLPModel, obs: torch.Tensor, deterministic: bool = True) -> torch.Tensor:

@@ -61,10 +61,11 @@ class Ledger:
                 self.lost += lost
                 self.downtime += downtime
                 self.pending = None
+                start = "the start (no checkpoint yet)" if attempt.resumed is None else f"step {attempt.resumed}"
                 self.events(
                     "recovered",
-                    f"attempt {attempt.plan.attempt}: recovered from step {attempt.resumed} "
-                    f"({lost} iterations lost, {downtime:.1f} s down)",
+                    f"attempt {attempt.plan.attempt}: recovered from {start} ({lost} iterations lost, {downtime:.1f} s "
+                    "down)",
                     attempt=attempt.plan.attempt,
                     step=attempt.resumed,
                     lost=lost,

@@ -50,9 +50,6 @@ class ThroughputHook(Hook):
         self.iterations: list[tuple[float, float]] = []
         """(seconds, env steps) of each timed iteration, save included."""
 
-    def on_start(self, trainer) -> None:
-        trainer.checkpointer.wait_ready()  # the save helper's start-up is not part of the steady state
-
     def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
         now = (time.perf_counter(), metrics["env_steps"])
         if trainer.iteration == self.warmup:

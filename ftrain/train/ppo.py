@@ -246,13 +246,9 @@ def build_algorithm(config: Config, env: MujocoVecEnv, info: RankInfo) -> PPO | 
     return build_ppo(config, env, info)
 
 
-def learned_state(alg: PPO | Distillation) -> dict:
-    """What training has learned: models (with normalizers), optimizer, adaptive learning rate."""
-    return {**alg.save(), "learning_rate": alg.learning_rate}
-
-
-def load_learned_state(alg: PPO | Distillation, state: dict) -> None:
+def load_learned_state(alg: PPO | Distillation, state: dict, learning_rate: float) -> None:
+    """Models (with normalizers) and optimizer from rsl-rl's keys in ``state``; the adaptive learning rate."""
     alg.load(state, load_cfg=None, strict=True)
-    alg.learning_rate = state["learning_rate"]
+    alg.learning_rate = learning_rate
     for group in alg.optimizer.param_groups:
-        group["lr"] = alg.learning_rate
+        group["lr"] = learning_rate

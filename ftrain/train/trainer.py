@@ -18,15 +18,16 @@ from pathlib import Path
 import torch
 import yaml
 
-from ftrain.ckpt import packing
-from ftrain.ckpt.manager import Checkpointer, CheckpointError
+from ftrain.ckpt.format import learned_state, state_digest
+from ftrain.ckpt.manager import Checkpointer
+from ftrain.ckpt.resume import CheckpointError
 from ftrain.config import Config
 from ftrain.dist import group
 from ftrain.heartbeat import ENV_DIR, HeartbeatWriter
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.evaluation import EvalHook
 from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
-from ftrain.train.ppo import build_algorithm, learned_state, load_learned_state
+from ftrain.train.ppo import build_algorithm, load_learned_state
 from ftrain.train.snapshot_hook import PolicySnapshotHook
 
 EXIT_CHECKPOINT = 1
@@ -75,6 +76,7 @@ class Trainer:
         self.heartbeat = HeartbeatWriter(os.environ.get(ENV_DIR), info.rank)
         self.checkpointer = Checkpointer(config, info, self.log)
         self.checkpointer.on_commit = lambda step, manifest: self.hooks.call("on_checkpoint", self, step, manifest)
+        self.checkpointer.while_waiting = lambda: self.heartbeat.beat("checkpoint")
         self._stop_votes = 0.0
         self._config_json = json.dumps(config.public_dict())
         """The config as saved in common.pt: one string, made once (the manifest has it as a mapping)."""
@@ -86,15 +88,20 @@ class Trainer:
     # --- state -------------------------------------------------------------------------------------------------
 
     def common_state(self) -> dict:
-        """Identical on every rank; saved once, by rank 0."""
+        """Identical on every rank; saved once, by rank 0, as ``common.pt``: rsl-rl's own keys at the top level (its
+        ``OnPolicyRunner.load()`` opens the file), ftrain's state under ``ftrain``."""
         return {
-            "learned": learned_state(self.alg),
-            "iteration": self.iteration,
-            "env_steps": self.env_steps,
-            "metrics": dict(self.metrics),
-            "hooks": self.hooks.state_dict(),
-            "config": self._config_json,
-            **({"teacher": self.alg.teacher_identity} if hasattr(self.alg, "teacher_identity") else {}),
+            **self.alg.save(),
+            "iter": self.iteration,
+            "infos": None,
+            "ftrain": {
+                "learning_rate": self.alg.learning_rate,
+                "env_steps": self.env_steps,
+                "metrics": dict(self.metrics),
+                "hooks": self.hooks.state_dict(),
+                "config": self._config_json,
+                **({"teacher": self.alg.teacher_identity} if hasattr(self.alg, "teacher_identity") else {}),
+            },
         }
 
     def rank_state(self) -> dict:
@@ -106,18 +113,19 @@ class Trainer:
         }
 
     def load_state(self, common: dict, rank: dict) -> None:
-        load_learned_state(self.alg, common["learned"])
-        self.iteration = common["iteration"]
-        self.env_steps = common["env_steps"]
-        self.metrics = dict(common["metrics"])
-        self.hooks.load_state_dict(common["hooks"])
-        if "teacher" in common:  # the teacher's weights come from the checkpoint: so does its identity
-            if common["teacher"]["digest"] != self.alg.teacher_identity["digest"]:
+        own = common["ftrain"]
+        load_learned_state(self.alg, common, own["learning_rate"])
+        self.iteration = common["iter"]
+        self.env_steps = own["env_steps"]
+        self.metrics = dict(own["metrics"])
+        self.hooks.load_state_dict(own["hooks"])
+        if "teacher" in own:  # the teacher's weights come from the checkpoint: so does its identity
+            if own["teacher"]["digest"] != self.alg.teacher_identity["digest"]:
                 self.log(
                     f"teacher {self.config.teacher} has changed since this run started: keeping the teacher "
-                    f"it started with ({common['teacher']['source']}, step {common['teacher']['step']})"
+                    f"it started with ({own['teacher']['source']}, step {own['teacher']['step']})"
                 )
-            self.alg.teacher_identity = common["teacher"]
+            self.alg.teacher_identity = own["teacher"]
         self.env.set_state(rank["env"])
         group.set_rng_state(rank["rng"])
         self.episodes.clear()
@@ -125,7 +133,7 @@ class Trainer:
 
     def learned_digest(self) -> str:
         """What a checkpoint of this state records as ``state_sha256``."""
-        return packing.digest(packing.pack({"learned": learned_state(self.alg)}), "learned")  # as in common.pt
+        return state_digest(learned_state(self.alg.save()))
 
     # --- loop --------------------------------------------------------------------------------------------------
 

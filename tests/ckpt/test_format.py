@@ -27,7 +27,16 @@ from ftrain.ckpt.format import (
     write_file,
 )
 from ftrain.ckpt.retention import delete_step, retention_plan
-from ftrain.ckpt.steps import clear_newer, quarantine, replace_bad, resolve_checkpoint_url, scan, select_resume
+from ftrain.ckpt.steps import (
+    ASIDE,
+    clear_newer,
+    quarantine,
+    resolve_checkpoint_url,
+    scan,
+    select_resume,
+    set_aside_steps,
+    unquarantine,
+)
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
 
@@ -301,21 +310,40 @@ def test_delete_step_by_files_on_every_backend(storage_url):
     assert verify_step(storage, 20).ok
 
 
-def test_clear_newer_deletes_abandoned_steps_and_keeps_bad_ones_until_resaved(storage):
+def test_clear_newer_deletes_abandoned_steps_and_sets_bad_ones_aside_intact(storage):
     make_step(storage, 10)
     write_file(storage, 20, "rank-00000.pt", b"killed mid-save")
     make_step(storage, 30)
     quarantine(storage, 30, "test")
+    make_step(storage, 40)
+    truncate_shard(storage, 40)
+    quarantined = {name: storage.read(step_path(30, name)) for name in storage.list_files(step_dir(30))}
     lines: list[str] = []
-    assert clear_newer(storage, 10, log=lines.append) == [30]
-    assert len(lines) == 1 and "step 20 (incomplete)" in lines[0]
-    assert [i.step for i in scan(storage)] == [30, 10]
-    make_step(storage, 20)  # the resumed run saves step 20 into a fresh directory
+    clear_newer(storage, 10, log=lines.append)
+    assert len(lines) == 3 and "step 40 (corrupt) moved to" in lines[0]
+    assert "step 30 (quarantined) moved to" in lines[1] and "step 20 (incomplete)" in lines[2]
+    assert [i.step for i in scan(storage)] == [10]
+    aside = dict(set_aside_steps(storage))
+    assert set(aside) == {"step-000000030", "step-000000040"} and aside["step-000000030"] == "test"
+    assert "size mismatch" in aside["step-000000040"]  # quarantined with its reason before it moved
+    assert {name: storage.read(f"{ASIDE}/step-000000030/{name}") for name in quarantined} == quarantined
+
+    make_step(storage, 30)  # the resumed run saves step 30 again; a second bad 30 goes next to the first
+    quarantine(storage, 30, "again")
+    clear_newer(storage, 10)
+    assert dict(set_aside_steps(storage))["step-000000030.1"] == "again"
+    make_step(storage, 20)
     with pytest.raises(UserError, match="verified checkpoint step 20"):
         clear_newer(storage, 10)
     assert verify_step(storage, 20).ok
-    replace_bad(storage, 30, log=lines.append)  # the run reached step 30 again
-    assert "replacing checkpoint step 30 (quarantined: " in lines[-1]
-    assert [i.step for i in scan(storage)] == [20, 10]
-    with pytest.raises(UserError, match="is verified"):
-        replace_bad(storage, 20)
+
+
+def test_unquarantine_lifts_only_a_step_that_verifies(storage):
+    make_step(storage, 10)
+    make_step(storage, 20)
+    quarantine(storage, 10, "a load error of an older ftrain")
+    quarantine(storage, 20, "bit rot")
+    flip_shard_byte(storage, 20)
+    assert unquarantine(storage, 10).ok
+    assert not unquarantine(storage, 20).ok
+    assert {i.step: i.status for i in scan(storage)} == {20: QUARANTINE, 10: VERIFIED}

@@ -248,6 +248,16 @@ def test_worker_sigkill_restarts_from_newest_checkpoint(tmp_path, rank):
 
 
 @pytest.mark.slow
+def test_a_crash_before_the_first_checkpoint_recovers_from_the_start(tmp_path, capfd):
+    proc = start_supervisor(tmp_path, fault="crash:1:2")  # rank 1 dies at iteration 2, before step 4 is saved
+    assert finish(proc) == options.EXIT_DONE
+    assert_finished(tmp_path / "run")
+    recovered = next(event for event in events(tmp_path / "run") if event["event"] == "recovered")
+    assert recovered["step"] is None and recovered["lost"] == 2
+    assert "recovered from the start (no checkpoint yet)" in capfd.readouterr().err
+
+
+@pytest.mark.slow
 def test_torchrun_sigkill_lets_orphans_save_then_restarts(tmp_path):
     proc = start_supervisor(tmp_path)
     run = tmp_path / "run"

@@ -8,6 +8,8 @@ import os
 import re
 import signal
 import subprocess
+import sys
+import time
 
 import pytest
 
@@ -16,8 +18,10 @@ from ftrain.heartbeat import ENV_DIR, read_heartbeats
 
 from helpers import (
     REPO,
+    SMOKE,
     TESTS,
     child_env,
+    events,
     final_manifest,
     flip_byte,
     kill_tree,
@@ -185,7 +189,8 @@ def test_corrupt_newest_step_is_quarantined_kept_and_skipped(tmp_path) -> None:
     result = run_train(storage, "iterations=6", "checkpoint.keep_last=5")
     assert "skipping checkpoint step 6: corrupt, quarantined" in result.stdout
     assert "resumed from step 4" in result.stdout
-    assert "replacing checkpoint step 6 (quarantined" in result.stdout  # kept until the run saved step 6 again
+    assert "checkpoint step 6 (quarantined) moved to" in result.stdout  # set aside intact, never deleted
+    assert (storage / "quarantine/step-000000006" / QUARANTINED).exists()
     run_train(tmp_path / "reference", "iterations=6")
     assert final_manifest(storage)["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
 
@@ -282,3 +287,51 @@ def test_state_that_would_not_load_back_is_refused_at_the_first_save(tmp_path) -
     errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
     assert len(errors) == 1 and "hooks and metrics must keep plain data" in errors[0], result.stderr
     assert manifests(tmp_path / "run") == {}
+
+
+def test_a_step_that_verifies_but_does_not_fit_the_code_is_an_error_and_stays_untouched(tmp_path) -> None:
+    """A user's hook whose load_state_dict raises (or a changed model, an rsl-rl upgrade): one line, exit 2, the
+    step neither quarantined nor set aside; under the supervisor, no restart either."""
+    storage = tmp_path / "run"
+    hook = "hooks=[{target: 'probe_hooks:FailingLoadHook', kwargs: {}}]"
+    env = {"PYTHONPATH": str(TESTS)}
+    run_train(storage, "iterations=4", hook, env=env)
+    before = manifests(storage)
+    result = subprocess.run(
+        train_command(storage, "iterations=6", hook), cwd=REPO, env=child_env(env), capture_output=True, text=True
+    )
+    assert result.returncode == 2
+    errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
+    assert len(errors) == 1 and "does not load into this code" in errors[0] and "hook refuses" in errors[0]
+    assert "Traceback" not in result.stderr
+    assert manifests(storage) == before
+    assert not list(storage.rglob(QUARANTINED)) and not (storage / "quarantine").exists()
+
+    supervise = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "1", SMOKE, "--storage"]
+    supervised = subprocess.run(
+        [*supervise, str(storage), "iterations=6", "log.console=false", hook],
+        cwd=REPO,
+        env=child_env(env),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert supervised.returncode == 2, supervised.stderr[-3000:]
+    assert "does not load into this code" in supervised.stderr
+    assert [event["event"] for event in events(storage) if event["event"] == "restart"] == []
+    assert manifests(storage) == before
+    assert not list(storage.rglob(QUARANTINED))
+
+
+def test_storage_failing_at_resume_stops_every_rank_at_once_with_one_line(tmp_path) -> None:
+    storage = tmp_path / "run"
+    storage.mkdir()
+    (storage / "checkpoints").symlink_to("checkpoints")  # listing it fails: a storage that is down
+    started = time.monotonic()
+    result = subprocess.run(
+        train_command(storage, "dist_timeout=120", ranks=2), cwd=REPO, env=child_env(), capture_output=True, text=True
+    )
+    assert result.returncode != 0
+    assert time.monotonic() - started < 60, "the other rank must not wait out dist_timeout"
+    errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
+    assert errors and all("failed while choosing a step" in line for line in errors), result.stderr[-3000:]

@@ -1,0 +1,189 @@
+"""Resume: which step a run starts from, whether it fits, and loading it on every rank.
+
+Rank 0 decides (newest step that verifies, or the one ``resume=`` names) and tells the others. Every rank then
+reads and checks its own files, and the ranks agree on what went wrong, if anything, so that all stop with the
+same one line:
+
+- a file that does not match its manifest or is not plain data: an integrity failure; the step is quarantined
+  and the next start falls back to an older one (exit 1, which the supervisor retries);
+- the storage failing: nothing is marked, the next start tries again (exit 1);
+- a step that verifies but does not load into this code (a changed model, an rsl-rl upgrade, a hook whose
+  ``load_state_dict`` raises): bad input, exit 2, which the supervisor does not retry; the step is left alone.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Protocol
+
+from ftrain.ckpt.format import (
+    COMMON,
+    INCOMPLETE,
+    PACKED_STATE_FORMATS,
+    STATE_FORMAT,
+    VERIFIED,
+    CorruptCheckpoint,
+    parse_checkpoint_url,
+    read_verified,
+    shard_name,
+    step_dir,
+)
+from ftrain.ckpt.steps import clear_newer, quarantine, resolve_checkpoint_url, scan, select_resume
+from ftrain.ckpt.storage import Storage, StorageError
+from ftrain.config import Config
+from ftrain.dist import group
+from ftrain.errors import UserError
+
+
+class Checkpointable(Protocol):
+    """What a checkpoint saves and restores: the trainer, as this package sees it."""
+
+    iteration: int
+    metrics: dict[str, float]
+
+    def common_state(self) -> dict:
+        """The state all ranks share, saved once by rank 0 (``common.pt``)."""
+
+    def rank_state(self) -> dict:
+        """This rank's own state (its shard)."""
+
+    def load_state(self, common: dict, rank: dict) -> None:
+        """Restore what ``common_state`` and ``rank_state`` returned."""
+
+
+class CheckpointError(RuntimeError):
+    """Saving or loading a checkpoint failed in a way training must not run on from (one-line message)."""
+
+
+def restore(
+    trainer: Checkpointable, config: Config, info: group.RankInfo, storage: Storage, log: Callable[[str], None]
+) -> tuple[int | None, bool]:
+    """Load the step rank 0 chose into ``trainer``: ``(step or None for a fresh start, whether it is a step of this
+    run's own storage)``."""
+    decision = decide(config, info, storage, log) if info.is_main else None
+    decision = group.broadcast_object(decision, info)
+    if decision["kind"] == "usage":
+        raise UserError(decision["why"])
+    if decision["kind"] == "storage":
+        raise CheckpointError(decision["why"])
+    if decision["kind"] == "fresh":
+        log(decision["why"])
+        return None, False
+    url, step, manifest = decision["url"], decision["step"], decision["manifest"]
+    source = storage if url is None else Storage.open(url, config.storage.options)
+    failure = _load(trainer, source, step, manifest, info.rank)
+    failures = [f for f in group.all_gather_object(failure, info) if f]
+    where = source.where(step_dir(step))
+    for kind in ("integrity", "storage", "fit"):
+        reasons = "; ".join(why for failed, why in failures if failed == kind)
+        if not reasons:
+            continue
+        if kind == "fit":
+            raise UserError(
+                f"checkpoint {where} verifies but does not load into this code ({reasons}): restore the code or "
+                "config it was trained with, or start from another step (resume=URL) or --storage; the step is "
+                "left as it is"
+            )
+        if kind == "storage":
+            raise CheckpointError(f"checkpoint {where} could not be read ({reasons}): nothing marked, try again")
+        if url is None and info.is_main:
+            quarantine(storage, step, reasons)
+        raise CheckpointError(
+            f"checkpoint {where} does not match its manifest ({reasons}): quarantined, the next start falls back to "
+            "an older step"
+        )
+    log(f"resumed from step {step} ({'this storage' if url is None else url}), iteration {trainer.iteration}")
+    return step, url is None
+
+
+def _load(trainer: Checkpointable, storage: Storage, step: int, manifest: dict, rank: int) -> list | None:
+    """This rank's part of a resume: ``None``, or ``[kind of failure, why]``."""
+    try:
+        common = read_verified(storage, step, COMMON, manifest)
+        shard = read_verified(storage, step, shard_name(rank), manifest)
+    except CorruptCheckpoint as exc:
+        return ["integrity", f"rank {rank}: {exc}"]
+    except (StorageError, OSError) as exc:
+        return ["storage", f"rank {rank}: {exc}"]
+    try:
+        trainer.load_state(common, shard)
+    except Exception as exc:
+        return ["fit", f"rank {rank}: {type(exc).__name__}: {' '.join(str(exc).split())[:300]}"]
+    return None
+
+
+def decide(config: Config, info: group.RankInfo, storage: Storage, log: Callable[[str], None]) -> dict:
+    """On rank 0: ``{"kind": "fresh" | "resume" | "usage" | "storage", ...}`` (JSON, for the other ranks)."""
+    try:
+        resume = config.resume
+        if resume == "never":
+            if any(step.status == VERIFIED for step in scan(storage)):
+                raise UserError(
+                    f"resume=never but {storage.url} already holds checkpoints: use resume=auto to continue, or a "
+                    "new --storage"
+                )
+            clear_newer(storage, 0, log)
+            return {"kind": "fresh", "why": "resume=never: starting fresh"}
+        if resume == "auto":
+            found = select_resume(storage, log=log)
+            if found is None:
+                bad = sorted(step.step for step in scan(storage) if step.status != INCOMPLETE)
+                if bad:
+                    raise UserError(
+                        f"no checkpoint in {storage.url} verifies, and steps {bad} are corrupt: inspect them (ftrain "
+                        f"ckpt ls {storage.url}), then remove them (ftrain ckpt prune --drop-bad) to start over, or "
+                        "use another --storage"
+                    )
+                clear_newer(storage, 0, log)
+                return {"kind": "fresh", "why": f"no verified checkpoint in {storage.url}: starting fresh"}
+            step, manifest = found
+            url = None
+        else:
+            _, step, manifest = resolve_checkpoint_url(resume, config.storage.options, log)
+            url = parse_checkpoint_url(resume)[0]
+        check_compatible(config, info, step, manifest)
+        clear_newer(storage, step, log)
+        return {"kind": "resume", "url": url, "step": step, "manifest": manifest}
+    except UserError as error:
+        return {"kind": "usage", "why": str(error)}
+    except (StorageError, OSError) as error:
+        return {"kind": "storage", "why": f"checkpoint storage {storage.url} failed while choosing a step: {error}"}
+
+
+def check_compatible(config: Config, info: group.RankInfo, step: int, manifest: dict) -> None:
+    """UserError unless ``step`` (by its manifest) can continue as this run."""
+    written = manifest.get("state_format", 1)
+    if written in PACKED_STATE_FORMATS:
+        raise UserError(
+            f"checkpoint step {step} is in ftrain 0.1's packed format (state format {written}); this ftrain reads "
+            f"state format {STATE_FORMAT}: resume it with the ftrain that wrote it ({manifest['versions']}), or start "
+            "another --storage"
+        )
+    if written != STATE_FORMAT:
+        raise UserError(
+            f"checkpoint step {step} holds training state in format {written}, this ftrain reads format "
+            f"{STATE_FORMAT}: resume it with the ftrain that wrote it ({manifest['versions']}), or start another "
+            "--storage"
+        )
+    if manifest["world_size"] != info.world_size:
+        raise UserError(
+            f"checkpoint step {step} was written by {manifest['world_size']} ranks but this run has "
+            f"{info.world_size}: run with --nproc-per-node={manifest['world_size']} (environment state is per rank)"
+        )
+    if manifest["envs_per_rank"] != config.env.num_envs:
+        raise UserError(
+            f"checkpoint step {step} has env.num_envs={manifest['envs_per_rank']} per rank, the config has "
+            f"{config.env.num_envs}: set env.num_envs={manifest['envs_per_rank']}"
+        )
+    saved = manifest["config"]
+    if saved["env"]["id"] != config.env.id or saved["policy"] != config.public_dict()["policy"]:
+        raise UserError(
+            f"checkpoint step {step} holds a {saved['env']['id']} policy {saved['policy']}, the config asks for a "
+            f"{config.env.id} policy {config.public_dict()['policy']}: they cannot be loaded into each other (not "
+            "even with allow_config_change=true): use another --storage"
+        )
+    if manifest["config_hash"] != config.training_hash() and not config.allow_config_change:
+        raise UserError(
+            f"checkpoint step {step} was trained with a different config (hash {manifest['config_hash']}, now "
+            f"{config.training_hash()}): restore the config, or pass allow_config_change=true"
+        )

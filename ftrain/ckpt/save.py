@@ -1,0 +1,206 @@
+"""One save, from every rank's point of view: write this rank's files, agree with the others, commit on rank 0.
+
+Every rank writes its own files of the step with ``torch.save`` (exclusive create, each file's size and SHA-256
+noted). The ranks then gather those entries on rank 0, which commits the manifest (the step counts from then on) and
+applies retention; every rank learns the outcome, so all agree whether the step counts. A failed write never harms
+earlier steps: it is reported, agreed on, and the step stays uncommitted (retention later deletes it).
+
+:class:`StepWriter` does this inline. :class:`BackgroundWriter` runs the same on one thread per rank, with a gloo
+group of its own so that its collectives never mix with the training loop's; the loop then only pays for the
+snapshot, a copy of the state's tensors at the iteration boundary (:func:`snapshot`).
+"""
+
+from __future__ import annotations
+
+import collections
+import queue
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+import torch.distributed as dist
+
+from ftrain.ckpt.format import (
+    COMMON,
+    INCOMPLETE,
+    VERIFIED,
+    CorruptCheckpoint,
+    FileEntry,
+    StepInfo,
+    commit,
+    decode,
+    encode,
+    learned_state,
+    state_digest,
+    write_file,
+)
+from ftrain.ckpt.retention import delete_step, retention_plan
+from ftrain.ckpt.steps import scan
+from ftrain.ckpt.storage import Storage
+from ftrain.config import CheckpointConfig
+from ftrain.dist import group
+
+UNLOADABLE_HINT = "hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What the ranks agreed on for one save: ``committed`` (``detail`` is the manifest), ``failed`` or
+    ``unloadable`` (``detail`` says why)."""
+
+    kind: str
+    step: int
+    detail: dict | str
+
+
+def snapshot(state: object) -> object:
+    """A copy of ``state`` that training can no longer change: every tensor cloned, every container rebuilt."""
+    if isinstance(state, torch.Tensor):
+        return state.detach().clone()
+    if isinstance(state, dict):
+        return {key: snapshot(value) for key, value in state.items()}
+    if isinstance(state, (list, tuple)):
+        return type(state)(snapshot(value) for value in state)
+    return state
+
+
+class StepWriter:
+    """Saves of one rank, inline: write, gather on rank 0, commit, retention, share the outcome."""
+
+    def __init__(
+        self,
+        storage: Storage,
+        policy: CheckpointConfig,
+        info: group.RankInfo,
+        collectives: dist.ProcessGroup | None,
+        log: Callable[[str], None],
+    ) -> None:
+        """``collectives``: the group the ranks agree in (None: the default group)."""
+        self.storage = storage
+        self.policy = policy
+        self.info = info
+        self.collectives = collectives
+        self.log = log
+        self._steps: dict[int, StepInfo] | None = None
+        """Rank 0: the steps in storage, scanned at the first save and then kept up to date by this run's own saves
+        and deletions, so that retention needs no listing after every commit."""
+        self._listed = False
+        """Rank 0: whether a commit has listed its step directory. The first one does: a storage that the ranks do
+        not share (node-local directories on several nodes) shows there, once. Later commits trust the writers'
+        own successful exclusive creates (a listing is a request per save on S3)."""
+
+    def save(self, step: int, files: dict[str, dict], meta: dict | None, check_loadable: bool) -> Outcome:
+        """Write this rank's ``files`` (name to state) of ``step``; ``meta`` (rank 0) goes into the manifest."""
+        report = {"entries": {}, "fields": {}, "error": None, "unloadable": False}
+        try:
+            report["entries"], report["fields"] = self._write(step, files, check_loadable)
+        except CorruptCheckpoint as exc:  # only the loadability check raises it
+            report["error"], report["unloadable"] = f"rank {self.info.rank}: {exc}: {UNLOADABLE_HINT}", True
+        except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
+            report["error"] = f"rank {self.info.rank}: {exc}"
+        reports = group.all_gather_object(report, self.info, self.collectives)
+        outcome = self._commit(step, reports, meta) if self.info.is_main else None
+        kind, _, detail = group.broadcast_object(outcome, self.info, self.collectives)
+        return Outcome(kind, step, detail)
+
+    def _write(self, step: int, files: dict[str, dict], check_loadable: bool) -> tuple[dict, dict]:
+        """Encode and write ``files``: their manifest entries, and the manifest fields that come from common.pt."""
+        encoded = {name: encode(state) for name, state in files.items()}
+        if check_loadable:
+            for name, data in encoded.items():
+                decode(data, name)
+        fields = {}
+        if COMMON in files:
+            common = files[COMMON]
+            fields["state_sha256"] = state_digest(learned_state(common))
+            if "teacher" in common["ftrain"]:  # plain data: source, step, digest
+                fields["teacher"] = common["ftrain"]["teacher"]
+        entries = {}
+        for name, data in encoded.items():
+            entry = write_file(self.storage, step, name, data)
+            entries[name] = [entry.size, entry.sha256]
+        return entries, fields
+
+    def _commit(self, step: int, reports: list[dict], meta: dict) -> tuple:
+        errors = [report["error"] for report in reports if report["error"]]
+        if any(report["unloadable"] for report in reports):
+            return ("unloadable", step, "; ".join(errors))
+        if self._steps is None:
+            self._steps = {info.step: info for info in scan(self.storage)}
+        files = {name: FileEntry(*entry) for report in reports for name, entry in report["entries"].items()}
+        fields = {key: value for report in reports for key, value in report["fields"].items()}  # from common.pt
+        if not errors:
+            try:
+                manifest = commit(self.storage, step, files, meta | fields, check_present=not self._listed)
+                self._listed = True
+            except Exception as exc:
+                errors = [f"commit: {exc}"]
+        if errors:
+            self._steps[step] = StepInfo(step, INCOMPLETE)  # abandoned: retention deletes it
+            return ("failed", step, "; ".join(errors))
+        self._steps[step] = StepInfo(step, VERIFIED, sum(entry.size for entry in files.values()), manifest)
+        self._apply_retention()
+        return ("committed", step, manifest)
+
+    def _apply_retention(self) -> None:
+        """Delete what the retention rules let go; a step that cannot be deleted now is kept and tried again later."""
+        policy = self.policy
+        doomed = retention_plan(
+            self._steps.values(),
+            policy.keep_last,
+            policy.keep_best,
+            policy.best_metric,
+            policy.keep_every,
+            policy.pinned,
+        )
+        for step in doomed:
+            try:
+                delete_step(self.storage, step, self._steps[step].files)
+            except Exception as exc:
+                self.log(f"retention: checkpoint step {step} could not be deleted (kept for now): {exc}")
+                continue
+            del self._steps[step]
+
+
+class BackgroundWriter:
+    """A :class:`StepWriter` on a thread of its own: saves go in as snapshots, outcomes come back in order."""
+
+    def __init__(self, writer: StepWriter) -> None:
+        self.writer = writer
+        self._jobs: queue.Queue[tuple | None] = queue.Queue()
+        self._outcomes: collections.deque[Outcome] = collections.deque()
+        self._done = threading.Condition()
+        self._thread = threading.Thread(target=self._run, name="ftrain-checkpoint-writer", daemon=True)
+        self._thread.start()
+
+    def submit(self, step: int, files: dict[str, dict], meta: dict | None, check_loadable: bool) -> None:
+        self._jobs.put((step, files, meta, check_loadable))
+
+    def ready(self) -> bool:
+        """Whether the oldest outcome not yet taken has arrived."""
+        with self._done:
+            return bool(self._outcomes)
+
+    def take(self, timeout: float) -> Outcome | None:
+        """The oldest outcome not yet taken, waiting up to ``timeout`` seconds for it (None if it did not come)."""
+        with self._done:
+            if not self._outcomes:
+                self._done.wait(timeout)
+            return self._outcomes.popleft() if self._outcomes else None
+
+    def close(self, timeout: float) -> None:
+        """Let the thread finish the saves it was given (up to ``timeout`` seconds) and end."""
+        self._jobs.put(None)
+        self._thread.join(timeout)
+
+    def _run(self) -> None:
+        while (job := self._jobs.get()) is not None:
+            step = job[0]
+            try:
+                outcome = self.writer.save(*job)
+            except Exception as exc:  # the agreement failed (a peer died, the group broke): not committed
+                outcome = Outcome("failed", step, f"rank {self.writer.info.rank}: {type(exc).__name__}: {exc}")
+            with self._done:
+                self._outcomes.append(outcome)
+                self._done.notify_all()

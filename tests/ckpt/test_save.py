@@ -1,0 +1,105 @@
+"""The save path: snapshots training cannot change, a digest of the learned state that only its values decide,
+stop saves that commit when every process gets SIGTERM, and no process besides the ranks."""
+
+from __future__ import annotations
+
+import os
+import signal
+import uuid
+
+import pytest
+import torch
+
+from ftrain.ckpt.format import VERIFIED, decode, encode, learned_state, state_digest, verify_step
+from ftrain.ckpt.save import snapshot
+from ftrain.ckpt.steps import scan
+from ftrain.ckpt.storage import Storage
+from ftrain.config import load_config
+from ftrain.supervise import procfs
+from ftrain.train.trainer import train
+
+from helpers import SMOKE, assert_same, descendants, finish, manifests, start_train, wait_for
+
+LONG = ("iterations=100000", "checkpoint.interval=2")
+
+
+def sample_state() -> dict:
+    return {
+        "actor_state_dict": {"weight": torch.arange(6.0).reshape(2, 3), "bias": torch.ones(2)},
+        "optimizer_state_dict": {
+            "state": {0: {"step": torch.tensor(3.0), "exp_avg": torch.zeros(2, 3)}},
+            "param_groups": [{"lr": 1e-3, "betas": (0.9, 0.999), "params": [0]}],
+        },
+        "counts": torch.arange(3),
+        "name": "HalfCheetah-v5",
+    }
+
+
+def test_a_snapshot_is_a_copy_that_training_cannot_change() -> None:
+    state = sample_state()
+    copy = snapshot(state)
+    assert_same(copy, sample_state())
+    state["actor_state_dict"]["weight"].add_(1)  # what the next update does to the live parameters
+    state["optimizer_state_dict"]["param_groups"][0]["params"].append(1)
+    assert_same(copy, sample_state())
+
+
+def test_the_digest_is_equal_iff_the_values_are_bitwise_equal() -> None:
+    state = sample_state()
+    assert state_digest(sample_state()) == state_digest(state)
+    assert state_digest(decode(encode(state))) == state_digest(state)  # the file encoding does not count
+    reordered = dict(reversed(list(sample_state().items())))
+    assert state_digest(reordered) == state_digest(state)  # nor does dict order
+
+    nudged = sample_state()
+    bias = nudged["actor_state_dict"]["bias"]
+    bias[0] = torch.nextafter(bias[0], torch.tensor(2.0))  # one bit in the last place
+    assert state_digest(nudged) != state_digest(state)
+    reshaped = sample_state()
+    reshaped["counts"] = reshaped["counts"].reshape(3, 1)  # same bytes, another shape
+    assert state_digest(reshaped) != state_digest(state)
+    retyped = {"x": torch.zeros(2, dtype=torch.int32)}
+    assert state_digest(retyped) != state_digest({"x": torch.zeros(2, dtype=torch.float32)})
+    renamed = sample_state()
+    renamed["optimizer_state_dict"]["param_groups"][0]["lr"] = 2e-3
+    assert state_digest(renamed) != state_digest(state)
+
+
+def test_the_learned_state_is_the_state_dicts_only() -> None:
+    state = sample_state()
+    other = sample_state() | {"counts": torch.zeros(3), "name": "Ant-v5", "iter": 7}
+    assert set(learned_state(state)) == {"actor_state_dict", "optimizer_state_dict"}
+    assert state_digest(learned_state(other)) == state_digest(learned_state(state))
+
+
+@pytest.mark.slow
+def test_sigterm_to_every_process_still_commits_the_stop_save_and_ranks_have_no_helpers(tmp_path) -> None:
+    storage = tmp_path / "run"
+    proc = start_train(storage, *LONG, ranks=2)
+    before = max(wait_for(lambda: manifests(storage), "a committed checkpoint"))
+    ranks = [pid for pid in descendants(proc.pid) if int(procfs.stat_fields(pid)[1]) == proc.pid]
+    assert len(ranks) == 2
+    assert [pid for rank in ranks for pid in descendants(rank)] == [], "saves run inside the ranks, no helper"
+    for pid in ranks:  # what Slurm does to the workers at the end of a job step
+        os.kill(pid, signal.SIGTERM)
+    assert finish(proc) == 0, "the stop save must commit"
+    newest = max(manifests(storage))
+    assert newest >= before
+    assert verify_step(Storage.open(str(storage)), newest).ok
+
+
+@pytest.mark.parametrize("async_save", [True, False])
+def test_a_memory_run_saves_and_its_steps_verify(tmp_path, async_save: bool) -> None:
+    """memory:// storage lives inside one process: the writer thread shares it, the inline path too."""
+    url = f"memory://ftrain-test/{uuid.uuid4().hex}"
+    overrides = ["iterations=4", "checkpoint.interval=2", f"log_dir={tmp_path}", "log.console=false"]
+    config = load_config(SMOKE, [*overrides, f"checkpoint.async_save={str(async_save).lower()}"], storage=url)
+    handlers = {number: signal.getsignal(number) for number in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        assert train(config) == 0
+    finally:
+        for number, handler in handlers.items():
+            signal.signal(number, handler)
+    steps = scan(Storage.open(url), full=True)
+    assert [(info.step, info.status) for info in steps] == [(4, VERIFIED), (2, VERIFIED)]
+    assert steps[0].manifest["iteration"] == 4
