@@ -68,10 +68,11 @@ class Checkpointer:
 
     def restore(self, trainer: Checkpointable) -> int | None:
         """Load the step to start from into ``trainer`` (see ``resume.py``); the step, or None for a fresh start."""
-        step, own = resume.restore(trainer, self.config, self.info, self.storage, self.log)
-        if own:
-            self.committed_step = step
-        return step
+        resumed = resume.restore(trainer, self.config, self.info, self.storage, self.log)
+        if resumed.own:
+            self.committed_step = resumed.step
+        self._static_meta["world_sizes"] = resumed.world_sizes
+        return resumed.step
 
     def save(self, trainer: Checkpointable, wait: bool = False, must_commit: bool = False) -> None:
         """Save the state of ``trainer`` as step ``trainer.iteration``.

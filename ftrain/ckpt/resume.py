@@ -1,5 +1,12 @@
 """Resume: which step a run starts from, whether it fits, and loading it on every rank.
 
+At another world size the run resizes, by one rule that depends on (checkpoint, new world size) only: the learned
+state (models, optimizer, normalizers, learning rate, counters, hook states) loads exactly on every rank; rank r
+takes the environments and random streams of the checkpoint's rank r where there is one; ranks beyond the old world
+start fresh ones, seeded from (run seed, rank, step); shards of ranks beyond the new world are dropped. Per-rank
+settings stay as configured, so the global batch follows the world size. At the same world size a resume continues
+bit for bit.
+
 Rank 0 decides (newest step that verifies, or the one ``resume=`` names) and tells the others. Every rank then
 reads and checks its own files, and the ranks agree on what went wrong, if anything, so that all stop with the
 same one line:
@@ -14,6 +21,7 @@ same one line:
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Protocol
 
 from ftrain.ckpt.format import (
@@ -47,19 +55,30 @@ class Checkpointable(Protocol):
     def rank_state(self) -> dict:
         """This rank's own state (its shard)."""
 
-    def load_state(self, common: dict, rank: dict) -> None:
-        """Restore what ``common_state`` and ``rank_state`` returned."""
+    def load_state(self, common: dict, rank: dict | None) -> None:
+        """Restore what ``common_state`` and ``rank_state`` returned; ``rank`` is None on a rank that the
+        checkpoint's world did not have (it starts fresh environments and random streams, from the run's seed, the
+        step and its rank)."""
 
 
 class CheckpointError(RuntimeError):
     """Saving or loading a checkpoint failed in a way training must not run on from (one-line message)."""
 
 
+@dataclass(frozen=True)
+class Resumed:
+    step: int | None
+    """The step the run starts from; None for a fresh start."""
+    own: bool
+    """Whether that step lies in this run's own storage."""
+    world_sizes: list
+    """``[[first step, world size], ...]``: the run's world sizes so far, this one last."""
+
+
 def restore(
     trainer: Checkpointable, config: Config, info: group.RankInfo, storage: Storage, log: Callable[[str], None]
-) -> tuple[int | None, bool]:
-    """Load the step rank 0 chose into ``trainer``: ``(step or None for a fresh start, whether it is a step of this
-    run's own storage)``."""
+) -> Resumed:
+    """Load the step rank 0 chose into ``trainer``."""
     decision = decide(config, info, storage, log) if info.is_main else None
     decision = group.broadcast_object(decision, info)
     if decision["kind"] == "usage":
@@ -68,7 +87,7 @@ def restore(
         raise CheckpointError(decision["why"])
     if decision["kind"] == "fresh":
         log(decision["why"])
-        return None, False
+        return Resumed(None, False, [[0, info.world_size]])
     url, step, manifest = decision["url"], decision["step"], decision["manifest"]
     source = storage if url is None else Storage.open(url, config.storage.options)
     failure = _load(trainer, source, step, manifest, info.rank)
@@ -93,14 +112,35 @@ def restore(
             "an older step"
         )
     log(f"resumed from step {step} ({'this storage' if url is None else url}), iteration {trainer.iteration}")
-    return step, url is None
+    world_sizes = manifest.get("world_sizes") or [[0, manifest["world_size"]]]
+    if manifest["world_size"] != info.world_size:
+        log(resize_line(manifest["world_size"], info.world_size, step, config))
+        world_sizes = [*world_sizes, [step, info.world_size]]
+    return Resumed(step, url is None, world_sizes)
+
+
+def resize_line(old: int, new: int, step: int, config: Config) -> str:
+    """What a resize does, in one line for the log."""
+    parts = [f"resized from {old} to {new} ranks at step {step}: {_ranks(0, min(old, new))} keep their environments"]
+    if new > old:
+        parts.append(f"{_ranks(old, new)} start with fresh ones (seeded from seed {config.seed}, rank, step {step})")
+    else:
+        parts.append(f"the shards of {_ranks(new, old)} are dropped")
+    batch = new * config.env.num_envs * config.num_steps_per_env
+    per_rank = f"{config.env.num_envs} envs x {config.num_steps_per_env} steps"
+    parts.append(f"the global batch follows: {new} x {per_rank} = {batch} per iteration")
+    return "; ".join(parts)
+
+
+def _ranks(first: int, end: int) -> str:
+    return f"rank {first}" if end - first == 1 else f"ranks {first}-{end - 1}"
 
 
 def _load(trainer: Checkpointable, storage: Storage, step: int, manifest: dict, rank: int) -> list | None:
     """This rank's part of a resume: ``None``, or ``[kind of failure, why]``."""
     try:
         common = read_verified(storage, step, COMMON, manifest)
-        shard = read_verified(storage, step, shard_name(rank), manifest)
+        shard = read_verified(storage, step, shard_name(rank), manifest) if rank < manifest["world_size"] else None
     except CorruptCheckpoint as exc:
         return ["integrity", f"rank {rank}: {exc}"]
     except (StorageError, OSError) as exc:
@@ -141,7 +181,7 @@ def decide(config: Config, info: group.RankInfo, storage: Storage, log: Callable
         else:
             _, step, manifest = resolve_checkpoint_url(resume, config.storage.options, log)
             url = parse_checkpoint_url(resume)[0]
-        check_compatible(config, info, step, manifest)
+        check_compatible(config, step, manifest)
         clear_newer(storage, step, log)
         return {"kind": "resume", "url": url, "step": step, "manifest": manifest}
     except UserError as error:
@@ -150,8 +190,8 @@ def decide(config: Config, info: group.RankInfo, storage: Storage, log: Callable
         return {"kind": "storage", "why": f"checkpoint storage {storage.url} failed while choosing a step: {error}"}
 
 
-def check_compatible(config: Config, info: group.RankInfo, step: int, manifest: dict) -> None:
-    """UserError unless ``step`` (by its manifest) can continue as this run."""
+def check_compatible(config: Config, step: int, manifest: dict) -> None:
+    """UserError unless ``step`` (by its manifest) can continue as this run (at any world size)."""
     written = manifest.get("state_format", 1)
     if written in PACKED_STATE_FORMATS:
         raise UserError(
@@ -164,11 +204,6 @@ def check_compatible(config: Config, info: group.RankInfo, step: int, manifest: 
             f"checkpoint step {step} holds training state in format {written}, this ftrain reads format "
             f"{STATE_FORMAT}: resume it with the ftrain that wrote it ({manifest['versions']}), or start another "
             "--storage"
-        )
-    if manifest["world_size"] != info.world_size:
-        raise UserError(
-            f"checkpoint step {step} was written by {manifest['world_size']} ranks but this run has "
-            f"{info.world_size}: run with --nproc-per-node={manifest['world_size']} (environment state is per rank)"
         )
     if manifest["envs_per_rank"] != config.env.num_envs:
         raise UserError(

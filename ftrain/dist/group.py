@@ -63,9 +63,10 @@ def new_group(timeout_s: float, info: RankInfo) -> dist.ProcessGroup | None:
     return dist.new_group(backend="gloo", timeout=datetime.timedelta(seconds=timeout_s))
 
 
-def rank_seed(seed: int, rank: int) -> int:
-    """A well-mixed 31-bit seed per (seed, rank): nearby seeds or ranks never share streams."""
-    return int(np.random.SeedSequence([seed, rank]).generate_state(1)[0] >> 1)
+def rank_seed(seed: int, rank: int, *at_step: int) -> int:
+    """A well-mixed 31-bit seed per (seed, rank), or per (seed, rank, step) for a rank that joins a resumed run at
+    ``step``: nearby seeds, ranks or steps never share streams."""
+    return int(np.random.SeedSequence([seed, rank, *at_step]).generate_state(1)[0] >> 1)
 
 
 def seed_all(seed: int) -> None:

@@ -53,15 +53,21 @@ class MujocoVecEnv(VecEnv):
         self.cfg = {"env_id": env_id, "num_envs": num_envs}
         self._low = self.envs.single_action_space.low
         self._high = self.envs.single_action_space.high
-        obs, _ = self.envs.reset(seed=seed)
-        self.obs = torch.from_numpy(obs.astype(np.float32))
         # episode bookkeeping in numpy (cheap per step); episode_length_buf is rsl-rl's view of the same memory
         self._returns = np.zeros(num_envs, dtype=np.float64)
         self._lengths = np.zeros(num_envs, dtype=np.int64)
         self.episode_length_buf = torch.from_numpy(self._lengths)
+        self.reset(seed)
         self._bases = [env.unwrapped for env in self.envs.envs]
         self._time_limits = [_time_limit(env) for env in self.envs.envs]
         self._state_size = mujoco.mj_stateSize(self._bases[0].model, _INTEGRATION)
+
+    def reset(self, seed: int) -> None:
+        """Start every sub-env afresh from ``seed`` (sub-env i from ``seed + i``, gymnasium's rule)."""
+        obs, _ = self.envs.reset(seed=seed)
+        self.obs = torch.from_numpy(obs.astype(np.float32))
+        self._returns[:] = 0
+        self._lengths[:] = 0
 
     @property
     def num_obs(self) -> int:

@@ -112,7 +112,8 @@ class Trainer:
             "episodes": [list(episode) for episode in self.episodes],
         }
 
-    def load_state(self, common: dict, rank: dict) -> None:
+    def load_state(self, common: dict, rank: dict | None) -> None:
+        """``rank``: this rank's shard, None for a rank the checkpoint did not have (see ``ftrain.ckpt.resume``)."""
         own = common["ftrain"]
         load_learned_state(self.alg, common, own["learning_rate"])
         self.iteration = common["iter"]
@@ -126,6 +127,12 @@ class Trainer:
                     f"it started with ({own['teacher']['source']}, step {own['teacher']['step']})"
                 )
             self.alg.teacher_identity = own["teacher"]
+        if rank is None:  # a rank that joins a resized run: environments and random streams of its own
+            seed = group.rank_seed(self.config.seed, self.info.rank, self.iteration)
+            self.env.reset(seed)
+            group.seed_all(seed)
+            self.episodes.clear()
+            return
         self.env.set_state(rank["env"])
         group.set_rng_state(rank["rng"])
         self.episodes.clear()
