@@ -1,22 +1,55 @@
 #!/usr/bin/env bash
-# Sets up everything ftrain needs on a fresh Debian machine, idempotently:
+# Sets up everything ftrain needs on a fresh Debian machine, idempotently, one line per step:
 #   - Debian's Mesa EGL libraries for headless MuJoCo rendering (when run as root and missing);
 #   - a virtualenv in .venv with the CPU build of torch 2.13.0 installed FIRST (a bare torch requirement would
 #     pull a multi-GB CUDA build), then ftrain itself with its test, export, render and bench extras.
+# torch comes from PyTorch's CPU wheel index when it answers (TORCH_INDEX_URL overrides it), else from the default
+# package index (which, on a machine without that index, may serve the CUDA build). A stamp in .venv, keyed by
+# pyproject.toml and the torch version, skips the pip steps when nothing changed: a second run starts in seconds.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+TORCH_VERSION=2.13.0
+TORCH_INDEX_URL=${TORCH_INDEX_URL:-https://download.pytorch.org/whl/cpu}
+say() { echo "setup: $*"; }
 
 render_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri)
 if ! dpkg -s "${render_packages[@]}" >/dev/null 2>&1; then
   if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null; then
+    say "installing ${render_packages[*]} (headless rendering)..."
     apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${render_packages[@]}" >/dev/null
   else
-    echo "setup: warning: ${render_packages[*]} are missing; install them for 'ftrain play --video'" >&2
+    say "warning: ${render_packages[*]} are missing; install them for 'ftrain play --video'" >&2
   fi
 fi
 
 python=${PYTHON:-python3}
-[[ -x .venv/bin/python ]] || "$python" -m venv .venv
-.venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q "torch==2.13.0"
-.venv/bin/python -m pip install -q -e ".[test,bench]"
+if [[ ! -x .venv/bin/python ]]; then
+  say "creating .venv with $("$python" --version)..."
+  "$python" -m venv .venv
+fi
+
+stamp=".venv/.ftrain-setup-$( (cat pyproject.toml; echo "torch $TORCH_VERSION") | sha256sum | cut -c1-16)"
+if [[ -f $stamp ]]; then
+  say "up to date (delete $stamp to reinstall)"
+  exit 0
+fi
+
+pip=(.venv/bin/python -m pip install -q --disable-pip-version-check)
+say "upgrading pip..."
+"${pip[@]}" --upgrade pip
+if ! .venv/bin/python -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '$TORCH_VERSION')" 2>/dev/null; then
+  if .venv/bin/python -c "import urllib.request, sys; urllib.request.urlopen(sys.argv[1], timeout=5)" \
+    "$TORCH_INDEX_URL/torch/" >/dev/null 2>&1; then
+    say "installing torch $TORCH_VERSION (CPU build, from $TORCH_INDEX_URL)..."
+    "${pip[@]}" --index-url "$TORCH_INDEX_URL" "torch==$TORCH_VERSION"
+  else
+    say "installing torch $TORCH_VERSION (from the default package index: $TORCH_INDEX_URL does not answer)..."
+    "${pip[@]}" "torch==$TORCH_VERSION"
+  fi
+fi
+say "installing ftrain and its test, export, render and bench extras..."
+"${pip[@]}" -e ".[test,bench]"
+rm -f .venv/.ftrain-setup-*
+touch "$stamp"
+say "done"

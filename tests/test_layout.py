@@ -13,16 +13,17 @@ from helpers import REPO
 PACKAGE = REPO / "ftrain"
 LAYERS = {
     "__main__": {"cli"},
-    "cli": {"supervise", "train", "policy", "tools", "ckpt", "config", "errors"},
-    "tools": {"train", "config", "errors"},
+    "cli": {"supervise", "train", "policy", "tools", "ckpt", "config", "errors", "progress"},
+    "tools": {"train", "config", "errors", "progress"},
     "supervise": {"config", "errors", "heartbeat", "redact"},
     "train": {"policy", "ckpt", "dist", "config", "errors", "heartbeat"},
-    "policy": {"ckpt", "config", "errors"},
+    "policy": {"ckpt", "config", "errors", "progress"},
     "ckpt": {"dist", "config", "errors", "heartbeat", "redact"},
     "dist": set(),
     "config": {"errors", "redact"},
     "heartbeat": set(),
     "redact": set(),
+    "progress": set(),
     "errors": set(),
 }
 """What each package (or top-level module) of ftrain may import from the others."""

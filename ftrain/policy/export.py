@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ftrain.config import default_log_dir
 from ftrain.errors import UserError
 from ftrain.policy.load import METADATA, Policy, policy_from_file, torchscript_deprecation_ignored
 from ftrain.policy.rollout import make_env, rollout
@@ -102,12 +103,15 @@ def sample_observations(policy: Policy, episodes: int = 3, seed: int = 0) -> tor
 
 
 def export(policy: Policy, fmt: str, path: str | Path | None = None) -> Path:
-    """Write ``policy`` as a verified ``fmt`` file to ``path`` (default ``<run name>-step-<N>.pt``/``.onnx`` in the
-    working directory) and say so on stdout."""
+    """Write ``policy`` as a verified ``fmt`` file to ``path`` and say so on stdout. By default next to the run, in
+    ``<run>/exports/<run name>-step-<N>.pt``/``.onnx`` (for a run on S3, in its local log directory ``runs/<name>``),
+    not in the working directory."""
     check_format(fmt)
     observations = sample_observations(policy)
     data = encode(policy, fmt, observations)
-    path = Path(path or f"{policy.config.name}-step-{policy.step}{SUFFIXES[fmt]}")
+    run = policy.source.rstrip("/").rsplit("/", 2)[0]  # the source is <run>/checkpoints/step-N or <run>/policies/...
+    default = Path(default_log_dir(run, policy.config.name)) / "exports"
+    path = Path(path or default / f"{policy.config.name}-step-{policy.step}{SUFFIXES[fmt]}")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(data)
     print(

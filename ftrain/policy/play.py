@@ -11,7 +11,8 @@ import torch
 
 from ftrain.errors import UserError
 from ftrain.policy.load import Policy
-from ftrain.policy.rollout import make_env, rollout
+from ftrain.policy.rollout import Episode, make_env, rollout
+from ftrain.progress import Progress
 
 VIDEO_SUFFIXES = (".mp4", ".gif")
 
@@ -43,6 +44,12 @@ def play(
     torch.manual_seed(seed)
     env = make_env(policy.config.env, render=video is not None)
     writer = None if video is None else _VideoWriter(Path(video), env)
+
+    def finished(index: int, episode: Episode) -> None:
+        if writer is not None:
+            writer.progress.clear()
+        print(f"episode {index}: return {episode.ret:.2f}, length {episode.length}", flush=True)
+
     try:
         results = rollout(
             env,
@@ -50,13 +57,12 @@ def play(
             episodes,
             seed,
             on_observation=None if writer is None else writer.add_frame,
+            on_episode=finished,
         )
     finally:
         env.close()
         if writer is not None:
             writer.close()
-    for index, episode in enumerate(results, start=1):
-        print(f"episode {index}: return {episode.ret:.2f}, length {episode.length}")
     returns = [episode.ret for episode in results]
     print(f"mean return over {episodes} episodes: {np.mean(returns):.2f} (std {np.std(returns):.2f})")
     frames = 0 if writer is None else writer.frames
@@ -73,6 +79,8 @@ class _VideoWriter:
         import imageio.v2 as imageio
 
         self.env = env
+        self.path = path
+        self.progress = Progress()
         self.fps = float(env.metadata.get("render_fps", 30))
         path.parent.mkdir(parents=True, exist_ok=True)
         if path.suffix.lower() == ".gif":
@@ -92,7 +100,10 @@ class _VideoWriter:
             ) from None
         self.writer.append_data(frame)
         self.frames += 1
+        if self.frames % 25 == 0:
+            self.progress.show(f"rendering: {self.frames} frames written to {self.path.name}")
         self.size = frame.shape[:2]
 
     def close(self) -> None:
+        self.progress.clear()
         self.writer.close()

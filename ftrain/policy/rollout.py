@@ -42,9 +42,11 @@ def rollout(
     episodes: int,
     seed: int,
     on_observation: Callable[[np.ndarray], None] | None = None,
+    on_episode: Callable[[int, Episode], None] | None = None,
 ) -> list[Episode]:
     """Play ``episodes`` episodes seeded ``seed``, ``seed + 1``, ...; ``on_observation`` sees every observation
-    (after the reset and after each step, so ``sum(length + 1)`` in all)."""
+    (after the reset and after each step, so ``sum(length + 1)`` in all), ``on_episode`` each finished episode with its
+    number (from 1)."""
     low, high = env.action_space.low, env.action_space.high
     results = []
     for index in range(episodes):
@@ -61,4 +63,6 @@ def rollout(
         if on_observation is not None:
             on_observation(obs)
         results.append(Episode(total, length))
+        if on_episode is not None:
+            on_episode(index + 1, results[-1])
     return results

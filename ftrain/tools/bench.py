@@ -23,6 +23,7 @@ from pathlib import Path
 
 import torch
 
+from ftrain.progress import Progress
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.hooks import Hook
 
@@ -186,7 +187,9 @@ CASES = {
 def run_benchmark(iterations: int) -> int:
     """Run every case in a fresh process, print steps/s and the ratios the targets are stated in."""
     results = {}
-    for name in CASES:
+    progress = Progress()
+    for number, name in enumerate(CASES, start=1):
+        progress.show(f"running case {number}/{len(CASES)}: {name} ({iterations} iterations)...")
         code = "import torch; torch.set_num_threads(1); from ftrain.tools.bench import CASES; "
         code += f"print(CASES[{name!r}]({iterations}))"
         done = subprocess.run(
@@ -195,6 +198,7 @@ def run_benchmark(iterations: int) -> int:
             text=True,
             env={**os.environ, "OMP_NUM_THREADS": "1"},
         )
+        progress.clear()
         if done.returncode:
             print(f"{name:>9}: failed\n{done.stderr[-2000:]}")
             continue

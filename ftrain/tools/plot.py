@@ -1,8 +1,10 @@
-"""``ftrain plot``: a run's learning curves as one PNG, with its restarts marked.
+"""``ftrain plot``: a run's learning curves as one PNG, with its restarts and resumes marked.
 
-Reads ``<run>/metrics.csv`` (the CSV hook's; a resumed run appends and redoes iterations, so the last row of each
-iteration wins) and, if the supervisor ran, ``<run>/events.jsonl``. A restart is drawn at the checkpoint step the
-run resumed from: from the supervisor's ``resumed`` events, and wherever the iterations in metrics.csv go back.
+Reads ``<run>/metrics.csv`` (the CSV hook's: one row per iteration, the first row after a resume names the step in
+``resumed_from``; in files of older ftrain versions an iteration redone appears twice, and its last row wins) and,
+if the supervisor ran, ``<run>/events.jsonl``. Restarts are counted as the supervisor counts them: each ``restart``
+event, drawn at the step the next attempt resumed from. Every other resume (the same command run again after a
+preemption or by hand) is a resume.
 """
 
 from __future__ import annotations
@@ -25,12 +27,14 @@ class Plot:
     panels: list[str]
     """The titles of the panels drawn."""
     restarts: list[int]
-    """The steps at which restarts are marked."""
+    """The steps at which restarts are marked (the supervisor's restarts, at the step each resumed from)."""
+    resumes: list[int]
+    """The steps of the other resumes."""
 
 
 def read_metrics(run: Path) -> tuple[dict[str, list[float]], list[int]]:
-    """Columns by name, ordered by iteration (the last row of each iteration wins), and the restarts seen in the
-    file: the step resumed from wherever the iteration goes back."""
+    """Columns by name, ordered by iteration (the last row of each iteration wins), and the steps resumed from: the
+    ``resumed_from`` column, and wherever the iterations go back (files of older versions)."""
     path = run / METRICS
     if not path.is_file():
         raise UserError(f"{path} does not exist: pass a run's log directory (where training wrote {METRICS})")
@@ -42,6 +46,8 @@ def read_metrics(run: Path) -> tuple[dict[str, list[float]], list[int]]:
             iteration = int(row["iteration"])
             if iteration <= previous:
                 restarts.add(iteration - 1)
+            if row.get("resumed_from"):
+                restarts.add(int(row["resumed_from"]))
             previous = iteration
             rows[iteration] = row
     if not rows:
@@ -52,18 +58,21 @@ def read_metrics(run: Path) -> tuple[dict[str, list[float]], list[int]]:
 
 
 def read_restarts(run: Path) -> list[int]:
-    """Steps the supervisor's workers resumed from (``resumed`` events; a fresh start has no step)."""
+    """The supervisor's restarts, each at the step the attempt after it resumed from (0: from the start)."""
     path = run / EVENTS
     if not path.is_file():
         return []
-    steps = set()
+    steps, restarted = [], False
     for line in path.read_text().splitlines():
         try:
             event = json.loads(line)
         except json.JSONDecodeError:
             continue  # a line cut short by a crash of the supervisor itself
-        if event.get("event") == "resumed" and isinstance(event.get("step"), int):
-            steps.add(event["step"])
+        if event.get("event") == "restart":
+            restarted = True
+        elif event.get("event") == "resumed" and restarted:
+            steps.append(event.get("step") or 0)
+            restarted = False
     return sorted(steps)
 
 
@@ -76,8 +85,9 @@ def plot_run(run: str | Path, output: str | Path | None = None) -> Plot:
     import matplotlib.pyplot as plt
 
     run = Path(run)
-    columns, restarts = read_metrics(run)
-    restarts = sorted(set(restarts) | set(read_restarts(run)))
+    columns, resumed = read_metrics(run)
+    restarts = read_restarts(run)
+    resumes = sorted(set(resumed) - set(restarts))
     iterations = columns.pop("iteration")
     panels = [
         (
@@ -106,6 +116,8 @@ def plot_run(run: str | Path, output: str | Path | None = None) -> Plot:
             ax.set_yscale("symlog", linthresh=1e-2)
         for index, step in enumerate(restarts):
             ax.axvline(step, color="tab:red", linestyle="--", linewidth=1, label="restart" if index == 0 else None)
+        for index, step in enumerate(resumes):
+            ax.axvline(step, color="tab:gray", linestyle=":", linewidth=1, label="resume" if index == 0 else None)
         ax.set_title(title)
         ax.set_xlabel("iteration")
         ax.set_ylabel(unit)
@@ -113,15 +125,22 @@ def plot_run(run: str | Path, output: str | Path | None = None) -> Plot:
         ax.legend(fontsize="small")
     for ax in axes.flat[len(panels) :]:
         ax.set_visible(False)
-    marked = f", {len(restarts)} restart{'s' * (len(restarts) != 1)} (dashed: step resumed from)" if restarts else ""
-    figure.suptitle(f"{run.resolve().name}: {int(iterations[-1])} iterations{marked}")
+    marks = [_count(len(restarts), "restart") + " (dashed)" if restarts else ""]
+    marks.append(_count(len(resumes), "resume") + " (dotted)" if resumes else "")
+    marked = ", ".join(mark for mark in marks if mark)
+    where = f", {marked}: at the step resumed from" if marked else ""
+    figure.suptitle(f"{run.resolve().name}: {int(iterations[-1])} iterations{where}")
     figure.tight_layout()
     path = Path(output) if output else run / "curves.png"
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=100)
     plt.close(figure)
     print(f"wrote {path}")
-    return Plot(path, [title for title, _, _ in panels], restarts)
+    return Plot(path, [title for title, _, _ in panels], restarts, resumes)
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'s' * (n != 1)}"
 
 
 def _number(text: str | None) -> float:

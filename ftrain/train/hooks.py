@@ -12,7 +12,10 @@ import collections
 import csv
 import importlib
 import math
+import os
+import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -85,23 +88,27 @@ class Hooks:
 
 
 class ConsoleHook(Hook):
-    """One line per iteration on rank 0: progress, throughput, returns, losses, learning rate, ETA."""
+    """One line per iteration on rank 0: progress, throughput, returns, losses, learning rate, ETA.
 
-    def __init__(self) -> None:
+    The ETA is the remaining iterations times the mean wall time of the last ``ETA_WINDOW`` iterations of this
+    process, not counting the first ``ETA_SKIP`` after a (re)start (imports, the first save, warm caches); until
+    there are enough, the iteration's own compute time stands in.
+    """
+
+    ETA_WINDOW = 20
+    ETA_SKIP = 2
+
+    def __init__(self, clock: Callable[[], float] = time.perf_counter) -> None:
+        self.clock = clock
         self._last: float | None = None
-        self._seconds_per_iteration: float | None = None
+        self._intervals = 0
+        self._recent: collections.deque[float] = collections.deque(maxlen=self.ETA_WINDOW)
 
     def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
         if not trainer.info.is_main:
             return
-        now = time.perf_counter()
-        if self._last is not None:
-            elapsed = (now - self._last) / max(1, self.every)
-            smooth = self._seconds_per_iteration
-            self._seconds_per_iteration = elapsed if smooth is None else 0.9 * smooth + 0.1 * elapsed
-        self._last = now
         total = trainer.config.iterations
-        eta = _duration((total - trainer.iteration) * (self._seconds_per_iteration or metrics["iteration_time"]))
+        eta = _duration((total - trainer.iteration) * self.seconds_per_iteration(metrics["iteration_time"]))
         losses = " ".join(f"{k.removeprefix('loss/')} {v:.3g}" for k, v in metrics.items() if k.startswith("loss/"))
         print(
             f"it {trainer.iteration}/{total} | {metrics['steps_per_s']:,.0f} steps/s"
@@ -109,6 +116,16 @@ class ConsoleHook(Hook):
             f" | {losses} | lr {metrics['learning_rate']:.2e} | ETA {eta}",
             flush=True,
         )
+
+    def seconds_per_iteration(self, compute_time: float) -> float:
+        """Record this iteration's end; the estimate of an iteration's wall time (see the class docstring)."""
+        now = self.clock()
+        if self._last is not None:
+            self._intervals += 1
+            if self._intervals > self.ETA_SKIP:
+                self._recent.append((now - self._last) / max(1, self.every))
+        self._last = now
+        return statistics.fmean(self._recent) if len(self._recent) >= self.ETA_SKIP + 1 else compute_time
 
 
 class TensorBoardHook(Hook):
@@ -121,7 +138,11 @@ class TensorBoardHook(Hook):
         if trainer.info.is_main:
             from torch.utils.tensorboard import SummaryWriter
 
-            self.writer = SummaryWriter(log_dir=str(Path(trainer.config.log_dir) / "tensorboard"), flush_secs=10)
+            self.writer = SummaryWriter(  # purge_step: a resumed run's redone iterations replace the old points
+                log_dir=str(Path(trainer.config.log_dir) / "tensorboard"),
+                flush_secs=10,
+                purge_step=trainer.iteration + 1,
+            )
 
     def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
         if self.writer is not None:
@@ -134,29 +155,45 @@ class TensorBoardHook(Hook):
 
 
 class CsvHook(Hook):
-    """``<log_dir>/metrics.csv`` on rank 0; a resumed run appends, so an iteration redone after a crash appears
-    twice and readers keep its last row."""
+    """``<log_dir>/metrics.csv`` on rank 0, one row per iteration: a resumed run first drops the rows past the step
+    it resumed from (the iterations it is about to redo), then appends; its first row names that step in
+    ``resumed_from`` (empty in every other row)."""
 
     def __init__(self) -> None:
         self.file = None
         self.writer: csv.DictWriter | None = None
+        self.resumed_from: int | None = None
+
+    def on_start(self, trainer: Trainer) -> None:
+        if not trainer.info.is_main:
+            return
+        path = Path(trainer.config.log_dir) / "metrics.csv"
+        self.resumed_from = trainer.iteration or None
+        if not (path.exists() and path.stat().st_size):
+            return
+        with path.open(newline="") as existing:
+            reader = csv.DictReader(existing)
+            fields = list(reader.fieldnames or [])
+            kept = [row for row in reader if int(row["iteration"]) <= trainer.iteration]
+        tmp = path.with_suffix(".csv.tmp")
+        with tmp.open("w", newline="") as file:
+            writer = csv.DictWriter(file, fields)
+            writer.writeheader()
+            writer.writerows(kept)
+        os.replace(tmp, path)
+        self.file = path.open("a", newline="")
+        self.writer = csv.DictWriter(self.file, fields, extrasaction="ignore")
 
     def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
         if not trainer.info.is_main:
             return
         if self.writer is None:
-            path = Path(trainer.config.log_dir) / "metrics.csv"
-            fields = ["iteration", *metrics]
-            if path.exists() and path.stat().st_size:
-                with path.open() as existing:
-                    fields = next(csv.reader(existing))
-                self.file = path.open("a", newline="")
-                self.writer = csv.DictWriter(self.file, fields, extrasaction="ignore")
-            else:
-                self.file = path.open("w", newline="")
-                self.writer = csv.DictWriter(self.file, fields, extrasaction="ignore")
-                self.writer.writeheader()
-        self.writer.writerow({"iteration": trainer.iteration, **metrics})
+            self.file = (Path(trainer.config.log_dir) / "metrics.csv").open("w", newline="")
+            fields = ["iteration", *metrics, "resumed_from"]
+            self.writer = csv.DictWriter(self.file, fields, extrasaction="ignore")
+            self.writer.writeheader()
+        self.writer.writerow({"iteration": trainer.iteration, **metrics, "resumed_from": self.resumed_from or ""})
+        self.resumed_from = None
         self.file.flush()
 
     def on_end(self, trainer: Trainer) -> None:

@@ -67,6 +67,9 @@ class Trainer:
         seed = group.rank_seed(config.seed, info.rank)
         self.env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs)
         self.alg = build_algorithm(config, self.env, info)
+        if hasattr(self.alg, "teacher_identity"):  # which teacher a distillation learns from, at once
+            teacher = self.alg.teacher_identity
+            self.log(f"teacher: {teacher['source']} (step {teacher['step']}, state_sha256 {teacher['digest'][:16]})")
         group.seed_all(seed)  # from here on, each rank samples its own actions and minibatches
         self.hooks = build_hooks(config)
         self.iteration = 0

@@ -89,6 +89,15 @@ def test_exports_run_without_ftrain_and_match_the_actor(trained, tmp_path, capsy
         torch.testing.assert_close(exported.act(obs), policy.act(obs), atol=1e-5, rtol=1e-5)
 
 
+def test_an_export_without_a_path_lands_next_to_the_run(trained, tmp_path, monkeypatch, capsys) -> None:
+    monkeypatch.chdir(tmp_path)  # where a user runs it from: nothing must land here
+    assert main(["export", step_url(trained, 2), "--format", "torchscript"]) == 0
+    expected = trained / "exports" / "smoke-step-2.pt"
+    assert f"wrote {expected}:" in capsys.readouterr().out
+    assert load_policy(str(expected)).step == 2
+    assert not [path for path in tmp_path.iterdir() if path.suffix in (".pt", ".onnx")]
+
+
 def check_video(path: Path, frames: int) -> None:
     decoded = imageio.mimread(path, memtest=False)
     assert len(decoded) == frames

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from ftrain.cli import main
-from ftrain.supervise.supervisor import EventLog
+from ftrain.supervise.events import EventLog
 from ftrain.tools.plot import plot_run, read_metrics
 
 from helpers import run_train
@@ -23,7 +23,7 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def resumed(tmp_path_factory) -> Path:
-    """Iterations 1-6, checkpoint 6 lost, then 5-8 again from checkpoint 4: metrics.csv holds 5 and 6 twice."""
+    """Iterations 1-6, checkpoint 6 lost, then 5-8 again from checkpoint 4."""
     run = tmp_path_factory.mktemp("plot") / "run"
     run_train(run, "iterations=6", "eval.every=2", "eval.episodes=1")
     shutil.rmtree(run / "checkpoints" / "step-000000006")
@@ -37,19 +37,34 @@ def png_size(path: Path) -> tuple[int, int]:
     return struct.unpack(">II", data[16:24])
 
 
-def test_last_row_of_each_iteration_wins(resumed) -> None:
+def test_metrics_keep_one_row_per_iteration_from_the_run_that_continued(resumed) -> None:
     with (resumed / "metrics.csv").open() as file:
         raw = list(csv.DictReader(file))
-    assert [int(row["iteration"]) for row in raw] == [1, 2, 3, 4, 5, 6, 5, 6, 7, 8]
-    columns, restarts = read_metrics(resumed)
+    assert [int(row["iteration"]) for row in raw] == [1, 2, 3, 4, 5, 6, 7, 8]
+    assert [row["resumed_from"] for row in raw] == ["", "", "", "", "4", "", "", ""]
+    columns, resumed_from = read_metrics(resumed)
     assert columns["iteration"] == [1, 2, 3, 4, 5, 6, 7, 8]
-    assert columns["steps_per_s"][4:6] == [float(row["steps_per_s"]) for row in raw[6:8]]
-    assert restarts == [4]
+    assert columns["steps_per_s"] == [float(row["steps_per_s"]) for row in raw]
+    assert resumed_from == [4]
 
 
-def test_plot_marks_the_restart(resumed, tmp_path) -> None:
+def test_files_of_older_versions_keep_the_last_row_of_each_iteration(resumed, tmp_path) -> None:
+    with (resumed / "metrics.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    run = tmp_path / "old"
+    run.mkdir()
+    with (run / "metrics.csv").open("w", newline="") as file:
+        writer = csv.DictWriter(file, [name for name in rows[0] if name != "resumed_from"], extrasaction="ignore")
+        writer.writeheader()
+        writer.writerows([*rows[:6], {**rows[4], "steps_per_s": "1"}, *rows[5:]])  # 5, 6 twice, the last rows win
+    columns, resumed_from = read_metrics(run)
+    assert columns["iteration"] == [1, 2, 3, 4, 5, 6, 7, 8] and columns["steps_per_s"][4] == 1.0
+    assert resumed_from == [4]
+
+
+def test_plot_marks_a_resume_that_was_no_restart(resumed, tmp_path) -> None:
     plot = plot_run(resumed, tmp_path / "curves.png")
-    assert plot.panels == PANELS and plot.restarts == [4]
+    assert plot.panels == PANELS and (plot.restarts, plot.resumes) == ([], [4])
     assert png_size(plot.path) == (1200, 800)
     assert plot.path.stat().st_size > 30_000, "a PNG with four panels of curves and text"
 
@@ -63,9 +78,12 @@ def test_plot_adds_the_supervisors_restarts(resumed, tmp_path) -> None:
     events("resumed", attempt=1, step=None)  # a fresh start
     events("restart", attempt=2, restarts=1)
     events("resumed", attempt=2, step=2)
+    events("restart", attempt=3, restarts=2)
+    events("resumed", attempt=3, step=None)  # a crash before the first checkpoint: restarted from the start
     with (run / "events.jsonl").open("a") as file:
         file.write('{"time": 1.0, "event": "resu')  # cut short when the supervisor itself was killed
-    assert plot_run(run).restarts == [2, 4]
+    plot = plot_run(run)
+    assert (plot.restarts, plot.resumes) == ([0, 2], [4])
     assert (run / "curves.png").is_file()
 
 

@@ -27,7 +27,9 @@ def test_student_learns_from_teacher_and_resumes_exactly(tmp_path) -> None:
     teacher_manifest = final_manifest(teacher)
 
     straight = tmp_path / "straight"
-    run_train(straight, f"teacher={teacher}", "iterations=12", *SMALL, ranks=2, config=DISTILL)
+    result = run_train(straight, f"teacher={teacher}", "iterations=12", *SMALL, ranks=2, config=DISTILL)
+    source = teacher / "checkpoints" / "step-000000012"
+    assert f"teacher: {source} (step 12, state_sha256 {teacher_manifest['state_sha256'][:16]})" in result.stdout
     behavior = {it: float(row["loss/behavior"]) for it, row in metrics_by_iteration(straight).items()}
     assert behavior[12] < 0.5 * behavior[1], f"behaviour loss did not fall: {behavior}"
     manifest = final_manifest(straight)
