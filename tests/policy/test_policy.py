@@ -17,7 +17,7 @@ import torch
 
 from ftrain.cli import main
 from ftrain.errors import UserError
-from ftrain.policy.export import sample_observations
+from ftrain.policy.export import export, sample_observations
 from ftrain.policy.load import load_policy
 from ftrain.policy.play import play
 
@@ -109,7 +109,7 @@ def check_video(path: Path, frames: int) -> None:
 @pytest.mark.slow
 def test_play_renders_mp4_and_gif(trained, tmp_path, capsys) -> None:
     video = tmp_path / "cheetah.mp4"
-    assert main(["play", str(trained), "--episodes", "2", "--deterministic", "--video", str(video)]) == 0
+    assert main(["play", str(trained), "--episodes", "2", "--video", str(video)]) == 0
     out = capsys.readouterr().out
     lengths = [int(length) for length in re.findall(r"episode \d: return -?[\d.]+, length (\d+)", out)]
     assert lengths == [EPISODE_STEPS, EPISODE_STEPS]
@@ -120,6 +120,18 @@ def test_play_renders_mp4_and_gif(trained, tmp_path, capsys) -> None:
     result = play(load_policy(str(trained)), episodes=1, video=gif)
     assert result.frames == EPISODE_STEPS + 1 and result.lengths == [EPISODE_STEPS]
     check_video(gif, result.frames)
+
+
+def test_play_takes_the_mean_action_unless_told_to_sample(trained, capsys) -> None:
+    policy = load_policy(str(trained))
+    mean, sampled = (play(policy, seed=3, deterministic=deterministic).returns for deterministic in (True, False))
+    assert mean != sampled
+    assert play(policy, seed=3).returns == mean
+    capsys.readouterr()
+    for flags, returns, mode in (([], mean, "deterministic (mean) actions"), (["--stochastic"], sampled, "sampled")):
+        assert main(["play", str(trained), "--seed", "3", *flags]) == 0
+        out = capsys.readouterr().out
+        assert f"with {mode}" in out and f"episode 1: return {returns[0]:.2f}," in out
 
 
 def test_play_an_exported_policy_like_its_checkpoint(trained, tmp_path) -> None:
@@ -152,7 +164,6 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
     onnx.save(anonymous, tmp_path / "anonymous.onnx")
     cases = {
         "a directory without checkpoints": (["play", str(tmp_path / "empty")], "no verified checkpoint under"),
-        "an unknown format": (["export", str(trained), "--format", "tflite"], "unknown policy format 'tflite'"),
         "a text file": (["play", str(notes)], "is neither a TorchScript nor an ONNX file"),
         "a checkpoint file": (["play", str(Path(step_url(trained, 2)) / "common.pt")], "is not a TorchScript policy"),
         "an ONNX model of someone else": (["play", str(tmp_path / "anonymous.onnx")], "not an ftrain policy"),
@@ -166,3 +177,5 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
         err = capsys.readouterr().err
         assert err.startswith("ftrain: error: ") and err.count("\n") == 1, f"{case}: {err!r}"
         assert message in err, f"{case}: {err!r}"
+    with pytest.raises(UserError, match="unknown policy format 'tflite': use torchscript or onnx"):
+        export(load_policy(str(trained)), "tflite")  # the CLI's --format choices refuse it before (tests/test_cli.py)
