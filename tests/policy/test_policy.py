@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import os
+import pty
 import re
 import shutil
 import subprocess
@@ -21,7 +24,7 @@ from ftrain.policy.export import export, sample_observations
 from ftrain.policy.load import load_policy
 from ftrain.policy.play import play
 
-from helpers import final_manifest, flip_byte, run_train
+from helpers import REPO, child_env, final_manifest, flip_byte, run_train
 
 EPISODE_STEPS = 20
 STANDALONE = r"""
@@ -113,13 +116,35 @@ def test_play_renders_mp4_and_gif(trained, tmp_path, capsys) -> None:
     out = capsys.readouterr().out
     lengths = [int(length) for length in re.findall(r"episode \d: return -?[\d.]+, length (\d+)", out)]
     assert lengths == [EPISODE_STEPS, EPISODE_STEPS]
-    assert "mean return over 2 episodes" in out
+    assert "mean return over 2 episodes" in out and "rendering:" not in out, "a live line only on a terminal"
     check_video(video, sum(length + 1 for length in lengths))  # a frame after the reset and after each step
 
     gif = tmp_path / "cheetah.gif"
     result = play(load_policy(str(trained)), episodes=1, video=gif)
     assert result.frames == EPISODE_STEPS + 1 and result.lengths == [EPISODE_STEPS]
     check_video(gif, result.frames)
+
+
+@pytest.mark.slow
+def test_play_on_a_terminal_counts_frames_live_and_prints_each_episode_as_it_ends(trained, tmp_path) -> None:
+    ours, theirs = pty.openpty()
+    command = [sys.executable, "-m", "ftrain", "play", str(trained), "--episodes", "2", "--video", "cheetah.gif"]
+    with open(tmp_path / "stderr", "w") as stderr:
+        proc = subprocess.Popen(
+            command, cwd=tmp_path, env=child_env({"PYTHONPATH": str(REPO)}), stdout=theirs, stderr=stderr
+        )
+    os.close(theirs)
+    seen = b""
+    with contextlib.suppress(OSError):  # EIO once play has exited and the terminal's other side is closed
+        while chunk := os.read(ours, 4096):
+            seen += chunk
+    os.close(ours)
+    assert proc.wait(timeout=60) == 0, (tmp_path / "stderr").read_text()
+    out = seen.decode()
+    counter = "\rrendering: 25 frames written to cheetah.gif"  # episode 2's 4th frame: episodes have 21 frames
+    wiped = "\r" + " " * (len(counter) - 1) + "\r"
+    assert f"{counter}{wiped}episode 2: return" in out, repr(out)
+    assert out.index("episode 1: return") < out.index(counter), "episode 1 must show as it ends"
 
 
 def test_play_takes_the_mean_action_unless_told_to_sample(trained, capsys) -> None:
