@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import importlib.metadata
 import sys
 import typing
 
@@ -25,15 +26,14 @@ def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_dataclass_arguments(parser: argparse.ArgumentParser, options_class: type) -> None:
-    """One ``--flag`` per dataclass field, typed by its default, documented by its ``help`` metadata."""
+    """One ``--flag`` per dataclass field, typed by its default, documented by its ``help`` metadata and default."""
     hints = typing.get_type_hints(options_class)
     for field in dataclasses.fields(options_class):
         flag = "--" + field.name.replace("_", "-")
         kind = hints[field.name]
         kind = kind if kind in (int, float) else str
-        parser.add_argument(
-            flag, dest=field.name, type=kind, default=field.default, help=field.metadata.get("help", "")
-        )
+        help_text = field.metadata["help"] + (" (default: %(default)s)" if field.default != "" else "")
+        parser.add_argument(flag, dest=field.name, type=kind, default=field.default, help=help_text)
 
 
 def _config_keys_help() -> str:
@@ -53,12 +53,14 @@ def _config_keys_help() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from ftrain.config import POLICY_FORMATS
     from ftrain.supervise.options import SupervisorOptions
 
     parser = argparse.ArgumentParser(
         prog="ftrain", description="Distributed, fault-tolerant PPO training on CPU (torchrun + gloo + rsl-rl)."
     )
-    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", help="one of:")
 
     train = commands.add_parser(
         "train",
@@ -78,24 +80,47 @@ def build_parser() -> argparse.ArgumentParser:
     _add_dataclass_arguments(supervise, SupervisorOptions)
     _add_run_arguments(supervise)
 
+    storage_url = "a run's storage (local path, file:// or s3://)"
+    step_url = "one checkpoint step <root>/checkpoints/step-N"
+    newest = f"{storage_url} for its newest verified step"
     ckpt = commands.add_parser("ckpt", help="inspect and repair checkpoint storage")
-    ckpt_commands = ckpt.add_subparsers(dest="ckpt_command", required=True, metavar="ACTION")
+    ckpt_commands = ckpt.add_subparsers(dest="ckpt_command", required=True, metavar="ACTION", help="one of:")
     ls = ckpt_commands.add_parser("ls", help="list steps: verified / incomplete / corrupt / quarantined")
-    ls.add_argument("url")
+    ls.add_argument("url", help=f"{storage_url}, or {step_url}")
     verify = ckpt_commands.add_parser(
         "verify", help="verify every file of a storage or of one step (exit 1 on failure)"
     )
-    verify.add_argument("url")
+    verify.add_argument("url", help=f"{storage_url}, or {step_url}")
     show = ckpt_commands.add_parser("show", help="print the manifest of one step (default: newest verified)")
-    show.add_argument("url")
+    show.add_argument("url", help=f"{step_url}, or {newest}")
     show.add_argument("--json", action="store_true", help="raw JSON")
     prune = ckpt_commands.add_parser("prune", help="apply a retention policy")
-    prune.add_argument("url")
-    prune.add_argument("--keep-last", type=int, default=3)
-    prune.add_argument("--keep-best", type=int, default=0)
-    prune.add_argument("--best-metric", default="mean_return")
-    prune.add_argument("--keep-every", type=int, default=0)
-    prune.add_argument("--pin", type=int, action="append", default=[], help="a step to keep (repeatable)")
+    prune.add_argument("url", help=storage_url)
+    prune.add_argument(
+        "--keep-last", type=int, default=3, metavar="N", help="keep the newest N verified steps (default: %(default)s)"
+    )
+    prune.add_argument(
+        "--keep-best",
+        type=int,
+        default=0,
+        metavar="N",
+        help="keep the N best steps by --best-metric (default: %(default)s)",
+    )
+    prune.add_argument(
+        "--best-metric",
+        default="mean_return",
+        help="the metric that ranks steps for --keep-best, higher is better (default: %(default)s)",
+    )
+    prune.add_argument(
+        "--keep-every",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also keep every multiple of N (0: off; default: %(default)s)",
+    )
+    prune.add_argument(
+        "--pin", type=int, action="append", default=[], metavar="STEP", help="a step to keep (repeatable)"
+    )
     prune.add_argument("--dry-run", action="store_true", help="print what would be deleted, delete nothing")
     prune.add_argument(
         "--drop-bad", action="store_true", help="also delete corrupt, quarantined and set-aside steps (the only way)"
@@ -103,26 +128,32 @@ def build_parser() -> argparse.ArgumentParser:
     unquarantine = ckpt_commands.add_parser(
         "unquarantine", help="lift the quarantine of one step if it verifies (exit 1 if it does not)"
     )
-    unquarantine.add_argument("url", help="one step: <root>/checkpoints/step-N")
+    unquarantine.add_argument("url", help=step_url)
 
     bench = commands.add_parser("bench", help="throughput benchmark against rsl-rl and stable-baselines3")
-    bench.add_argument("--iterations", type=int, default=30)
-
-    policy_url = (
-        "a run's storage (newest verified checkpoint), a checkpoint step <root>/checkpoints/step-N "
-        "or a policy snapshot <root>/policies/step-N"
+    bench.add_argument(
+        "--iterations",
+        type=int,
+        default=30,
+        help="timed iterations per case, after a few warm-up ones (default: %(default)s)",
     )
+
+    policy_url = f"{step_url}, a policy snapshot <root>/policies/step-N, or {newest}"
     play = commands.add_parser(
         "play",
         help="roll out a policy and print its episode returns; --video renders it headless",
-        description="Roll out a policy in its environment and print the episode returns. --video renders it "
-        "headless (MUJOCO_GL=egl).",
+        description="Roll out a policy in its environment and print the episode returns. It takes the mean action "
+        "(as rsl-rl and IsaacLab play); --stochastic samples. --video renders it headless (MUJOCO_GL=egl).",
     )
-    play.add_argument("url", help=f"{policy_url}, or a file written by ftrain export")
-    play.add_argument("--episodes", type=int, default=1)
-    play.add_argument("--deterministic", action="store_true", help="take the mean action instead of sampling")
+    play.add_argument("url", help=f"{policy_url}; or a file written by ftrain export")
+    play.add_argument("--episodes", type=int, default=1, metavar="N", help="episodes to play (default: %(default)s)")
+    play.add_argument(
+        "--stochastic", action="store_true", help="sample actions from the policy's distribution, as in training"
+    )
     play.add_argument("--video", help="write a video: out.mp4 or out.gif")
-    play.add_argument("--seed", type=int, default=0, help="episodes are seeded seed, seed+1, ...")
+    play.add_argument(
+        "--seed", type=int, default=0, help="episodes are seeded seed, seed+1, ... (default: %(default)s)"
+    )
 
     export = commands.add_parser(
         "export",
@@ -131,13 +162,21 @@ def build_parser() -> argparse.ArgumentParser:
         "by comparing its actions with the trained actor's on real observations.",
     )
     export.add_argument("url", help=policy_url)
-    export.add_argument("--format", required=True, metavar="torchscript|onnx")
-    export.add_argument("-o", "--output", help="file to write (default: <run name>-step-<N>.pt or .onnx here)")
+    export.add_argument("--format", required=True, choices=POLICY_FORMATS, help="the file format")
+    export.add_argument("-o", "--output", help="file to write (default: <run>/exports/<run name>-step-<N>.pt or .onnx)")
 
     plot = commands.add_parser("plot", help="learning curves of a run as a PNG, restarts marked")
     plot.add_argument("run", help="the run's log directory (holds metrics.csv)")
     plot.add_argument("-o", "--output", help="PNG to write (default: <run>/curves.png)")
     return parser
+
+
+def _version() -> str:
+    """The installed ftrain's version (a source tree run without installing has none)."""
+    try:
+        return importlib.metadata.version("ftrain")
+    except importlib.metadata.PackageNotFoundError:
+        return "(not installed: pip install -e .)"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -199,13 +238,13 @@ def _dispatch(args: argparse.Namespace) -> int:
         from ftrain.policy.load import load_policy
         from ftrain.policy.play import play
 
-        play(load_policy(args.url, log=_stderr), args.episodes, args.deterministic, args.video, args.seed)
+        policy = load_policy(args.url, log=_stderr)
+        play(policy, args.episodes, deterministic=not args.stochastic, video=args.video, seed=args.seed)
         return 0
     if args.command == "export":
-        from ftrain.policy.export import check_format, export
+        from ftrain.policy.export import export
         from ftrain.policy.load import load_policy
 
-        check_format(args.format)
         export(load_policy(args.url, log=_stderr), args.format, args.output)
         return 0
     if args.command == "plot":

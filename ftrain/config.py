@@ -20,6 +20,9 @@ import yaml
 from ftrain.errors import UserError
 from ftrain.redact import display_url, redact_options
 
+POLICY_FORMATS = ("torchscript", "onnx")
+"""The file formats a policy is exported and snapshotted in."""
+
 
 @dataclass
 class EnvConfig:
@@ -106,7 +109,7 @@ class SnapshotConfig:
     every: int = 0
     """Save a deployable policy to ``<storage>/policies/step-N/`` every N iterations (0: never)."""
     keep_last: int = 5
-    formats: list[str] = field(default_factory=lambda: ["torchscript", "onnx"])
+    formats: list[str] = field(default_factory=lambda: list(POLICY_FORMATS))
 
 
 @dataclass
@@ -251,7 +254,7 @@ def validate(config: Config) -> None:
     if not config.snapshots.formats:
         raise UserError("snapshots.formats is empty: list torchscript and/or onnx")
     for fmt in config.snapshots.formats:
-        if fmt not in ("torchscript", "onnx"):
+        if fmt not in POLICY_FORMATS:
             raise UserError(f"snapshots.formats: {fmt!r} is unknown: use torchscript and/or onnx")
     if config.dist_timeout <= 0:
         raise UserError(f"dist_timeout={config.dist_timeout} must be a positive number of seconds")

@@ -10,12 +10,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ftrain.config import default_log_dir
+from ftrain.config import POLICY_FORMATS, default_log_dir
 from ftrain.errors import UserError
 from ftrain.policy.load import METADATA, Policy, policy_from_file, torchscript_deprecation_ignored
 from ftrain.policy.rollout import make_env, rollout
 
-FORMATS = ("torchscript", "onnx")
 SUFFIXES = {"torchscript": ".pt", "onnx": ".onnx"}
 TOLERANCE = 1e-5
 """Largest difference (absolute and relative) allowed between an export's actions and the actor's."""
@@ -26,8 +25,8 @@ class ExportMismatch(RuntimeError):
 
 
 def check_format(fmt: str) -> None:
-    if fmt not in FORMATS:
-        raise UserError(f"unknown policy format {fmt!r}: use {' or '.join(FORMATS)}")
+    if fmt not in POLICY_FORMATS:
+        raise UserError(f"unknown policy format {fmt!r}: use {' or '.join(POLICY_FORMATS)}")
 
 
 def encode(policy: Policy, fmt: str, observations: torch.Tensor) -> bytes:

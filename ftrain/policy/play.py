@@ -26,10 +26,12 @@ class PlayResult:
 
 
 def play(
-    policy: Policy, episodes: int = 1, deterministic: bool = False, video: str | Path | None = None, seed: int = 0
+    policy: Policy, episodes: int = 1, deterministic: bool = True, video: str | Path | None = None, seed: int = 0
 ) -> PlayResult:
     """Roll ``policy`` out for ``episodes`` episodes (seeded ``seed``, ``seed + 1``, ...) in an environment of its
-    own; print each return and the mean. ``video`` (``.mp4`` or ``.gif``) renders it headless (MUJOCO_GL=egl)."""
+    own; print each return and the mean. It takes the mean action, as rsl-rl's and IsaacLab's play do, unless not
+    ``deterministic`` (then actions are sampled, seeded by ``seed``). ``video`` (``.mp4`` or ``.gif``) renders it
+    headless (MUJOCO_GL=egl)."""
     if episodes < 1:
         raise UserError(f"--episodes {episodes}: play at least 1 episode")
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import os
+import pty
 import re
 import shutil
 import subprocess
@@ -17,11 +20,11 @@ import torch
 
 from ftrain.cli import main
 from ftrain.errors import UserError
-from ftrain.policy.export import sample_observations
+from ftrain.policy.export import export, sample_observations
 from ftrain.policy.load import load_policy
 from ftrain.policy.play import play
 
-from helpers import final_manifest, flip_byte, run_train
+from helpers import REPO, child_env, final_manifest, flip_byte, run_train
 
 EPISODE_STEPS = 20
 STANDALONE = r"""
@@ -109,17 +112,51 @@ def check_video(path: Path, frames: int) -> None:
 @pytest.mark.slow
 def test_play_renders_mp4_and_gif(trained, tmp_path, capsys) -> None:
     video = tmp_path / "cheetah.mp4"
-    assert main(["play", str(trained), "--episodes", "2", "--deterministic", "--video", str(video)]) == 0
+    assert main(["play", str(trained), "--episodes", "2", "--video", str(video)]) == 0
     out = capsys.readouterr().out
     lengths = [int(length) for length in re.findall(r"episode \d: return -?[\d.]+, length (\d+)", out)]
     assert lengths == [EPISODE_STEPS, EPISODE_STEPS]
-    assert "mean return over 2 episodes" in out
+    assert "mean return over 2 episodes" in out and "rendering:" not in out, "a live line only on a terminal"
     check_video(video, sum(length + 1 for length in lengths))  # a frame after the reset and after each step
 
     gif = tmp_path / "cheetah.gif"
     result = play(load_policy(str(trained)), episodes=1, video=gif)
     assert result.frames == EPISODE_STEPS + 1 and result.lengths == [EPISODE_STEPS]
     check_video(gif, result.frames)
+
+
+@pytest.mark.slow
+def test_play_on_a_terminal_counts_frames_live_and_prints_each_episode_as_it_ends(trained, tmp_path) -> None:
+    ours, theirs = pty.openpty()
+    command = [sys.executable, "-m", "ftrain", "play", str(trained), "--episodes", "2", "--video", "cheetah.gif"]
+    with open(tmp_path / "stderr", "w") as stderr:
+        proc = subprocess.Popen(
+            command, cwd=tmp_path, env=child_env({"PYTHONPATH": str(REPO)}), stdout=theirs, stderr=stderr
+        )
+    os.close(theirs)
+    seen = b""
+    with contextlib.suppress(OSError):  # EIO once play has exited and the terminal's other side is closed
+        while chunk := os.read(ours, 4096):
+            seen += chunk
+    os.close(ours)
+    assert proc.wait(timeout=60) == 0, (tmp_path / "stderr").read_text()
+    out = seen.decode()
+    counter = "\rrendering: 25 frames written to cheetah.gif"  # episode 2's 4th frame: episodes have 21 frames
+    wiped = "\r" + " " * (len(counter) - 1) + "\r"
+    assert f"{counter}{wiped}episode 2: return" in out, repr(out)
+    assert out.index("episode 1: return") < out.index(counter), "episode 1 must show as it ends"
+
+
+def test_play_takes_the_mean_action_unless_told_to_sample(trained, capsys) -> None:
+    policy = load_policy(str(trained))
+    mean, sampled = (play(policy, seed=3, deterministic=deterministic).returns for deterministic in (True, False))
+    assert mean != sampled
+    assert play(policy, seed=3).returns == mean
+    capsys.readouterr()
+    for flags, returns, mode in (([], mean, "deterministic (mean) actions"), (["--stochastic"], sampled, "sampled")):
+        assert main(["play", str(trained), "--seed", "3", *flags]) == 0
+        out = capsys.readouterr().out
+        assert f"with {mode}" in out and f"episode 1: return {returns[0]:.2f}," in out
 
 
 def test_play_an_exported_policy_like_its_checkpoint(trained, tmp_path) -> None:
@@ -152,7 +189,6 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
     onnx.save(anonymous, tmp_path / "anonymous.onnx")
     cases = {
         "a directory without checkpoints": (["play", str(tmp_path / "empty")], "no verified checkpoint under"),
-        "an unknown format": (["export", str(trained), "--format", "tflite"], "unknown policy format 'tflite'"),
         "a text file": (["play", str(notes)], "is neither a TorchScript nor an ONNX file"),
         "a checkpoint file": (["play", str(Path(step_url(trained, 2)) / "common.pt")], "is not a TorchScript policy"),
         "an ONNX model of someone else": (["play", str(tmp_path / "anonymous.onnx")], "not an ftrain policy"),
@@ -166,3 +202,5 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
         err = capsys.readouterr().err
         assert err.startswith("ftrain: error: ") and err.count("\n") == 1, f"{case}: {err!r}"
         assert message in err, f"{case}: {err!r}"
+    with pytest.raises(UserError, match="unknown policy format 'tflite': use torchscript or onnx"):
+        export(load_policy(str(trained)), "tflite")  # the CLI's --format choices refuse it before (tests/test_cli.py)

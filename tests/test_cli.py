@@ -1,0 +1,76 @@
+"""The command line's own surface: help for every option and its default, ``--version``, choices refused early."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import subprocess
+import sys
+from collections.abc import Iterator
+
+from ftrain.cli import build_parser
+
+from helpers import REPO
+
+
+def ftrain(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "ftrain", *args], cwd=REPO, capture_output=True, text=True, timeout=60)
+
+
+def parsers(parser: argparse.ArgumentParser, name: str = "ftrain") -> Iterator[tuple[str, argparse.ArgumentParser]]:
+    """``ftrain`` and every (sub)command's parser, with its command line."""
+    yield name, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for command, subparser in action.choices.items():
+                yield from parsers(subparser, f"{name} {command}")
+
+
+def test_every_option_command_and_argument_has_help() -> None:
+    missing = []
+    for name, parser in parsers(build_parser()):
+        for action in parser._actions:
+            listed = action._choices_actions if isinstance(action, argparse._SubParsersAction) else []
+            for each in [action, *listed]:
+                if not isinstance(each, argparse._HelpAction) and not (each.help or "").strip():
+                    missing.append(f"{name} {each.option_strings[-1] if each.option_strings else each.dest}")
+    assert not missing, f"no help text: {missing}"
+
+
+def test_every_option_with_a_default_shows_it() -> None:
+    hidden = []
+    for name, parser in parsers(build_parser()):
+        for action in parser._actions:
+            shown = action.default in (None, False, [], "", argparse.SUPPRESS) or "%(default)" in (action.help or "")
+            if action.option_strings and not shown:
+                hidden.append(f"{name} {action.option_strings[-1]}")
+    assert not hidden, f"a default --help does not show: {hidden}"
+    supervise = ftrain("supervise", "--help").stdout
+    assert "(default: 10)" in supervise and "(default: auto)" in supervise
+
+
+def test_version_is_the_installed_one() -> None:
+    result = ftrain("--version")
+    assert result.returncode == 0
+    assert result.stdout == f"ftrain {importlib.metadata.version('ftrain')}\n"
+
+
+def test_export_format_is_one_of_the_choices() -> None:
+    result = ftrain("export", "no-such-run", "--format", "tflite")
+    assert result.returncode == 2
+    assert "argument --format: invalid choice: 'tflite' (choose from 'torchscript', 'onnx')" in result.stderr
+    assert "Traceback" not in result.stderr
+
+
+def test_help_lists_every_subcommand() -> None:
+    result = ftrain("--help")
+    assert result.returncode == 0
+    for command in ("train", "supervise", "ckpt", "bench", "play", "export", "plot"):
+        assert command in result.stdout
+
+
+def test_train_help_lists_every_config_key_with_its_default() -> None:
+    result = ftrain("train", "--help")
+    assert result.returncode == 0
+    for line in ("--storage", "env.num_envs=16", "checkpoint.keep_last=3", "algorithm.clip_param=0.2", "resume='auto'"):
+        assert line in result.stdout

@@ -1,0 +1,84 @@
+"""The README's "Using it" block, every line as a reader runs it, in order, in a scratch directory laid out like the
+repository (``configs/``, ``launch/``, ``.venv/``); each line in a shell that ran the block's ``source`` lines first.
+
+Two things differ from a reader's run, so that the block takes minutes instead of hours:
+
+- training lines (``ftrain train``, ``ftrain supervise``, under torchrun or not) get ``SMOKE_SIZED`` appended:
+  configs/smoke.yaml's work per iteration. Run lengths, checkpoint intervals and retention stay as written, so the
+  steps the block names are the steps a reader's run keeps;
+- the benchmarks (``ftrain bench``, ``python launch/bench_*.py``) only show their ``--help``.
+
+``PYTHONPATH`` points at this checkout, so the virtualenv's ``ftrain`` and ``python`` run the code under test (a no-op
+when the virtualenv installed ftrain from this checkout, as ``launch/setup.sh`` does).
+"""
+
+from __future__ import annotations
+
+import itertools
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from helpers import REPO, child_env
+
+SMOKE_SIZED = (
+    "env.num_envs=4",
+    "env.kwargs={max_episode_steps: 50}",
+    "num_steps_per_env=16",
+    "policy.hidden_dims=[16,16]",
+    "algorithm.num_learning_epochs=2",
+    "algorithm.num_mini_batches=2",
+    "log.tensorboard=false",
+)
+"""The sizes of configs/smoke.yaml, as overrides that come after the line's own and so win."""
+OUTPUT_OPTIONS = ("-o", "--video")
+
+
+def using_it() -> list[str]:
+    """The command lines of the first code block after "## Using it" (comments and blank lines left out)."""
+    section = (REPO / "README.md").read_text().split("\n## Using it\n", 1)[1]
+    block = section.split("```bash\n", 1)[1].split("\n```", 1)[0]
+    return [line for line in block.splitlines() if line.strip() and not line.startswith("#")]
+
+
+def as_tested(line: str) -> str:
+    words = shlex.split(line)
+    command = words[words.index("ftrain") + 1] if "ftrain" in words else None
+    if command in ("train", "supervise"):
+        return f"{line} {shlex.join(SMOKE_SIZED)}"
+    if command == "bench" or (words[0] == "python" and Path(words[1]).name.startswith("bench_")):
+        return f"{line} --help"
+    return line
+
+
+@pytest.mark.slow
+def test_every_line_of_using_it_works_as_written(tmp_path) -> None:
+    if sys.prefix == sys.base_prefix:
+        pytest.skip("the block activates a virtualenv: run the tests with one (.venv/bin/python -m pytest)")
+    (tmp_path / ".venv").symlink_to(sys.prefix)
+    for name in ("configs", "launch"):
+        (tmp_path / name).symlink_to(REPO / name)
+    lines = using_it()
+    assert any(line.startswith("ftrain ckpt show") for line in lines), "no README block found"
+    setup: list[str] = []
+    for line in lines:
+        if line.startswith("source "):
+            setup.append(line)  # as in a reader's shell, it holds for every line below it
+            continue
+        result = subprocess.run(
+            ["bash", "-c", " && ".join([*setup, as_tested(line)])],
+            cwd=tmp_path,
+            env=child_env({"PYTHONPATH": str(REPO)}),
+            capture_output=True,
+            text=True,
+            timeout=600,
+        )
+        assert result.returncode == 0, f"README line {line!r}: exit {result.returncode}\n{result.stderr[-3000:]}"
+        words = shlex.split(line)
+        for option, value in itertools.pairwise(words):
+            if option in OUTPUT_OPTIONS:
+                assert (tmp_path / value).stat().st_size > 0, f"README line {line!r} did not write {value}"
+    assert setup, "the block no longer activates the virtualenv: the lines above ran without it"
