@@ -39,6 +39,7 @@ from pathlib import Path
 
 from ftrain.config import load_config
 from ftrain.heartbeat import ENV_DIR, TOKEN_ENV, Heartbeat, read_heartbeats
+from ftrain.redact import redact_command
 from ftrain.supervise.attempt import Attempt, kill, signal_name, torchrun_command
 from ftrain.supervise.coordinator import Coordinator, Link, Plan, plan_key, rendezvous_args
 from ftrain.supervise.events import EventLog
@@ -222,7 +223,8 @@ class Supervisor:
         )
         module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
         command = torchrun_command(self.options.nproc_per_node, rendezvous, module, self.train_args)
-        self.events("start", f"attempt {plan.attempt}: launching torchrun", attempt=plan.attempt, command=command)
+        logged = redact_command(command)
+        self.events("start", f"attempt {plan.attempt}: launching torchrun", attempt=plan.attempt, command=logged)
         self.hangs.restart(time.monotonic())
         return Attempt(plan, command, env, token)
 
