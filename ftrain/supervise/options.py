@@ -7,8 +7,9 @@ Exit codes:
 - 3: crash loop: ``--crash-loop`` restarts in a row committed no new checkpoint.
 - 4: ``--max-restarts`` exhausted.
 - 5: several nodes: node 0's supervisor was unreachable for ``--rdzv-timeout`` seconds.
-- 143: preempted (SIGTERM/SIGINT): the workers saved; run the same command again to continue. 128 + SIGTERM,
+- 143: preempted (SIGTERM): the workers saved; run the same command again to continue. 128 + SIGTERM,
   so schedulers that retry signal exits (e.g. Kubernetes' ``ExitCode`` restart policy) run it again.
+- 130: interrupted (SIGINT, Ctrl-C): the same as 143, with the shell's code for Ctrl-C.
 """
 
 from __future__ import annotations
@@ -23,6 +24,14 @@ EXIT_CRASH_LOOP = 3
 EXIT_MAX_RESTARTS = 4
 EXIT_PEER_LOST = 5
 EXIT_PREEMPTED = 128 + signal.SIGTERM
+EXIT_INTERRUPTED = 128 + signal.SIGINT
+STOPPED = (EXIT_PREEMPTED, EXIT_INTERRUPTED)
+"""The exit codes of a run stopped by a signal after saving."""
+
+
+def stop_code(signum: int) -> int:
+    """The exit code after a stop by ``signum``: 128 + the signal, as a shell reports it (130 for Ctrl-C)."""
+    return EXIT_INTERRUPTED if signum == signal.SIGINT else EXIT_PREEMPTED
 
 
 @dataclass

@@ -25,7 +25,7 @@ def classify(
     code: int,
     cause: str,
     culprit: tuple[int, int] | None,
-    signalled: bool,
+    stopped: int | None,
     orphans: bool,
     phases: set[str],
     superseded: bool,
@@ -34,14 +34,14 @@ def classify(
     """The outcome of an attempt whose torchrun exited with ``code``.
 
     ``cause``: what to blame, in words; ``culprit``: (rank, exit code) of the worker to blame, if any;
-    ``signalled``: the supervisor was asked to stop; ``orphans``: workers outlived torchrun; ``phases``: the final
-    heartbeat phases; ``superseded``: several nodes, and another node has failed this attempt; ``committed``: the
-    newest step committed.
+    ``stopped``: the exit code for the signal that asked the supervisor to stop (None: no signal); ``orphans``:
+    workers outlived torchrun; ``phases``: the final heartbeat phases; ``superseded``: several nodes, and another node
+    has failed this attempt; ``committed``: the newest step committed.
     """
-    if signalled:
+    if stopped is not None:
         saved = bool(phases) and phases <= {"preempted", "done"}
         how = "the workers saved" if saved else "the workers did not all confirm a save"
-        return Outcome("preempted", EXIT_PREEMPTED, f"preempted: {how} (newest step {committed})")
+        return Outcome("preempted", stopped, f"preempted: {how} (newest step {committed})")
     if orphans:
         return Outcome("failed", None, cause)
     if code == 0 and "preempted" not in phases:

@@ -19,7 +19,8 @@ completed iterations; ``--backoff-initial`` after one that completed none, doubl
 ``--backoff-max``) and launch again; the workers resume from the newest verified checkpoint themselves.
 
 Preemption. SIGTERM or SIGINT to the supervisor: SIGTERM to the workers, which agree at the next iteration
-boundary, save and exit 0; SIGKILL after ``--stop-grace``; a second signal kills at once. No restart.
+boundary, save and exit 0; SIGKILL after ``--stop-grace``; a second signal kills at once. No restart; the
+supervisor exits 128 + the signal (143 for SIGTERM, 130 for SIGINT, Ctrl-C).
 
 Several nodes: see ``coordinator.py``. Records: ``events.py``. Exit codes: ``options.py``.
 
@@ -50,10 +51,11 @@ from ftrain.supervise.options import (
     EXIT_DONE,
     EXIT_MAX_RESTARTS,
     EXIT_PEER_LOST,
-    EXIT_PREEMPTED,
+    STOPPED,
     SupervisorOptions,
     parse_hang_timeout,
     parse_nodes,
+    stop_code,
 )
 from ftrain.supervise.outcome import Outcome, classify
 
@@ -182,7 +184,8 @@ class Supervisor:
     def _raise_if_signalled(self) -> None:
         if self.signals:
             self.events("preempt", signal=signal_name(self.signals[0]))
-            raise _Stop("preempted", EXIT_PREEMPTED, "stopped by a signal while no workers ran; rerun to continue")
+            code = stop_code(self.signals[0])
+            raise _Stop("preempted", code, "stopped by a signal while no workers ran; rerun to continue")
 
     def _next_plan(self, previous: Plan | None) -> Plan:
         """The next attempt to run (on several nodes: wait until node 0 has moved on from ``previous``)."""
@@ -288,7 +291,7 @@ class Supervisor:
             plan = self.link.ask("plan")
         except OSError:
             return None
-        if plan.final in (EXIT_DONE, EXIT_PREEMPTED):
+        if plan.final == EXIT_DONE or plan.final in STOPPED:
             return None
         if plan.final is not None:
             attempt.stop(self.options.stop_grace)
@@ -315,7 +318,7 @@ class Supervisor:
             signal=name,
         )
         if self.nnodes > 1:
-            self._tell("finish", code=EXIT_PREEMPTED)
+            self._tell("finish", code=stop_code(self.signals[0]))
         attempt.terminate()
 
     def _exited(self, attempt: Attempt, code: int) -> Outcome:
@@ -335,7 +338,14 @@ class Supervisor:
             code == 0 and self.nnodes > 1 and plan_key(self._current_plan(attempt.plan)) != plan_key(attempt.plan)
         )
         outcome = classify(
-            code, cause, attempt.culprit(), bool(self.signals), bool(orphans), phases, superseded, attempt.committed
+            code,
+            cause,
+            attempt.culprit(),
+            stop_code(self.signals[0]) if self.signals else None,
+            bool(orphans),
+            phases,
+            superseded,
+            attempt.committed,
         )
         self._log_exit(attempt, cause, f"attempt {attempt.plan.attempt}: {cause}" if outcome.failed else "", phases)
         if outcome.failed:

@@ -276,12 +276,14 @@ def test_stopped_worker_is_a_hang(tmp_path):
 
 
 @pytest.mark.slow
-def test_sigterm_saves_and_the_same_command_continues(tmp_path):
+@pytest.mark.parametrize(("stop", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_stop_signal_saves_and_the_same_command_continues(tmp_path, stop, code):
+    """SIGTERM (a scheduler) exits 143, SIGINT (Ctrl-C) 130: the shell's 128 + signal."""
     proc = start_supervisor(tmp_path)
     run = tmp_path / "run"
     training(run / "heartbeat", 5, [0])
-    proc.send_signal(signal.SIGTERM)
-    assert finish(proc) == options.EXIT_PREEMPTED
+    proc.send_signal(stop)
+    assert finish(proc) == code
     preempted = [event for event in events(run) if event["event"] == "exit"][-1]
     assert preempted["phases"] == ["preempted"]
     saved = final_manifest(run)["step"]
