@@ -13,6 +13,9 @@ import typing
 
 from ftrain.errors import EXIT_USAGE, UserError
 
+if typing.TYPE_CHECKING:
+    from ftrain.config import Config
+
 OVERRIDES_HELP = (
     "config overrides as dotted key=value, values parsed as YAML (e.g. env.num_envs=8 policy.hidden_dims=[64,64])"
 )
@@ -152,9 +155,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "train":
-        from ftrain.config import load_config
-
-        config = load_config(args.config, args.overrides, args.storage)
+        config = _run_config(args)
         from ftrain.train.trainer import train
 
         return train(config)
@@ -163,7 +164,8 @@ def _dispatch(args: argparse.Namespace) -> int:
         from ftrain.supervise.supervisor import supervise
 
         options = SupervisorOptions(**{f.name: getattr(args, f.name) for f in dataclasses.fields(SupervisorOptions)})
-        return supervise(options, args.config, args.storage, args.overrides)
+        train_args = [args.config, *(["--storage", args.storage] if args.storage is not None else []), *args.overrides]
+        return supervise(options, _run_config(args), train_args)
     if args.command == "ckpt":
         from ftrain.ckpt import commands as ckpt_commands
 
@@ -206,6 +208,17 @@ def _dispatch(args: argparse.Namespace) -> int:
         plot_run(args.run, args.output)
         return 0
     raise AssertionError(args.command)
+
+
+def _run_config(args: argparse.Namespace) -> Config:
+    """The config of ``train`` and ``supervise``, validated in full before anything starts: its env id too, against
+    gymnasium's registry (not in ``config.py``, which the supervisor imports and which stays free of gymnasium)."""
+    from ftrain.config import load_config
+    from ftrain.train.env_ids import check_env_id
+
+    config = load_config(args.config, args.overrides, args.storage)
+    check_env_id(config.env.id)
+    return config
 
 
 def _stderr(line: str) -> None:

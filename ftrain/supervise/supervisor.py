@@ -38,7 +38,7 @@ import sys
 import time
 from pathlib import Path
 
-from ftrain.config import load_config
+from ftrain.config import Config
 from ftrain.heartbeat import ENV_DIR, TOKEN_ENV, Heartbeat, read_heartbeats
 from ftrain.redact import redact_command
 from ftrain.supervise.attempt import Attempt, kill, signal_name, torchrun_command
@@ -69,12 +69,13 @@ LINGER = 30.0
 """Seconds node 0 keeps answering after the end, until every node has learnt the outcome."""
 
 
-def supervise(options: SupervisorOptions, config_path: str, storage: str | None, overrides: list[str]) -> int:
-    """Run training under supervision until it finishes or gives up; returns the exit code (see module doc)."""
-    config = load_config(config_path, overrides, storage)
+def supervise(options: SupervisorOptions, config: Config, train_args: list[str]) -> int:
+    """Run training under supervision until it finishes or gives up; returns the exit code (see module doc).
+
+    ``config``: the run's validated config; ``train_args``: the arguments of ``ftrain train`` it was read from
+    (config file, ``--storage``, overrides), which every worker gets."""
     hang_timeout = parse_hang_timeout(options.hang_timeout)
     nnodes, endpoint = parse_nodes(options)
-    train_args = [config_path, *(["--storage", storage] if storage is not None else []), *overrides]
     supervisor = Supervisor(options, nnodes, endpoint, Path(config.log_dir), hang_timeout, train_args)
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
@@ -337,15 +338,9 @@ class Supervisor:
         superseded = (
             code == 0 and self.nnodes > 1 and plan_key(self._current_plan(attempt.plan)) != plan_key(attempt.plan)
         )
+        stopped = stop_code(self.signals[0]) if self.signals else None
         outcome = classify(
-            code,
-            cause,
-            attempt.culprit(),
-            stop_code(self.signals[0]) if self.signals else None,
-            bool(orphans),
-            phases,
-            superseded,
-            attempt.committed,
+            code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, attempt.committed
         )
         self._log_exit(attempt, cause, f"attempt {attempt.plan.attempt}: {cause}" if outcome.failed else "", phases)
         if outcome.failed:

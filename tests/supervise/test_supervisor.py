@@ -198,6 +198,7 @@ def test_coordinator_moves_every_node_to_one_new_attempt(tmp_path):
         (["--nnodes", "1:2"], [], "--nnodes"),
         (["--nnodes", "2"], [], "--rdzv-endpoint"),
         ([], ["iterations=zero"], "iterations"),
+        ([], ["env.id=Pendulum-v1"], "env.id='Pendulum-v1' is not a MuJoCo environment"),
     ],
 )
 def test_bad_input_fails_before_launch(tmp_path, options, overrides, fragment):
