@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import json
+import subprocess
 
 import pytest
 
-from helpers import TESTS, final_manifest, metrics_by_iteration, run_train
+from helpers import REPO, TESTS, child_env, final_manifest, metrics_by_iteration, run_train, train_command
 
 PROBES = {"PYTHONPATH": str(TESTS)}
 
@@ -44,6 +45,24 @@ def test_single_process_and_outputs(tmp_path) -> None:
     assert "HalfCheetah-v5" in (run / "config.yaml").read_text()
     assert sorted(metrics_by_iteration(run)) == list(range(1, 9))
     assert list((run / "tensorboard").glob("events.out.tfevents.*"))
+
+
+def test_mujoco_warnings_neither_print_nor_log_to_the_working_directory(tmp_path) -> None:
+    """HalfCheetah's model uses a deprecated MuJoCo attribute: MuJoCo would print a warning per environment (with
+    blank lines) and append it to MUJOCO_LOG.TXT wherever the run was started."""
+    result = subprocess.run(
+        train_command(tmp_path / "run", "iterations=1", "log.console=true"),
+        cwd=tmp_path,
+        env=child_env({"PYTHONPATH": str(REPO)}),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    assert "it 1/1 |" in result.stdout
+    assert "settotalmass" not in result.stdout + result.stderr
+    assert "\n\n" not in result.stdout
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
 
 
 @pytest.mark.slow
