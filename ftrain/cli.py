@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
+import select
+import signal
 import sys
 import typing
 
@@ -16,6 +19,8 @@ from ftrain.errors import EXIT_USAGE, UserError
 if typing.TYPE_CHECKING:
     from ftrain.config import Config
 
+EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
+"""The reader of stdout went away (``ftrain ... | head``): what a shell reports for a tool killed by SIGPIPE."""
 OVERRIDES_HELP = (
     "config overrides as dotted key=value, values parsed as YAML (e.g. env.num_envs=8 policy.hidden_dims=[64,64])"
 )
@@ -151,6 +156,13 @@ def main(argv: list[str] | None = None) -> int:
     except UserError as error:
         print(f"ftrain: error: {error}", file=sys.stderr)
         return EXIT_USAGE
+    except BrokenPipeError:
+        if not _stdout_reader_gone():
+            raise
+        # e.g. ``ftrain ckpt show URL | head -1``: stop like a tool killed by SIGPIPE, and let the exit-time flush of
+        # what is still buffered go nowhere instead of failing again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
 
 
 def _dispatch(args: argparse.Namespace) -> int:
@@ -219,6 +231,13 @@ def _run_config(args: argparse.Namespace) -> Config:
     config = load_config(args.config, args.overrides, args.storage)
     check_env_id(config.env.id)
     return config
+
+
+def _stdout_reader_gone() -> bool:
+    """Whether stdout is a pipe nobody reads any more (the kernel flags its write end with POLLERR)."""
+    poll = select.poll()
+    poll.register(sys.stdout.fileno(), select.POLLOUT)
+    return any(events & select.POLLERR for _, events in poll.poll(0))
 
 
 def _stderr(line: str) -> None:
