@@ -44,12 +44,18 @@ def child_env(extra: dict | None = None) -> dict:
 
 
 def run_train(
-    storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE, env: dict | None = None
+    storage: str | Path,
+    *overrides: str,
+    ranks: int = 1,
+    config: str = SMOKE,
+    env: dict | None = None,
+    cwd: str | Path = REPO,
 ) -> subprocess.CompletedProcess:
-    """Run training to completion; fail the test with its output if it does not exit 0."""
+    """Run training to completion; fail the test with its output if it does not exit 0. (Elsewhere than in ``REPO``,
+    ``env`` must put ``REPO`` on ``PYTHONPATH``.)"""
     result = subprocess.run(
         train_command(storage, *overrides, ranks=ranks, config=config),
-        cwd=REPO,
+        cwd=cwd,
         env=child_env(env),
         capture_output=True,
         text=True,

@@ -5,7 +5,6 @@ can be filtered.
 
 from __future__ import annotations
 
-import functools
 import warnings
 
 import mujoco
@@ -15,16 +14,15 @@ class MujocoWarning(UserWarning):
     """A warning from MuJoCo (model compilation or simulation)."""
 
 
-IGNORED = r"compiler attribute 'settotalmass' is deprecated"
-"""Gymnasium's own HalfCheetah model uses it: nothing a user could change."""
+IGNORED = ("compiler attribute 'settotalmass' is deprecated",)
+"""Beginnings of warnings nobody can act on: gymnasium's own HalfCheetah model uses settotalmass."""
 
 
-@functools.cache
 def route_mujoco_warnings() -> None:
-    """Send MuJoCo's warnings through ``warnings`` from now on (once per process; call before making an env)."""
-    warnings.filterwarnings("ignore", message=IGNORED, category=MujocoWarning)
+    """Send MuJoCo's warnings through ``warnings`` from now on (call before making an env)."""
     mujoco.set_mju_user_warning(_warn)
 
 
 def _warn(message: str) -> None:
-    warnings.warn(message, MujocoWarning, stacklevel=1)
+    if not message.startswith(IGNORED):
+        warnings.warn(message, MujocoWarning, stacklevel=1)
