@@ -14,6 +14,7 @@ import signal
 import sys
 import typing
 
+from ftrain import errorfile
 from ftrain.errors import EXIT_USAGE, UserError
 
 if typing.TYPE_CHECKING:
@@ -154,7 +155,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _dispatch(args)
     except UserError as error:
-        print(f"ftrain: error: {error}", file=sys.stderr)
+        errorfile.report(str(error))
         return EXIT_USAGE
     except BrokenPipeError:
         if not _stdout_reader_gone():
@@ -163,6 +164,9 @@ def main(argv: list[str] | None = None) -> int:
         # what is still buffered go nowhere instead of failing again
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
+    except Exception as error:  # a bug: it keeps its traceback, and torchrun and the supervisor learn what it was
+        errorfile.record_exception(error)
+        raise
 
 
 def _dispatch(args: argparse.Namespace) -> int:

@@ -23,6 +23,7 @@ from ftrain.ckpt.format import FileEntry, commit, encode, step_dir, write_file
 from ftrain.ckpt.storage import Storage
 from ftrain.heartbeat import read_heartbeats
 from ftrain.supervise import procfs
+from ftrain.supervise.attempt import TORCHRUN
 
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
@@ -118,11 +119,12 @@ def events(log_dir: str | Path) -> list[dict]:
 
 def torchrun_pid(supervisor_pid: int) -> int:
     """The torchrun agent a supervisor launched (waits until there is one)."""
+    module = TORCHRUN.encode()
 
     def find() -> int | None:
         for pid in procfs.pids():
             fields = procfs.stat_fields(pid)
-            if fields and int(fields[1]) == supervisor_pid and b"torch.distributed.run" in procfs.read(pid, "cmdline"):
+            if fields and int(fields[1]) == supervisor_pid and module in procfs.read(pid, "cmdline"):
                 return pid
         return None
 

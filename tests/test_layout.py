@@ -13,15 +13,16 @@ from helpers import REPO
 PACKAGE = REPO / "ftrain"
 LAYERS = {
     "__main__": {"cli"},
-    "cli": {"supervise", "train", "policy", "tools", "ckpt", "config", "errors"},
+    "cli": {"supervise", "train", "policy", "tools", "ckpt", "config", "errors", "errorfile"},
     "tools": {"train", "config", "errors"},
-    "supervise": {"config", "errors", "heartbeat", "redact"},
-    "train": {"policy", "ckpt", "dist", "config", "errors", "heartbeat"},
+    "supervise": {"config", "errors", "errorfile", "heartbeat", "redact"},
+    "train": {"policy", "ckpt", "dist", "config", "errors", "errorfile", "heartbeat"},
     "policy": {"ckpt", "config", "errors"},
     "ckpt": {"dist", "config", "errors", "heartbeat", "redact"},
     "dist": set(),
     "config": {"errors", "redact"},
     "heartbeat": set(),
+    "errorfile": set(),
     "redact": set(),
     "errors": set(),
 }

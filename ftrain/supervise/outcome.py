@@ -9,6 +9,16 @@ from ftrain.supervise.options import EXIT_DONE, EXIT_PREEMPTED
 
 
 @dataclass
+class WorkerFailure:
+    """How one worker ended, as torchrun saw it."""
+
+    code: int
+    """Its exit code; negative: killed by that signal."""
+    error: str | None
+    """The one-line error it recorded in its error file, if any."""
+
+
+@dataclass
 class Outcome:
     """How an attempt ended: ``failed`` (restart) or one of the endings, with its exit code and event name."""
 
@@ -24,7 +34,7 @@ class Outcome:
 def classify(
     code: int,
     cause: str,
-    culprit: tuple[int, int] | None,
+    culprit: tuple[int, WorkerFailure] | None,
     stopped: int | None,
     orphans: bool,
     phases: set[str],
@@ -33,7 +43,7 @@ def classify(
 ) -> Outcome:
     """The outcome of an attempt whose torchrun exited with ``code``.
 
-    ``cause``: what to blame, in words; ``culprit``: (rank, exit code) of the worker to blame, if any;
+    ``cause``: what to blame, in words; ``culprit``: the rank to blame and how it ended, if any;
     ``stopped``: the exit code for the signal that asked the supervisor to stop (None: no signal); ``orphans``:
     workers outlived torchrun; ``phases``: the final heartbeat phases; ``superseded``: several nodes, and another node
     has failed this attempt; ``committed``: the newest step committed.
@@ -50,6 +60,8 @@ def classify(
         if superseded:
             return Outcome("failed", None, "stopped because another node failed")
         return Outcome("preempted", EXIT_PREEMPTED, f"preempted: the workers saved step {committed}; rerun to continue")
-    if culprit is not None and culprit[1] == EXIT_USAGE:
-        return Outcome("usage", EXIT_USAGE, f"{cause}: bad input (see the error above); not restarting")
+    if culprit is not None and culprit[1].code == EXIT_USAGE:
+        rank, failure = culprit
+        refusal = f"refused its input: {failure.error}" if failure.error else f"exited with code {EXIT_USAGE}"
+        return Outcome("usage", EXIT_USAGE, f"rank {rank} {refusal}; not restarting")
     return Outcome("failed", None, cause)

@@ -9,6 +9,9 @@ keep one TCP store, from which restarted workers read stale gloo peer addresses;
 
 Detect. Crash: torchrun exits non-zero, or is killed (its workers, each in a session of its own, are then
 orphans: the supervisor finds every process of an attempt by the ``FTRAIN_ATTEMPT_TOKEN`` in its environment).
+Who failed and why comes from torchrun's account of its workers (exit codes, and the one-line error each recorded in
+its error file: see ``attempt.py``); a worker exiting 2 refused its input, which no restart fixes. The cause is one
+line on the console and in ``events.jsonl``; torchrun's and the workers' stderr go to the attempt's log directory.
 Hang: a rank's heartbeat ``seq`` does not change within the hang timeout (``auto``: max(30 s, 10 x the longest gap
 seen between two heartbeats of a rank), and ``--startup-grace`` until every rank is past its ``start`` heartbeat).
 
@@ -31,7 +34,6 @@ Test hook (private): ``FTRAIN_WORKER_MODULE`` names the module torchrun runs as 
 from __future__ import annotations
 
 import contextlib
-import math
 import os
 import signal
 import sys
@@ -39,9 +41,9 @@ import time
 from pathlib import Path
 
 from ftrain.config import Config
-from ftrain.heartbeat import ENV_DIR, TOKEN_ENV, Heartbeat, read_heartbeats
+from ftrain.heartbeat import Heartbeat, read_heartbeats
 from ftrain.redact import redact_command
-from ftrain.supervise.attempt import Attempt, kill, signal_name, torchrun_command
+from ftrain.supervise.attempt import Attempt, attempt_env, kill, new_log_dir, signal_name, torchrun_command
 from ftrain.supervise.coordinator import Coordinator, Link, Plan, plan_key, rendezvous_args
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.hang import QUIET_PHASES, HangWatch, process_state
@@ -107,7 +109,9 @@ class Supervisor:
         self.nnodes = nnodes
         self.train_args = train_args
         multi = nnodes > 1
-        self.heartbeat_dir = (log_dir / "heartbeat" / (f"node-{options.node_rank}" if multi else "")).resolve()
+        node_dir = f"node-{options.node_rank}" if multi else ""
+        self.heartbeat_dir = (log_dir / "heartbeat" / node_dir).resolve()
+        self.attempt_logs = log_dir / "torchrun" / node_dir
         self.events = EventLog(log_dir / "events.jsonl", options.node_rank if multi else None)
         self.hangs = HangWatch(hang_timeout, options.startup_grace, options.nproc_per_node)
         self.endpoint = endpoint
@@ -212,25 +216,19 @@ class Supervisor:
             time.sleep(PEER_POLL / 5)
 
     def _launch(self, plan: Plan) -> Attempt:
-        self.heartbeat_dir.mkdir(parents=True, exist_ok=True)
-        for stale in self.heartbeat_dir.glob("rank-*"):
-            stale.unlink(missing_ok=True)
         token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
-        env = {
-            **os.environ,
-            ENV_DIR: str(self.heartbeat_dir),
-            TOKEN_ENV: token,
-            "TORCH_ELASTIC_SHUTDOWN_TIMEOUT": str(math.ceil(self.options.stop_grace)),
-        }
+        env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace)
         rendezvous = (
             ["--standalone"] if self.nnodes == 1 else rendezvous_args(plan, self.nnodes, self.options, self.endpoint)
         )
         module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
-        command = torchrun_command(self.options.nproc_per_node, rendezvous, module, self.train_args)
+        logs = new_log_dir(self.attempt_logs, plan)
+        command = torchrun_command(self.options.nproc_per_node, rendezvous, module, self.train_args, logs)
         logged = redact_command(command)
-        self.events("start", f"attempt {plan.attempt}: launching torchrun", attempt=plan.attempt, command=logged)
+        message = f"attempt {plan.attempt}: launching torchrun"
+        self.events("start", message, attempt=plan.attempt, command=logged, logs=str(logs))
         self.hangs.restart(time.monotonic())
-        return Attempt(plan, command, env, token)
+        return Attempt(plan, command, env, token, logs)
 
     def _watch(self, attempt: Attempt) -> Outcome:
         preempt_deadline = None
@@ -361,7 +359,8 @@ class Supervisor:
             attempt=attempt.plan.attempt,
             code=attempt.proc.returncode,
             cause=cause,
-            failures={str(rank): code for rank, code in sorted(attempt.failures.items())},
+            failures={str(rank): failure.code for rank, failure in sorted(attempt.failures.items())},
+            errors={str(rank): failure.error for rank, failure in sorted(attempt.failures.items()) if failure.error},
             phases=sorted(self._phases(attempt) if phases is None else phases),
         )
 

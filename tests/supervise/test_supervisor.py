@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 
+from ftrain import errorfile
 from ftrain.heartbeat import ENV_DIR, Heartbeat, HeartbeatWriter
 from ftrain.supervise import hang, options
 from ftrain.supervise.coordinator import Coordinator, Link
@@ -73,9 +74,8 @@ def fake_worker(argv: list[str]) -> int:
     heartbeat = HeartbeatWriter(os.environ.get(ENV_DIR), rank)
     heartbeat.beat("start", 0)
     dist.init_process_group("gloo", timeout=datetime.timedelta(seconds=config.dist_timeout))
-    if kind == "usage":  # like the trainer's UserError: every rank exits 2, rank 0 says why
-        if rank == 0:
-            print("ftrain: error: stand-in bad input", file=sys.stderr)
+    if kind == "usage":  # like a UserError in the trainer: every rank records it and exits 2, rank 0 says why
+        errorfile.report("stand-in bad input")
         return 2
     steps = manifests(storage)
     manifest = steps[max(steps)] if steps else None
@@ -322,7 +322,7 @@ def test_worker_bad_input_is_not_restarted(tmp_path):
     assert finish(proc) == 2
     log = [event for event in events(tmp_path / "run") if event["event"] != "worker_died"]
     assert [event["event"] for event in log] == ["start", "exit", "usage", "summary"]
-    assert log[1]["cause"] in ("rank 0 exited with code 2", "rank 1 exited with code 2")
+    assert log[1]["cause"] in (f"rank {rank} exited with code 2: stand-in bad input" for rank in (0, 1))
 
 
 @pytest.mark.slow
