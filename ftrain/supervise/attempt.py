@@ -23,6 +23,7 @@ from pathlib import Path
 from ftrain import errorfile
 from ftrain.heartbeat import ENV_DIR, TOKEN_ENV
 from ftrain.supervise import procfs
+from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.coordinator import Plan
 from ftrain.supervise.outcome import WorkerFailure
 
@@ -57,12 +58,13 @@ def torchrun_command(
 
 def attempt_env(heartbeat_dir: Path, token: str, stop_grace: float) -> dict[str, str]:
     """The environment of torchrun and its workers: heartbeats go to ``heartbeat_dir`` (emptied of an earlier
-    attempt's now), every process carries ``token``, torchrun waits ``stop_grace`` for workers it stops."""
+    attempt's now), every process carries ``token``, torchrun waits ``stop_grace`` for workers it stops; the
+    coordinator's secret stays with the supervisor."""
     heartbeat_dir.mkdir(parents=True, exist_ok=True)
     for stale in heartbeat_dir.glob("rank-*"):
         stale.unlink(missing_ok=True)
     return {
-        **os.environ,
+        **{name: value for name, value in os.environ.items() if name != SECRET_ENV},  # the workers do not need it
         ENV_DIR: str(heartbeat_dir),
         TOKEN_ENV: token,
         "TORCH_ELASTIC_SHUTDOWN_TIMEOUT": str(math.ceil(stop_grace)),

@@ -54,6 +54,7 @@ from ftrain.supervise.options import (
     EXIT_MAX_RESTARTS,
     EXIT_PEER_LOST,
     STOPPED,
+    Nodes,
     SupervisorOptions,
     parse_hang_timeout,
     parse_nodes,
@@ -77,8 +78,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     ``config``: the run's validated config; ``train_args``: the arguments of ``ftrain train`` it was read from
     (config file, ``--storage``, overrides), which every worker gets."""
     hang_timeout = parse_hang_timeout(options.hang_timeout)
-    nnodes, endpoint = parse_nodes(options)
-    supervisor = Supervisor(options, nnodes, endpoint, Path(config.log_dir), hang_timeout, train_args)
+    supervisor = Supervisor(options, parse_nodes(options), Path(config.log_dir), hang_timeout, train_args)
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         return supervisor.run()
@@ -98,26 +98,25 @@ class Supervisor:
     def __init__(
         self,
         options: SupervisorOptions,
-        nnodes: int,
-        endpoint: tuple[str, int] | None,
+        nodes: Nodes,
         log_dir: Path,
         hang_timeout: float | None,
         train_args: list[str],
     ) -> None:
-        """``endpoint``: node 0's ``(host, port)`` when there are several nodes."""
         self.options = options
-        self.nnodes = nnodes
+        self.nnodes = nodes.count
         self.train_args = train_args
-        multi = nnodes > 1
+        multi = nodes.count > 1
         node_dir = f"node-{options.node_rank}" if multi else ""
         self.heartbeat_dir = (log_dir / "heartbeat" / node_dir).resolve()
         self.attempt_logs = log_dir / "torchrun" / node_dir
         self.events = EventLog(log_dir / "events.jsonl", options.node_rank if multi else None)
         self.hangs = HangWatch(hang_timeout, options.startup_grace, options.nproc_per_node)
-        self.endpoint = endpoint
-        self.coordinator = Coordinator(multi) if options.node_rank == 0 or not multi else None
-        self.server = self.coordinator.serve(endpoint[1]) if multi and self.coordinator else None
-        self.link = Link(options.node_rank, self.coordinator, endpoint)
+        self.endpoint = nodes.endpoint
+        coordinating = options.node_rank == 0 or not multi
+        self.coordinator = Coordinator(multi, nodes.secret, self.events) if coordinating else None
+        self.server = self.coordinator.serve(*nodes.endpoint) if multi and self.coordinator else None
+        self.link = Link(options.node_rank, self.coordinator, nodes.endpoint, nodes.secret)
         self.signals: list[int] = []
         self.restarts = 0
         self.best_committed: int | None = None
