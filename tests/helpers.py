@@ -41,7 +41,12 @@ def train_command(storage: str | Path, *overrides: str, ranks: int = 1, config: 
 
 
 def child_env(extra: dict | None = None) -> dict:
-    return {**os.environ, "OMP_NUM_THREADS": "1", **(extra or {})}
+    """A test subprocess's environment: one OpenMP thread, and this repository first on ``PYTHONPATH`` (a script run
+    by its path, or a process started elsewhere, would import whichever ftrain is installed, maybe another checkout's);
+    ``extra``'s ``PYTHONPATH`` comes after it."""
+    extra = dict(extra or {})
+    paths = [str(REPO), *([extra.pop("PYTHONPATH")] if extra.get("PYTHONPATH") else [])]
+    return {**os.environ, "OMP_NUM_THREADS": "1", **extra, "PYTHONPATH": os.pathsep.join(paths)}
 
 
 def run_train(
@@ -52,8 +57,7 @@ def run_train(
     env: dict | None = None,
     cwd: str | Path = REPO,
 ) -> subprocess.CompletedProcess:
-    """Run training to completion; fail the test with its output if it does not exit 0. (Elsewhere than in ``REPO``,
-    ``env`` must put ``REPO`` on ``PYTHONPATH``.)"""
+    """Run training to completion; fail the test with its output if it does not exit 0."""
     result = subprocess.run(
         train_command(storage, *overrides, ranks=ranks, config=config),
         cwd=cwd,

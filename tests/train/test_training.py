@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from helpers import REPO, TESTS, final_manifest, metrics_by_iteration, run_train
+from helpers import TESTS, final_manifest, metrics_by_iteration, run_train
 
 PROBES = {"PYTHONPATH": str(TESTS)}
 
@@ -38,9 +38,7 @@ def test_single_process_and_outputs(tmp_path) -> None:
     """Started elsewhere than in the repository, to see that MuJoCo neither prints its warnings (HalfCheetah's model
     uses a deprecated attribute: a warning and a blank line per environment) nor appends them to a MUJOCO_LOG.TXT in
     the working directory."""
-    result = run_train(
-        tmp_path / "run", "log.console=true", "log.tensorboard=true", env={"PYTHONPATH": str(REPO)}, cwd=tmp_path
-    )
+    result = run_train(tmp_path / "run", "log.console=true", "log.tensorboard=true", cwd=tmp_path)
     assert "settotalmass" not in result.stdout + result.stderr and "\n\n" not in result.stdout
     assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
     lines = [line for line in result.stdout.splitlines() if line.startswith("it ")]
