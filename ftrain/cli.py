@@ -9,11 +9,20 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib.metadata
+import os
+import select
+import signal
 import sys
 import typing
 
+from ftrain import errorfile
 from ftrain.errors import EXIT_USAGE, UserError
 
+if typing.TYPE_CHECKING:
+    from ftrain.config import Config
+
+EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
+"""The reader of stdout went away (``ftrain ... | head``): what a shell reports for a tool killed by SIGPIPE."""
 OVERRIDES_HELP = (
     "config overrides as dotted key=value, values parsed as YAML (e.g. env.num_envs=8 policy.hidden_dims=[64,64])"
 )
@@ -191,15 +200,23 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return _dispatch(args)
     except UserError as error:
-        print(f"ftrain: error: {error}", file=sys.stderr)
+        errorfile.report(str(error))
         return EXIT_USAGE
+    except BrokenPipeError:
+        if not _stdout_reader_gone():
+            raise
+        # e.g. ``ftrain ckpt show URL | head -1``: stop like a tool killed by SIGPIPE, and let the exit-time flush of
+        # what is still buffered go nowhere instead of failing again
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
+    except Exception as error:  # a bug: it keeps its traceback, and torchrun and the supervisor learn what it was
+        errorfile.record_exception(error)
+        raise
 
 
 def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "train":
-        from ftrain.config import load_config
-
-        config = load_config(args.config, args.overrides, args.storage)
+        config = _run_config(args)
         from ftrain.train.trainer import train
 
         return train(config)
@@ -208,7 +225,8 @@ def _dispatch(args: argparse.Namespace) -> int:
         from ftrain.supervise.supervisor import supervise
 
         options = SupervisorOptions(**{f.name: getattr(args, f.name) for f in dataclasses.fields(SupervisorOptions)})
-        return supervise(options, args.config, args.storage, args.overrides)
+        train_args = [args.config, *(["--storage", args.storage] if args.storage is not None else []), *args.overrides]
+        return supervise(options, _run_config(args), train_args)
     if args.command == "ckpt":
         from ftrain.ckpt import commands as ckpt_commands
 
@@ -253,6 +271,24 @@ def _dispatch(args: argparse.Namespace) -> int:
         plot_run(args.run, args.output)
         return 0
     raise AssertionError(args.command)
+
+
+def _run_config(args: argparse.Namespace) -> Config:
+    """The config of ``train`` and ``supervise``, validated in full before anything starts: its env id too, against
+    gymnasium's registry (not in ``config.py``, which the supervisor imports and which stays free of gymnasium)."""
+    from ftrain.config import load_config
+    from ftrain.train.env_ids import check_env_id
+
+    config = load_config(args.config, args.overrides, args.storage)
+    check_env_id(config.env.id)
+    return config
+
+
+def _stdout_reader_gone() -> bool:
+    """Whether stdout is a pipe nobody reads any more (the kernel flags its write end with POLLERR)."""
+    poll = select.poll()
+    poll.register(sys.stdout.fileno(), select.POLLOUT)
+    return any(events & select.POLLERR for _, events in poll.poll(0))
 
 
 def _stderr(line: str) -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import secrets
 import shutil
 import signal
 import statistics
@@ -29,6 +30,7 @@ sys.path.insert(0, str(REPO))
 
 from ftrain.ckpt.format import CHECKPOINTS, MANIFEST  # noqa: E402
 from ftrain.heartbeat import read_heartbeats  # noqa: E402
+from ftrain.supervise.auth import SECRET_ENV  # noqa: E402
 from ftrain.supervise.coordinator import free_port  # noqa: E402
 from ftrain.supervise.options import EXIT_PREEMPTED  # noqa: E402
 
@@ -48,7 +50,7 @@ SCENARIOS = (
 class Supervised:
     """One ``ftrain supervise`` process on ``storage`` (which is its log directory too)."""
 
-    def __init__(self, storage: Path, *options: str, node: int | None = None) -> None:
+    def __init__(self, storage: Path, *options: str, node: int | None = None, env: dict | None = None) -> None:
         self.storage = storage
         self.node = node
         self.heartbeats = storage / "heartbeat" / (f"node-{node}" if node is not None else "")
@@ -58,7 +60,9 @@ class Supervised:
         self._events: list[dict] = []
         self.earlier_resumes = len(self.events("resumed"))  # of earlier runs on the same storage
         log = open(f"{storage}.log", "ab")  # noqa: SIM115 - the child writes to it for its whole life
-        self.proc = subprocess.Popen(command, cwd=REPO, stdout=log, stderr=subprocess.STDOUT)
+        self.proc = subprocess.Popen(
+            command, cwd=REPO, env={**os.environ, **(env or {})}, stdout=log, stderr=subprocess.STDOUT
+        )
 
     def events(self, name: str) -> list[dict]:
         """This node's ``name`` events so far (read incrementally: polling must not steal the workers' CPU)."""
@@ -177,12 +181,14 @@ def two_node_trials(trials: int, work: Path) -> list[dict]:
     storage = work / "two-nodes" / "run"
     storage.parent.mkdir(parents=True)
     endpoint = f"127.0.0.1:{free_port()}"
+    secret = {SECRET_ENV: secrets.token_hex(32)}
     nodes = [
         Supervised(
             storage,
             *("--nproc-per-node", "1", "--nnodes", "2", "--node-rank", str(node), "--rdzv-endpoint", endpoint),
             *("--max-restarts", str(trials + 5)),
             node=node,
+            env=secret,
         )
         for node in (0, 1)
     ]

@@ -1,12 +1,15 @@
 #!/usr/bin/env bash
 # Supervised training on several machines: run this same script on every node, with the node's rank.
 #
+#   export FTRAIN_RDZV_SECRET=...   # the same on every node: make one with `openssl rand -hex 32`
 #   NNODES=2 NODE_RANK=0 HEAD=10.0.0.5 bash launch/multinode.sh configs/halfcheetah.yaml --storage s3://bucket/runs/hc
 #   NNODES=2 NODE_RANK=1 HEAD=10.0.0.5 bash launch/multinode.sh configs/halfcheetah.yaml --storage s3://bucket/runs/hc
 #
-# HEAD is node 0's address, reachable from every node; PORT (default 29400) a free port there, where node 0's
-# supervisor agrees each attempt with the others. Storage must be shared by all nodes (s3://, or a shared
-# filesystem). NPROC_PER_NODE defaults to the node's CPU count. Extra arguments go to `ftrain supervise`.
+# HEAD is node 0's address, reachable from every node (node 0's supervisor listens on that address only); PORT
+# (default 29400) a free port there, where node 0's supervisor agrees each attempt with the others, answering only
+# requests signed with FTRAIN_RDZV_SECRET (or with the contents of the file `--rdzv-secret-file FILE` names).
+# Storage must be shared by all nodes (s3://, or a shared filesystem). NPROC_PER_NODE defaults to the node's CPU
+# count. Extra arguments go to `ftrain supervise`.
 # After SIGTERM every node exits 143 once the workers have saved: run the same commands again to continue.
 set -euo pipefail
 cd "$(dirname "$0")/.."

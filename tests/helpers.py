@@ -23,6 +23,7 @@ from ftrain.ckpt.format import FileEntry, commit, encode, step_dir, write_file
 from ftrain.ckpt.storage import Storage
 from ftrain.heartbeat import read_heartbeats
 from ftrain.supervise import procfs
+from ftrain.supervise.attempt import TORCHRUN
 
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
@@ -40,16 +41,26 @@ def train_command(storage: str | Path, *overrides: str, ranks: int = 1, config: 
 
 
 def child_env(extra: dict | None = None) -> dict:
-    return {**os.environ, "OMP_NUM_THREADS": "1", **(extra or {})}
+    """A test subprocess's environment: one OpenMP thread, and this repository first on ``PYTHONPATH`` (a script run
+    by its path, or a process started elsewhere, would import whichever ftrain is installed, maybe another checkout's);
+    ``extra``'s ``PYTHONPATH`` comes after it."""
+    extra = dict(extra or {})
+    paths = [str(REPO), *([extra.pop("PYTHONPATH")] if extra.get("PYTHONPATH") else [])]
+    return {**os.environ, "OMP_NUM_THREADS": "1", **extra, "PYTHONPATH": os.pathsep.join(paths)}
 
 
 def run_train(
-    storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE, env: dict | None = None
+    storage: str | Path,
+    *overrides: str,
+    ranks: int = 1,
+    config: str = SMOKE,
+    env: dict | None = None,
+    cwd: str | Path = REPO,
 ) -> subprocess.CompletedProcess:
     """Run training to completion; fail the test with its output if it does not exit 0."""
     result = subprocess.run(
         train_command(storage, *overrides, ranks=ranks, config=config),
-        cwd=REPO,
+        cwd=cwd,
         env=child_env(env),
         capture_output=True,
         text=True,
@@ -112,11 +123,12 @@ def events(log_dir: str | Path) -> list[dict]:
 
 def torchrun_pid(supervisor_pid: int) -> int:
     """The torchrun agent a supervisor launched (waits until there is one)."""
+    module = TORCHRUN.encode()
 
     def find() -> int | None:
         for pid in procfs.pids():
             fields = procfs.stat_fields(pid)
-            if fields and int(fields[1]) == supervisor_pid and b"torch.distributed.run" in procfs.read(pid, "cmdline"):
+            if fields and int(fields[1]) == supervisor_pid and module in procfs.read(pid, "cmdline"):
                 return pid
         return None
 

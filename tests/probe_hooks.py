@@ -61,3 +61,17 @@ class FailingLoadHook(Hook):
 
     def load_state_dict(self, state: dict) -> None:
         raise ValueError("hook refuses its old state")
+
+
+class CrashingHook(Hook):
+    """Raises on one rank after one iteration, once per run (``path`` remembers it): a bug in a worker."""
+
+    def __init__(self, path: str, rank: int, iteration: int) -> None:
+        self.marker = Path(path)
+        self.rank = rank
+        self.iteration = iteration
+
+    def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        if trainer.info.rank == self.rank and trainer.iteration == self.iteration and not self.marker.exists():
+            self.marker.touch()
+            raise RuntimeError(f"probe crash after iteration {self.iteration}")

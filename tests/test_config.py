@@ -43,7 +43,6 @@ def test_training_hash_ignores_run_length_and_storage() -> None:
         (["algorithm.gamma=high"], "must be a number"),
         (["iterations=0"], "iterations=0 must be at least 1"),
         (["env.num_envs=-2"], "env.num_envs=-2 must be at least 1"),
-        (["env.id=HalfCheeta-v5"], "did you mean 'HalfCheetah-v5'"),
         (["noequals"], "is not key=value"),
     ],
 )
@@ -58,6 +57,14 @@ def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> 
         (["configs/missing.yaml"], "config file 'configs/missing.yaml' does not exist"),
         ([SMOKE, "iteratons=3"], "unknown config key 'iteratons': did you mean iterations?"),
         ([SMOKE, "env.id=NoSuchEnv-v0"], "env.id='NoSuchEnv-v0' is not a registered gymnasium environment"),
+        ([SMOKE, "env.id=HalfCheeta-v5"], "did you mean 'HalfCheetah-v5'"),
+        (
+            [SMOKE, "env.id=Pendulum-v1"],
+            "env.id='Pendulum-v1' is not a MuJoCo environment: ftrain trains gymnasium's MuJoCo environments, use one",
+        ),
+        ([SMOKE, "env.id=CartPole-v1"], "env.id='CartPole-v1' is not a MuJoCo environment"),
+        ([SMOKE, "env.id=BipedalWalker-v3"], "env.id='BipedalWalker-v3' is not a MuJoCo environment"),
+        ([SMOKE, "env.id=HalfCheetah-v3"], "env.id='HalfCheetah-v3' is not a MuJoCo environment"),
         ([SMOKE, "iterations=ten"], "iterations='ten' must be an integer"),
         ([SMOKE, "env.num_envs=0"], "env.num_envs=0 must be at least 1"),
     ],

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from ftrain.config import EnvConfig
+from ftrain.policy.mujoco_warnings import route_mujoco_warnings
 
 Act = Callable[[torch.Tensor], torch.Tensor]
 """Actions ``[N, num_actions]`` for observations ``[N, obs_dim]``."""
@@ -28,6 +29,7 @@ class Episode:
 def make_env(env_config: EnvConfig, render: bool = False) -> gym.Env:
     """One environment as configured for training; ``render`` makes ``env.render()`` return RGB frames, seen by the
     model's ``track`` camera if it has one (gymnasium's default free camera stays put while the agent runs away)."""
+    route_mujoco_warnings()
     kwargs = dict(env_config.kwargs)
     if render:
         kwargs["render_mode"] = "rgb_array"

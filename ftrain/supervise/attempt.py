@@ -1,37 +1,85 @@
-"""One torchrun launch and every process it started: finding, signalling and blaming them."""
+"""One torchrun launch and every process it started: finding, signalling and blaming them.
+
+Every attempt has a directory of its own, ``<log_dir>/torchrun/[node-R/]attempt-N-TOKEN`` (the newest
+``KEPT_LOGS`` stay), which torchrun gets as ``--log-dir``, so the workers' error files land there (see
+``ftrain/errorfile.py``). ``stderr.log`` there holds everything torchrun and the workers write to stderr: none of it
+reaches the console. torchrun runs as ``ftrain.dist.torchrun``, which writes torchrun's own account of the failed
+workers (exit code and recorded error of each) to ``failures.json`` instead of a traceback and a text report.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import json
+import math
 import os
-import re
+import shutil
 import signal
 import subprocess
 import sys
-import threading
 import time
+from pathlib import Path
 
-from ftrain.heartbeat import TOKEN_ENV
+from ftrain import errorfile
+from ftrain.heartbeat import ENV_DIR, TOKEN_ENV
 from ftrain.supervise import procfs
+from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.coordinator import Plan
+from ftrain.supervise.outcome import WorkerFailure
 
 POLL = 0.1
+TORCHRUN = "ftrain.dist.torchrun"
+"""torchrun, in a process of its own (the module imports torch: the supervisor only names it)."""
+FAILURES = "failures.json"
+OUTPUT = "stderr.log"
+KEPT_LOGS = 5
+"""Attempts whose directory is kept."""
 
 
-def torchrun_command(nproc_per_node: int, rendezvous: list[str], module: str, train_args: list[str]) -> list[str]:
+def torchrun_command(
+    nproc_per_node: int, rendezvous: list[str], module: str, train_args: list[str], log_dir: Path
+) -> list[str]:
     """One attempt: torchrun without restarts of its own (the supervisor owns the restart policy)."""
     return [
         sys.executable,
         "-m",
-        "torch.distributed.run",
+        TORCHRUN,
+        str(log_dir / FAILURES),
         "--max-restarts=0",
         f"--nproc-per-node={nproc_per_node}",
+        f"--log-dir={log_dir}",
         *rendezvous,
         "-m",
         module,
         "train",
         *train_args,
     ]
+
+
+def attempt_env(heartbeat_dir: Path, token: str, stop_grace: float) -> dict[str, str]:
+    """The environment of torchrun and its workers: heartbeats go to ``heartbeat_dir`` (emptied of an earlier
+    attempt's now), every process carries ``token``, torchrun waits ``stop_grace`` for workers it stops; the
+    coordinator's secret stays with the supervisor."""
+    heartbeat_dir.mkdir(parents=True, exist_ok=True)
+    for stale in heartbeat_dir.glob("rank-*"):
+        stale.unlink(missing_ok=True)
+    return {
+        **{name: value for name, value in os.environ.items() if name != SECRET_ENV},  # the workers do not need it
+        ENV_DIR: str(heartbeat_dir),
+        TOKEN_ENV: token,
+        "TORCH_ELASTIC_SHUTDOWN_TIMEOUT": str(math.ceil(stop_grace)),
+    }
+
+
+def new_log_dir(root: Path, plan: Plan) -> Path:
+    """A fresh directory for the logs of ``plan``'s attempt under ``root``; older ones beyond ``KEPT_LOGS`` go."""
+    root.mkdir(parents=True, exist_ok=True)
+    old = sorted(root.iterdir(), key=lambda path: path.stat().st_mtime)
+    for stale in old[: max(0, len(old) - KEPT_LOGS + 1)]:
+        shutil.rmtree(stale, ignore_errors=True)
+    path = root / f"attempt-{plan.attempt}-{plan.token}"
+    path.mkdir(exist_ok=True)
+    return path
 
 
 def processes_with(token: str) -> list[int]:
@@ -48,14 +96,17 @@ def signal_name(number: int) -> str:
 
 
 class Attempt:
-    """One torchrun launch and every process it started; copies torchrun's stderr and reads its failure report."""
+    """One torchrun launch and every process it started; its stderr goes to ``log_dir``, and so does torchrun's
+    account of the workers that failed."""
 
-    def __init__(self, plan: Plan, command: list[str], env: dict[str, str], token: str) -> None:
+    def __init__(self, plan: Plan, command: list[str], env: dict[str, str], token: str, log_dir: Path) -> None:
         self.plan = plan
         self.token = token
-        self.proc = subprocess.Popen(command, env=env, stderr=subprocess.PIPE, start_new_session=True)
-        self.failures: dict[int, int] = {}
-        """Global rank -> exit code of every failed worker, from torchrun's ChildFailedError report."""
+        self.log_dir = log_dir
+        with (log_dir / OUTPUT).open("ab") as output:
+            self.proc = subprocess.Popen(command, env=env, stderr=output, start_new_session=True)
+        self.failures: dict[int, WorkerFailure] = {}
+        """Global rank -> how each failed worker ended, as torchrun saw it (read once every process is gone)."""
         self.dead: list[int] = []
         """Ranks the supervisor saw die mid-training."""
         self.killed: set[int] = set()
@@ -66,31 +117,16 @@ class Attempt:
         self.progressed = False
         self.seen = False
         self.reported = False
-        self._copier = threading.Thread(target=self._copy_stderr, daemon=True)
-        self._copier.start()
 
-    def _copy_stderr(self) -> None:
-        in_report, rank = False, None
-        for raw in self.proc.stderr:
-            line = raw.decode(errors="replace")
-            sys.stderr.write(line)
-            sys.stderr.flush()
-            if line.startswith("Failures:"):
-                in_report = True
-            elif in_report and (match := re.match(r"\s*rank\s*:\s*(\d+)", line)):
-                rank = int(match[1])
-            elif in_report and rank is not None and (match := re.match(r"\s*exitcode\s*:\s*(-?\d+)", line)):
-                self.failures[rank] = int(match[1])
-
-    def culprit(self) -> tuple[int, int] | None:
-        """(rank, exit code) to blame. Ranks the supervisor killed do not count. Of the others, a rank killed by a
-        signal comes first (someone killed it; the rest then failed on the broken group), then a specific exit code
-        before 1 (what a broken group gives) or SIGTERM (what torchrun sends the survivors), then the lowest rank.
+    def culprit(self) -> tuple[int, WorkerFailure] | None:
+        """The rank to blame and how it ended. Ranks the supervisor killed do not count. Of the others, a rank killed
+        by a signal comes first (someone killed it; the rest then failed on the broken group), then a specific exit
+        code before 1 (what a broken group gives) or SIGTERM (what torchrun sends the survivors), then the lowest rank.
         torchrun's own root cause is only the first failure it noticed, arbitrary when several die within a poll."""
-        own = {rank: code for rank, code in self.failures.items() if rank not in self.killed} or self.failures
+        own = {rank: failure for rank, failure in self.failures.items() if rank not in self.killed} or self.failures
 
-        def order(item: tuple[int, int]) -> tuple[bool, bool, int]:
-            rank, code = item
+        def order(item: tuple[int, WorkerFailure]) -> tuple[bool, bool, int]:
+            rank, code = item[0], item[1].code
             return (not (code < 0 and code != -signal.SIGTERM), code in (1, -signal.SIGTERM), rank)
 
         return min(own.items(), key=order) if own else None
@@ -119,17 +155,31 @@ class Attempt:
             for pid in pids:
                 kill(pid, signal.SIGKILL)
             time.sleep(POLL)
-        self._copier.join(timeout=2)
+        self._read_failures()
+
+    def _read_failures(self) -> None:
+        try:
+            failures = json.loads((self.log_dir / FAILURES).read_text())
+        except (OSError, ValueError):
+            return  # no worker failed, or torchrun itself died
+        self.failures = {
+            int(rank): WorkerFailure(failure["exitcode"], errorfile.message(failure["error"]))
+            for rank, failure in failures.items()
+        }
 
     def cause(self, code: int) -> str:
+        """What ended the attempt, in one line: the worker to blame and what it recorded, else torchrun; where the
+        output is when nothing was recorded."""
         culprit = self.culprit()
+        output = self.log_dir / OUTPUT
         if culprit is not None:
-            rank, worker_code = culprit
-            how = f"killed by {signal_name(-worker_code)}" if worker_code < 0 else f"exited with code {worker_code}"
-            return f"rank {rank} {how}"
+            rank, failure = culprit
+            if failure.code < 0:
+                return f"rank {rank} killed by {signal_name(-failure.code)}"
+            return f"rank {rank} exited with code {failure.code}: {failure.error or f'see {output}'}"
         if code < 0:
             return f"torchrun killed by {signal_name(-code)}"
-        return f"torchrun exited with code {code}"
+        return f"torchrun exited with code {code}: see {output}"
 
 
 def kill(pid: int, sig: int) -> None:

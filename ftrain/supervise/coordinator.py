@@ -3,25 +3,37 @@ HOST is node 0's address. Node 0's supervisor listens on PORT and names the curr
 its static rendezvous (node 0's torchrun hosts the store there). A node whose attempt fails tells node 0, which
 moves everyone to the next attempt on a new port; the other nodes see that within half a second and restart too.
 So no node can join the store of a dead attempt, and all nodes restart exactly once per failure.
+
+Node 0 listens on the address of ``--rdzv-endpoint`` only, and answers only requests signed with the run's secret
+(``auth.py``; they also name the run's token, so a request recorded in an earlier run does nothing now). Anything
+else (a wrong secret, garbage, a line over ``auth.MAX_MESSAGE`` bytes, a client slower than ``CONNECTION_TIMEOUT``)
+is refused and recorded as a ``refused`` event; one connection is served per thread, so a slow one stalls nobody.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-import json
 import math
 import secrets
 import socket
 import socketserver
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from ftrain.errors import UserError
+from ftrain.supervise.auth import HOW_TO_SET, REPLY, REQUEST, Refused, read_line, seal, unseal
 from ftrain.supervise.options import SupervisorOptions
 
 POLL = 0.1
 """Seconds between two looks at whether every node has learnt the outcome."""
+CONNECTION_TIMEOUT = 5.0
+"""Seconds a connection to node 0 may take to deliver its request, or a reply to come back."""
+MAX_LOGGED_REFUSALS = 1000
+"""Refused connections recorded in events.jsonl at most (a flood must not fill the disk)."""
+OPS = ("plan", "fail", "finish")
 
 
 @dataclass
@@ -41,11 +53,21 @@ class Coordinator:
     a failure counts); ``finish`` publishes the exit code that ends the run on every node.
     """
 
-    def __init__(self, multi_node: bool) -> None:
+    def __init__(self, multi_node: bool, secret: bytes | None = None, log: Callable[..., None] | None = None) -> None:
+        """``secret``: what requests from other nodes must be signed with; ``log``: records refusals (an EventLog)."""
         self._multi_node = multi_node
+        self.secret = secret
+        self._log = log
         self._lock = threading.Lock()
         self._plan = Plan(secrets.token_hex(4), 0, self._port())
         self._informed: set[int] = set()
+        self._refusals: dict[str, int] = {}
+        """Refused connections so far, by reason."""
+
+    @property
+    def token(self) -> str:
+        """This run's token: every plan carries it, and every request that changes the plan must name it."""
+        return self._plan.token
 
     def _port(self) -> int | None:
         return free_port() if self._multi_node else None
@@ -53,25 +75,38 @@ class Coordinator:
     def handle(self, request: dict) -> dict:
         with self._lock:
             plan = self._plan
-            current = request.get("token") == plan.token and request.get("attempt") == plan.attempt
-            if request["op"] == "fail" and current and plan.final is None:
+            ours = request.get("token") == plan.token
+            if request["op"] == "fail" and ours and request.get("attempt") == plan.attempt and plan.final is None:
                 self._plan = plan = Plan(plan.token, plan.attempt + 1, self._port())
-            elif request["op"] == "finish" and plan.final is None:
+            elif request["op"] == "finish" and ours and plan.final is None:
                 plan.final = request["code"]
             if plan.final is not None:
                 self._informed.add(request["node"])
             return dataclasses.asdict(plan)
 
-    def serve(self, port: int) -> socketserver.TCPServer:
+    def serve(self, host: str, port: int) -> socketserver.TCPServer:
+        """Answer the other nodes on ``host:port`` (the address of ``--rdzv-endpoint``, not every interface)."""
         try:
-            server = _Server(("", port), _Handler)
+            server = _Server((host, port), _Handler)
         except OSError as error:
             raise UserError(
-                f"--rdzv-endpoint: cannot listen on port {port} ({error.strerror}): pick a free port"
+                f"--rdzv-endpoint: node 0 cannot listen on {host}:{port} ({error.strerror}): pass an address of "
+                "node 0 that the other nodes reach, and a free port"
             ) from None
         server.coordinator = self
         threading.Thread(target=server.serve_forever, args=(POLL,), daemon=True).start()
         return server
+
+    def refuse(self, peer: tuple[str, int], reason: str) -> None:
+        """A connection that brought no signed request of this run: a ``refused`` event (the first of each reason
+        printed too), up to ``MAX_LOGGED_REFUSALS`` of them."""
+        with self._lock:
+            first = reason not in self._refusals
+            self._refusals[reason] = self._refusals.get(reason, 0) + 1
+            logged = sum(self._refusals.values()) <= MAX_LOGGED_REFUSALS
+        if self._log is not None and logged:
+            message = f"refused a connection from {peer[0]}: {reason} (see events.jsonl for more)" if first else ""
+            self._log("refused", message, peer=f"{peer[0]}:{peer[1]}", reason=reason)
 
     def wait_informed(self, nnodes: int, timeout: float) -> None:
         deadline = time.monotonic() + timeout
@@ -88,34 +123,65 @@ class _Server(socketserver.ThreadingTCPServer):
     coordinator: Coordinator
 
 
-class _Handler(socketserver.StreamRequestHandler):
+class _Handler(socketserver.BaseRequestHandler):
+    """One signed request per connection, read within ``CONNECTION_TIMEOUT``; its reply signed too."""
+
     def handle(self) -> None:
+        coordinator = self.server.coordinator
         try:
-            reply = self.server.coordinator.handle(json.loads(self.rfile.readline()))
-        except (ValueError, KeyError, TypeError, AttributeError):
-            return  # not one of ours
-        self.wfile.write(json.dumps(reply).encode() + b"\n")
+            request = unseal(coordinator.secret, REQUEST, read_line(self.request, CONNECTION_TIMEOUT))
+            if not _well_formed(request):
+                raise Refused("malformed")
+            reply = seal(coordinator.secret, REPLY, {**coordinator.handle(request), "nonce": request["nonce"]})
+        except Refused as refused:
+            coordinator.refuse(self.client_address, str(refused))
+            with contextlib.suppress(OSError):  # unsigned: a hint for a node with the wrong secret, nothing more
+                self.request.sendall(f"refused: {refused}\n".encode())
+            return
+        with contextlib.suppress(OSError):
+            self.request.sendall(reply)
+
+
+def _well_formed(request: dict) -> bool:
+    return (
+        request.get("op") in OPS
+        and type(request.get("node")) is int
+        and isinstance(request.get("nonce"), str)
+        and (request["op"] != "finish" or type(request.get("code")) is int)
+    )
 
 
 class Link:
-    """This node's line to the coordinator: a direct call on node 0, one TCP request per question elsewhere."""
+    """This node's line to the coordinator: a direct call on node 0, one signed TCP request per question elsewhere.
+    Every request names the run's token (node 0 knows it; the others learn it from the first reply)."""
 
-    def __init__(self, node: int, coordinator: Coordinator | None, address: tuple[str, int] | None) -> None:
+    def __init__(
+        self, node: int, coordinator: Coordinator | None, address: tuple[str, int] | None, secret: bytes | None
+    ) -> None:
         self.node = node
         self.coordinator = coordinator
         self.address = address
+        self.secret = secret
+        self.token = coordinator.token if coordinator is not None else None
 
     def ask(self, op: str, **fields) -> Plan:
-        """Raises OSError when node 0 cannot be reached."""
-        request = {"op": op, "node": self.node, **fields}
+        """Raises OSError when node 0 cannot be reached or refuses the request."""
+        request = {"op": op, "node": self.node, "token": self.token, **fields}
         if self.coordinator is not None:
             return Plan(**self.coordinator.handle(request))
-        with socket.create_connection(self.address, timeout=5) as conn:
-            conn.sendall(json.dumps(request).encode() + b"\n")
-            reply = conn.makefile("rb").readline()
-        if not reply:
-            raise ConnectionError("node 0 closed the connection")
-        return Plan(**json.loads(reply))
+        nonce = secrets.token_hex(8)
+        with socket.create_connection(self.address, timeout=CONNECTION_TIMEOUT) as conn:
+            conn.sendall(seal(self.secret, REQUEST, {**request, "nonce": nonce}))
+            line = read_line(conn, CONNECTION_TIMEOUT)
+        if line.startswith(b"refused: "):
+            reason = line.removeprefix(b"refused: ").decode(errors="replace")
+            raise Refused(f"node 0 refused this node's request ({reason}): {HOW_TO_SET}")
+        reply = unseal(self.secret, REPLY, line)
+        if reply.pop("nonce", None) != nonce:
+            raise Refused("node 0's reply answers another request")
+        plan = Plan(**reply)
+        self.token = plan.token
+        return plan
 
 
 def free_port() -> int:

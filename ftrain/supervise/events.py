@@ -1,9 +1,9 @@
 """``events.jsonl``: one JSON line per supervisor decision, the ones with a message printed as well.
 
 Record. One JSON line per decision in ``<log_dir>/events.jsonl``: ``start``, ``resumed``, ``worker_died``,
-``exit``, ``hang``, ``superseded``, ``restart``, ``recovered``, ``preempt``, and the ending (``done``,
-``preempted``, ``crash_loop``, ``max_restarts``, ``usage``, ``peer_lost``, ``peer_ended``), then ``summary``
-(restarts, iterations lost, downtime).
+``exit``, ``hang``, ``superseded``, ``restart``, ``recovered``, ``preempt``, ``refused`` (node 0: a connection that
+brought no signed request), and the ending (``done``, ``preempted``, ``crash_loop``, ``max_restarts``, ``usage``,
+``peer_lost``, ``peer_ended``), then ``summary`` (restarts, iterations lost, downtime).
 """
 
 from __future__ import annotations
@@ -18,14 +18,15 @@ class EventLog:
     """Appends one JSON line per decision; decisions with a message are also printed."""
 
     def __init__(self, path: Path, node: int | None) -> None:
+        """Nothing is created before the first record (bad input found meanwhile leaves no directory behind)."""
         self.path = path
         self.node = node
-        path.parent.mkdir(parents=True, exist_ok=True)
 
     def __call__(self, event: str, message: str = "", **fields) -> None:
         record = {"time": round(time.time(), 3), "event": event, **fields}
         if self.node is not None:
             record["node"] = self.node
+        self.path.parent.mkdir(parents=True, exist_ok=True)
         with self.path.open("a") as file:
             file.write(json.dumps(record) + "\n")
         if message:

@@ -7,22 +7,33 @@ Exit codes:
 - 3: crash loop: ``--crash-loop`` restarts in a row committed no new checkpoint.
 - 4: ``--max-restarts`` exhausted.
 - 5: several nodes: node 0's supervisor was unreachable for ``--rdzv-timeout`` seconds.
-- 143: preempted (SIGTERM/SIGINT): the workers saved; run the same command again to continue. 128 + SIGTERM,
+- 143: preempted (SIGTERM): the workers saved; run the same command again to continue. 128 + SIGTERM,
   so schedulers that retry signal exits (e.g. Kubernetes' ``ExitCode`` restart policy) run it again.
+- 130: interrupted (SIGINT, Ctrl-C): the same as 143, with the shell's code for Ctrl-C.
 """
 
 from __future__ import annotations
 
+import os
 import signal
 from dataclasses import dataclass, field
 
 from ftrain.errors import UserError
+from ftrain.supervise.auth import load_secret
 
 EXIT_DONE = 0
 EXIT_CRASH_LOOP = 3
 EXIT_MAX_RESTARTS = 4
 EXIT_PEER_LOST = 5
 EXIT_PREEMPTED = 128 + signal.SIGTERM
+EXIT_INTERRUPTED = 128 + signal.SIGINT
+STOPPED = (EXIT_PREEMPTED, EXIT_INTERRUPTED)
+"""The exit codes of a run stopped by a signal after saving."""
+
+
+def stop_code(signum: int) -> int:
+    """The exit code after a stop by ``signum``: 128 + the signal, as a shell reports it (130 for Ctrl-C)."""
+    return EXIT_INTERRUPTED if signum == signal.SIGINT else EXIT_PREEMPTED
 
 
 @dataclass
@@ -32,6 +43,10 @@ class SupervisorOptions:
     node_rank: int = field(default=0, metadata={"help": "this node's rank, 0 .. nnodes-1 (node 0 coordinates)"})
     rdzv_endpoint: str = field(
         default="", metadata={"help": "several nodes: HOST:PORT, node 0's address and a free port for its supervisor"}
+    )
+    rdzv_secret_file: str = field(
+        default="",
+        metadata={"help": "several nodes: a file holding the run's shared secret (default: $FTRAIN_RDZV_SECRET)"},
     )
     rdzv_timeout: float = field(
         default=600.0, metadata={"help": "several nodes: seconds to wait for the other nodes (then exit 5)"}
@@ -69,18 +84,26 @@ def parse_hang_timeout(value: str) -> float | None:
     return seconds
 
 
-def parse_nodes(options: SupervisorOptions) -> tuple[int, tuple[str, int] | None]:
-    """The number of nodes, and node 0's ``(host, port)`` when there are several."""
+@dataclass(frozen=True)
+class Nodes:
+    count: int
+    endpoint: tuple[str, int] | None = None
+    """Several nodes: node 0's ``(host, port)``."""
+    secret: bytes | None = None
+    """Several nodes: what their messages to node 0 and its replies are signed with."""
+
+
+def parse_nodes(options: SupervisorOptions) -> Nodes:
     if not options.nnodes.isdigit() or int(options.nnodes) < 1:
         raise UserError(f"--nnodes={options.nnodes!r} must be a number of nodes (elastic MIN:MAX is not supported)")
     nnodes = int(options.nnodes)
     if options.nproc_per_node < 1:
         raise UserError(f"--nproc-per-node={options.nproc_per_node} must be at least 1")
     if nnodes == 1:
-        return nnodes, None
+        return Nodes(1)
     if not 0 <= options.node_rank < nnodes:
         raise UserError(f"--node-rank={options.node_rank} must be between 0 and {nnodes - 1}")
     host, _, port = options.rdzv_endpoint.rpartition(":")
     if not host or not port.isdigit():
         raise UserError("several nodes need --rdzv-endpoint=HOST:PORT, node 0's address and a free port")
-    return nnodes, (host, int(port))
+    return Nodes(nnodes, (host, int(port)), load_secret(options.rdzv_secret_file, os.environ))

@@ -9,6 +9,16 @@ from ftrain.supervise.options import EXIT_DONE, EXIT_PREEMPTED
 
 
 @dataclass
+class WorkerFailure:
+    """How one worker ended, as torchrun saw it."""
+
+    code: int
+    """Its exit code; negative: killed by that signal."""
+    error: str | None
+    """The one-line error it recorded in its error file, if any."""
+
+
+@dataclass
 class Outcome:
     """How an attempt ended: ``failed`` (restart) or one of the endings, with its exit code and event name."""
 
@@ -24,8 +34,8 @@ class Outcome:
 def classify(
     code: int,
     cause: str,
-    culprit: tuple[int, int] | None,
-    signalled: bool,
+    culprit: tuple[int, WorkerFailure] | None,
+    stopped: int | None,
     orphans: bool,
     phases: set[str],
     superseded: bool,
@@ -33,15 +43,15 @@ def classify(
 ) -> Outcome:
     """The outcome of an attempt whose torchrun exited with ``code``.
 
-    ``cause``: what to blame, in words; ``culprit``: (rank, exit code) of the worker to blame, if any;
-    ``signalled``: the supervisor was asked to stop; ``orphans``: workers outlived torchrun; ``phases``: the final
-    heartbeat phases; ``superseded``: several nodes, and another node has failed this attempt; ``committed``: the
-    newest step committed.
+    ``cause``: what to blame, in words; ``culprit``: the rank to blame and how it ended, if any;
+    ``stopped``: the exit code for the signal that asked the supervisor to stop (None: no signal); ``orphans``:
+    workers outlived torchrun; ``phases``: the final heartbeat phases; ``superseded``: several nodes, and another node
+    has failed this attempt; ``committed``: the newest step committed.
     """
-    if signalled:
+    if stopped is not None:
         saved = bool(phases) and phases <= {"preempted", "done"}
         how = "the workers saved" if saved else "the workers did not all confirm a save"
-        return Outcome("preempted", EXIT_PREEMPTED, f"preempted: {how} (newest step {committed})")
+        return Outcome("preempted", stopped, f"preempted: {how} (newest step {committed})")
     if orphans:
         return Outcome("failed", None, cause)
     if code == 0 and "preempted" not in phases:
@@ -50,6 +60,8 @@ def classify(
         if superseded:
             return Outcome("failed", None, "stopped because another node failed")
         return Outcome("preempted", EXIT_PREEMPTED, f"preempted: the workers saved step {committed}; rerun to continue")
-    if culprit is not None and culprit[1] == EXIT_USAGE:
-        return Outcome("usage", EXIT_USAGE, f"{cause}: bad input (see the error above); not restarting")
+    if culprit is not None and culprit[1].code == EXIT_USAGE:
+        rank, failure = culprit
+        refusal = f"refused its input: {failure.error}" if failure.error else f"exited with code {EXIT_USAGE}"
+        return Outcome("usage", EXIT_USAGE, f"rank {rank} {refusal}; not restarting")
     return Outcome("failed", None, cause)

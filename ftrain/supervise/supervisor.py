@@ -9,6 +9,9 @@ keep one TCP store, from which restarted workers read stale gloo peer addresses;
 
 Detect. Crash: torchrun exits non-zero, or is killed (its workers, each in a session of its own, are then
 orphans: the supervisor finds every process of an attempt by the ``FTRAIN_ATTEMPT_TOKEN`` in its environment).
+Who failed and why comes from torchrun's account of its workers (exit codes, and the one-line error each recorded in
+its error file: see ``attempt.py``); a worker exiting 2 refused its input, which no restart fixes. The cause is one
+line on the console and in ``events.jsonl``; torchrun's and the workers' stderr go to the attempt's log directory.
 Hang: a rank's heartbeat ``seq`` does not change within the hang timeout (``auto``: max(30 s, 10 x the longest gap
 seen between two heartbeats of a rank), and ``--startup-grace`` until every rank is past its ``start`` heartbeat).
 
@@ -19,7 +22,8 @@ completed iterations; ``--backoff-initial`` after one that completed none, doubl
 ``--backoff-max``) and launch again; the workers resume from the newest verified checkpoint themselves.
 
 Preemption. SIGTERM or SIGINT to the supervisor: SIGTERM to the workers, which agree at the next iteration
-boundary, save and exit 0; SIGKILL after ``--stop-grace``; a second signal kills at once. No restart.
+boundary, save and exit 0; SIGKILL after ``--stop-grace``; a second signal kills at once. No restart; the
+supervisor exits 128 + the signal (143 for SIGTERM, 130 for SIGINT, Ctrl-C).
 
 Several nodes: see ``coordinator.py``. Records: ``events.py``. Exit codes: ``options.py``.
 
@@ -30,16 +34,16 @@ Test hook (private): ``FTRAIN_WORKER_MODULE`` names the module torchrun runs as 
 from __future__ import annotations
 
 import contextlib
-import math
 import os
 import signal
 import sys
 import time
 from pathlib import Path
 
-from ftrain.config import load_config
-from ftrain.heartbeat import ENV_DIR, TOKEN_ENV, Heartbeat, read_heartbeats
-from ftrain.supervise.attempt import Attempt, kill, signal_name, torchrun_command
+from ftrain.config import Config
+from ftrain.heartbeat import Heartbeat, read_heartbeats
+from ftrain.redact import redact_command
+from ftrain.supervise.attempt import Attempt, attempt_env, kill, new_log_dir, signal_name, torchrun_command
 from ftrain.supervise.coordinator import Coordinator, Link, Plan, plan_key, rendezvous_args
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.hang import QUIET_PHASES, HangWatch, process_state
@@ -49,10 +53,12 @@ from ftrain.supervise.options import (
     EXIT_DONE,
     EXIT_MAX_RESTARTS,
     EXIT_PEER_LOST,
-    EXIT_PREEMPTED,
+    STOPPED,
+    Nodes,
     SupervisorOptions,
     parse_hang_timeout,
     parse_nodes,
+    stop_code,
 )
 from ftrain.supervise.outcome import Outcome, classify
 
@@ -66,13 +72,13 @@ LINGER = 30.0
 """Seconds node 0 keeps answering after the end, until every node has learnt the outcome."""
 
 
-def supervise(options: SupervisorOptions, config_path: str, storage: str | None, overrides: list[str]) -> int:
-    """Run training under supervision until it finishes or gives up; returns the exit code (see module doc)."""
-    config = load_config(config_path, overrides, storage)
+def supervise(options: SupervisorOptions, config: Config, train_args: list[str]) -> int:
+    """Run training under supervision until it finishes or gives up; returns the exit code (see module doc).
+
+    ``config``: the run's validated config; ``train_args``: the arguments of ``ftrain train`` it was read from
+    (config file, ``--storage``, overrides), which every worker gets."""
     hang_timeout = parse_hang_timeout(options.hang_timeout)
-    nnodes, endpoint = parse_nodes(options)
-    train_args = [config_path, *(["--storage", storage] if storage is not None else []), *overrides]
-    supervisor = Supervisor(options, nnodes, endpoint, Path(config.log_dir), hang_timeout, train_args)
+    supervisor = Supervisor(options, parse_nodes(options), Path(config.log_dir), hang_timeout, train_args)
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         return supervisor.run()
@@ -92,24 +98,25 @@ class Supervisor:
     def __init__(
         self,
         options: SupervisorOptions,
-        nnodes: int,
-        endpoint: tuple[str, int] | None,
+        nodes: Nodes,
         log_dir: Path,
         hang_timeout: float | None,
         train_args: list[str],
     ) -> None:
-        """``endpoint``: node 0's ``(host, port)`` when there are several nodes."""
         self.options = options
-        self.nnodes = nnodes
+        self.nnodes = nodes.count
         self.train_args = train_args
-        multi = nnodes > 1
-        self.heartbeat_dir = (log_dir / "heartbeat" / (f"node-{options.node_rank}" if multi else "")).resolve()
+        multi = nodes.count > 1
+        node_dir = f"node-{options.node_rank}" if multi else ""
+        self.heartbeat_dir = (log_dir / "heartbeat" / node_dir).resolve()
+        self.attempt_logs = log_dir / "torchrun" / node_dir
         self.events = EventLog(log_dir / "events.jsonl", options.node_rank if multi else None)
         self.hangs = HangWatch(hang_timeout, options.startup_grace, options.nproc_per_node)
-        self.endpoint = endpoint
-        self.coordinator = Coordinator(multi) if options.node_rank == 0 or not multi else None
-        self.server = self.coordinator.serve(endpoint[1]) if multi and self.coordinator else None
-        self.link = Link(options.node_rank, self.coordinator, endpoint)
+        self.endpoint = nodes.endpoint
+        coordinating = options.node_rank == 0 or not multi
+        self.coordinator = Coordinator(multi, nodes.secret, self.events) if coordinating else None
+        self.server = self.coordinator.serve(*nodes.endpoint) if multi and self.coordinator else None
+        self.link = Link(options.node_rank, self.coordinator, nodes.endpoint, nodes.secret)
         self.signals: list[int] = []
         self.restarts = 0
         self.best_committed: int | None = None
@@ -181,7 +188,8 @@ class Supervisor:
     def _raise_if_signalled(self) -> None:
         if self.signals:
             self.events("preempt", signal=signal_name(self.signals[0]))
-            raise _Stop("preempted", EXIT_PREEMPTED, "stopped by a signal while no workers ran; rerun to continue")
+            code = stop_code(self.signals[0])
+            raise _Stop("preempted", code, "stopped by a signal while no workers ran; rerun to continue")
 
     def _next_plan(self, previous: Plan | None) -> Plan:
         """The next attempt to run (on several nodes: wait until node 0 has moved on from ``previous``)."""
@@ -207,24 +215,19 @@ class Supervisor:
             time.sleep(PEER_POLL / 5)
 
     def _launch(self, plan: Plan) -> Attempt:
-        self.heartbeat_dir.mkdir(parents=True, exist_ok=True)
-        for stale in self.heartbeat_dir.glob("rank-*"):
-            stale.unlink(missing_ok=True)
         token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
-        env = {
-            **os.environ,
-            ENV_DIR: str(self.heartbeat_dir),
-            TOKEN_ENV: token,
-            "TORCH_ELASTIC_SHUTDOWN_TIMEOUT": str(math.ceil(self.options.stop_grace)),
-        }
+        env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace)
         rendezvous = (
             ["--standalone"] if self.nnodes == 1 else rendezvous_args(plan, self.nnodes, self.options, self.endpoint)
         )
         module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
-        command = torchrun_command(self.options.nproc_per_node, rendezvous, module, self.train_args)
-        self.events("start", f"attempt {plan.attempt}: launching torchrun", attempt=plan.attempt, command=command)
+        logs = new_log_dir(self.attempt_logs, plan)
+        command = torchrun_command(self.options.nproc_per_node, rendezvous, module, self.train_args, logs)
+        logged = redact_command(command)
+        message = f"attempt {plan.attempt}: launching torchrun"
+        self.events("start", message, attempt=plan.attempt, command=logged, logs=str(logs))
         self.hangs.restart(time.monotonic())
-        return Attempt(plan, command, env, token)
+        return Attempt(plan, command, env, token, logs)
 
     def _watch(self, attempt: Attempt) -> Outcome:
         preempt_deadline = None
@@ -286,7 +289,7 @@ class Supervisor:
             plan = self.link.ask("plan")
         except OSError:
             return None
-        if plan.final in (EXIT_DONE, EXIT_PREEMPTED):
+        if plan.final == EXIT_DONE or plan.final in STOPPED:
             return None
         if plan.final is not None:
             attempt.stop(self.options.stop_grace)
@@ -313,7 +316,7 @@ class Supervisor:
             signal=name,
         )
         if self.nnodes > 1:
-            self._tell("finish", code=EXIT_PREEMPTED)
+            self._tell("finish", code=stop_code(self.signals[0]))
         attempt.terminate()
 
     def _exited(self, attempt: Attempt, code: int) -> Outcome:
@@ -332,8 +335,9 @@ class Supervisor:
         superseded = (
             code == 0 and self.nnodes > 1 and plan_key(self._current_plan(attempt.plan)) != plan_key(attempt.plan)
         )
+        stopped = stop_code(self.signals[0]) if self.signals else None
         outcome = classify(
-            code, cause, attempt.culprit(), bool(self.signals), bool(orphans), phases, superseded, attempt.committed
+            code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, attempt.committed
         )
         self._log_exit(attempt, cause, f"attempt {attempt.plan.attempt}: {cause}" if outcome.failed else "", phases)
         if outcome.failed:
@@ -354,7 +358,8 @@ class Supervisor:
             attempt=attempt.plan.attempt,
             code=attempt.proc.returncode,
             cause=cause,
-            failures={str(rank): code for rank, code in sorted(attempt.failures.items())},
+            failures={str(rank): failure.code for rank, failure in sorted(attempt.failures.items())},
+            errors={str(rank): failure.error for rank, failure in sorted(attempt.failures.items()) if failure.error},
             phases=sorted(self._phases(attempt) if phases is None else phases),
         )
 

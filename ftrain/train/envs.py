@@ -19,6 +19,7 @@ from tensordict import TensorDict
 
 from ftrain.errors import UserError
 from ftrain.policy.model import OBS_GROUP
+from ftrain.policy.mujoco_warnings import route_mujoco_warnings
 
 _INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION
 
@@ -31,6 +32,7 @@ class MujocoVecEnv(VecEnv):
     """
 
     def __init__(self, env_id: str, num_envs: int, seed: int, kwargs: dict | None = None) -> None:
+        route_mujoco_warnings()
         try:
             self.envs = gym.make_vec(
                 env_id,

@@ -11,13 +11,13 @@ import json
 import math
 import os
 import signal
-import sys
 import time
 from pathlib import Path
 
 import torch
 import yaml
 
+from ftrain import errorfile
 from ftrain.ckpt.format import learned_state, state_digest
 from ftrain.ckpt.manager import Checkpointer
 from ftrain.ckpt.resume import CheckpointError
@@ -268,7 +268,7 @@ def train(config: Config) -> int:
         trainer = Trainer(config, info, stop)
         return trainer.run()
     except CheckpointError as error:
-        print(f"ftrain: error: {error}", file=sys.stderr, flush=True)
+        errorfile.report(str(error))
         return EXIT_CHECKPOINT
     finally:
         if trainer is not None:

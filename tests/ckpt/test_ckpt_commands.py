@@ -1,4 +1,9 @@
 import json
+import os
+import shlex
+import signal
+import subprocess
+import sys
 
 import pytest
 
@@ -8,7 +13,7 @@ from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
 
-from helpers import flip_shard_byte, make_step, truncate_shard
+from helpers import REPO, flip_shard_byte, make_step, truncate_shard
 
 
 def build_tree(storage: Storage) -> None:
@@ -110,3 +115,21 @@ def test_commands_on_s3(s3_url, capsys):
     assert ckpt_commands.verify(url, options) == 1
     assert ckpt_commands.prune(url, keep_last=2, options=options) == 0
     assert [info.step for info in scan(Storage.open(url, options))] == [40, 30, 25, 20]
+
+
+def test_output_into_a_pipe_whose_reader_has_gone_ends_quietly(run):
+    """``ftrain ckpt show URL | head -1``: once ``head`` has its line and exits, the next write fails (EPIPE); that
+    ends the command like any tool killed by SIGPIPE (141), with no traceback."""
+    show = [sys.executable, "-m", "ftrain", "ckpt", "show", run, "--json"]
+    piped = subprocess.run(
+        f"{shlex.join(show)} | head -1", shell=True, cwd=REPO, capture_output=True, text=True, timeout=60
+    )
+    assert piped.stdout == "{\n"
+    assert "Traceback" not in piped.stderr and "BrokenPipeError" not in piped.stderr, piped.stderr
+
+    read, write = os.pipe()
+    os.close(read)  # the reader has gone before the first write: the write always fails
+    with os.fdopen(write, "wb") as output:
+        gone = subprocess.run(show, cwd=REPO, stdout=output, stderr=subprocess.PIPE, text=True, timeout=60)
+    assert gone.returncode == 128 + signal.SIGPIPE
+    assert "Traceback" not in gone.stderr and "BrokenPipeError" not in gone.stderr, gone.stderr

@@ -12,10 +12,12 @@ from pathlib import Path
 
 import pytest
 
+from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.options import EXIT_PREEMPTED
 
 from helpers import (
     REPO,
+    child_env,
     events,
     final_manifest,
     finish,
@@ -34,11 +36,11 @@ OVERRIDES = ["iterations=100", "dist_timeout=10", "log.console=false"]
 DEFAULTS = ["--nproc-per-node", "2", "--backoff-initial", "0.2", "--stop-grace", "20"]
 
 
-def start(storage: Path, *options: str, log: str = "supervise") -> subprocess.Popen:
+def start(storage: Path, *options: str, log: str = "supervise", env: dict | None = None) -> subprocess.Popen:
     """``ftrain supervise`` (2 ranks, unless in ``options``) on ``storage``; output: ``<storage>.<log>.log``."""
     command = [sys.executable, "-m", "ftrain", "supervise", *DEFAULTS, *options, CONFIG, "--storage", str(storage)]
     output = open(f"{storage}.{log}.log", "ab")  # noqa: SIM115 - the child writes to it for its whole life
-    return launch([*command, *OVERRIDES], cwd=REPO, stdout=output, stderr=subprocess.STDOUT)
+    return launch([*command, *OVERRIDES], cwd=REPO, env=child_env(env), stdout=output, stderr=subprocess.STDOUT)
 
 
 def after(recovered: dict) -> int:
@@ -95,7 +97,7 @@ def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
     os.kill(beats[1].pid, signal.SIGKILL)
     os.kill(beats[0].pid, signal.SIGCONT)
     recovered = wait_event(storage, "recovered", 4)
-    assert recovered["step"] < corrupted
+    assert after(recovered) < corrupted
 
     # 5. SIGTERM to the supervisor: the workers save, it exits 143; the same command continues
     training(heartbeats, after(recovered) + 3)
@@ -140,6 +142,7 @@ def test_two_nodes_both_recover_when_one_loses_its_worker(tmp_path, reference):
             "--rdzv-endpoint",
             endpoint,
             log=f"node{node}",
+            env={SECRET_ENV: "ftrain-test-chaos-secret"},
         )
         for node in (0, 1)
     ]

@@ -1,4 +1,4 @@
-"""``ftrain supervise`` against a small stand-in worker, hit by real signals.
+"""``ftrain supervise`` against a small stand-in worker, hit by real signals; node 0's coordinator against strangers.
 
 The stand-in (``python -m test_supervisor train CONFIG --storage DIR``, picked through the supervisor's
 ``FTRAIN_WORKER_MODULE`` hook) speaks the heartbeat protocol like the trainer and joins a real gloo process group,
@@ -14,21 +14,28 @@ import hashlib
 import json
 import os
 import signal
+import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
 import pytest
 
+from ftrain import errorfile
 from ftrain.heartbeat import ENV_DIR, Heartbeat, HeartbeatWriter
 from ftrain.supervise import hang, options
-from ftrain.supervise.coordinator import Coordinator, Link
+from ftrain.supervise.auth import MAX_MESSAGE, REQUEST, SECRET_ENV, Refused, seal
+from ftrain.supervise.coordinator import CONNECTION_TIMEOUT, Coordinator, Link
+from ftrain.supervise.events import EventLog
 from ftrain.supervise.supervisor import WORKER_MODULE_ENV
 
 from helpers import REPO, TESTS, events, final_manifest, finish, free_port, launch, manifests, torchrun_pid, training
 
 HERE = Path(__file__).resolve().parent
+SECRET = "ftrain-test-coordinator-secret"
+KEY = SECRET.encode()
 ITERATIONS = 16
 PHASE_SECONDS = 0.05
 
@@ -73,9 +80,8 @@ def fake_worker(argv: list[str]) -> int:
     heartbeat = HeartbeatWriter(os.environ.get(ENV_DIR), rank)
     heartbeat.beat("start", 0)
     dist.init_process_group("gloo", timeout=datetime.timedelta(seconds=config.dist_timeout))
-    if kind == "usage":  # like the trainer's UserError: every rank exits 2, rank 0 says why
-        if rank == 0:
-            print("ftrain: error: stand-in bad input", file=sys.stderr)
+    if kind == "usage":  # like a UserError in the trainer: every rank records it and exits 2, rank 0 says why
+        errorfile.report("stand-in bad input")
         return 2
     steps = manifests(storage)
     manifest = steps[max(steps)] if steps else None
@@ -122,25 +128,42 @@ def write_config(tmp_path: Path) -> Path:
     return path
 
 
-def start_supervisor(tmp_path: Path, *options: str, fault: str = "", run: str = "run") -> subprocess.Popen:
+def start_supervisor(
+    tmp_path: Path, *options: str, fault: str = "", run: str = "run", env: dict | None = None, iterations: int = 0
+) -> subprocess.Popen:
+    """The stand-in under ``ftrain supervise`` (2 ranks); ``env``: more environment, ``iterations``: instead of
+    ``ITERATIONS``."""
     env = {
         **os.environ,
         "PYTHONPATH": os.pathsep.join([str(HERE), str(TESTS), str(REPO)]),  # this module, helpers, ftrain
         WORKER_MODULE_ENV: "test_supervisor",
         "FAKE_FAULT": fault,
+        **(env or {}),
     }
     command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", "--backoff-initial", "0.2"]
     command += [*options, str(write_config(tmp_path)), "--storage", str(tmp_path / run)]
-    return launch(command, cwd=REPO, env=env)
+    return launch([*command, *([f"iterations={iterations}"] if iterations else [])], cwd=REPO, env=env)
+
+
+def start_nodes(tmp_path: Path, *options: str, iterations: int = 0, port: int = 0) -> list[subprocess.Popen]:
+    """Two nodes of the stand-in on this machine, node 0 coordinating on 127.0.0.1:``port`` (default: a free one)
+    with ``SECRET``."""
+    endpoint = ["--nnodes", "2", "--rdzv-endpoint", f"127.0.0.1:{port or free_port()}"]
+    return [
+        start_supervisor(
+            tmp_path, *endpoint, "--node-rank", str(node), *options, env={SECRET_ENV: SECRET}, iterations=iterations
+        )
+        for node in (0, 1)
+    ]
 
 
 def names(log_dir: Path) -> list[str]:
     return [event["event"] for event in events(log_dir)]
 
 
-def assert_finished(run: Path) -> None:
+def assert_finished(run: Path, iterations: int = ITERATIONS) -> None:
     manifest = final_manifest(run)
-    assert manifest == {"step": ITERATIONS, "state": expected_state(ITERATIONS)}
+    assert manifest == {"step": iterations, "state": expected_state(iterations)}
 
 
 # --- in-process units ----------------------------------------------------------------------------------------------
@@ -171,24 +194,99 @@ def test_hang_watch_grace_then_auto_limit():
     assert watch.check({0: beat(0, 3, "done"), 1: beat(1, 2, "done")}, now=500) is None
 
 
-def test_coordinator_moves_every_node_to_one_new_attempt(tmp_path):
-    coordinator = Coordinator(multi_node=True)
-    server = coordinator.serve(0)
+@pytest.fixture
+def node0(tmp_path):
+    """A coordinator of two nodes serving on 127.0.0.1, recording into ``tmp_path/events.jsonl``."""
+    coordinator = Coordinator(multi_node=True, secret=KEY, log=EventLog(tmp_path / "events.jsonl", 0))
+    server = coordinator.serve("127.0.0.1", 0)
     try:
-        remote = Link(1, None, ("127.0.0.1", server.server_address[1]))
-        local = Link(0, coordinator, None)
-        first = remote.ask("plan")
-        assert first == local.ask("plan") and first.attempt == 0 and first.port
-        key = {"token": first.token, "attempt": 0}
-        second = remote.ask("fail", **key)
-        assert local.ask("fail", **key) == second  # a second report of the same failure changes nothing
-        assert second.attempt == 1 and second.port != first.port
-        assert remote.ask("finish", code=3).final == 3
-        coordinator.wait_informed(2, timeout=0)
-        assert local.ask("finish", code=0).final == 3  # the first ending wins
+        yield coordinator, server.server_address
     finally:
         server.shutdown()
         server.server_close()
+
+
+def send(address: tuple[str, int], data: bytes) -> bytes:
+    """What node 0 answers to ``data`` on a connection of its own (nothing, if it cut the connection before the end
+    of ``data``: a close with unread data resets the connection, and the answer may be lost with it)."""
+    with socket.create_connection(address, timeout=10) as conn:
+        try:
+            conn.sendall(data)
+            conn.shutdown(socket.SHUT_WR)
+            return conn.makefile("rb").read()
+        except OSError:
+            return b""
+
+
+def refusals(log_dir) -> list[str]:
+    return [event["reason"] for event in events(log_dir) if event["event"] == "refused"]
+
+
+def test_coordinator_moves_every_node_to_one_new_attempt(node0):
+    coordinator, address = node0
+    remote = Link(1, None, address, KEY)
+    local = Link(0, coordinator, None, KEY)
+    first = remote.ask("plan")
+    assert first == local.ask("plan") and first.attempt == 0 and first.port
+    key = {"token": first.token, "attempt": 0}
+    second = remote.ask("fail", **key)
+    assert local.ask("fail", **key) == second  # a second report of the same failure changes nothing
+    assert second.attempt == 1 and second.port != first.port
+    assert remote.ask("finish", code=3, token="a token of another run").final is None  # replayed from elsewhere
+    assert remote.ask("finish", code=3).final == 3
+    coordinator.wait_informed(2, timeout=0)
+    assert local.ask("finish", code=0).final == 3  # the first ending wins
+
+
+def test_node_0_listens_on_the_endpoint_address_only(node0):
+    _, (host, port) = node0
+    assert host == "127.0.0.1"
+    with pytest.raises(ConnectionRefusedError):
+        socket.create_connection(("127.0.0.2", port), timeout=10)  # another address of this machine
+
+
+def test_strangers_are_refused_and_recorded_and_a_slow_one_stalls_nobody(node0, tmp_path):
+    _, address = node0
+    with pytest.raises(Refused, match=rf"bad signature\): set {SECRET_ENV}"):
+        Link(1, None, address, b"not the secret of this run").ask("plan")
+    assert send(address, os.urandom(200).replace(b"\n", b"") + b"\n") == b"refused: malformed\n"
+    assert send(address, seal(KEY, REQUEST, {"op": "shutdown", "node": 1, "nonce": "x"})) == b"refused: malformed\n"
+    assert send(address, b"x" * (MAX_MESSAGE * 10)) in (b"refused: oversized\n", b"")
+    with socket.create_connection(address, timeout=10) as slow:
+        slow.sendall(b'{"op": "pl')  # and nothing more for now
+        started = time.monotonic()
+        assert Link(1, None, address, KEY).ask("plan").attempt == 0
+        assert time.monotonic() - started < CONNECTION_TIMEOUT  # served while the slow one waits
+    time.sleep(0.5)
+    assert refusals(tmp_path) == [
+        "bad signature",
+        "malformed",
+        "malformed",
+        "oversized",
+        "closed before a whole message",
+    ]
+
+
+@pytest.mark.parametrize(
+    ("options", "secret", "fragment"),
+    [
+        (["--rdzv-endpoint", "127.0.0.1:{port}"], None, f"shared secret for node 0's coordinator: set {SECRET_ENV}"),
+        (["--rdzv-endpoint", "127.0.0.1:{port}"], "short", f"{SECRET_ENV} holds 5 characters, fewer than 16"),
+        (["--rdzv-endpoint", "127.0.0.1:{port}", "--rdzv-secret-file", "missing"], None, "cannot be read"),
+        (["--rdzv-endpoint", "192.0.2.1:{port}"], SECRET, "node 0 cannot listen on 192.0.2.1:"),
+    ],
+)
+def test_several_nodes_refuse_to_start_without_a_secret_or_off_their_address(tmp_path, options, secret, fragment):
+    env = {name: value for name, value in os.environ.items() if name != SECRET_ENV}
+    env |= {SECRET_ENV: secret} if secret else {}
+    options = [option.format(port=free_port()) for option in options]
+    command = [sys.executable, "-m", "ftrain", "supervise", "--nnodes", "2", *options, str(write_config(tmp_path))]
+    done = subprocess.run(
+        [*command, "--storage", str(tmp_path / "run")], cwd=REPO, env=env, capture_output=True, text=True, timeout=60
+    )
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1 and fragment in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.parametrize(
@@ -198,6 +296,7 @@ def test_coordinator_moves_every_node_to_one_new_attempt(tmp_path):
         (["--nnodes", "1:2"], [], "--nnodes"),
         (["--nnodes", "2"], [], "--rdzv-endpoint"),
         ([], ["iterations=zero"], "iterations"),
+        ([], ["env.id=Pendulum-v1"], "env.id='Pendulum-v1' is not a MuJoCo environment"),
     ],
 )
 def test_bad_input_fails_before_launch(tmp_path, options, overrides, fragment):
@@ -286,12 +385,14 @@ def test_stopped_worker_is_a_hang(tmp_path):
 
 
 @pytest.mark.slow
-def test_sigterm_saves_and_the_same_command_continues(tmp_path):
+@pytest.mark.parametrize(("stop", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_a_stop_signal_saves_and_the_same_command_continues(tmp_path, stop, code):
+    """SIGTERM (a scheduler) exits 143, SIGINT (Ctrl-C) 130: the shell's 128 + signal."""
     proc = start_supervisor(tmp_path)
     run = tmp_path / "run"
     training(run / "heartbeat", 5, [0])
-    proc.send_signal(signal.SIGTERM)
-    assert finish(proc) == options.EXIT_PREEMPTED
+    proc.send_signal(stop)
+    assert finish(proc) == code
     preempted = [event for event in events(run) if event["event"] == "exit"][-1]
     assert preempted["phases"] == ["preempted"]
     saved = final_manifest(run)["step"]
@@ -329,16 +430,12 @@ def test_worker_bad_input_is_not_restarted(tmp_path):
     assert finish(proc) == 2
     log = [event for event in events(tmp_path / "run") if event["event"] != "worker_died"]
     assert [event["event"] for event in log] == ["start", "exit", "usage", "summary"]
-    assert log[1]["cause"] in ("rank 0 exited with code 2", "rank 1 exited with code 2")
+    assert log[1]["cause"] in (f"rank {rank} exited with code 2: stand-in bad input" for rank in (0, 1))
 
 
 @pytest.mark.slow
 def test_two_nodes_both_restart_after_one_node_loses_a_worker(tmp_path):
-    endpoint = f"127.0.0.1:{free_port()}"
-    nodes = [
-        start_supervisor(tmp_path, "--nnodes", "2", "--node-rank", str(node), "--rdzv-endpoint", endpoint)
-        for node in (0, 1)
-    ]
+    nodes = start_nodes(tmp_path)
     run = tmp_path / "run"
     # 2 processes per node: node 1 runs global ranks 2 and 3
     victim = training(run / "heartbeat" / "node-1", 6, [3])[3]
@@ -352,6 +449,38 @@ def test_two_nodes_both_restart_after_one_node_loses_a_worker(tmp_path):
         assert any(event["event"] == "recovered" for event in mine)
         assert mine[-1]["restarts"] == 1
     assert any(event["event"] == "exit" and event["cause"] == "rank 3 killed by SIGKILL" for event in log)
+
+
+@pytest.mark.slow
+def test_a_two_node_run_shrugs_off_strangers(tmp_path):
+    iterations = 100  # long enough to outlast a slow client
+    address = ("127.0.0.1", free_port())
+    nodes = start_nodes(tmp_path, iterations=iterations, port=address[1])
+    run = tmp_path / "run"
+    training(run / "heartbeat" / "node-0", 2, [0])
+    stranger = b"a secret of nobody in this run"
+    slow = threading.Thread(target=_slow_client, args=(address,))
+    slow.start()
+    for request in ({"op": "finish", "node": 1, "code": 0, "nonce": "1"}, {"op": "fail", "node": 1, "nonce": "2"}):
+        assert send(address, seal(stranger, REQUEST, request)) == b"refused: bad signature\n"
+    assert send(address, b'{"op": "finish", "node": 1, "code": 0}\n') == b"refused: malformed\n"  # unsigned
+    assert send(address, os.urandom(300).replace(b"\n", b"") + b"\n") == b"refused: malformed\n"
+    assert send(address, b"{" * (1 << 20)) in (b"refused: oversized\n", b"")
+    slow.join()
+    assert [finish(node, timeout=300) for node in nodes] == [0, 0]
+    assert_finished(run, iterations)
+    log = events(run)
+    assert [event["restarts"] for event in log if event["event"] == "summary"] == [0, 0]
+    expected = ["bad signature", "bad signature", "malformed", "malformed", "oversized", "too slow"]
+    assert sorted(refusals(run)) == expected
+    assert all(event["node"] == 0 for event in log if event["event"] == "refused")
+
+
+def _slow_client(address: tuple[str, int]) -> None:
+    """Sends half a request, then nothing, for longer than node 0 waits."""
+    with socket.create_connection(address, timeout=60) as conn:
+        conn.sendall(b'{"op": "finish"')
+        assert conn.makefile("rb").read() == b"refused: too slow\n"
 
 
 if __name__ == "__main__":

@@ -35,7 +35,12 @@ def test_ranks_agree_after_every_iteration_and_the_seed_decides(tmp_path) -> Non
 
 
 def test_single_process_and_outputs(tmp_path) -> None:
-    result = run_train(tmp_path / "run", "log.console=true", "log.tensorboard=true")
+    """Started elsewhere than in the repository, to see that MuJoCo neither prints its warnings (HalfCheetah's model
+    uses a deprecated attribute: a warning and a blank line per environment) nor appends them to a MUJOCO_LOG.TXT in
+    the working directory."""
+    result = run_train(tmp_path / "run", "log.console=true", "log.tensorboard=true", cwd=tmp_path)
+    assert "settotalmass" not in result.stdout + result.stderr and "\n\n" not in result.stdout
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
     lines = [line for line in result.stdout.splitlines() if line.startswith("it ")]
     assert len(lines) == 8 and lines[-1].startswith("it 8/8 |")
     for field in ("steps/s", "return", "len", "value", "surrogate", "entropy", "lr", "ETA"):

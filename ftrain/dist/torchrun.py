@@ -1,0 +1,44 @@
+"""torchrun as ``ftrain supervise`` runs it: ``python -m ftrain.dist.torchrun FAILURES <torchrun arguments>``.
+
+This is torchrun itself, in this process, except for how it ends when workers fail: instead of raising
+ChildFailedError (a traceback and a text report on stderr), it writes torchrun's own account of every failed worker
+to FAILURES, as JSON ``{global rank: {"exitcode": code, "error": the JSON of its error file or null}}`` (a negative
+code: killed by that signal; the error file: what the worker recorded, see ``ftrain/errorfile.py``), and exits 1.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+
+from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
+from torch.distributed.run import main as torchrun
+
+EXIT_WORKERS_FAILED = 1
+
+
+def main(argv: list[str]) -> int:
+    failures_path, *arguments = argv
+    try:
+        torchrun(arguments)
+    except ChildFailedError as failed:
+        failures = {
+            rank: {"exitcode": failure.exitcode, "error": _recorded(failure.error_file, failure.error_file_data)}
+            for rank, failure in failed.failures.items()
+        }
+        path = Path(failures_path)
+        path.with_suffix(".tmp").write_text(json.dumps(failures))
+        os.replace(path.with_suffix(".tmp"), path)
+        return EXIT_WORKERS_FAILED
+    return 0
+
+
+def _recorded(error_file: str, data: dict) -> dict | None:
+    """What the worker wrote to its error file (torchrun names a missing one ``<N/A>``)."""
+    return data if os.path.isfile(error_file) else None
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,86 @@
+"""What a person sees on the console: bad input is one line, once; a crash under ``ftrain supervise`` is one cause
+line (and an ``events.jsonl`` record), never a traceback wall from torchrun or the workers."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from helpers import REPO, SMOKE, TESTS, child_env, events, finish, launch, run_train, train_command, training
+
+pytestmark = pytest.mark.slow
+
+WORLD_SIZE_REFUSAL = "was written by {saved} ranks but this run has {now}: run with --nproc-per-node={saved}"
+
+
+def supervise(storage: Path, *overrides: str, ranks: int = 2) -> tuple[subprocess.Popen, Path]:
+    """``ftrain supervise`` of the smoke config; its stdout and stderr together go to the returned file."""
+    command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", str(ranks), "--backoff-initial", "0.2"]
+    console = Path(f"{storage}.console")
+    with console.open("wb") as output:
+        proc = launch(
+            [*command, SMOKE, "--storage", str(storage), *overrides],
+            cwd=REPO,
+            env=child_env({"PYTHONPATH": str(TESTS)}),
+            stdout=output,
+            stderr=subprocess.STDOUT,
+        )
+    return proc, console
+
+
+def test_plain_torchrun_says_bad_input_once_from_rank_0(tmp_path) -> None:
+    storage = tmp_path / "run"
+    run_train(storage, "iterations=2")
+    result = subprocess.run(
+        train_command(storage, ranks=2), cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=300
+    )
+    assert result.returncode != 0
+    lines = [line for line in (result.stdout + result.stderr).splitlines() if line.startswith("ftrain: error:")]
+    assert len(lines) == 1, result.stderr
+    assert WORLD_SIZE_REFUSAL.format(saved=1, now=2) in lines[0]
+
+
+def test_supervised_bad_input_is_one_line_once_and_not_restarted(tmp_path) -> None:
+    storage = tmp_path / "run"
+    run_train(storage, "iterations=2", ranks=2)
+    proc, console = supervise(storage, ranks=1)
+    assert finish(proc) == 2
+    text = console.read_text()
+    refusal = WORLD_SIZE_REFUSAL.format(saved=2, now=1)
+    assert [line for line in text.splitlines() if refusal in line] == [
+        f"ftrain supervise: rank 0 refused its input: checkpoint step 2 {refusal} (environment state is per rank); "
+        "not restarting"
+    ], text
+    assert "Traceback" not in text and "ChildFailedError" not in text, text
+    usage = next(event for event in events(storage) if event["event"] == "exit")
+    assert refusal in usage["cause"] and usage["failures"] == {"0": 2}
+
+
+def test_supervised_crashes_are_one_cause_line_each(tmp_path) -> None:
+    """A worker raising (rank 1, after iteration 3) and a worker killed (rank 0, later): two restarts, two lines."""
+    storage = tmp_path / "run"
+    kwargs = f"{{path: '{tmp_path / 'crashed'}', rank: 1, iteration: 3}}"
+    crash = f"hooks=[{{target: 'probe_hooks:CrashingHook', kwargs: {kwargs}}}]"
+    proc, console = supervise(storage, "iterations=12", "log.console=true", crash)
+    victim = training(storage / "heartbeat", 6, [0])[0]
+    os.kill(victim.pid, signal.SIGKILL)
+    assert finish(proc, timeout=300) == 0
+    text = console.read_text()
+    assert "Traceback" not in text and "FAILED" not in text and "settotalmass" not in text, text
+    lines = text.splitlines()
+    assert any(
+        line.startswith(
+            "ftrain supervise: attempt 0: rank 1 exited with code 1: RuntimeError: probe crash after iteration 3"
+        )
+        for line in lines
+    ), text
+    assert "ftrain supervise: attempt 1: rank 0 killed by SIGKILL" in lines, text
+    exits = [event for event in events(storage) if event["event"] == "exit"]
+    assert exits[0]["cause"].startswith("rank 1 exited with code 1: RuntimeError: probe crash after iteration 3")
+    assert exits[1]["cause"] == "rank 0 killed by SIGKILL"
+    assert events(storage)[-1]["restarts"] == 2

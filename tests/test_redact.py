@@ -1,0 +1,48 @@
+"""The one redaction module: URLs, storage options and command lines without credentials."""
+
+from ftrain.redact import HIDDEN, display_url, redact_command, redact_options
+
+
+def test_urls_and_options_lose_their_credentials() -> None:
+    assert display_url("s3://KEY:SECRET@bucket/run") == "s3://bucket/run"
+    assert display_url("runs/hc") == "runs/hc"
+    options = {"endpoint_url": "http://u:p@127.0.0.1:9000", "key": "KEY", "secret": "SECRET", "config_kwargs": {}}
+    assert redact_options(options) == {
+        "endpoint_url": "http://127.0.0.1:9000",
+        "key": HIDDEN,
+        "secret": HIDDEN,
+        "config_kwargs": {},
+    }
+
+
+def test_command_lines_lose_their_credentials_and_keep_the_rest() -> None:
+    command = [
+        "torchrun",
+        "--nproc-per-node=2",
+        "configs/smoke.yaml",
+        "--storage",
+        "s3://KEY:SECRET@bucket/run",
+        "--storage=s3://KEY:SECRET@bucket/run",
+        "storage.options={endpoint_url: 'http://127.0.0.1:9000', key: KEY, secret: SECRET}",
+        "storage.options.secret=SECRET",
+        "teacher='s3://KEY:SECRET@bucket/teacher'",
+        "hooks=[{target: 'probe:Hook', kwargs: {token: SECRET}}]",
+        "env.kwargs={max_episode_steps: 50}",
+        "iterations=2",
+    ]
+    redacted = redact_command(command)
+    assert not any("SECRET" in word or "KEY" in word for word in redacted), redacted
+    assert redacted == [
+        "torchrun",
+        "--nproc-per-node=2",
+        "configs/smoke.yaml",
+        "--storage",
+        "s3://bucket/run",
+        "--storage=s3://bucket/run",
+        "storage.options={endpoint_url: 'http://127.0.0.1:9000', key: '***', secret: '***'}",
+        "storage.options.secret=***",
+        "teacher=s3://bucket/teacher",
+        "hooks=[{target: 'probe:Hook', kwargs: {token: '***'}}]",
+        "env.kwargs={max_episode_steps: 50}",
+        "iterations=2",
+    ]

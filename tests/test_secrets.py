@@ -1,0 +1,102 @@
+"""Credentials never reach anything ftrain persists or prints: a supervised run on one and on two nodes, every
+``ftrain ckpt`` action (an error too), ``ftrain play`` and ``ftrain export``, grepped on stdout and stderr of every
+process and in every file they wrote.
+
+The S3 credentials travel in the storage URL (``s3://KEY:SECRET@bucket/run``) and in ``storage.options``; the
+two-node run also has its coordinator secret. None of them may show up anywhere.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from helpers import REPO, SMOKE, child_env, create_bucket, finish, free_port, launch
+
+pytestmark = pytest.mark.slow
+
+RDZV_SECRET = "ftrain-test-rdzv-secret-Hx3kQ8zR"
+
+
+def run_url(s3_server: dict, bucket: str) -> str:
+    return f"s3://{s3_server['key']}:{s3_server['secret']}@{bucket}/run"
+
+
+def supervise(s3_server: dict, url: str, log_dir: Path, *options: str, env: dict | None = None):
+    """Start ``ftrain supervise`` on a 2-iteration smoke run; returns a function that waits for its exit 0 and gives
+    back everything it printed."""
+    storage_options = (
+        f"storage.options={{endpoint_url: '{s3_server['endpoint_url']}', "
+        f"key: {s3_server['key']}, secret: {s3_server['secret']}}}"
+    )
+    command = [sys.executable, "-m", "ftrain", "supervise", *options, SMOKE, "--storage", url, storage_options]
+    command += ["iterations=2", f"log_dir={log_dir}", "log.tensorboard=true"]
+    console = Path(f"{log_dir}.console")
+    with console.open("wb") as output:
+        proc = launch(command, cwd=REPO, env=child_env(env), stdout=output, stderr=subprocess.STDOUT)
+
+    def printed() -> str:
+        code = finish(proc, timeout=300)
+        assert code == 0, console.read_text()[-3000:]
+        return console.read_text()
+
+    return printed
+
+
+def command(*args: str, env: dict, expect: int = 0) -> str:
+    done = subprocess.run(
+        [sys.executable, "-m", "ftrain", *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == expect, f"{args}: {done.returncode}\n{done.stderr[-3000:]}"
+    return done.stdout + done.stderr
+
+
+def test_no_command_persists_or_prints_credentials(tmp_path, s3_server) -> None:
+    secrets = [s3_server["key"], s3_server["secret"], RDZV_SECRET]
+    printed: dict[str, str] = {}
+
+    one = run_url(s3_server, create_bucket(s3_server))
+    printed["supervise"] = supervise(s3_server, one, tmp_path / "one", "--nproc-per-node", "2")()
+
+    two = run_url(s3_server, create_bucket(s3_server))
+    endpoint = f"127.0.0.1:{free_port()}"
+    nodes = [
+        supervise(
+            s3_server,
+            two,
+            tmp_path / "two",
+            *("--nnodes", "2", "--node-rank", str(node), "--rdzv-endpoint", endpoint),
+            env={"FTRAIN_RDZV_SECRET": RDZV_SECRET},
+        )
+        for node in (0, 1)
+    ]
+    for node, node_printed in enumerate(nodes):
+        printed[f"supervise node {node}"] = node_printed()
+
+    # the credentials come from the URL alone from here on: only the endpoint is in the environment
+    env = child_env({"AWS_ENDPOINT_URL": s3_server["endpoint_url"]})
+    for name in ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN"):
+        env.pop(name, None)
+    step = f"{one}/checkpoints/step-000000002"
+    printed["ckpt ls"] = command("ckpt", "ls", one, env=env)
+    printed["ckpt verify"] = command("ckpt", "verify", one, env=env)
+    printed["ckpt show"] = command("ckpt", "show", step, env=env)
+    printed["ckpt show --json"] = command("ckpt", "show", one, "--json", env=env)
+    printed["ckpt prune"] = command("ckpt", "prune", one, "--keep-last", "1", "--dry-run", env=env)
+    printed["ckpt show missing"] = command("ckpt", "show", f"{one}/checkpoints/step-000000099", env=env, expect=2)
+    printed["play"] = command("play", one, "--episodes", "1", env=env)
+    printed["export"] = command("export", step, "--format", "torchscript", "-o", str(tmp_path / "p.pt"), env=env)
+
+    assert "step-000000099" in printed["ckpt show missing"]  # the error names the URL, without its credentials
+    for what, text in printed.items():
+        for secret in secrets:
+            assert secret not in text, f"{what} printed a credential:\n{text}"
+    files = [path for path in tmp_path.rglob("*") if path.is_file()]
+    assert any(path.name == "events.jsonl" for path in files)
+    for path in files:
+        data = path.read_bytes()
+        for secret in secrets:
+            assert secret.encode() not in data, f"a credential leaked into {path.relative_to(tmp_path)}"
