@@ -36,6 +36,8 @@ class PolicyConfig:
     activation: str = "elu"
     obs_normalization: bool = True
     init_noise_std: float = 1.0
+    std_type: str = "scalar"
+    """How the actor's learned action noise is parameterised: ``scalar`` (the std itself) or ``log`` (its log)."""
 
 
 @dataclass
@@ -60,6 +62,14 @@ class AlgorithmConfig:
     """Distillation only: steps per truncated back-propagation."""
     loss_type: str = "mse"
     """Distillation only: ``mse`` or ``huber``."""
+
+
+@dataclass
+class RewardConfig:
+    normalize: bool = False
+    """Divide rewards by the running std of the discounted return (``algorithm.gamma``), as SB3's VecNormalize."""
+    clip: float = 10.0
+    """With ``normalize``: clip the normalised rewards to [-clip, clip]."""
 
 
 @dataclass
@@ -139,6 +149,7 @@ class Config:
     env: EnvConfig = field(default_factory=EnvConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     storage: StorageConfig = field(default_factory=StorageConfig)
     log: LogConfig = field(default_factory=LogConfig)
@@ -165,7 +176,20 @@ class Config:
             data.pop(key)
         for key in ("checkpoint", "storage", "log", "eval", "snapshots", "hooks"):
             data.pop(key)
+        defaults = Config().to_dict()
+        for key in KEYS_ADDED_LATER:
+            *parents, leaf = key.split(".")
+            node, default = data, defaults
+            for part in parents:
+                node, default = node[part], default[part]
+            if node[leaf] == default[leaf]:
+                del node[leaf]
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
+
+
+KEYS_ADDED_LATER = ("policy.std_type", "reward")
+"""Training keys newer than the first checkpoints: hashed only when they differ from their defaults, so a run
+checkpointed before they existed resumes under the same config."""
 
 
 def load_config(path: str | None, overrides: list[str] = (), storage: str | None = None) -> Config:
@@ -261,6 +285,10 @@ def validate(config: Config) -> None:
         raise UserError("algorithm.class_name=Distillation needs a teacher: add teacher=<checkpoint URL>")
     if config.algorithm.schedule not in ("adaptive", "fixed"):
         raise UserError(f"algorithm.schedule={config.algorithm.schedule!r} is unknown: use adaptive or fixed")
+    if config.policy.std_type not in ("scalar", "log"):
+        raise UserError(f"policy.std_type={config.policy.std_type!r} is unknown: use scalar or log")
+    if config.reward.clip <= 0:
+        raise UserError(f"reward.clip={config.reward.clip} must be a positive number")
     if config.policy.activation not in ACTIVATIONS:
         raise UserError(
             f"policy.activation={config.policy.activation!r} is unknown: use one of {', '.join(ACTIVATIONS)}"

@@ -22,7 +22,11 @@ def policy_kwargs(config: Config) -> dict:
 
 
 def build_actor(config: Config, obs, num_actions: int, obs_set: str = "actor") -> MLPModel:
-    distribution = {"class_name": "GaussianDistribution", "init_std": config.policy.init_noise_std}
+    distribution = {
+        "class_name": "GaussianDistribution",
+        "init_std": config.policy.init_noise_std,
+        "std_type": config.policy.std_type,
+    }
     return MLPModel(
         obs, {obs_set: [OBS_GROUP]}, obs_set, num_actions, **policy_kwargs(config), distribution_cfg=distribution
     )

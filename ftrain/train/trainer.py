@@ -27,6 +27,7 @@ from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.evaluation import EvalHook
 from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
 from ftrain.train.ppo import build_algorithm, learned_state, load_learned_state
+from ftrain.train.reward_norm import build_reward_normalizer
 from ftrain.train.snapshot_hook import PolicySnapshotHook
 
 EXIT_CHECKPOINT = 1
@@ -66,6 +67,7 @@ class Trainer:
         seed = group.rank_seed(config.seed, info.rank)
         self.env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs)
         self.alg = build_algorithm(config, self.env, info)
+        self.reward_norm = build_reward_normalizer(config, info)
         group.seed_all(seed)  # from here on, each rank samples its own actions and minibatches
         self.hooks = build_hooks(config)
         self.iteration = 0
@@ -94,6 +96,7 @@ class Trainer:
             "metrics": dict(self.metrics),
             "hooks": self.hooks.state_dict(),
             "config": self._config_json,
+            **({"reward_norm": self.reward_norm.common_state()} if self.reward_norm is not None else {}),
             **({"teacher": self.alg.teacher_identity} if hasattr(self.alg, "teacher_identity") else {}),
         }
 
@@ -103,6 +106,7 @@ class Trainer:
             "env": self.env.get_state(),
             "rng": group.rng_state(),
             "episodes": [list(episode) for episode in self.episodes],
+            **({"reward_norm": self.reward_norm.rank_state()} if self.reward_norm is not None else {}),
         }
 
     def load_state(self, common: dict, rank: dict) -> None:
@@ -111,6 +115,8 @@ class Trainer:
         self.env_steps = common["env_steps"]
         self.metrics = dict(common["metrics"])
         self.hooks.load_state_dict(common["hooks"])
+        if self.reward_norm is not None and "reward_norm" in common:  # absent: resumed with allow_config_change
+            self.reward_norm.load_state(common["reward_norm"], rank["reward_norm"])
         if "teacher" in common:  # the teacher's weights come from the checkpoint: so does its identity
             if common["teacher"]["digest"] != self.alg.teacher_identity["digest"]:
                 self.log(
@@ -164,9 +170,13 @@ class Trainer:
             for _ in range(self.config.num_steps_per_env):
                 actions = self.alg.act(obs)
                 obs, rewards, dones, extras = self.env.step(actions)
+                if self.reward_norm is not None:
+                    rewards = self.reward_norm(rewards, dones)
                 self.alg.process_env_step(obs, rewards, dones, extras)
                 self.episodes.extend(zip(*extras["episodes"], strict=True))
             self.alg.compute_returns(obs)
+        if self.reward_norm is not None:
+            self.reward_norm.update()
         self.hooks.call("after_rollout", self)
         collected = time.perf_counter()
         self.heartbeat.beat("update")
