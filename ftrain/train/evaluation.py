@@ -22,7 +22,8 @@ if TYPE_CHECKING:
 
 
 class EvalHook(Hook):
-    """Every ``eval.every`` iterations, on rank 0: ``eval.episodes`` deterministic episodes with fixed seeds.
+    """Every ``eval.every`` iterations, on rank 0: ``eval.episodes`` deterministic episodes with fixed seeds, all at
+    once in as many environments (one batched forward pass per step).
 
     Their mean return becomes ``metrics["eval_return"]``, which the logging hooks after this one write and the
     checkpoint manifest stores (so keep-best retention can rank by it). On the iterations in between the metric
@@ -32,7 +33,7 @@ class EvalHook(Hook):
 
     def __init__(self, config: EvalConfig) -> None:
         self.config = config
-        self.env: gym.Env | None = None
+        self.envs: list[gym.Env] = []
 
     def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
         if not trainer.info.is_main:
@@ -40,12 +41,12 @@ class EvalHook(Hook):
         if trainer.iteration % self.config.every:
             metrics["eval_return"] = math.nan
             return
-        if self.env is None:
-            self.env = make_env(trainer.config.env)
+        if not self.envs:
+            self.envs = [make_env(trainer.config.env) for _ in range(self.config.episodes)]
         actor = trainer.alg.get_policy()
-        episodes = rollout(self.env, lambda obs: actor_actions(actor, obs), self.config.episodes, self.config.seed)
+        episodes = rollout(self.envs, lambda obs: actor_actions(actor, obs), self.config.episodes, self.config.seed)
         metrics["eval_return"] = sum(e.ret for e in episodes) / len(episodes)
 
     def on_end(self, trainer: Trainer) -> None:
-        if self.env is not None:
-            self.env.close()
+        for env in self.envs:
+            env.close()

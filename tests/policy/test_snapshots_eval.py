@@ -65,11 +65,15 @@ def test_eval_return_every_n_iterations_feeds_keep_best(runs) -> None:
     for step, manifest in kept.items():
         assert manifest["metrics"]["eval_return"] == scores[step]
 
-    # the score is a function of the weights alone: the checkpoint's policy, evaluated again, gets it exactly
+    # the score is a function of the weights alone: the checkpoint's policy, evaluated again (the episodes at once,
+    # one env each, as the evaluation runs them), gets it exactly
     policy = load_policy(str(run / "checkpoints" / f"step-{best:09d}"))
-    env = make_env(policy.config.env)
-    episodes = rollout(env, policy.act, policy.config.eval.episodes, policy.config.eval.seed)
+    count = policy.config.eval.episodes
+    episodes = rollout([make_env(policy.config.env) for _ in range(count)], policy.act, count, policy.config.eval.seed)
     assert sum(e.ret for e in episodes) / len(episodes) == scores[best]
+    one_by_one = rollout(make_env(policy.config.env), policy.act, count, policy.config.eval.seed)
+    assert [e.length for e in one_by_one] == [e.length for e in episodes]
+    assert [e.ret for e in one_by_one] == pytest.approx([e.ret for e in episodes], rel=1e-4)
 
 
 @pytest.mark.filterwarnings("ignore:`torch.jit.load` is deprecated:DeprecationWarning")

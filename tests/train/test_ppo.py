@@ -7,8 +7,14 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
-from helpers import REPO, child_env
+from ftrain.config import load_config
+from ftrain.dist.group import RankInfo
+from ftrain.train.envs import MujocoVecEnv
+from ftrain.train.ppo import build_ppo
+
+from helpers import REPO, SMOKE, child_env
 
 
 @pytest.mark.parametrize("ranks", [1, pytest.param(2, marks=pytest.mark.slow)])
@@ -33,3 +39,23 @@ def test_fused_ppo_matches_rsl_rl_ppo(tmp_path, ranks: int) -> None:
     # rsl-rl broadcasts the learning rate as float32; fused Adam rounds differently from the per-tensor loop
     assert report["learning_rates"][0] == pytest.approx(report["learning_rates"][1], rel=1e-6)
     assert report["max_param_diff"] < 1e-5
+
+
+def test_rsl_rl_bootstraps_the_value_at_time_limits_of_ftrain_envs() -> None:
+    """ftrain relies on rsl-rl's PPO for this: at a time-limit truncation (``extras["time_outs"]``), the stored
+    reward gets ``gamma * V(s)`` added, V of the last observation before it (the final one is replaced by the reset);
+    on other steps the reward is stored as it is. HalfCheetah never terminates, so every episode ends this way."""
+    config = load_config(SMOKE, ["env.kwargs={max_episode_steps: 5}", "num_steps_per_env=7"])
+    env = MujocoVecEnv(config.env.id, config.env.num_envs, seed=0, kwargs=config.env.kwargs)
+    alg = build_ppo(config, env, RankInfo(0, 1, 0))
+    obs, expected, time_outs = env.get_observations(), [], []
+    with torch.inference_mode():
+        for _ in range(config.num_steps_per_env):
+            actions = alg.act(obs)
+            values = alg.transition.values.squeeze(1).clone()
+            obs, rewards, dones, extras = env.step(actions)
+            time_outs.append(extras["time_outs"].clone())
+            expected.append(rewards + config.algorithm.gamma * values * extras["time_outs"])
+            alg.process_env_step(obs, rewards, dones, extras)
+    assert [bool(t.all()) for t in time_outs] == [False] * 4 + [True] + [False] * 2
+    assert torch.equal(alg.storage.rewards.squeeze(-1), torch.stack(expected))

@@ -35,11 +35,12 @@ def test_ranks_agree_after_every_iteration_and_the_seed_decides(tmp_path) -> Non
 
 
 def test_single_process_and_outputs(tmp_path) -> None:
-    result = run_train(tmp_path / "run", "log.console=true", "log.tensorboard=true")
+    result = run_train(tmp_path / "run", "log.console=true", "log.tensorboard=true", "eval.every=4")
     lines = [line for line in result.stdout.splitlines() if line.startswith("it ")]
     assert len(lines) == 8 and lines[-1].startswith("it 8/8 |")
-    for field in ("steps/s", "return", "len", "value", "surrogate", "entropy", "lr", "ETA"):
+    for field in ("steps/s", "return", "len", "eval", "value", "surrogate", "entropy", "lr", "ETA"):
         assert field in lines[-1]
+    assert [" | eval " in line for line in lines] == [False, False, False, True] * 2
     run = tmp_path / "run"
     assert "HalfCheetah-v5" in (run / "config.yaml").read_text()
     assert sorted(metrics_by_iteration(run)) == list(range(1, 9))
