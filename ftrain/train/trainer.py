@@ -26,6 +26,7 @@ from ftrain.heartbeat import ENV_DIR, HeartbeatWriter
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.evaluation import EvalHook
 from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
+from ftrain.train.lr_schedule import build_lr_schedule
 from ftrain.train.ppo import build_algorithm, learned_state, load_learned_state
 from ftrain.train.reward_norm import build_reward_normalizer
 from ftrain.train.snapshot_hook import PolicySnapshotHook
@@ -68,6 +69,7 @@ class Trainer:
         self.env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs)
         self.alg = build_algorithm(config, self.env, info)
         self.reward_norm = build_reward_normalizer(config, info)
+        self.lr_schedule = build_lr_schedule(config.algorithm)
         group.seed_all(seed)  # from here on, each rank samples its own actions and minibatches
         self.hooks = build_hooks(config)
         self.iteration = 0
@@ -180,6 +182,8 @@ class Trainer:
         self.hooks.call("after_rollout", self)
         collected = time.perf_counter()
         self.heartbeat.beat("update")
+        if self.lr_schedule is not None:
+            self.lr_schedule.apply(self.alg, self.iteration)
         losses = self.alg.update()
         self.hooks.call("after_update", self, losses)
         learned = time.perf_counter()

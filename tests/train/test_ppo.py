@@ -59,3 +59,24 @@ def test_rsl_rl_bootstraps_the_value_at_time_limits_of_ftrain_envs() -> None:
             alg.process_env_step(obs, rewards, dones, extras)
     assert [bool(t.all()) for t in time_outs] == [False] * 4 + [True] + [False] * 2
     assert torch.equal(alg.storage.rewards.squeeze(-1), torch.stack(expected))
+
+
+@pytest.mark.parametrize("reshuffle", [False, True])
+def test_minibatches_cover_the_rollout_every_epoch_in_one_or_fresh_orders(reshuffle: bool) -> None:
+    overrides = ["algorithm.num_learning_epochs=3", f"algorithm.reshuffle_each_epoch={str(reshuffle).lower()}"]
+    config = load_config(SMOKE, overrides)
+    env = MujocoVecEnv(config.env.id, config.env.num_envs, seed=0, kwargs=config.env.kwargs)
+    alg = build_ppo(config, env, RankInfo(0, 1, 0))
+    obs = env.get_observations()
+    with torch.inference_mode():
+        for _ in range(config.num_steps_per_env):
+            obs, rewards, dones, extras = env.step(alg.act(obs))
+            alg.process_env_step(obs, rewards, dones, extras)
+        alg.compute_returns(obs)
+    batches = [batch.observations for batch in alg._mini_batches()]
+    per_epoch = len(batches) // 3
+    epochs = [torch.cat(batches[i * per_epoch : (i + 1) * per_epoch]) for i in range(3)]
+    everything = alg.storage.observations["policy"].flatten(0, 1)
+    for epoch in epochs:
+        assert torch.equal(epoch.sort(dim=0).values, everything.sort(dim=0).values)
+    assert torch.equal(epochs[0], epochs[1]) == torch.equal(epochs[1], epochs[2]) == (not reshuffle)
