@@ -39,11 +39,13 @@ class PolicyConfig:
     activation: str = "elu"
     obs_normalization: bool = True
     init_noise_std: float = 1.0
+    std_type: str = "scalar"
+    """How the actor's learned action noise is parameterised: ``scalar`` (the std itself) or ``log`` (its log)."""
 
 
 @dataclass
 class AlgorithmConfig:
-    """Arguments of rsl-rl's PPO (and, for distillation, of its Distillation algorithm)."""
+    """Arguments of rsl-rl's PPO (and, for distillation, of its Distillation algorithm), and of ftrain's PPO."""
 
     class_name: str = "PPO"
     num_learning_epochs: int = 5
@@ -57,12 +59,23 @@ class AlgorithmConfig:
     max_grad_norm: float = 1.0
     use_clipped_value_loss: bool = True
     schedule: str = "adaptive"
+    schedule_iterations: int = 0
+    """``schedule=linear`` (else ``adaptive``, by ``desired_kl``, or ``fixed``): the iteration where the rate is 0."""
     desired_kl: float = 0.01
     normalize_advantage_per_mini_batch: bool = False
+    reshuffle_each_epoch: bool = False  # rsl-rl draws one split into minibatches for all epochs
     gradient_length: int = 24
     """Distillation only: steps per truncated back-propagation."""
     loss_type: str = "mse"
     """Distillation only: ``mse`` or ``huber``."""
+
+
+@dataclass
+class RewardConfig:
+    normalize: bool = False
+    """Divide rewards by the running std of the discounted return (``algorithm.gamma``), as SB3's VecNormalize."""
+    clip: float = 10.0
+    """With ``normalize``: clip the normalised rewards to [-clip, clip]."""
 
 
 @dataclass
@@ -142,6 +155,7 @@ class Config:
     env: EnvConfig = field(default_factory=EnvConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
     algorithm: AlgorithmConfig = field(default_factory=AlgorithmConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
     checkpoint: CheckpointConfig = field(default_factory=CheckpointConfig)
     storage: StorageConfig = field(default_factory=StorageConfig)
     log: LogConfig = field(default_factory=LogConfig)
@@ -168,7 +182,18 @@ class Config:
             data.pop(key)
         for key in ("checkpoint", "storage", "log", "eval", "snapshots", "hooks"):
             data.pop(key)
+        defaults = Config().to_dict()
+        for key in KEYS_ADDED_LATER:
+            section, _, leaf = key.rpartition(".")
+            node, default = (data[section], defaults[section]) if section else (data, defaults)
+            if node[leaf] == default[leaf]:
+                del node[leaf]
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
+
+
+KEYS_ADDED_LATER = ("policy.std_type", "algorithm.schedule_iterations", "algorithm.reshuffle_each_epoch", "reward")
+"""Training keys newer than the first checkpoints: hashed only when they differ from their defaults, so a run
+checkpointed before they existed resumes under the same config."""
 
 
 def load_config(path: str | None, overrides: list[str] = (), storage: str | None = None) -> Config:
@@ -244,14 +269,22 @@ def validate(config: Config) -> None:
     for key, (value, minimum) in minimums.items():
         if value < minimum:
             raise UserError(f"{key}={value} must be {'at least 1' if minimum else '0 or more'}")
+    choices = {  # key: (value, allowed)
+        "algorithm.class_name": (config.algorithm.class_name, ("PPO", "Distillation")),
+        "algorithm.schedule": (config.algorithm.schedule, ("adaptive", "fixed", "linear")),
+        "algorithm.loss_type": (config.algorithm.loss_type, ("mse", "huber")),
+        "policy.std_type": (config.policy.std_type, ("scalar", "log")),
+        "policy.activation": (config.policy.activation, ACTIVATIONS),
+    }
+    for key, (value, allowed) in choices.items():
+        if value not in allowed:
+            raise UserError(f"{key}={value!r} is unknown: use {', '.join(allowed[:-1])} or {allowed[-1]}")
     batch = config.env.num_envs * config.num_steps_per_env
     if config.algorithm.num_mini_batches > batch:
         raise UserError(
             f"algorithm.num_mini_batches={config.algorithm.num_mini_batches} is more than the {batch} samples of a "
             f"rollout (env.num_envs x num_steps_per_env): use at most {batch}"
         )
-    if config.algorithm.loss_type not in ("mse", "huber"):
-        raise UserError(f"algorithm.loss_type={config.algorithm.loss_type!r} is unknown: use mse or huber")
     if not config.snapshots.formats:
         raise UserError("snapshots.formats is empty: list torchscript and/or onnx")
     for fmt in config.snapshots.formats:
@@ -259,16 +292,12 @@ def validate(config: Config) -> None:
             raise UserError(f"snapshots.formats: {fmt!r} is unknown: use torchscript and/or onnx")
     if config.dist_timeout <= 0:
         raise UserError(f"dist_timeout={config.dist_timeout} must be a positive number of seconds")
-    if config.algorithm.class_name not in ("PPO", "Distillation"):
-        raise UserError(f"algorithm.class_name={config.algorithm.class_name!r} is unknown: use PPO or Distillation")
     if config.algorithm.class_name == "Distillation" and not config.teacher:
         raise UserError("algorithm.class_name=Distillation needs a teacher: add teacher=<checkpoint URL>")
-    if config.algorithm.schedule not in ("adaptive", "fixed"):
-        raise UserError(f"algorithm.schedule={config.algorithm.schedule!r} is unknown: use adaptive or fixed")
-    if config.policy.activation not in ACTIVATIONS:
-        raise UserError(
-            f"policy.activation={config.policy.activation!r} is unknown: use one of {', '.join(ACTIVATIONS)}"
-        )
+    if config.algorithm.schedule == "linear" and config.algorithm.schedule_iterations < 1:
+        raise UserError("algorithm.schedule=linear needs algorithm.schedule_iterations=N: the rate is 0 at iteration N")
+    if config.reward.clip <= 0:
+        raise UserError(f"reward.clip={config.reward.clip} must be a positive number")
     for hook in config.hooks:
         if ":" not in hook.target:
             raise UserError(f"hook target {hook.target!r} must be an import path like package.module:Class")

@@ -34,6 +34,14 @@ def test_training_hash_ignores_run_length_and_storage() -> None:
     assert load_config(SMOKE, ["algorithm.clip_param=0.1"]).training_hash() != base
 
 
+def test_keys_added_later_change_the_hash_only_when_set() -> None:
+    """The smoke config's hash as checkpoints recorded it before policy.std_type and reward.* existed: such runs
+    still resume."""
+    assert load_config(SMOKE).training_hash() == "50aafdccd16c0f69"
+    for override in ("policy.std_type=log", "reward.normalize=true", "reward.clip=5"):
+        assert load_config(SMOKE, [override]).training_hash() != "50aafdccd16c0f69"
+
+
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
@@ -44,6 +52,8 @@ def test_training_hash_ignores_run_length_and_storage() -> None:
         (["iterations=0"], "iterations=0 must be at least 1"),
         (["env.num_envs=-2"], "env.num_envs=-2 must be at least 1"),
         (["noequals"], "is not key=value"),
+        (["policy.std_type=exp"], "policy.std_type='exp' is unknown: use scalar or log"),
+        (["reward.clip=0"], "reward.clip=0.0 must be a positive number"),
     ],
 )
 def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> None:

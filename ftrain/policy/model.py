@@ -23,7 +23,11 @@ def policy_kwargs(config: Config) -> dict:
 
 def distribution_cfg(config: Config) -> dict:
     """rsl-rl's config of the actor's action distribution."""
-    return {"class_name": "GaussianDistribution", "init_std": config.policy.init_noise_std}
+    return {
+        "class_name": "GaussianDistribution",
+        "init_std": config.policy.init_noise_std,
+        "std_type": config.policy.std_type,
+    }
 
 
 def build_actor(config: Config, obs, num_actions: int, obs_set: str = "actor") -> MLPModel:

@@ -6,7 +6,7 @@ no random number.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import gymnasium as gym
@@ -39,32 +39,59 @@ def make_env(env_config: EnvConfig, render: bool = False) -> gym.Env:
 
 
 def rollout(
-    env: gym.Env,
+    envs: gym.Env | Sequence[gym.Env],
     act: Act,
     episodes: int,
     seed: int,
     on_observation: Callable[[np.ndarray], None] | None = None,
     on_episode: Callable[[int, Episode], None] | None = None,
 ) -> list[Episode]:
-    """Play ``episodes`` episodes seeded ``seed``, ``seed + 1``, ...; ``on_observation`` sees every observation
-    (after the reset and after each step, so ``sum(length + 1)`` in all), ``on_episode`` each finished episode with its
-    number (from 1)."""
-    low, high = env.action_space.low, env.action_space.high
-    results = []
-    for index in range(episodes):
-        obs, _ = env.reset(seed=seed + index)
-        total, length, done = 0.0, 0, False
-        while not done:
+    """Play ``episodes`` episodes seeded ``seed``, ``seed + 1``, ..., returned in that order.
+
+    With several envs, as many episodes run at once, in lock step with one batched ``act`` call per step (evaluation
+    is then mostly environment stepping); an env whose episode ends starts the next one. ``on_observation`` (for one
+    env) sees every observation: after the reset and after each step, so ``sum(length + 1)`` in all; ``on_episode``
+    each finished episode with its number (from 1), as it ends.
+    """
+    envs = [envs] if isinstance(envs, gym.Env) else list(envs)
+    low, high = envs[0].action_space.low, envs[0].action_space.high
+    results: list[Episode] = [Episode(0.0, 0)] * episodes
+    pending = iter(range(episodes))
+    running: list[_Running] = []
+
+    def begin(env: gym.Env) -> None:
+        index = next(pending, None)
+        if index is not None:
+            obs, _ = env.reset(seed=seed + index)
             if on_observation is not None:
                 on_observation(obs)
-            action = act(torch.as_tensor(obs, dtype=torch.float32).unsqueeze(0))[0]
-            obs, reward, terminated, truncated, _ = env.step(np.clip(action.numpy().astype(np.float64), low, high))
-            total += float(reward)
-            length += 1
-            done = terminated or truncated
-        if on_observation is not None:
-            on_observation(obs)
-        results.append(Episode(total, length))
-        if on_episode is not None:
-            on_episode(index + 1, results[-1])
+            running.append(_Running(env, index, obs))
+
+    for env in envs:
+        begin(env)
+    while running:
+        actions = act(torch.as_tensor(np.stack([run.obs for run in running]), dtype=torch.float32))
+        for run, action in zip(list(running), actions.numpy().astype(np.float64), strict=True):
+            run.obs, reward, terminated, truncated, _ = run.env.step(np.clip(action, low, high))
+            if on_observation is not None:
+                on_observation(run.obs)
+            run.ret += float(reward)
+            run.length += 1
+            if terminated or truncated:
+                results[run.index] = Episode(run.ret, run.length)
+                if on_episode is not None:
+                    on_episode(run.index + 1, results[run.index])
+                running.remove(run)
+                begin(run.env)
     return results
+
+
+@dataclass
+class _Running:
+    """An episode under way in ``env``."""
+
+    env: gym.Env
+    index: int
+    obs: np.ndarray
+    ret: float = 0.0
+    length: int = 0

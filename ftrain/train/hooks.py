@@ -88,7 +88,8 @@ class Hooks:
 
 
 class ConsoleHook(Hook):
-    """One line per iteration on rank 0: progress, throughput, returns, losses, learning rate, ETA.
+    """One line per iteration on rank 0: progress, throughput, returns (and the evaluation's, when there is one),
+    losses, learning rate, ETA.
 
     The ETA is the remaining iterations times the mean wall time of the last ``ETA_WINDOW`` iterations of this
     process, not counting the first ``ETA_SKIP`` after a (re)start (imports, the first save, warm caches); until
@@ -110,9 +111,11 @@ class ConsoleHook(Hook):
         total = trainer.config.iterations
         eta = _duration((total - trainer.iteration) * self.seconds_per_iteration(metrics["iteration_time"]))
         losses = " ".join(f"{k.removeprefix('loss/')} {v:.3g}" for k, v in metrics.items() if k.startswith("loss/"))
+        evaluated = metrics.get("eval_return", math.nan)
         print(
             f"it {trainer.iteration}/{total} | {metrics['steps_per_s']:,.0f} steps/s"
             f" | return {_number(metrics['mean_return'], '.2f')} | len {_number(metrics['mean_length'], '.0f')}"
+            f"{f' | eval {evaluated:.2f}' if math.isfinite(evaluated) else ''}"
             f" | {losses} | lr {metrics['learning_rate']:.2e} | ETA {eta}",
             flush=True,
         )

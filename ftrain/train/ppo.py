@@ -15,6 +15,8 @@ TensorDict round trips; Adam runs as one fused kernel.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import torch
 import torch.distributed as dist
 from rsl_rl.algorithms import PPO, Distillation
@@ -37,9 +39,12 @@ OBS_GROUPS = {"actor": [OBS_GROUP], "critic": [OBS_GROUP]}
 class FusedPPO(PPO):
     """rsl-rl PPO (MLP policies) with one all-reduce per minibatch, over shared memory where ranks share a host."""
 
-    def __init__(self, *args, reducer: SharedMemoryAllReduce | None = None, **kwargs) -> None:
+    def __init__(
+        self, *args, reducer: SharedMemoryAllReduce | None = None, reshuffle_each_epoch: bool = False, **kwargs
+    ) -> None:
         super().__init__(*args, **kwargs)
         self.reducer = reducer
+        self.reshuffle_each_epoch = reshuffle_each_epoch
         self._actor_params = list(self.actor.parameters())
         self._critic_params = list(self.critic.parameters())
         self.optimizer = torch.optim.Adam(self._actor_params + self._critic_params, lr=self.learning_rate, fused=True)
@@ -62,21 +67,20 @@ class FusedPPO(PPO):
     def update(self) -> dict[str, float]:
         sums = {"value": 0.0, "surrogate": 0.0, "entropy": 0.0}
         params = self._actor_params + self._critic_params
-        for batch in self.storage.mini_batch_generator(self.num_mini_batches, self.num_learning_epochs):
+        actor, critic = self._raw_actor, self._raw_critic
+        for batch in self._mini_batches():
             if self.normalize_advantage_per_mini_batch:
                 with torch.no_grad():
                     batch.advantages = (batch.advantages - batch.advantages.mean()) / (batch.advantages.std() + 1e-8)
-            self.actor(batch.observations, stochastic_output=True)
-            actions_log_prob = self.actor.get_output_log_prob(batch.actions)
-            values = self.critic(batch.observations)
-            entropy = self.actor.output_entropy
+            distribution = actor.distribution
+            distribution.update(actor.mlp(actor.obs_normalizer(batch.observations)))
+            actions_log_prob = distribution.log_prob(batch.actions)
+            values = critic.mlp(critic.obs_normalizer(batch.observations))
+            entropy = distribution.entropy
             adaptive = self.desired_kl is not None and self.schedule == "adaptive"
             if adaptive:
                 with torch.inference_mode():
-                    kl = self.actor.get_kl_divergence(
-                        batch.old_distribution_params, self.actor.output_distribution_params
-                    )
-                    kl_mean = torch.mean(kl)
+                    kl_mean = torch.mean(distribution.kl_divergence(batch.old_distribution_params, distribution.params))
 
             ratio = torch.exp(actions_log_prob - torch.squeeze(batch.old_actions_log_prob))
             advantages = torch.squeeze(batch.advantages)
@@ -108,6 +112,26 @@ class FusedPPO(PPO):
         self.storage.clear()
         num_updates = self.num_learning_epochs * self.num_mini_batches
         return {key: value / num_updates for key, value in sums.items()}
+
+    def _mini_batches(self) -> Iterator[RolloutStorage.Batch]:
+        """rsl-rl's ``mini_batch_generator`` with the one observation group as a plain tensor (no TensorDict indexing
+        per minibatch). rsl-rl draws one permutation for all epochs, so every epoch visits the same minibatches in the
+        same order; with ``reshuffle_each_epoch`` each epoch draws its own, as SB3 and most PPOs do."""
+        storage = self.storage
+        size = storage.num_envs * storage.num_transitions_per_env // self.num_mini_batches
+        count = size * self.num_mini_batches
+        fields = (storage.observations[OBS_GROUP], storage.actions, storage.values, storage.advantages)
+        fields += (storage.returns, storage.actions_log_prob, *storage.distribution_params)
+        flat = [field.flatten(0, 1) for field in fields]
+        indices = torch.randperm(count)
+        for epoch in range(self.num_learning_epochs):
+            if epoch and self.reshuffle_each_epoch:
+                indices = torch.randperm(count)
+            for start in range(0, count, size):
+                obs, actions, values, advantages, returns, log_prob, *old = (
+                    f[indices[start : start + size]] for f in flat
+                )
+                yield RolloutStorage.Batch(obs, actions, values, advantages, returns, log_prob, tuple(old))
 
     def _all_reduce_mean(self, params: list[nn.Parameter], kl_mean: torch.Tensor | None) -> torch.Tensor | None:
         """Average every gradient (and the KL, riding in the same buffer) over all ranks, in place."""
@@ -196,6 +220,7 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo) -> FusedPPO:
         normalize_advantage_per_mini_batch=a.normalize_advantage_per_mini_batch,
         multi_gpu_cfg=info.rsl_rl_cfg(),
         reducer=reducer,
+        reshuffle_each_epoch=a.reshuffle_each_epoch,
     )
 
 

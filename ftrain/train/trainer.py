@@ -27,7 +27,9 @@ from ftrain.heartbeat import ENV_DIR, HeartbeatWriter
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.evaluation import EvalHook
 from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
+from ftrain.train.lr_schedule import build_lr_schedule
 from ftrain.train.ppo import build_algorithm, load_learned_state
+from ftrain.train.reward_norm import build_reward_normalizer
 from ftrain.train.snapshot_hook import PolicySnapshotHook
 
 EXIT_CHECKPOINT = 1
@@ -67,6 +69,8 @@ class Trainer:
         seed = group.rank_seed(config.seed, info.rank)
         self.env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs)
         self.alg = build_algorithm(config, self.env, info)
+        self.reward_norm = build_reward_normalizer(config, info)
+        self.lr_schedule = build_lr_schedule(config.algorithm)
         if hasattr(self.alg, "teacher_identity"):  # which teacher a distillation learns from, at once
             teacher = self.alg.teacher_identity
             self.log(f"teacher: {teacher['source']} (step {teacher['step']}, state_sha256 {teacher['digest'][:16]})")
@@ -103,6 +107,7 @@ class Trainer:
                 "metrics": dict(self.metrics),
                 "hooks": self.hooks.state_dict(),
                 "config": self._config_json,
+                **({"reward_norm": self.reward_norm.common_state()} if self.reward_norm is not None else {}),
                 **({"teacher": self.alg.teacher_identity} if hasattr(self.alg, "teacher_identity") else {}),
             },
         }
@@ -113,6 +118,7 @@ class Trainer:
             "env": self.env.get_state(),
             "rng": group.rng_state(),
             "episodes": [list(episode) for episode in self.episodes],
+            **({"reward_norm": self.reward_norm.rank_state()} if self.reward_norm is not None else {}),
         }
 
     def load_state(self, common: dict, rank: dict | None) -> None:
@@ -123,6 +129,9 @@ class Trainer:
         self.env_steps = own["env_steps"]
         self.metrics = dict(own["metrics"])
         self.hooks.load_state_dict(own["hooks"])
+        if self.reward_norm is not None and "reward_norm" in own:  # absent: resumed with allow_config_change
+            returns = rank["reward_norm"] if rank is not None else torch.zeros_like(self.reward_norm.returns)
+            self.reward_norm.load_state(own["reward_norm"], returns)
         if "teacher" in own:  # the teacher's weights come from the checkpoint: so does its identity
             if own["teacher"]["digest"] != self.alg.teacher_identity["digest"]:
                 self.log(
@@ -182,12 +191,18 @@ class Trainer:
             for _ in range(self.config.num_steps_per_env):
                 actions = self.alg.act(obs)
                 obs, rewards, dones, extras = self.env.step(actions)
+                if self.reward_norm is not None:
+                    rewards = self.reward_norm(rewards, dones)
                 self.alg.process_env_step(obs, rewards, dones, extras)
                 self.episodes.extend(zip(*extras["episodes"], strict=True))
             self.alg.compute_returns(obs)
+        if self.reward_norm is not None:
+            self.reward_norm.update()
         self.hooks.call("after_rollout", self)
         collected = time.perf_counter()
         self.heartbeat.beat("update")
+        if self.lr_schedule is not None:
+            self.lr_schedule.apply(self.alg, self.iteration)
         losses = self.alg.update()
         self.hooks.call("after_update", self, losses)
         learned = time.perf_counter()

@@ -12,19 +12,22 @@ import pytest
 import torch
 
 from ftrain.cli import main
+from ftrain.dist.group import RankInfo
 from ftrain.errors import UserError
 from ftrain.policy import snapshots
 from ftrain.policy.export import sample_observations
 from ftrain.policy.load import load_policy
 from ftrain.policy.rollout import make_env, rollout
+from ftrain.train.evaluation import episode_share
 
 from helpers import final_manifest, manifests, metrics_by_iteration, run_train
 
-EVAL = ("eval.every=2", "eval.episodes=2", "checkpoint.best_metric=eval_return", "checkpoint.keep_last=1")
+EVAL = ("eval.every=2", "eval.episodes=3", "checkpoint.best_metric=eval_return", "checkpoint.keep_last=1")
 SNAPSHOTS = ("snapshots.every=2", "snapshots.keep_last=2")
 FILES = {"policy.pt", "policy.onnx", "actor.pt", "lineage.json"}
 RANKS = 2
-"""The hooks run on rank 0 only, while the other rank goes on: it must neither wait forever nor learn otherwise."""
+"""Evaluation is shared by the ranks (2 episodes on rank 0, 1 on rank 1) and snapshots are rank 0's: neither may make
+a rank wait forever or learn otherwise."""
 
 
 pytestmark = pytest.mark.slow
@@ -65,11 +68,15 @@ def test_eval_return_every_n_iterations_feeds_keep_best(runs) -> None:
     for step, manifest in kept.items():
         assert manifest["metrics"]["eval_return"] == scores[step]
 
-    # the score is a function of the weights alone: the checkpoint's policy, evaluated again, gets it exactly
+    # the score is a function of the weights alone: the checkpoint's policy, evaluated again as the ranks share the
+    # episodes (a block each, all at once, one env each), gets it exactly
     policy = load_policy(str(run / "checkpoints" / f"step-{best:09d}"))
-    env = make_env(policy.config.env)
-    episodes = rollout(env, policy.act, policy.config.eval.episodes, policy.config.eval.seed)
-    assert sum(e.ret for e in episodes) / len(episodes) == scores[best]
+    episodes, seed, total = policy.config.eval.episodes, policy.config.eval.seed, 0.0
+    for rank in range(RANKS):
+        first, count = episode_share(episodes, RankInfo(rank, RANKS, rank))
+        envs = [make_env(policy.config.env) for _ in range(count)]
+        total += sum(episode.ret for episode in rollout(envs, policy.act, count, seed + first))
+    assert total / episodes == scores[best]
 
 
 @pytest.mark.filterwarnings("ignore:`torch.jit.load` is deprecated:DeprecationWarning")

@@ -7,8 +7,14 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
-from helpers import REPO, child_env
+from ftrain.config import load_config
+from ftrain.dist.group import RankInfo
+from ftrain.train.envs import MujocoVecEnv
+from ftrain.train.ppo import build_ppo
+
+from helpers import REPO, SMOKE, child_env
 
 
 @pytest.mark.parametrize("ranks", [1, pytest.param(2, marks=pytest.mark.slow)])
@@ -33,3 +39,44 @@ def test_fused_ppo_matches_rsl_rl_ppo(tmp_path, ranks: int) -> None:
     # rsl-rl broadcasts the learning rate as float32; fused Adam rounds differently from the per-tensor loop
     assert report["learning_rates"][0] == pytest.approx(report["learning_rates"][1], rel=1e-6)
     assert report["max_param_diff"] < 1e-5
+
+
+def test_rsl_rl_bootstraps_the_value_at_time_limits_of_ftrain_envs() -> None:
+    """ftrain relies on rsl-rl's PPO for this: at a time-limit truncation (``extras["time_outs"]``), the stored
+    reward gets ``gamma * V(s)`` added, V of the last observation before it (the final one is replaced by the reset);
+    on other steps the reward is stored as it is. HalfCheetah never terminates, so every episode ends this way."""
+    config = load_config(SMOKE, ["env.kwargs={max_episode_steps: 5}", "num_steps_per_env=7"])
+    env = MujocoVecEnv(config.env.id, config.env.num_envs, seed=0, kwargs=config.env.kwargs)
+    alg = build_ppo(config, env, RankInfo(0, 1, 0))
+    obs, expected, time_outs = env.get_observations(), [], []
+    with torch.inference_mode():
+        for _ in range(config.num_steps_per_env):
+            actions = alg.act(obs)
+            values = alg.transition.values.squeeze(1).clone()
+            obs, rewards, dones, extras = env.step(actions)
+            time_outs.append(extras["time_outs"].clone())
+            expected.append(rewards + config.algorithm.gamma * values * extras["time_outs"])
+            alg.process_env_step(obs, rewards, dones, extras)
+    assert [bool(t.all()) for t in time_outs] == [False] * 4 + [True] + [False] * 2
+    assert torch.equal(alg.storage.rewards.squeeze(-1), torch.stack(expected))
+
+
+@pytest.mark.parametrize("reshuffle", [False, True])
+def test_minibatches_cover_the_rollout_every_epoch_in_one_or_fresh_orders(reshuffle: bool) -> None:
+    overrides = ["algorithm.num_learning_epochs=3", f"algorithm.reshuffle_each_epoch={str(reshuffle).lower()}"]
+    config = load_config(SMOKE, overrides)
+    env = MujocoVecEnv(config.env.id, config.env.num_envs, seed=0, kwargs=config.env.kwargs)
+    alg = build_ppo(config, env, RankInfo(0, 1, 0))
+    obs = env.get_observations()
+    with torch.inference_mode():
+        for _ in range(config.num_steps_per_env):
+            obs, rewards, dones, extras = env.step(alg.act(obs))
+            alg.process_env_step(obs, rewards, dones, extras)
+        alg.compute_returns(obs)
+    batches = [batch.observations for batch in alg._mini_batches()]
+    per_epoch = len(batches) // 3
+    epochs = [torch.cat(batches[i * per_epoch : (i + 1) * per_epoch]) for i in range(3)]
+    everything = alg.storage.observations["policy"].flatten(0, 1)
+    for epoch in epochs:
+        assert torch.equal(epoch.sort(dim=0).values, everything.sort(dim=0).values)
+    assert torch.equal(epochs[0], epochs[1]) == torch.equal(epochs[1], epochs[2]) == (not reshuffle)

@@ -65,6 +65,8 @@ def kill_during(
 )
 def test_killed_anywhere_resumes_bit_for_bit(tmp_path, env_id: str, ranks: int) -> None:
     overrides = [f"env.id={env_id}", "iterations=10", "checkpoint.interval=2", "env.num_envs=8", "num_steps_per_env=32"]
+    overrides += ["reward.normalize=true", "policy.std_type=log", "algorithm.reshuffle_each_epoch=true"]
+    overrides += ["algorithm.schedule=linear", "algorithm.schedule_iterations=12"]  # as the shipped configs train
     run_train(tmp_path / "reference", *overrides, ranks=ranks)
     reference = final_manifest(tmp_path / "reference")
 

@@ -38,13 +38,14 @@ def test_single_process_and_outputs(tmp_path) -> None:
     """Started elsewhere than in the repository, to see that MuJoCo neither prints its warnings (HalfCheetah's model
     uses a deprecated attribute: a warning and a blank line per environment) nor appends them to a MUJOCO_LOG.TXT in
     the working directory."""
-    result = run_train(tmp_path / "run", "log.console=true", "log.tensorboard=true", cwd=tmp_path)
+    result = run_train(tmp_path / "run", "log.console=true", "log.tensorboard=true", "eval.every=4", cwd=tmp_path)
     assert "settotalmass" not in result.stdout + result.stderr and "\n\n" not in result.stdout
     assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
     lines = [line for line in result.stdout.splitlines() if line.startswith("it ")]
     assert len(lines) == 8 and lines[-1].startswith("it 8/8 |")
-    for field in ("steps/s", "return", "len", "value", "surrogate", "entropy", "lr", "ETA"):
+    for field in ("steps/s", "return", "len", "eval", "value", "surrogate", "entropy", "lr", "ETA"):
         assert field in lines[-1]
+    assert [" | eval " in line for line in lines] == [False, False, False, True] * 2
     run = tmp_path / "run"
     assert "HalfCheetah-v5" in (run / "config.yaml").read_text()
     assert sorted(metrics_by_iteration(run)) == list(range(1, 9))

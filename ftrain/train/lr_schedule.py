@@ -1,0 +1,31 @@
+"""Linear learning-rate decay (``algorithm.schedule=linear``): from ``algorithm.learning_rate`` at the first
+iteration to zero at iteration ``algorithm.schedule_iterations``.
+
+Why: a step size large enough to learn fast early makes PPO's late updates overshoot, and the policy oscillates
+around a good gait instead of settling on it (SB3's and CleanRL's MuJoCo PPOs anneal for the same reason; rsl-rl has
+only a fixed and a KL-adaptive rate). The rate is a function of the iteration count alone, set before each update:
+the same on every rank and in a resumed run, with no state of its own; the horizon is a key of its own rather than
+the run's ``iterations``, so lengthening a run does not change what it trains.
+"""
+
+from __future__ import annotations
+
+from rsl_rl.algorithms import PPO
+
+from ftrain.config import AlgorithmConfig
+
+
+class LinearSchedule:
+    def __init__(self, config: AlgorithmConfig) -> None:
+        self.initial = config.learning_rate
+        self.iterations = config.schedule_iterations
+
+    def apply(self, alg: PPO, iteration: int) -> None:
+        """Set the rate for the update of iteration ``iteration + 1`` (``iteration`` completed so far)."""
+        alg.learning_rate = self.initial * max(0.0, 1.0 - iteration / self.iterations)
+        for group in alg.optimizer.param_groups:
+            group["lr"] = alg.learning_rate
+
+
+def build_lr_schedule(config: AlgorithmConfig) -> LinearSchedule | None:
+    return LinearSchedule(config) if config.schedule == "linear" else None
