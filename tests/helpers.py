@@ -28,8 +28,9 @@ from ftrain.supervise.attempt import TORCHRUN
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
 SMOKE = str(REPO / "configs" / "smoke.yaml")
-TIMING = ("steps_per_s", "collect_time", "learn_time", "iteration_time")
-"""Metrics that measure wall-clock time: the only ones allowed to differ between identical runs."""
+NOT_LEARNED = ("steps_per_s", "collect_time", "learn_time", "iteration_time", "resumed_from")
+"""The only columns of metrics.csv allowed to differ between identical runs: wall-clock times, and where a resumed
+run started."""
 
 
 def train_command(storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE) -> list[str]:
@@ -206,7 +207,7 @@ def metrics_by_iteration(log_dir: str | Path) -> dict[int, dict[str, str]]:
     """``metrics.csv`` rows by iteration, the last row winning (a resumed run redoes some iterations)."""
     with (Path(log_dir) / "metrics.csv").open() as file:
         rows = {int(row["iteration"]): row for row in csv.DictReader(file)}
-    return {it: {k: v for k, v in row.items() if k not in TIMING} for it, row in rows.items()}
+    return {it: {k: v for k, v in row.items() if k not in NOT_LEARNED} for it, row in rows.items()}
 
 
 # --- The S3 API server (moto) on 127.0.0.1 ---
