@@ -31,7 +31,19 @@ from ftrain.supervise.coordinator import CONNECTION_TIMEOUT, Coordinator, Link
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.supervisor import WORKER_MODULE_ENV
 
-from helpers import REPO, TESTS, events, final_manifest, finish, free_port, launch, manifests, torchrun_pid, training
+from helpers import (
+    REPO,
+    TESTS,
+    events,
+    final_manifest,
+    finish,
+    free_port,
+    launch,
+    manifests,
+    torchrun_pid,
+    training,
+    wait_for,
+)
 
 HERE = Path(__file__).resolve().parent
 SECRET = "ftrain-test-coordinator-secret"
@@ -257,7 +269,7 @@ def test_strangers_are_refused_and_recorded_and_a_slow_one_stalls_nobody(node0, 
         started = time.monotonic()
         assert Link(1, None, address, KEY).ask("plan").attempt == 0
         assert time.monotonic() - started < CONNECTION_TIMEOUT  # served while the slow one waits
-    time.sleep(0.5)
+    wait_for(lambda: len(refusals(tmp_path)) == 5, "the slow client's refusal", interval=0.05)
     assert refusals(tmp_path) == [
         "bad signature",
         "malformed",
