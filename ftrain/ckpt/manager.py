@@ -51,8 +51,11 @@ class Checkpointer:
         self.committed_step: int | None = None
         self.on_commit: Callable[[int, dict], None] = lambda step, manifest: None
         self.while_waiting: Callable[[], None] = lambda: None
-        self._pending: collections.deque[tuple[int, bool]] = collections.deque()
-        """(step, must commit) of the saves handed to the writer thread whose outcome has not been acted on yet."""
+        self._pending: collections.deque[tuple[int, bool, dict]] = collections.deque()
+        """(step, must commit, snapshot) of the saves handed to the writer thread whose outcome has not been acted on
+        yet."""
+        self._spare: list[dict] = []
+        """Snapshots whose saves are over: the next snapshots copy into their memory."""
         self._failures = 0
         self._checked_loadable = False
         self.last_blocking_s = 0.0
@@ -84,7 +87,7 @@ class Checkpointer:
         """
         started = time.perf_counter()
         step = trainer.iteration
-        if step == self.committed_step or step in (pending for pending, _ in self._pending):
+        if step == self.committed_step or step in (pending for pending, *_ in self._pending):
             return
         self._settle(MAX_IN_FLIGHT - 1)
         files = {shard_name(self.info.rank): trainer.rank_state()}
@@ -97,8 +100,9 @@ class Checkpointer:
         if self._background is None:
             self._act_on(self._writer.save(step, files, meta, first), must_commit)
         else:
-            self._background.submit(step, snapshot(files), meta, first)
-            self._pending.append((step, must_commit))
+            copy = snapshot(files, self._spare.pop() if self._spare else None)
+            self._background.submit(step, copy, meta, first)
+            self._pending.append((step, must_commit, copy))
             if wait or first or self._failures:  # after a failure: one at a time
                 self._settle(0)
         self.last_blocking_s = time.perf_counter() - started
@@ -128,9 +132,10 @@ class Checkpointer:
         """Act on the agreed outcomes of the oldest saves in flight until at most ``keep`` are left (and on any
         that are already there: the newest committed step is known as soon as possible)."""
         while self._pending and (len(self._pending) > keep or self._background.ready()):
-            _, must_commit = self._pending.popleft()
+            _, must_commit, copy = self._pending.popleft()
             while (outcome := self._background.take(WAIT_BEAT)) is None:
                 self.while_waiting()
+            self._spare.append(copy)  # the writer is done with it
             self._act_on(outcome, must_commit)
 
     def _act_on(self, outcome: Outcome, must_commit: bool) -> None:

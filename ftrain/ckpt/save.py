@@ -54,14 +54,22 @@ class Outcome:
     detail: dict | str
 
 
-def snapshot(state: object) -> object:
-    """A copy of ``state`` that training can no longer change: every tensor cloned, every container rebuilt."""
+def snapshot(state: object, into: object = None) -> object:
+    """A copy of ``state`` that training can no longer change: every tensor copied, every container rebuilt.
+
+    ``into``: an earlier snapshot whose save is over; its tensors of the same place, shape and dtype are reused
+    (copied into), since for a large state the page faults of fresh memory cost more than the copy itself.
+    """
     if isinstance(state, torch.Tensor):
+        if isinstance(into, torch.Tensor) and into.shape == state.shape and into.dtype == state.dtype:
+            return into.copy_(state)
         return state.detach().clone()
     if isinstance(state, dict):
-        return {key: snapshot(value) for key, value in state.items()}
+        old = into if isinstance(into, dict) else {}
+        return {key: snapshot(value, old.get(key)) for key, value in state.items()}
     if isinstance(state, (list, tuple)):
-        return type(state)(snapshot(value) for value in state)
+        old = into if isinstance(into, (list, tuple)) and len(into) == len(state) else [None] * len(state)
+        return type(state)(snapshot(value, earlier) for value, earlier in zip(state, old, strict=True))
     return state
 
 

@@ -44,6 +44,19 @@ def test_a_snapshot_is_a_copy_that_training_cannot_change() -> None:
     assert_same(copy, sample_state())
 
 
+def test_a_snapshot_reuses_the_memory_of_an_earlier_one_of_the_same_layout() -> None:
+    earlier = snapshot(sample_state())
+    state = sample_state()
+    state["actor_state_dict"]["weight"].mul_(3)
+    state["counts"] = torch.arange(5)  # another shape: a fresh tensor
+    copy = snapshot(state, earlier)
+    assert_same(copy, snapshot(state))
+    assert copy["actor_state_dict"]["weight"].data_ptr() == earlier["actor_state_dict"]["weight"].data_ptr()
+    assert copy["counts"].data_ptr() != earlier["counts"].data_ptr()
+    state["actor_state_dict"]["weight"].add_(1)
+    assert not torch.equal(copy["actor_state_dict"]["weight"], state["actor_state_dict"]["weight"])
+
+
 def test_the_digest_is_equal_iff_the_values_are_bitwise_equal() -> None:
     state = sample_state()
     assert state_digest(sample_state()) == state_digest(state)
