@@ -15,7 +15,7 @@ from helpers import REPO, SMOKE, TESTS, child_env, events, finish, launch, run_t
 
 pytestmark = pytest.mark.slow
 
-WORLD_SIZE_REFUSAL = "was written by {saved} ranks but this run has {now}: run with --nproc-per-node={saved}"
+REFUSAL = "has env.num_envs=4 per rank, the config has 3: set env.num_envs=4"
 
 
 def supervise(storage: Path, *overrides: str, ranks: int = 2) -> tuple[subprocess.Popen, Path]:
@@ -37,28 +37,32 @@ def test_plain_torchrun_says_bad_input_once_from_rank_0(tmp_path) -> None:
     storage = tmp_path / "run"
     run_train(storage, "iterations=2")
     result = subprocess.run(
-        train_command(storage, ranks=2), cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=300
+        train_command(storage, "env.num_envs=3", ranks=2),
+        cwd=REPO,
+        env=child_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert result.returncode != 0
     lines = [line for line in (result.stdout + result.stderr).splitlines() if line.startswith("ftrain: error:")]
     assert len(lines) == 1, result.stderr
-    assert WORLD_SIZE_REFUSAL.format(saved=1, now=2) in lines[0]
+    assert REFUSAL in lines[0]
 
 
 def test_supervised_bad_input_is_one_line_once_and_not_restarted(tmp_path) -> None:
     storage = tmp_path / "run"
     run_train(storage, "iterations=2", ranks=2)
-    proc, console = supervise(storage, ranks=1)
+    proc, console = supervise(storage, "env.num_envs=3")
     assert finish(proc) == 2
     text = console.read_text()
-    refusal = WORLD_SIZE_REFUSAL.format(saved=2, now=1)
+    refusal = REFUSAL
     assert [line for line in text.splitlines() if refusal in line] == [
-        f"ftrain supervise: rank 0 refused its input: checkpoint step 2 {refusal} (environment state is per rank); "
-        "not restarting"
+        f"ftrain supervise: rank 0 refused its input: checkpoint step 2 {refusal}; not restarting"
     ], text
     assert "Traceback" not in text and "ChildFailedError" not in text, text
     usage = next(event for event in events(storage) if event["event"] == "exit")
-    assert refusal in usage["cause"] and usage["failures"] == {"0": 2}
+    assert refusal in usage["cause"] and usage["failures"] == {"0": 2, "1": 2}
 
 
 def test_supervised_crashes_are_one_cause_line_each(tmp_path) -> None:
