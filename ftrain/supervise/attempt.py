@@ -120,14 +120,16 @@ class Attempt:
 
     def culprit(self) -> tuple[int, WorkerFailure] | None:
         """The rank to blame and how it ended. Ranks the supervisor killed do not count. Of the others, a rank killed
-        by a signal comes first (someone killed it; the rest then failed on the broken group), then a specific exit
-        code before 1 (what a broken group gives) or SIGTERM (what torchrun sends the survivors), then the lowest rank.
-        torchrun's own root cause is only the first failure it noticed, arbitrary when several die within a poll."""
+        by a signal comes first (someone killed it; the rest then failed on the broken group), then one that recorded
+        an error of its own, then a specific exit code before 1 (what a broken group gives) or SIGTERM (what torchrun
+        sends the survivors), then the lowest rank. torchrun's own root cause is only the first failure it noticed,
+        arbitrary when several die within a poll."""
         own = {rank: failure for rank, failure in self.failures.items() if rank not in self.killed} or self.failures
 
-        def order(item: tuple[int, WorkerFailure]) -> tuple[bool, bool, int]:
+        def order(item: tuple[int, WorkerFailure]) -> tuple[bool, bool, bool, int]:
             rank, code = item[0], item[1].code
-            return (not (code < 0 and code != -signal.SIGTERM), code in (1, -signal.SIGTERM), rank)
+            killed = code < 0 and code != -signal.SIGTERM
+            return (not killed, item[1].error is None, code in (1, -signal.SIGTERM), rank)
 
         return min(own.items(), key=order) if own else None
 
