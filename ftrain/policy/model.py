@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch
 from rsl_rl.models import MLPModel
+from rsl_rl.modules import EmpiricalNormalization
 from tensordict import TensorDict
 
 from ftrain.config import Config
@@ -12,13 +13,39 @@ OBS_GROUP = "policy"
 """The one observation group of ftrain's environments, as rsl-rl's models read it."""
 
 
+class ClippedNormalization(EmpiricalNormalization):
+    """rsl-rl's observation normalizer with its output clipped to ±``clip``, as SB3's VecNormalize clips (at 10).
+
+    Why: a feature that is nearly always the same (Ant's contact forces) has a tiny running std, and its rare spikes
+    would reach the network as values in the hundreds. Same buffers as rsl-rl's, so the state dicts are the same;
+    exports (TorchScript, ONNX) copy this module and clip as well.
+    """
+
+    def __init__(self, shape: int, clip: float) -> None:
+        super().__init__(shape)
+        self.clip = clip
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return ((x - self._mean) / (self._std + self.eps)).clamp(-self.clip, self.clip)
+
+
 def policy_kwargs(config: Config) -> dict:
-    """Constructor arguments of rsl-rl's MLPModel for the actor (the critic uses the same, deterministic)."""
+    """Constructor arguments of rsl-rl's MLPModel for the actor and the critic (ftrain's clipping aside)."""
     return {
         "hidden_dims": list(config.policy.hidden_dims),
         "activation": config.policy.activation,
         "obs_normalization": config.policy.obs_normalization,
     }
+
+
+def build_model(config: Config, obs, obs_set: str, output_dim: int, distribution: dict | None = None) -> MLPModel:
+    """An rsl-rl MLPModel with the config's network and observation normalisation (clipped if ``policy.obs_clip``)."""
+    model = MLPModel(
+        obs, {obs_set: [OBS_GROUP]}, obs_set, output_dim, **policy_kwargs(config), distribution_cfg=distribution
+    )
+    if config.policy.obs_normalization and config.policy.obs_clip > 0:
+        model.obs_normalizer = ClippedNormalization(model.obs_dim, config.policy.obs_clip)
+    return model
 
 
 def distribution_cfg(config: Config) -> dict:
@@ -31,14 +58,7 @@ def distribution_cfg(config: Config) -> dict:
 
 
 def build_actor(config: Config, obs, num_actions: int, obs_set: str = "actor") -> MLPModel:
-    return MLPModel(
-        obs,
-        {obs_set: [OBS_GROUP]},
-        obs_set,
-        num_actions,
-        **policy_kwargs(config),
-        distribution_cfg=distribution_cfg(config),
-    )
+    return build_model(config, obs, obs_set, num_actions, distribution_cfg(config))
 
 
 def rsl_rl_runner_cfg(config: Config) -> dict:

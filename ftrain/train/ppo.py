@@ -20,7 +20,6 @@ from collections.abc import Iterator
 import torch
 import torch.distributed as dist
 from rsl_rl.algorithms import PPO, Distillation
-from rsl_rl.models import MLPModel
 from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 from torch import nn
@@ -30,10 +29,8 @@ from ftrain.dist.group import RankInfo
 from ftrain.dist.shm_allreduce import SharedMemoryAllReduce, same_host
 from ftrain.errors import UserError
 from ftrain.policy.load import load_policy
-from ftrain.policy.model import OBS_GROUP, build_actor, policy_kwargs
+from ftrain.policy.model import OBS_GROUP, build_actor, build_model
 from ftrain.train.envs import MujocoVecEnv
-
-OBS_GROUPS = {"actor": [OBS_GROUP], "critic": [OBS_GROUP]}
 
 
 class FusedPPO(PPO):
@@ -194,7 +191,7 @@ class FusedPPO(PPO):
 def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo) -> FusedPPO:
     obs = env.get_observations()
     actor = build_actor(config, obs, env.num_actions)
-    critic = MLPModel(obs, OBS_GROUPS, "critic", 1, **policy_kwargs(config))
+    critic = build_model(config, obs, "critic", 1)
     storage = RolloutStorage("rl", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
     a = config.algorithm
     reducer = None

@@ -17,11 +17,13 @@ import numpy as np
 import onnx
 import pytest
 import torch
+from rsl_rl.modules import EmpiricalNormalization
 
 from ftrain.cli import main
 from ftrain.errors import UserError
 from ftrain.policy.export import export, sample_observations
 from ftrain.policy.load import load_policy
+from ftrain.policy.model import ClippedNormalization
 from ftrain.policy.play import play
 
 from helpers import REPO, child_env, final_manifest, flip_byte, run_train
@@ -40,9 +42,10 @@ np.save(sys.argv[4], np.stack([torchscript, onnx]))
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> Path:
-    """A tiny policy: 4 iterations, checkpoints at steps 2 and 4, episodes of 20 steps."""
+    """A tiny policy: 4 iterations, checkpoints at steps 2 and 4, episodes of 20 steps, normalised observations
+    clipped at 1 (so that the exports must clip too)."""
     run = tmp_path_factory.mktemp("policy") / "run"
-    run_train(run, "iterations=4", f"env.kwargs={{max_episode_steps: {EPISODE_STEPS}}}")
+    run_train(run, "iterations=4", f"env.kwargs={{max_episode_steps: {EPISODE_STEPS}}}", "policy.obs_clip=1.0")
     return run
 
 
@@ -65,6 +68,17 @@ def test_load_from_a_run_or_a_step(trained) -> None:
     assert not torch.equal(older.act(obs), newest.act(obs))
     torch.manual_seed(0)
     assert not torch.equal(newest.act(obs, deterministic=False), newest.act(obs)), "sampling must add noise"
+
+
+def test_clipped_observation_normalisation_keeps_rsl_rl_state_and_clips(trained) -> None:
+    policy = load_policy(str(trained))
+    normalizer = policy.actor.obs_normalizer
+    assert isinstance(normalizer, ClippedNormalization) and normalizer.clip == 1.0
+    plain = EmpiricalNormalization(normalizer._mean.shape[-1])
+    plain.load_state_dict(normalizer.state_dict())  # the same buffers: rsl-rl opens ftrain's state
+    obs = sample_observations(policy, episodes=1, seed=3) * 50
+    assert plain(obs).abs().max() > 1.0
+    torch.testing.assert_close(normalizer(obs), plain(obs).clamp(-1.0, 1.0))
 
 
 def test_exports_run_without_ftrain_and_match_the_actor(trained, tmp_path, capsys) -> None:
