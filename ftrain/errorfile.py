@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import sys
 import time
@@ -20,6 +21,8 @@ import traceback
 from pathlib import Path
 
 ENV = "TORCHELASTIC_ERROR_FILE"
+RECORDED_AT = "ftrain_recorded_at"
+"""Our key in ``extraInfo``: when the error was recorded, to the microsecond (torch's ``timestamp`` has seconds)."""
 
 
 def report(message: str) -> None:
@@ -46,10 +49,21 @@ def message(data: object) -> str | None:
     return " ".join(text.split()) or None
 
 
+def recorded_at(data: object) -> float:
+    """When the worker recorded the error in an error file's JSON (epoch seconds; infinity if not known). A rank that
+    fails because another one did (a broken connection, a peer gone from shared memory) records its error after the
+    failure that caused it: the earliest record names the cause."""
+    info = data.get("message") if isinstance(data, dict) else None
+    info = info.get("extraInfo") if isinstance(info, dict) else None
+    value = info.get(RECORDED_AT) if isinstance(info, dict) else None
+    return float(value) if isinstance(value, int | float) else math.inf
+
+
 def _write(summary: str, callstack: str) -> None:
     path = os.environ.get(ENV)
     if not path:
         return
-    info = {"py_callstack": callstack, "timestamp": str(int(time.time()))}
+    now = time.time()
+    info = {"py_callstack": callstack, "timestamp": str(int(now)), RECORDED_AT: now}
     with contextlib.suppress(OSError):
         Path(path).write_text(json.dumps({"message": {"message": summary, "extraInfo": info}}))

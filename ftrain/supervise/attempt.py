@@ -25,7 +25,7 @@ from ftrain.heartbeat import ENV_DIR, TOKEN_ENV
 from ftrain.supervise import procfs
 from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.coordinator import Plan
-from ftrain.supervise.outcome import WorkerFailure
+from ftrain.supervise.outcome import WorkerFailure, blame
 
 POLL = 0.1
 TORCHRUN = "ftrain.dist.torchrun"
@@ -119,19 +119,8 @@ class Attempt:
         self.reported = False
 
     def culprit(self) -> tuple[int, WorkerFailure] | None:
-        """The rank to blame and how it ended. Ranks the supervisor killed do not count. Of the others, a rank killed
-        by a signal comes first (someone killed it; the rest then failed on the broken group), then one that recorded
-        an error of its own, then a specific exit code before 1 (what a broken group gives) or SIGTERM (what torchrun
-        sends the survivors), then the lowest rank. torchrun's own root cause is only the first failure it noticed,
-        arbitrary when several die within a poll."""
-        own = {rank: failure for rank, failure in self.failures.items() if rank not in self.killed} or self.failures
-
-        def order(item: tuple[int, WorkerFailure]) -> tuple[bool, bool, bool, int]:
-            rank, code = item[0], item[1].code
-            killed = code < 0 and code != -signal.SIGTERM
-            return (not killed, item[1].error is None, code in (1, -signal.SIGTERM), rank)
-
-        return min(own.items(), key=order) if own else None
+        """The rank to blame and how it ended (see ``outcome.blame``)."""
+        return blame(self.failures, self.killed)
 
     def terminate(self) -> None:
         """SIGTERM every worker (each saves at the next iteration boundary), or torchrun before it has any."""
@@ -165,7 +154,9 @@ class Attempt:
         except (OSError, ValueError):
             return  # no worker failed, or torchrun itself died
         self.failures = {
-            int(rank): WorkerFailure(failure["exitcode"], errorfile.message(failure["error"]))
+            int(rank): WorkerFailure(
+                failure["exitcode"], errorfile.message(failure["error"]), errorfile.recorded_at(failure["error"])
+            )
             for rank, failure in failures.items()
         }
 

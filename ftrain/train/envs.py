@@ -55,7 +55,8 @@ class MujocoVecEnv(VecEnv):
         self.cfg = {"env_id": env_id, "num_envs": num_envs}
         self._low = self.envs.single_action_space.low
         self._high = self.envs.single_action_space.high
-        self._obs_buffer = np.empty((num_envs, *self.envs.single_observation_space.shape), dtype=self.envs.single_observation_space.dtype)
+        space = self.envs.single_observation_space
+        self._obs_buffer = np.empty((num_envs, *space.shape), dtype=space.dtype)
         # episode bookkeeping in numpy (cheap per step); episode_length_buf is rsl-rl's view of the same memory
         self._returns = np.zeros(num_envs, dtype=self.envs.single_observation_space.dtype)
         self._lengths = np.zeros(num_envs, dtype=np.int64)

@@ -1,0 +1,49 @@
+"""Which rank the supervisor blames, from error files written the way workers write them."""
+
+from __future__ import annotations
+
+import json
+import signal
+
+from ftrain import errorfile
+from ftrain.supervise.outcome import WorkerFailure, blame
+
+
+def recorded(tmp_path, monkeypatch, rank: int, code: int, error: BaseException | None) -> WorkerFailure:
+    """How torchrun passes on a failed worker: its exit code and the JSON of its error file (if it wrote one)."""
+    path = tmp_path / f"error-{rank}.json"
+    monkeypatch.setenv(errorfile.ENV, str(path))
+    if error is not None:
+        try:
+            raise error
+        except type(error) as caught:
+            errorfile.record_exception(caught)
+    data = json.loads(path.read_text()) if path.exists() else None
+    return WorkerFailure(code, errorfile.message(data), errorfile.recorded_at(data))
+
+
+def test_the_rank_that_raised_first_is_blamed_not_the_peer_that_failed_after_it(tmp_path, monkeypatch) -> None:
+    """Seen under load: rank 1 raises; rank 0 records the broken all-reduce, then torchrun's SIGTERM ends it."""
+    cause = recorded(tmp_path, monkeypatch, 1, 1, RuntimeError("probe crash"))
+    after = recorded(tmp_path, monkeypatch, 0, -signal.SIGTERM, RuntimeError("a peer rank exited during an all-reduce"))
+    assert after.recorded_at > cause.recorded_at
+    assert blame({0: after, 1: cause}, killed=set()) == (1, cause)
+    later_exit = WorkerFailure(1, after.error, after.recorded_at)  # the same, had rank 0 exited on its own
+    assert blame({0: later_exit, 1: cause}, killed=set()) == (1, cause)
+
+
+def test_a_rank_killed_by_a_signal_is_blamed_before_ranks_that_failed_on_the_broken_group(
+    tmp_path, monkeypatch
+) -> None:
+    broken = recorded(tmp_path, monkeypatch, 0, 1, RuntimeError("Connection reset by peer"))
+    killed = recorded(tmp_path, monkeypatch, 1, -signal.SIGKILL, None)
+    assert killed.error is None and killed.recorded_at == float("inf")
+    assert blame({0: broken, 1: killed}, killed=set()) == (1, killed)
+
+
+def test_ranks_the_supervisor_killed_are_not_blamed_and_without_records_a_specific_code_wins(tmp_path) -> None:
+    sigkilled = WorkerFailure(-signal.SIGKILL, None)
+    assert blame({0: sigkilled, 1: WorkerFailure(1, None)}, killed={0}) == (1, WorkerFailure(1, None))
+    terminated, specific = WorkerFailure(-signal.SIGTERM, None), WorkerFailure(3, None)
+    assert blame({0: terminated, 1: WorkerFailure(1, None), 2: specific}, killed=set()) == (2, specific)
+    assert blame({}, killed=set()) is None
