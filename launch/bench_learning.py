@@ -1,0 +1,283 @@
+"""Learning benchmark: time to a good policy on HalfCheetah, Hopper, Walker2d and Ant (v5), ftrain at 2 ranks against
+stable-baselines3 PPO with the RL Zoo's tuned hyperparameters, side by side on this machine.
+
+    .venv/bin/python launch/bench_learning.py [--envs halfcheetah hopper] [--seeds 1 2 3] [--steps 1000000]
+        [--sb3-steps 30000] [--out runs/bench_learning] [--set key=value ...]
+
+For each environment, SB3 first, then ftrain, so that both see the same machine:
+
+- SB3 PPO (``ftrain.tools.zoo``) trains for ``--sb3-steps`` steps in a process of its own, with a deterministic
+  evaluation (10 episodes) every ``--sb3-eval-every`` steps, its clock paused while it evaluates. Its time to 1M
+  steps is scaled from that short run: the time from launch to its first completed rollout, plus the remaining
+  steps at its rate over the later rollouts (each with its update).
+- ``configs/<env>.yaml`` trains for ``--steps`` steps at 2 ranks (torchrun) once per seed. Its times are wall clock
+  from launching torchrun, start-up, the config's periodic evaluation and checkpoints included; its time to the
+  target is that of the first periodic evaluation (``eval.every``, 10 deterministic episodes) at or above it. Its
+  return at the end is the final policy's mean over 10 deterministic episodes (the evaluation's seeds).
+
+Targets: 3,000 on HalfCheetah, the RL Zoo's return after 1M steps on the others. Prints one table (median and range
+over seeds) and writes, to ``--out``, a learning-curve PNG per environment (return against environment steps and
+against wall time) and ``results.json`` with every curve and the machine's load average around each run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+
+from ftrain.config import EnvConfig, load_config  # noqa: E402
+from ftrain.policy.load import load_policy  # noqa: E402
+from ftrain.policy.rollout import make_env, rollout  # noqa: E402
+from ftrain.tools.zoo import ZOO, zoo_ppo  # noqa: E402
+from ftrain.train.hooks import Hook  # noqa: E402
+
+RANKS = 2
+EPISODES = 10
+EVAL_SEED = 10_000
+ENV_IDS = {"halfcheetah": "HalfCheetah-v5", "hopper": "Hopper-v5", "walker2d": "Walker2d-v5", "ant": "Ant-v5"}
+TARGETS = {"HalfCheetah-v5": 3000.0}
+"""The return whose first reach is timed, where it is not the Zoo's."""
+WORKERS = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).parent)}
+"""Environment of the processes this benchmark launches: one OpenMP thread, this module importable."""
+
+
+def target(env_id: str) -> float:
+    return TARGETS.get(env_id, ZOO[env_id].zoo_return)
+
+
+@dataclass
+class Run:
+    """One training run: its periodic evaluations and how long it took."""
+
+    curve: list[tuple[float, float, float]] = field(default_factory=list)
+    """(environment steps, seconds since launch, deterministic return) of each evaluation."""
+    seconds: float = math.nan
+    """Wall time to the end of the run (SB3: to 1M steps, scaled from its short run)."""
+    steps: int = 0
+    final_return: float = math.nan
+    load: tuple[float, float] = (math.nan, math.nan)
+    """The machine's 1-minute load average at the start and at the end."""
+
+    def time_to(self, score: float) -> float:
+        return next((seconds for _, seconds, value in self.curve if value >= score), math.nan)
+
+
+class CurveHook(Hook):
+    """Loaded into ftrain's workers by import path: after each periodic evaluation, rank 0 appends (environment
+    steps, seconds since ``launched`` (epoch seconds), deterministic return) to ``path`` as a JSON line."""
+
+    def __init__(self, path: str, launched: float) -> None:
+        self.path = Path(path)
+        self.launched = launched
+
+    def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        score = metrics.get("eval_return", math.nan)
+        if trainer.info.is_main and math.isfinite(score):
+            with self.path.open("a") as file:
+                file.write(json.dumps([metrics["env_steps"], time.time() - self.launched, score]) + "\n")
+
+
+def load_average() -> float:
+    return float(Path("/proc/loadavg").read_text().split()[0])
+
+
+def evaluate(act, env_config: EnvConfig, seed: int = EVAL_SEED) -> float:
+    """Mean return of ``EPISODES`` deterministic episodes seeded ``seed``, ``seed + 1``, ..."""
+    envs = [make_env(env_config) for _ in range(EPISODES)]
+    try:
+        return statistics.fmean(episode.ret for episode in rollout(envs, act, EPISODES, seed))
+    finally:
+        for env in envs:
+            env.close()
+
+
+def run_ftrain(name: str, seed: int, steps: int, overrides: list[str], work: Path) -> Run:
+    config_path = REPO / "configs" / f"{name}.yaml"
+    config = load_config(str(config_path), overrides)
+    per_iteration = RANKS * config.env.num_envs * config.num_steps_per_env
+    iterations = math.ceil(steps / per_iteration)
+    storage, curve = work / f"{name}-seed{seed}", work / f"{name}-seed{seed}.jsonl"
+    run = Run(steps=iterations * per_iteration, load=(load_average(), math.nan))
+    launched = time.time()
+    hook = f"hooks=[{{target: 'bench_learning:CurveHook', kwargs: {{path: '{curve}', launched: {launched}}}}}]"
+    launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={RANKS}"]
+    command = [*launcher, "-m", "ftrain", "train", str(config_path), "--storage", str(storage)]
+    command += [f"iterations={iterations}", f"seed={seed}", "log.console=false", "log.tensorboard=false", hook]
+    done = subprocess.run([*command, *overrides], cwd=REPO, env=WORKERS, capture_output=True, text=True)
+    run.seconds, run.load = time.time() - launched, (run.load[0], load_average())
+    if done.returncode:
+        raise RuntimeError(f"ftrain failed on {name} seed {seed}:\n{done.stderr[-3000:]}")
+    run.curve = [tuple(json.loads(line)) for line in curve.read_text().splitlines()] if curve.exists() else []
+    policy = load_policy(str(storage))
+    run.final_return = evaluate(policy.act, policy.config.env, policy.config.eval.seed)
+    return run
+
+
+def run_sb3(env_id: str, steps: int, eval_every: int, work: Path) -> Run:
+    out = work / f"sb3-{env_id}.json"
+    run = Run(load=(load_average(), math.nan))
+    launched = time.time()
+    arguments = f"{env_id!r}, {steps}, {eval_every}, {launched}, {str(out)!r}"
+    code = f"from bench_learning import sb3_worker; sb3_worker({arguments})"
+    done = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=WORKERS, capture_output=True, text=True)
+    run.load = (run.load[0], load_average())
+    if done.returncode:
+        raise RuntimeError(f"SB3 failed on {env_id}:\n{done.stderr[-3000:]}")
+    result = json.loads(out.read_text())
+    (first_steps, first_seconds), (last_steps, last_seconds) = result["rollouts"][0], result["rollouts"][-1]
+    rate = (last_steps - first_steps) / (last_seconds - first_seconds)
+    run.seconds = first_seconds + (1_000_000 - first_steps) / rate
+    run.curve = [tuple(point) for point in result["curve"]]
+    run.steps, run.final_return = result["steps"], run.curve[-1][2] if run.curve else math.nan
+    return run
+
+
+def sb3_worker(env_id: str, steps: int, eval_every: int, launched: float, out: str) -> None:
+    """In a process of its own: SB3 trains and evaluates; its clock (seconds since ``launched``) stops while it
+    evaluates. Writes the evaluations and the clock at the end of each rollout to ``out``."""
+    import torch
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    paused = 0.0
+    curve, rollouts = [], []
+
+    def clock() -> float:
+        return time.time() - launched - paused
+
+    class Measure(BaseCallback):
+        def _on_rollout_end(self) -> None:
+            rollouts.append((self.num_timesteps, clock()))
+
+        def _on_step(self) -> bool:
+            nonlocal paused
+            if self.num_timesteps % eval_every == 0:
+                trained, started = clock(), time.time()
+                venv = self.model.get_env()
+
+                def act(obs: torch.Tensor) -> torch.Tensor:
+                    return torch.as_tensor(self.model.predict(venv.normalize_obs(obs.numpy()), deterministic=True)[0])
+
+                curve.append((self.num_timesteps, trained, evaluate(act, EnvConfig(env_id))))
+                paused += time.time() - started
+            return True
+
+    model = zoo_ppo(env_id)
+    model.learn(steps, callback=Measure())
+    Path(out).write_text(json.dumps({"curve": curve, "rollouts": rollouts, "steps": model.num_timesteps}))
+
+
+def plot(env_id: str, runs: list[Run], sb3: Run | None, path: Path) -> None:
+    """Return against environment steps and against wall time: each ftrain seed, SB3's run, the target."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    lines = [(run, "tab:blue", "-", f"ftrain, 2 ranks ({len(runs)} seeds)") for run in runs]
+    lines += [(sb3, "tab:orange", "o-", "SB3 PPO, RL Zoo hyperparameters")] if sb3 and sb3.curve else []
+    for ax, column, label in ((axes[0], 0, "environment steps"), (axes[1], 1, "wall time (s)")):
+        for index, (run, color, style, name) in enumerate(lines):
+            points = [(point[column], point[2]) for point in run.curve]
+            first = index == 0 or color != lines[index - 1][1]
+            ax.plot(*zip(*points, strict=True), style, color=color, markersize=3, label=name if first else None)
+        ax.axhline(target(env_id), color="gray", linestyle="--", linewidth=1, label=f"target {target(env_id):,.0f}")
+        ax.set_xlabel(label)
+        ax.set_ylabel("deterministic return (10 episodes)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize="small")
+    figure.suptitle(env_id)
+    figure.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=72)
+    plt.close(figure)
+
+
+def _seconds(value: float) -> str:
+    return f"{value:,.0f} s" if math.isfinite(value) else "not reached"
+
+
+HEADER = (
+    "| environment | ftrain return at the end: median (range) | RL Zoo | ftrain time to the end "
+    "| ftrain time to target | SB3 time to 1M steps | SB3 time to target | ftrain / SB3: to the end, to target |\n"
+    "| --- | --- | --- | --- | --- | --- | --- | --- |"
+)
+
+
+def summary(env_id: str, runs: list[Run], sb3: Run | None) -> str:
+    """One table row (times are medians over the seeds; a target counts if most seeds reached it)."""
+    goal = target(env_id)
+    returns = [run.final_return for run in runs]
+    reached = [run.time_to(goal) for run in runs if math.isfinite(run.time_to(goal))]
+    total = statistics.median(run.seconds for run in runs)
+    to_goal = statistics.median(run.time_to(goal) for run in runs) if len(reached) * 2 > len(runs) else math.nan
+    cells = [
+        env_id,
+        f"{statistics.median(returns):,.0f} ({min(returns):,.0f} to {max(returns):,.0f})",
+        f"{ZOO[env_id].zoo_return:,}",
+        f"{total:,.0f} s ({runs[0].steps:,} steps)",
+        f"{_seconds(to_goal)} ({len(reached)}/{len(runs)} reached {goal:,.0f})",
+    ]
+    if sb3 is None:
+        return "| " + " | ".join([*cells, "-", "-", "-"]) + " |"
+    sb3_goal = sb3.time_to(goal)
+    versus = sb3_goal if math.isfinite(sb3_goal) else sb3.seconds  # not reached in its short run: at least this
+    cells += [
+        f"{sb3.seconds:,.0f} s (scaled from {sb3.steps:,} steps)",
+        _seconds(sb3_goal) if math.isfinite(sb3_goal) else f"> {sb3.curve[-1][1]:,.0f} s (not in {sb3.steps:,} steps)",
+        f"{total / sb3.seconds:.2f}, {to_goal / versus:.2f}{'' if math.isfinite(sb3_goal) else ' (vs its 1M time)'}",
+    ]
+    return "| " + " | ".join(cells) + " |"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--envs", nargs="+", default=list(ENV_IDS), choices=list(ENV_IDS))
+    parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3])
+    parser.add_argument("--steps", type=float, default=1e6, help="environment steps of each ftrain run")
+    parser.add_argument("--sb3-steps", type=float, default=30_000, help="steps of SB3's run (0: none)")
+    parser.add_argument("--sb3-eval-every", type=float, default=10_000)
+    parser.add_argument("--out", type=Path, default=REPO / "runs" / "bench_learning")
+    parser.add_argument("--set", nargs="*", default=[], metavar="key=value", help="config overrides for ftrain")
+    args = parser.parse_args()
+    results, rows = {}, []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in args.envs:
+            env_id = ENV_IDS[name]
+            sb3 = None
+            if args.sb3_steps:
+                sb3 = run_sb3(env_id, int(args.sb3_steps), int(args.sb3_eval_every), Path(tmp))
+                print(f"{env_id} SB3: {sb3.seconds:,.0f} s to 1M steps (scaled), load {sb3.load}", flush=True)
+            runs = []
+            for seed in args.seeds:
+                runs.append(run := run_ftrain(name, seed, int(args.steps), args.set, Path(tmp)))
+                print(
+                    f"{env_id} seed {seed}: return {run.final_return:,.1f} after {run.steps:,} steps in "
+                    f"{run.seconds:,.0f} s, target {target(env_id):,.0f} at {_seconds(run.time_to(target(env_id)))}, "
+                    f"load {run.load}",
+                    flush=True,
+                )
+            plot(env_id, runs, sb3, args.out / f"{name}.png")
+            results[env_id] = {"ftrain": [asdict(run) for run in runs], "sb3": asdict(sb3) if sb3 else None}
+            rows.append(summary(env_id, runs, sb3))
+    args.out.mkdir(parents=True, exist_ok=True)
+    settings = {**vars(args), "out": str(args.out)}
+    (args.out / "results.json").write_text(json.dumps({"args": settings, "results": results}, indent=1))
+    print(HEADER)
+    print("\n".join(rows))
+
+
+if __name__ == "__main__":
+    main()
