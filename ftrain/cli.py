@@ -146,6 +146,13 @@ def build_parser() -> argparse.ArgumentParser:
         default=30,
         help="timed iterations per case, after a few warm-up ones (default: %(default)s)",
     )
+    bench.add_argument(
+        "--settings",
+        nargs="+",
+        choices=["fixed", "config"],
+        default=["fixed", "config"],
+        help="the work per iteration: the fixed first setting, the shipped HalfCheetah config's, or both (default)",
+    )
 
     policy_url = f"{step_url}, a policy snapshot <root>/policies/step-N, or {newest}"
     play = commands.add_parser(
@@ -251,7 +258,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "bench":
         from ftrain.tools.bench import run_benchmark
 
-        return run_benchmark(args.iterations)
+        return run_benchmark(args.iterations, args.settings)
     if args.command == "play":
         from ftrain.policy.load import load_policy
         from ftrain.policy.play import play

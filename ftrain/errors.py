@@ -5,6 +5,9 @@ and keeps its traceback.
 """
 
 EXIT_USAGE = 2
+EXIT_RENDEZVOUS_TIMEOUT = 6
+"""torchrun (``ftrain.dist.torchrun``) and ``ftrain supervise``: an elastic rendezvous did not gather its minimum of
+nodes in time."""
 
 
 class UserError(Exception):

@@ -1,9 +1,10 @@
 """Heartbeat files: how workers tell the supervisor they are alive, and where they are.
 
-Each rank rewrites ``<dir>/rank-<R>.json`` atomically (temp file + rename, a local directory only) whenever
+Each rank rewrites ``<dir>/rank-<L>.json`` (L: its local rank, so that the workers torchrun restarts in a world of
+another size replace their predecessors' files) atomically (temp file + rename, a local directory only) whenever
 its phase changes. The supervisor reads them without importing torch. Fields:
 
-- ``rank``, ``pid``: who wrote it.
+- ``rank``, ``pid``: who wrote it (its global rank).
 - ``iteration``: iterations completed when the phase began.
 - ``phase``: ``start`` (resumed or fresh, before the first iteration), ``rollout``, ``update``,
   ``checkpoint``, ``done`` (all iterations finished), ``preempted`` (saved on request, exiting).
@@ -11,6 +12,7 @@ its phase changes. The supervisor reads them without importing torch. Fields:
 - ``resumed_step``: the step this process resumed from (None for a fresh start).
 - ``seq``: increases with every write, so a reader sees progress even when the clock does not move.
 - ``time``: wall-clock seconds, for humans and hang timing only; nothing trained depends on it.
+- ``world``: the world size; ``nodes``: the ``--node-rank`` of every node in it (see ``NODE_ENV``), sorted.
 """
 
 from __future__ import annotations
@@ -18,12 +20,14 @@ from __future__ import annotations
 import json
 import os
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 ENV_DIR = "FTRAIN_HEARTBEAT_DIR"
 TOKEN_ENV = "FTRAIN_ATTEMPT_TOKEN"
 """Set by the supervisor in every worker's environment: how it finds all processes of an attempt."""
+NODE_ENV = "FTRAIN_NODE"
+"""Set by the supervisor in every worker's environment: its ``--node-rank``, which the heartbeats list in ``nodes``."""
 
 
 @dataclass
@@ -36,14 +40,26 @@ class Heartbeat:
     resumed_step: int | None
     seq: int
     time: float
+    world: int = 1
+    nodes: list[int] = field(default_factory=list)
 
 
 class HeartbeatWriter:
     """Writes this rank's heartbeat; a no-op when no directory is configured."""
 
-    def __init__(self, directory: str | os.PathLike | None, rank: int) -> None:
-        self.path = Path(directory) / f"rank-{rank}.json" if directory else None
+    def __init__(
+        self,
+        directory: str | os.PathLike | None,
+        rank: int,
+        local_rank: int | None = None,
+        world: int = 1,
+        nodes: list[int] = (),
+    ) -> None:
+        slot = rank if local_rank is None else local_rank
+        self.path = Path(directory) / f"rank-{slot}.json" if directory else None
         self.rank = rank
+        self.world = world
+        self.nodes = sorted(set(nodes))
         self.seq = 0
         self.iteration = 0
         self.committed_step: int | None = None
@@ -58,7 +74,16 @@ class HeartbeatWriter:
             return
         self.seq += 1
         beat = Heartbeat(
-            self.rank, os.getpid(), self.iteration, phase, self.committed_step, self.resumed_step, self.seq, time.time()
+            self.rank,
+            os.getpid(),
+            self.iteration,
+            phase,
+            self.committed_step,
+            self.resumed_step,
+            self.seq,
+            time.time(),
+            self.world,
+            self.nodes,
         )
         tmp = self.path.with_suffix(f".tmp{os.getpid()}")
         tmp.write_text(json.dumps(asdict(beat)))

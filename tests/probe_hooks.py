@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 from ftrain.dist import group
@@ -75,3 +76,13 @@ class CrashingHook(Hook):
         if trainer.info.rank == self.rank and trainer.iteration == self.iteration and not self.marker.exists():
             self.marker.touch()
             raise RuntimeError(f"probe crash after iteration {self.iteration}")
+
+
+class PacingHook(Hook):
+    """Sleeps after every iteration: a run long enough, in wall time, for nodes to be lost and to come back."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+
+    def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        time.sleep(self.seconds)

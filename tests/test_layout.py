@@ -19,7 +19,7 @@ LAYERS = {
     "train": {"policy", "ckpt", "dist", "config", "errors", "errorfile", "heartbeat"},
     "policy": {"ckpt", "config", "errors", "progress"},
     "ckpt": {"dist", "config", "errors", "heartbeat", "redact"},
-    "dist": set(),
+    "dist": {"errors"},
     "config": {"errors", "redact"},
     "heartbeat": set(),
     "errorfile": set(),

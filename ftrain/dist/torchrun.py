@@ -4,6 +4,8 @@ This is torchrun itself, in this process, except for how it ends when workers fa
 ChildFailedError (a traceback and a text report on stderr), it writes torchrun's own account of every failed worker
 to FAILURES, as JSON ``{global rank: {"exitcode": code, "error": the JSON of its error file or null}}`` (a negative
 code: killed by that signal; the error file: what the worker recorded, see ``ftrain/errorfile.py``), and exits 1.
+An elastic rendezvous that did not gather its minimum of nodes in time is one line on stderr and exit
+``EXIT_RENDEZVOUS_TIMEOUT``: not a failure to restart, a lack of nodes.
 """
 
 from __future__ import annotations
@@ -14,7 +16,10 @@ import sys
 from pathlib import Path
 
 from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
+from torch.distributed.elastic.rendezvous.api import RendezvousTimeoutError
 from torch.distributed.run import main as torchrun
+
+from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT
 
 EXIT_WORKERS_FAILED = 1
 
@@ -32,6 +37,9 @@ def main(argv: list[str]) -> int:
         path.with_suffix(".tmp").write_text(json.dumps(failures))
         os.replace(path.with_suffix(".tmp"), path)
         return EXIT_WORKERS_FAILED
+    except RendezvousTimeoutError as error:
+        print(f"torchrun: rendezvous timed out: {' '.join(str(error).split())}", file=sys.stderr, flush=True)
+        return EXIT_RENDEZVOUS_TIMEOUT
     return 0
 
 

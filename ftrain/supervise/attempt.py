@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from ftrain import errorfile
-from ftrain.heartbeat import ENV_DIR, TOKEN_ENV
+from ftrain.heartbeat import ENV_DIR, NODE_ENV, TOKEN_ENV
 from ftrain.supervise import procfs
 from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.coordinator import Plan
@@ -56,10 +56,16 @@ def torchrun_command(
     ]
 
 
-def attempt_env(heartbeat_dir: Path, token: str, stop_grace: float) -> dict[str, str]:
+def attempt_env(heartbeat_dir: Path, token: str, stop_grace: float, node: int) -> dict[str, str]:
     """The environment of torchrun and its workers: heartbeats go to ``heartbeat_dir`` (emptied of an earlier
-    attempt's now), every process carries ``token``, torchrun waits ``stop_grace`` for workers it stops; the
-    coordinator's secret stays with the supervisor."""
+    attempt's now), every process carries ``token`` and this ``node``'s rank, torchrun waits ``stop_grace`` for
+    workers it stops; the coordinator's secret stays with the supervisor.
+
+    ``TORCH_DISABLE_SHARE_RDZV_TCP_STORE=1``: when a node joins an elastic run, torchrun's agents restart their
+    workers in a larger world. With the agent's store shared with the workers (torch's default), the workers of that
+    second round hang in ``init_process_group`` (torch 2.13, gloo: their keys sit under the prefix of the unchanged
+    restart count 0, next to the first round's); with it off, each round's rank 0 hosts a fresh store
+    (``tests/supervise/test_elastic.py`` grows a world both ways)."""
     heartbeat_dir.mkdir(parents=True, exist_ok=True)
     for stale in heartbeat_dir.glob("rank-*"):
         stale.unlink(missing_ok=True)
@@ -67,6 +73,8 @@ def attempt_env(heartbeat_dir: Path, token: str, stop_grace: float) -> dict[str,
         **{name: value for name, value in os.environ.items() if name != SECRET_ENV},  # the workers do not need it
         ENV_DIR: str(heartbeat_dir),
         TOKEN_ENV: token,
+        NODE_ENV: str(node),
+        "TORCH_DISABLE_SHARE_RDZV_TCP_STORE": os.environ.get("TORCH_DISABLE_SHARE_RDZV_TCP_STORE", "1"),
         "TORCH_ELASTIC_SHUTDOWN_TIMEOUT": str(math.ceil(stop_grace)),
     }
 
@@ -116,6 +124,8 @@ class Attempt:
         self.resumed: int | None = None
         self.progressed = False
         self.seen = False
+        self.world: int | None = None
+        """World size of the worker group the ledger follows (torchrun may restart it in a larger world)."""
         self.reported = False
 
     def culprit(self) -> tuple[int, WorkerFailure] | None:

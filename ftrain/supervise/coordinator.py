@@ -1,8 +1,11 @@
 """Several nodes. The same command on every node with ``--nnodes N --node-rank R --rdzv-endpoint HOST:PORT`` where
 HOST is node 0's address. Node 0's supervisor listens on PORT and names the current attempt and a fresh port for
-its static rendezvous (node 0's torchrun hosts the store there). A node whose attempt fails tells node 0, which
+its torchrun rendezvous (node 0's torchrun hosts the store there). A node whose attempt fails tells node 0, which
 moves everyone to the next attempt on a new port; the other nodes see that within half a second and restart too.
-So no node can join the store of a dead attempt, and all nodes restart exactly once per failure.
+So no node can join the store of a dead attempt, and all nodes restart exactly once per failure. With
+``--nnodes MIN:MAX`` the rendezvous is torchrun's elastic one (see ``rendezvous_args``): which nodes train, and
+with how many ranks, is torchrun's decision; the coordinator only numbers the attempts. Node 0 must live: it
+answers the other nodes and hosts the rendezvous (as torchrun's c10d endpoint host must).
 
 Node 0 listens on the address of ``--rdzv-endpoint`` only, and answers only requests signed with the run's secret
 (``auth.py``; they also name the run's token, so a request recorded in an earlier run does nothing now). Anything
@@ -25,7 +28,7 @@ from dataclasses import dataclass
 
 from ftrain.errors import UserError
 from ftrain.supervise.auth import HOW_TO_SET, REPLY, REQUEST, Refused, read_line, seal, unseal
-from ftrain.supervise.options import SupervisorOptions
+from ftrain.supervise.options import Nodes, SupervisorOptions
 
 POLL = 0.1
 """Seconds between two looks at whether every node has learnt the outcome."""
@@ -34,6 +37,11 @@ CONNECTION_TIMEOUT = 5.0
 MAX_LOGGED_REFUSALS = 1000
 """Refused connections recorded in events.jsonl at most (a flood must not fill the disk)."""
 OPS = ("plan", "fail", "finish")
+KEEP_ALIVE_INTERVAL = 1
+KEEP_ALIVE_MISSES = 3
+"""Elastic rendezvous: seconds between two keep-alives of a node's torchrun, and how many it may miss."""
+GONE_AFTER = 3.0
+"""Seconds without a request after which node 0 no longer waits for a node to learn the outcome."""
 
 
 @dataclass
@@ -61,6 +69,8 @@ class Coordinator:
         self._lock = threading.Lock()
         self._plan = Plan(secrets.token_hex(4), 0, self._port())
         self._informed: set[int] = set()
+        self._seen: dict[int, float] = {}
+        """When each node last asked (nodes of an elastic run may be gone for good)."""
         self._refusals: dict[str, int] = {}
         """Refused connections so far, by reason."""
 
@@ -82,6 +92,7 @@ class Coordinator:
                 plan.final = request["code"]
             if plan.final is not None:
                 self._informed.add(request["node"])
+            self._seen[request["node"]] = time.monotonic()
             return dataclasses.asdict(plan)
 
     def serve(self, host: str, port: int) -> socketserver.TCPServer:
@@ -109,10 +120,14 @@ class Coordinator:
             self._log("refused", message, peer=f"{peer[0]}:{peer[1]}", reason=reason)
 
     def wait_informed(self, nnodes: int, timeout: float) -> None:
+        """Until every node has learnt the outcome, at most ``timeout`` seconds; a node silent for ``GONE_AFTER``
+        seconds is not waited for (an elastic run went on without it)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             with self._lock:
-                if self._informed >= set(range(nnodes)):
+                now = time.monotonic()
+                silent = {node for node, seen in self._seen.items() if now - seen > GONE_AFTER}
+                if self._informed | silent >= set(range(nnodes)):
                     return
             time.sleep(POLL)
 
@@ -195,14 +210,40 @@ def plan_key(plan: Plan) -> dict:
     return {"token": plan.token, "attempt": plan.attempt}
 
 
-def rendezvous_args(plan: Plan, nnodes: int, options: SupervisorOptions, endpoint: tuple[str, int]) -> list[str]:
-    """torchrun's static rendezvous for ``plan``: node 0's torchrun hosts the store on the plan's fresh port."""
+def rendezvous_args(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> list[str]:
+    """torchrun's rendezvous for ``plan``, under a run id of this attempt; node 0's torchrun hosts the store on the
+    plan's fresh port.
+
+    A fixed number of nodes meets in a static rendezvous: node R runs global ranks R x nproc and up, every time.
+    Elastic (``MIN:MAX``) nodes meet in torchrun's c10d rendezvous: it starts once MIN nodes have joined and
+    ``--rejoin-timeout`` has passed or MAX have joined (a node lost for good is thus left behind), gives up after
+    ``--rdzv-timeout`` (``ftrain.dist.torchrun`` then exits ``EXIT_RENDEZVOUS_TIMEOUT``), and, once training, lets
+    its agents restart their workers with a larger world when a node joins late (the workers save on that SIGTERM:
+    the world grows at a checkpoint boundary). A node that stops sending keep-alives drops out after
+    ``KEEP_ALIVE_INTERVAL`` x ``KEEP_ALIVE_MISSES`` seconds.
+    """
+    run_id = f"--rdzv-id=ftrain-{plan.token}-{plan.attempt}"
+    if not nodes.elastic:
+        return [
+            f"--nnodes={nodes.count}",
+            f"--node-rank={options.node_rank}",
+            "--rdzv-backend=static",
+            f"--master-addr={nodes.endpoint[0]}",
+            f"--master-port={plan.port}",
+            run_id,
+            f"--rdzv-conf=timeout={math.ceil(options.rdzv_timeout)}",
+        ]
+    conf = {
+        "is_host": int(options.node_rank == 0),  # on one machine (tests) every node would match the host's address
+        "join_timeout": math.ceil(options.rdzv_timeout),
+        "last_call_timeout": math.ceil(options.rejoin_timeout),
+        "keep_alive_interval": KEEP_ALIVE_INTERVAL,
+        "keep_alive_max_attempt": KEEP_ALIVE_MISSES,
+    }
     return [
-        f"--nnodes={nnodes}",
-        f"--node-rank={options.node_rank}",
-        "--rdzv-backend=static",
-        f"--master-addr={endpoint[0]}",
-        f"--master-port={plan.port}",
-        f"--rdzv-id=ftrain-{plan.token}-{plan.attempt}",
-        f"--rdzv-conf=timeout={math.ceil(options.rdzv_timeout)}",
+        f"--nnodes={nodes.least}:{nodes.count}",
+        "--rdzv-backend=c10d",
+        f"--rdzv-endpoint={nodes.endpoint[0]}:{plan.port}",
+        run_id,
+        "--rdzv-conf=" + ",".join(f"{key}={value}" for key, value in conf.items()),
     ]

@@ -1,5 +1,6 @@
 """The supervisor's accounting across attempts: the step each resumed from, iterations lost and downtime per
-recovery (``resumed`` and ``recovered`` events), and their totals for the summary."""
+recovery (``resumed`` and ``recovered`` events), their totals for the summary, and every change of world size
+(``resize`` events: a node lost or joined an elastic run)."""
 
 from __future__ import annotations
 
@@ -8,14 +9,17 @@ from dataclasses import dataclass
 
 from ftrain.heartbeat import Heartbeat
 from ftrain.supervise.attempt import Attempt
+from ftrain.supervise.hang import QUIET_PHASES
 
 
 @dataclass
 class Failure:
-    """A failure not yet recovered from: when it was detected and how many iterations had completed."""
+    """A stop not yet recovered from: when it was detected and how many iterations had completed; ``failed``: a
+    failure (else the workers saved on request, as torchrun's agents ask when a node joins)."""
 
     detected: float
     completed: int
+    failed: bool = False
 
 
 class Ledger:
@@ -26,48 +30,89 @@ class Ledger:
         self.lost = 0
         self.downtime = 0.0
         self.pending: Failure | None = None
+        self.paused: Failure | None = None
+        """When the workers last saved on request and stopped (an elastic regroup, or the end of an attempt)."""
+        self.world: int | None = None
+        """World size of the last worker group that trained, and the nodes it spanned."""
+        self.nodes: list[int] = []
 
     def failed(self, completed: int, now: float) -> None:
         """An attempt failed at ``now`` after ``completed`` iterations (several failures before a recovery are one)."""
         if self.pending is None:
-            self.pending = Failure(now, completed)
+            self.pending = Failure(now, completed, failed=True)
         else:
             self.pending.completed = max(self.pending.completed, completed)
 
-    def observe(self, attempt: Attempt, beats: dict[int, Heartbeat], now: float) -> None:
-        """Track completed iterations and commits; log the resumed step and the first iteration after a failure."""
+    def observe(self, attempt: Attempt, beats: dict[int, Heartbeat], now: float) -> bool:
+        """Track completed iterations and commits; log the resumed step, the first iteration after a failure and
+        every change of world size. True when torchrun has restarted this node's workers in a world of another size
+        within the attempt (a node joined an elastic run)."""
         if not beats:
-            return
+            return False
         for beat in beats.values():
             # a checkpoint/done/preempted beat keeps the iteration of the rollout; its committed step may be newer
             attempt.completed = max(attempt.completed, beat.iteration, beat.committed_step or 0)
             if beat.committed_step is not None:
                 attempt.committed = max(beat.committed_step, attempt.committed or 0)
+        if self.paused is None and any(beat.phase == "preempted" for beat in beats.values()):
+            self.paused = Failure(now, attempt.completed)  # saved on request: torchrun regroups, or the attempt ends
+        worlds = {beat.world for beat in beats.values() if beat.phase not in QUIET_PHASES}
+        regrouped = attempt.world is not None and len(worlds) == 1 and worlds != {attempt.world}
+        if regrouped:
+            attempt.seen = attempt.progressed = False
+        if len(worlds) == 1:
+            attempt.world = worlds.pop()
+        group = {rank: beat for rank, beat in beats.items() if beat.world == attempt.world}
         if not attempt.seen:
-            past_start = [beat for beat in beats.values() if beat.phase != "start"]  # restored by now
+            past_start = [beat for beat in group.values() if beat.phase != "start"]  # restored by now
             if not past_start:
-                return
+                return regrouped
             attempt.seen = True
             attempt.resumed = min(past_start, key=lambda beat: beat.rank).resumed_step
             self.events("resumed", attempt=attempt.plan.attempt, step=attempt.resumed)
         base = attempt.resumed or 0
-        if attempt.progressed or len(beats) < self.ranks:
-            return
-        if all(beat.iteration > base for beat in beats.values()):
-            attempt.progressed = True
-            if self.pending is not None:
-                lost = max(0, self.pending.completed - base)
-                downtime = now - self.pending.detected
-                self.lost += lost
-                self.downtime += downtime
-                self.pending = None
-                start = "the start (no checkpoint yet)" if attempt.resumed is None else f"step {attempt.resumed}"
-                self.events(
-                    "recovered",
-                    f"attempt {attempt.plan.attempt}: recovered from {start} ({lost} iterations lost, {downtime:.1f} s "
-                    "down)",
-                    attempt=attempt.plan.attempt,
-                    step=attempt.resumed,
-                    lost=lost,
-                    downtime=round(downtime, 3),
-                )
+        if attempt.progressed or len(group) < self.ranks or not all(beat.iteration > base for beat in group.values()):
+            return regrouped
+        attempt.progressed = True
+        stop, self.pending, self.paused = self.pending or self.paused, None, None
+        lost = max(0, stop.completed - base) if stop else 0
+        downtime = now - stop.detected if stop else 0.0
+        if stop is not None and stop.failed:
+            self.lost += lost
+            self.downtime += downtime
+            start = "the start (no checkpoint yet)" if attempt.resumed is None else f"step {attempt.resumed}"
+            self.events(
+                "recovered",
+                f"attempt {attempt.plan.attempt}: recovered from {start} ({lost} iterations lost, {downtime:.1f} s "
+                "down)",
+                attempt=attempt.plan.attempt,
+                step=attempt.resumed,
+                lost=lost,
+                downtime=round(downtime, 3),
+            )
+        nodes = min(group.values(), key=lambda beat: beat.rank).nodes
+        if self.world is not None and self.world != attempt.world:
+            self._resized(attempt, nodes, lost, downtime)
+        self.world, self.nodes = attempt.world, nodes
+        return regrouped
+
+    def _resized(self, attempt: Attempt, nodes: list[int], lost: int, downtime: float) -> None:
+        left, joined = sorted(set(self.nodes) - set(nodes)), sorted(set(nodes) - set(self.nodes))
+        why = "; ".join(
+            [f"node {', '.join(map(str, left))} lost"] * bool(left)
+            + [f"node {', '.join(map(str, joined))} joined"] * bool(joined)
+        ) or ("fewer ranks" if attempt.world < self.world else "more ranks")
+        self.events(
+            "resize",
+            f"attempt {attempt.plan.attempt}: world {self.world} -> {attempt.world} ranks ({why}), resumed from step "
+            f"{attempt.resumed}: {downtime:.1f} s down, {lost} iterations lost",
+            attempt=attempt.plan.attempt,
+            old_world=self.world,
+            new_world=attempt.world,
+            old_nodes=self.nodes,
+            new_nodes=nodes,
+            why=why,
+            step=attempt.resumed,
+            lost=lost,
+            downtime=round(downtime, 3),
+        )

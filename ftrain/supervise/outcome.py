@@ -6,8 +6,8 @@ import math
 import signal
 from dataclasses import dataclass
 
-from ftrain.errors import EXIT_USAGE
-from ftrain.supervise.options import EXIT_DONE, EXIT_PREEMPTED
+from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_USAGE
+from ftrain.supervise.options import EXIT_DONE, EXIT_PREEMPTED, EXIT_TOO_FEW_NODES
 
 
 @dataclass
@@ -83,6 +83,13 @@ def classify(
         if superseded:
             return Outcome("failed", None, "stopped because another node failed")
         return Outcome("preempted", EXIT_PREEMPTED, f"preempted: the workers saved step {committed}; rerun to continue")
+    if code == EXIT_RENDEZVOUS_TIMEOUT and culprit is None:
+        return Outcome(
+            "too_few_nodes",
+            EXIT_TOO_FEW_NODES,
+            f"fewer nodes than the minimum joined within --rdzv-timeout; nothing committed is lost (newest step "
+            f"{committed}): start the missing nodes and run the same command again",
+        )
     if culprit is not None and culprit[1].code == EXIT_USAGE:
         rank, failure = culprit
         refusal = f"refused its input: {failure.error}" if failure.error else f"exited with code {EXIT_USAGE}"

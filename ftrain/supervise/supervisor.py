@@ -104,6 +104,7 @@ class Supervisor:
         train_args: list[str],
     ) -> None:
         self.options = options
+        self.nodes = nodes
         self.nnodes = nodes.count
         self.train_args = train_args
         multi = nodes.count > 1
@@ -112,7 +113,6 @@ class Supervisor:
         self.attempt_logs = log_dir / "torchrun" / node_dir
         self.events = EventLog(log_dir / "events.jsonl", options.node_rank if multi else None)
         self.hangs = HangWatch(hang_timeout, options.startup_grace, options.nproc_per_node)
-        self.endpoint = nodes.endpoint
         coordinating = options.node_rank == 0 or not multi
         self.coordinator = Coordinator(multi, nodes.secret, self.events) if coordinating else None
         self.server = self.coordinator.serve(*nodes.endpoint) if multi and self.coordinator else None
@@ -216,10 +216,8 @@ class Supervisor:
 
     def _launch(self, plan: Plan) -> Attempt:
         token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
-        env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace)
-        rendezvous = (
-            ["--standalone"] if self.nnodes == 1 else rendezvous_args(plan, self.nnodes, self.options, self.endpoint)
-        )
+        env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.options.node_rank)
+        rendezvous = ["--standalone"] if self.nnodes == 1 else rendezvous_args(plan, self.nodes, self.options)
         module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
         logs = new_log_dir(self.attempt_logs, plan)
         command = torchrun_command(self.options.nproc_per_node, rendezvous, module, self.train_args, logs)
@@ -236,7 +234,8 @@ class Supervisor:
             time.sleep(POLL)
             now = time.monotonic()
             beats = read_heartbeats(self.heartbeat_dir)
-            self.ledger.observe(attempt, beats, now)
+            if self.ledger.observe(attempt, beats, now):
+                self.hangs.restart(now)  # torchrun restarted the workers in a larger world: start-up again
             code = attempt.proc.poll()
             if code is not None:
                 return self._exited(attempt, code)
@@ -336,9 +335,8 @@ class Supervisor:
             code == 0 and self.nnodes > 1 and plan_key(self._current_plan(attempt.plan)) != plan_key(attempt.plan)
         )
         stopped = stop_code(self.signals[0]) if self.signals else None
-        outcome = classify(
-            code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, attempt.committed
-        )
+        committed = attempt.committed if attempt.committed is not None else self.best_committed
+        outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
         self._log_exit(attempt, cause, f"attempt {attempt.plan.attempt}: {cause}" if outcome.failed else "", phases)
         if outcome.failed:
             self._failed(attempt, now)

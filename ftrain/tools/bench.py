@@ -1,8 +1,10 @@
 """``ftrain bench``: PPO throughput on HalfCheetah-v5, ftrain against its peers, measured side by side in one run.
 
 Every case runs in its own process with one torch thread (the 2-rank case: two processes), with the same work per
-iteration: 16 envs x 24 steps per rank, 5 epochs x 4 minibatches, a 64x64 MLP. Each reports steady-state
-environment steps per second over the timed iterations, after warm-up iterations that are not counted:
+iteration, in two settings: ``fixed`` (16 envs x 24 steps per rank, 5 epochs x 4 minibatches, a 64x64 ELU MLP: the
+setting of the first measurements) and ``config`` (the work of the shipped ``configs/halfcheetah.yaml``: its rollout
+length, epochs, minibatches and network). Each case reports steady-state environment steps per second over the timed
+iterations, after warm-up iterations that are not counted (periodic evaluation off):
 
 - ``raw``: gymnasium's vector env stepped with random actions, no learning: the limit;
 - ``rsl_rl``: rsl-rl's own OnPolicyRunner, one process;
@@ -19,22 +21,53 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
+from ftrain.config import load_config
 from ftrain.progress import Progress
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.hooks import Hook
 
 ENV_ID = "HalfCheetah-v5"
 NUM_ENVS = 16
-STEPS = 24
-EPOCHS = 5
-MINIBATCHES = 4
-HIDDEN = [64, 64]
 WARMUP = 3
 CONFIG = Path(__file__).resolve().parents[2] / "configs" / "halfcheetah.yaml"
+
+
+@dataclass(frozen=True)
+class Setting:
+    """The work of one PPO iteration (per rank: ``NUM_ENVS`` environments), which every case of a setting does."""
+
+    steps: int
+    epochs: int
+    minibatches: int
+    hidden: tuple[int, ...]
+    activation: str
+
+    def overrides(self) -> list[str]:
+        """ftrain config overrides for this work (the rest of the shipped config, e.g. normalisation, stays)."""
+        hidden = ",".join(map(str, self.hidden))
+        return [
+            f"env.num_envs={NUM_ENVS}",
+            f"num_steps_per_env={self.steps}",
+            f"algorithm.num_learning_epochs={self.epochs}",
+            f"algorithm.num_mini_batches={self.minibatches}",
+            f"policy.hidden_dims=[{hidden}]",
+            f"policy.activation={self.activation}",
+        ]
+
+
+def shipped_setting() -> Setting:
+    config = load_config(str(CONFIG))
+    a, policy = config.algorithm, config.policy
+    hidden = tuple(policy.hidden_dims)
+    return Setting(config.num_steps_per_env, a.num_learning_epochs, a.num_mini_batches, hidden, policy.activation)
+
+
+SETTINGS = {"fixed": lambda: Setting(24, 5, 4, (64, 64), "elu"), "config": shipped_setting}
 
 
 class ThroughputHook(Hook):
@@ -87,61 +120,68 @@ def _timed(step_count: int, work) -> float:
     return step_count / (time.perf_counter() - start)
 
 
-def measure_raw(iterations: int) -> float:
+def measure_raw(iterations: int, setting: Setting) -> float:
     import gymnasium as gym
     import numpy as np
 
     envs = gym.make_vec(ENV_ID, num_envs=NUM_ENVS, vectorization_mode="sync")
     envs.reset(seed=0)
     rng = np.random.default_rng(0)
-    actions = rng.uniform(-1, 1, size=(iterations * STEPS, NUM_ENVS, envs.single_action_space.shape[0]))
+    actions = rng.uniform(-1, 1, size=(iterations * setting.steps, NUM_ENVS, envs.single_action_space.shape[0]))
 
     def work() -> None:
         for action in actions:
             envs.step(action)
 
-    return _timed(iterations * STEPS * NUM_ENVS, work)
+    return _timed(iterations * setting.steps * NUM_ENVS, work)
 
 
-def measure_rsl_rl(iterations: int) -> float:
+def measure_rsl_rl(iterations: int, setting: Setting) -> float:
     import contextlib
     import io
 
     from rsl_rl.runners import OnPolicyRunner
 
     env = MujocoVecEnv(ENV_ID, NUM_ENVS, seed=0)
-    model = {"class_name": "MLPModel", "hidden_dims": HIDDEN, "activation": "elu", "obs_normalization": True}
+    model = {
+        "class_name": "MLPModel",
+        "hidden_dims": list(setting.hidden),
+        "activation": setting.activation,
+        "obs_normalization": True,
+    }
+    algorithm = {"num_learning_epochs": setting.epochs, "num_mini_batches": setting.minibatches}
     train_cfg = {
-        "num_steps_per_env": STEPS,
+        "num_steps_per_env": setting.steps,
         "save_interval": 10**9,
         "obs_groups": {"actor": ["policy"], "critic": ["policy"]},
         "actor": {**model, "distribution_cfg": {"class_name": "GaussianDistribution", "init_std": 1.0}},
         "critic": model,
-        "algorithm": {"class_name": "PPO", "num_learning_epochs": EPOCHS, "num_mini_batches": MINIBATCHES},
+        "algorithm": {"class_name": "PPO", **algorithm},
     }
     with contextlib.redirect_stdout(io.StringIO()):
         runner = OnPolicyRunner(env, train_cfg, log_dir=None, device="cpu")
         runner.learn(WARMUP)
-        return _timed(iterations * STEPS * NUM_ENVS, lambda: runner.learn(iterations))
+        return _timed(iterations * setting.steps * NUM_ENVS, lambda: runner.learn(iterations))
 
 
-def measure_sb3(iterations: int) -> float:
+def measure_sb3(iterations: int, setting: Setting) -> float:
     from stable_baselines3 import PPO
     from stable_baselines3.common.env_util import make_vec_env
 
     env = make_vec_env(ENV_ID, n_envs=NUM_ENVS, seed=0)
+    activation = {"elu": torch.nn.ELU, "relu": torch.nn.ReLU, "tanh": torch.nn.Tanh}[setting.activation]
     model = PPO(
         "MlpPolicy",
         env,
-        n_steps=STEPS,
-        batch_size=NUM_ENVS * STEPS // MINIBATCHES,
-        n_epochs=EPOCHS,
-        policy_kwargs={"net_arch": HIDDEN},
+        n_steps=setting.steps,
+        batch_size=NUM_ENVS * setting.steps // setting.minibatches,
+        n_epochs=setting.epochs,
+        policy_kwargs={"net_arch": list(setting.hidden), "activation_fn": activation},
         device="cpu",
         seed=0,
     )
-    model.learn(WARMUP * STEPS * NUM_ENVS)
-    steps = iterations * STEPS * NUM_ENVS
+    model.learn(WARMUP * setting.steps * NUM_ENVS)
+    steps = iterations * setting.steps * NUM_ENVS
     return _timed(steps, lambda: model.learn(steps, reset_num_timesteps=False))
 
 
@@ -162,6 +202,7 @@ def run_ftrain(
             "log.console=false",
             "log.tensorboard=false",
             "log.csv=false",
+            "eval.every=0",
             hook,
             *overrides,
         ]
@@ -171,27 +212,33 @@ def run_ftrain(
         return json.loads(out.read_text())
 
 
-def measure_ftrain(iterations: int, ranks: int) -> float:
-    return run_ftrain(iterations, ranks)["steps_per_s"]
+def measure_ftrain(iterations: int, setting: Setting, ranks: int) -> float:
+    return run_ftrain(iterations, ranks, overrides=tuple(setting.overrides()))["steps_per_s"]
 
 
 CASES = {
     "raw": measure_raw,
     "rsl_rl": measure_rsl_rl,
     "sb3": measure_sb3,
-    "ftrain-1": lambda n: measure_ftrain(n, 1),
-    "ftrain-2": lambda n: measure_ftrain(n, 2),
+    "ftrain-1": lambda n, setting: measure_ftrain(n, setting, 1),
+    "ftrain-2": lambda n, setting: measure_ftrain(n, setting, 2),
 }
 
 
-def run_benchmark(iterations: int) -> int:
-    """Run every case in a fresh process, print steps/s and the ratios the targets are stated in."""
+def run_benchmark(iterations: int, settings: list[str]) -> int:
+    """Run every case of every setting in a fresh process, print steps/s and the ratios the targets are stated in."""
+    return max(_run_setting(iterations, name) for name in settings)
+
+
+def _run_setting(iterations: int, setting_name: str) -> int:
+    setting = SETTINGS[setting_name]()
+    print(f"setting {setting_name}: {setting}", flush=True)
     results = {}
     progress = Progress()
     for number, name in enumerate(CASES, start=1):
         progress.show(f"running case {number}/{len(CASES)}: {name} ({iterations} iterations)...")
-        code = "import torch; torch.set_num_threads(1); from ftrain.tools.bench import CASES; "
-        code += f"print(CASES[{name!r}]({iterations}))"
+        code = "import torch; torch.set_num_threads(1); from ftrain.tools.bench import CASES, SETTINGS; "
+        code += f"print(CASES[{name!r}]({iterations}, SETTINGS[{setting_name!r}]()))"
         done = subprocess.run(
             [sys.executable, "-c", code],
             capture_output=True,

@@ -23,7 +23,7 @@ from ftrain.ckpt.manager import Checkpointer
 from ftrain.ckpt.resume import CheckpointError
 from ftrain.config import Config
 from ftrain.dist import group
-from ftrain.heartbeat import ENV_DIR, HeartbeatWriter
+from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.evaluation import EvalHook
 from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
@@ -80,7 +80,8 @@ class Trainer:
         self.env_steps = 0
         self.episodes: collections.deque[tuple[float, int]] = collections.deque(maxlen=EPISODE_WINDOW)
         self.metrics: dict[str, float] = {}
-        self.heartbeat = HeartbeatWriter(os.environ.get(ENV_DIR), info.rank)
+        nodes = group.all_gather_object(int(os.environ.get(NODE_ENV, "0")), info)  # which nodes this world spans
+        self.heartbeat = HeartbeatWriter(os.environ.get(ENV_DIR), info.rank, info.local_rank, info.world_size, nodes)
         self.checkpointer = Checkpointer(config, info, self.log)
         self.checkpointer.on_commit = lambda step, manifest: self.hooks.call("on_checkpoint", self, step, manifest)
         self.checkpointer.while_waiting = lambda: self.heartbeat.beat("checkpoint")

@@ -305,7 +305,7 @@ def test_several_nodes_refuse_to_start_without_a_secret_or_off_their_address(tmp
     ("options", "overrides", "fragment"),
     [
         (["--hang-timeout", "soon"], [], "--hang-timeout"),
-        (["--nnodes", "1:2"], [], "--nnodes"),
+        (["--nnodes", "3:2"], [], "--nnodes"),
         (["--nnodes", "2"], [], "--rdzv-endpoint"),
         ([], ["iterations=zero"], "iterations"),
         ([], ["env.id=Pendulum-v1"], "env.id='Pendulum-v1' is not a MuJoCo environment"),
