@@ -9,7 +9,8 @@
 # (default 29400) a free port there, where node 0's supervisor agrees each attempt with the others, answering only
 # requests signed with FTRAIN_RDZV_SECRET (or with the contents of the file `--rdzv-secret-file FILE` names).
 # Storage must be shared by all nodes (s3://, or a shared filesystem). NPROC_PER_NODE defaults to the node's CPU
-# count. Extra arguments go to `ftrain supervise`.
+# count. Extra arguments go to `ftrain supervise`. NNODES=MIN:MAX (e.g. 2:4) trains elastically on as many nodes as
+# there are (see README, Supervision); NODE_RANK then only needs to be 0 on the node at HEAD and distinct elsewhere.
 # After SIGTERM every node exits 143 once the workers have saved: run the same commands again to continue.
 set -euo pipefail
 cd "$(dirname "$0")/.."
