@@ -151,7 +151,7 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="+",
         choices=["fixed", "config"],
         default=["fixed", "config"],
-        help="the work per iteration: the fixed first setting, the shipped HalfCheetah config's, or both (default)",
+        help="the work per iteration: the fixed first setting, the shipped HalfCheetah config's (default: %(default)s)",
     )
 
     policy_url = f"{step_url}, a policy snapshot <root>/policies/step-N, or {newest}"

@@ -8,6 +8,11 @@ the supervisor (preemption) followed by the same command again, and, on two supe
 SIGKILL of node 1's worker. Recovery is the time from the fault to the next completed iteration (the supervisor's
 ``recovered`` event; for preemption, the rerun's first iteration); lost iterations are those completed before the
 fault and not in the step resumed from. The kill and hang scenarios inject every trial into one long run.
+
+``node-loss``: three elastic nodes (``--nnodes 2:3``, one rank each, ``--rejoin-timeout 5``); node 2's supervisor,
+torchrun and worker are SIGKILLed at once, and started again once the other two train on. Two rows: ``shrink``,
+from the kill to the first iteration of the 2-rank world, and ``grow``, from node 2's start to the first iteration
+of the 3-rank world (the ``resize`` events); lost iterations as above.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ sys.path.insert(0, str(REPO))
 
 from ftrain.ckpt.format import CHECKPOINTS, MANIFEST  # noqa: E402
 from ftrain.heartbeat import read_heartbeats  # noqa: E402
+from ftrain.supervise import procfs  # noqa: E402
 from ftrain.supervise.auth import SECRET_ENV  # noqa: E402
 from ftrain.supervise.coordinator import free_port  # noqa: E402
 from ftrain.supervise.options import EXIT_PREEMPTED  # noqa: E402
@@ -44,7 +50,9 @@ SCENARIOS = (
     "hang",
     "preempt",
     "two-nodes-kill",
+    "node-loss",
 )
+REJOIN_TIMEOUT = 5
 
 
 class Supervised:
@@ -217,6 +225,48 @@ def two_node_trials(trials: int, work: Path) -> list[dict]:
     return results
 
 
+def node_loss_trials(trials: int, work: Path) -> dict[str, list[dict]]:
+    """Three elastic nodes on 127.0.0.1; each trial loses node 2 for good, then starts it again."""
+    storage = work / "node-loss" / "run"
+    storage.parent.mkdir(parents=True)
+    endpoint = f"127.0.0.1:{free_port()}"
+    secret = {SECRET_ENV: secrets.token_hex(32)}
+    options = ("--nproc-per-node", "1", "--nnodes", "2:3", "--rdzv-endpoint", endpoint)
+    options += ("--rejoin-timeout", str(REJOIN_TIMEOUT), "--max-restarts", str(trials + 5))
+
+    def node(rank: int) -> Supervised:
+        return Supervised(storage, *options, "--node-rank", str(rank), node=rank, env=secret)
+
+    nodes = [node(rank) for rank in range(3)]
+    results: dict[str, list[dict]] = {"node-loss-shrink": [], "node-return-grow": []}
+    try:
+        nodes[0].training(resumed_step(nodes[0]) + 2, ranks=1)
+        for _ in range(trials):
+            resizes = len(nodes[0].events("resize"))
+            at = time.time()
+            for pid in [nodes[2].proc.pid, *procfs.descendants(nodes[2].proc.pid)]:
+                os.kill(pid, signal.SIGKILL)  # the machine is gone: supervisor, torchrun and worker at once
+            nodes[2].proc.wait()
+            shrink = nodes[0].next_event("resize", resizes)
+            results["node-loss-shrink"].append(resize_result(shrink, at))
+            nodes[0].training(shrink["step"] + 2, ranks=1)
+            at = time.time()
+            nodes[2] = node(2)
+            grow = nodes[0].next_event("resize", resizes + 1)
+            results["node-return-grow"].append(resize_result(grow, at))
+            nodes[0].training(grow["step"] + 2, ranks=1)
+            shrunk, grown = (format_trial(results[name][-1]) for name in results)
+            print(f"  node-loss trial {len(results['node-loss-shrink'])}: shrink {shrunk}; grow {grown}", flush=True)
+    finally:
+        for each in nodes:
+            each.stop()
+    return results
+
+
+def resize_result(event: dict, since: float) -> dict:
+    return {"seconds": event["time"] - since, "lost": event["lost"], "restarts": 1, "step": event["step"]}
+
+
 def format_trial(result: dict) -> str:
     return f"{result['seconds']:.2f} s, {result['lost']} iterations lost, {result['restarts']} restart(s)"
 
@@ -235,6 +285,8 @@ def main() -> int:
             summary[scenario] = preempt_trials(args.trials, work)
         elif scenario == "two-nodes-kill":
             summary[scenario] = two_node_trials(args.trials, work)
+        elif scenario == "node-loss":
+            summary.update(node_loss_trials(args.trials, work))
         else:
             summary[scenario] = fault_trials(scenario, args.trials, work)
     header = ("scenario", "trials", "median s", "worst s", "lost med", "lost max", "1st restart")

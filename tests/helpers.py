@@ -136,24 +136,9 @@ def torchrun_pid(supervisor_pid: int) -> int:
     return wait_for(find, "torchrun")
 
 
-def descendants(pid: int) -> list[int]:
-    """Every live process below ``pid`` (torchrun starts each worker in a session of its own, so a process group
-    kill does not reach them)."""
-    children: dict[int, list[int]] = {}
-    for child in procfs.pids():
-        if fields := procfs.stat_fields(child):
-            children.setdefault(int(fields[1]), []).append(child)
-    found, todo = [], [pid]
-    while todo:
-        for child in children.get(todo.pop(), []):
-            found.append(child)
-            todo.append(child)
-    return found
-
-
 def kill_tree(proc: subprocess.Popen) -> None:
     """SIGKILL a launched process and everything below it at once, like a machine that lost power."""
-    for pid in [proc.pid, *descendants(proc.pid)]:
+    for pid in [proc.pid, *procfs.descendants(proc.pid)]:
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGKILL)
     proc.wait()

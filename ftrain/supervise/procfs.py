@@ -33,3 +33,18 @@ def read(pid: int, name: str) -> bytes:
 def pids() -> list[int]:
     """Every process's pid, as /proc lists them now."""
     return [int(entry.name) for entry in Path("/proc").iterdir() if entry.name.isdigit()]
+
+
+def descendants(pid: int) -> list[int]:
+    """Every live process below ``pid`` (torchrun starts each worker in a session of its own, so a process group
+    kill does not reach them): what the tests and benchmarks kill to lose a whole node at once."""
+    children: dict[int, list[int]] = {}
+    for child in pids():
+        if fields := stat_fields(child):
+            children.setdefault(int(fields[1]), []).append(child)
+    found, todo = [], [pid]
+    while todo:
+        for child in children.get(todo.pop(), []):
+            found.append(child)
+            todo.append(child)
+    return found

@@ -18,7 +18,7 @@ from ftrain.config import load_config
 from ftrain.supervise import procfs
 from ftrain.train.trainer import train
 
-from helpers import SMOKE, assert_same, descendants, finish, manifests, start_train, wait_for
+from helpers import SMOKE, assert_same, finish, manifests, start_train, wait_for
 
 LONG = ("iterations=100000", "checkpoint.interval=2")
 
@@ -90,9 +90,9 @@ def test_sigterm_to_every_process_still_commits_the_stop_save_and_ranks_have_no_
     storage = tmp_path / "run"
     proc = start_train(storage, *LONG, ranks=2)
     before = max(wait_for(lambda: manifests(storage), "a committed checkpoint"))
-    ranks = [pid for pid in descendants(proc.pid) if int(procfs.stat_fields(pid)[1]) == proc.pid]
+    ranks = [pid for pid in procfs.descendants(proc.pid) if int(procfs.stat_fields(pid)[1]) == proc.pid]
     assert len(ranks) == 2
-    assert [pid for rank in ranks for pid in descendants(rank)] == [], "saves run inside the ranks, no helper"
+    assert [pid for rank in ranks for pid in procfs.descendants(rank)] == [], "saves run inside the ranks, no helper"
     for pid in ranks:  # what Slurm does to the workers at the end of a job step
         os.kill(pid, signal.SIGTERM)
     assert finish(proc) == 0, "the stop save must commit"
