@@ -25,18 +25,21 @@ class WorkerFailure:
 def blame(failures: dict[int, WorkerFailure], killed: set[int]) -> tuple[int, WorkerFailure] | None:
     """The rank to blame for ``failures`` (global rank -> how it ended) and how it ended.
 
-    Ranks the supervisor ``killed`` do not count. Of the others, a rank killed by a signal comes first (someone killed
-    it; the rest then failed on the broken group), then the rank that recorded an error first (the others' errors, a
-    broken connection, followed it), then a specific exit code before 1 (what a broken group gives) or SIGTERM (what
-    torchrun sends the survivors), then the lowest rank. torchrun's own root cause is only the first failure it
-    noticed, arbitrary when several die within a poll.
+    Ranks the supervisor ``killed`` do not count. Of the others, a rank that refused its input comes first (the
+    lowest: every rank refuses alike, and the others may have been stopped by torchrun before they could exit 2), then
+    a rank killed by a signal (someone killed it; the rest then failed on the broken group), then the rank that
+    recorded an error first (the others' errors, a broken connection, followed it), then a specific exit code before
+    1 (what a broken group gives) or SIGTERM (what torchrun sends the survivors), then the lowest rank. torchrun's own
+    root cause is only the first failure it noticed, arbitrary when several die within a poll.
     """
     own = {rank: failure for rank, failure in failures.items() if rank not in killed} or failures
 
-    def order(item: tuple[int, WorkerFailure]) -> tuple[bool, float, bool, int]:
+    def order(item: tuple[int, WorkerFailure]) -> tuple:
         rank, failure = item
+        if failure.code == EXIT_USAGE:
+            return (False, rank)
         signalled = failure.code < 0 and failure.code != -signal.SIGTERM
-        return (not signalled, failure.recorded_at, failure.code in (1, -signal.SIGTERM), rank)
+        return (True, not signalled, failure.recorded_at, failure.code in (1, -signal.SIGTERM), rank)
 
     return min(own.items(), key=order) if own else None
 

@@ -6,6 +6,7 @@ import json
 import signal
 
 from ftrain import errorfile
+from ftrain.errors import EXIT_USAGE
 from ftrain.supervise.outcome import WorkerFailure, blame
 
 
@@ -47,3 +48,10 @@ def test_ranks_the_supervisor_killed_are_not_blamed_and_without_records_a_specif
     terminated, specific = WorkerFailure(-signal.SIGTERM, None), WorkerFailure(3, None)
     assert blame({0: terminated, 1: WorkerFailure(1, None), 2: specific}, killed=set()) == (2, specific)
     assert blame({}, killed=set()) is None
+
+
+def test_a_refusal_is_blamed_even_when_another_rank_recorded_first_and_torchrun_stopped_it(tmp_path) -> None:
+    """Seen under load: rank 1 recorded the same refusal first, then torchrun's SIGTERM ended it before it exited 2."""
+    refused = WorkerFailure(EXIT_USAGE, "checkpoint step 2 ... refused", recorded_at=2.0)
+    stopped = WorkerFailure(-signal.SIGTERM, "checkpoint step 2 ... refused", recorded_at=1.0)
+    assert blame({0: refused, 1: stopped}, killed=set()) == (0, refused)
