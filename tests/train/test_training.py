@@ -62,8 +62,20 @@ def test_hook_state_survives_resume(tmp_path) -> None:
     assert json.loads(counter.read_text()) == {"iteration": 7, "seen": 7}
 
 
+LEARNING_ADDITIONS = [
+    "reward.normalize=true",
+    "algorithm.schedule=linear",
+    "algorithm.schedule_iterations=60",
+    "algorithm.reshuffle_each_epoch=true",
+    "policy.obs_clip=10",
+    "policy.std_type=log",
+]
+"""What ftrain adds to rsl-rl's PPO for learning (issue #13), all at once as the shipped configs use them."""
+
+
 @pytest.mark.slow
-def test_it_learns_inverted_pendulum_with_two_ranks(tmp_path) -> None:
+@pytest.mark.parametrize("additions", [[], LEARNING_ADDITIONS], ids=["rsl-rl", "additions"])
+def test_it_learns_inverted_pendulum_with_two_ranks(tmp_path, additions: list[str]) -> None:
     """An untrained policy balances for ~5-15 steps; measured here: ~200 after 60 iterations, first ones < 20."""
     run_train(
         tmp_path / "run",
@@ -76,6 +88,7 @@ def test_it_learns_inverted_pendulum_with_two_ranks(tmp_path) -> None:
         "algorithm.num_learning_epochs=5",
         "algorithm.num_mini_batches=4",
         "checkpoint.interval=100",
+        *additions,
         ranks=2,
     )
     metrics = metrics_by_iteration(tmp_path / "run")
