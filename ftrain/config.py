@@ -39,8 +39,10 @@ class PolicyConfig:
     activation: str = "elu"
     obs_normalization: bool = True
     init_noise_std: float = 1.0
-    obs_clip: float = 0.0  # clip normalised observations to ±obs_clip (0: no clipping; SB3's VecNormalize: 10)
-    std_type: str = "scalar"  # learn the action noise as the std itself (scalar) or as its log (log)
+    obs_clip: float = 0.0
+    """Clip normalised observations to ±``obs_clip`` (0: no clipping; SB3's VecNormalize clips at 10)."""
+    std_type: str = "scalar"
+    """How the actor's learned action noise is parameterised: ``scalar`` (the std itself) or ``log`` (its log)."""
 
 
 @dataclass
@@ -59,7 +61,8 @@ class AlgorithmConfig:
     max_grad_norm: float = 1.0
     use_clipped_value_loss: bool = True
     schedule: str = "adaptive"
-    schedule_iterations: int = 0  # with schedule=linear: the learning rate is zero from this iteration on
+    schedule_iterations: int = 0
+    """``schedule=linear`` (else ``adaptive``, by ``desired_kl``, or ``fixed``): the iteration where the rate is 0."""
     desired_kl: float = 0.01
     normalize_advantage_per_mini_batch: bool = False
     reshuffle_each_epoch: bool = False  # rsl-rl draws one split into minibatches for all epochs
@@ -71,8 +74,10 @@ class AlgorithmConfig:
 
 @dataclass
 class RewardConfig:
-    normalize: bool = False  # divide rewards by the running std of the discounted return, as SB3's VecNormalize
-    clip: float = 10.0  # with normalize: clip the normalised rewards to ±clip
+    normalize: bool = False
+    """Divide rewards by the running std of the discounted return (``algorithm.gamma``), as SB3's VecNormalize."""
+    clip: float = 10.0
+    """With ``normalize``: clip the normalised rewards to [-clip, clip]."""
 
 
 @dataclass
@@ -188,13 +193,15 @@ class Config:
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
 
 
-KEYS_ADDED_LATER = (  # newer than the first checkpoints: hashed only when set, so those runs still resume
+KEYS_ADDED_LATER = (
     "policy.std_type",
     "policy.obs_clip",
     "algorithm.schedule_iterations",
     "algorithm.reshuffle_each_epoch",
     "reward",
 )
+"""Training keys newer than the first checkpoints: hashed only when they differ from their defaults, so a run
+checkpointed before they existed resumes under the same config."""
 
 
 def load_config(path: str | None, overrides: list[str] = (), storage: str | None = None) -> Config:
@@ -257,7 +264,6 @@ def validate(config: Config) -> None:
         "algorithm.num_learning_epochs": (config.algorithm.num_learning_epochs, 1),
         "algorithm.num_mini_batches": (config.algorithm.num_mini_batches, 1),
         "algorithm.gradient_length": (config.algorithm.gradient_length, 1),
-        "algorithm.schedule_iterations": (config.algorithm.schedule_iterations, config.algorithm.schedule == "linear"),
         "checkpoint.interval": (config.checkpoint.interval, 1),
         "checkpoint.keep_last": (config.checkpoint.keep_last, 1),
         "checkpoint.keep_best": (config.checkpoint.keep_best, 0),
@@ -296,6 +302,8 @@ def validate(config: Config) -> None:
         raise UserError(f"dist_timeout={config.dist_timeout} must be a positive number of seconds")
     if config.algorithm.class_name == "Distillation" and not config.teacher:
         raise UserError("algorithm.class_name=Distillation needs a teacher: add teacher=<checkpoint URL>")
+    if config.algorithm.schedule == "linear" and config.algorithm.schedule_iterations < 1:
+        raise UserError("algorithm.schedule=linear needs algorithm.schedule_iterations=N: the rate is 0 at iteration N")
     if config.reward.clip <= 0:
         raise UserError(f"reward.clip={config.reward.clip} must be a positive number")
     for hook in config.hooks:
