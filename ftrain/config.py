@@ -180,9 +180,8 @@ class Config:
     def training_hash(self) -> str:
         """Digest of everything that decides what is trained (not run length, storage, logging or retention)."""
         data = self.to_dict()
-        for key in ("name", "iterations", "resume", "allow_config_change", "log_dir", "dist_timeout"):
-            data.pop(key)
-        for key in ("checkpoint", "storage", "log", "eval", "snapshots", "hooks"):
+        run_only = ("name", "iterations", "resume", "allow_config_change", "log_dir", "dist_timeout", "checkpoint")
+        for key in (*run_only, "storage", "log", "eval", "snapshots", "hooks"):
             data.pop(key)
         defaults = Config().to_dict()
         for key in KEYS_ADDED_LATER:
@@ -200,8 +199,7 @@ KEYS_ADDED_LATER = (
     "algorithm.reshuffle_each_epoch",
     "reward",
 )
-"""Training keys newer than the first checkpoints: hashed only when they differ from their defaults, so a run
-checkpointed before they existed resumes under the same config."""
+"""Training keys newer than the first checkpoints: hashed only when not at their defaults, so older runs resume."""
 
 
 def load_config(path: str | None, overrides: list[str] = (), storage: str | None = None) -> Config:
