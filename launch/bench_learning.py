@@ -13,9 +13,10 @@ For each environment, SB3 first, then ftrain, so that both see the same machine:
   its time to the target is at least the length of its run, and the ratio printed is an upper bound.
 - ``--reuse results.json`` takes ftrain's runs from an earlier run of this benchmark and measures SB3 only.
 - ``configs/<env>.yaml`` trains for ``--steps`` steps at 2 ranks (torchrun) once per seed. Its times are wall clock
-  from launching torchrun, start-up, the config's periodic evaluation and checkpoints included; its time to the
-  target is that of the first periodic evaluation (``eval.every``, 10 deterministic episodes) at or above it. Its
-  return at the end is the final policy's mean over 10 deterministic episodes (the evaluation's seeds).
+  from launching torchrun, start-up and checkpoints included; like SB3's, its clock stops while the config's
+  periodic evaluation (``eval.every``, 10 deterministic episodes) runs (the metric ``eval_time``), and the table
+  gives the time with evaluation too. Its time to the target is that of the first periodic evaluation at or above
+  it. Its return at the end is the final policy's mean over 10 deterministic episodes (the evaluation's seeds).
 
 Targets: 3,000 on HalfCheetah, the RL Zoo's return after 1M steps on the others. Prints one table (median and range
 over seeds) and writes, to ``--out``, a learning-curve PNG per environment (return against environment steps and
@@ -63,32 +64,41 @@ def target(env_id: str) -> float:
 class Run:
     """One training run: its periodic evaluations and how long it took."""
 
-    curve: list[tuple[float, float, float]] = field(default_factory=list)
-    """(environment steps, seconds since launch, deterministic return) of each evaluation."""
+    curve: list[tuple[float, ...]] = field(default_factory=list)
+    """(environment steps, seconds since launch with the clock paused while evaluating, deterministic return) of
+    each evaluation; ftrain's add the seconds spent evaluating so far."""
     seconds: float = math.nan
-    """Wall time to the end of the run (SB3: to 1M steps, scaled from its short run)."""
+    """Time to the end of the run, evaluation excluded (SB3: to 1M steps, scaled from its short run)."""
+    eval_seconds: float = 0.0
+    """Time ftrain spent in its periodic evaluation, on top of ``seconds``."""
     steps: int = 0
     final_return: float = math.nan
     load: tuple[float, float] = (math.nan, math.nan)
     """The machine's 1-minute load average at the start and at the end."""
 
-    def time_to(self, score: float) -> float:
-        return next((seconds for _, seconds, value in self.curve if value >= score), math.nan)
+    def time_to(self, score: float, with_eval: bool = False) -> float:
+        """Seconds to the first evaluation at or above ``score`` (``with_eval``: ftrain's evaluations counted)."""
+        times = (point[1] + (point[3] if with_eval else 0.0) for point in self.curve if point[2] >= score)
+        return next(times, math.nan)
 
 
 class CurveHook(Hook):
     """Loaded into ftrain's workers by import path: after each periodic evaluation, rank 0 appends (environment
-    steps, seconds since ``launched`` (epoch seconds), deterministic return) to ``path`` as a JSON line."""
+    steps, seconds since ``launched`` (epoch seconds) less the time spent evaluating, deterministic return, the
+    time spent evaluating so far) to ``path`` as a JSON line."""
 
     def __init__(self, path: str, launched: float) -> None:
         self.path = Path(path)
         self.launched = launched
+        self.evaluating = 0.0
 
     def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
         score = metrics.get("eval_return", math.nan)
         if trainer.info.is_main and math.isfinite(score):
+            self.evaluating += metrics["eval_time"]
+            point = [metrics["env_steps"], time.time() - self.launched - self.evaluating, score, self.evaluating]
             with self.path.open("a") as file:
-                file.write(json.dumps([metrics["env_steps"], time.time() - self.launched, score]) + "\n")
+                file.write(json.dumps(point) + "\n")
 
 
 def load_average() -> float:
@@ -118,10 +128,12 @@ def run_ftrain(name: str, seed: int, steps: int, overrides: list[str], work: Pat
     command = [*launcher, "-m", "ftrain", "train", str(config_path), "--storage", str(storage)]
     command += [f"iterations={iterations}", f"seed={seed}", "log.console=false", "log.tensorboard=false", hook]
     done = subprocess.run([*command, *overrides], cwd=REPO, env=WORKERS, capture_output=True, text=True)
-    run.seconds, run.load = time.time() - launched, (run.load[0], load_average())
+    wall, run.load = time.time() - launched, (run.load[0], load_average())
     if done.returncode:
         raise RuntimeError(f"ftrain failed on {name} seed {seed}:\n{done.stderr[-3000:]}")
     run.curve = [tuple(json.loads(line)) for line in curve.read_text().splitlines()] if curve.exists() else []
+    run.eval_seconds = run.curve[-1][3] if run.curve else 0.0
+    run.seconds = wall - run.eval_seconds
     policy = load_policy(str(storage))
     run.final_return = evaluate(policy.act, policy.config.env, policy.config.eval.seed)
     return run
@@ -214,25 +226,31 @@ def _seconds(value: float) -> str:
 
 
 HEADER = (
-    "| environment | ftrain return at the end: median (range) | RL Zoo | ftrain time to the end "
-    "| ftrain time to target | SB3 time to 1M steps | SB3 time to target | ftrain / SB3: to the end, to target |\n"
+    "| environment | ftrain return at the end: median (range) | RL Zoo | ftrain time to the end (with evaluation) "
+    "| ftrain time to target (with evaluation) | SB3 time to 1M steps | SB3 time to target "
+    "| ftrain / SB3: to the end, to target (with ftrain's evaluation) |\n"
     "| --- | --- | --- | --- | --- | --- | --- | --- |"
 )
 
 
 def summary(env_id: str, runs: list[Run], sb3: Run | None) -> str:
-    """One table row (times are medians over the seeds; a target counts if most seeds reached it)."""
+    """One table row (times are medians over the seeds; a target counts if most seeds reached it). ftrain's times
+    leave its periodic evaluation out, as SB3's do; the figures with it follow in parentheses."""
     goal = target(env_id)
     returns = [run.final_return for run in runs]
     reached = [run.time_to(goal) for run in runs if math.isfinite(run.time_to(goal))]
     total = statistics.median(run.seconds for run in runs)
-    to_goal = statistics.median(run.time_to(goal) for run in runs) if len(reached) * 2 > len(runs) else math.nan
+    total_with_eval = statistics.median(run.seconds + run.eval_seconds for run in runs)
+    to_goal, to_goal_with_eval = (
+        statistics.median(run.time_to(goal, with_eval) for run in runs) if len(reached) * 2 > len(runs) else math.nan
+        for with_eval in (False, True)
+    )
     cells = [
         env_id,
         f"{statistics.median(returns):,.0f} ({min(returns):,.0f} to {max(returns):,.0f})",
         f"{ZOO[env_id].zoo_return:,}",
-        f"{total:,.0f} s ({runs[0].steps:,} steps)",
-        f"{_seconds(to_goal)} ({len(reached)}/{len(runs)} reached {goal:,.0f})",
+        f"{total:,.0f} s ({total_with_eval:,.0f} s; {runs[0].steps:,} steps)",
+        f"{_seconds(to_goal)} ({_seconds(to_goal_with_eval)}; {len(reached)}/{len(runs)} reached {goal:,.0f})",
     ]
     if sb3 is None:
         return "| " + " | ".join([*cells, "-", "-", "-"]) + " |"
@@ -242,7 +260,8 @@ def summary(env_id: str, runs: list[Run], sb3: Run | None) -> str:
     cells += [
         f"{sb3.seconds:,.0f} s (scaled from {sb3.steps:,} steps)",
         _seconds(sb3_goal) if reached_by_sb3 else f"> {bound:,.0f} s (not in {sb3.steps:,} steps)",
-        f"{total / sb3.seconds:.2f}, {'' if reached_by_sb3 else '< '}{to_goal / bound:.2f}",
+        f"{total / sb3.seconds:.2f}, {'' if reached_by_sb3 else '< '}{to_goal / bound:.2f} "
+        f"({total_with_eval / sb3.seconds:.2f}, {'' if reached_by_sb3 else '< '}{to_goal_with_eval / bound:.2f})",
     ]
     return "| " + " | ".join(cells) + " |"
 
@@ -278,7 +297,8 @@ def main() -> None:
                 runs.append(run := run_ftrain(name, seed, int(args.steps), args.set, Path(tmp)))
                 print(
                     f"{env_id} seed {seed}: return {run.final_return:,.1f} after {run.steps:,} steps in "
-                    f"{run.seconds:,.0f} s, target {target(env_id):,.0f} at {_seconds(run.time_to(target(env_id)))}, "
+                    f"{run.seconds:,.0f} s + {run.eval_seconds:,.0f} s evaluating, "
+                    f"target {target(env_id):,.0f} at {_seconds(run.time_to(target(env_id)))}, "
                     f"load {run.load}",
                     flush=True,
                 )

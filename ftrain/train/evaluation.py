@@ -8,6 +8,7 @@ Training with and without evaluation therefore learns bit for bit the same.
 from __future__ import annotations
 
 import math
+import time
 from typing import TYPE_CHECKING
 
 import gymnasium as gym
@@ -28,9 +29,10 @@ class EvalHook(Hook):
     so evaluating takes both cores instead of leaving one rank waiting for rank 0.
 
     Their mean return becomes ``metrics["eval_return"]``, which the logging hooks after this one write and the
-    checkpoint manifest stores (so keep-best retention can rank by it). On the iterations in between the metric
-    is NaN: present from the first iteration on (the CSV header is written then) but never a stale score that
-    keep-best could mistake for a measurement of that step.
+    checkpoint manifest stores (so keep-best retention can rank by it), and the seconds the evaluation took
+    ``metrics["eval_time"]`` (it is not part of ``iteration_time``). On the iterations in between both are NaN:
+    present from the first iteration on (the CSV header is written then) but never a stale score that keep-best
+    could mistake for a measurement of that step.
     """
 
     def __init__(self, config: EvalConfig) -> None:
@@ -39,8 +41,9 @@ class EvalHook(Hook):
 
     def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
         if trainer.iteration % self.config.every:
-            metrics["eval_return"] = math.nan
+            metrics["eval_return"] = metrics["eval_time"] = math.nan
             return
+        started = time.perf_counter()
         first, count = episode_share(self.config.episodes, trainer.info)
         if len(self.envs) < count:
             self.envs = [make_env(trainer.config.env) for _ in range(count)]
@@ -50,6 +53,7 @@ class EvalHook(Hook):
             episodes = rollout(self.envs, lambda obs: actor_actions(actor, obs), count, self.config.seed + first)
         (total,) = group.all_reduce_sum([sum(episode.ret for episode in episodes)], trainer.info)
         metrics["eval_return"] = total / self.config.episodes
+        metrics["eval_time"] = time.perf_counter() - started
 
     def on_end(self, trainer: Trainer) -> None:
         for env in self.envs:

@@ -55,6 +55,7 @@ def test_evaluation_and_snapshots_leave_training_unchanged(runs) -> None:
     evaluated = metrics_by_iteration(runs / "eval")
     for row in evaluated.values():
         row.pop("eval_return")
+        row.pop("eval_time")
     assert evaluated == metrics_by_iteration(runs / "plain")
 
 
@@ -62,6 +63,8 @@ def test_eval_return_every_n_iterations_feeds_keep_best(runs) -> None:
     run = runs / "eval"
     scores = {it: float(row["eval_return"]) for it, row in metrics_by_iteration(run).items()}
     assert [it for it, score in scores.items() if not math.isnan(score)] == [2, 4, 6, 8]
+    eval_times = {it: float(row["eval_time"]) for it, row in metrics_by_iteration(run).items()}
+    assert [it for it, seconds in eval_times.items() if seconds > 0] == [2, 4, 6, 8]
     best = max((2, 4, 6, 8), key=scores.get)
     kept = manifests(run)
     assert set(kept) == {8, best}, "keep_last=1 and keep_best=1 by eval_return"
