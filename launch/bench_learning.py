@@ -77,8 +77,10 @@ class Run:
     """The machine's 1-minute load average at the start and at the end."""
 
     def time_to(self, score: float, with_eval: bool = False) -> float:
-        """Seconds to the first evaluation at or above ``score`` (``with_eval``: ftrain's evaluations counted)."""
-        times = (point[1] + (point[3] if with_eval else 0.0) for point in self.curve if point[2] >= score)
+        """Seconds to the first evaluation at or above ``score`` (``with_eval``: ftrain's evaluations counted; curves
+        without their time, from before ``eval_time``, counted them in their clock)."""
+        evaluating = (point[3] if with_eval and len(point) > 3 else 0.0 for point in self.curve)
+        times = (point[1] + extra for point, extra in zip(self.curve, evaluating, strict=True) if point[2] >= score)
         return next(times, math.nan)
 
 
