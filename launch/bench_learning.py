@@ -66,7 +66,8 @@ class Run:
 
     curve: list[tuple[float, ...]] = field(default_factory=list)
     """(environment steps, seconds since launch with the clock paused while evaluating, deterministic return) of
-    each evaluation; ftrain's add the seconds spent evaluating so far."""
+    each evaluation; ftrain's add the seconds it spent evaluating so far (0 in runs from before ``eval_time``,
+    whose clock counted them)."""
     seconds: float = math.nan
     """Time to the end of the run, evaluation excluded (SB3: to 1M steps, scaled from its short run)."""
     eval_seconds: float = 0.0
@@ -76,11 +77,14 @@ class Run:
     load: tuple[float, float] = (math.nan, math.nan)
     """The machine's 1-minute load average at the start and at the end."""
 
+    @classmethod
+    def from_json(cls, run: dict) -> Run:
+        """An ftrain run from an earlier ``results.json``; its curve without evaluation times gets 0 for them."""
+        return cls(**{**run, "curve": [(*point, 0.0)[:4] for point in run["curve"]]})
+
     def time_to(self, score: float, with_eval: bool = False) -> float:
-        """Seconds to the first evaluation at or above ``score`` (``with_eval``: ftrain's evaluations counted; curves
-        without their time, from before ``eval_time``, counted them in their clock)."""
-        evaluating = (point[3] if with_eval and len(point) > 3 else 0.0 for point in self.curve)
-        times = (point[1] + extra for point, extra in zip(self.curve, evaluating, strict=True) if point[2] >= score)
+        """Seconds to the first evaluation at or above ``score`` (``with_eval``: ftrain's evaluations counted)."""
+        times = (point[1] + (point[3] if with_eval else 0.0) for point in self.curve if point[2] >= score)
         return next(times, math.nan)
 
 
@@ -294,7 +298,7 @@ def main() -> None:
             runs = []
             if args.reuse:
                 earlier = json.loads(args.reuse.read_text())["results"][env_id]["ftrain"]
-                runs = [Run(**{**run, "curve": [tuple(point) for point in run["curve"]]}) for run in earlier]
+                runs = [Run.from_json(run) for run in earlier]
             for seed in [] if args.reuse else args.seeds:
                 runs.append(run := run_ftrain(name, seed, int(args.steps), args.set, Path(tmp)))
                 print(
