@@ -1,9 +1,15 @@
 """Checkpoint storage: an fsspec URL (local path, ``file://``, ``s3://``, ``memory://``...), one-object operations.
 
 Nothing is ever renamed (a rename on S3 is a copy + delete, not atomic): a commit is one object written with
-exclusive create. Transient errors (connection, timeout, 5xx, throttling) are retried here with bounded
-exponential backoff; the layers below (s3fs, botocore) are told not to retry so the bound is ours alone.
-Credentials never appear in a message, repr or log line: every text that leaves this module is scrubbed.
+exclusive create; a local file is written under a temporary name and linked to its own (a link fails if the name
+exists), so it is complete whenever it is visible, as an S3 object is.
+
+Transient errors (connection refused or reset, timeouts, DNS, 5xx, throttling) are retried here with bounded
+exponential backoff and jitter; the layers below (s3fs, botocore) are told not to retry, and to give up on a silent
+server within seconds, so that the bound is ours alone. A storage that stays unreachable raises
+:class:`StorageUnavailable`: an infrastructure fault that waiting fixes, never bad input (a missing bucket, denied
+access or a malformed URL are :class:`~ftrain.errors.UserError`). Credentials never appear in a message, repr or
+log line: every text that leaves this module is scrubbed.
 """
 
 from __future__ import annotations
@@ -13,8 +19,10 @@ import contextlib
 import errno
 import logging
 import os
+import random
 import re
 import shutil
+import threading
 import time
 from collections.abc import Callable, Iterable
 from typing import Any, TypeVar
@@ -36,6 +44,11 @@ T = TypeVar("T")
 DEFAULT_RETRIES = 4
 DEFAULT_BASE_DELAY = 0.2
 MAX_DELAY = 5.0
+S3_TIMEOUTS = {"connect_timeout": 5, "read_timeout": 15}
+"""botocore's defaults are 60 s each: a paused server would hold one request for minutes, longer than the ranks'
+collectives wait for each other. Large objects go up in parts, each its own request."""
+_JITTER = random.Random()
+"""Jitter of the retry delays: a generator of its own, so that retrying never moves the random streams of training."""
 
 _SECRET_ENV = ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN")
 _THROTTLING = {"SlowDown", "Throttling", "ThrottlingException", "RequestLimitExceeded", "TooManyRequestsException"}
@@ -44,6 +57,10 @@ _PROTOCOL = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*$")
 
 class StorageError(Exception):
     """A storage operation failed for good (after retrying when the cause looked transient)."""
+
+
+class StorageUnavailable(StorageError):
+    """The storage did not answer, or answered busy, through every retry: wait for it (never bad input)."""
 
 
 def is_transient(exc: BaseException) -> bool:
@@ -124,8 +141,9 @@ class Storage:
     def write_exclusive(self, rel: str, data: bytes) -> None:
         """Create ``rel`` holding ``data``; FileExistsError if it exists with other content.
 
-        Local: ``O_EXCL`` + fsync; S3: one PUT with ``If-None-Match: *``; memory and other protocols: fsspec's
-        ``mode="create"`` (an exists check, then a write: fine for one process). An object that already holds
+        Local: a temporary file linked to its name (complete when visible), fsynced; S3: one PUT with
+        ``If-None-Match: *``; memory and other protocols: fsspec's ``mode="create"`` (an exists check, then a write:
+        fine for one process). An object that already holds
         exactly ``data`` counts as written: a retried PUT (ours or the HTTP client's) whose first attempt landed
         finds its own bytes.
         """
@@ -134,7 +152,7 @@ class Storage:
         def create() -> None:
             try:
                 if self.is_local:
-                    _write_local(path, data, os.O_EXCL)
+                    _write_local(path, data, exclusive=True)
                 else:
                     self.fs.pipe_file(path, data, mode="create")
             except FileExistsError:
@@ -147,7 +165,7 @@ class Storage:
         """Create or overwrite ``rel`` (not atomic: for markers and other objects that are not a commit)."""
         path = self._path(rel)
         if self.is_local:
-            self._call("write", rel, _write_local, path, data, os.O_TRUNC)
+            self._call("write", rel, _write_local, path, data, exclusive=False)
         else:
             self._call("write", rel, self.fs.pipe_file, path, data)
 
@@ -222,8 +240,11 @@ class Storage:
         except (PermissionError, NoCredentialsError) as exc:
             raise self._access_error(exc) from None
         except (OSError, BotoCoreError, asyncio.TimeoutError) as exc:
-            tries = f" after {self.retries + 1} attempts" if is_transient(exc) else ""
-            raise StorageError(f"{what} {self.where(rel)} failed{tries}: {self._scrub(exc)}") from None
+            if is_transient(exc):
+                raise StorageUnavailable(
+                    f"{what} {self.where(rel)} failed after {self.retries + 1} attempts: {self._scrub(exc)}"
+                ) from None
+            raise StorageError(f"{what} {self.where(rel)} failed: {self._scrub(exc)}") from None
 
     def _retry(self, what: str, rel: str, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         attempt = 0
@@ -233,7 +254,7 @@ class Storage:
             except Exception as exc:
                 if attempt == self.retries or not is_transient(exc):
                     raise
-                delay = min(self.base_delay * 2**attempt, MAX_DELAY)
+                delay = backoff(self.base_delay, attempt, MAX_DELAY)
                 attempt += 1
                 where, reason = self.where(rel), self._scrub(exc)
                 log.warning("%s %s: %s; retry %d/%d in %.2fs", what, where, reason, attempt, self.retries, delay)
@@ -253,10 +274,10 @@ class Storage:
             raise self._access_error(exc) from None
         except Exception as exc:
             if is_transient(exc):
-                raise UserError(
-                    f"cannot reach the S3 endpoint {self._endpoint()} for {self.url} "
-                    f"after {self.retries + 1} attempts: check AWS_ENDPOINT_URL or storage.options.endpoint_url "
-                    "and that the server is up"
+                raise StorageUnavailable(
+                    f"cannot reach the S3 endpoint {self._endpoint()} for {self.url} after {self.retries + 1} "
+                    f"attempts ({self._scrub(exc)}): is the server up, and AWS_ENDPOINT_URL or "
+                    "storage.options.endpoint_url right?"
                 ) from None
             raise UserError(f"cannot open storage {self.url}: {self._scrub(exc)}") from None
 
@@ -273,6 +294,12 @@ class Storage:
 
     def _scrub(self, exc: BaseException) -> str:
         return _scrub(exc, self._secrets)
+
+
+def backoff(base: float, attempt: int, longest: float) -> float:
+    """Seconds before retry ``attempt + 1``: ``base * 2**attempt``, at most ``longest``, with +-25% jitter so that
+    many ranks or nodes do not knock at a recovering server at the same instant."""
+    return min(base * 2**attempt, longest) * _JITTER.uniform(0.75, 1.25)
 
 
 def _scrub(exc: BaseException, secrets: list[str]) -> str:
@@ -310,7 +337,7 @@ def _s3_options(url: str, options: dict) -> str:
         url = display_url(url)
     options.setdefault("use_listings_cache", False)
     options.setdefault("skip_instance_cache", True)
-    config = dict(options.get("config_kwargs") or {})
+    config = {**S3_TIMEOUTS, **(options.get("config_kwargs") or {})}
     config.setdefault("retries", {"total_max_attempts": 1})
     options["config_kwargs"] = config
     return url
@@ -338,20 +365,25 @@ def _delete_local_files(directory: str, paths: list[str]) -> bool:
     return True
 
 
-def _write_local(path: str, data: bytes, flag: int) -> None:
-    """Write and fsync a local file (and its directory); a failed exclusive create leaves no partial file."""
+def _write_local(path: str, data: bytes, exclusive: bool) -> None:
+    """Write and fsync a local file (and its directory). ``exclusive``: the data goes to a temporary name in the same
+    directory, which is then linked to ``path`` (FileExistsError if it exists), so the file is complete whenever it is
+    visible and a failed create leaves nothing under ``path``."""
     directory = os.path.dirname(path)
     os.makedirs(directory, exist_ok=True)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | flag, 0o644)
+    target = f"{path}.tmp-{os.getpid()}-{threading.get_ident()}" if exclusive else path
+    fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
     try:
         with os.fdopen(fd, "wb") as file:
             file.write(data)
             file.flush()
             os.fsync(file.fileno())
-    except BaseException:
-        if flag == os.O_EXCL:
-            os.unlink(path)
-        raise
+        if target != path:
+            os.link(target, path)
+    finally:
+        if target != path:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(target)
     dir_fd = os.open(directory, os.O_RDONLY)
     try:
         os.fsync(dir_fd)

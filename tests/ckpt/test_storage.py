@@ -1,5 +1,6 @@
 import contextlib
 import logging
+import os
 import socket
 import threading
 import time
@@ -7,7 +8,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from ftrain.ckpt.storage import Storage, StorageError
+from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.errors import UserError
 from ftrain.redact import display_url
 
@@ -114,13 +115,14 @@ def test_credentials_in_url_work_and_never_show(s3_server):
         assert S3_SECRET not in text and S3_KEY not in text
 
 
-def test_unreachable_endpoint_is_a_user_error_after_bounded_attempts(caplog):
-    """Nothing listens on the port."""
+def test_unreachable_endpoint_is_unavailable_not_bad_input_after_bounded_attempts(caplog):
+    """Nothing listens on the port: an infrastructure fault to wait out, never a UserError (exit 2)."""
     options = {"endpoint_url": f"http://127.0.0.1:{free_port()}"}
     caplog.set_level(logging.WARNING, logger="ftrain.ckpt.storage")
     start = time.monotonic()
-    with pytest.raises(UserError, match=r"cannot reach the S3 endpoint .* after 3 attempts") as error:
+    with pytest.raises(StorageUnavailable, match=r"cannot reach the S3 endpoint .* after 3 attempts") as error:
         Storage.open(f"s3://{S3_KEY}:{S3_SECRET}@bucket/run", options, retries=2, base_delay=0.01)
+    assert not isinstance(error.value, UserError)
     assert time.monotonic() - start < 5
     assert len(caplog.records) == 2
     for text in (str(error.value), caplog.text):
@@ -252,3 +254,34 @@ def test_display_url_strips_credentials():
 def test_negative_retries_is_a_user_error(tmp_path):
     with pytest.raises(UserError, match="retries=-1"):
         Storage.open(str(tmp_path), retries=-1)
+
+
+def test_a_local_file_is_complete_whenever_it_is_visible(tmp_path):
+    """A reader polling the path while a large file is created never sees it partly written (a manifest is the
+    commit: half a manifest must never be readable), and a create that loses to an existing file leaves no trace."""
+    storage = Storage.open(str(tmp_path / "run"))
+    data = os.urandom(64 << 20)
+    path = tmp_path / "run" / "checkpoints" / "MANIFEST.json"
+    sizes: list[int] = []
+    done = threading.Event()
+
+    def watch() -> None:
+        while not done.is_set():
+            with contextlib.suppress(FileNotFoundError):
+                sizes.append(len(path.read_bytes()))
+
+    watcher = threading.Thread(target=watch)
+    watcher.start()
+    try:
+        storage.write_exclusive("checkpoints/MANIFEST.json", data)
+        deadline = time.monotonic() + 10
+        while not sizes and time.monotonic() < deadline:
+            time.sleep(0.01)
+    finally:
+        done.set()
+        watcher.join()
+    assert sizes and set(sizes) == {len(data)}
+    with pytest.raises(FileExistsError):
+        storage.write_exclusive("checkpoints/MANIFEST.json", b"other")
+    assert sorted(p.name for p in path.parent.iterdir()) == ["MANIFEST.json"]
+    assert path.read_bytes() == data
