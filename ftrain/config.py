@@ -6,19 +6,16 @@ Torch-free on purpose: the supervisor loads and validates the config before it l
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import hashlib
 import json
-import types
-import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import yaml
 
 from ftrain.errors import UserError
 from ftrain.redact import display_url, redact_options
+from ftrain.values import build, parse_amount, parse_value, set_dotted
 
 POLICY_FORMATS = ("torchscript", "onnx")
 """The file formats a policy is exported and snapshotted in."""
@@ -82,8 +79,14 @@ class RewardConfig:
 
 @dataclass
 class CheckpointConfig:
-    interval: int = 10
-    """Save every N iterations (the final iteration is always saved)."""
+    interval: int | str = 10
+    """Save every N iterations, every so long (``"30s"``, ``"5m"``), or ``"auto"`` (by the measured cost of a save and
+    ``max_overhead``: see ``ftrain.ckpt.schedule``); the final iteration is always saved."""
+    max_overhead: float = 0.02
+    """``interval=auto``: the fraction of training time that saving may take."""
+    max_unsaved: int | str = "10m"
+    """While saves fail, train on for this much work (iterations, or ``"10m"``...) past the newest commit, then pause
+    until the storage takes the newest state."""
     keep_last: int = 3
     keep_best: int = 1
     best_metric: str = "mean_return"
@@ -223,10 +226,10 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
         key, sep, raw = item.partition("=")
         if not sep or not key:
             raise UserError(f"override {item!r} is not key=value: write it like env.num_envs=8")
-        _set_dotted(data, key.strip(), _parse_value(raw))
+        set_dotted(data, key.strip(), parse_value(raw))
     if storage is not None:
-        _set_dotted(data, "storage.url", storage)
-    config = _build(Config, data, prefix="")
+        set_dotted(data, "storage.url", storage)
+    config = build(Config, data, prefix="")
     if not config.name:
         config.name = Path(path).stem if path else "run"
     if not config.storage.url:
@@ -239,7 +242,7 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
 
 def config_from_dict(data: dict) -> Config:
     """The Config a checkpoint or an exported policy recorded (``Config.public_dict()``), typed and checked."""
-    return _build(Config, data, prefix="")
+    return build(Config, data, prefix="")
 
 
 def default_log_dir(storage_url: str, name: str) -> str:
@@ -262,7 +265,6 @@ def validate(config: Config) -> None:
         "algorithm.num_learning_epochs": (config.algorithm.num_learning_epochs, 1),
         "algorithm.num_mini_batches": (config.algorithm.num_mini_batches, 1),
         "algorithm.gradient_length": (config.algorithm.gradient_length, 1),
-        "checkpoint.interval": (config.checkpoint.interval, 1),
         "checkpoint.keep_last": (config.checkpoint.keep_last, 1),
         "checkpoint.keep_best": (config.checkpoint.keep_best, 0),
         "checkpoint.keep_every": (config.checkpoint.keep_every, 0),
@@ -296,6 +298,10 @@ def validate(config: Config) -> None:
     for fmt in config.snapshots.formats:
         if fmt not in POLICY_FORMATS:
             raise UserError(f"snapshots.formats: {fmt!r} is unknown: use torchscript and/or onnx")
+    parse_amount("checkpoint.interval", config.checkpoint.interval, auto=True)
+    parse_amount("checkpoint.max_unsaved", config.checkpoint.max_unsaved)
+    if not 0 < config.checkpoint.max_overhead < 1:
+        raise UserError(f"checkpoint.max_overhead={config.checkpoint.max_overhead} must be a fraction between 0 and 1")
     if config.dist_timeout <= 0:
         raise UserError(f"dist_timeout={config.dist_timeout} must be a positive number of seconds")
     if config.algorithm.class_name == "Distillation" and not config.teacher:
@@ -323,78 +329,3 @@ ACTIVATIONS = (
     "mish",
     "identity",
 )
-
-
-def _parse_value(raw: str) -> Any:
-    try:
-        return yaml.safe_load(raw)
-    except yaml.YAMLError:
-        return raw
-
-
-def _set_dotted(data: dict, key: str, value: Any) -> None:
-    *parents, leaf = key.split(".")
-    node = data
-    for part in parents:
-        child = node.setdefault(part, {})
-        if not isinstance(child, dict):
-            raise UserError(f"override {key}: {part!r} is not a section")
-        node = child
-    node[leaf] = value
-
-
-def _build(cls: type, data: dict, prefix: str) -> Any:
-    """Instantiate dataclass ``cls`` from ``data``, converting and checking every value against its type."""
-    if not isinstance(data, dict):
-        raise UserError(f"{prefix.rstrip('.') or 'config'} must be a mapping, got {data!r}")
-    hints = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls)]
-    kwargs = {}
-    for key, value in data.items():
-        if key not in names:
-            near = difflib.get_close_matches(str(key), names, n=1, cutoff=0.5)
-            hint = f"did you mean {prefix}{near[0]}?" if near else f"valid keys: {', '.join(prefix + n for n in names)}"
-            raise UserError(f"unknown config key {prefix}{key!r}: {hint}")
-        kwargs[key] = _convert(hints[key], value, f"{prefix}{key}")
-    return cls(**kwargs)
-
-
-def _convert(kind: Any, value: Any, key: str) -> Any:
-    origin = typing.get_origin(kind)
-    if dataclasses.is_dataclass(kind):
-        return _build(kind, value if value is not None else {}, f"{key}.")
-    if origin is list:
-        (item_kind,) = typing.get_args(kind)
-        if not isinstance(value, list):
-            raise UserError(f"{key}={value!r} must be a list, e.g. {key}=[64,64]")
-        return [_convert(item_kind, item, f"{key}[{i}]") for i, item in enumerate(value)]
-    if origin in (typing.Union, types.UnionType):
-        return value
-    if kind is dict:
-        if not isinstance(value, dict):
-            raise UserError(f"{key}={value!r} must be a mapping, e.g. {key}={{a: 1}}")
-        return value
-    if kind is bool:
-        if not isinstance(value, bool):
-            raise UserError(f"{key}={value!r} must be true or false")
-        return value
-    if kind is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise UserError(f"{key}={value!r} must be an integer")
-        return value
-    if kind is float:
-        if isinstance(value, str):  # YAML 1.1 reads 3e-4 (no dot) as a string
-            try:
-                return float(value)
-            except ValueError:
-                pass
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise UserError(f"{key}={value!r} must be a number")
-        return float(value)
-    if kind is str:
-        if value is None:
-            return ""
-        if not isinstance(value, (str, int, float)) or isinstance(value, bool):
-            raise UserError(f"{key}={value!r} must be a string")
-        return str(value)
-    return value

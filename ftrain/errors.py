@@ -5,6 +5,9 @@ and keeps its traceback.
 """
 
 EXIT_USAGE = 2
+EXIT_STORAGE_DOWN = 7
+"""A worker, and ``ftrain supervise`` after ``--storage-wait``: the checkpoint storage did not answer. Not bad input and
+nothing lost: the supervisor waits for the storage and starts again; run the same command again once it is back."""
 EXIT_RENDEZVOUS_TIMEOUT = 6
 """torchrun (``ftrain.dist.torchrun``) and ``ftrain supervise``: an elastic rendezvous did not gather its minimum of
 nodes in time."""

@@ -1,10 +1,15 @@
 """A rank's checkpoints: resume at the start, and saves at iteration boundaries, coordinated across ranks.
 
-Resuming is ``resume.py``; one save is ``save.py``. This module decides when a save waits and acts on what the
-ranks agreed: a committed step (hooks hear of it), a failed one (training goes on; too many in a row, or a failed
-final save, stop it), an unloadable one (stop). With ``checkpoint.async_save`` (the default) a save is a snapshot
-handed to the rank's writer thread, and up to ``MAX_IN_FLIGHT`` may be in flight; without it, the rank writes and
-agrees inline, a plain ``torch.save`` per file.
+Resuming is ``resume.py``; one save is ``save.py``; when to save is ``schedule.py``. This module acts on what the
+ranks agreed for each save: a committed step (hooks hear of it), a failed one (training goes on, and the newest state
+is tried again as soon as the failed save has settled), an unloadable one (stop). A save that must commit (the last
+one of a run, a stop, or one with more unsaved work than ``checkpoint.max_unsaved``) holds training until it does:
+it is retried with backoff, one line each time, for up to the storage wait (``FTRAIN_STORAGE_WAIT``, which
+``ftrain supervise`` sets from ``--storage-wait``), then the rank ends with ``StorageUnavailable``: nothing committed
+is lost.
+
+With ``checkpoint.async_save`` (the default) a save is a snapshot handed to the rank's writer thread, and up to
+``MAX_IN_FLIGHT`` may be in flight; without it, the rank writes and agrees inline, a plain ``torch.save`` per file.
 """
 
 from __future__ import annotations
@@ -12,29 +17,35 @@ from __future__ import annotations
 import collections
 import importlib.metadata
 import math
+import os
 import time
 from collections.abc import Callable
 
 from ftrain.ckpt import resume
 from ftrain.ckpt.format import COMMON, STATE_FORMAT, shard_name
 from ftrain.ckpt.resume import Checkpointable, CheckpointError
-from ftrain.ckpt.save import BackgroundWriter, Outcome, StepWriter, snapshot
-from ftrain.ckpt.storage import Storage
+from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, snapshot
+from ftrain.ckpt.schedule import DEFAULT_STORAGE_WAIT, STORAGE_WAIT_ENV, SaveSchedule
+from ftrain.ckpt.storage import Storage, StorageUnavailable, backoff
 from ftrain.config import Config
 from ftrain.dist import group
 from ftrain.errors import UserError
+from ftrain.values import parse_amount
 
-MAX_FAILED_SAVES = 3
-"""Saves that may fail in a row (after the storage layer's own retries) before training stops with an error."""
 MAX_IN_FLIGHT = 2
 """Saves handed to the writer thread and not yet settled: with two, it may fall one save behind without blocking
 the loop."""
 WAIT_BEAT = 0.5
 """Seconds between two calls of ``while_waiting`` while a rank waits for a save (its heartbeat: not a hang)."""
+HOLD_DELAY = (1.0, 30.0)
+"""Seconds between two tries of a held save: the first, and the longest (doubling, with jitter)."""
+FAILURE_LINES = 30.0
+"""Seconds between two lines about saves that keep failing (the first failure and the recovery are always told)."""
 
 
 class Checkpointer:
-    def __init__(self, config: Config, info: group.RankInfo, log: Callable[[str], None]) -> None:
+    def __init__(self, config: Config, info: group.RankInfo, log: Callable[..., None]) -> None:
+        """``log(message, every_rank=False)``: a line for the run's log."""
         self.config = config
         self.info = info
         self.log = log
@@ -48,15 +59,25 @@ class Checkpointer:
         collectives = group.new_group(config.dist_timeout, info) if background else None
         self._writer = StepWriter(self.storage, config.checkpoint, info, collectives, log)
         self._background = BackgroundWriter(self._writer) if background else None
+        policy = config.checkpoint
+        self.schedule = SaveSchedule(
+            parse_amount("checkpoint.interval", policy.interval, auto=True),
+            policy.max_overhead,
+            parse_amount("checkpoint.max_unsaved", policy.max_unsaved),
+            time.monotonic(),
+        )
+        self.storage_wait = float(os.environ.get(STORAGE_WAIT_ENV, DEFAULT_STORAGE_WAIT))
         self.committed_step: int | None = None
         self.on_commit: Callable[[int, dict], None] = lambda step, manifest: None
         self.while_waiting: Callable[[], None] = lambda: None
-        self._pending: collections.deque[tuple[int, bool, dict]] = collections.deque()
-        """(step, must commit, snapshot) of the saves handed to the writer thread whose outcome has not been acted on
-        yet."""
+        self._pending: collections.deque[tuple[int, dict, float]] = collections.deque()
+        """(step, snapshot, seconds the loop blocked for it) of the saves handed to the writer thread whose outcome
+        has not been acted on yet."""
         self._spare: list[dict] = []
         """Snapshots whose saves are over: the next snapshots copy into their memory."""
-        self._failures = 0
+        self._failing: tuple[float, str] | None = None
+        """(since when, why) saves fail; None while the newest settled save committed."""
+        self._told = -math.inf
         self._checked_loadable = False
         self.last_blocking_s = 0.0
         self._static_meta = {  # computed once: package metadata lookups cost ~10 ms
@@ -74,38 +95,30 @@ class Checkpointer:
         resumed = resume.restore(trainer, self.config, self.info, self.storage, self.log)
         if resumed.own:
             self.committed_step = resumed.step
+            self.schedule.committed = (resumed.step, time.monotonic())
         self._static_meta["world_sizes"] = resumed.world_sizes
         return resumed.step
 
-    def save(self, trainer: Checkpointable, wait: bool = False, must_commit: bool = False) -> None:
+    def votes(self, iteration: int) -> tuple[bool, bool]:
+        """This rank's votes after ``iteration``, which the ranks sum: save now, and hold (train no further until
+        that save commits). While saves fail: save as soon as the failed one has settled, hold once more work than
+        ``checkpoint.max_unsaved`` is unsaved."""
+        self._settle(MAX_IN_FLIGHT)  # the outcomes that have arrived
+        now = time.monotonic()
+        if self._failing is not None:
+            return not self._pending, self.schedule.over_bound(iteration, now)
+        return self.schedule.due(iteration, now), False
+
+    def save(self, trainer: Checkpointable, wait: bool = False, hold: bool = False) -> None:
         """Save the state of ``trainer`` as step ``trainer.iteration``.
 
-        In the background: snapshot now, the writer thread does the rest. Waited for: with ``wait``, the first save
-        of a run (it checks that what is saved loads back), and after a failed save until one commits.
-        ``must_commit``: the save that ends a run (the last iteration, or a stop): if it fails, CheckpointError
-        when it is waited for, instead of training on.
+        In the background: snapshot now, the writer thread does the rest. Waited for: with ``wait``, and the first
+        save of a run (it checks that what is saved loads back). ``hold``: train no further until this state is
+        committed (the save that ends a run, or too much unsaved work): retry until it is, or StorageUnavailable.
         """
-        started = time.perf_counter()
-        step = trainer.iteration
-        if step == self.committed_step or step in (pending for pending, *_ in self._pending):
-            return
-        self._settle(MAX_IN_FLIGHT - 1)
-        files = {shard_name(self.info.rank): trainer.rank_state()}
-        meta = None
-        if self.info.is_main:
-            files[COMMON] = trainer.common_state()
-            meta = self._meta(trainer)
-        first = not self._checked_loadable
-        self._checked_loadable = True
-        if self._background is None:
-            self._act_on(self._writer.save(step, files, meta, first), must_commit)
-        else:
-            copy = snapshot(files, self._spare.pop() if self._spare else None)
-            self._background.submit(step, copy, meta, first)
-            self._pending.append((step, must_commit, copy))
-            if wait or first or self._failures:  # after a failure: one at a time
-                self._settle(0)
-        self.last_blocking_s = time.perf_counter() - started
+        self._submit(trainer, wait)
+        if hold:
+            self._hold(trainer)
 
     def close(self) -> None:
         """Wait for the saves in flight and act on their outcomes."""
@@ -116,6 +129,59 @@ class Checkpointer:
         collectives' timeout, as a dead peer fails them)."""
         if self._background is not None:
             self._background.close(timeout=self.config.dist_timeout + 5)
+
+    def _submit(self, trainer: Checkpointable, wait: bool) -> None:
+        started = time.perf_counter()
+        step = trainer.iteration
+        if step == self.committed_step or step in (pending for pending, *_ in self._pending):
+            return
+        self._settle(MAX_IN_FLIGHT - 1)
+        self.schedule.started(step, time.monotonic())
+        files = {shard_name(self.info.rank): trainer.rank_state()}
+        meta = None
+        if self.info.is_main:
+            files[COMMON] = trainer.common_state()
+            meta = self._meta(trainer)
+        first = not self._checked_loadable
+        self._checked_loadable = True
+        if self._background is None:
+            outcome = self._writer.save(step, files, meta, first)
+            self.last_blocking_s = time.perf_counter() - started
+            self._act_on(outcome, self.last_blocking_s)
+            return
+        copy = snapshot(files, self._spare.pop() if self._spare else None)
+        self._background.submit(step, copy, meta, first)
+        self.last_blocking_s = time.perf_counter() - started
+        self._pending.append((step, copy, self.last_blocking_s))
+        if wait or first:
+            self._settle(0)
+
+    def _hold(self, trainer: Checkpointable) -> None:
+        """Retry the state of ``trainer`` until it is committed, with backoff, a line for each try, heartbeats."""
+        self._settle(0)
+        tries = 0
+        while self.committed_step != trainer.iteration:
+            since, why = self._failing
+            if time.monotonic() - since > self.storage_wait:
+                raise StorageUnavailable(
+                    f"the storage {self.storage.url} took no checkpoint for {self.storage_wait:g} s ({why}); the "
+                    f"newest committed step is {self.committed_step}: run the same command again once it is back"
+                )
+            delay = backoff(HOLD_DELAY[0], tries, HOLD_DELAY[1])
+            iterations, seconds = self.schedule.unsaved(trainer.iteration, time.monotonic())
+            self.log(
+                f"training held at step {trainer.iteration}: {iterations} iterations ({seconds:.0f} s) unsaved, "
+                f"saves failing for {time.monotonic() - since:.0f} s; next try in {delay:.1f} s"
+            )
+            self._pause(delay)
+            tries += 1
+            self._submit(trainer, wait=True)
+
+    def _pause(self, seconds: float) -> None:
+        deadline = time.monotonic() + seconds
+        while (left := deadline - time.monotonic()) > 0:
+            self.while_waiting()
+            time.sleep(min(WAIT_BEAT, left))
 
     def _meta(self, trainer: Checkpointable) -> dict:
         return {
@@ -132,30 +198,36 @@ class Checkpointer:
         """Act on the agreed outcomes of the oldest saves in flight until at most ``keep`` are left (and on any
         that are already there: the newest committed step is known as soon as possible)."""
         while self._pending and (len(self._pending) > keep or self._background.ready()):
-            _, must_commit, copy = self._pending.popleft()
+            _, copy, blocked = self._pending.popleft()
             while (outcome := self._background.take(WAIT_BEAT)) is None:
                 self.while_waiting()
             self._spare.append(copy)  # the writer is done with it
-            self._act_on(outcome, must_commit)
+            self._act_on(outcome, blocked)
 
-    def _act_on(self, outcome: Outcome, must_commit: bool) -> None:
-        if outcome.kind == "unloadable":
-            raise CheckpointError(outcome.detail)
-        if outcome.kind == "committed":
-            self._failures = 0
-            self.committed_step = outcome.step
-            self.on_commit(outcome.step, outcome.detail)
+    def _act_on(self, outcome: Outcome, blocked: float) -> None:
+        """Every rank hears the same outcome and says so: a failure and a recovery are each one line per rank."""
+        step, detail, now = outcome.step, outcome.detail, time.monotonic()
+        self.schedule.settled(step, outcome.result is Result.COMMITTED, blocked + outcome.cpu_s)
+        if outcome.result is Result.UNLOADABLE:
+            raise CheckpointError(detail)
+        if outcome.result is Result.COMMITTED:
+            if self._failing is not None:
+                since = now - self._failing[0]
+                self.log(f"checkpoint step {step} committed: the storage is back after {since:.0f} s", every_rank=True)
+            self._failing = None
+            self.committed_step = step
+            self.on_commit(step, detail)
             return
-        self._failures += 1
-        step, detail = outcome.step, outcome.detail
-        self.log(f"checkpoint step {step} failed ({self._failures}/{MAX_FAILED_SAVES}), earlier ones intact: {detail}")
-        if must_commit:
-            raise CheckpointError(
-                f"the final checkpoint, step {step}, could not be saved to {self.storage.url}: {detail}"
-            )
-        if self._failures >= MAX_FAILED_SAVES:
-            raise CheckpointError(
-                f"{MAX_FAILED_SAVES} checkpoints in a row failed to save to {self.storage.url}; last error: {detail}"
+        first = self._failing is None
+        self._failing = (now if first else self._failing[0], detail)
+        if first or now - self._told >= FAILURE_LINES:
+            self._told = now
+            iterations, seconds = self.schedule.unsaved(step, now)
+            self.log(
+                f"checkpoint step {step} not committed, earlier steps intact ({detail}); {iterations} iterations "
+                f"({seconds:.0f} s) unsaved, training goes on and retries; it holds past checkpoint.max_unsaved="
+                f"{self.config.checkpoint.max_unsaved}",
+                every_rank=True,
             )
 
 

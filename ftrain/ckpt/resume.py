@@ -13,7 +13,8 @@ same one line:
 
 - a file that does not match its manifest or is not plain data: an integrity failure; the step is quarantined
   and the next start falls back to an older one (exit 1, which the supervisor retries);
-- the storage failing: nothing is marked, the next start tries again (exit 1);
+- the storage failing: nothing is marked, the next start tries again (exit 1); the storage not answering at all:
+  ``StorageUnavailable`` (exit 7), which the supervisor waits out before it starts again;
 - a step that verifies but does not load into this code (a changed model, an rsl-rl upgrade, a hook whose
   ``load_state_dict`` raises): bad input, exit 2, which the supervisor does not retry; the step is left alone.
 """
@@ -37,7 +38,7 @@ from ftrain.ckpt.format import (
     step_dir,
 )
 from ftrain.ckpt.steps import clear_newer, quarantine, resolve_checkpoint_url, scan, select_resume
-from ftrain.ckpt.storage import Storage, StorageError
+from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import Config
 from ftrain.dist import group
 from ftrain.errors import UserError
@@ -85,6 +86,8 @@ def restore(
         raise UserError(decision["why"])
     if decision["kind"] == "storage":
         raise CheckpointError(decision["why"])
+    if decision["kind"] == "unavailable":
+        raise StorageUnavailable(decision["why"])
     if decision["kind"] == "fresh":
         log(decision["why"])
         return Resumed(None, False, [[0, info.world_size]])
@@ -93,7 +96,7 @@ def restore(
     failure = _load(trainer, source, step, manifest, info.rank)
     failures = [f for f in group.all_gather_object(failure, info) if f]
     where = source.where(step_dir(step))
-    for kind in ("integrity", "storage", "fit"):
+    for kind in ("unavailable", "integrity", "storage", "fit"):
         reasons = "; ".join(why for failed, why in failures if failed == kind)
         if not reasons:
             continue
@@ -105,6 +108,8 @@ def restore(
             )
         if kind == "storage":
             raise CheckpointError(f"checkpoint {where} could not be read ({reasons}): nothing marked, try again")
+        if kind == "unavailable":
+            raise StorageUnavailable(f"checkpoint {where} could not be read ({reasons}): the storage does not answer")
         if url is None and info.is_main:
             quarantine(storage, step, reasons)
         raise CheckpointError(
@@ -143,6 +148,8 @@ def _load(trainer: Checkpointable, storage: Storage, step: int, manifest: dict, 
         shard = read_verified(storage, step, shard_name(rank), manifest) if rank < manifest["world_size"] else None
     except CorruptCheckpoint as exc:
         return ["integrity", f"rank {rank}: {exc}"]
+    except StorageUnavailable as exc:
+        return ["unavailable", f"rank {rank}: {exc}"]
     except (StorageError, OSError) as exc:
         return ["storage", f"rank {rank}: {exc}"]
     try:
@@ -186,6 +193,8 @@ def decide(config: Config, info: group.RankInfo, storage: Storage, log: Callable
         return {"kind": "resume", "url": url, "step": step, "manifest": manifest}
     except UserError as error:
         return {"kind": "usage", "why": str(error)}
+    except StorageUnavailable as error:
+        return {"kind": "unavailable", "why": f"checkpoint storage {storage.url} does not answer: {error}"}
     except (StorageError, OSError) as error:
         return {"kind": "storage", "why": f"checkpoint storage {storage.url} failed while choosing a step: {error}"}
 

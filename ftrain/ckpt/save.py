@@ -13,10 +13,12 @@ snapshot, a copy of the state's tensors at the iteration boundary (:func:`snapsh
 from __future__ import annotations
 
 import collections
+import dataclasses
+import enum
 import queue
 import threading
+import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import torch
 import torch.distributed as dist
@@ -44,14 +46,25 @@ from ftrain.dist import group
 UNLOADABLE_HINT = "hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
 
 
-@dataclass(frozen=True)
-class Outcome:
-    """What the ranks agreed on for one save: ``committed`` (``detail`` is the manifest), ``failed`` or
-    ``unloadable`` (``detail`` says why)."""
+class Result(str, enum.Enum):
+    """What became of one save (a string on the wire: rank 0 broadcasts it as JSON)."""
 
-    kind: str
+    COMMITTED = "committed"
+    FAILED = "failed"
+    """Not committed (a write, the listing or the manifest failed): earlier steps are intact; training goes on."""
+    UNLOADABLE = "unloadable"
+    """Written state that would not load back: training must stop."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Outcome:
+    """What the ranks agreed on for one save: ``detail`` is the manifest when committed, else why not."""
+
+    result: Result
     step: int
     detail: dict | str
+    cpu_s: float = 0.0
+    """CPU time this rank's writer thread spent on the save (0 inline, where the loop's blocking time has it)."""
 
 
 def snapshot(state: object, into: object = None) -> object:
@@ -108,9 +121,14 @@ class StepWriter:
         except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
             report["error"] = f"rank {self.info.rank}: {exc}"
         reports = group.all_gather_object(report, self.info, self.collectives)
-        outcome = self._commit(step, reports, meta) if self.info.is_main else None
-        kind, _, detail = group.broadcast_object(outcome, self.info, self.collectives)
-        return Outcome(kind, step, detail)
+        outcome = None
+        if self.info.is_main:
+            try:
+                outcome = self._commit(step, reports, meta)
+            except Exception as exc:  # whatever rank 0 meets, every rank hears the same outcome
+                outcome = (Result.FAILED, step, f"commit: {type(exc).__name__}: {exc}")
+        result, _, detail = group.broadcast_object(outcome, self.info, self.collectives)
+        return Outcome(Result(result), step, detail)
 
     def _write(self, step: int, files: dict[str, dict], check_loadable: bool) -> tuple[dict, dict]:
         """Encode and write ``files``: their manifest entries, and the manifest fields that come from common.pt."""
@@ -133,9 +151,9 @@ class StepWriter:
     def _commit(self, step: int, reports: list[dict], meta: dict) -> tuple:
         errors = [report["error"] for report in reports if report["error"]]
         if any(report["unloadable"] for report in reports):
-            return ("unloadable", step, "; ".join(errors))
+            return (Result.UNLOADABLE, step, "; ".join(errors))
         if self._steps is None:
-            self._steps = {info.step: info for info in scan(self.storage)}
+            self._steps = {info.step: info for info in scan(self.storage)}  # may fail: save() reports it
         files = {name: FileEntry(*entry) for report in reports for name, entry in report["entries"].items()}
         fields = {key: value for report in reports for key, value in report["fields"].items()}  # from common.pt
         if not errors:
@@ -146,10 +164,10 @@ class StepWriter:
                 errors = [f"commit: {exc}"]
         if errors:
             self._steps[step] = StepInfo(step, INCOMPLETE)  # abandoned: retention deletes it
-            return ("failed", step, "; ".join(errors))
+            return (Result.FAILED, step, "; ".join(errors))
         self._steps[step] = StepInfo(step, VERIFIED, sum(entry.size for entry in files.values()), manifest)
         self._apply_retention()
-        return ("committed", step, manifest)
+        return (Result.COMMITTED, step, manifest)
 
     def _apply_retention(self) -> None:
         """Delete what the retention rules let go; a step that cannot be deleted now is kept and tried again later."""
@@ -205,10 +223,12 @@ class BackgroundWriter:
     def _run(self) -> None:
         while (job := self._jobs.get()) is not None:
             step = job[0]
+            started = time.thread_time()
             try:
                 outcome = self.writer.save(*job)
             except Exception as exc:  # the agreement failed (a peer died, the group broke): not committed
-                outcome = Outcome("failed", step, f"rank {self.writer.info.rank}: {type(exc).__name__}: {exc}")
+                outcome = Outcome(Result.FAILED, step, f"rank {self.writer.info.rank}: {type(exc).__name__}: {exc}")
+            outcome = dataclasses.replace(outcome, cpu_s=time.thread_time() - started)
             with self._done:
                 self._outcomes.append(outcome)
                 self._done.notify_all()

@@ -12,6 +12,7 @@ import math
 import os
 import signal
 import time
+import typing
 from pathlib import Path
 
 import torch
@@ -21,8 +22,10 @@ from ftrain import errorfile
 from ftrain.ckpt.format import learned_state, state_digest
 from ftrain.ckpt.manager import Checkpointer
 from ftrain.ckpt.resume import CheckpointError
+from ftrain.ckpt.storage import StorageUnavailable
 from ftrain.config import Config
 from ftrain.dist import group
+from ftrain.errors import EXIT_STORAGE_DOWN
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.evaluation import EvalHook
@@ -59,6 +62,18 @@ class StopRequest:
         self.requested = True
 
 
+class Votes(typing.NamedTuple):
+    """What the ranks decide together at an iteration boundary: each rank votes by its own signals and clock, the
+    votes ride in the iteration's metrics all-reduce, and a vote of any rank carries, so every rank acts alike."""
+
+    stop: bool
+    """Stop here (a rank was asked to: SIGTERM or SIGINT): save and exit."""
+    save: bool
+    """Save here (the checkpoint schedule, or a retry after a failed save)."""
+    hold: bool
+    """Train no further until this save commits (saves failing, and too much unsaved work)."""
+
+
 class Trainer:
     def __init__(self, config: Config, info: group.RankInfo, stop: StopRequest | None = None) -> None:
         self.config = config
@@ -85,12 +100,15 @@ class Trainer:
         self.checkpointer = Checkpointer(config, info, self.log)
         self.checkpointer.on_commit = lambda step, manifest: self.hooks.call("on_checkpoint", self, step, manifest)
         self.checkpointer.while_waiting = lambda: self.heartbeat.beat("checkpoint")
-        self._stop_votes = 0.0
+        self._votes = Votes(False, False, False)
         self._config_json = json.dumps(config.public_dict())
         """The config as saved in common.pt: one string, made once (the manifest has it as a mapping)."""
 
-    def log(self, message: str) -> None:
-        if self.info.is_main:
+    def log(self, message: str, every_rank: bool = False) -> None:
+        """A line of the run's log: from rank 0, or, for what each rank must be seen to agree on, from every rank."""
+        if every_rank and self.info.distributed:
+            print(f"[ftrain] rank {self.info.rank}: {message}", flush=True)
+        elif self.info.is_main:
             print(f"[ftrain] {message}", flush=True)
 
     # --- state -------------------------------------------------------------------------------------------------
@@ -170,10 +188,10 @@ class Trainer:
         self.heartbeat.beat("start", self.iteration)
         while self.iteration < self.config.iterations:
             self._iterate()
-            stop = self._agree_on_stop()
-            if stop or self._checkpoint_due():
+            stop, last = self._votes.stop, self.iteration == self.config.iterations
+            if stop or last or self._votes.save:
                 self.heartbeat.beat("checkpoint", self.iteration)
-                self.checkpointer.save(self, wait=stop, must_commit=stop or self.iteration == self.config.iterations)
+                self.checkpointer.save(self, wait=stop, hold=stop or last or self._votes.hold)
                 self.heartbeat.committed_step = self.checkpointer.committed_step
             if stop:
                 self.log(f"stop requested: saved step {self.iteration}, exiting")
@@ -212,14 +230,16 @@ class Trainer:
         self.hooks.call("after_iteration", self, self.metrics)
 
     def _record_metrics(self, losses: dict[str, float], collect_time: float, learn_time: float) -> None:
-        """Global metrics: the episode window and the step count are summed over ranks in one collective."""
+        """Global metrics: the episode window and the step count are summed over ranks in one collective, and so
+        are the votes (see ``Votes``)."""
         returns = sum(ret for ret, _ in self.episodes)
         lengths = sum(length for _, length in self.episodes)
         steps = self.env.num_envs * self.config.num_steps_per_env
-        stop = float(self.stop.requested)
-        total_returns, total_lengths, count, total_steps, self._stop_votes = group.all_reduce_sum(
-            [returns, lengths, len(self.episodes), steps, stop], self.info
+        votes = (self.stop.requested, *self.checkpointer.votes(self.iteration))
+        total_returns, total_lengths, count, total_steps, *voted = group.all_reduce_sum(
+            [returns, lengths, len(self.episodes), steps, *map(float, votes)], self.info
         )
+        self._votes = Votes(*(vote > 0 for vote in voted))
         self.env_steps += int(total_steps)
         previous = self.metrics
         iteration_time = collect_time + learn_time
@@ -235,16 +255,6 @@ class Trainer:
             "learn_time": learn_time,
             "iteration_time": iteration_time,
         }
-
-    # --- stopping and checkpoints ------------------------------------------------------------------------------
-
-    def _agree_on_stop(self) -> bool:
-        """Every rank stops at the same iteration boundary if any rank was asked to (the votes rode in the
-        metrics all-reduce of this iteration)."""
-        return self._stop_votes > 0
-
-    def _checkpoint_due(self) -> bool:
-        return self.iteration % self.config.checkpoint.interval == 0 or self.iteration == self.config.iterations
 
     def _write_resolved_config(self) -> None:
         if self.info.is_main:
@@ -275,7 +285,8 @@ def build_hooks(config: Config) -> Hooks:
 
 
 def train(config: Config) -> int:
-    """Entry point of ``ftrain train`` on every rank: 0 when done or stopped on request, 1 when checkpoints fail."""
+    """Entry point of ``ftrain train`` on every rank: 0 when done or stopped on request, 1 when checkpoints fail, 7
+    when the storage does not answer."""
     stop = StopRequest()
     stop.install()
     info = group.init(config.dist_timeout)
@@ -286,6 +297,9 @@ def train(config: Config) -> int:
     except CheckpointError as error:
         errorfile.report(str(error))
         return EXIT_CHECKPOINT
+    except StorageUnavailable as error:
+        errorfile.report(str(error))
+        return EXIT_STORAGE_DOWN
     finally:
         if trainer is not None:
             trainer.checkpointer.shutdown()

@@ -1,0 +1,127 @@
+"""Config values: YAML data converted into the config's dataclasses, and amounts of work (a number of iterations, or
+a duration such as ``"30s"``, ``"5m"``, ``"1h"``), with one-line errors naming the key.
+
+Torch-free, like the config: the supervisor validates a run's config before it launches anything.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import re
+import types
+import typing
+from dataclasses import dataclass
+from typing import Any
+
+import yaml
+
+from ftrain.errors import UserError
+
+_DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(s|m|h)\s*$")
+_UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0}
+
+
+@dataclass(frozen=True)
+class Amount:
+    """A number of iterations or of seconds (exactly one is set)."""
+
+    iterations: int | None = None
+    seconds: float | None = None
+
+    def __str__(self) -> str:
+        return f"{self.iterations} iterations" if self.iterations is not None else f"{self.seconds:g} s"
+
+    def exceeded_by(self, iterations: int, seconds: float) -> bool:
+        if self.iterations is not None:
+            return iterations > self.iterations
+        return seconds > self.seconds
+
+
+def parse_amount(key: str, value: object, auto: bool = False) -> Amount | None:
+    """``value`` of config key ``key``: N iterations, or a duration ``"30s"``, ``"5m"``, ``"1h"``; ``"auto"`` (None)
+    where ``auto`` is allowed. UserError otherwise."""
+    if isinstance(value, int) and not isinstance(value, bool) and value >= 1:
+        return Amount(iterations=value)
+    if auto and value == "auto":
+        return None
+    match = _DURATION.match(value) if isinstance(value, str) else None
+    if match and float(match[1]) > 0:
+        return Amount(seconds=float(match[1]) * _UNITS[match[2]])
+    choices = "a number of iterations (e.g. 100), a duration (e.g. 30s, 5m, 1h)" + (" or auto" if auto else "")
+    raise UserError(f"{key}={value!r} must be {choices}")
+
+
+def parse_value(raw: str) -> Any:
+    try:
+        return yaml.safe_load(raw)
+    except yaml.YAMLError:
+        return raw
+
+
+def set_dotted(data: dict, key: str, value: Any) -> None:
+    *parents, leaf = key.split(".")
+    node = data
+    for part in parents:
+        child = node.setdefault(part, {})
+        if not isinstance(child, dict):
+            raise UserError(f"override {key}: {part!r} is not a section")
+        node = child
+    node[leaf] = value
+
+
+def build(cls: type, data: dict, prefix: str) -> Any:
+    """Instantiate dataclass ``cls`` from ``data``, converting and checking every value against its type."""
+    if not isinstance(data, dict):
+        raise UserError(f"{prefix.rstrip('.') or 'config'} must be a mapping, got {data!r}")
+    hints = typing.get_type_hints(cls)
+    names = [f.name for f in dataclasses.fields(cls)]
+    kwargs = {}
+    for key, value in data.items():
+        if key not in names:
+            near = difflib.get_close_matches(str(key), names, n=1, cutoff=0.5)
+            hint = f"did you mean {prefix}{near[0]}?" if near else f"valid keys: {', '.join(prefix + n for n in names)}"
+            raise UserError(f"unknown config key {prefix}{key!r}: {hint}")
+        kwargs[key] = convert(hints[key], value, f"{prefix}{key}")
+    return cls(**kwargs)
+
+
+def convert(kind: Any, value: Any, key: str) -> Any:
+    origin = typing.get_origin(kind)
+    if dataclasses.is_dataclass(kind):
+        return build(kind, value if value is not None else {}, f"{key}.")
+    if origin is list:
+        (item_kind,) = typing.get_args(kind)
+        if not isinstance(value, list):
+            raise UserError(f"{key}={value!r} must be a list, e.g. {key}=[64,64]")
+        return [convert(item_kind, item, f"{key}[{i}]") for i, item in enumerate(value)]
+    if origin in (typing.Union, types.UnionType):
+        return value
+    if kind is dict:
+        if not isinstance(value, dict):
+            raise UserError(f"{key}={value!r} must be a mapping, e.g. {key}={{a: 1}}")
+        return value
+    if kind is bool:
+        if not isinstance(value, bool):
+            raise UserError(f"{key}={value!r} must be true or false")
+        return value
+    if kind is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise UserError(f"{key}={value!r} must be an integer")
+        return value
+    if kind is float:
+        if isinstance(value, str):  # YAML 1.1 reads 3e-4 (no dot) as a string
+            try:
+                return float(value)
+            except ValueError:
+                pass
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise UserError(f"{key}={value!r} must be a number")
+        return float(value)
+    if kind is str:
+        if value is None:
+            return ""
+        if not isinstance(value, (str, int, float)) or isinstance(value, bool):
+            raise UserError(f"{key}={value!r} must be a string")
+        return str(value)
+    return value
