@@ -9,6 +9,9 @@ Exit codes:
 - 5: several nodes: node 0's supervisor was unreachable for ``--rdzv-timeout`` seconds.
 - 6: elastic (``--nnodes MIN:MAX``): fewer than MIN nodes joined within ``--rdzv-timeout`` seconds. Nothing
   committed is lost: start the missing nodes and run the same command again.
+- 7: the checkpoint storage did not answer for ``--storage-wait`` seconds. Nothing committed is lost: run the same
+  command again once it is back. (Until then, an unreachable storage is waited out, and restarts for it count
+  neither towards ``--max-restarts`` nor the crash loop.)
 - 143: preempted (SIGTERM): the workers saved; run the same command again to continue. 128 + SIGTERM,
   so schedulers that retry signal exits (e.g. Kubernetes' ``ExitCode`` restart policy) run it again.
 - 130: interrupted (SIGINT, Ctrl-C): the same as 143, with the shell's code for Ctrl-C.
@@ -20,7 +23,7 @@ import os
 import signal
 from dataclasses import dataclass, field
 
-from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, UserError
+from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_STORAGE_DOWN, UserError
 from ftrain.supervise.auth import load_secret
 
 EXIT_DONE = 0
@@ -28,6 +31,7 @@ EXIT_CRASH_LOOP = 3
 EXIT_MAX_RESTARTS = 4
 EXIT_PEER_LOST = 5
 EXIT_TOO_FEW_NODES = EXIT_RENDEZVOUS_TIMEOUT
+EXIT_STORAGE_WAIT = EXIT_STORAGE_DOWN
 EXIT_PREEMPTED = 128 + signal.SIGTERM
 EXIT_INTERRUPTED = 128 + signal.SIGINT
 STOPPED = (EXIT_PREEMPTED, EXIT_INTERRUPTED)
@@ -77,6 +81,10 @@ class SupervisorOptions:
     backoff_max: float = field(default=60.0, metadata={"help": "longest back-off in seconds"})
     crash_loop: int = field(
         default=3, metadata={"help": "stop (exit 3) after this many restarts in a row commit no new step (0: never)"}
+    )
+    storage_wait: float = field(
+        default=3600.0,
+        metadata={"help": "seconds to wait for an unreachable checkpoint storage before giving up (exit 7)"},
     )
     stop_grace: float = field(
         default=30.0, metadata={"help": "seconds between SIGTERM and SIGKILL when stopping workers (time to save)"}

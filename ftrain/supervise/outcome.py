@@ -6,7 +6,7 @@ import math
 import signal
 from dataclasses import dataclass
 
-from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_USAGE
+from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_STORAGE_DOWN, EXIT_USAGE
 from ftrain.supervise.options import EXIT_DONE, EXIT_PREEMPTED, EXIT_TOO_FEW_NODES
 
 
@@ -27,17 +27,18 @@ def blame(failures: dict[int, WorkerFailure], killed: set[int]) -> tuple[int, Wo
 
     Ranks the supervisor ``killed`` do not count. Of the others, a rank that refused its input comes first (the
     lowest: every rank refuses alike, and the others may have been stopped by torchrun before they could exit 2), then
-    a rank killed by a signal (someone killed it; the rest then failed on the broken group), then the rank that
-    recorded an error first (the others' errors, a broken connection, followed it), then a specific exit code before
-    1 (what a broken group gives) or SIGTERM (what torchrun sends the survivors), then the lowest rank. torchrun's own
+    one that could not reach the storage (exit 7), then a rank killed by a signal (someone killed it; the rest then
+    failed on the broken group), then the rank that recorded an error first (the others' errors, a broken connection,
+    followed it), then a specific exit code before 1 (what a broken group gives) or SIGTERM (what torchrun sends the
+    survivors), then the lowest rank. torchrun's own
     root cause is only the first failure it noticed, arbitrary when several die within a poll.
     """
     own = {rank: failure for rank, failure in failures.items() if rank not in killed} or failures
 
     def order(item: tuple[int, WorkerFailure]) -> tuple:
         rank, failure = item
-        if failure.code == EXIT_USAGE:
-            return (False, rank)
+        if failure.code in (EXIT_USAGE, EXIT_STORAGE_DOWN):
+            return (False, failure.code != EXIT_USAGE, rank)
         signalled = failure.code < 0 and failure.code != -signal.SIGTERM
         return (True, not signalled, failure.recorded_at, failure.code in (1, -signal.SIGTERM), rank)
 
@@ -46,7 +47,8 @@ def blame(failures: dict[int, WorkerFailure], killed: set[int]) -> tuple[int, Wo
 
 @dataclass
 class Outcome:
-    """How an attempt ended: ``failed`` (restart) or one of the endings, with its exit code and event name."""
+    """How an attempt ended: ``failed`` (restart), ``storage_down`` (wait for the storage, then restart) or one of the
+    endings, with its exit code and event name."""
 
     event: str
     code: int | None
@@ -54,7 +56,7 @@ class Outcome:
 
     @property
     def failed(self) -> bool:
-        return self.event == "failed"
+        return self.event in ("failed", "storage_down")
 
 
 def classify(
@@ -93,6 +95,8 @@ def classify(
             f"fewer nodes than the minimum joined within --rdzv-timeout; nothing committed is lost (newest step "
             f"{committed}): start the missing nodes and run the same command again",
         )
+    if culprit is not None and culprit[1].code == EXIT_STORAGE_DOWN:
+        return Outcome("storage_down", None, f"rank {culprit[0]}: {culprit[1].error or 'the storage did not answer'}")
     if culprit is not None and culprit[1].code == EXIT_USAGE:
         rank, failure = culprit
         refusal = f"refused its input: {failure.error}" if failure.error else f"exited with code {EXIT_USAGE}"

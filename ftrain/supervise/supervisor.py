@@ -15,6 +15,8 @@ line on the console and in ``events.jsonl``; torchrun's and the workers' stderr 
 Hang: a rank's heartbeat ``seq`` does not change within the hang timeout (``auto``: max(30 s, 10 x the longest gap
 seen between two heartbeats of a rank), and ``--startup-grace`` until every rank is past its ``start`` heartbeat).
 
+Storage. A worker that cannot reach the checkpoint storage exits 7: the supervisor waits for it (``outage.py``).
+
 Recover. A worker that died mid-training dooms the others: they get SIGKILL at once. Orphans of a killed
 torchrun get SIGTERM (they agree, save, exit), then SIGKILL after ``--stop-grace``. A hung group gets SIGKILL at
 once (its collectives cannot agree on a save; commits are crash-safe). Then back off (not after an attempt that
@@ -40,7 +42,8 @@ import sys
 import time
 from pathlib import Path
 
-from ftrain.config import Config
+from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
+from ftrain.config import Config, StorageConfig
 from ftrain.heartbeat import Heartbeat, read_heartbeats
 from ftrain.redact import redact_command
 from ftrain.supervise.attempt import Attempt, attempt_env, kill, new_log_dir, signal_name, torchrun_command
@@ -60,6 +63,7 @@ from ftrain.supervise.options import (
     parse_nodes,
     stop_code,
 )
+from ftrain.supervise.outage import StorageWait
 from ftrain.supervise.outcome import Outcome, classify
 
 WORKER_MODULE_ENV = "FTRAIN_WORKER_MODULE"
@@ -78,7 +82,8 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     ``config``: the run's validated config; ``train_args``: the arguments of ``ftrain train`` it was read from
     (config file, ``--storage``, overrides), which every worker gets."""
     hang_timeout = parse_hang_timeout(options.hang_timeout)
-    supervisor = Supervisor(options, parse_nodes(options), Path(config.log_dir), hang_timeout, train_args)
+    nodes = parse_nodes(options)
+    supervisor = Supervisor(options, nodes, Path(config.log_dir), hang_timeout, train_args, config.storage)
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         return supervisor.run()
@@ -102,6 +107,7 @@ class Supervisor:
         log_dir: Path,
         hang_timeout: float | None,
         train_args: list[str],
+        storage: StorageConfig,
     ) -> None:
         self.options = options
         self.nodes = nodes
@@ -121,6 +127,7 @@ class Supervisor:
         self.restarts = 0
         self.best_committed: int | None = None
         self.ledger = Ledger(options.nproc_per_node, self.events)
+        self.storage_wait = StorageWait(storage, options.storage_wait, self.events, self._sleep)
 
     def on_signal(self, number: int, frame: object) -> None:
         self.signals.append(number)
@@ -145,6 +152,13 @@ class Supervisor:
             outcome = self._watch(attempt)
             if not outcome.failed:
                 raise _Stop(outcome.event, outcome.code, outcome.message)
+            if outcome.event == "storage_down":
+                ending = self.storage_wait(outcome.message)
+                if ending is not None:
+                    raise _Stop(ending.event, ending.code, ending.message)
+                plan = self._next_plan(plan)
+                self.events("restart", f"attempt {plan.attempt}: the storage answers again", attempt=plan.attempt)
+                continue
             new_commit = attempt.committed is not None and (
                 self.best_committed is None or attempt.committed > self.best_committed
             )
@@ -217,6 +231,7 @@ class Supervisor:
     def _launch(self, plan: Plan) -> Attempt:
         token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
         env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.options.node_rank)
+        env[STORAGE_WAIT_ENV] = str(self.options.storage_wait)
         rendezvous = ["--standalone"] if self.nnodes == 1 else rendezvous_args(plan, self.nodes, self.options)
         module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
         logs = new_log_dir(self.attempt_logs, plan)

@@ -4,7 +4,9 @@ stop saves that commit when every process gets SIGTERM, and no process besides t
 from __future__ import annotations
 
 import os
+import re
 import signal
+import subprocess
 import uuid
 
 import pytest
@@ -15,10 +17,23 @@ from ftrain.ckpt.save import snapshot
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
 from ftrain.config import load_config
+from ftrain.heartbeat import ENV_DIR
 from ftrain.supervise import procfs
 from ftrain.train.trainer import train
 
-from helpers import SMOKE, assert_same, finish, manifests, start_train, wait_for
+from helpers import (
+    REPO,
+    SMOKE,
+    assert_same,
+    child_env,
+    final_manifest,
+    finish,
+    manifests,
+    run_train,
+    start_train,
+    train_command,
+    wait_for,
+)
 
 LONG = ("iterations=100000", "checkpoint.interval=2")
 
@@ -116,3 +131,29 @@ def test_a_memory_run_saves_and_its_steps_verify(tmp_path, async_save: bool) -> 
     steps = scan(Storage.open(url), full=True)
     assert [(info.step, info.status) for info in steps] == [(4, VERIFIED), (2, VERIFIED)]
     assert steps[0].manifest["iteration"] == 4
+
+
+@pytest.mark.slow
+def test_when_rank_0_cannot_write_a_manifest_every_rank_hears_so_and_training_goes_on_to_the_same_end(tmp_path):
+    """Rank 0's manifest write of step TRAP fails (a directory stands where the manifest goes, placed once training
+    runs, since a fresh start clears steps it does not know): every rank says the step was not committed, then that
+    the next one was, and the run ends where an uninterrupted one does, bit for bit."""
+    trap, overrides = 150, ("iterations=200", "checkpoint.interval=2", "checkpoint.keep_last=200")
+    reference = run_train(tmp_path / "reference", *overrides, ranks=2)
+    storage = tmp_path / "run"
+    command = train_command(storage, *overrides, ranks=2)
+    env = child_env({ENV_DIR: str(tmp_path / "heartbeat")})
+    proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    wait_for(lambda: manifests(storage), "a first commit")
+    blocker = storage / "checkpoints" / f"step-{trap:09d}" / "MANIFEST.json"
+    blocker.mkdir(parents=True)
+    output, _ = proc.communicate(timeout=300)
+    assert proc.returncode == 0, output[-3000:]
+    assert blocker.is_dir() and not list(blocker.iterdir())
+    blocker.rmdir()
+    assert trap not in manifests(storage) and trap + 1 in manifests(storage), "the retry commits the next iteration"
+    for rank in (0, 1):
+        assert re.search(rf"rank {rank}: checkpoint step {trap} not committed, earlier steps intact \(commit:", output)
+        assert f"rank {rank}: checkpoint step {trap + 1} committed: the storage is back" in output
+    assert final_manifest(storage)["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
+    assert "not committed" not in reference.stdout

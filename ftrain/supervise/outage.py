@@ -1,0 +1,64 @@
+"""Waiting out an unreachable checkpoint storage.
+
+A worker that cannot reach the storage ends with exit 7 (``StorageUnavailable``): an infrastructure fault, not bad
+input. The supervisor then probes the storage itself, with backoff and one line per try, and starts the workers again
+once it answers; such restarts count neither towards ``--max-restarts`` nor the crash loop. After ``--storage-wait``
+seconds it gives up with exit 7; nothing committed is lost. The workers get the same wait (``FTRAIN_STORAGE_WAIT``)
+for a save they must commit.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable
+
+from ftrain.ckpt.storage import backoff, probe
+from ftrain.config import StorageConfig
+from ftrain.errors import EXIT_USAGE, UserError
+from ftrain.supervise.events import EventLog
+from ftrain.supervise.options import EXIT_STORAGE_WAIT
+from ftrain.supervise.outcome import Outcome
+
+PROBES = (1.0, 30.0)
+"""Seconds between two probes: the first, and the longest (doubling, with jitter)."""
+
+
+class StorageWait:
+    def __init__(self, storage: StorageConfig, limit: float, events: EventLog, sleep: Callable[[float], None]) -> None:
+        """``limit``: seconds to wait; ``sleep``: the supervisor's sleep, which ends the run on a signal."""
+        self.storage = storage
+        self.limit = limit
+        self.events = events
+        self.sleep = sleep
+
+    def __call__(self, why: str) -> Outcome | None:
+        """Probe until the storage answers (None), or the ending of the run: it did not within the limit, or what it
+        answers no waiting fixes (a bucket gone, access denied)."""
+        url = self.storage.url
+        started, since, tries = time.monotonic(), time.strftime("%H:%M:%S"), 0
+        self.events("storage_wait", f"{why}; waiting up to {self.limit:g} s for it", storage=url)
+        while True:
+            try:
+                problem = probe(url, self.storage.options)
+            except UserError as error:
+                return Outcome("usage", EXIT_USAGE, str(error))
+            waited = time.monotonic() - started
+            if problem is None:
+                self.events("storage_back", f"the storage answers again after {waited:.0f} s", waited=round(waited, 2))
+                return None
+            if waited > self.limit:
+                return Outcome(
+                    "storage_down",
+                    EXIT_STORAGE_WAIT,
+                    f"the storage {url} did not answer for {self.limit:g} s ({problem}); nothing committed is lost: "
+                    "run the same command again once it is back",
+                )
+            delay = backoff(PROBES[0], tries, PROBES[1])
+            print(
+                f"ftrain supervise: storage {url} unreachable since {since} ({problem}); next try in {delay:.0f} s",
+                file=sys.stderr,
+                flush=True,
+            )
+            self.sleep(delay)
+            tries += 1
