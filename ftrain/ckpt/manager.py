@@ -213,7 +213,7 @@ class Checkpointer:
         if outcome.result is Result.COMMITTED:
             if self._failing is not None:
                 since = now - self._failing[0]
-                self.log(f"checkpoint step {step} committed: the storage is back after {since:.0f} s", every_rank=True)
+                self.log(f"checkpoint step {step} committed: saves work again after {since:.0f} s", every_rank=True)
             self._failing = None
             self.committed_step = step
             self.on_commit(step, detail)

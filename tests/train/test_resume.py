@@ -14,6 +14,8 @@ import time
 import pytest
 
 from ftrain.ckpt.format import QUARANTINED
+from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
+from ftrain.errors import EXIT_STORAGE_DOWN
 from ftrain.heartbeat import ENV_DIR, read_heartbeats
 
 from helpers import (
@@ -147,24 +149,32 @@ def _read_s3_manifest(url: str, step: int, env: dict) -> str:
     return Storage.open(url, options).read(f"checkpoints/step-{step:09d}/MANIFEST.json").decode()
 
 
-def test_failed_saves_are_logged_training_goes_on_and_persistent_failure_stops(tmp_path) -> None:
+def test_failed_saves_are_logged_training_goes_on_and_holds_past_the_unsaved_bound(tmp_path) -> None:
     storage = tmp_path / "run"
     (storage / "checkpoints").mkdir(parents=True)
     (storage / "checkpoints" / "step-000000004").write_text("a file where the step directory should go")
     result = run_train(storage, "checkpoint.keep_last=10")
-    assert "checkpoint step 4 failed (1/3), earlier ones intact" in result.stdout
-    assert sorted(manifests(storage)) == [2, 6, 8]
+    assert "checkpoint step 4 not committed, earlier steps intact" in result.stdout
+    retried = int(re.search(r"checkpoint step (\d+) committed: saves work again", result.stdout)[1])
+    assert retried in (5, 6), "the newest state is retried as soon as the failed save has settled"
+    assert sorted(manifests(storage)) == sorted({2, retried, 6, 8}), "then the interval goes on"
 
     blocked = tmp_path / "blocked"
-    (blocked / "checkpoints").mkdir(parents=True)
-    for step in (2, 4, 6):
-        (blocked / "checkpoints" / f"step-{step:09d}").write_text("not a directory")
+    blocked.mkdir()
+    (blocked / "checkpoints").write_text("no step directory can go below a file")
     failed = subprocess.run(
-        train_command(blocked), cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=300
+        train_command(blocked, "checkpoint.max_unsaved=3", f"log_dir={tmp_path / 'logs'}"),
+        cwd=REPO,
+        env=child_env({STORAGE_WAIT_ENV: "3"}),
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
-    assert failed.returncode != 0
-    assert "3 checkpoints in a row failed to save" in failed.stderr
-    assert manifests(blocked) == {}
+    assert failed.returncode == EXIT_STORAGE_DOWN, failed.stderr
+    assert "training held at step 4: 4 iterations" in failed.stdout
+    assert "held at step 5" not in failed.stdout, "training stays where it is while it holds"
+    assert "took no checkpoint for 3 s" in failed.stderr and "Traceback" not in failed.stderr
+    assert (blocked / "checkpoints").read_text() == "no step directory can go below a file"
 
 
 def test_retention_across_a_resume_cleans_abandoned_and_failed_steps(tmp_path) -> None:
@@ -178,7 +188,7 @@ def test_retention_across_a_resume_cleans_abandoned_and_failed_steps(tmp_path) -
     (steps / "step-000000003" / "rank-00000.pt").write_bytes(b"abandoned by a save that was killed")
     (steps / "step-000000006").write_text("a file where the step directory should go")
     result = run_train(storage, "iterations=12", *keep)
-    assert "checkpoint step 6 failed" in result.stdout
+    assert "checkpoint step 6 not committed" in result.stdout
     assert sorted(manifests(storage)) == [2, 8, 10, 12]  # pinned, every 8th, the last 2; 4 was found at start
     assert sorted(path.name for path in steps.iterdir()) == [f"step-{s:09d}" for s in (2, 8, 10, 12)]
 
