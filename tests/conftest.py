@@ -4,7 +4,9 @@ import uuid
 
 import pytest
 
-from helpers import BACKENDS, S3_KEY, S3_REGION, S3_SECRET, create_bucket, free_port, start_moto, stop, stop_launched
+from ftrain.tools.outage import S3Server, free_port, start_moto, stop
+
+from helpers import BACKENDS, S3_KEY, S3_REGION, S3_SECRET, S3Outage, create_bucket, stop_launched
 
 # --- Storage backends: a real S3 API server (moto) on 127.0.0.1, plus local, file:// and memory:// URLs ---
 
@@ -36,6 +38,18 @@ def s3_env(s3_server):
         "AWS_SECRET_ACCESS_KEY": s3_server["secret"],
         "AWS_DEFAULT_REGION": s3_server["region"],
     }
+
+
+@pytest.fixture
+def s3_outage(tmp_path):
+    """A fresh bucket on an S3 server of the test's own (so that pausing it harms no other test), behind a proxy
+    the test switches: see helpers.S3Outage. The server is continued and stopped at the end, whatever happened."""
+    server = S3Server(tmp_path / "moto.log")
+    try:
+        info = {"endpoint_url": server.direct_url, "key": S3_KEY, "secret": S3_SECRET, "region": S3_REGION}
+        yield S3Outage(server, f"s3://{create_bucket(info)}/run")
+    finally:
+        server.stop()
 
 
 @pytest.fixture(params=BACKENDS)

@@ -8,12 +8,12 @@ import csv
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
 import uuid
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
 import boto3
@@ -24,6 +24,8 @@ from ftrain.ckpt.storage import Storage
 from ftrain.heartbeat import read_heartbeats
 from ftrain.supervise import procfs
 from ftrain.supervise.attempt import TORCHRUN
+from ftrain.tools.outage import S3Server
+from ftrain.tools.outage import free_port as free_port  # the tests take it from here
 
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
@@ -203,38 +205,6 @@ S3_REGION = "us-east-1"
 BACKENDS = ("local", "file", "memory", "s3")
 
 
-def free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def start_moto(port: int, log_path) -> subprocess.Popen:
-    """Start moto's S3 server on 127.0.0.1:``port`` and wait until it accepts connections."""
-    log = open(log_path, "ab")  # noqa: SIM115 - the server writes to it for its whole life
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "moto.server", "-H", "127.0.0.1", "-p", str(port)], stdout=log, stderr=log
-    )
-    deadline = time.monotonic() + 30
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"moto server exited with {proc.returncode}: see {log_path}")
-        with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), timeout=0.5):
-            return proc
-        time.sleep(0.05)
-    proc.kill()
-    raise RuntimeError(f"moto server did not listen on port {port} within 30 s: see {log_path}")
-
-
-def stop(proc: subprocess.Popen) -> None:
-    proc.terminate()
-    try:
-        proc.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait()
-
-
 def create_bucket(server: dict) -> str:
     bucket = f"ftrain-{uuid.uuid4().hex[:12]}"
     client = boto3.client(
@@ -246,6 +216,29 @@ def create_bucket(server: dict) -> str:
     )
     client.create_bucket(Bucket=bucket)
     return bucket
+
+
+@dataclass
+class S3Outage:
+    """A run's S3 storage (a fresh bucket) on a server of its own, reached through a proxy that the test switches:
+    ``server.refuse()`` / ``server.restore()`` (the port refuses), ``server.hang()`` / ``server.unhang()`` (SIGSTOP)."""
+
+    server: S3Server
+    url: str
+
+    @property
+    def options(self) -> dict:
+        return {"endpoint_url": self.server.endpoint_url, "key": S3_KEY, "secret": S3_SECRET}
+
+    @property
+    def env(self) -> dict:
+        """The endpoint and credentials as environment variables, for subprocesses."""
+        return {
+            "AWS_ENDPOINT_URL": self.server.endpoint_url,
+            "AWS_ACCESS_KEY_ID": S3_KEY,
+            "AWS_SECRET_ACCESS_KEY": S3_SECRET,
+            "AWS_DEFAULT_REGION": S3_REGION,
+        }
 
 
 # --- Checkpoint steps to inspect and damage ---
