@@ -1,10 +1,11 @@
 """``events.jsonl``: one JSON line per supervisor decision, the ones with a message printed as well.
 
 Record. One JSON line per decision in ``<log_dir>/events.jsonl``: ``start``, ``resumed``, ``worker_died``,
-``exit``, ``hang``, ``superseded``, ``restart``, ``recovered``, ``resize`` (the world size changed: old and new
+``exit``, ``hang``, ``superseded``, ``restart``, ``recovered``, ``storage_wait`` and ``storage_back`` (an
+unreachable storage waited out: why, how long), ``resize`` (the world size changed: old and new
 world and nodes, why, the step resumed from, iterations lost, downtime), ``preempt``, ``refused`` (node 0: a
 connection that brought no signed request), and the ending (``done``, ``preempted``, ``crash_loop``,
-``max_restarts``, ``usage``, ``peer_lost``, ``peer_ended``, ``too_few_nodes``), then ``summary`` (restarts,
+``max_restarts``, ``usage``, ``peer_lost``, ``peer_ended``, ``too_few_nodes``, ``storage_down``), then ``summary`` (restarts,
 iterations lost, downtime).
 """
 

@@ -37,7 +37,7 @@ class StorageWait:
         answers no waiting fixes (a bucket gone, access denied)."""
         url = self.storage.url
         started, since, tries = time.monotonic(), time.strftime("%H:%M:%S"), 0
-        self.events("storage_wait", f"{why}; waiting up to {self.limit:g} s for it", storage=url)
+        self.events("storage_wait", f"{why}; waiting up to {self.limit:g} s for it", storage=url, cause=why)
         while True:
             try:
                 problem = probe(url, self.storage.options)
