@@ -6,8 +6,8 @@ import json
 import signal
 
 from ftrain import errorfile
-from ftrain.errors import EXIT_USAGE
-from ftrain.supervise.outcome import WorkerFailure, blame
+from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_USAGE
+from ftrain.supervise.outcome import WorkerFailure, blame, classify
 
 
 def recorded(tmp_path, monkeypatch, rank: int, code: int, error: BaseException | None) -> WorkerFailure:
@@ -55,3 +55,15 @@ def test_a_refusal_is_blamed_even_when_another_rank_recorded_first_and_torchrun_
     refused = WorkerFailure(EXIT_USAGE, "checkpoint step 2 ... refused", recorded_at=2.0)
     stopped = WorkerFailure(-signal.SIGTERM, "checkpoint step 2 ... refused", recorded_at=1.0)
     assert blame({0: refused, 1: stopped}, killed=set()) == (0, refused)
+
+
+def test_a_rank_that_could_not_reach_the_storage_is_blamed_after_a_refusal_and_before_any_crash(tmp_path) -> None:
+    """The storage is down: rank 0 exits 7; rank 1, waiting in a collective, fails on the broken group first."""
+    unreachable = WorkerFailure(EXIT_STORAGE_DOWN, "cannot reach the S3 endpoint ...", recorded_at=2.0)
+    broken = WorkerFailure(1, "RuntimeError: Connection reset by peer", recorded_at=1.0)
+    killed = WorkerFailure(-signal.SIGKILL, None)
+    assert blame({0: unreachable, 1: broken, 2: killed}, killed=set()) == (0, unreachable)
+    refused = WorkerFailure(EXIT_USAGE, "bad input", recorded_at=3.0)
+    assert blame({0: unreachable, 1: refused}, killed=set()) == (1, refused)
+    outcome = classify(1, "", (0, unreachable), None, False, {"start"}, False, None)
+    assert outcome.event == "storage_down" and outcome.failed and outcome.code is None
