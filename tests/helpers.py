@@ -19,10 +19,10 @@ from pathlib import Path
 import boto3
 import torch
 
+from ftrain import procfs
 from ftrain.ckpt.format import FileEntry, commit, encode, step_dir, write_file
 from ftrain.ckpt.storage import Storage
 from ftrain.heartbeat import read_heartbeats
-from ftrain.supervise import procfs
 from ftrain.supervise.attempt import TORCHRUN
 
 REPO = Path(__file__).resolve().parents[1]

@@ -5,8 +5,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+from ftrain import procfs
 from ftrain.heartbeat import Heartbeat
-from ftrain.supervise import procfs
 
 HANG_FLOOR = 30.0
 HANG_FACTOR = 10.0

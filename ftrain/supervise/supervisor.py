@@ -5,7 +5,10 @@ Stdlib only (plus the torch-free config and heartbeat modules): the supervisor l
 Launch. Every attempt is a new ``torchrun --max-restarts=0`` in its own session, with ``FTRAIN_HEARTBEAT_DIR``
 set, and a rendezvous nothing has used before: ``--standalone`` on one node (a new TCP store on a free port);
 on several nodes a static rendezvous on a new port per attempt (see "Several nodes"). torchrun's own restarts
-keep one TCP store, from which restarted workers read stale gloo peer addresses; a new torchrun cannot.
+keep one TCP store, from which restarted workers read stale gloo peer addresses; a new torchrun cannot. Train
+arguments that carry credentials reach the workers through their environment, redacted on their command lines
+(which every user of the machine reads). No process of an attempt outlives the supervisor, however it ends
+(``ftrain/lifeline.py``: torchrun dies with it, each worker watches it).
 
 Detect. Crash: torchrun exits non-zero, or is killed (its workers, each in a session of its own, are then
 orphans: the supervisor finds every process of an attempt by the ``FTRAIN_ATTEMPT_TOKEN`` in its environment).
@@ -42,7 +45,7 @@ from pathlib import Path
 
 from ftrain.config import Config
 from ftrain.heartbeat import Heartbeat, read_heartbeats
-from ftrain.redact import redact_command
+from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, attempt_env, kill, new_log_dir, signal_name, torchrun_command
 from ftrain.supervise.coordinator import Coordinator, Link, Plan, plan_key, rendezvous_args
 from ftrain.supervise.events import EventLog
@@ -216,11 +219,12 @@ class Supervisor:
 
     def _launch(self, plan: Plan) -> Attempt:
         token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
-        env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.options.node_rank)
+        train_args, hidden = hide_credentials(self.train_args)
+        env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.options.node_rank, hidden)
         rendezvous = ["--standalone"] if self.nnodes == 1 else rendezvous_args(plan, self.nodes, self.options)
         module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
         logs = new_log_dir(self.attempt_logs, plan)
-        command = torchrun_command(self.options.nproc_per_node, rendezvous, module, self.train_args, logs)
+        command = torchrun_command(self.options.nproc_per_node, rendezvous, module, train_args, logs)
         logged = redact_command(command)
         message = f"attempt {plan.attempt}: launching torchrun"
         self.events("start", message, attempt=plan.attempt, command=logged, logs=str(logs))

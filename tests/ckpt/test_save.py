@@ -10,12 +10,12 @@ import uuid
 import pytest
 import torch
 
+from ftrain import procfs
 from ftrain.ckpt.format import VERIFIED, decode, encode, learned_state, state_digest, verify_step
 from ftrain.ckpt.save import snapshot
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
 from ftrain.config import load_config
-from ftrain.supervise import procfs
 from ftrain.train.trainer import train
 
 from helpers import SMOKE, assert_same, finish, manifests, start_train, wait_for
