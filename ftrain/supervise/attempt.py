@@ -5,6 +5,11 @@ Every attempt has a directory of its own, ``<log_dir>/torchrun/[node-R/]attempt-
 ``ftrain/errorfile.py``). ``stderr.log`` there holds everything torchrun and the workers write to stderr: none of it
 reaches the console. torchrun runs as ``ftrain.dist.torchrun``, which writes torchrun's own account of the failed
 workers (exit code and recorded error of each) to ``failures.json`` instead of a traceback and a text report.
+
+Train arguments that carry credentials (storage URL, storage options) reach the workers through their environment,
+redacted on their command lines, which every user of the machine reads (``redact.hide_credentials``). No process of
+an attempt outlives the supervisor, however it ends (``ftrain/lifeline.py``: torchrun dies with it, each worker
+watches it).
 """
 
 from __future__ import annotations

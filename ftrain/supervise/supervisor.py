@@ -5,18 +5,17 @@ Stdlib only (plus the torch-free config and heartbeat modules): the supervisor l
 Launch. Every attempt is a new ``torchrun --max-restarts=0`` in its own session, with ``FTRAIN_HEARTBEAT_DIR``
 set, and a rendezvous nothing has used before: ``--standalone`` on one node (a new TCP store on a free port);
 on several nodes a static rendezvous on a new port per attempt (see "Several nodes"). torchrun's own restarts
-keep one TCP store, from which restarted workers read stale gloo peer addresses; a new torchrun cannot. Train
-arguments that carry credentials reach the workers through their environment, redacted on their command lines
-(which every user of the machine reads). No process of an attempt outlives the supervisor, however it ends
-(``ftrain/lifeline.py``: torchrun dies with it, each worker watches it).
+keep one TCP store, from which restarted workers read stale gloo peer addresses; a new torchrun cannot. Credentials
+reach the workers in their environment, never on a command line; no process outlives the supervisor (``attempt.py``).
 
 Detect. Crash: torchrun exits non-zero, or is killed (its workers, each in a session of its own, are then
 orphans: the supervisor finds every process of an attempt by the ``FTRAIN_ATTEMPT_TOKEN`` in its environment).
 Who failed and why comes from torchrun's account of its workers (exit codes, and the one-line error each recorded in
 its error file: see ``attempt.py``); a worker exiting 2 refused its input, which no restart fixes. The cause is one
 line on the console and in ``events.jsonl``; torchrun's and the workers' stderr go to the attempt's log directory.
-Hang: a rank's heartbeat ``seq`` does not change within the hang timeout (``auto``: max(30 s, 10 x the longest gap
-seen between two heartbeats of a rank), and ``--startup-grace`` until every rank is past its ``start`` heartbeat).
+Hang: every working rank has stayed in the phase its heartbeat names longer than that phase's limit (``auto``:
+max(5 s, 10 x the longest time seen in that phase), ``--startup-grace`` for start-up, the first iteration after it
+and a phase not seen yet; see ``hang.py``), or one fixed ``--hang-timeout``.
 
 Recover. A worker that died mid-training dooms the others: they get SIGKILL at once. Orphans of a killed
 torchrun get SIGTERM (they agree, save, exit), then SIGKILL after ``--stop-grace``. A hung group gets SIGKILL at
