@@ -17,6 +17,8 @@ import typing
 
 from ftrain import errorfile
 from ftrain.errors import EXIT_USAGE, UserError
+from ftrain.lifeline import watch_supervisor
+from ftrain.redact import reveal_credentials
 
 if typing.TYPE_CHECKING:
     from ftrain.config import Config
@@ -197,6 +199,9 @@ def _version() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["train"]:  # a worker of ``ftrain supervise``: the credentials come from the environment
+        argv = ["train", *reveal_credentials(argv[1:], os.environ)]
     # overrides may come before or after options such as --storage: gather the key=value words from both places
     args, extra = parser.parse_known_args(argv)
     unknown = [word for word in extra if word.startswith("-") or "=" not in word]
@@ -224,6 +229,7 @@ def main(argv: list[str] | None = None) -> int:
 def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "train":
         config = _run_config(args)
+        watch_supervisor()
         from ftrain.train.trainer import train
 
         return train(config)

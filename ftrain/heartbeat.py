@@ -6,8 +6,8 @@ its phase changes. The supervisor reads them without importing torch. Fields:
 
 - ``rank``, ``pid``: who wrote it (its global rank).
 - ``iteration``: iterations completed when the phase began.
-- ``phase``: ``start`` (resumed or fresh, before the first iteration), ``rollout``, ``update``,
-  ``checkpoint``, ``done`` (all iterations finished), ``preempted`` (saved on request, exiting).
+- ``phase``: a ``Phase``: ``start`` (resumed or fresh, before the first iteration), ``rollout``, ``update``,
+  ``evaluate``, ``checkpoint``, ``done`` (all iterations finished), ``preempted`` (saved on request, exiting).
 - ``committed_step``: the newest checkpoint step this run has committed or resumed from (None if none).
 - ``resumed_step``: the step this process resumed from (None for a fresh start).
 - ``seq``: increases with every write, so a reader sees progress even when the clock does not move.
@@ -17,6 +17,7 @@ its phase changes. The supervisor reads them without importing torch. Fields:
 
 from __future__ import annotations
 
+import enum
 import json
 import os
 import time
@@ -30,12 +31,24 @@ NODE_ENV = "FTRAIN_NODE"
 """Set by the supervisor in every worker's environment: its ``--node-rank``, which the heartbeats list in ``nodes``."""
 
 
+class Phase(enum.StrEnum):
+    """What a rank is doing; the supervisor times each phase on its own (``supervise/hang.py``)."""
+
+    START = "start"
+    ROLLOUT = "rollout"
+    UPDATE = "update"
+    EVALUATE = "evaluate"
+    CHECKPOINT = "checkpoint"
+    DONE = "done"
+    PREEMPTED = "preempted"
+
+
 @dataclass
 class Heartbeat:
     rank: int
     pid: int
     iteration: int
-    phase: str
+    phase: Phase
     committed_step: int | None
     resumed_step: int | None
     seq: int
@@ -67,7 +80,7 @@ class HeartbeatWriter:
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
 
-    def beat(self, phase: str, iteration: int | None = None) -> None:
+    def beat(self, phase: Phase, iteration: int | None = None) -> None:
         if iteration is not None:
             self.iteration = iteration
         if self.path is None:
@@ -96,6 +109,7 @@ def read_heartbeats(directory: str | os.PathLike) -> dict[int, Heartbeat]:
     for path in Path(directory).glob("rank-*.json"):
         try:
             beat = Heartbeat(**json.loads(path.read_text()))
+            beat.phase = Phase(beat.phase)
         except (OSError, ValueError, TypeError):
             continue
         beats[beat.rank] = beat

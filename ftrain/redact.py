@@ -6,6 +6,8 @@ Torch-free and fsspec-free: the config module and the supervisor use it too.
 
 from __future__ import annotations
 
+import json
+from collections.abc import Mapping
 from urllib.parse import urlsplit, urlunsplit
 
 import yaml
@@ -16,6 +18,8 @@ SECRET_OPTIONS = frozenset(
 """fsspec/s3fs storage options that hold credentials."""
 
 HIDDEN = "***"
+ARGUMENTS_ENV = "FTRAIN_TRAIN_ARGUMENTS"
+"""Where the supervisor passes ``ftrain train`` arguments that carry credentials (see ``hide_credentials``)."""
 
 
 def display_url(url: str) -> str:
@@ -68,3 +72,18 @@ def _redact_word(word: str) -> str:
     if isinstance(redacted, str):
         return f"{key}={redacted}"
     return f"{key}={yaml.safe_dump(redacted, default_flow_style=True, sort_keys=False, width=1 << 30).strip()}"
+
+
+def hide_credentials(words: list[str]) -> tuple[list[str], dict[str, str]]:
+    """``words`` (``ftrain train`` arguments) fit for a command line, which every user of the machine can read
+    (``ps``, ``/proc/<pid>/cmdline``): redacted as ``redact_command`` does, and the environment that gives the
+    process the real words (``/proc/<pid>/environ`` is readable by its user only): empty if nothing was hidden."""
+    shown = redact_command(words)
+    return shown, ({ARGUMENTS_ENV: json.dumps(words)} if shown != words else {})
+
+
+def reveal_credentials(words: list[str], environ: Mapping[str, str]) -> list[str]:
+    """The real arguments behind ``words`` as ``hide_credentials`` hid them: the ones in ``environ`` if these are
+    what ``words`` shows, else ``words`` (a variable left over from another command line is ignored)."""
+    real = json.loads(environ.get(ARGUMENTS_ENV) or "null")
+    return real if isinstance(real, list) and redact_command(real) == words else words

@@ -29,7 +29,7 @@ import time
 import uuid
 
 from ftrain.config import CheckpointConfig
-from ftrain.supervise.procfs import cpu_seconds
+from ftrain.procfs import cpu_seconds
 from ftrain.tools.bench import WARMUP, run_ftrain
 
 KEY, SECRET = "bench-key", "bench-secret"

@@ -33,9 +33,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
+from ftrain import procfs  # noqa: E402
 from ftrain.ckpt.format import CHECKPOINTS, MANIFEST  # noqa: E402
 from ftrain.heartbeat import read_heartbeats  # noqa: E402
-from ftrain.supervise import procfs  # noqa: E402
 from ftrain.supervise.auth import SECRET_ENV  # noqa: E402
 from ftrain.supervise.coordinator import free_port  # noqa: E402
 from ftrain.supervise.options import EXIT_PREEMPTED  # noqa: E402

@@ -19,10 +19,10 @@ from pathlib import Path
 import boto3
 import torch
 
+from ftrain import procfs
 from ftrain.ckpt.format import FileEntry, commit, encode, step_dir, write_file
 from ftrain.ckpt.storage import Storage
 from ftrain.heartbeat import read_heartbeats
-from ftrain.supervise import procfs
 from ftrain.supervise.attempt import TORCHRUN
 from ftrain.tools.outage import S3Server
 from ftrain.tools.outage import free_port as free_port  # the tests take it from here

@@ -86,3 +86,17 @@ class PacingHook(Hook):
 
     def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
         time.sleep(self.seconds)
+
+
+class SlowFirstIterationHook(Hook):
+    """Sleeps ``seconds`` after the first rollout of a fresh start (not of a resume): a first iteration as slow as a
+    large rollout, an evaluation or a first save of a large policy makes it."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+        self.first = True
+
+    def after_rollout(self, trainer) -> None:
+        if self.first and trainer.iteration == 0:
+            time.sleep(self.seconds)
+        self.first = False

@@ -1,6 +1,6 @@
 """The one redaction module: URLs, storage options and command lines without credentials."""
 
-from ftrain.redact import HIDDEN, display_url, redact_command, redact_options
+from ftrain.redact import HIDDEN, display_url, hide_credentials, redact_command, redact_options, reveal_credentials
 
 
 def test_urls_and_options_lose_their_credentials() -> None:
@@ -46,3 +46,12 @@ def test_command_lines_lose_their_credentials_and_keep_the_rest() -> None:
         "env.kwargs={max_episode_steps: 50}",
         "iterations=2",
     ]
+
+
+def test_credentials_travel_in_the_environment_and_come_back_in_place():
+    words = ["c.yaml", "--storage", "s3://AK:SK@b/run", "storage.options.secret=SK", "iterations=3"]
+    shown, env = hide_credentials(words)
+    assert shown == ["c.yaml", "--storage", "s3://b/run", "storage.options.secret=***", "iterations=3"]
+    assert "SK" not in " ".join(shown) and reveal_credentials(shown, env) == words
+    assert reveal_credentials(["c.yaml", "iterations=4"], env) == ["c.yaml", "iterations=4"]  # another command line
+    assert hide_credentials(["c.yaml", "iterations=3"]) == (["c.yaml", "iterations=3"], {})  # nothing to hide

@@ -3,7 +3,8 @@
 process and in every file they wrote.
 
 The S3 credentials travel in the storage URL (``s3://KEY:SECRET@bucket/run``) and in ``storage.options``; the
-two-node run also has its coordinator secret. None of them may show up anywhere.
+two-node run also has its coordinator secret. None of them may show up anywhere, nor on the command line of a
+process the supervisor starts.
 """
 
 from __future__ import annotations
@@ -14,7 +15,9 @@ from pathlib import Path
 
 import pytest
 
-from helpers import REPO, SMOKE, child_env, create_bucket, finish, free_port, launch
+from ftrain import procfs
+
+from helpers import REPO, SMOKE, child_env, create_bucket, finish, free_port, launch, torchrun_pid, training
 
 pytestmark = pytest.mark.slow
 
@@ -25,18 +28,25 @@ def run_url(s3_server: dict, bucket: str) -> str:
     return f"s3://{s3_server['key']}:{s3_server['secret']}@{bucket}/run"
 
 
-def supervise(s3_server: dict, url: str, log_dir: Path, *options: str, env: dict | None = None):
-    """Start ``ftrain supervise`` on a 2-iteration smoke run; returns a function that waits for its exit 0 and gives
-    back everything it printed."""
+def start_supervise(
+    s3_server: dict, url: str, log_dir: Path, *options: str, env: dict | None = None, overrides: tuple[str, ...] = ()
+) -> tuple[subprocess.Popen, Path]:
+    """Start ``ftrain supervise`` on a smoke run (2 iterations unless ``overrides`` say otherwise), the S3 endpoint
+    and credentials in ``storage.options``; its console output goes to the file returned."""
     storage_options = (
         f"storage.options={{endpoint_url: '{s3_server['endpoint_url']}', "
         f"key: {s3_server['key']}, secret: {s3_server['secret']}}}"
     )
     command = [sys.executable, "-m", "ftrain", "supervise", *options, SMOKE, "--storage", url, storage_options]
-    command += ["iterations=2", f"log_dir={log_dir}", "log.tensorboard=true"]
+    command += ["iterations=2", f"log_dir={log_dir}", "log.tensorboard=true", *overrides]
     console = Path(f"{log_dir}.console")
     with console.open("wb") as output:
-        proc = launch(command, cwd=REPO, env=child_env(env), stdout=output, stderr=subprocess.STDOUT)
+        return launch(command, cwd=REPO, env=child_env(env), stdout=output, stderr=subprocess.STDOUT), console
+
+
+def supervise(s3_server: dict, url: str, log_dir: Path, *options: str, env: dict | None = None):
+    """``start_supervise``; returns a function that waits for its exit 0 and gives back everything it printed."""
+    proc, console = start_supervise(s3_server, url, log_dir, *options, env=env)
 
     def printed() -> str:
         code = finish(proc, timeout=300)
@@ -100,3 +110,25 @@ def test_no_command_persists_or_prints_credentials(tmp_path, s3_server) -> None:
         data = path.read_bytes()
         for secret in secrets:
             assert secret.encode() not in data, f"a credential leaked into {path.relative_to(tmp_path)}"
+
+
+def test_workers_get_credentials_off_the_command_line(tmp_path, s3_server) -> None:
+    """Every user of the machine reads every command line (``ps``): the supervisor's torchrun and workers get the
+    credentials (in the URL, in a mapping override, in dotted overrides) through their environment instead, which
+    only their user reads, and train with them."""
+    secrets = [s3_server["key"], s3_server["secret"]]
+    dotted = [f"storage.options.key={s3_server['key']}", f"storage.options.secret={s3_server['secret']}"]
+    url = run_url(s3_server, create_bucket(s3_server))
+    log_dir = tmp_path / "run"
+    proc, console = start_supervise(
+        s3_server, url, log_dir, "--nproc-per-node", "2", overrides=("iterations=30", *dotted)
+    )
+    training(log_dir / "heartbeat", 1)
+    agent = torchrun_pid(proc.pid)
+    command_lines = {pid: procfs.read(pid, "cmdline") for pid in [agent, *procfs.descendants(agent)]}
+    assert finish(proc, timeout=300) == 0, console.read_text()[-3000:]  # exit 0: trained to the end
+    workers = [line for pid, line in command_lines.items() if pid != agent and b"-m\0ftrain\0train\0" in line]
+    assert len(workers) == 2 and all(b"storage.options.secret=***" in line for line in workers)
+    for pid, line in command_lines.items():
+        for secret in secrets:
+            assert secret.encode() not in line, f"process {pid}'s command line shows a credential: {line!r}"

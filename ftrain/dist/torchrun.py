@@ -5,7 +5,8 @@ ChildFailedError (a traceback and a text report on stderr), it writes torchrun's
 to FAILURES, as JSON ``{global rank: {"exitcode": code, "error": the JSON of its error file or null}}`` (a negative
 code: killed by that signal; the error file: what the worker recorded, see ``ftrain/errorfile.py``), and exits 1.
 An elastic rendezvous that did not gather its minimum of nodes in time is one line on stderr and exit
-``EXIT_RENDEZVOUS_TIMEOUT``: not a failure to restart, a lack of nodes.
+``EXIT_RENDEZVOUS_TIMEOUT``: not a failure to restart, a lack of nodes. It ends with its supervisor, however that
+ends (``ftrain/lifeline.py``).
 """
 
 from __future__ import annotations
@@ -20,11 +21,13 @@ from torch.distributed.elastic.rendezvous.api import RendezvousTimeoutError
 from torch.distributed.run import main as torchrun
 
 from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT
+from ftrain.lifeline import die_with_supervisor
 
 EXIT_WORKERS_FAILED = 1
 
 
 def main(argv: list[str]) -> int:
+    die_with_supervisor()
     failures_path, *arguments = argv
     try:
         torchrun(arguments)

@@ -5,6 +5,11 @@ Every attempt has a directory of its own, ``<log_dir>/torchrun/[node-R/]attempt-
 ``ftrain/errorfile.py``). ``stderr.log`` there holds everything torchrun and the workers write to stderr: none of it
 reaches the console. torchrun runs as ``ftrain.dist.torchrun``, which writes torchrun's own account of the failed
 workers (exit code and recorded error of each) to ``failures.json`` instead of a traceback and a text report.
+
+Train arguments that carry credentials (storage URL, storage options) reach the workers through their environment,
+redacted on their command lines, which every user of the machine reads (``redact.hide_credentials``). No process of
+an attempt outlives the supervisor, however it ends (``ftrain/lifeline.py``: torchrun dies with it, each worker
+watches it).
 """
 
 from __future__ import annotations
@@ -20,9 +25,9 @@ import sys
 import time
 from pathlib import Path
 
-from ftrain import errorfile
+from ftrain import errorfile, procfs
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, TOKEN_ENV
-from ftrain.supervise import procfs
+from ftrain.lifeline import supervisor_env
 from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.coordinator import Plan
 from ftrain.supervise.outcome import WorkerFailure, blame
@@ -56,10 +61,14 @@ def torchrun_command(
     ]
 
 
-def attempt_env(heartbeat_dir: Path, token: str, stop_grace: float, node: int) -> dict[str, str]:
+def attempt_env(
+    heartbeat_dir: Path, token: str, stop_grace: float, node: int, hidden: dict[str, str]
+) -> dict[str, str]:
     """The environment of torchrun and its workers: heartbeats go to ``heartbeat_dir`` (emptied of an earlier
     attempt's now), every process carries ``token`` and this ``node``'s rank, torchrun waits ``stop_grace`` for
-    workers it stops; the coordinator's secret stays with the supervisor.
+    workers it stops, every process knows its supervisor (``ftrain/lifeline.py``: none outlives it); ``hidden``: the
+    train arguments that carry credentials (see ``redact.hide_credentials``: never on a command line, which every
+    user of the machine can read); the coordinator's secret stays with the supervisor.
 
     ``TORCH_DISABLE_SHARE_RDZV_TCP_STORE=1``: when a node joins an elastic run, torchrun's agents restart their
     workers in a larger world. With the agent's store shared with the workers (torch's default), the workers of that
@@ -76,6 +85,8 @@ def attempt_env(heartbeat_dir: Path, token: str, stop_grace: float, node: int) -
         NODE_ENV: str(node),
         "TORCH_DISABLE_SHARE_RDZV_TCP_STORE": os.environ.get("TORCH_DISABLE_SHARE_RDZV_TCP_STORE", "1"),
         "TORCH_ELASTIC_SHUTDOWN_TIMEOUT": str(math.ceil(stop_grace)),
+        **supervisor_env(),
+        **hidden,
     }
 
 
@@ -92,8 +103,7 @@ def new_log_dir(root: Path, plan: Plan) -> Path:
 
 def processes_with(token: str) -> list[int]:
     """Live processes whose environment carries this attempt's token (zombies have no readable environment)."""
-    needle = f"{TOKEN_ENV}={token}".encode()
-    return [pid for pid in procfs.pids() if needle in procfs.read(pid, "environ").split(b"\0")]
+    return procfs.with_environment(TOKEN_ENV, token)
 
 
 def signal_name(number: int) -> str:

@@ -1,83 +1,117 @@
-"""Hang detection from heartbeats: a rank whose heartbeat ``seq`` stays unchanged for too long."""
+"""Hang detection from heartbeats, phase by phase, so that slow work is not called a hang and a hang in fast work is
+caught in seconds.
+
+A heartbeat names the ``Phase`` its rank is in, which lasts until the rank's next heartbeat (``seq``). Each phase is
+timed on its own, as NVIDIA's resiliency extension times its sections, over all attempts: its limit is
+``max(HANG_FLOOR, HANG_FACTOR x its longest time so far)``, and ``--startup-grace`` while it has not been seen.
+Start-up (from the launch until every rank is past ``start``) and the first iteration after it get
+``--startup-grace`` too, and are not counted in the phases' times: what they take depends on what the attempt starts
+from (a fresh start, a resume from a large checkpoint on slow storage), which no earlier attempt predicts, and a slow
+first iteration must not make a later hang in the same phase wait for ten times as long.
+``--hang-timeout SECONDS`` is one fixed limit for every phase after start-up instead.
+
+The group is hung when every rank still working has been in its phase for longer than that phase's limit. Ranks wait
+for each other in collectives, so a rank that works on and beats (rank 0 holding a save while storage is down) while
+the others wait silently is slow work, not a hang; and a stopped rank stops the others at their next collective.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
 
-from ftrain.heartbeat import Heartbeat
-from ftrain.supervise import procfs
+from ftrain import procfs
+from ftrain.heartbeat import Heartbeat, Phase
 
-HANG_FLOOR = 30.0
+HANG_FLOOR = 5.0
 HANG_FACTOR = 10.0
-QUIET_PHASES = ("done", "preempted")
+QUIET_PHASES = (Phase.DONE, Phase.PREEMPTED)
 """Phases after which a rank only exits: never a hang."""
 
 
 class HangWatch:
-    """Times every rank's heartbeat ``seq``; when one has been silent too long, names the hung rank: a stopped
-    (T) or uninterruptible (D) process if there is one, else the rank silent longest."""
+    """Times every rank's phases; when the group has been silent too long, names the hung rank: a stopped (T) or
+    uninterruptible (D) process if there is one, else the rank silent longest."""
 
     def __init__(self, timeout: float | None, startup_grace: float, ranks: int) -> None:
         self.timeout = timeout
         self.startup_grace = startup_grace
         self.ranks = ranks
-        self.longest = 0.0
-        """Longest gap seen between two heartbeats of a rank after start-up, over all attempts."""
+        self.longest: dict[Phase, float] = {}
+        """The longest time a rank spent in each phase, after its first iteration, over all attempts."""
 
     def restart(self, now: float) -> None:
         self.launched = now
         self.started = False
-        self.changed: dict[int, tuple[int, float]] = {}
+        self.changed: dict[int, tuple[Heartbeat, float]] = {}
+        """Each rank's latest heartbeat and when it was first seen."""
+        self.first: dict[int, int] = {}
+        """Each rank's first iteration in this attempt: the iteration of the first heartbeat seen past ``start``."""
 
-    def limit(self) -> float:
+    def limit(self, rank: int, beat: Heartbeat) -> float:
+        """How long ``rank`` may stay in the phase of ``beat``."""
         if self.timeout is not None:
             return self.timeout
-        return max(HANG_FLOOR, HANG_FACTOR * self.longest)
+        longest = self.longest.get(beat.phase)
+        if longest is None or self._first_iteration(rank, beat):
+            return self.startup_grace
+        return max(HANG_FLOOR, HANG_FACTOR * longest)
 
     def check(self, beats: dict[int, Heartbeat], now: float) -> Hang | None:
         """Record progress in ``beats``; return the hang if there is one."""
         for rank, beat in beats.items():
-            seq, since = self.changed.get(rank, (None, now))
-            if beat.seq != seq:
-                if self.started and seq is not None:
-                    self.longest = max(self.longest, now - since)
-                self.changed[rank] = (beat.seq, now)
+            self._observe(rank, beat, now)
         if not self.started:
-            self.started = len(beats) >= self.ranks and all(b.phase != "start" for b in beats.values())
+            self.started = len(beats) >= self.ranks and all(b.phase != Phase.START for b in beats.values())
         if not self.started:
             if now - self.launched <= self.startup_grace:
                 return None
-            starting = [rank for rank, beat in beats.items() if beat.phase == "start"]
+            starting = [rank for rank, beat in beats.items() if beat.phase == Phase.START]
             rank = min(starting) if starting else None
-            return Hang(rank, "start", round(now - self.launched, 1), self.startup_grace, ranks_seen=len(beats))
-        active = [(self.changed[rank][1], rank) for rank, beat in beats.items() if beat.phase not in QUIET_PHASES]
-        if not active:
-            return None
-        since, rank = min(active)
-        if now - since <= self.limit():
+            return Hang(rank, Phase.START, round(now - self.launched, 1), self.startup_grace, ranks_seen=len(beats))
+        working = {rank: beat for rank, beat in beats.items() if beat.phase not in QUIET_PHASES}
+        if not working or any(now - self.changed[rank][1] <= self.limit(rank, b) for rank, b in working.items()):
             return None
         states = {r: process_state(b.pid) for r, b in sorted(beats.items())}
         # the others wait for it in a collective and may have been silent longer: name a stopped rank if any
-        rank = next((r for r, state in states.items() if state in ("T", "t", "D")), rank)
+        silent_longest = min(working, key=lambda rank: self.changed[rank][1])
+        rank = next((r for r, state in states.items() if state in ("T", "t", "D") and r in working), silent_longest)
         beat = beats[rank]
-        seconds, limit = round(now - self.changed[rank][1], 1), round(self.limit(), 1)
+        seconds, limit = round(now - self.changed[rank][1], 1), round(self.limit(rank, beat), 1)
         processes = {str(r): state for r, state in states.items()}
-        return Hang(rank, beat.phase, seconds, limit, iteration=beat.iteration, processes=processes)
+        first = self._first_iteration(rank, beat) or None
+        return Hang(rank, beat.phase, seconds, limit, iteration=beat.iteration, processes=processes, first=first)
+
+    def _observe(self, rank: int, beat: Heartbeat, now: float) -> None:
+        """A new heartbeat ends the rank's previous phase: time it (past start-up and the first iteration)."""
+        previous, since = self.changed.get(rank, (None, now))
+        if previous is not None and previous.seq == beat.seq:
+            return
+        if previous is not None and previous.phase != Phase.START and not self._first_iteration(rank, previous):
+            self.longest[previous.phase] = max(self.longest.get(previous.phase, 0.0), now - since)
+        if beat.phase != Phase.START:
+            self.first.setdefault(rank, beat.iteration)
+        self.changed[rank] = (beat, now)
+
+    def _first_iteration(self, rank: int, beat: Heartbeat) -> bool:
+        return beat.phase != Phase.START and beat.iteration == self.first.get(rank)
 
 
 @dataclass
 class Hang:
-    """A rank silent for longer than the limit, or a start-up that took longer than the grace (``ranks_seen`` set)."""
+    """A group silent for longer than its limits, or a start-up that took longer than the grace (``ranks_seen``
+    set)."""
 
     rank: int | None
-    phase: str
+    phase: Phase
     seconds: float
     limit: float
     iteration: int | None = None
     processes: dict[str, str] | None = None
     """Each rank's process state letter: a stopped (T) or uninterruptible (D) one is named as the hung rank."""
     ranks_seen: int | None = None
+    first: bool | None = None
+    """True when the rank hung in the first iteration after start-up."""
 
     def fields(self) -> dict:
         """For the event log: the fields that apply (``rank`` always, None if no rank was to blame)."""
@@ -89,7 +123,8 @@ class Hang:
     def describe(self) -> str:
         if self.ranks_seen is not None:
             return f"not every rank got past start-up within {self.limit:g} s (--startup-grace)"
-        return f"rank {self.rank} silent for {self.seconds} s in phase {self.phase} (limit {self.limit} s)"
+        where = f"phase {self.phase}" + (" of the first iteration" if self.first else "")
+        return f"rank {self.rank} silent for {self.seconds} s in {where} (limit {self.limit} s)"
 
 
 def process_state(pid: int) -> str:

@@ -7,7 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ftrain.heartbeat import Heartbeat
+from ftrain.heartbeat import Heartbeat, Phase
 from ftrain.supervise.attempt import Attempt
 from ftrain.supervise.hang import QUIET_PHASES
 
@@ -54,7 +54,7 @@ class Ledger:
             attempt.completed = max(attempt.completed, beat.iteration, beat.committed_step or 0)
             if beat.committed_step is not None:
                 attempt.committed = max(beat.committed_step, attempt.committed or 0)
-        if self.paused is None and any(beat.phase == "preempted" for beat in beats.values()):
+        if self.paused is None and any(beat.phase == Phase.PREEMPTED for beat in beats.values()):
             self.paused = Failure(now, attempt.completed)  # saved on request: torchrun regroups, or the attempt ends
         worlds = {beat.world for beat in beats.values() if beat.phase not in QUIET_PHASES}
         regrouped = attempt.world is not None and len(worlds) == 1 and worlds != {attempt.world}
@@ -64,7 +64,7 @@ class Ledger:
             attempt.world = worlds.pop()
         group = {rank: beat for rank, beat in beats.items() if beat.world == attempt.world}
         if not attempt.seen:
-            past_start = [beat for beat in group.values() if beat.phase != "start"]  # restored by now
+            past_start = [beat for beat in group.values() if beat.phase != Phase.START]  # restored by now
             if not past_start:
                 return regrouped
             attempt.seen = True

@@ -69,10 +69,17 @@ class SupervisorOptions:
     max_restarts: int = field(default=10, metadata={"help": "restarts before giving up (exit 4)"})
     hang_timeout: str = field(
         default="auto",
-        metadata={"help": "seconds without a heartbeat before a rank counts as hung, or auto (from observed gaps)"},
+        metadata={
+            "help": "seconds every rank may stay silent in a phase before the group counts as hung, or auto: each "
+            "phase 10x its longest time so far, at least 5 s (--startup-grace for a phase not seen yet)"
+        },
     )
     startup_grace: float = field(
-        default=300.0, metadata={"help": "seconds an attempt may take to reach its first iteration on every rank"}
+        default=300.0,
+        metadata={
+            "help": "seconds an attempt may take to reach its first iteration on every rank, and (hang timeout auto) "
+            "its first iteration, or a phase not seen yet"
+        },
     )
     backoff_initial: float = field(
         default=1.0,

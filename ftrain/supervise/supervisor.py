@@ -5,15 +5,17 @@ Stdlib only (plus the torch-free config and heartbeat modules): the supervisor l
 Launch. Every attempt is a new ``torchrun --max-restarts=0`` in its own session, with ``FTRAIN_HEARTBEAT_DIR``
 set, and a rendezvous nothing has used before: ``--standalone`` on one node (a new TCP store on a free port);
 on several nodes a static rendezvous on a new port per attempt (see "Several nodes"). torchrun's own restarts
-keep one TCP store, from which restarted workers read stale gloo peer addresses; a new torchrun cannot.
+keep one TCP store, from which restarted workers read stale gloo peer addresses; a new torchrun cannot. Credentials
+reach the workers in their environment, never on a command line; no process outlives the supervisor (``attempt.py``).
 
 Detect. Crash: torchrun exits non-zero, or is killed (its workers, each in a session of its own, are then
 orphans: the supervisor finds every process of an attempt by the ``FTRAIN_ATTEMPT_TOKEN`` in its environment).
 Who failed and why comes from torchrun's account of its workers (exit codes, and the one-line error each recorded in
 its error file: see ``attempt.py``); a worker exiting 2 refused its input, which no restart fixes. The cause is one
 line on the console and in ``events.jsonl``; torchrun's and the workers' stderr go to the attempt's log directory.
-Hang: a rank's heartbeat ``seq`` does not change within the hang timeout (``auto``: max(30 s, 10 x the longest gap
-seen between two heartbeats of a rank), and ``--startup-grace`` until every rank is past its ``start`` heartbeat).
+Hang: every working rank has stayed in the phase its heartbeat names longer than that phase's limit (``auto``:
+max(5 s, 10 x the longest time seen in that phase), ``--startup-grace`` for start-up, the first iteration after it
+and a phase not seen yet; see ``hang.py``), or one fixed ``--hang-timeout``.
 
 Storage. A worker that cannot reach the checkpoint storage exits 7: the supervisor waits for it (``outage.py``).
 
@@ -45,16 +47,14 @@ from pathlib import Path
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config, StorageConfig
 from ftrain.heartbeat import Heartbeat, read_heartbeats
-from ftrain.redact import redact_command
+from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, attempt_env, kill, new_log_dir, signal_name, torchrun_command
 from ftrain.supervise.coordinator import Coordinator, Link, Plan, plan_key, rendezvous_args
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.hang import QUIET_PHASES, HangWatch, process_state
 from ftrain.supervise.ledger import Ledger
 from ftrain.supervise.options import (
-    EXIT_CRASH_LOOP,
     EXIT_DONE,
-    EXIT_MAX_RESTARTS,
     EXIT_PEER_LOST,
     STOPPED,
     Nodes,
@@ -65,6 +65,7 @@ from ftrain.supervise.options import (
 )
 from ftrain.supervise.outage import StorageWait
 from ftrain.supervise.outcome import Outcome, classify
+from ftrain.supervise.restarts import RestartPolicy
 
 WORKER_MODULE_ENV = "FTRAIN_WORKER_MODULE"
 
@@ -124,8 +125,7 @@ class Supervisor:
         self.server = self.coordinator.serve(*nodes.endpoint) if multi and self.coordinator else None
         self.link = Link(options.node_rank, self.coordinator, nodes.endpoint, nodes.secret)
         self.signals: list[int] = []
-        self.restarts = 0
-        self.best_committed: int | None = None
+        self.policy = RestartPolicy(options)
         self.ledger = Ledger(options.nproc_per_node, self.events)
         self.storage_wait = StorageWait(storage, options.storage_wait, self.events, self._sleep)
 
@@ -146,7 +146,6 @@ class Supervisor:
 
     def _loop(self) -> None:
         plan = self._next_plan(None)
-        no_commit = no_progress = 0
         while True:
             attempt = self._launch(plan)
             outcome = self._watch(attempt)
@@ -159,36 +158,16 @@ class Supervisor:
                 plan = self._next_plan(plan)
                 self.events("restart", f"attempt {plan.attempt}: the storage answers again", attempt=plan.attempt)
                 continue
-            new_commit = attempt.committed is not None and (
-                self.best_committed is None or attempt.committed > self.best_committed
-            )
-            if attempt.committed is not None:
-                self.best_committed = max(attempt.committed, self.best_committed or 0)
-            no_commit = 0 if new_commit or self.restarts == 0 else no_commit + 1
-            no_progress = 0 if attempt.progressed else no_progress + 1
-            if self.restarts >= self.options.max_restarts:
-                raise _Stop("max_restarts", EXIT_MAX_RESTARTS, f"giving up after {self.restarts} restarts")
-            if self.options.crash_loop and no_commit >= self.options.crash_loop:
-                step = self.best_committed
-                raise _Stop(
-                    "crash_loop",
-                    EXIT_CRASH_LOOP,
-                    f"crash loop: {no_commit} restarts in a row committed no new checkpoint (newest: step {step}); "
-                    "fix the cause above and run the same command again",
-                )
-            delay = (
-                min(self.options.backoff_max, self.options.backoff_initial * 2 ** (no_progress - 1))
-                if no_progress
-                else 0.0
-            )
+            delay = self.policy.judge(attempt)
+            if isinstance(delay, Outcome):
+                raise _Stop(delay.event, delay.code, delay.message)
             self._sleep(delay)
             plan = self._next_plan(plan)
-            self.restarts += 1
             self.events(
                 "restart",
-                f"restart {self.restarts} (attempt {plan.attempt}) after {delay:.1f} s back-off",
+                f"restart {self.policy.restarts} (attempt {plan.attempt}) after {delay:.1f} s back-off",
                 attempt=plan.attempt,
-                restarts=self.restarts,
+                restarts=self.policy.restarts,
                 backoff=round(delay, 2),
             )
 
@@ -230,12 +209,13 @@ class Supervisor:
 
     def _launch(self, plan: Plan) -> Attempt:
         token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
-        env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.options.node_rank)
+        train_args, hidden = hide_credentials(self.train_args)
+        env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.options.node_rank, hidden)
         env[STORAGE_WAIT_ENV] = str(self.options.storage_wait)
         rendezvous = ["--standalone"] if self.nnodes == 1 else rendezvous_args(plan, self.nodes, self.options)
         module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
         logs = new_log_dir(self.attempt_logs, plan)
-        command = torchrun_command(self.options.nproc_per_node, rendezvous, module, self.train_args, logs)
+        command = torchrun_command(self.options.nproc_per_node, rendezvous, module, train_args, logs)
         logged = redact_command(command)
         message = f"attempt {plan.attempt}: launching torchrun"
         self.events("start", message, attempt=plan.attempt, command=logged, logs=str(logs))
@@ -350,7 +330,7 @@ class Supervisor:
             code == 0 and self.nnodes > 1 and plan_key(self._current_plan(attempt.plan)) != plan_key(attempt.plan)
         )
         stopped = stop_code(self.signals[0]) if self.signals else None
-        committed = attempt.committed if attempt.committed is not None else self.best_committed
+        committed = attempt.committed if attempt.committed is not None else self.policy.best_committed
         outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
         self._log_exit(attempt, cause, f"attempt {attempt.plan.attempt}: {cause}" if outcome.failed else "", phases)
         if outcome.failed:
@@ -401,10 +381,11 @@ class Supervisor:
             if self.coordinator is not None:
                 self.coordinator.wait_informed(self.nnodes, LINGER)
         lost, downtime = self.ledger.lost, self.ledger.downtime
-        summary = {"restarts": self.restarts, "iterations_lost": lost, "downtime": round(downtime, 2)}
+        restarts = self.policy.restarts
+        summary = {"restarts": restarts, "iterations_lost": lost, "downtime": round(downtime, 2)}
         self.events(
             "summary",
-            f"{event} (exit {code}): {self.restarts} restarts, {lost} iterations lost, {downtime:.1f} s downtime",
+            f"{event} (exit {code}): {restarts} restarts, {lost} iterations lost, {downtime:.1f} s downtime",
             code=code,
             **summary,
         )

@@ -15,6 +15,7 @@ import gymnasium as gym
 
 from ftrain.config import EvalConfig
 from ftrain.dist import group
+from ftrain.heartbeat import Phase
 from ftrain.policy.model import actor_actions
 from ftrain.policy.rollout import make_env, rollout
 from ftrain.train.hooks import Hook
@@ -43,6 +44,7 @@ class EvalHook(Hook):
         if trainer.iteration % self.config.every:
             metrics["eval_return"] = metrics["eval_time"] = math.nan
             return
+        trainer.heartbeat.beat(Phase.EVALUATE, trainer.iteration)  # a phase of its own for the supervisor's timing
         started = time.perf_counter()
         first, count = episode_share(self.config.episodes, trainer.info)
         if len(self.envs) < count:

@@ -12,13 +12,13 @@ import uuid
 import pytest
 import torch
 
+from ftrain import procfs
 from ftrain.ckpt.format import VERIFIED, decode, encode, learned_state, state_digest, verify_step
 from ftrain.ckpt.save import snapshot
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
 from ftrain.config import load_config
 from ftrain.heartbeat import ENV_DIR
-from ftrain.supervise import procfs
 from ftrain.train.trainer import train
 
 from helpers import (

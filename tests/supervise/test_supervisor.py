@@ -24,8 +24,8 @@ from pathlib import Path
 import pytest
 
 from ftrain import errorfile
-from ftrain.heartbeat import ENV_DIR, Heartbeat, HeartbeatWriter
-from ftrain.supervise import hang, options
+from ftrain.heartbeat import ENV_DIR, HeartbeatWriter
+from ftrain.supervise import options
 from ftrain.supervise.auth import MAX_MESSAGE, REQUEST, SECRET_ENV, Refused, seal
 from ftrain.supervise.coordinator import CONNECTION_TIMEOUT, Coordinator, Link
 from ftrain.supervise.events import EventLog
@@ -179,31 +179,6 @@ def assert_finished(run: Path, iterations: int = ITERATIONS) -> None:
 
 
 # --- in-process units ----------------------------------------------------------------------------------------------
-
-
-def beat(rank: int, seq: int, phase: str = "rollout", iteration: int = 1) -> Heartbeat:
-    return Heartbeat(rank, os.getpid(), iteration, phase, None, None, seq, 0.0)
-
-
-def test_hang_watch_grace_then_auto_limit():
-    watch = hang.HangWatch(timeout=None, startup_grace=10, ranks=2)
-    watch.restart(now=0)
-    assert watch.check({0: beat(0, 1, "start")}, now=9) is None
-    late = watch.check({0: beat(0, 1, "start")}, now=11)
-    assert (late.phase, late.limit, late.ranks_seen) == ("start", 10, 1)
-    assert late.cause() == "killed: start-up hung" and "iteration" not in late.fields()
-    watch.restart(now=100)
-    assert watch.check({0: beat(0, 1), 1: beat(1, 1)}, now=100) is None  # both past start: grace over
-    assert watch.check({0: beat(0, 2), 1: beat(1, 2)}, now=104) is None  # a 4 s gap observed
-    assert watch.limit() == max(hang.HANG_FLOOR, hang.HANG_FACTOR * 4)
-    assert watch.check({0: beat(0, 3), 1: beat(1, 2)}, now=110) is None  # a 6 s gap: limit 60 s
-    assert watch.limit() == max(hang.HANG_FLOOR, hang.HANG_FACTOR * 6)
-    assert watch.check({0: beat(0, 3), 1: beat(1, 2)}, now=164) is None
-    hung = watch.check({0: beat(0, 3), 1: beat(1, 2)}, now=165)
-    assert (hung.rank, hung.phase, hung.seconds, hung.limit) == (1, "rollout", 61, 60)
-    assert hung.describe() == "rank 1 silent for 61 s in phase rollout (limit 60.0 s)"
-    assert "ranks_seen" not in hung.fields()
-    assert watch.check({0: beat(0, 3, "done"), 1: beat(1, 2, "done")}, now=500) is None
 
 
 @pytest.fixture

@@ -1,4 +1,5 @@
-"""What Linux's ``/proc`` says about a process: the supervisor, the benchmarks and the tests read it the same way."""
+"""What Linux's ``/proc`` says about a process: the supervisor, its workers, the benchmarks and the tests read it the
+same way."""
 
 from __future__ import annotations
 
@@ -8,12 +9,19 @@ from pathlib import Path
 
 def stat_fields(pid: int) -> list[str]:
     """The fields of ``/proc/<pid>/stat`` after the command name, state first (``[0]``), parent pid ``[1]``, user
-    and system CPU ticks ``[11]``, ``[12]``; empty once the process is gone. The command name, in parentheses, may
-    itself hold spaces and parentheses: the fields start after the last ``)``."""
+    and system CPU ticks ``[11]``, ``[12]``, start time ``[19]``; empty once the process is gone. The command name,
+    in parentheses, may itself hold spaces and parentheses: the fields start after the last ``)``."""
     try:
         return Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
     except OSError:
         return []
+
+
+def start_time(pid: int) -> str | None:
+    """When process ``pid`` started (clock ticks after boot), None if it is gone: with the pid, it names one process
+    for good (a pid the kernel hands out again has another start time)."""
+    fields = stat_fields(pid)
+    return fields[19] if fields else None
 
 
 def cpu_seconds(pid: int) -> float:
@@ -33,6 +41,12 @@ def read(pid: int, name: str) -> bytes:
 def pids() -> list[int]:
     """Every process's pid, as /proc lists them now."""
     return [int(entry.name) for entry in Path("/proc").iterdir() if entry.name.isdigit()]
+
+
+def with_environment(name: str, value: str) -> list[int]:
+    """Live processes whose environment holds ``name=value`` (a zombie's environment is unreadable)."""
+    needle = f"{name}={value}".encode()
+    return [pid for pid in pids() if needle in read(pid, "environ").split(b"\0")]
 
 
 def descendants(pid: int) -> list[int]:

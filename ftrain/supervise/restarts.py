@@ -1,0 +1,46 @@
+"""The restart policy: whether a failed attempt is started again, and after how long.
+
+``--max-restarts`` bounds the restarts; the crash loop (``--crash-loop`` restarts in a row that committed no new
+step) stops a run that cannot get anywhere; an attempt that completed no iteration is followed by a back-off
+(``--backoff-initial``, doubled for each further one, at most ``--backoff-max``). Attempts ended by an unreachable
+storage are not judged here: the supervisor waits for the storage instead (``outage.py``).
+"""
+
+from __future__ import annotations
+
+from ftrain.supervise.attempt import Attempt
+from ftrain.supervise.options import EXIT_CRASH_LOOP, EXIT_MAX_RESTARTS, SupervisorOptions
+from ftrain.supervise.outcome import Outcome
+
+
+class RestartPolicy:
+    def __init__(self, options: SupervisorOptions) -> None:
+        self.options = options
+        self.restarts = 0
+        self.best_committed: int | None = None
+        """The newest step any attempt of this run committed or resumed from."""
+        self._no_commit = 0
+        self._no_progress = 0
+
+    def judge(self, attempt: Attempt) -> Outcome | float:
+        """After ``attempt`` failed: the ending of the run, or the seconds to back off before the restart it counts."""
+        new_commit = attempt.committed is not None and (
+            self.best_committed is None or attempt.committed > self.best_committed
+        )
+        if attempt.committed is not None:
+            self.best_committed = max(attempt.committed, self.best_committed or 0)
+        self._no_commit = 0 if new_commit or self.restarts == 0 else self._no_commit + 1
+        self._no_progress = 0 if attempt.progressed else self._no_progress + 1
+        if self.restarts >= self.options.max_restarts:
+            return Outcome("max_restarts", EXIT_MAX_RESTARTS, f"giving up after {self.restarts} restarts")
+        if self.options.crash_loop and self._no_commit >= self.options.crash_loop:
+            return Outcome(
+                "crash_loop",
+                EXIT_CRASH_LOOP,
+                f"crash loop: {self._no_commit} restarts in a row committed no new checkpoint (newest: step "
+                f"{self.best_committed}); fix the cause above and run the same command again",
+            )
+        self.restarts += 1
+        if not self._no_progress:
+            return 0.0
+        return min(self.options.backoff_max, self.options.backoff_initial * 2 ** (self._no_progress - 1))

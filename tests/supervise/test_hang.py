@@ -1,0 +1,136 @@
+"""Hangs told from slow work, both ways: each phase has its own limit, learnt from its own times; start-up and the
+first iteration after it get the start-up grace. In-process against made-up heartbeats, then a real supervised run
+whose first iteration takes 45 s (not a hang) and whose worker, stopped later, is caught within seconds."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from ftrain.heartbeat import Heartbeat, Phase
+from ftrain.supervise.hang import HANG_FACTOR, HANG_FLOOR, HangWatch
+
+from helpers import REPO, SMOKE, TESTS, child_env, events, finish, launch, training, wait_for
+
+GRACE = 60.0
+
+
+def beat(rank: int, seq: int, phase: Phase, iteration: int) -> Heartbeat:
+    return Heartbeat(rank, os.getpid(), iteration, phase, None, None, seq, 0.0)
+
+
+def both(watch: HangWatch, seq: int, phase: Phase, iteration: int, now: float):
+    """Both ranks' heartbeats at ``now``; the hang ``watch`` sees, if any."""
+    return watch.check({0: beat(0, seq, phase, iteration), 1: beat(1, seq, phase, iteration)}, now)
+
+
+def steady(watch: HangWatch, now: float, iterations: range, rollout: float = 0.2, update: float = 0.1) -> float:
+    """Iterations with these phase times from ``now``; returns the time after them."""
+    for iteration in iterations:
+        assert both(watch, 10 + 2 * iteration, Phase.ROLLOUT, iteration, now) is None
+        now += rollout
+        assert both(watch, 11 + 2 * iteration, Phase.UPDATE, iteration, now) is None
+        now += update
+    return now
+
+
+def test_start_up_has_the_grace_and_is_named_as_such():
+    watch = HangWatch(timeout=None, startup_grace=10, ranks=2)
+    watch.restart(now=0)
+    assert watch.check({0: beat(0, 1, Phase.START, 0)}, now=9) is None
+    late = watch.check({0: beat(0, 1, Phase.START, 0)}, now=11)
+    assert (late.phase, late.limit, late.ranks_seen) == ("start", 10, 1)
+    assert late.cause() == "killed: start-up hung" and "iteration" not in late.fields()
+
+
+def test_a_slow_first_iteration_is_not_a_hang_and_a_stop_in_a_fast_phase_is_caught_in_seconds():
+    watch = HangWatch(timeout=None, startup_grace=GRACE, ranks=2)
+    watch.restart(now=0)
+    assert both(watch, 1, Phase.START, 0, now=0) is None
+    assert both(watch, 2, Phase.ROLLOUT, 0, now=3) is None  # start-up over: the first iteration begins
+    assert both(watch, 2, Phase.ROLLOUT, 0, now=48) is None  # 45 s into the first rollout: the grace applies
+    now = steady(watch, 50, range(1, 6))
+    assert watch.longest == pytest.approx({Phase.ROLLOUT: 0.2, Phase.UPDATE: 0.1})  # not the first iteration's 45 s
+    # rank 1 stops in a rollout; rank 0 goes on to the update and waits there in a collective
+    assert both(watch, 30, Phase.ROLLOUT, 6, now) is None
+    stuck = {0: beat(0, 31, Phase.UPDATE, 6), 1: beat(1, 30, Phase.ROLLOUT, 6)}
+    assert watch.check(stuck, now + 0.2) is None
+    assert watch.check(stuck, now + HANG_FLOOR + 0.1) is None  # rank 0 has waited less than its limit
+    hung = watch.check(stuck, now + HANG_FLOOR + 0.3)
+    assert (hung.rank, hung.phase, hung.limit, hung.iteration) == (1, "rollout", HANG_FLOOR, 6)
+    assert hung.describe() == f"rank 1 silent for {HANG_FLOOR + 0.3} s in phase rollout (limit {HANG_FLOOR} s)"
+
+    # the next attempt: its first iteration has the grace again, its later ones the limits learnt before
+    watch.restart(now=1000)
+    assert both(watch, 1, Phase.START, 6, now=1000) is None
+    assert both(watch, 2, Phase.ROLLOUT, 6, now=1004) is None
+    assert both(watch, 2, Phase.ROLLOUT, 6, now=1004 + GRACE - 1) is None
+    hung = both(watch, 2, Phase.ROLLOUT, 6, now=1004 + GRACE + 1)
+    assert (hung.first, hung.limit) == (True, GRACE) and "of the first iteration" in hung.describe()
+
+
+def test_each_phase_has_its_own_limit_and_an_unseen_one_the_grace():
+    watch = HangWatch(timeout=None, startup_grace=GRACE, ranks=2)
+    watch.restart(now=0)
+    both(watch, 1, Phase.START, 0, now=0)
+    now = steady(watch, 1, range(0, 4))
+    assert both(watch, 20, Phase.EVALUATE, 4, now) is None
+    assert both(watch, 20, Phase.EVALUATE, 4, now + GRACE - 1) is None  # the first evaluation: no limit learnt yet
+    assert both(watch, 21, Phase.ROLLOUT, 4, now + 20) is None  # it took 20 s: 200 s for the next one
+    now = steady(watch, now + 20, range(4, 8), rollout=0.6)
+    assert watch.longest[Phase.EVALUATE] == pytest.approx(20) and watch.longest[Phase.ROLLOUT] == pytest.approx(0.6)
+    assert both(watch, 40, Phase.EVALUATE, 8, now) is None
+    assert both(watch, 40, Phase.EVALUATE, 8, now + HANG_FACTOR * 20 - 1) is None
+    assert both(watch, 40, Phase.EVALUATE, 8, now + HANG_FACTOR * 20 + 1).limit == HANG_FACTOR * 20
+
+
+def test_a_rank_that_beats_keeps_the_group_alive():
+    """Rank 0 holds a save (beating every 0.5 s) while rank 1 waits for it in a collective, silent: slow work."""
+    watch = HangWatch(timeout=None, startup_grace=GRACE, ranks=2)
+    watch.restart(now=0)
+    both(watch, 1, Phase.START, 0, now=0)
+    now = steady(watch, 1, range(0, 4))
+    for seq, at in enumerate(range(int(now) + 1, int(now) + 60), start=50):
+        assert watch.check({0: beat(0, seq, Phase.CHECKPOINT, 4), 1: beat(1, 17, Phase.ROLLOUT, 4)}, at) is None
+
+
+def test_a_fixed_timeout_holds_for_every_phase_after_start_up():
+    watch = HangWatch(timeout=2, startup_grace=GRACE, ranks=2)
+    watch.restart(now=0)
+    both(watch, 1, Phase.START, 0, now=0)
+    assert both(watch, 2, Phase.ROLLOUT, 0, now=1) is None
+    assert both(watch, 2, Phase.ROLLOUT, 0, now=3.1).limit == 2  # even in the first iteration
+    assert both(watch, 3, Phase.DONE, 1, now=100) is None  # ranks that finished only exit
+
+
+@pytest.mark.slow
+def test_a_45_s_first_iteration_is_not_a_hang_and_a_stopped_worker_is_caught_in_seconds(tmp_path):
+    """The issue's numbers, in one real supervised run: the first iteration of a fresh start sleeps 45 s (both
+    ranks); later a worker is stopped in the middle of 0.05 s phases."""
+    run = tmp_path / "run"
+    command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", "--backoff-initial", "0.2"]
+    command += [SMOKE, "--storage", str(run), "iterations=60", "log.console=false"]
+    command += ["hooks=[{target: 'probe_hooks:SlowFirstIterationHook', kwargs: {seconds: 45}}]"]
+    output = (tmp_path / "supervise.log").open("wb")
+    env = child_env({"PYTHONPATH": str(TESTS)})
+    supervisor = launch(command, cwd=REPO, env=env, stdout=output, stderr=subprocess.STDOUT)
+    victim = training(run / "heartbeat", 8)[1]
+    assert not [event for event in events(run) if event["event"] == "hang"]  # the 45 s first iteration passed
+    stopped = time.time()
+    os.kill(victim.pid, signal.SIGSTOP)
+    hang = wait_for(lambda: next((e for e in events(run) if e["event"] == "hang"), None), "a hang", 60, 0.05)
+    detected = hang["time"] - stopped
+    print(f"the stopped worker was called hung {detected:.2f} s after its SIGSTOP (limit {hang['limit']} s)")
+    assert hang["rank"] == 1 and hang["processes"]["1"] == "T" and hang["limit"] == HANG_FLOOR
+    assert detected < 8
+    assert finish(supervisor, timeout=180) == 0, (tmp_path / "supervise.log").read_text()[-3000:]
+    with (run / "metrics.csv").open() as file:
+        assert float(next(csv.DictReader(file))["collect_time"]) >= 45  # the first iteration was that slow
+    first = next(e for e in events(run) if e["event"] == "exit")
+    assert [e["event"] for e in events(run)].count("hang") == 1 and first["cause"] == "killed: rank 1 hung"

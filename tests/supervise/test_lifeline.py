@@ -1,0 +1,69 @@
+"""No orphans: whatever ends ``ftrain supervise`` (SIGKILL included), its torchrun and workers end within seconds;
+a plain torchrun run knows no supervisor."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from ftrain import lifeline, procfs
+
+from helpers import REPO, SMOKE, child_env, launch, torchrun_pid, training, wait_for
+
+ORPHAN_DEADLINE = 15.0
+"""Seconds after the supervisor's death by which no process of its run may be left (the issue's bound)."""
+
+
+def alive(pid: int) -> bool:
+    return procfs.stat_fields(pid)[:1] not in ([], ["Z"], ["X"])
+
+
+def tie(supervisor_env: dict[str, str]) -> subprocess.CompletedProcess:
+    """A process that ties itself to the supervisor ``supervisor_env`` names, as torchrun does, then says so."""
+    code = "from ftrain import lifeline; lifeline.die_with_supervisor(); print('tied')"
+    return subprocess.run(
+        [sys.executable, "-c", code], env=child_env(supervisor_env), capture_output=True, text=True, timeout=60
+    )
+
+
+def test_torchrun_ties_itself_to_its_parent_only():
+    """The tie is made to the parent that names itself; a process whose named supervisor is not its parent (the
+    supervisor ended before the tie, and the orphan was taken over by another process) ends at once."""
+    assert tie(lifeline.supervisor_env()).stdout == "tied\n"
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        stranger = {lifeline.SUPERVISOR_ENV: f"{other.pid}:{procfs.start_time(other.pid)}"}
+        assert tie(stranger).returncode == -signal.SIGKILL
+    finally:
+        other.kill()
+        other.wait()
+    assert tie({}).stdout == "tied\n"  # no supervisor (plain torchrun): nothing to tie to
+
+
+@pytest.mark.slow
+def test_a_sigkilled_supervisor_leaves_no_process_of_its_run(tmp_path):
+    """One worker is stopped (SIGSTOP) first: no thread of its own can end it, its siblings must."""
+    run = tmp_path / "run"
+    command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", SMOKE, "--storage", str(run)]
+    command += ["iterations=100000", "log.console=false"]
+    supervisor = launch(command, cwd=REPO, env=child_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    beats = training(run / "heartbeat", 3)
+    agent = torchrun_pid(supervisor.pid)
+    run_processes = [agent, *procfs.descendants(agent)]
+    assert {beat.pid for beat in beats.values()} <= set(run_processes)
+    os.kill(beats[1].pid, signal.SIGSTOP)
+
+    supervisor.kill()
+    killed = time.monotonic()
+    supervisor.wait()
+    try:
+        wait_for(lambda: not any(map(alive, run_processes)), "the run's processes to end", ORPHAN_DEADLINE, 0.05)
+    finally:  # a failed test leaves no orphans either
+        for pid in filter(alive, run_processes):
+            os.kill(pid, signal.SIGKILL)
+    print(f"every process of the run ended {time.monotonic() - killed:.2f} s after the supervisor's SIGKILL")
