@@ -296,16 +296,6 @@ class Storage:
         return _scrub(exc, self._secrets)
 
 
-def probe(url: str, options: dict | None = None) -> str | None:
-    """None if the storage at ``url`` answers (it opens, and its checkpoints can be listed), else why not, in one
-    line, for an infrastructure fault worth waiting for; UserError for one that waiting cannot fix."""
-    try:
-        Storage.open(url, options, retries=0).list_dirs("checkpoints")
-    except StorageError as error:
-        return str(error)
-    return None
-
-
 def backoff(base: float, attempt: int, longest: float) -> float:
     """Seconds before retry ``attempt + 1``: ``base * 2**attempt``, at most ``longest``, with +-25% jitter so that
     many ranks or nodes do not knock at a recovering server at the same instant."""

@@ -13,7 +13,7 @@ import sys
 import time
 from collections.abc import Callable
 
-from ftrain.ckpt.storage import backoff, probe
+from ftrain.ckpt.storage import Storage, StorageError, backoff
 from ftrain.config import StorageConfig
 from ftrain.errors import EXIT_USAGE, UserError
 from ftrain.supervise.events import EventLog
@@ -62,3 +62,13 @@ class StorageWait:
             )
             self.sleep(delay)
             tries += 1
+
+
+def probe(url: str, options: dict | None = None) -> str | None:
+    """None if the storage at ``url`` answers (it opens, and its checkpoints can be listed), else why not, in one
+    line, for an infrastructure fault worth waiting for; UserError for one that waiting cannot fix."""
+    try:
+        Storage.open(url, options, retries=0).list_dirs("checkpoints")
+    except StorageError as error:
+        return str(error)
+    return None
