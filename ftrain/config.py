@@ -319,7 +319,7 @@ def validate(config: Config) -> None:
             raise UserError(f"hook target {hook.target!r} must be an import path like package.module:Class")
 
 
-ACTIVATIONS = tuple("elu selu relu crelu lrelu tanh sigmoid softplus gelu swish mish identity".split())
+ACTIVATIONS = tuple("elu selu relu crelu lrelu tanh sigmoid softplus gelu swish mish identity".split())  # noqa: SIM905
 
 
 def _parse_value(raw: str) -> Any:
