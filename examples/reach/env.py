@@ -16,7 +16,7 @@ from gymnasium.envs.mujoco import MujocoEnv
 MODEL = Path(__file__).with_name("reach.xml")
 TARGET_RADII = (0.1, 0.35)
 """Targets appear this far from the shoulder (the arm reaches 0.4)."""
-TOUCH = 0.03
+TOUCH = 0.05
 """Fingertip-to-target distance that counts as touching."""
 BONUS = 5.0
 """Reward for holding a target for ``hold_steps`` steps."""
@@ -25,7 +25,7 @@ BONUS = 5.0
 class ReachEnv(MujocoEnv):
     metadata = {"render_modes": ["human", "rgb_array", "depth_array", "rgbd_tuple"], "render_fps": 50}
 
-    def __init__(self, hold_steps: int = 10, **kwargs) -> None:
+    def __init__(self, hold_steps: int = 5, **kwargs) -> None:
         kwargs.setdefault("camera_name", "top")
         observations = spaces.Box(-np.inf, np.inf, shape=(11,), dtype=np.float64)
         super().__init__(str(MODEL), frame_skip=2, observation_space=observations, **kwargs)
