@@ -96,7 +96,7 @@ def test_own_robot_trains_supervised_resumes_bit_for_bit_after_sigkill_plays_and
     assert "robot: userbot.envs:MemoryArm (your own; identity " in shown
     assert re.search(r"meshes/block.obj +sha256 [0-9a-f]{64}", shown), shown
     played = ftrain(work, "play", str(run), "--episodes", "2", "--video", "arm.gif").stdout
-    assert "episode 2: return" in played and "(82 frames of" in played  # 2 x (40 steps + 1): its own time limit
+    assert "episode 2: return" in played and "(102 frames of" in played  # 2 x (50 steps + 1): smoke.yaml's limit
     assert (work / "arm.gif").stat().st_size > 0
     ftrain(work, "export", str(run), "--format", "torchscript", "-o", "arm.pt")
     assert "mean return over 1 episodes" in ftrain(work, "play", "arm.pt").stdout
