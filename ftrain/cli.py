@@ -230,7 +230,10 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "train":
         config = _run_config(args)
         watch_supervisor()
+        from ftrain.policy.robot import make_env
         from ftrain.train.trainer import train
+
+        make_env(config.env).close()  # the user's module, id, model and spaces: refused here, before any rendezvous
 
         return train(config)
     if args.command == "supervise":
@@ -287,13 +290,13 @@ def _dispatch(args: argparse.Namespace) -> int:
 
 
 def _run_config(args: argparse.Namespace) -> Config:
-    """The config of ``train`` and ``supervise``, validated in full before anything starts: its env id too, against
+    """The config of ``train`` and ``supervise``, validated before anything starts: its env id too, against
     gymnasium's registry (not in ``config.py``, which the supervisor imports and which stays free of gymnasium)."""
     from ftrain.config import load_config
     from ftrain.train.env_ids import check_env_id
 
     config = load_config(args.config, args.overrides, args.storage)
-    check_env_id(config.env.id)
+    check_env_id(config.env)
     return config
 
 

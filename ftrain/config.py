@@ -24,6 +24,11 @@ POLICY_FORMATS = ("torchscript", "onnx")
 @dataclass
 class EnvConfig:
     id: str = "HalfCheetah-v5"
+    """A gymnasium id whose env is a MuJoCo ``MujocoEnv``: gymnasium's own, or your own as ``module:EnvId`` (importing
+    ``module`` registers ``EnvId``) or as a plain id registered by a module in ``imports``."""
+    imports: list[str] = field(default_factory=list)
+    """Modules to import before the env is made (they register your envs; hooks' modules may go here too), from the
+    working directory or the installed packages: every process that makes the env imports them."""
     num_envs: int = 16
     """Environments per rank."""
     kwargs: dict = field(default_factory=dict)
@@ -180,12 +185,17 @@ class Config:
         data["resume"] = display_url(self.resume)
         return data
 
-    def training_hash(self) -> str:
-        """Digest of everything that decides what is trained (not run length, storage, logging or retention)."""
+    def training_hash(self, robot: dict | None = None) -> str:
+        """Digest of everything that decides what is trained (not run length, storage, logging or retention), with
+        the identity of the ``robot`` trained (``ftrain.policy.robot.identity``: its env class and model files)
+        unless that is gymnasium's own, so that runs from before robots were hashed still resume."""
         data = self.to_dict()
         run_only = ("name", "iterations", "resume", "allow_config_change", "log_dir", "dist_timeout", "checkpoint")
         for key in (*run_only, "storage", "log", "eval", "snapshots", "hooks"):
             data.pop(key)
+        data["env"].pop("imports")  # where the code is found, not what it is: the robot's identity says that
+        if robot is not None and not robot["builtin"]:
+            data["robot"] = robot["digest"]
         defaults = Config().to_dict()
         for key in KEYS_ADDED_LATER:
             section, _, leaf = key.rpartition(".")
@@ -255,8 +265,8 @@ def default_log_dir(storage_url: str, name: str) -> str:
 
 
 def validate(config: Config) -> None:
-    """Range checks that types alone cannot express. ``env.id`` is checked by ``ftrain.train.env_ids`` (gymnasium's
-    registry), which the CLI runs next."""
+    """Range checks that types alone cannot express. ``env.id`` is checked by ``ftrain.policy.robot`` (which makes
+    the env) and ``ftrain.train.env_ids`` (gymnasium's registry, for the supervisor), which the CLI runs next."""
     minimums = {  # key: (value, smallest allowed)
         "iterations": (config.iterations, 1),
         "env.num_envs": (config.env.num_envs, 1),

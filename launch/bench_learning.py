@@ -42,7 +42,8 @@ sys.path.insert(0, str(REPO))
 
 from ftrain.config import EnvConfig, load_config  # noqa: E402
 from ftrain.policy.load import load_policy  # noqa: E402
-from ftrain.policy.rollout import make_env, rollout  # noqa: E402
+from ftrain.policy.robot import make_env  # noqa: E402
+from ftrain.policy.rollout import rollout  # noqa: E402
 from ftrain.tools.zoo import ZOO, zoo_ppo  # noqa: E402
 from ftrain.train.hooks import Hook  # noqa: E402
 

@@ -76,12 +76,17 @@ def run_train(
 
 
 def start_train(
-    storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE, env: dict | None = None
+    storage: str | Path,
+    *overrides: str,
+    ranks: int = 1,
+    config: str = SMOKE,
+    env: dict | None = None,
+    cwd: str | Path = REPO,
 ) -> subprocess.Popen:
     """Start training in a new session, so a test can kill the whole process tree like a lost machine."""
     return subprocess.Popen(
         train_command(storage, *overrides, ranks=ranks, config=config),
-        cwd=REPO,
+        cwd=cwd,
         env=child_env(env),
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,

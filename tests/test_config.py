@@ -70,7 +70,7 @@ def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> 
         ([SMOKE, "env.id=HalfCheeta-v5"], "did you mean 'HalfCheetah-v5'"),
         (
             [SMOKE, "env.id=Pendulum-v1"],
-            "env.id='Pendulum-v1' is not a MuJoCo environment: ftrain trains gymnasium's MuJoCo environments, use one",
+            "env.id='Pendulum-v1' is not a MuJoCo environment: ftrain trains environments whose core is a MujocoEnv",
         ),
         ([SMOKE, "env.id=CartPole-v1"], "env.id='CartPole-v1' is not a MuJoCo environment"),
         ([SMOKE, "env.id=BipedalWalker-v3"], "env.id='BipedalWalker-v3' is not a MuJoCo environment"),

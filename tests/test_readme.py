@@ -1,5 +1,6 @@
-"""The README's "Using it" block, every line as a reader runs it, in order, in a scratch directory laid out like the
-repository (``configs/``, ``launch/``, ``.venv/``); each line in a shell that ran the block's ``source`` lines first.
+"""The README's "Using it" and "Your own robot" blocks, every line as a reader runs it, in order, in a scratch directory
+laid out like the repository (``configs/``, ``launch/``, ``examples/``, ``.venv/``); each line in a shell that ran the
+block's ``source`` lines first.
 
 Two things differ from a reader's run, so that the block takes minutes instead of hours:
 
@@ -37,11 +38,15 @@ SMOKE_SIZED = (
 OUTPUT_OPTIONS = ("-o", "--video")
 
 
+def block(heading: str) -> list[str]:
+    """The command lines of the first code block after ``heading`` (comments and blank lines left out)."""
+    section = (REPO / "README.md").read_text().split(f"\n{heading}\n", 1)[1]
+    lines = section.split("```bash\n", 1)[1].split("\n```", 1)[0]
+    return [line for line in lines.splitlines() if line.strip() and not line.startswith("#")]
+
+
 def using_it() -> list[str]:
-    """The command lines of the first code block after "## Using it" (comments and blank lines left out)."""
-    section = (REPO / "README.md").read_text().split("\n## Using it\n", 1)[1]
-    block = section.split("```bash\n", 1)[1].split("\n```", 1)[0]
-    return [line for line in block.splitlines() if line.strip() and not line.startswith("#")]
+    return block("## Using it")
 
 
 def as_tested(line: str) -> str:
@@ -56,13 +61,27 @@ def as_tested(line: str) -> str:
 
 @pytest.mark.slow
 def test_every_line_of_using_it_works_as_written(tmp_path) -> None:
+    lines = using_it()
+    assert any(line.startswith("ftrain ckpt show") for line in lines), "no README block found"
+    run_as_a_reader(tmp_path, lines)
+
+
+@pytest.mark.slow
+def test_every_line_of_your_own_robot_works_as_written(tmp_path) -> None:
+    """The "Your own robot" walk-through: train the example arm, show its identity, play it on video, export it."""
+    lines = block("## Your own robot")
+    assert any("configs/reach.yaml" in line for line in lines), "no README block found"
+    run_as_a_reader(tmp_path, lines)
+
+
+def run_as_a_reader(tmp_path: Path, lines: list[str]) -> None:
+    """Run ``lines`` in order in a scratch directory laid out like the repository, each in a shell that ran the
+    block's ``source`` lines above it first."""
     if sys.prefix == sys.base_prefix:
         pytest.skip("the block activates a virtualenv: run the tests with one (.venv/bin/python -m pytest)")
     (tmp_path / ".venv").symlink_to(sys.prefix)
-    for name in ("configs", "launch"):
+    for name in ("configs", "launch", "examples"):
         (tmp_path / name).symlink_to(REPO / name)
-    lines = using_it()
-    assert any(line.startswith("ftrain ckpt show") for line in lines), "no README block found"
     setup: list[str] = []
     for line in lines:
         if line.startswith("source "):

@@ -81,7 +81,9 @@ def show(url: str, options: dict | None = None, as_json: bool = False) -> int:
     status = "verified" if result.ok else "NOT verified: " + "; ".join(str(p) for p in result.problems)
     print(f"checkpoint {storage.where(step_dir(step))} ({status})")
     for key, value in result.manifest.items():
-        if key == "files":
+        if key == "robot":
+            _print_robot(value)
+        elif key == "files":
             print("files:")
             for name, entry in value.items():
                 print(f"  {name:<20} {_size(entry['size']):>9}  sha256 {entry['sha256']}")
@@ -92,6 +94,14 @@ def show(url: str, options: dict | None = None, as_json: bool = False) -> int:
         else:
             print(f"{key}: {value}")
     return 0
+
+
+def _print_robot(robot: dict) -> None:
+    """The identity of the robot a step was trained on: its env class, its model's files, its Python state."""
+    origin = "gymnasium's own" if robot["builtin"] else "your own"
+    print(f"robot: {robot['env_class']} ({origin}; identity {robot['digest']}; Python state {robot['python_state']})")
+    for name, digest in robot["mjcf"].items():
+        print(f"  {name:<30} sha256 {digest}")
 
 
 def prune(

@@ -44,9 +44,13 @@ FAILURE_LINES = 30.0
 
 
 class Checkpointer:
-    def __init__(self, config: Config, info: group.RankInfo, log: Callable[..., None]) -> None:
-        """``log(message, every_rank=False)``: a line for the run's log."""
+    def __init__(
+        self, config: Config, info: group.RankInfo, log: Callable[..., None], robot: dict | None = None
+    ) -> None:
+        """``log(message, every_rank=False)``: a line for the run's log; ``robot``: the identity of the robot trained
+        (``ftrain.policy.robot.identity``), for the manifests and the resume check."""
         self.config = config
+        self.robot = robot
         self.info = info
         self.log = log
         self.storage = Storage.open(config.storage.url, config.storage.options, retries=config.checkpoint.retries)
@@ -85,14 +89,15 @@ class Checkpointer:
             "world_size": info.world_size,
             "envs_per_rank": config.env.num_envs,
             "env_id": config.env.id,
-            "config_hash": config.training_hash(),
+            "config_hash": config.training_hash(robot),
+            **({"robot": robot} if robot is not None else {}),
             "config": config.public_dict(),
             "versions": _versions(),
         }
 
     def restore(self, trainer: Checkpointable) -> int | None:
         """Load the step to start from into ``trainer`` (see ``resume.py``); the step, or None for a fresh start."""
-        resumed = resume.restore(trainer, self.config, self.info, self.storage, self.log)
+        resumed = resume.restore(trainer, self.config, self.info, self.storage, self.log, self.robot)
         if resumed.own:
             self.committed_step = resumed.step
             self.schedule.committed = (resumed.step, time.monotonic())

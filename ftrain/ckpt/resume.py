@@ -77,10 +77,15 @@ class Resumed:
 
 
 def restore(
-    trainer: Checkpointable, config: Config, info: group.RankInfo, storage: Storage, log: Callable[[str], None]
+    trainer: Checkpointable,
+    config: Config,
+    info: group.RankInfo,
+    storage: Storage,
+    log: Callable[[str], None],
+    robot: dict | None = None,
 ) -> Resumed:
-    """Load the step rank 0 chose into ``trainer``."""
-    decision = decide(config, info, storage, log) if info.is_main else None
+    """Load the step rank 0 chose into ``trainer``, which trains ``robot`` (see ``check_compatible``)."""
+    decision = decide(config, info, storage, log, robot) if info.is_main else None
     decision = group.broadcast_object(decision, info)
     if decision["kind"] == "usage":
         raise UserError(decision["why"])
@@ -159,7 +164,9 @@ def _load(trainer: Checkpointable, storage: Storage, step: int, manifest: dict, 
     return None
 
 
-def decide(config: Config, info: group.RankInfo, storage: Storage, log: Callable[[str], None]) -> dict:
+def decide(
+    config: Config, info: group.RankInfo, storage: Storage, log: Callable[[str], None], robot: dict | None = None
+) -> dict:
     """On rank 0: ``{"kind": "fresh" | "resume" | "usage" | "storage", ...}`` (JSON, for the other ranks)."""
     try:
         resume = config.resume
@@ -188,7 +195,7 @@ def decide(config: Config, info: group.RankInfo, storage: Storage, log: Callable
         else:
             _, step, manifest = resolve_checkpoint_url(resume, config.storage.options, log)
             url = parse_checkpoint_url(resume)[0]
-        check_compatible(config, step, manifest)
+        check_compatible(config, step, manifest, robot)
         clear_newer(storage, step, log)
         return {"kind": "resume", "url": url, "step": step, "manifest": manifest}
     except UserError as error:
@@ -199,8 +206,9 @@ def decide(config: Config, info: group.RankInfo, storage: Storage, log: Callable
         return {"kind": "storage", "why": f"checkpoint storage {storage.url} failed while choosing a step: {error}"}
 
 
-def check_compatible(config: Config, step: int, manifest: dict) -> None:
-    """UserError unless ``step`` (by its manifest) can continue as this run (at any world size)."""
+def check_compatible(config: Config, step: int, manifest: dict, robot: dict | None = None) -> None:
+    """UserError unless ``step`` (by its manifest) can continue as this run (at any world size), training ``robot``
+    (``ftrain.policy.robot.identity``; None: not checked)."""
     written = manifest.get("state_format", 1)
     if written in PACKED_STATE_FORMATS:
         raise UserError(
@@ -226,8 +234,32 @@ def check_compatible(config: Config, step: int, manifest: dict) -> None:
             f"{config.env.id} policy {config.public_dict()['policy']}: they cannot be loaded into each other (not "
             "even with allow_config_change=true): use another --storage"
         )
-    if manifest["config_hash"] != config.training_hash() and not config.allow_config_change:
+    changed = robot_change(manifest.get("robot"), robot)
+    if changed and not config.allow_config_change:
+        raise UserError(
+            f"checkpoint step {step} was trained with another robot: {changed}: restore it, or pass "
+            "allow_config_change=true to go on with the robot as it is now"
+        )
+    if manifest["config_hash"] != config.training_hash(robot) and not config.allow_config_change:
         raise UserError(
             f"checkpoint step {step} was trained with a different config (hash {manifest['config_hash']}, now "
-            f"{config.training_hash()}): restore the config, or pass allow_config_change=true"
+            f"{config.training_hash(robot)}): restore the config, or pass allow_config_change=true"
         )
+
+
+def robot_change(saved: dict | None, current: dict | None) -> str | None:
+    """What differs between the robot a checkpoint recorded and the one trained now, in words (None: nothing, or
+    one of them is not known)."""
+    if saved is None or current is None:
+        return None
+    if saved["env_class"] != current["env_class"]:
+        return f"its env class was {saved['env_class']}, now {current['env_class']}"
+    before, now = saved["mjcf"], current["mjcf"]
+    for name in [*before, *(name for name in now if name not in before)]:
+        if name not in now:
+            return f"its model no longer uses {name}"
+        if name not in before:
+            return f"its model now uses {name}, which it did not"
+        if before[name] != now[name]:
+            return f"{name} has changed (sha256 {before[name][:12]}, now {now[name][:12]})"
+    return None

@@ -13,7 +13,8 @@ import torch
 from ftrain.config import POLICY_FORMATS, default_log_dir
 from ftrain.errors import UserError
 from ftrain.policy.load import METADATA, Policy, policy_from_file, torchscript_deprecation_ignored
-from ftrain.policy.rollout import make_env, rollout
+from ftrain.policy.robot import make_env
+from ftrain.policy.rollout import rollout
 
 SUFFIXES = {"torchscript": ".pt", "onnx": ".onnx"}
 TOLERANCE = 1e-5

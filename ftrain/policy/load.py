@@ -38,7 +38,7 @@ from ftrain.config import Config, config_from_dict
 from ftrain.errors import UserError
 from ftrain.policy import snapshots
 from ftrain.policy.model import OBS_GROUP, actor_actions, build_actor
-from ftrain.policy.rollout import make_env
+from ftrain.policy.robot import make_env
 
 METADATA = "ftrain.json"
 """Key of the metadata in an exported file: a TorchScript extra file, an ONNX metadata property."""

@@ -11,7 +11,8 @@ import torch
 
 from ftrain.errors import UserError
 from ftrain.policy.load import Policy
-from ftrain.policy.rollout import Episode, make_env, rollout
+from ftrain.policy.robot import make_env
+from ftrain.policy.rollout import Episode, rollout
 from ftrain.progress import Progress
 
 VIDEO_SUFFIXES = (".mp4", ".gif")

@@ -13,9 +13,6 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from ftrain.config import EnvConfig
-from ftrain.policy.mujoco_warnings import route_mujoco_warnings
-
 Act = Callable[[torch.Tensor], torch.Tensor]
 """Actions ``[N, num_actions]`` for observations ``[N, obs_dim]``."""
 
@@ -24,18 +21,6 @@ Act = Callable[[torch.Tensor], torch.Tensor]
 class Episode:
     ret: float
     length: int
-
-
-def make_env(env_config: EnvConfig, render: bool = False) -> gym.Env:
-    """One environment as configured for training; ``render`` makes ``env.render()`` return RGB frames, seen by the
-    model's ``track`` camera if it has one (gymnasium's default free camera stays put while the agent runs away)."""
-    route_mujoco_warnings()
-    kwargs = dict(env_config.kwargs)
-    if render:
-        kwargs["render_mode"] = "rgb_array"
-        if "camera_id" not in kwargs:
-            kwargs.setdefault("camera_name", "track")
-    return gym.make(env_config.id, **kwargs)
 
 
 def rollout(

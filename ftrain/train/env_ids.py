@@ -1,8 +1,9 @@
-"""Which gymnasium ids ftrain trains: gymnasium's MuJoCo environments, whose exact state the trainer saves.
+"""The env id check ``ftrain supervise`` makes before it launches anything: gymnasium's registry only.
 
-Checked from gymnasium's registry (each id's entry point) without building an env: this imports gymnasium but not
-MuJoCo or torch, so the CLI checks the id before ``ftrain train`` starts and before ``ftrain supervise`` launches
-anything (the supervisor package itself never imports gymnasium).
+It imports gymnasium but not MuJoCo, torch or the user's module (the supervisor stays free of them), so it checks
+only ids of gymnasium's own. An id of the user's (``module:EnvId``, or one registered by ``env.imports``) is checked
+by each worker, which makes the env (``ftrain.policy.robot``) and refuses it in one line with exit code 2: the
+supervisor reports that line and does not restart.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import difflib
 
 from gymnasium.envs.registration import registry
 
+from ftrain.config import EnvConfig
 from ftrain.errors import UserError
 
 MUJOCO_MODULES = "gymnasium.envs.mujoco."
@@ -18,7 +20,7 @@ MUJOCO_MODULES = "gymnasium.envs.mujoco."
 
 
 def mujoco_env_ids() -> list[str]:
-    """The registered ids ftrain can train, sorted."""
+    """gymnasium's own ids that ftrain can train, sorted."""
     return sorted(
         env_id
         for env_id, spec in registry.items()
@@ -26,16 +28,21 @@ def mujoco_env_ids() -> list[str]:
     )
 
 
-def check_env_id(env_id: str) -> None:
-    """UserError unless ``env_id`` is a registered MuJoCo environment; the message names the supported ids."""
+def check_env_id(env: EnvConfig) -> None:
+    """UserError unless ``env.id`` is one of gymnasium's MuJoCo environments or the user's (checked later)."""
+    if ":" in env.id or env.imports:
+        return  # the user's: the workers import the module and check the env
     supported = mujoco_env_ids()
-    if env_id in supported:
+    if env.id in supported:
         return
-    if env_id not in registry:
-        near = difflib.get_close_matches(env_id, supported, n=1)
+    if env.id not in registry:
+        near = difflib.get_close_matches(env.id, supported, n=1)
         hint = f"did you mean {near[0]!r}?" if near else f"use one of {', '.join(supported)}"
-        raise UserError(f"env.id={env_id!r} is not a registered gymnasium environment: {hint}")
+        raise UserError(
+            f"env.id={env.id!r} is not a registered gymnasium environment: {hint} (an env of your own: "
+            f"env.id=yourmodule:{env.id})"
+        )
     raise UserError(
-        f"env.id={env_id!r} is not a MuJoCo environment: ftrain trains gymnasium's MuJoCo environments, "
-        f"use one of {', '.join(supported)}"
+        f"env.id={env.id!r} is not a MuJoCo environment: ftrain trains environments whose core is a MujocoEnv, "
+        f"gymnasium's ({', '.join(supported)}) or your own (env.id=yourmodule:EnvId)"
     )

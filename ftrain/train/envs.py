@@ -1,52 +1,48 @@
 """Gymnasium MuJoCo vector environments as an rsl_rl ``VecEnv``, with exact state save and restore.
 
-What must be saved for a bitwise-exact continuation (measured on HalfCheetah, Hopper, Walker2d, Ant and
-Humanoid): MuJoCo's integration state (``mjSTATE_INTEGRATION``: ``mjSTATE_PHYSICS`` alone drifts by ~1e-15), the
-derived body positions ``xpos``/``xipos`` that some rewards read after a step (Ant, Humanoid), each sub-env's RNG
-and time-limit counter, and this adapter's current observations and episode buffers.
+Any environment whose core is a ``MujocoEnv`` (gymnasium's or the user's, see ``ftrain.policy.robot``). What must be
+saved for a bitwise-exact continuation, taken from MuJoCo itself: its integration state (``mjSTATE_INTEGRATION``:
+``mjSTATE_PHYSICS`` alone drifts by ~1e-15) and the quantities it derived from the last step (body positions,
+velocities, forces, sensor readings: rewards read them after a step, Ant's and Humanoid's ``xpos``/``xipos`` for
+instance); each sub-env's random stream and time-limit counter; this adapter's current observations and episode
+buffers; and the Python state of a user's env that offers ``ftrain_state()``/``ftrain_set_state(state)``.
 """
 
 from __future__ import annotations
+
+from functools import cached_property
 
 import gymnasium as gym
 import mujoco
 import numpy as np
 import torch
-from gymnasium.vector import AutoresetMode
+from gymnasium.vector import AutoresetMode, SyncVectorEnv
 from gymnasium.wrappers import TimeLimit
 from rsl_rl.env import VecEnv
 from tensordict import TensorDict
 
-from ftrain.errors import UserError
+from ftrain.config import EnvConfig
+from ftrain.policy import robot
 from ftrain.policy.model import OBS_GROUP
-from ftrain.policy.mujoco_warnings import route_mujoco_warnings
 
 _INTEGRATION = mujoco.mjtState.mjSTATE_INTEGRATION
+_ARRAY = "__ndarray__"
+"""Marks a numpy array in the Python state of a user's env (saved as a tensor: checkpoints load weights_only)."""
 
 
 class MujocoVecEnv(VecEnv):
-    """``num_envs`` synchronous copies of a gymnasium MuJoCo env, stepped with same-step autoreset.
+    """``num_envs`` synchronous copies of a MuJoCo env, stepped with same-step autoreset.
 
     ``step`` returns ``time_outs`` (truncated and not terminated) in ``extras`` for rsl-rl's value bootstrapping,
     and the returns and lengths of the episodes that finished in ``extras["episodes"]``.
     """
 
-    def __init__(self, env_id: str, num_envs: int, seed: int, kwargs: dict | None = None) -> None:
-        route_mujoco_warnings()
-        try:
-            self.envs = gym.make_vec(
-                env_id,
-                num_envs=num_envs,
-                vectorization_mode="sync",
-                vector_kwargs={"autoreset_mode": AutoresetMode.SAME_STEP},
-                **(kwargs or {}),
-            )
-        except gym.error.Error as error:
-            raise UserError(f"env.id={env_id!r} cannot be made: {error}") from None
-        except TypeError as error:
-            raise UserError(f"env.kwargs for {env_id!r} are not accepted: {error}") from None
-        if not isinstance(self.envs.single_action_space, gym.spaces.Box):
-            raise UserError(f"env.id={env_id!r} has non-continuous actions: ftrain trains continuous-control envs")
+    def __init__(
+        self, env_id: str, num_envs: int, seed: int, kwargs: dict | None = None, imports: list[str] = ()
+    ) -> None:
+        self.env_config = EnvConfig(id=env_id, imports=list(imports), num_envs=num_envs, kwargs=dict(kwargs or {}))
+        made = [robot.make_env(self.env_config) for _ in range(num_envs)]
+        self.envs = SyncVectorEnv([lambda env=env: env for env in made], autoreset_mode=AutoresetMode.SAME_STEP)
         self.env_id = env_id
         self.num_envs = num_envs
         self.num_actions = int(np.prod(self.envs.single_action_space.shape))
@@ -64,7 +60,15 @@ class MujocoVecEnv(VecEnv):
         self.reset(seed)
         self._bases = [env.unwrapped for env in self.envs.envs]
         self._time_limits = [_time_limit(env) for env in self.envs.envs]
-        self._state_size = mujoco.mj_stateSize(self._bases[0].model, _INTEGRATION)
+        model = self._bases[0].model
+        self._state_size = mujoco.mj_stateSize(model, _INTEGRATION)
+        self._derived = _derived_fields(model)
+        self._python_state = all(callable(getattr(self._bases[0], name, None)) for name in robot.STATE_METHODS)
+
+    @cached_property
+    def robot(self) -> dict:
+        """The identity of the robot these envs simulate (``ftrain.policy.robot.identity``)."""
+        return robot.identity(self.env_config, self._bases[0])
 
     def reset(self, seed: int) -> None:
         """Start every sub-env afresh from ``seed`` (sub-env i from ``seed + i``, gymnasium's rule)."""
@@ -111,30 +115,39 @@ class MujocoVecEnv(VecEnv):
         physics = np.empty((self.num_envs, self._state_size))
         for row, base in zip(physics, bases, strict=True):
             mujoco.mj_getState(base.model, base.data, row, _INTEGRATION)
-        return {
+        state = {
             "env_id": self.env_id,
             "physics": torch.from_numpy(physics),
-            "xpos": torch.from_numpy(np.stack([base.data.xpos for base in bases])),
-            "xipos": torch.from_numpy(np.stack([base.data.xipos for base in bases])),
+            "derived": torch.from_numpy(
+                np.stack([np.concatenate([getattr(b.data, name).ravel() for name in self._derived]) for b in bases])
+            ),
+            "derived_fields": list(self._derived),
             "rng": _rng_state(self._bit_generators()),
-            "elapsed_steps": [limit._elapsed_steps for limit in self._time_limits],
+            "elapsed_steps": [limit._elapsed_steps if limit else None for limit in self._time_limits],
             "obs": self.obs.clone(),
             "episode_length": torch.from_numpy(self._lengths.copy()),
             "episode_return": torch.from_numpy(self._returns.copy()),
         }
+        if self._python_state:
+            state["python"] = [_plain(base.ftrain_state()) for base in bases]
+        return state
 
     def set_state(self, state: dict) -> None:
-        saved_envs = state["physics"].shape[0]
+        saved_envs, saved_size = state["physics"].shape
         if state["env_id"] != self.env_id or saved_envs != self.num_envs:
             raise ValueError(
                 f"environment state is for {saved_envs} x {state['env_id']}, "
                 f"this env is {self.num_envs} x {self.env_id}"
             )
+        if saved_size != self._state_size or state.get("derived_fields", self._derived) != self._derived:
+            raise ValueError(f"environment state is for another model of {self.env_id} (its robot has changed)")
         for index, (base, limit) in enumerate(zip(self._bases, self._time_limits, strict=True)):
             mujoco.mj_setState(base.model, base.data, state["physics"][index].numpy(), _INTEGRATION)
-            base.data.xpos[:] = state["xpos"][index].numpy()
-            base.data.xipos[:] = state["xipos"][index].numpy()
-            limit._elapsed_steps = state["elapsed_steps"][index]
+            _set_derived(base.data, state, index, self._derived)
+            if limit is not None:
+                limit._elapsed_steps = state["elapsed_steps"][index]
+            if self._python_state and "python" in state:
+                base.ftrain_set_state(_unplain(state["python"][index]))
         _set_rng_state(self._bit_generators(), state["rng"])
         self.obs = state["obs"].clone()
         self._lengths[:] = state["episode_length"].numpy()
@@ -146,6 +159,54 @@ class MujocoVecEnv(VecEnv):
     def _bit_generators(self) -> list[np.random.BitGenerator]:
         """Looked up each time: a reset with a seed gives a sub-env a new generator."""
         return [base.np_random.bit_generator for base in self._bases]
+
+
+def _derived_fields(model: mujoco.MjModel) -> list[str]:
+    """The arrays of MuJoCo's data that it derives from the state and that keep their size (the model's): those of
+    a fresh ``MjData`` with any element (contacts and constraints come and go: the next step computes them anew)."""
+    fresh = mujoco.MjData(model)
+    names = []
+    for name in dir(fresh):
+        value = getattr(fresh, name, None) if not name.startswith("_") else None
+        if isinstance(value, np.ndarray) and value.dtype == np.float64 and value.size:
+            names.append(name)
+    return names
+
+
+def _set_derived(data: mujoco.MjData, state: dict, index: int, names: list[str]) -> None:
+    if "derived" not in state:  # state format 4 of before user envs: only the body positions rewards read
+        data.xpos[:] = state["xpos"][index].numpy()
+        data.xipos[:] = state["xipos"][index].numpy()
+        return
+    row, start = state["derived"][index].numpy(), 0
+    for name in names:
+        target = getattr(data, name)
+        target.ravel()[:] = row[start : start + target.size]
+        start += target.size
+
+
+def _plain(value: object) -> object:
+    """The Python state of a user's env as checkpoint data: numpy arrays as tensors, numpy scalars as numbers."""
+    if isinstance(value, np.ndarray):
+        return {_ARRAY: torch.from_numpy(value.copy())}
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, dict):
+        return {key: _plain(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(item) for item in value]
+    return value
+
+
+def _unplain(value: object) -> object:
+    """What ``_plain`` made, back (tuples come back as lists)."""
+    if isinstance(value, dict):
+        if list(value) == [_ARRAY]:
+            return value[_ARRAY].numpy().copy()
+        return {key: _unplain(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_unplain(item) for item in value]
+    return value
 
 
 def _rng_state(generators: list[np.random.BitGenerator]) -> torch.Tensor | list[dict]:
@@ -183,7 +244,10 @@ def _join(high: int, low: int) -> int:
     return ((high & _MASK64) << 64) | (low & _MASK64)
 
 
-def _time_limit(env: gym.Env) -> TimeLimit:
-    while not isinstance(env, TimeLimit):
+def _time_limit(env: gym.Env) -> TimeLimit | None:
+    """The time limit among ``env``'s wrappers (None: it has none)."""
+    while isinstance(env, gym.Wrapper):
+        if isinstance(env, TimeLimit):
+            return env
         env = env.env
-    return env
+    return None

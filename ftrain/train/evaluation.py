@@ -17,7 +17,8 @@ from ftrain.config import EvalConfig
 from ftrain.dist import group
 from ftrain.heartbeat import Phase
 from ftrain.policy.model import actor_actions
-from ftrain.policy.rollout import make_env, rollout
+from ftrain.policy.robot import make_env
+from ftrain.policy.rollout import rollout
 from ftrain.train.hooks import Hook
 
 if TYPE_CHECKING:

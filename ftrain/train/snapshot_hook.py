@@ -36,8 +36,9 @@ def write_snapshot(
         "kind": "policy_snapshot",
         "formats": {fmt: FILE_NAMES[fmt] for fmt in formats},
         "state_sha256": policy.digest,
-        "config_hash": policy.config.training_hash(),
+        "config_hash": lineage["config_hash"],
         "config": policy.config.public_dict(),
+        "robot": lineage["robot"],
     }
     return commit(storage, step, files, meta)
 
@@ -91,8 +92,9 @@ class PolicySnapshotHook(Hook):
             "step": step,
             "state_sha256": policy.digest,
             "committed_checkpoint": self.parent,
-            "config_hash": config.training_hash(),
+            "config_hash": config.training_hash(trainer.env.robot),
             "env_id": config.env.id,
+            "robot": trainer.env.robot,
             "metrics": {key: value for key, value in metrics.items() if not key.endswith("_time")},
         }
         observations = trainer.env.get_observations()[OBS_GROUP]

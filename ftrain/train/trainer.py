@@ -27,6 +27,7 @@ from ftrain.config import Config
 from ftrain.dist import group
 from ftrain.errors import EXIT_STORAGE_DOWN
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter
+from ftrain.policy.robot import unsaved_state_notice
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.evaluation import EvalHook
 from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
@@ -82,7 +83,9 @@ class Trainer:
         torch.set_num_threads(config.torch_threads)
         group.seed_all(config.seed)  # identical model initialisation on every rank
         seed = group.rank_seed(config.seed, info.rank)
-        self.env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs)
+        self.env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs, config.env.imports)
+        if notice := unsaved_state_notice(self.env.robot):
+            self.log(notice)
         self.alg = build_algorithm(config, self.env, info)
         self.reward_norm = build_reward_normalizer(config, info)
         self.lr_schedule = build_lr_schedule(config.algorithm)
@@ -97,7 +100,7 @@ class Trainer:
         self.metrics: dict[str, float] = {}
         nodes = group.all_gather_object(int(os.environ.get(NODE_ENV, "0")), info)  # which nodes this world spans
         self.heartbeat = HeartbeatWriter(os.environ.get(ENV_DIR), info.rank, info.local_rank, info.world_size, nodes)
-        self.checkpointer = Checkpointer(config, info, self.log)
+        self.checkpointer = Checkpointer(config, info, self.log, self.env.robot)
         self.checkpointer.on_commit = lambda step, manifest: self.hooks.call("on_checkpoint", self, step, manifest)
         self.checkpointer.while_waiting = lambda: self.heartbeat.beat("checkpoint")
         self._votes = Votes(False, False, False)

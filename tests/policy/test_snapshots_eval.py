@@ -17,7 +17,8 @@ from ftrain.errors import UserError
 from ftrain.policy import snapshots
 from ftrain.policy.export import sample_observations
 from ftrain.policy.load import load_policy
-from ftrain.policy.rollout import make_env, rollout
+from ftrain.policy.robot import make_env
+from ftrain.policy.rollout import rollout
 from ftrain.train.evaluation import episode_share
 
 from helpers import final_manifest, manifests, metrics_by_iteration, run_train

@@ -43,8 +43,9 @@ def test_state_roundtrip_is_bitwise(env_id: str) -> None:
         assert e1 == e2
 
 
-def test_restore_without_derived_positions_is_not_exact_for_ant() -> None:
-    """Guards the reason xpos/xipos are saved: Ant's reward reads them, so dropping them changes the next step."""
+def test_restore_without_derived_quantities_is_not_exact_for_ant() -> None:
+    """Guards the reason MuJoCo's derived quantities are saved: Ant's reward reads xpos, so dropping them changes the
+    next step."""
     env = MujocoVecEnv("Ant-v5", 1, seed=3)
     for _ in range(5):
         env.step(torch.full((1, env.num_actions), 0.5))
@@ -53,7 +54,7 @@ def test_restore_without_derived_positions_is_not_exact_for_ant() -> None:
     _, expected_reward, _, _ = env.step(action)
 
     fresh = MujocoVecEnv("Ant-v5", 1, seed=3)
-    state["xpos"] = torch.zeros_like(state["xpos"])
+    state["derived"] = torch.zeros_like(state["derived"])
     fresh.set_state(state)
     _, reward, _, _ = fresh.step(action)
     assert not torch.equal(reward, expected_reward)

@@ -1,0 +1,184 @@
+"""Your own robot: a MujocoEnv subclass with its own MJCF model (an included XML file, a mesh), in a module of the
+user's that lives in a temporary directory and is imported from the working directory. It trains at 2 ranks, under
+``ftrain supervise`` too, resumes bit for bit after SIGKILL (its Python state through ``ftrain_state``), plays,
+exports; an env whose Python state ftrain cannot save is named once; an edited robot is refused; bad input is one
+line, exit code 2, and no restart."""
+
+from __future__ import annotations
+
+import functools
+import re
+import shutil
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+
+from ftrain.heartbeat import ENV_DIR, read_heartbeats
+
+from helpers import (
+    SMOKE,
+    TESTS,
+    child_env,
+    events,
+    final_manifest,
+    kill_tree,
+    metrics_by_iteration,
+    run_train,
+    start_train,
+    train_command,
+    wait_for,
+)
+
+pytestmark = pytest.mark.slow
+
+MEMORY_ARM = ["env.id=userbot:MemoryArm-v0", "iterations=8", "checkpoint.interval=2"]
+"""A target and a counter in Python, saved through ftrain_state(): the resume must restore them to be exact."""
+NOTICE = "keeps Python state that ftrain cannot save"
+TORCHRUN = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node=1", "-m", "ftrain"]
+FTRAIN_SCRIPT = Path(sys.executable).parent / "ftrain"
+"""The installed command: unlike ``python -m``, it does not put the working directory on the import path itself."""
+
+
+@pytest.fixture
+def work(tmp_path) -> Path:
+    """The user's directory: their module ``userbot`` (and a broken one), outside the repository."""
+    shutil.copytree(TESTS / "user_robot", tmp_path / "work")
+    return tmp_path / "work"
+
+
+def supervise_command(storage: Path, *overrides: str, ranks: int = 2) -> list[str]:
+    launcher = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", str(ranks), "--backoff-initial", "0.2"]
+    return [*launcher, SMOKE, "--storage", str(storage), "log.console=false", *overrides]
+
+
+def ftrain(work: Path, *args: str) -> subprocess.CompletedProcess:
+    """The ``ftrain`` command as a user runs it, in their directory."""
+    result = subprocess.run(
+        [str(FTRAIN_SCRIPT), *args], cwd=work, env=child_env(), capture_output=True, text=True, timeout=300
+    )
+    assert result.returncode == 0, f"ftrain {' '.join(args)}: {result.returncode}\n{result.stdout}{result.stderr}"
+    return result
+
+
+def test_own_robot_trains_supervised_resumes_bit_for_bit_after_sigkill_plays_and_exports(work, tmp_path) -> None:
+    # the uninterrupted run, under the supervisor, evaluating and snapshotting the user's env as it goes
+    reference = tmp_path / "reference"
+    extras = ["eval.every=4", "eval.episodes=2", "snapshots.every=4", "snapshots.formats=[torchscript]"]
+    done = subprocess.run(
+        supervise_command(reference, *MEMORY_ARM, *extras), cwd=work, env=child_env(), capture_output=True, text=True
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    expected = final_manifest(reference)
+    assert expected["robot"]["env_class"] == "userbot.envs:MemoryArm"
+    assert expected["robot"]["python_state"] == "saved by ftrain_state()"
+    assert set(expected["robot"]["mjcf"]) == {"robot.xml", "parts/arm.xml", "meshes/block.obj"}
+    assert (reference / "policies" / "step-000000008" / "MANIFEST.json").exists()
+
+    # the same run killed twice (mid-rollout, mid-update) and resumed, under plain torchrun
+    run, heartbeats = tmp_path / "run", tmp_path / "heartbeats"
+    for phase, iteration in (("rollout", 3), ("update", 5)):
+        proc = start_train(run, *MEMORY_ARM, ranks=2, env={ENV_DIR: str(heartbeats)}, cwd=work)
+        try:
+            wait_for(functools.partial(_in_phase, heartbeats, phase, iteration), f"{phase} at iteration {iteration}")
+        finally:
+            kill_tree(proc)
+    result = run_train(run, *MEMORY_ARM, ranks=2, cwd=work)
+    assert re.search(r"resumed from step [2-6] ", result.stdout), result.stdout
+    assert NOTICE not in result.stdout
+    assert final_manifest(run)["state_sha256"] == expected["state_sha256"]
+    returns = {it: row["mean_return"] for it, row in metrics_by_iteration(run).items()}
+    assert returns == {it: row["mean_return"] for it, row in metrics_by_iteration(reference).items()}
+
+    shown = ftrain(work, "ckpt", "show", str(run)).stdout
+    assert "robot: userbot.envs:MemoryArm (your own; identity " in shown
+    assert re.search(r"meshes/block.obj +sha256 [0-9a-f]{64}", shown), shown
+    played = ftrain(work, "play", str(run), "--episodes", "2", "--video", "arm.gif").stdout
+    assert "episode 2: return" in played and "(102 frames of" in played  # 2 x (50 steps + 1): smoke.yaml's limit
+    assert (work / "arm.gif").stat().st_size > 0
+    ftrain(work, "export", str(run), "--format", "torchscript", "-o", "arm.pt")
+    assert "mean return over 1 episodes" in ftrain(work, "play", "arm.pt").stdout
+
+
+def _in_phase(heartbeats: Path, phase: str, iteration: int) -> bool:
+    beat = read_heartbeats(heartbeats).get(0)
+    return beat is not None and beat.phase == phase and beat.iteration >= iteration
+
+
+def _train(work: Path, storage: Path, *overrides: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        train_command(storage, *overrides), cwd=work, env=child_env(), capture_output=True, text=True, timeout=300
+    )
+
+
+def test_unsaved_python_state_is_said_once_and_an_edited_robot_is_refused(work, tmp_path) -> None:
+    storage = tmp_path / "run"
+    first = run_train(storage, "env.id=userbot:ForgetfulArm-v0", "iterations=2", cwd=work)
+    assert first.stdout.count(NOTICE) == 1, first.stdout
+    assert "define ftrain_state() and ftrain_set_state(state)" in first.stdout
+    robot = final_manifest(storage)["robot"]
+    assert robot["python_state"] == "NOT saved: target"
+
+    for name, edit in (("robot.xml", "\n<!-- a longer arm -->\n"), ("parts/arm.xml", " "), ("meshes/block.obj", "#\n")):
+        path = work / "userbot" / name
+        original = path.read_text()
+        path.write_text(original + edit)
+        refused = _train(work, storage, "env.id=userbot:ForgetfulArm-v0", "iterations=4")
+        assert refused.returncode == 2, refused.stderr
+        line = f"ftrain: error: checkpoint step 2 was trained with another robot: {name} has changed (sha256 "
+        assert refused.stderr.startswith(line) and refused.stderr.count("\n") == 1, refused.stderr
+        assert "allow_config_change=true" in refused.stderr
+        if name != "meshes/block.obj":
+            path.write_text(original)
+    resumed = run_train(storage, "env.id=userbot:ForgetfulArm-v0", "iterations=4", "allow_config_change=true", cwd=work)
+    assert "resumed from step 2" in resumed.stdout
+    assert final_manifest(storage)["robot"]["mjcf"]["meshes/block.obj"] != robot["mjcf"]["meshes/block.obj"]
+
+
+BAD_INPUT = [
+    (["env.id=nosuchbot:Arm-v0"], "env.id: module 'nosuchbot' does not import (ModuleNotFoundError: No module named"),
+    (
+        ["env.id=Broken-v0", "env.imports=[brokenbot]"],
+        "env.imports: module 'brokenbot' does not import (NameError: name 'undefined_robot_name' is not defined "
+        "(brokenbot.py, line 6))",
+    ),
+    (["env.id=userbot:Leg-v0"], "registered no environment 'Leg-v0' (they registered Arm-v0, DictArm-v0,"),
+    (["env.id=userbot:NotMujoco-v0"], "is a userbot.envs:NotMujoco, not a gymnasium.envs.mujoco.MujocoEnv"),
+    (["env.id=userbot:Arm-v0", "env.kwargs={xml_file: missing.xml}"], "userbot/missing.xml does not exist"),
+    (
+        ["env.id=userbot:Arm-v0", "env.kwargs={xml_file: broken.xml}"],
+        "its MuJoCo model userbot/broken.xml does not compile (XML Error: Schema violation: unrecognized attribute: "
+        "'stiffnes' Element 'joint', line 5)",
+    ),
+    (["env.id=userbot:DictArm-v0"], "has the observation space Dict('angles': Box("),
+]
+
+
+def test_bad_input_is_one_line_exit_2_and_no_restart_under_torchrun_and_supervise(work, tmp_path) -> None:
+    def launch(case: int, supervised: bool) -> tuple[int, bool, subprocess.CompletedProcess]:
+        overrides, _ = BAD_INPUT[case]
+        storage = tmp_path / f"{'supervised' if supervised else 'torchrun'}-{case}"
+        # one rank each: what a rank does with bad input does not depend on the world size, and each rank costs seconds
+        command = supervise_command(storage, "iterations=1", *overrides, ranks=1) if supervised else None
+        command = command or [*TORCHRUN, *train_command(storage, "iterations=1", *overrides)[3:]]
+        result = subprocess.run(command, cwd=work, env=child_env(), capture_output=True, text=True, timeout=300)
+        return case, supervised, result
+
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        runs = list(pool.map(lambda job: launch(*job), [(c, s) for c in range(len(BAD_INPUT)) for s in (False, True)]))
+    for case, supervised, result in runs:
+        message = BAD_INPUT[case][1]
+        where = f"{BAD_INPUT[case][0]} {'supervised' if supervised else 'torchrun'}: {result.stderr[-2000:]}"
+        if supervised:  # the supervisor says it once, does not restart, and exits 2
+            assert result.returncode == 2, where
+            refusal = [line for line in result.stderr.splitlines() if "refused its input" in line]
+            assert len(refusal) == 1 and message in refusal[0] and "Traceback" not in result.stderr, where
+            assert refusal[0].startswith("ftrain supervise: rank 0 refused its input: "), where
+            storage = tmp_path / f"supervised-{case}"
+            assert "restart" not in [event["event"] for event in events(storage)], where
+        else:  # each rank exits 2; rank 0 prints the line, once (torchrun adds its own report of the failed ranks)
+            assert result.returncode != 0 and re.search(r"exitcode\s*:\s*2", result.stderr), where
+            refusals = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
+            assert len(refusals) == 1 and message in refusals[0], where
