@@ -8,6 +8,9 @@ EXIT_USAGE = 2
 EXIT_RENDEZVOUS_TIMEOUT = 6
 """torchrun (``ftrain.dist.torchrun``) and ``ftrain supervise``: an elastic rendezvous did not gather its minimum of
 nodes in time."""
+EXIT_STORAGE_HELD = 8
+"""``ftrain supervise`` and ``ftrain train`` (every rank): another run, alive, holds the storage's lease
+(``ftrain.ckpt.lease``); nothing of that run is touched."""
 
 
 class UserError(Exception):

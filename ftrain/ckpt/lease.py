@@ -1,0 +1,422 @@
+"""One run per storage: the lease ``<storage>/LEASE.json``, held by a run while it lives.
+
+The record names the run (``run_id``), a ``generation`` (+1 at every new holder run: a lease epoch), the holders'
+``ttl`` and ``expires_at`` (wall clock, for humans and other hosts), and one entry per process that renews it (host,
+pid, the process's start time, the host's boot id and pid namespace, ``renewed_at``): every node of a run renews its
+own entry, so the lease lives while any node does. A second run is refused while any entry lives; an entry lives
+until ``renewed_at + ttl``, except on its own host, where a process whose pid no longer has the recorded start time
+(``/proc/<pid>/stat``), or a host that has rebooted since, is seen gone at once (so the same command again right
+after a crash never waits for the expiry), and a process seen running there holds it even past the expiry.
+
+Every change is a compare-and-swap of the object read: on S3 a PUT with ``If-Match: <ETag>`` (``If-None-Match: *``
+to create, a DELETE with ``If-Match`` to release); locally a read-check-write under ``flock`` on a side file, the new
+record put in place by an atomic replace; elsewhere (``memory://``: one process) a plain check then write.
+
+Torch-free: the supervisor holds the lease for its workers; unsupervised, rank 0 of the world does (see ``claim``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime
+import fcntl
+import functools
+import hashlib
+import json
+import os
+import secrets
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import fsspec.asyn
+from s3fs import S3FileSystem
+
+from ftrain.ckpt.storage import Storage
+from ftrain.config import Config
+from ftrain.heartbeat import TOKEN_ENV
+
+LEASE = "LEASE.json"
+RUN_ID_ENV = "FTRAIN_RUN_ID"
+"""A run's identity: set by ``ftrain supervise`` for its workers (or by the user to name a run, e.g. a batch job id
+that survives a requeue); unset, torchrun's ``TORCHELASTIC_RUN_ID`` (its ``--rdzv-id``)."""
+TTL = 60.0
+"""Seconds a lease lives after its last renewal; renewed every third of that."""
+_CONFLICTS = ("PreconditionFailed", "ConditionalRequestConflict")
+
+
+class LeaseHeld(Exception):
+    """Another run, alive, holds the storage; the message names it and when its lease ends, in one line."""
+
+
+class _Conflict(Exception):
+    """The lease object changed since it was read (another process wrote it): read it again."""
+
+
+@dataclass(frozen=True)
+class Process:
+    """A process, as precisely as its host lets another process recognise it."""
+
+    host: str
+    pid: int
+    start: int
+    """Its start time in clock ticks after boot (``/proc/<pid>/stat``): a reused pid has another."""
+    boot: str
+    """The host's boot id: a reboot changes it."""
+    pidns: str
+    """Its pid namespace: pids of another namespace (another container) cannot be looked up here."""
+
+    @classmethod
+    def current(cls) -> Process:
+        host, boot, pidns = _here()
+        pid = os.getpid()
+        return cls(host, pid, _start_time(pid) or 0, boot, pidns)
+
+    def running(self) -> bool | None:
+        """Seen from here: whether it still runs; None if this host cannot tell (another host, another namespace)."""
+        host, boot, pidns = _here()
+        if self.host != host or not boot:
+            return None
+        if self.boot != boot:
+            return False  # its host has rebooted since
+        if self.pidns != pidns:
+            return None
+        return _start_time(self.pid) == self.start
+
+    def describe(self) -> str:
+        return f"pid {self.pid} on host {self.host}"
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One renewing process of the run holding the lease."""
+
+    process: Process
+    renewed_at: float
+
+    def alive(self, ttl: float, now: float) -> bool:
+        """Seen running on this host, or (where that cannot be seen) renewed within ``ttl``."""
+        running = self.process.running()
+        return running if running is not None else now < self.renewed_at + ttl
+
+
+@dataclass(frozen=True)
+class Record:
+    run_id: str
+    generation: int
+    ttl: float
+    entries: tuple[Entry, ...]
+
+    @property
+    def expires_at(self) -> float:
+        return max((entry.renewed_at for entry in self.entries), default=0.0) + self.ttl
+
+    def live(self, now: float) -> list[Entry]:
+        return [entry for entry in self.entries if entry.alive(self.ttl, now)]
+
+    def encode(self) -> bytes:
+        body = {
+            "run_id": self.run_id,
+            "generation": self.generation,
+            "ttl": self.ttl,
+            "expires_at": round(self.expires_at, 3),
+            "expires": _when(self.expires_at),
+            "holders": [{**dataclasses.asdict(e.process), "renewed_at": round(e.renewed_at, 3)} for e in self.entries],
+        }
+        return json.dumps(body, indent=1).encode()
+
+    @classmethod
+    def decode(cls, data: bytes) -> Record:
+        body = json.loads(data)
+        entries = tuple(
+            Entry(Process(h["host"], h["pid"], h["start"], h["boot"], h["pidns"]), h["renewed_at"])
+            for h in body["holders"]
+        )
+        return cls(body["run_id"], body["generation"], body["ttl"], entries)
+
+
+def run_id(shared: bytes | None = None) -> str:
+    """This run's identity: ``FTRAIN_RUN_ID``; else a digest of ``shared`` (what all nodes of one run have in common:
+    the supervisors' rendezvous secret and endpoint); else torchrun's run id; else a new random one."""
+    if os.environ.get(RUN_ID_ENV):
+        return os.environ[RUN_ID_ENV]
+    if shared is not None:
+        return hashlib.sha256(b"ftrain-run:" + shared).hexdigest()[:16]
+    return os.environ.get("TORCHELASTIC_RUN_ID") or secrets.token_hex(8)
+
+
+class Lease:
+    """The lease of ``storage`` for run ``run_id``, held by this process: ``hold`` takes it and keeps renewing it
+    from a thread until ``release``. Storage failures while renewing are logged and retried, never raised."""
+
+    def __init__(self, storage: Storage, run_id: str, log: Callable[[str], None], ttl: float = TTL) -> None:
+        self.storage = storage
+        self.run_id = run_id
+        self.log = log
+        self.ttl = ttl
+        self.process = Process.current()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lost_to: str | None = None
+
+    def acquire(self) -> str | None:
+        """Take the lease (or join this run's); LeaseHeld if another run holds it. A line saying so if this took
+        over another run's lease, else None."""
+        while True:
+            now = time.time()
+            current = _read(self.storage)
+            record, version = current if current is not None else (None, None)
+            if record is not None and record.run_id != self.run_id and record.live(now):
+                raise LeaseHeld(self._held_message(record, now))
+            ours = record is not None and record.run_id == self.run_id
+            keep = tuple(e for e in record.live(now) if e.process != self.process) if ours else ()
+            generation = record.generation if ours else (record.generation + 1 if record else 1)
+            new = Record(self.run_id, generation, self.ttl, (*keep, Entry(self.process, now)))
+            try:
+                _write(self.storage, new.encode(), version)
+            except _Conflict:
+                continue
+            return None if ours or record is None else self._taken_message(record)
+
+    def renew(self) -> str | None:
+        """Renew this process's entry; take the lease again if it lapsed and nobody else took it (a line saying so).
+        While another run holds it, a line saying so once."""
+        try:
+            taken = self.acquire()
+        except LeaseHeld as held:
+            message = None if self._lost_to == str(held) else f"lost the lease: {held}"
+            self._lost_to = str(held)
+            return message
+        self._lost_to = None
+        return taken
+
+    def hold(self) -> str | None:
+        """``acquire``, then renew every ``ttl / 3`` from a daemon thread; returns what ``acquire`` did."""
+        taken = self.acquire()
+        self._thread = threading.Thread(target=self._keep, name="ftrain-lease", daemon=True)
+        self._thread.start()
+        return taken
+
+    def release(self) -> None:
+        """Stop renewing and drop this process's entry (the whole object with the run's last entry), so the same
+        command again starts at once. A failure is logged: the lease then lapses after its ``ttl``."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        try:
+            self._drop()
+        except Exception as error:
+            self.log(f"could not release the lease {self.storage.where(LEASE)} ({error}); it lapses in {self.ttl:g} s")
+
+    def check(self) -> None:
+        """LeaseHeld if another run, alive, holds the lease (a worker whose supervisor holds it for its run)."""
+        current = _read(self.storage)
+        if current is not None and current[0].run_id != self.run_id and current[0].live(time.time()):
+            raise LeaseHeld(self._held_message(current[0], time.time()))
+
+    def _keep(self) -> None:
+        interval = self.ttl / 3
+        while not self._stop.wait(interval):
+            try:
+                message = self.renew()
+                interval = self.ttl / 3
+            except Exception as error:  # storage down: keep trying, sooner
+                message = f"renewing the lease {self.storage.where(LEASE)} failed ({error}); retrying"
+                interval = self.ttl / 12
+            if message:
+                self.log(message)
+
+    def _drop(self) -> None:
+        while True:
+            current = _read(self.storage)
+            if current is None or current[0].run_id != self.run_id:
+                return
+            record, version = current
+            keep = tuple(e for e in record.live(time.time()) if e.process != self.process)
+            try:
+                if keep:
+                    _write(self.storage, dataclasses.replace(record, entries=keep).encode(), version)
+                else:
+                    _delete(self.storage, version)
+                return
+            except _Conflict:
+                continue
+
+    def _held_message(self, record: Record, now: float) -> str:
+        holder = max(record.live(now), key=lambda e: e.renewed_at)
+        ends = record.expires_at
+        end = f"ended at {_when(ends)}, but the process runs" if ends < now else f"ends at {_when(ends)}"
+        return (
+            f"storage {self.storage.url} is held by another run ({record.run_id}, {holder.process.describe()}): its "
+            f"lease {end} unless renewed; stop that run first, or use another storage"
+        )
+
+    def _taken_message(self, record: Record) -> str:
+        holders = ", ".join(
+            f"{e.process.describe()} is gone"
+            if e.process.running() is False
+            else f"the lease of {e.process.describe()} expired at {_when(e.renewed_at + record.ttl)}"
+            for e in record.entries
+        )
+        return f"took over the lease of {self.storage.url} from run {record.run_id}: {holders or 'no holder'}"
+
+
+def claim(config: Config, is_main: bool, agree: Callable[[str | None], str | None], log: Callable[[str], None]):
+    """Every rank of a world calls this at the start: rank 0 (``is_main``) holds the lease for the run (started by
+    ``ftrain supervise``: checks that no other run holds it, its supervisor holds it), and ``agree`` (a broadcast from
+    rank 0) gives every rank the refusal; LeaseHeld on every rank if refused. Returns the lease to ``release`` at the
+    end (None: not held here)."""
+    lease, refusal = None, None
+    if is_main:
+        storage = Storage.open(config.storage.url, config.storage.options, retries=config.checkpoint.retries)
+        lease = Lease(storage, run_id(), log)
+        try:
+            if os.environ.get(TOKEN_ENV):
+                lease.check()
+                lease = None
+            elif taken := lease.hold():
+                log(taken)
+        except LeaseHeld as held:
+            lease, refusal = None, str(held)
+    refusal = agree(refusal)
+    if refusal:
+        raise LeaseHeld(refusal)
+    return lease
+
+
+# --- the lease object, compare-and-swap on each kind of storage ---------------------------------------------------
+
+
+def _read(storage: Storage) -> tuple[Record, str] | None:
+    """The record and its version (S3: the ETag, else a digest of the bytes), None if there is none."""
+    if isinstance(storage.fs, S3FileSystem):
+        bucket, key = _s3_key(storage)
+
+        async def get() -> tuple[bytes, str]:
+            response = await storage.fs._call_s3("get_object", Bucket=bucket, Key=key)
+            async with response["Body"] as body:
+                return await body.read(), response["ETag"]
+
+        try:
+            data, version = storage._call("read", LEASE, fsspec.asyn.sync, storage.fs.loop, get)
+        except FileNotFoundError:
+            return None
+    else:
+        try:
+            data = storage.read(LEASE)
+        except FileNotFoundError:
+            return None
+        version = hashlib.sha256(data).hexdigest()
+    return Record.decode(data), version
+
+
+def _write(storage: Storage, data: bytes, version: str | None) -> None:
+    """Put ``data`` if the object's version is still ``version`` (None: if there is none); _Conflict if not."""
+    if isinstance(storage.fs, S3FileSystem):
+        bucket, key = _s3_key(storage)
+        condition = {"IfMatch": version} if version else {"IfNoneMatch": "*"}
+        _s3_conditional(storage, "write", "put_object", Bucket=bucket, Key=key, Body=data, **condition)
+        return
+    with _locked(storage):
+        current = _read(storage)
+        if (current[1] if current else None) != version:
+            raise _Conflict
+        if storage.is_local:
+            storage._call("write", LEASE, _replace_local, _local_path(storage), data)
+        else:
+            storage.write_replace(LEASE, data)
+
+
+def _delete(storage: Storage, version: str) -> None:
+    if isinstance(storage.fs, S3FileSystem):
+        bucket, key = _s3_key(storage)
+        _s3_conditional(storage, "delete", "delete_object", Bucket=bucket, Key=key, IfMatch=version)
+        return
+    with _locked(storage):
+        current = _read(storage)
+        if current is None or current[1] != version:
+            raise _Conflict
+        storage.delete(LEASE)
+
+
+def _s3_conditional(storage: Storage, what: str, operation: str, **kwargs) -> None:
+    def call() -> None:
+        try:
+            storage.fs.call_s3(operation, **kwargs)
+        except (FileExistsError, FileNotFoundError):
+            raise _Conflict from None
+        except OSError as error:
+            response = getattr(error.__cause__, "response", None) or {}
+            if response.get("Error", {}).get("Code") in _CONFLICTS:
+                raise _Conflict from None
+            raise
+
+    storage._call(what, LEASE, call)
+
+
+@contextlib.contextmanager
+def _locked(storage: Storage):
+    """Locally: an exclusive ``flock`` on ``LEASE.json.lock`` (released by the kernel if the process dies)."""
+    if not storage.is_local:
+        yield
+        return
+    path = _local_path(storage) + ".lock"
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _replace_local(path: str, data: bytes) -> None:
+    """Write a temporary file beside ``path``, fsync it, and rename it over ``path`` (atomic on POSIX)."""
+    temporary = f"{path}.{os.getpid()}.tmp"
+    with open(temporary, "wb") as file:
+        file.write(data)
+        file.flush()
+        os.fsync(file.fileno())
+    os.replace(temporary, path)
+    directory = os.open(os.path.dirname(path), os.O_RDONLY)
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)
+
+
+def _local_path(storage: Storage) -> str:
+    return f"{storage.root}/{LEASE}"
+
+
+def _s3_key(storage: Storage) -> tuple[str, str]:
+    bucket, _, prefix = storage.root.partition("/")
+    return bucket, f"{prefix}/{LEASE}" if prefix else LEASE
+
+
+def _start_time(pid: int) -> int | None:
+    """The start time of process ``pid`` (ticks after boot), None if there is no such process or it is a zombie."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return None
+    return None if fields[0] == "Z" else int(fields[19])
+
+
+@functools.cache
+def _here() -> tuple[str, str, str]:
+    """This host's name and boot id, and this process's pid namespace (boot id and namespace "" where /proc does not
+    tell: then no process is ever seen gone, leases only expire)."""
+    try:
+        boot, pidns = Path("/proc/sys/kernel/random/boot_id").read_text().strip(), os.readlink("/proc/self/ns/pid")
+    except OSError:
+        boot = pidns = ""
+    return socket.gethostname(), boot, pidns
+
+
+def _when(epoch: float) -> str:
+    return datetime.datetime.fromtimestamp(epoch, datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
