@@ -15,7 +15,7 @@ LAYERS = {
     "__main__": {"cli"},
     "cli": {"supervise", "train", "policy", "tools", "ckpt", "config", "errors", "errorfile", "progress"},
     "tools": {"train", "config", "errors", "progress"},
-    "supervise": {"config", "errors", "errorfile", "heartbeat", "redact"},
+    "supervise": {"ckpt", "config", "errors", "errorfile", "heartbeat", "redact"},
     "train": {"policy", "ckpt", "dist", "config", "errors", "errorfile", "heartbeat"},
     "policy": {"ckpt", "config", "errors", "progress"},
     "ckpt": {"dist", "config", "errors", "heartbeat", "redact"},

@@ -8,19 +8,16 @@ until ``renewed_at + ttl``, except on its own host, where a process whose pid no
 (``/proc/<pid>/stat``), or a host that has rebooted since, is seen gone at once (so the same command again right
 after a crash never waits for the expiry), and a process seen running there holds it even past the expiry.
 
-Every change is a compare-and-swap of the object read: on S3 a PUT with ``If-Match: <ETag>`` (``If-None-Match: *``
-to create, a DELETE with ``If-Match`` to release); locally a read-check-write under ``flock`` on a side file, the new
-record put in place by an atomic replace; elsewhere (``memory://``: one process) a plain check then write.
+Every change is a compare-and-swap of the record read (``cas.py``: conditional requests on S3, ``flock`` and an
+atomic replace locally), so of two processes that race, one wins and the other reads again.
 
 Torch-free: the supervisor holds the lease for its workers; unsupervised, rank 0 of the world does (see ``claim``).
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import datetime
-import fcntl
 import functools
 import hashlib
 import json
@@ -33,11 +30,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-import fsspec.asyn
-from s3fs import S3FileSystem
-
+from ftrain.ckpt import cas
 from ftrain.ckpt.storage import Storage
 from ftrain.config import Config
+from ftrain.errors import EXIT_STORAGE_HELD
 from ftrain.heartbeat import TOKEN_ENV
 
 LEASE = "LEASE.json"
@@ -46,15 +42,10 @@ RUN_ID_ENV = "FTRAIN_RUN_ID"
 that survives a requeue); unset, torchrun's ``TORCHELASTIC_RUN_ID`` (its ``--rdzv-id``)."""
 TTL = 60.0
 """Seconds a lease lives after its last renewal; renewed every third of that."""
-_CONFLICTS = ("PreconditionFailed", "ConditionalRequestConflict")
 
 
 class LeaseHeld(Exception):
     """Another run, alive, holds the storage; the message names it and when its lease ends, in one line."""
-
-
-class _Conflict(Exception):
-    """The lease object changed since it was read (another process wrote it): read it again."""
 
 
 @dataclass(frozen=True)
@@ -139,14 +130,20 @@ class Record:
         return cls(body["run_id"], body["generation"], body["ttl"], entries)
 
 
-def run_id(shared: bytes | None = None) -> str:
-    """This run's identity: ``FTRAIN_RUN_ID``; else a digest of ``shared`` (what all nodes of one run have in common:
-    the supervisors' rendezvous secret and endpoint); else torchrun's run id; else a new random one."""
+def storage_lease(
+    config: Config, log: Callable[[str], None], secret: bytes | None = None, endpoint: tuple[str, int] | None = None
+) -> Lease:
+    """The lease of ``config``'s storage for this run, not taken yet. The run is ``FTRAIN_RUN_ID``; else, with a
+    ``secret``, the nodes whose supervisors share it and the rendezvous ``endpoint`` (a digest of both); else
+    torchrun's run id (``TORCHELASTIC_RUN_ID``, from ``--rdzv-id``); else a new random one."""
     if os.environ.get(RUN_ID_ENV):
-        return os.environ[RUN_ID_ENV]
-    if shared is not None:
-        return hashlib.sha256(b"ftrain-run:" + shared).hexdigest()[:16]
-    return os.environ.get("TORCHELASTIC_RUN_ID") or secrets.token_hex(8)
+        run_id = os.environ[RUN_ID_ENV]
+    elif secret is not None:
+        run_id = hashlib.sha256(b"ftrain-run:" + secret + repr(endpoint).encode()).hexdigest()[:16]
+    else:
+        run_id = os.environ.get("TORCHELASTIC_RUN_ID") or secrets.token_hex(8)
+    storage = Storage.open(config.storage.url, config.storage.options, retries=config.checkpoint.retries)
+    return Lease(storage, run_id, log)
 
 
 class Lease:
@@ -177,8 +174,8 @@ class Lease:
             generation = record.generation if ours else (record.generation + 1 if record else 1)
             new = Record(self.run_id, generation, self.ttl, (*keep, Entry(self.process, now)))
             try:
-                _write(self.storage, new.encode(), version)
-            except _Conflict:
+                cas.write(self.storage, LEASE, new.encode(), version)
+            except cas.Conflict:
                 continue
             return None if ours or record is None else self._taken_message(record)
 
@@ -200,6 +197,23 @@ class Lease:
         self._thread = threading.Thread(target=self._keep, name="ftrain-lease", daemon=True)
         self._thread.start()
         return taken
+
+    def run(self, body: Callable[[], int], refused: Callable[[str], None]) -> int:
+        """``body()`` while holding the lease (its child processes get ``FTRAIN_RUN_ID``: they are this run), then
+        release it; if another run holds it, ``refused`` gets the one-line reason and this returns
+        ``EXIT_STORAGE_HELD`` without calling ``body``."""
+        try:
+            taken = self.hold()
+        except LeaseHeld as held:
+            refused(str(held))
+            return EXIT_STORAGE_HELD
+        if taken:
+            self.log(taken)
+        os.environ[RUN_ID_ENV] = self.run_id
+        try:
+            return body()
+        finally:
+            self.release()
 
     def release(self) -> None:
         """Stop renewing and drop this process's entry (the whole object with the run's last entry), so the same
@@ -239,11 +253,11 @@ class Lease:
             keep = tuple(e for e in record.live(time.time()) if e.process != self.process)
             try:
                 if keep:
-                    _write(self.storage, dataclasses.replace(record, entries=keep).encode(), version)
+                    cas.write(self.storage, LEASE, dataclasses.replace(record, entries=keep).encode(), version)
                 else:
-                    _delete(self.storage, version)
+                    cas.delete(self.storage, LEASE, version)
                 return
-            except _Conflict:
+            except cas.Conflict:
                 continue
 
     def _held_message(self, record: Record, now: float) -> str:
@@ -266,14 +280,13 @@ class Lease:
 
 
 def claim(config: Config, is_main: bool, agree: Callable[[str | None], str | None], log: Callable[[str], None]):
-    """Every rank of a world calls this at the start: rank 0 (``is_main``) holds the lease for the run (started by
-    ``ftrain supervise``: checks that no other run holds it, its supervisor holds it), and ``agree`` (a broadcast from
-    rank 0) gives every rank the refusal; LeaseHeld on every rank if refused. Returns the lease to ``release`` at the
+    """Every rank of a world calls this at the start. Rank 0 (``is_main``) holds the lease for the run, or, started
+    by ``ftrain supervise`` (which holds it), checks that no other run holds it; ``agree`` (a broadcast from rank 0)
+    tells every rank whether it was refused: LeaseHeld on every rank then. Returns the lease to ``release`` at the
     end (None: not held here)."""
     lease, refusal = None, None
     if is_main:
-        storage = Storage.open(config.storage.url, config.storage.options, retries=config.checkpoint.retries)
-        lease = Lease(storage, run_id(), log)
+        lease = storage_lease(config, log)
         try:
             if os.environ.get(TOKEN_ENV):
                 lease.check()
@@ -288,114 +301,9 @@ def claim(config: Config, is_main: bool, agree: Callable[[str | None], str | Non
     return lease
 
 
-# --- the lease object, compare-and-swap on each kind of storage ---------------------------------------------------
-
-
 def _read(storage: Storage) -> tuple[Record, str] | None:
-    """The record and its version (S3: the ETag, else a digest of the bytes), None if there is none."""
-    if isinstance(storage.fs, S3FileSystem):
-        bucket, key = _s3_key(storage)
-
-        async def get() -> tuple[bytes, str]:
-            response = await storage.fs._call_s3("get_object", Bucket=bucket, Key=key)
-            async with response["Body"] as body:
-                return await body.read(), response["ETag"]
-
-        try:
-            data, version = storage._call("read", LEASE, fsspec.asyn.sync, storage.fs.loop, get)
-        except FileNotFoundError:
-            return None
-    else:
-        try:
-            data = storage.read(LEASE)
-        except FileNotFoundError:
-            return None
-        version = hashlib.sha256(data).hexdigest()
-    return Record.decode(data), version
-
-
-def _write(storage: Storage, data: bytes, version: str | None) -> None:
-    """Put ``data`` if the object's version is still ``version`` (None: if there is none); _Conflict if not."""
-    if isinstance(storage.fs, S3FileSystem):
-        bucket, key = _s3_key(storage)
-        condition = {"IfMatch": version} if version else {"IfNoneMatch": "*"}
-        _s3_conditional(storage, "write", "put_object", Bucket=bucket, Key=key, Body=data, **condition)
-        return
-    with _locked(storage):
-        current = _read(storage)
-        if (current[1] if current else None) != version:
-            raise _Conflict
-        if storage.is_local:
-            storage._call("write", LEASE, _replace_local, _local_path(storage), data)
-        else:
-            storage.write_replace(LEASE, data)
-
-
-def _delete(storage: Storage, version: str) -> None:
-    if isinstance(storage.fs, S3FileSystem):
-        bucket, key = _s3_key(storage)
-        _s3_conditional(storage, "delete", "delete_object", Bucket=bucket, Key=key, IfMatch=version)
-        return
-    with _locked(storage):
-        current = _read(storage)
-        if current is None or current[1] != version:
-            raise _Conflict
-        storage.delete(LEASE)
-
-
-def _s3_conditional(storage: Storage, what: str, operation: str, **kwargs) -> None:
-    def call() -> None:
-        try:
-            storage.fs.call_s3(operation, **kwargs)
-        except (FileExistsError, FileNotFoundError):
-            raise _Conflict from None
-        except OSError as error:
-            response = getattr(error.__cause__, "response", None) or {}
-            if response.get("Error", {}).get("Code") in _CONFLICTS:
-                raise _Conflict from None
-            raise
-
-    storage._call(what, LEASE, call)
-
-
-@contextlib.contextmanager
-def _locked(storage: Storage):
-    """Locally: an exclusive ``flock`` on ``LEASE.json.lock`` (released by the kernel if the process dies)."""
-    if not storage.is_local:
-        yield
-        return
-    path = _local_path(storage) + ".lock"
-    os.makedirs(os.path.dirname(path), exist_ok=True)
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
-        os.close(fd)
-
-
-def _replace_local(path: str, data: bytes) -> None:
-    """Write a temporary file beside ``path``, fsync it, and rename it over ``path`` (atomic on POSIX)."""
-    temporary = f"{path}.{os.getpid()}.tmp"
-    with open(temporary, "wb") as file:
-        file.write(data)
-        file.flush()
-        os.fsync(file.fileno())
-    os.replace(temporary, path)
-    directory = os.open(os.path.dirname(path), os.O_RDONLY)
-    try:
-        os.fsync(directory)
-    finally:
-        os.close(directory)
-
-
-def _local_path(storage: Storage) -> str:
-    return f"{storage.root}/{LEASE}"
-
-
-def _s3_key(storage: Storage) -> tuple[str, str]:
-    bucket, _, prefix = storage.root.partition("/")
-    return bucket, f"{prefix}/{LEASE}" if prefix else LEASE
+    current = cas.read(storage, LEASE)
+    return (Record.decode(current[0]), current[1]) if current is not None else None
 
 
 def _start_time(pid: int) -> int | None:

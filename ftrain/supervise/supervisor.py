@@ -40,6 +40,7 @@ import sys
 import time
 from pathlib import Path
 
+from ftrain.ckpt.lease import storage_lease
 from ftrain.config import Config
 from ftrain.heartbeat import Heartbeat, read_heartbeats
 from ftrain.redact import redact_command
@@ -78,10 +79,12 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     ``config``: the run's validated config; ``train_args``: the arguments of ``ftrain train`` it was read from
     (config file, ``--storage``, overrides), which every worker gets."""
     hang_timeout = parse_hang_timeout(options.hang_timeout)
-    supervisor = Supervisor(options, parse_nodes(options), Path(config.log_dir), hang_timeout, train_args)
+    nodes = parse_nodes(options)
+    supervisor = Supervisor(options, nodes, Path(config.log_dir), hang_timeout, train_args)
+    lease = storage_lease(config, lambda line: supervisor.events("lease", line), nodes.secret, nodes.endpoint)
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
-        return supervisor.run()
+        return lease.run(supervisor.run, lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr))
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

@@ -13,7 +13,8 @@ import time
 
 import pytest
 
-from ftrain.ckpt.lease import LEASE, Entry, Lease, LeaseHeld, Process, Record, _Conflict, _read, _write
+from ftrain.ckpt import cas
+from ftrain.ckpt.lease import LEASE, Entry, Lease, LeaseHeld, Process, Record
 from ftrain.ckpt.storage import Storage
 
 from helpers import child_env, wait_for
@@ -132,14 +133,19 @@ def test_release_lets_the_next_run_start_at_once(storage):
 
 def test_a_write_from_a_stale_read_is_refused_by_the_storage(storage):
     Lease(storage, "first", print).acquire()
-    stale = _read(storage)
-    assert stale is not None
+    stale = cas.read(storage, LEASE)
+    assert stale is not None and Record.decode(stale[0]).run_id == "first"
     storage.write_replace(LEASE, foreign("other", time.time()).encode())  # someone else wrote it since
-    with pytest.raises(_Conflict):
-        _write(storage, foreign("mine", time.time()).encode(), stale[1])
-    with pytest.raises(_Conflict):
-        _write(storage, foreign("mine", time.time()).encode(), None)  # create: it exists
+    with pytest.raises(cas.Conflict):
+        cas.write(storage, LEASE, foreign("mine", time.time()).encode(), stale[1])
+    with pytest.raises(cas.Conflict):
+        cas.write(storage, LEASE, foreign("mine", time.time()).encode(), None)  # create: it exists
+    with pytest.raises(cas.Conflict):
+        cas.delete(storage, LEASE, stale[1])
     assert record(storage).run_id == "other"
+    current = cas.read(storage, LEASE)
+    cas.write(storage, LEASE, foreign("mine", time.time()).encode(), current[1])
+    assert record(storage).run_id == "mine"
 
 
 def test_renewal_says_once_that_the_lease_was_lost_and_takes_it_back_when_it_lapses(storage):
