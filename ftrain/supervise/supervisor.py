@@ -1,6 +1,6 @@
 """``ftrain supervise``: launch torchrun, watch its workers, restart them from the newest verified checkpoint.
 
-Stdlib only (plus the torch-free config and heartbeat modules): the supervisor launches and watches processes.
+Torch-free (config, heartbeat, the storage lease and the standard library): it launches and watches processes.
 
 Launch. Every attempt is a new ``torchrun --max-restarts=0`` in its own session, with ``FTRAIN_HEARTBEAT_DIR``
 set, and a rendezvous nothing has used before: ``--standalone`` on one node (a new TCP store on a free port);
@@ -25,7 +25,7 @@ Preemption. SIGTERM or SIGINT to the supervisor: SIGTERM to the workers, which a
 boundary, save and exit 0; SIGKILL after ``--stop-grace``; a second signal kills at once. No restart; the
 supervisor exits 128 + the signal (143 for SIGTERM, 130 for SIGINT, Ctrl-C).
 
-Several nodes: see ``coordinator.py``. Records: ``events.py``. Exit codes: ``options.py``.
+Several nodes: ``coordinator.py``. Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``.
 
 Test hook (private): ``FTRAIN_WORKER_MODULE`` names the module torchrun runs as ``-m MODULE train ...`` (default
 ``ftrain``), so the tests can supervise a small stand-in that speaks the heartbeat protocol.
@@ -81,7 +81,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     hang_timeout = parse_hang_timeout(options.hang_timeout)
     nodes = parse_nodes(options)
     supervisor = Supervisor(options, nodes, Path(config.log_dir), hang_timeout, train_args)
-    lease = storage_lease(config, lambda line: supervisor.events("lease", line), nodes.secret, nodes.endpoint)
+    lease = storage_lease(config, lambda s: supervisor.events("lease", s, detail=s), nodes.secret, nodes.endpoint)
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         return lease.run(supervisor.run, lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr))
