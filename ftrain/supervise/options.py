@@ -9,6 +9,8 @@ Exit codes:
 - 5: several nodes: node 0's supervisor was unreachable for ``--rdzv-timeout`` seconds.
 - 6: elastic (``--nnodes MIN:MAX``): fewer than MIN nodes joined within ``--rdzv-timeout`` seconds. Nothing
   committed is lost: start the missing nodes and run the same command again.
+- 8: another run holds the storage's lease (``ftrain/ckpt/lease.py``): one line names it and when its lease ends;
+  nothing of that run is touched, nothing is launched.
 - 143: preempted (SIGTERM): the workers saved; run the same command again to continue. 128 + SIGTERM,
   so schedulers that retry signal exits (e.g. Kubernetes' ``ExitCode`` restart policy) run it again.
 - 130: interrupted (SIGINT, Ctrl-C): the same as 143, with the shell's code for Ctrl-C.
