@@ -31,9 +31,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ftrain.ckpt import cas
-from ftrain.ckpt.storage import Storage
+from ftrain.ckpt.storage import Storage, StorageError
 from ftrain.config import Config
-from ftrain.errors import EXIT_STORAGE_HELD
+from ftrain.errors import EXIT_STORAGE_HELD, UserError
 from ftrain.heartbeat import TOKEN_ENV
 
 LEASE = "LEASE.json"
@@ -46,6 +46,10 @@ TTL = 60.0
 
 class LeaseHeld(Exception):
     """Another run, alive, holds the storage; the message names it and when its lease ends, in one line."""
+
+
+_AGREED = {kind.__name__: kind for kind in (LeaseHeld, UserError, StorageError)}
+"""What rank 0's claim may end in, as the other ranks raise it too."""
 
 
 @dataclass(frozen=True)
@@ -220,7 +224,7 @@ class Lease:
         command again starts at once. A failure is logged: the lease then lapses after its ``ttl``."""
         self._stop.set()
         if self._thread is not None:
-            self._thread.join()
+            self._thread.join(timeout=self.ttl / 3)  # a renewal stuck in a hanging request: its write is a CAS too
         try:
             self._drop()
         except Exception as error:
@@ -279,31 +283,41 @@ class Lease:
         return f"took over the lease of {self.storage.url} from run {record.run_id}: {holders or 'no holder'}"
 
 
-def claim(config: Config, is_main: bool, agree: Callable[[str | None], str | None], log: Callable[[str], None]):
+def claim(config: Config, is_main: bool, agree: Callable[[list | None], list | None], log: Callable[[str], None]):
     """Every rank of a world calls this at the start. Rank 0 (``is_main``) holds the lease for the run, or, started
     by ``ftrain supervise`` (which holds it), checks that no other run holds it; ``agree`` (a broadcast from rank 0)
-    tells every rank whether it was refused: LeaseHeld on every rank then. Returns the lease to ``release`` at the
-    end (None: not held here)."""
-    lease, refusal = None, None
+    tells every rank how that went, so that every rank raises alike (LeaseHeld if refused) and none waits for a rank 0
+    that failed. Returns the lease to ``release`` at the end (None: not held here)."""
+    lease, outcome, failure = None, None, None
     if is_main:
-        lease = storage_lease(config, log)
         try:
+            lease = storage_lease(config, log)
             if os.environ.get(TOKEN_ENV):
                 lease.check()
                 lease = None
             elif taken := lease.hold():
                 log(taken)
-        except LeaseHeld as held:
-            lease, refusal = None, str(held)
-    refusal = agree(refusal)
-    if refusal:
-        raise LeaseHeld(refusal)
+        except Exception as error:
+            lease, failure = None, error
+            outcome = [type(error).__name__ if type(error).__name__ in _AGREED else "StorageError", str(error)]
+    outcome = agree(outcome)
+    if failure is not None:
+        raise failure
+    if outcome:
+        raise _AGREED[outcome[0]](outcome[1])
     return lease
 
 
 def _read(storage: Storage) -> tuple[Record, str] | None:
     current = cas.read(storage, LEASE)
-    return (Record.decode(current[0]), current[1]) if current is not None else None
+    if current is None:
+        return None
+    try:
+        return Record.decode(current[0]), current[1]
+    except (ValueError, KeyError, TypeError):
+        raise UserError(
+            f"{storage.where(LEASE)} is not a lease ftrain can read: if no run uses this storage, delete that file"
+        ) from None
 
 
 def _start_time(pid: int) -> int | None:

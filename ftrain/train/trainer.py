@@ -284,7 +284,7 @@ def train(config: Config) -> int:
     info = group.init(config.dist_timeout)
     trainer = lease = None
     try:
-        lease = claim(config, info.is_main, lambda refusal: group.broadcast_object(refusal, info), _say)
+        lease = claim(config, info.is_main, lambda outcome: group.broadcast_object(outcome, info), _say)
         trainer = Trainer(config, info, stop)
         return trainer.run()
     except LeaseHeld as held:  # another run holds the storage: nothing of it touched

@@ -16,6 +16,7 @@ import pytest
 from ftrain.ckpt import cas
 from ftrain.ckpt.lease import LEASE, Entry, Lease, LeaseHeld, Process, Record
 from ftrain.ckpt.storage import Storage
+from ftrain.errors import UserError
 
 from helpers import child_env, wait_for
 
@@ -178,3 +179,10 @@ def test_the_keeper_renews_and_outlives_a_failing_storage(tmp_path):
     assert record(storage).run_id == "mine"
     lease.release()
     assert not lease._thread.is_alive() and not storage.exists(LEASE)
+
+
+def test_an_unreadable_lease_is_bad_input_and_left_alone(storage):
+    storage.write_replace(LEASE, b"{not json")
+    with pytest.raises(UserError, match=r"LEASE.json is not a lease ftrain can read: if no run uses this storage"):
+        Lease(storage, "mine", print).acquire()
+    assert storage.read(LEASE) == b"{not json"

@@ -18,6 +18,7 @@ from ftrain.ckpt.lease import LEASE, Entry, Process, Record
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD
 from ftrain.supervise import procfs
+from ftrain.supervise.auth import SECRET_ENV
 
 from helpers import (
     REPO,
@@ -26,6 +27,7 @@ from helpers import (
     events,
     final_manifest,
     finish,
+    free_port,
     kill_tree,
     launch,
     run_train,
@@ -132,6 +134,25 @@ def test_the_same_command_again_after_a_sigkill_takes_over_at_once(tmp_path):
     assert finish(again) == 0
     assert "took over the lease of" in again.stderr.read().decode()
     assert final_manifest(storage)["step"] == 40
+
+
+def test_every_node_of_a_supervised_run_is_admitted_and_holds_the_lease(tmp_path):
+    storage = tmp_path / "run"
+    nodes = ["--nnodes=2", "--nproc-per-node=1", f"--rdzv-endpoint=127.0.0.1:{free_port()}"]
+    env = child_env({SECRET_ENV: "ftrain-test-one-run-secret"})
+    supervisors = [
+        launch([*supervise_command(storage, "iterations=60"), *nodes, f"--node-rank={node}"], cwd=REPO, env=env)
+        for node in (0, 1)
+    ]
+
+    def holders() -> set[int]:
+        lease = storage / LEASE
+        return {e.process.pid for e in Record.decode(lease.read_bytes()).entries} if lease.exists() else set()
+
+    wait_for(lambda: holders() == {proc.pid for proc in supervisors}, "both supervisors in the lease")
+    assert [finish(proc) for proc in supervisors] == [0, 0]
+    assert final_manifest(storage)["step"] == 60
+    assert not (storage / LEASE).exists()
 
 
 def test_a_lease_that_expired_on_another_host_is_taken_over(tmp_path, s3_url, s3_env):
