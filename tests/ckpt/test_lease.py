@@ -20,6 +20,22 @@ from ftrain.errors import UserError
 
 from helpers import child_env, wait_for
 
+RACER = textwrap.dedent(
+    """
+    import json, sys, time
+    from ftrain.ckpt.lease import Lease, LeaseHeld
+    from ftrain.ckpt.storage import Storage
+    url, options, run, start = sys.argv[1], json.loads(sys.argv[2]), sys.argv[3], float(sys.argv[4])
+    lease = Lease(Storage.open(url, options), run, print)
+    time.sleep(max(0.0, start - time.time()))
+    try:
+        lease.acquire()
+        print("won", flush=True)
+    except LeaseHeld:
+        print("refused", flush=True)
+    time.sleep(3)  # stay alive while the others look: a live holder
+    """
+)
 HOLDER = textwrap.dedent(
     """
     import json, sys, time
@@ -95,6 +111,24 @@ def test_refused_while_another_process_holds_it_then_taken_over_at_once_when_it_
     now = record(storage)
     assert now.run_id == "second-run" and now.generation == 2
     assert [e.process.pid for e in now.entries] == [os.getpid()]
+
+
+@pytest.mark.slow
+def test_of_processes_that_race_for_a_free_lease_exactly_one_wins(storage):
+    url, options = open_again(storage)
+    start = time.time() + 2.5  # every racer has imported and opened the storage by then
+    racers = [
+        subprocess.Popen(
+            [sys.executable, "-c", RACER, url, json.dumps(options), f"run-{n}", str(start)],
+            env=child_env(),
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        for n in range(4)
+    ]
+    outcomes = [racer.communicate(timeout=60)[0].strip() for racer in racers]
+    assert sorted(outcomes) == ["refused", "refused", "refused", "won"]
+    assert record(storage).run_id == f"run-{outcomes.index('won')}"
 
 
 def test_a_lease_of_another_host_holds_until_it_expires(storage):
