@@ -237,14 +237,20 @@ class Lease:
             raise LeaseHeld(self._held_message(current[0], time.time()))
 
     def _keep(self) -> None:
-        interval = self.ttl / 3
-        while not self._stop.wait(interval):
+        """Renew until stopped. While the storage fails, try 4 times as often; one line when that starts and one when
+        it ends (an outage of an hour is two lines, not 720)."""
+        failing_since = None
+        while not self._stop.wait(self.ttl / 3 if failing_since is None else self.ttl / 12):
             try:
                 message = self.renew()
-                interval = self.ttl / 3
-            except Exception as error:  # storage down: keep trying, sooner
-                message = f"renewing the lease {self.storage.where(LEASE)} failed ({error}); retrying"
-                interval = self.ttl / 12
+            except Exception as error:
+                if failing_since is None:
+                    failing_since = time.monotonic()
+                    self.log(f"renewing the lease {self.storage.where(LEASE)} failed ({error}); retrying")
+                continue
+            if failing_since is not None:
+                self.log(f"renewed the lease again after {time.monotonic() - failing_since:.0f} s of failures")
+                failing_since = None
             if message:
                 self.log(message)
 

@@ -208,8 +208,10 @@ def test_the_keeper_renews_and_outlives_a_failing_storage(tmp_path):
     os.mkdir(tmp_path / "run" / LEASE)  # the storage now fails every read of the lease
     wait_for(lambda: any("renewing the lease" in line for line in said), "a failed renewal logged", timeout=10)
     assert lease._thread.is_alive()
+    time.sleep(0.5)  # several failed renewals: still one line
+    assert len([line for line in said if "renewing the lease" in line]) == 1
     os.rmdir(tmp_path / "run" / LEASE)
-    wait_for(lambda: storage.exists(LEASE), "the lease taken again", timeout=10)
+    wait_for(lambda: any("renewed the lease again after" in line for line in said), "the renewal back", timeout=10)
     assert record(storage).run_id == "mine"
     lease.release()
     assert not lease._thread.is_alive() and not storage.exists(LEASE)
