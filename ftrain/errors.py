@@ -11,6 +11,9 @@ nothing lost: the supervisor waits for the storage and starts again; run the sam
 EXIT_RENDEZVOUS_TIMEOUT = 6
 """torchrun (``ftrain.dist.torchrun``) and ``ftrain supervise``: an elastic rendezvous did not gather its minimum of
 nodes in time."""
+EXIT_STORAGE_HELD = 8
+"""``ftrain supervise`` and ``ftrain train`` (every rank): another run, alive, holds the storage's lease
+(``ftrain.ckpt.lease``); nothing of that run is touched."""
 
 
 class UserError(Exception):

@@ -12,6 +12,8 @@ Exit codes:
 - 7: the checkpoint storage did not answer for ``--storage-wait`` seconds. Nothing committed is lost: run the same
   command again once it is back. (Until then, an unreachable storage is waited out, and restarts for it count
   neither towards ``--max-restarts`` nor the crash loop.)
+- 8: another run holds the storage's lease (``ftrain/ckpt/lease.py``): one line names it and when its lease ends;
+  nothing of that run is touched, nothing is launched.
 - 143: preempted (SIGTERM): the workers saved; run the same command again to continue. 128 + SIGTERM,
   so schedulers that retry signal exits (e.g. Kubernetes' ``ExitCode`` restart policy) run it again.
 - 130: interrupted (SIGINT, Ctrl-C): the same as 143, with the shell's code for Ctrl-C.

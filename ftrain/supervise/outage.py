@@ -13,7 +13,7 @@ import sys
 import time
 from collections.abc import Callable
 
-from ftrain.ckpt.storage import Storage, StorageError, backoff
+from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable, backoff
 from ftrain.config import StorageConfig
 from ftrain.errors import EXIT_USAGE, UserError
 from ftrain.supervise.events import EventLog
@@ -31,6 +31,17 @@ class StorageWait:
         self.limit = limit
         self.events = events
         self.sleep = sleep
+
+    def retrying(self, action: Callable[[], int], end: Callable[[Outcome], int]) -> int:
+        """``action()``, again once the storage answers whenever it raises StorageUnavailable; ``end(ending)`` if it
+        does not answer within the limit."""
+        while True:
+            try:
+                return action()
+            except StorageUnavailable as error:
+                ending = self(str(error))
+                if ending is not None:
+                    return end(ending)
 
     def __call__(self, why: str) -> Outcome | None:
         """Probe until the storage answers (None), or the ending of the run: it did not within the limit, or what it

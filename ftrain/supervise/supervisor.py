@@ -1,6 +1,6 @@
 """``ftrain supervise``: launch torchrun, watch its workers, restart them from the newest verified checkpoint.
 
-Stdlib only (plus the torch-free config and heartbeat modules): the supervisor launches and watches processes.
+Torch-free (config, heartbeat, the storage lease and the standard library): it launches and watches processes.
 
 Launch. Every attempt is a new ``torchrun --max-restarts=0`` in its own session, with ``FTRAIN_HEARTBEAT_DIR``
 set, and a rendezvous nothing has used before: ``--standalone`` on one node (a new TCP store on a free port);
@@ -29,7 +29,7 @@ Preemption. SIGTERM or SIGINT to the supervisor: SIGTERM to the workers, which a
 boundary, save and exit 0; SIGKILL after ``--stop-grace``; a second signal kills at once. No restart; the
 supervisor exits 128 + the signal (143 for SIGTERM, 130 for SIGINT, Ctrl-C).
 
-Several nodes: see ``coordinator.py``. Records: ``events.py``. Exit codes: ``options.py``.
+Several nodes: ``coordinator.py``. Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``.
 
 Test hook (private): ``FTRAIN_WORKER_MODULE`` names the module torchrun runs as ``-m MODULE train ...`` (default
 ``ftrain``), so the tests can supervise a small stand-in that speaks the heartbeat protocol.
@@ -44,6 +44,7 @@ import sys
 import time
 from pathlib import Path
 
+from ftrain.ckpt.lease import storage_lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config, StorageConfig
 from ftrain.heartbeat import Heartbeat, read_heartbeats
@@ -86,8 +87,11 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     nodes = parse_nodes(options)
     supervisor = Supervisor(options, nodes, Path(config.log_dir), hang_timeout, train_args, config.storage)
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        return supervisor.run()
+    events = supervisor.events
+    lease = lambda: storage_lease(config, lambda line: events("lease", line, detail=line), nodes.secret, nodes.endpoint)  # noqa: E731
+    refused = lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr)  # noqa: E731
+    try:  # the lease is taken before anything is launched: an unreachable storage is waited out then too
+        return supervisor.storage_wait.retrying(lambda: lease().run(supervisor.run, refused), supervisor.end)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -141,7 +145,7 @@ class Supervisor:
         try:
             self._loop()
         except _Stop as stop:
-            return self._end(stop.event, stop.code, stop.message)
+            return self.end(Outcome(stop.event, stop.code, stop.message))
         raise AssertionError("the supervision loop only ends by _Stop")
 
     def _loop(self) -> None:
@@ -374,7 +378,9 @@ class Supervisor:
         with contextlib.suppress(OSError):
             self.link.ask(op, **fields)
 
-    def _end(self, event: str, code: int, message: str) -> int:
+    def end(self, ending: Outcome) -> int:
+        """The run ends: record it, tell the other nodes, sum up; the exit code."""
+        event, code, message = ending.event, ending.code, ending.message
         self.events(event, message, code=code)
         if self.nnodes > 1:
             self._tell("finish", code=code)

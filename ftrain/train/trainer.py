@@ -20,12 +20,13 @@ import yaml
 
 from ftrain import errorfile
 from ftrain.ckpt.format import learned_state, state_digest
+from ftrain.ckpt.lease import LeaseHeld, claim
 from ftrain.ckpt.manager import Checkpointer
 from ftrain.ckpt.resume import CheckpointError
 from ftrain.ckpt.storage import StorageUnavailable
 from ftrain.config import Config
 from ftrain.dist import group
-from ftrain.errors import EXIT_STORAGE_DOWN
+from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter
 from ftrain.policy.robot import unsaved_state_notice
 from ftrain.train.envs import MujocoVecEnv
@@ -289,14 +290,19 @@ def build_hooks(config: Config) -> Hooks:
 
 def train(config: Config) -> int:
     """Entry point of ``ftrain train`` on every rank: 0 when done or stopped on request, 1 when checkpoints fail, 7
-    when the storage does not answer."""
+    when the storage does not answer, 8 when another run holds the storage (``ftrain.ckpt.lease``: rank 0 holds it for
+    the run, or its supervisor does)."""
     stop = StopRequest()
     stop.install()
     info = group.init(config.dist_timeout)
-    trainer = None
+    trainer = lease = None
     try:
+        lease = claim(config, info.is_main, lambda outcome: group.broadcast_object(outcome, info), _say)
         trainer = Trainer(config, info, stop)
         return trainer.run()
+    except LeaseHeld as held:  # another run holds the storage: nothing of it touched
+        errorfile.report(str(held))
+        return EXIT_STORAGE_HELD
     except CheckpointError as error:
         errorfile.report(str(error))
         return EXIT_CHECKPOINT
@@ -306,4 +312,10 @@ def train(config: Config) -> int:
     finally:
         if trainer is not None:
             trainer.checkpointer.shutdown()
+        if lease is not None:
+            lease.release()
         group.shutdown()
+
+
+def _say(line: str) -> None:
+    print(f"[ftrain] {line}", flush=True)

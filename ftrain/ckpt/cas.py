@@ -1,0 +1,135 @@
+"""Compare-and-swap of one small object of a storage: read it with its version, write or delete it only if that
+version is still the current one (``Conflict`` if another process changed it since).
+
+S3: the version is the ETag; a write is one PUT with ``If-Match: <ETag>`` (``If-None-Match: *`` to create), a
+delete a DELETE with ``If-Match``: the server decides, atomically. Local: the version is a digest of the bytes; the
+read-check-write runs under an exclusive ``flock`` of a side file ``<object>.lock`` (released by the kernel if the
+process dies), and the new object is put in place by an atomic rename of a fsynced temporary file. Other protocols
+(``memory://``: one process): a plain check, then the write.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import hashlib
+import os
+from collections.abc import Iterator
+
+import fsspec.asyn
+from s3fs import S3FileSystem
+
+from ftrain.ckpt.storage import Storage
+
+_CONFLICTS = ("PreconditionFailed", "ConditionalRequestConflict")
+"""S3's answers to a condition that did not hold (412), or to a conditional write racing another one (409)."""
+
+
+class Conflict(Exception):
+    """The object changed since it was read (another process wrote it): read it again."""
+
+
+def read(storage: Storage, rel: str) -> tuple[bytes, str] | None:
+    """The object's bytes and version, None if there is none."""
+    if not isinstance(storage.fs, S3FileSystem):
+        try:
+            data = storage.read(rel)
+        except FileNotFoundError:
+            return None
+        return data, hashlib.sha256(data).hexdigest()
+    bucket, key = _s3_key(storage, rel)
+
+    async def get() -> tuple[bytes, str]:  # one GET: the bytes and the ETag of the same version
+        response = await storage.fs._call_s3("get_object", Bucket=bucket, Key=key)
+        async with response["Body"] as body:
+            return await body.read(), response["ETag"]
+
+    try:
+        return storage._call("read", rel, fsspec.asyn.sync, storage.fs.loop, get)
+    except FileNotFoundError:
+        return None
+
+
+def write(storage: Storage, rel: str, data: bytes, version: str | None) -> None:
+    """Put ``data`` if the object's version is still ``version`` (None: if there is no object); Conflict if not."""
+    if isinstance(storage.fs, S3FileSystem):
+        bucket, key = _s3_key(storage, rel)
+        condition = {"IfMatch": version} if version else {"IfNoneMatch": "*"}
+        _s3_conditional(storage, rel, "put_object", Bucket=bucket, Key=key, Body=data, **condition)
+        return
+    with _locked(storage, rel):
+        current = read(storage, rel)
+        if (current[1] if current else None) != version:
+            raise Conflict
+        if storage.is_local:
+            storage._call("write", rel, _replace_local, _local_path(storage, rel), data)
+        else:
+            storage.write_replace(rel, data)
+
+
+def delete(storage: Storage, rel: str, version: str) -> None:
+    """Delete the object if its version is still ``version``; Conflict if not (or if it is gone)."""
+    if isinstance(storage.fs, S3FileSystem):
+        bucket, key = _s3_key(storage, rel)
+        _s3_conditional(storage, rel, "delete_object", Bucket=bucket, Key=key, IfMatch=version)
+        return
+    with _locked(storage, rel):
+        current = read(storage, rel)
+        if current is None or current[1] != version:
+            raise Conflict
+        storage.delete(rel)
+
+
+def _s3_conditional(storage: Storage, rel: str, operation: str, **kwargs) -> None:
+    """One conditional S3 request, retried like any storage call while the failure is transient."""
+
+    def call() -> None:
+        try:
+            storage.fs.call_s3(operation, **kwargs)
+        except (FileExistsError, FileNotFoundError):  # s3fs's names for a failed If-None-Match, and a missing key
+            raise Conflict from None
+        except OSError as error:
+            response = getattr(error.__cause__, "response", None) or {}
+            if response.get("Error", {}).get("Code") in _CONFLICTS:
+                raise Conflict from None
+            raise
+
+    storage._call(operation.partition("_")[0], rel, call)
+
+
+@contextlib.contextmanager
+def _locked(storage: Storage, rel: str) -> Iterator[None]:
+    if not storage.is_local:
+        yield
+        return
+    path = _local_path(storage, rel) + ".lock"
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _replace_local(path: str, data: bytes) -> None:
+    temporary = f"{path}.{os.getpid()}.tmp"
+    with open(temporary, "wb") as file:
+        file.write(data)
+        file.flush()
+        os.fsync(file.fileno())
+    os.replace(temporary, path)
+    directory = os.open(os.path.dirname(path), os.O_RDONLY)
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)
+
+
+def _local_path(storage: Storage, rel: str) -> str:
+    return f"{storage.root}/{rel}"
+
+
+def _s3_key(storage: Storage, rel: str) -> tuple[str, str]:
+    bucket, _, prefix = storage.root.partition("/")
+    return bucket, f"{prefix}/{rel}" if prefix else rel

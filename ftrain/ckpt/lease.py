@@ -1,0 +1,350 @@
+"""One run per storage: the lease ``<storage>/LEASE.json``, held by a run while it lives.
+
+The record names the run (``run_id``), a ``generation`` (+1 at every new holder run: a lease epoch), the holders'
+``ttl`` and ``expires_at`` (wall clock, for humans and other hosts), and one entry per process that renews it (host,
+pid, the process's start time, the host's boot id and pid namespace, ``renewed_at``): every node of a run renews its
+own entry, so the lease lives while any node does. A second run is refused while any entry lives; an entry lives
+until ``renewed_at + ttl``, except on its own host, where a process whose pid no longer has the recorded start time
+(``/proc/<pid>/stat``), or a host that has rebooted since, is seen gone at once (so the same command again right
+after a crash never waits for the expiry), and a process seen running there holds it even past the expiry.
+
+Every change is a compare-and-swap of the record read (``cas.py``: conditional requests on S3, ``flock`` and an
+atomic replace locally), so of two processes that race, one wins and the other reads again.
+
+Torch-free: the supervisor holds the lease for its workers; unsupervised, rank 0 of the world does (see ``claim``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import datetime
+import functools
+import hashlib
+import json
+import os
+import secrets
+import socket
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from ftrain.ckpt import cas
+from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
+from ftrain.config import Config
+from ftrain.errors import EXIT_STORAGE_HELD, UserError
+from ftrain.heartbeat import TOKEN_ENV
+
+LEASE = "LEASE.json"
+RUN_ID_ENV = "FTRAIN_RUN_ID"
+"""A run's identity: set by ``ftrain supervise`` for its workers (or by the user to name a run, e.g. a batch job id
+that survives a requeue); unset, torchrun's ``TORCHELASTIC_RUN_ID`` (its ``--rdzv-id``)."""
+TTL = 60.0
+"""Seconds a lease lives after its last renewal; renewed every third of that."""
+
+
+class LeaseHeld(Exception):
+    """Another run, alive, holds the storage; the message names it and when its lease ends, in one line."""
+
+
+_AGREED = {kind.__name__: kind for kind in (LeaseHeld, UserError, StorageUnavailable, StorageError)}
+"""What rank 0's claim may end in, as the other ranks raise it too."""
+
+
+@dataclass(frozen=True)
+class Process:
+    """A process, as precisely as its host lets another process recognise it."""
+
+    host: str
+    pid: int
+    start: int
+    """Its start time in clock ticks after boot (``/proc/<pid>/stat``): a reused pid has another."""
+    boot: str
+    """The host's boot id: a reboot changes it."""
+    pidns: str
+    """Its pid namespace: pids of another namespace (another container) cannot be looked up here."""
+
+    @classmethod
+    def current(cls) -> Process:
+        host, boot, pidns = _here()
+        pid = os.getpid()
+        return cls(host, pid, _start_time(pid) or 0, boot, pidns)
+
+    def running(self) -> bool | None:
+        """Seen from here: whether it still runs; None if this host cannot tell (another host, another namespace)."""
+        host, boot, pidns = _here()
+        if self.host != host or not boot:
+            return None
+        if self.boot != boot:
+            return False  # its host has rebooted since
+        if self.pidns != pidns:
+            return None
+        return _start_time(self.pid) == self.start
+
+    def describe(self) -> str:
+        return f"pid {self.pid} on host {self.host}"
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One renewing process of the run holding the lease."""
+
+    process: Process
+    renewed_at: float
+
+    def alive(self, ttl: float, now: float) -> bool:
+        """Seen running on this host, or (where that cannot be seen) renewed within ``ttl``."""
+        running = self.process.running()
+        return running if running is not None else now < self.renewed_at + ttl
+
+
+@dataclass(frozen=True)
+class Record:
+    run_id: str
+    generation: int
+    ttl: float
+    entries: tuple[Entry, ...]
+
+    @property
+    def expires_at(self) -> float:
+        return max((entry.renewed_at for entry in self.entries), default=0.0) + self.ttl
+
+    def live(self, now: float) -> list[Entry]:
+        return [entry for entry in self.entries if entry.alive(self.ttl, now)]
+
+    def encode(self) -> bytes:
+        body = {
+            "run_id": self.run_id,
+            "generation": self.generation,
+            "ttl": self.ttl,
+            "expires_at": round(self.expires_at, 3),
+            "expires": _when(self.expires_at),
+            "holders": [{**dataclasses.asdict(e.process), "renewed_at": round(e.renewed_at, 3)} for e in self.entries],
+        }
+        return json.dumps(body, indent=1).encode()
+
+    @classmethod
+    def decode(cls, data: bytes) -> Record:
+        body = json.loads(data)
+        entries = tuple(
+            Entry(Process(h["host"], h["pid"], h["start"], h["boot"], h["pidns"]), h["renewed_at"])
+            for h in body["holders"]
+        )
+        return cls(body["run_id"], body["generation"], body["ttl"], entries)
+
+
+def storage_lease(
+    config: Config, log: Callable[[str], None], secret: bytes | None = None, endpoint: tuple[str, int] | None = None
+) -> Lease:
+    """The lease of ``config``'s storage for this run, not taken yet. The run is ``FTRAIN_RUN_ID``; else, with a
+    ``secret``, the nodes whose supervisors share it and the rendezvous ``endpoint`` (a digest of both); else
+    torchrun's run id (``TORCHELASTIC_RUN_ID``, from ``--rdzv-id``); else a new random one."""
+    if os.environ.get(RUN_ID_ENV):
+        run_id = os.environ[RUN_ID_ENV]
+    elif secret is not None:
+        run_id = hashlib.sha256(b"ftrain-run:" + secret + repr(endpoint).encode()).hexdigest()[:16]
+    else:
+        run_id = os.environ.get("TORCHELASTIC_RUN_ID") or secrets.token_hex(8)
+    storage = Storage.open(config.storage.url, config.storage.options, retries=config.checkpoint.retries)
+    return Lease(storage, run_id, log)
+
+
+class Lease:
+    """The lease of ``storage`` for run ``run_id``, held by this process: ``hold`` takes it and keeps renewing it
+    from a thread until ``release``. Storage failures while renewing are logged and retried, never raised."""
+
+    def __init__(self, storage: Storage, run_id: str, log: Callable[[str], None], ttl: float = TTL) -> None:
+        self.storage = storage
+        self.run_id = run_id
+        self.log = log
+        self.ttl = ttl
+        self.process = Process.current()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._lost_to: str | None = None
+
+    def acquire(self) -> str | None:
+        """Take the lease (or join this run's); LeaseHeld if another run holds it. A line saying so if this took
+        over another run's lease, else None."""
+        while True:
+            now = time.time()
+            current = _read(self.storage)
+            record, version = current if current is not None else (None, None)
+            if record is not None and record.run_id != self.run_id and record.live(now):
+                raise LeaseHeld(self._held_message(record, now))
+            ours = record is not None and record.run_id == self.run_id
+            keep = tuple(e for e in record.live(now) if e.process != self.process) if ours else ()
+            generation = record.generation if ours else (record.generation + 1 if record else 1)
+            new = Record(self.run_id, generation, self.ttl, (*keep, Entry(self.process, now)))
+            try:
+                cas.write(self.storage, LEASE, new.encode(), version)
+            except cas.Conflict:
+                continue
+            return None if ours or record is None else self._taken_message(record)
+
+    def renew(self) -> str | None:
+        """Renew this process's entry; take the lease again if it lapsed and nobody else took it (a line saying so).
+        While another run holds it, a line saying so once."""
+        try:
+            taken = self.acquire()
+        except LeaseHeld as held:
+            message = None if self._lost_to == str(held) else f"lost the lease: {held}"
+            self._lost_to = str(held)
+            return message
+        self._lost_to = None
+        return taken
+
+    def hold(self) -> str | None:
+        """``acquire``, then renew every ``ttl / 3`` from a daemon thread; returns what ``acquire`` did."""
+        taken = self.acquire()
+        self._thread = threading.Thread(target=self._keep, name="ftrain-lease", daemon=True)
+        self._thread.start()
+        return taken
+
+    def run(self, body: Callable[[], int], refused: Callable[[str], None]) -> int:
+        """``body()`` while holding the lease (its child processes get ``FTRAIN_RUN_ID``: they are this run), then
+        release it; if another run holds it, ``refused`` gets the one-line reason and this returns
+        ``EXIT_STORAGE_HELD`` without calling ``body``."""
+        try:
+            taken = self.hold()
+        except LeaseHeld as held:
+            refused(str(held))
+            return EXIT_STORAGE_HELD
+        if taken:
+            self.log(taken)
+        os.environ[RUN_ID_ENV] = self.run_id
+        try:
+            return body()
+        finally:
+            self.release()
+
+    def release(self) -> None:
+        """Stop renewing and drop this process's entry (the whole object with the run's last entry), so the same
+        command again starts at once. A failure is logged: the lease then lapses after its ``ttl``."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=self.ttl / 3)  # a renewal stuck in a hanging request: its write is a CAS too
+        try:
+            self._drop()
+        except Exception as error:
+            self.log(f"could not release the lease {self.storage.where(LEASE)} ({error}); it lapses in {self.ttl:g} s")
+
+    def check(self) -> None:
+        """LeaseHeld if another run, alive, holds the lease (a worker whose supervisor holds it for its run)."""
+        current = _read(self.storage)
+        if current is not None and current[0].run_id != self.run_id and current[0].live(time.time()):
+            raise LeaseHeld(self._held_message(current[0], time.time()))
+
+    def _keep(self) -> None:
+        """Renew until stopped. While the storage fails, try 4 times as often; one line when that starts and one when
+        it ends (an outage of an hour is two lines, not 720)."""
+        failing_since = None
+        while not self._stop.wait(self.ttl / 3 if failing_since is None else self.ttl / 12):
+            try:
+                message = self.renew()
+            except Exception as error:
+                if failing_since is None:
+                    failing_since = time.monotonic()
+                    self.log(f"renewing the lease {self.storage.where(LEASE)} failed ({error}); retrying")
+                continue
+            if failing_since is not None:
+                self.log(f"renewed the lease again after {time.monotonic() - failing_since:.0f} s of failures")
+                failing_since = None
+            if message:
+                self.log(message)
+
+    def _drop(self) -> None:
+        while True:
+            current = _read(self.storage)
+            if current is None or current[0].run_id != self.run_id:
+                return
+            record, version = current
+            keep = tuple(e for e in record.live(time.time()) if e.process != self.process)
+            try:
+                if keep:
+                    cas.write(self.storage, LEASE, dataclasses.replace(record, entries=keep).encode(), version)
+                else:
+                    cas.delete(self.storage, LEASE, version)
+                return
+            except cas.Conflict:
+                continue
+
+    def _held_message(self, record: Record, now: float) -> str:
+        holder = max(record.live(now), key=lambda e: e.renewed_at)
+        ends = record.expires_at
+        end = f"ended at {_when(ends)}, but the process runs" if ends < now else f"ends at {_when(ends)}"
+        return (
+            f"storage {self.storage.url} is held by another run ({record.run_id}, {holder.process.describe()}): its "
+            f"lease {end} unless renewed; stop that run first, or use another storage"
+        )
+
+    def _taken_message(self, record: Record) -> str:
+        holders = ", ".join(
+            f"{e.process.describe()} is gone"
+            if e.process.running() is False
+            else f"the lease of {e.process.describe()} expired at {_when(e.renewed_at + record.ttl)}"
+            for e in record.entries
+        )
+        return f"took over the lease of {self.storage.url} from run {record.run_id}: {holders or 'no holder'}"
+
+
+def claim(config: Config, is_main: bool, agree: Callable[[list | None], list | None], log: Callable[[str], None]):
+    """Every rank of a world calls this at the start. Rank 0 (``is_main``) holds the lease for the run, or, started
+    by ``ftrain supervise`` (which holds it), checks that no other run holds it; ``agree`` (a broadcast from rank 0)
+    tells every rank how that went, so that every rank raises alike (LeaseHeld if refused) and none waits for a rank 0
+    that failed. Returns the lease to ``release`` at the end (None: not held here)."""
+    lease, outcome, failure = None, None, None
+    if is_main:
+        try:
+            lease = storage_lease(config, log)
+            if os.environ.get(TOKEN_ENV):
+                lease.check()
+                lease = None
+            elif taken := lease.hold():
+                log(taken)
+        except Exception as error:
+            lease, failure = None, error
+            outcome = [type(error).__name__ if type(error).__name__ in _AGREED else "StorageError", str(error)]
+    outcome = agree(outcome)
+    if failure is not None:
+        raise failure
+    if outcome:
+        raise _AGREED[outcome[0]](outcome[1])
+    return lease
+
+
+def _read(storage: Storage) -> tuple[Record, str] | None:
+    current = cas.read(storage, LEASE)
+    if current is None:
+        return None
+    try:
+        return Record.decode(current[0]), current[1]
+    except (ValueError, KeyError, TypeError):
+        raise UserError(
+            f"{storage.where(LEASE)} is not a lease ftrain can read: if no run uses this storage, delete that file"
+        ) from None
+
+
+def _start_time(pid: int) -> int | None:
+    """The start time of process ``pid`` (ticks after boot), None if there is no such process or it is a zombie."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
+    except OSError:
+        return None
+    return None if fields[0] == "Z" else int(fields[19])
+
+
+@functools.cache
+def _here() -> tuple[str, str, str]:
+    """This host's name and boot id, and this process's pid namespace (boot id and namespace "" where /proc does not
+    tell: then no process is ever seen gone, leases only expire)."""
+    try:
+        boot, pidns = Path("/proc/sys/kernel/random/boot_id").read_text().strip(), os.readlink("/proc/self/ns/pid")
+    except OSError:
+        boot = pidns = ""
+    return socket.gethostname(), boot, pidns
+
+
+def _when(epoch: float) -> str:
+    return datetime.datetime.fromtimestamp(epoch, datetime.timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")

@@ -1,0 +1,224 @@
+"""The storage lease on a local directory and on a real S3 API server: refused while another run lives, taken over
+at once from a dead process of this host, after the expiry from another host, shared by the nodes of one run."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from ftrain.ckpt import cas
+from ftrain.ckpt.lease import LEASE, Entry, Lease, LeaseHeld, Process, Record
+from ftrain.ckpt.storage import Storage
+from ftrain.errors import UserError
+
+from helpers import child_env, wait_for
+
+RACER = textwrap.dedent(
+    """
+    import json, sys, time
+    from ftrain.ckpt.lease import Lease, LeaseHeld
+    from ftrain.ckpt.storage import Storage
+    url, options, run, start = sys.argv[1], json.loads(sys.argv[2]), sys.argv[3], float(sys.argv[4])
+    lease = Lease(Storage.open(url, options), run, print)
+    time.sleep(max(0.0, start - time.time()))
+    try:
+        lease.acquire()
+        print("won", flush=True)
+    except LeaseHeld:
+        print("refused", flush=True)
+    time.sleep(3)  # stay alive while the others look: a live holder
+    """
+)
+HOLDER = textwrap.dedent(
+    """
+    import json, sys, time
+    from ftrain.ckpt.lease import Lease
+    from ftrain.ckpt.storage import Storage
+    url, options = sys.argv[1], json.loads(sys.argv[2])
+    Lease(Storage.open(url, options), "first-run", print, ttl=float(sys.argv[3])).hold()
+    print("held", flush=True)
+    time.sleep(600)
+    """
+)
+
+
+@pytest.fixture(params=["local", "s3"])
+def storage(request, tmp_path) -> Storage:
+    if request.param == "local":
+        return Storage.open(str(tmp_path / "run"))
+    url, options = request.getfixturevalue("s3_url")
+    return Storage.open(url, options)
+
+
+def open_again(storage: Storage) -> tuple[str, dict]:
+    """``(url, options)`` that open ``storage`` in another process."""
+    if storage.is_local:
+        return storage.url, {}
+    endpoint = storage.fs.client_kwargs.get("endpoint_url") or storage.fs.endpoint_url
+    return storage.url, {"endpoint_url": endpoint, "key": storage.fs.key, "secret": storage.fs.secret}
+
+
+@pytest.fixture
+def holder(storage):
+    """Another process holding ``storage``'s lease for run ``first-run`` (renewing it every 2 s)."""
+    url, options = open_again(storage)
+    proc = subprocess.Popen(
+        [sys.executable, "-c", HOLDER, url, json.dumps(options), "6"],
+        env=child_env(),
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert proc.stdout.readline().strip() == "held"
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+def foreign(run_id: str, renewed_at: float, ttl: float = 60.0, generation: int = 4) -> Record:
+    """A lease record of a process on another host, renewed at ``renewed_at``."""
+    process = Process("node-far-away", 4242, 123, "another-boot-id", "pid:[1]")
+    return Record(run_id, generation, ttl, (Entry(process, renewed_at),))
+
+
+def record(storage: Storage) -> Record:
+    return Record.decode(storage.read(LEASE))
+
+
+def test_refused_while_another_process_holds_it_then_taken_over_at_once_when_it_dies(storage, holder):
+    second = Lease(storage, "second-run", print)
+    with pytest.raises(LeaseHeld) as refused:
+        second.acquire()
+    message = str(refused.value)
+    assert "\n" not in message
+    assert "first-run" in message and f"pid {holder.pid} on host " in message and "ends at " in message
+    assert record(storage).run_id == "first-run"  # nothing of the first run was touched
+
+    holder.send_signal(signal.SIGKILL)
+    holder.wait()
+    started = time.monotonic()
+    taken = second.acquire()
+    assert time.monotonic() - started < 5  # the dead pid is seen at once: no waiting for the expiry
+    assert taken is not None and f"pid {holder.pid} on host" in taken and "is gone" in taken and "first-run" in taken
+    now = record(storage)
+    assert now.run_id == "second-run" and now.generation == 2
+    assert [e.process.pid for e in now.entries] == [os.getpid()]
+
+
+@pytest.mark.slow
+def test_of_processes_that_race_for_a_free_lease_exactly_one_wins(storage):
+    url, options = open_again(storage)
+    start = time.time() + 2.5  # every racer has imported and opened the storage by then
+    racers = [
+        subprocess.Popen(
+            [sys.executable, "-c", RACER, url, json.dumps(options), f"run-{n}", str(start)],
+            env=child_env(),
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        for n in range(4)
+    ]
+    outcomes = [racer.communicate(timeout=60)[0].strip() for racer in racers]
+    assert sorted(outcomes) == ["refused", "refused", "refused", "won"]
+    assert record(storage).run_id == f"run-{outcomes.index('won')}"
+
+
+def test_a_lease_of_another_host_holds_until_it_expires(storage):
+    storage.write_replace(LEASE, foreign("far-run", time.time()).encode())
+    with pytest.raises(LeaseHeld, match="far-run, pid 4242 on host node-far-away"):
+        Lease(storage, "mine", print).acquire()
+
+    storage.write_replace(LEASE, foreign("far-run", time.time() - 61).encode())
+    taken = Lease(storage, "mine", print).acquire()
+    assert taken is not None and "from run far-run" in taken and "expired at" in taken
+    assert record(storage).run_id == "mine" and record(storage).generation == 5
+
+
+def test_every_node_of_one_run_is_admitted_and_renews_its_own_entry(storage):
+    storage.write_replace(LEASE, foreign("shared-run", time.time()).encode())
+    lease = Lease(storage, "shared-run", print)
+    assert lease.acquire() is None
+    pids = sorted(e.process.pid for e in record(storage).entries)
+    assert pids == sorted([4242, os.getpid()])
+    assert record(storage).generation == 4  # the same run: the same generation
+
+    lease.release()  # the other node still lives: the lease stays, without this node
+    assert [e.process.pid for e in record(storage).entries] == [4242]
+    with pytest.raises(LeaseHeld):
+        Lease(storage, "another-run", print).acquire()
+
+
+def test_release_lets_the_next_run_start_at_once(storage):
+    first = Lease(storage, "first", print)
+    assert first.hold() is None
+    assert record(storage).run_id == "first"
+    first.release()
+    assert not storage.exists(LEASE)
+    assert Lease(storage, "second", print).acquire() is None
+    assert record(storage).generation == 1
+
+
+def test_a_write_from_a_stale_read_is_refused_by_the_storage(storage):
+    Lease(storage, "first", print).acquire()
+    stale = cas.read(storage, LEASE)
+    assert stale is not None and Record.decode(stale[0]).run_id == "first"
+    storage.write_replace(LEASE, foreign("other", time.time()).encode())  # someone else wrote it since
+    with pytest.raises(cas.Conflict):
+        cas.write(storage, LEASE, foreign("mine", time.time()).encode(), stale[1])
+    with pytest.raises(cas.Conflict):
+        cas.write(storage, LEASE, foreign("mine", time.time()).encode(), None)  # create: it exists
+    with pytest.raises(cas.Conflict):
+        cas.delete(storage, LEASE, stale[1])
+    assert record(storage).run_id == "other"
+    current = cas.read(storage, LEASE)
+    cas.write(storage, LEASE, foreign("mine", time.time()).encode(), current[1])
+    assert record(storage).run_id == "mine"
+
+
+def test_renewal_says_once_that_the_lease_was_lost_and_takes_it_back_when_it_lapses(storage):
+    lease = Lease(storage, "mine", print)
+    lease.acquire()
+    storage.write_replace(LEASE, foreign("intruder", time.time()).encode())  # taken over during a long outage
+    lost = lease.renew()
+    assert lost is not None and lost.startswith("lost the lease: ") and "intruder" in lost
+    assert lease.renew() is None  # said once
+    storage.write_replace(LEASE, foreign("intruder", time.time() - 100).encode())
+    taken = lease.renew()
+    assert taken is not None and "from run intruder" in taken
+    assert record(storage).run_id == "mine"
+
+
+def test_the_keeper_renews_and_outlives_a_failing_storage(tmp_path):
+    storage = Storage.open(str(tmp_path / "run"), retries=0)
+    said: list[str] = []
+    lease = Lease(storage, "mine", said.append, ttl=0.6)
+    lease.hold()
+    first = record(storage).entries[0].renewed_at
+    wait_for(lambda: record(storage).entries[0].renewed_at > first, "a renewal", timeout=10)
+
+    os.remove(tmp_path / "run" / LEASE)
+    os.mkdir(tmp_path / "run" / LEASE)  # the storage now fails every read of the lease
+    wait_for(lambda: any("renewing the lease" in line for line in said), "a failed renewal logged", timeout=10)
+    assert lease._thread.is_alive()
+    time.sleep(0.5)  # several failed renewals: still one line
+    assert len([line for line in said if "renewing the lease" in line]) == 1
+    os.rmdir(tmp_path / "run" / LEASE)
+    wait_for(lambda: any("renewed the lease again after" in line for line in said), "the renewal back", timeout=10)
+    assert record(storage).run_id == "mine"
+    lease.release()
+    assert not lease._thread.is_alive() and not storage.exists(LEASE)
+
+
+def test_an_unreadable_lease_is_bad_input_and_left_alone(storage):
+    storage.write_replace(LEASE, b"{not json")
+    with pytest.raises(UserError, match=r"LEASE.json is not a lease ftrain can read: if no run uses this storage"):
+        Lease(storage, "mine", print).acquire()
+    assert storage.read(LEASE) == b"{not json"

@@ -1,0 +1,167 @@
+"""One run per storage, with real processes: a second ``ftrain supervise``, ``torchrun -m ftrain train`` or
+``ftrain train`` on the storage of a live run is refused with one line naming the holder (exit 8), and the first run
+ends as it would have alone; the same command again right after a SIGKILL takes over at once; a lease that expired
+on another host is taken over."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from ftrain.ckpt.lease import LEASE, Entry, Process, Record
+from ftrain.ckpt.storage import Storage
+from ftrain.errors import EXIT_STORAGE_HELD
+from ftrain.supervise import procfs
+from ftrain.supervise.auth import SECRET_ENV
+
+from helpers import (
+    REPO,
+    SMOKE,
+    child_env,
+    events,
+    final_manifest,
+    finish,
+    free_port,
+    kill_tree,
+    launch,
+    run_train,
+    train_command,
+    training,
+    wait_for,
+)
+
+pytestmark = pytest.mark.slow
+
+OVERRIDES = ("iterations=300", "checkpoint.interval=50", "log.console=false")
+"""Long enough for the intruders to start and be refused while the first run trains (~10 s here)."""
+
+
+def supervise_command(storage: str | Path, *overrides: str) -> list[str]:
+    command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node=2", SMOKE, "--storage", str(storage)]
+    return [*command, *OVERRIDES, *overrides]
+
+
+def intrude(command: list[str], env: dict | None = None) -> subprocess.Popen:
+    return subprocess.Popen(command, cwd=REPO, env=child_env(env), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def refused(proc: subprocess.Popen, holders: list[int]) -> tuple[str, str]:
+    """The one line that refused ``proc``, which must name one of the first run's ``holders`` (pids), and all its
+    output."""
+    stdout, stderr = proc.communicate(timeout=120)
+    output = stdout.decode() + stderr.decode()
+    lines = [line for line in output.splitlines() if "is held by another run" in line]
+    assert lines, f"no refusal in:\n{output}"
+    assert "lease ends at " in lines[0] and any(f"pid {pid} on host " in lines[0] for pid in holders), lines[0]
+    return lines[0], output
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> str:
+    """``state_sha256`` of the final step of the same 2-rank run, alone on its storage."""
+    storage = tmp_path_factory.mktemp("reference") / "run"
+    run_train(storage, *OVERRIDES, ranks=2)
+    return final_manifest(storage)["state_sha256"]
+
+
+def test_a_second_run_beside_a_supervised_one_is_refused_and_the_first_ends_as_alone(tmp_path, reference):
+    storage = tmp_path / "run"
+    first = launch(supervise_command(storage), cwd=REPO, env=child_env())
+    training(storage / "heartbeat", 2)
+    supervise = intrude(supervise_command(storage))
+    plain = intrude(train_command(storage, *OVERRIDES))
+    assert supervise.wait(timeout=120) == EXIT_STORAGE_HELD
+    assert plain.wait(timeout=120) == EXIT_STORAGE_HELD
+    assert first.poll() is None, "the first run ended before the intruders were refused: make it longer"
+    line, output = refused(supervise, [first.pid])
+    assert line.startswith("ftrain supervise: error: storage ") and output == line + "\n"  # nothing else
+    line, output = refused(plain, [first.pid])
+    assert line.startswith("ftrain: error: storage ") and output == line + "\n"
+
+    assert finish(first) == 0
+    assert final_manifest(storage)["state_sha256"] == reference
+    names = [event["event"] for event in events(storage)]
+    assert names.count("start") == 1 and names[-2:] == ["done", "summary"]  # the refused runs wrote nothing here
+    assert not (storage / LEASE).exists()  # released at the end: the same command again starts at once
+
+
+def test_a_second_torchrun_beside_a_torchrun_run_is_refused_and_the_first_ends_as_alone(
+    tmp_path, reference, s3_url, s3_env
+):
+    url, _ = s3_url
+    env = {**s3_env, "FTRAIN_HEARTBEAT_DIR": str(tmp_path / "heartbeat")}
+    log_dir = f"log_dir={tmp_path / 'logs'}"
+    first = launch(train_command(url, *OVERRIDES, log_dir, ranks=2), cwd=REPO, env=child_env(env))
+    training(tmp_path / "heartbeat", 2)
+    holders = procfs.descendants(first.pid)
+    second = intrude(train_command(url, *OVERRIDES, log_dir, ranks=2), env=s3_env)
+    supervise = intrude(supervise_command(url, log_dir), env=s3_env)
+    assert supervise.wait(timeout=120) == EXIT_STORAGE_HELD
+    assert second.wait(timeout=120) != 0  # torchrun exits 1 when a worker fails, whatever its code
+    assert first.poll() is None, "the first run ended before the intruders were refused: make it longer"
+    refused(supervise, holders)
+    line, output = refused(second, holders)
+    assert line.startswith("ftrain: error: storage ")
+    assert re.search(rf"exitcode\s*:\s*{EXIT_STORAGE_HELD}\b", output)  # torchrun's report: the ranks exited 8
+
+    assert finish(first) == 0
+    storage = Storage.open(*s3_url)
+    step = max(storage.list_dirs("checkpoints"))
+    assert json.loads(storage.read(f"checkpoints/{step}/MANIFEST.json"))["state_sha256"] == reference
+    assert not storage.exists(LEASE)
+
+
+def test_the_same_command_again_after_a_sigkill_takes_over_at_once(tmp_path):
+    storage = tmp_path / "run"
+    command = supervise_command(storage, "iterations=40", "checkpoint.interval=10")
+    first = launch(command, cwd=REPO, env=child_env())
+    training(storage / "heartbeat", 2)
+    kill_tree(first)  # the supervisor, torchrun and the workers at once, like a lost machine
+    held = Record.decode((storage / LEASE).read_bytes())
+    assert [entry.process.pid for entry in held.entries] == [first.pid]
+
+    started = time.time()
+    again = launch(command, cwd=REPO, env=child_env(), stderr=subprocess.PIPE)
+    taken = wait_for(lambda: [e for e in events(storage) if e["event"] == "lease"], "the lease taken over")[0]
+    assert taken["time"] - started < 30  # far less than the lease's 60 s: the dead supervisor was seen at once
+    assert f"pid {first.pid} on host " in taken["detail"] and "is gone" in taken["detail"]
+    assert finish(again) == 0
+    assert "took over the lease of" in again.stderr.read().decode()
+    assert final_manifest(storage)["step"] == 40
+
+
+def test_every_node_of_a_supervised_run_is_admitted_and_holds_the_lease(tmp_path):
+    storage = tmp_path / "run"
+    nodes = ["--nnodes=2", "--nproc-per-node=1", f"--rdzv-endpoint=127.0.0.1:{free_port()}"]
+    env = child_env({SECRET_ENV: "ftrain-test-one-run-secret"})
+    supervisors = [
+        launch([*supervise_command(storage, "iterations=60"), *nodes, f"--node-rank={node}"], cwd=REPO, env=env)
+        for node in (0, 1)
+    ]
+
+    def holders() -> set[int]:
+        lease = storage / LEASE
+        return {e.process.pid for e in Record.decode(lease.read_bytes()).entries} if lease.exists() else set()
+
+    wait_for(lambda: holders() == {proc.pid for proc in supervisors}, "both supervisors in the lease")
+    assert [finish(proc) for proc in supervisors] == [0, 0]
+    assert final_manifest(storage)["step"] == 60
+    assert not (storage / LEASE).exists()
+
+
+def test_a_lease_that_expired_on_another_host_is_taken_over(tmp_path, s3_url, s3_env):
+    url, options = s3_url
+    foreign = Process("node-far-away", 4242, 123, "another-boot-id", "pid:[1]")
+    expired = Record("far-run", 7, 60.0, (Entry(foreign, time.time() - 120),))
+    Storage.open(url, options).write_replace(LEASE, expired.encode())
+
+    result = run_train(url, f"log_dir={tmp_path / 'logs'}", env=s3_env)
+    assert "took over the lease of" in result.stdout and "from run far-run" in result.stdout
+    assert "the lease of pid 4242 on host node-far-away expired at" in result.stdout
+    assert not Storage.open(url, options).exists(LEASE)  # released at the end
