@@ -14,10 +14,10 @@ from pathlib import Path
 
 import pytest
 
+from ftrain import procfs
 from ftrain.ckpt.lease import LEASE, Entry, Process, Record
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD
-from ftrain.supervise import procfs
 from ftrain.supervise.auth import SECRET_ENV
 
 from helpers import (
