@@ -37,7 +37,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -130,7 +130,7 @@ class Attempt:
     ready: float | None = None
     """Every rank's first ``start`` beat: imports, rendezvous, environments and model built."""
     restored: float | None = None
-    """Every rank's second ``start`` beat: the checkpoint restored."""
+    """Every rank past its ``start`` beats (the checkpoint restored, the first rollout begun)."""
     first: float | None = None
     """Every rank past the step it resumed from: the first iteration done."""
     resumed: int = 0
@@ -153,8 +153,9 @@ def attempts(timeline: Timeline, launches: list[float]) -> list[Attempt]:
         attempt.top = max(b.iteration for beats in processes for b in beats)
         if all(s and s[0].seq == 1 for s in starts):
             attempt.ready = max(s[0].time for s in starts)
-        if all(s and s[-1].seq >= 2 for s in starts):
-            attempt.restored = max(s[-1].time for s in starts)
+        trains = [next((b.time for b in beats if b.phase != "start"), None) for beats in processes]
+        if None not in trains:  # the second start beat (restored) lasts a moment: the first rollout follows at once
+            attempt.restored = max(trains)
         past = [next((b.time for b in beats if b.iteration > attempt.resumed), None) for beats in processes]
         if len(processes) >= 2 and None not in past:
             attempt.first = max(past)
@@ -260,10 +261,12 @@ class Bench:
         state.expect_exit = None
         at = len(state.injected)
         if not expected:
-            state.endings.append((code, at))
-            print(f"  run ended with exit code {code} at fault {at}; running the same command again", flush=True)
+            exits = state.run.events("exit")
+            cause = exits[-1]["cause"] if exits else "no attempt ended"
+            state.endings.append((code, at, cause))
+            print(f"  run ended with exit code {code} at fault {at} ({cause}); running the same command again")
             if len(state.endings) > self.args.max_reruns:
-                print(f"  giving up after {len(state.endings)} unexpected exits", flush=True)
+                print(f"  giving up after {len(state.endings)} unexpected exits")
                 return False
             while state.outage_ends is not None and time.time() < state.outage_ends:
                 time.sleep(POLL)
@@ -297,7 +300,7 @@ class Bench:
             self.server.refuse()
             state.outage_ends = fault.injected + self.args.outage
         at = fault.injected - state.spawned[0]
-        print(f"  fault {len(state.injected)} at {at:.1f} s: {fault.kind} (rank {fault.rank}) {fault.note}", flush=True)
+        print(f"  fault {len(state.injected)} at {at:.1f} s: {fault.kind} (rank {fault.rank}) {fault.note}")
 
 
 @dataclass
@@ -312,8 +315,8 @@ class ChaosState:
     spawned: list[float] = field(default_factory=lambda: [time.time()])
     """When each supervisor process was started (the first, then every rerun)."""
     expect_exit: int | None = None
-    endings: list[tuple[int, int]] = field(default_factory=list)
-    """Unexpected supervisor exits: (exit code, faults injected by then)."""
+    endings: list[tuple[int, int, str]] = field(default_factory=list)
+    """Unexpected supervisor exits: (exit code, faults injected by then, the last attempt's cause)."""
     reruns: int = 0
     outage_ends: float | None = None
 
@@ -327,15 +330,16 @@ def training(beats: dict[int, Heartbeat]) -> bool:
 
 
 def flip_newest_shard(storage: Storage, rank: int) -> str:
-    """Invert one byte in the middle of ``rank``'s shard of the newest committed step (like bit rot)."""
-    steps = [info.step for info in scan(storage) if info.manifest is not None]
-    if not steps:
-        return "(no committed step yet: nothing to damage)"
-    path = f"{step_dir(max(steps))}/{shard_name(rank)}"
+    """Invert one byte in the middle of ``rank``'s shard of the newest committed step (like bit rot), if an older
+    verified step remains to resume from (a run whose only checkpoint is damaged rightly refuses to start over)."""
+    steps = sorted(info.step for info in scan(storage) if info.status == "verified")
+    if len(steps) < 2:
+        return f"(not damaged: {len(steps)} verified step(s), none older to resume from)"
+    path = f"{step_dir(steps[-1])}/{shard_name(rank)}"
     data = bytearray(storage.read(path))
     data[len(data) // 2] ^= 0xFF
     storage.write_replace(path, bytes(data))
-    return f"(flipped a byte of step {max(steps)}'s {shard_name(rank)})"
+    return f"(flipped a byte of step {steps[-1]}'s {shard_name(rank)})"
 
 
 def final_digest(storage: Storage) -> tuple[int, str]:
@@ -369,8 +373,8 @@ def report(args: argparse.Namespace, straight: dict, chaos: dict, imports: float
     print(f"\nfaults injected ({len(state.injected)}):")
     for n, fault in enumerate(state.injected, 1):
         print(f"  {n:>2}. {fault.injected - state.spawned[0]:7.1f} s  {fault.kind:<15} rank {fault.rank} {fault.note}")
-    for code, at in state.endings:
-        print(f"  run ended with exit code {code} at fault {at} (the same command was run again)")
+    for (code, at, cause), times in Counter(state.endings).items():
+        print(f"  run ended with exit code {code} at fault {at}{f' ({times} times)' if times > 1 else ''}: {cause}")
     print(f"supervisor processes: {len(state.spawned)} ({state.reruns} reruns, {len(state.endings)} unexpected exits)")
     print(
         f"torchrun launches: {len(launches)}; iterations lost: {sum(lost)} (supervisor summaries: "
@@ -390,8 +394,7 @@ def report(args: argparse.Namespace, straight: dict, chaos: dict, imports: float
     ready = [a.ready - a.launched for a in restarts if a.ready]
     restore = [a.restored - a.ready for a in restarts if a.ready and a.restored]
     first = [a.first - a.restored for a in restarts if a.first and a.restored]
-    previous_progress = [last_progress(chaos["timeline"], a.launched) for a in restarts]
-    detection = [a.launched - p for a, p in zip(restarts, previous_progress, strict=True) if p is not None]
+    detection = [a.launched - stopped(chaos["timeline"], before, a.launched) for before, a in itertools.pairwise(found)]
     buckets = {
         "program start-up (launch to ready, first-iteration excess)": sum(ready)
         + sum(max(0.0, f - per_iteration) for f in first),
@@ -419,10 +422,12 @@ def report(args: argparse.Namespace, straight: dict, chaos: dict, imports: float
     )
 
 
-def last_progress(timeline: Timeline, before: float) -> float | None:
-    """When an iteration last completed (on any rank) before ``before``."""
-    times = [b.time for b in timeline.beats.values() if b.phase == "rollout" and b.time < before]
-    return max(times, default=None)
+def stopped(timeline: Timeline, attempt: Attempt, until: float) -> float:
+    """When an attempt stopped being useful: the last iteration completed (on any rank) before ``until``, or
+    its own start-up, if later (a restart that failed in start-up: that time is start-up, not detection)."""
+    progress = [b.time for b in timeline.beats.values() if b.phase == "rollout" and attempt.launched <= b.time < until]
+    steps = [t for t in (attempt.ready, attempt.restored, attempt.first) if t and t < until]
+    return max([attempt.launched, *progress, *steps])
 
 
 def main() -> int:
@@ -437,14 +442,16 @@ def main() -> int:
     parser.add_argument("--max-reruns", type=int, default=10, help="unexpected supervisor exits before giving up")
     parser.add_argument("--keep", action="store_true", help="keep the run directories (printed)")
     args = parser.parse_args()
+    sys.stdout.reconfigure(line_buffering=True)  # progress lines show at once, also in a log file
     work = Path(tempfile.mkdtemp(prefix="ftrain-bench-chaos-"))
     bench = Bench(args, work)
     try:
         imports = import_seconds()
-        print(f"uninterrupted run: configs/halfcheetah.yaml, 2 ranks, {args.iterations} iterations, S3", flush=True)
+        overrides = f" ({' '.join(args.set)})" if args.set else ""
+        print(f"uninterrupted run: configs/halfcheetah.yaml{overrides}, 2 ranks, {args.iterations} iterations, S3")
         straight = bench.straight()
-        print(f"  {straight['wall']:.1f} s, final step {straight['digest'][0]}", flush=True)
-        print(f"chaos run: a fault every ~{args.period:g} s, seed {args.seed}, outages {args.outage:g} s", flush=True)
+        print(f"  {straight['wall']:.1f} s, final step {straight['digest'][0]}")
+        print(f"chaos run: a fault every ~{args.period:g} s, seed {args.seed}, outages {args.outage:g} s")
         chaos = bench.chaos()
         report(args, straight, chaos, imports)
     finally:
