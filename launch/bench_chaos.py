@@ -9,7 +9,8 @@ from ``--seed`` (two runs with the same seed inject the same sequence): a worker
 hang), the supervisor SIGTERMed and the same command run again, a flipped byte in the newest committed shard plus a
 worker SIGKILLed, the whole process tree SIGKILLed and the same command run again, and the S3 port refusing for
 ``--outage`` seconds. A supervisor that exits otherwise (a failure the product does not survive yet) is reported
-with its exit code and the fault it came after, and the same command is run again (``--max-reruns``).
+with its exit code and the fault it came after, and the same command is run again (``--max-reruns``). A chaos run
+that takes over ``--max-slowdown`` times the uninterrupted one (faults faster than it recovers) is given up.
 
 Printed: goodput = uninterrupted wall time / chaos wall time, the faults, iterations lost, whether the final
 ``state_sha256`` equals the uninterrupted run's, the lost time in the buckets of Google's ml-goodput-measurement
@@ -37,17 +38,18 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections import Counter, defaultdict
+from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import s3fs
 from bench_recovery import Supervised, kill_tree
+from chaos_timeline import Timeline, attempts, lost_iterations, stopped
 
 from ftrain.ckpt.format import read_manifest, shard_name, step_dir
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
-from ftrain.heartbeat import Heartbeat, read_heartbeats
+from ftrain.heartbeat import Heartbeat
 from ftrain.supervise import procfs
 from ftrain.supervise.options import EXIT_PREEMPTED
 from ftrain.tools.outage import S3Server
@@ -84,92 +86,6 @@ def fault_plan(seed: int, period: float, count: int) -> list[Fault]:
         Fault(order[k % len(order)], period * (1 + rng.uniform(-JITTER, JITTER)), rng.randrange(2))
         for k in range(count)
     ]
-
-
-class Timeline:
-    """Every heartbeat write seen in a log directory, by (pid, seq)."""
-
-    def __init__(self, heartbeat_dir: Path) -> None:
-        self.dir = heartbeat_dir
-        self.beats: dict[tuple[int, int], Heartbeat] = {}
-
-    def poll(self) -> dict[int, Heartbeat]:
-        beats = read_heartbeats(self.dir)
-        for beat in beats.values():
-            self.beats.setdefault((beat.pid, beat.seq), beat)
-        return beats
-
-    def by_pid(self) -> dict[int, list[Heartbeat]]:
-        found: dict[int, list[Heartbeat]] = defaultdict(list)
-        for (pid, _), beat in sorted(self.beats.items(), key=lambda item: item[1].time):
-            found[pid].append(beat)
-        return found
-
-    def save_seconds(self) -> float:
-        """Rank 0's time in the checkpoint phase (a checkpoint beat until its process's next beat, where seen)."""
-        total = 0.0
-        for beats in self.by_pid().values():
-            for beat, after in itertools.pairwise(beats):
-                if beat.rank == 0 and beat.phase == "checkpoint" and after.seq == beat.seq + 1:
-                    total += after.time - beat.time
-        return total
-
-    def iteration_seconds(self) -> float:
-        """Wall time per iteration of rank 0's first process, evaluation and saves included (the straight run)."""
-        beats = next(beats for beats in self.by_pid().values() if beats[0].rank == 0)
-        first = next(b for b in beats if b.phase == "rollout")
-        last = max(beats, key=lambda b: (b.iteration, -b.time))
-        return (last.time - first.time) / max(1, last.iteration - first.iteration)
-
-
-@dataclass
-class Attempt:
-    """One torchrun launch of the chaos run, as its workers' heartbeats tell it."""
-
-    launched: float
-    ready: float | None = None
-    """Every rank's first ``start`` beat: imports, rendezvous, environments and model built."""
-    restored: float | None = None
-    """Every rank past its ``start`` beats (the checkpoint restored, the first rollout begun)."""
-    first: float | None = None
-    """Every rank past the step it resumed from: the first iteration done."""
-    resumed: int = 0
-    top: int = 0
-
-
-def attempts(timeline: Timeline, launches: list[float]) -> list[Attempt]:
-    """Each torchrun launch with the phases of the workers it started (a worker belongs to the last launch before
-    its first beat)."""
-    found = [Attempt(t) for t in launches]
-    workers: dict[int, list[list[Heartbeat]]] = defaultdict(list)
-    for beats in timeline.by_pid().values():
-        index = max((i for i, t in enumerate(launches) if t <= beats[0].time), default=None)
-        if index is not None:
-            workers[index].append(beats)
-    for index, processes in workers.items():
-        attempt = found[index]
-        starts = [[b for b in beats if b.phase == "start"] for beats in processes]
-        attempt.resumed = max((b.resumed_step or 0 for beats in processes for b in beats), default=0)
-        attempt.top = max(b.iteration for beats in processes for b in beats)
-        if all(s and s[0].seq == 1 for s in starts):
-            attempt.ready = max(s[0].time for s in starts)
-        trains = [next((b.time for b in beats if b.phase != "start"), None) for beats in processes]
-        if None not in trains:  # the second start beat (restored) lasts a moment: the first rollout follows at once
-            attempt.restored = max(trains)
-        past = [next((b.time for b in beats if b.iteration > attempt.resumed), None) for beats in processes]
-        if len(processes) >= 2 and None not in past:
-            attempt.first = max(past)
-    return found
-
-
-def lost_iterations(found: list[Attempt]) -> list[int]:
-    """Per attempt after the first, the iterations done before that it does again (as the supervisor's ledger
-    counts them, across supervisor processes too)."""
-    frontier, lost = found[0].top, []
-    for attempt in found[1:]:
-        lost.append(max(0, frontier - attempt.resumed) if attempt.top > attempt.resumed else 0)
-        frontier = attempt.top if attempt.top > attempt.resumed else max(frontier, attempt.top)
-    return lost
 
 
 class Bench:
@@ -218,7 +134,9 @@ class Bench:
             raise SystemExit(f"the uninterrupted run exited {run.proc.returncode}: see {self.work}/straight.log")
         return {"wall": wall, "digest": final_digest(storage), "timeline": timeline}
 
-    def chaos(self) -> dict:
+    def chaos(self, straight_wall: float) -> dict:
+        """The chaos run; ``wall`` None if it did not finish (``--max-reruns`` unexpected exits, or slower than
+        ``--max-slowdown`` times the uninterrupted run: faults that come faster than the run can recover)."""
         url, storage = self.storage("chaos")
         log_dir = self.work / "chaos"
         timeline = Timeline(log_dir / "heartbeat")
@@ -240,6 +158,9 @@ class Bench:
                     if not self.ended(state, code):
                         return {"wall": None, "state": state, "timeline": timeline}
                     continue
+                if now - started > self.args.max_slowdown * straight_wall:
+                    print(f"  giving up: {now - started:.0f} s, over {self.args.max_slowdown:g}x the uninterrupted run")
+                    return {"wall": None, "state": state, "timeline": timeline}
                 fault = plan[len(state.injected)]
                 previous = state.injected[-1].injected if state.injected else started
                 if now - previous >= fault.gap and (fault.kind not in NEEDS_TRAINING or training(beats)):
@@ -422,14 +343,6 @@ def report(args: argparse.Namespace, straight: dict, chaos: dict, imports: float
     )
 
 
-def stopped(timeline: Timeline, attempt: Attempt, until: float) -> float:
-    """When an attempt stopped being useful: the last iteration completed (on any rank) before ``until``, or
-    its own start-up, if later (a restart that failed in start-up: that time is start-up, not detection)."""
-    progress = [b.time for b in timeline.beats.values() if b.phase == "rollout" and attempt.launched <= b.time < until]
-    steps = [t for t in (attempt.ready, attempt.restored, attempt.first) if t and t < until]
-    return max([attempt.launched, *progress, *steps])
-
-
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--iterations", type=int, default=1500)
@@ -440,6 +353,9 @@ def main() -> int:
         "--set", action="append", default=[], metavar="KEY=VALUE", help="a config override for both runs (repeat)"
     )
     parser.add_argument("--max-reruns", type=int, default=10, help="unexpected supervisor exits before giving up")
+    parser.add_argument(
+        "--max-slowdown", type=float, default=10.0, help="give the chaos run up after this many straight run times"
+    )
     parser.add_argument("--keep", action="store_true", help="keep the run directories (printed)")
     args = parser.parse_args()
     sys.stdout.reconfigure(line_buffering=True)  # progress lines show at once, also in a log file
@@ -452,7 +368,7 @@ def main() -> int:
         straight = bench.straight()
         print(f"  {straight['wall']:.1f} s, final step {straight['digest'][0]}")
         print(f"chaos run: a fault every ~{args.period:g} s, seed {args.seed}, outages {args.outage:g} s")
-        chaos = bench.chaos()
+        chaos = bench.chaos(straight["wall"])
         report(args, straight, chaos, imports)
     finally:
         bench.server.stop()
