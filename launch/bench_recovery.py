@@ -18,6 +18,7 @@ of the 3-rank world (the ``resize`` events); lost iterations as above.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import secrets
@@ -56,25 +57,39 @@ REJOIN_TIMEOUT = 5
 
 
 class Supervised:
-    """One ``ftrain supervise`` process on ``storage`` (which is its log directory too)."""
+    """One ``ftrain supervise`` process on ``storage``; its log directory is ``log_dir`` (default: ``storage``, a
+    local directory), its console output ``<log_dir>.log``."""
 
-    def __init__(self, storage: Path, *options: str, node: int | None = None, env: dict | None = None) -> None:
+    def __init__(
+        self,
+        storage: Path | str,
+        *options: str,
+        node: int | None = None,
+        env: dict | None = None,
+        config: str = "configs/smoke.yaml",
+        overrides: list[str] = OVERRIDES,
+        log_dir: Path | None = None,
+        hang_timeout: str = str(HANG_TIMEOUT),
+    ) -> None:
         self.storage = storage
+        self.log_dir = Path(storage) if log_dir is None else log_dir
         self.node = node
-        self.heartbeats = storage / "heartbeat" / (f"node-{node}" if node is not None else "")
-        command = [sys.executable, "-m", "ftrain", "supervise", "--hang-timeout", str(HANG_TIMEOUT), *options]
-        command += ["configs/smoke.yaml", "--storage", str(storage), *OVERRIDES]
+        self.heartbeats = self.log_dir / "heartbeat" / (f"node-{node}" if node is not None else "")
+        command = [sys.executable, "-m", "ftrain", "supervise", "--hang-timeout", hang_timeout, *options]
+        command += [config, "--storage", str(storage), *overrides]
+        if log_dir is not None:
+            command.append(f"log_dir={log_dir}")
         self._read = 0
         self._events: list[dict] = []
         self.earlier_resumes = len(self.events("resumed"))  # of earlier runs on the same storage
-        log = open(f"{storage}.log", "ab")  # noqa: SIM115 - the child writes to it for its whole life
+        log = open(f"{self.log_dir}.log", "ab")  # noqa: SIM115 - the child writes to it for its whole life
         self.proc = subprocess.Popen(
             command, cwd=REPO, env={**os.environ, **(env or {})}, stdout=log, stderr=subprocess.STDOUT
         )
 
     def events(self, name: str) -> list[dict]:
         """This node's ``name`` events so far (read incrementally: polling must not steal the workers' CPU)."""
-        path = self.storage / "events.jsonl"
+        path = self.log_dir / "events.jsonl"
         if path.exists():
             with path.open("rb") as file:
                 file.seek(self._read)
@@ -244,9 +259,7 @@ def node_loss_trials(trials: int, work: Path) -> dict[str, list[dict]]:
         for _ in range(trials):
             resizes = len(nodes[0].events("resize"))
             at = time.time()
-            for pid in [nodes[2].proc.pid, *procfs.descendants(nodes[2].proc.pid)]:
-                os.kill(pid, signal.SIGKILL)  # the machine is gone: supervisor, torchrun and worker at once
-            nodes[2].proc.wait()
+            kill_tree(nodes[2].proc)  # the machine is gone: supervisor, torchrun and worker at once
             shrink = nodes[0].next_event("resize", resizes)
             results["node-loss-shrink"].append(resize_result(shrink, at))
             nodes[0].training(shrink["step"] + 2, ranks=1)
@@ -261,6 +274,14 @@ def node_loss_trials(trials: int, work: Path) -> dict[str, list[dict]]:
         for each in nodes:
             each.stop()
     return results
+
+
+def kill_tree(proc: subprocess.Popen) -> None:
+    """SIGKILL a process and everything below it at once, like a machine that lost power."""
+    for pid in [proc.pid, *procfs.descendants(proc.pid)]:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    proc.wait()
 
 
 def resize_result(event: dict, since: float) -> dict:
