@@ -4,6 +4,6 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash launch/setup.sh
-.venv/bin/ruff check ftrain tests launch
-.venv/bin/ruff format --check ftrain tests launch
+.venv/bin/ruff check ftrain tests launch examples
+.venv/bin/ruff format --check ftrain tests launch examples
 exec .venv/bin/python -m pytest -p no:cacheprovider "$@"
