@@ -46,11 +46,11 @@ import s3fs
 from bench_recovery import Supervised, kill_tree
 from chaos_timeline import Timeline, attempts, lost_iterations, stopped
 
+from ftrain import procfs
 from ftrain.ckpt.format import read_manifest, shard_name, step_dir
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
 from ftrain.heartbeat import Heartbeat
-from ftrain.supervise import procfs
 from ftrain.supervise.options import EXIT_PREEMPTED
 from ftrain.tools.outage import S3Server
 
