@@ -326,7 +326,7 @@ def report(args: argparse.Namespace, straight: dict, chaos: dict, imports: float
         - straight["timeline"].save_seconds(),
     }
     extra = chaos["wall"] - straight["wall"]
-    buckets["other (the rest)"] = extra - sum(buckets.values())
+    buckets["other (the rest; negative: the chaos run trained faster)"] = extra - sum(buckets.values())
     print(f"\nlost time: {extra:.1f} s (chaos - uninterrupted), by ml-goodput-measurement's buckets:")
     for name, seconds in buckets.items():
         print(f"  {name:<60} {seconds:8.1f} s {100 * seconds / extra if extra > 0 else 0:6.1f} %")
@@ -334,6 +334,8 @@ def report(args: argparse.Namespace, straight: dict, chaos: dict, imports: float
         f"\nwhere a restart goes ({len(restarts)} restarts, medians): launch to ready {median(ready)}, "
         f"restore {median(restore)}, first iteration {median(first)} (a steady one: {per_iteration:.3f} s)"
     )
+    steady = (straight["timeline"].median_iteration(), chaos["timeline"].median_iteration())
+    print(f"median iteration: uninterrupted run {steady[0]:.3f} s, chaos run {steady[1]:.3f} s (other load)")
     print(f"importing torch, mujoco, rsl_rl, gymnasium alone: {imports:.2f} s (median of 3)")
     saved = len(restarts) * imports
     print(

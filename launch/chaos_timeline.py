@@ -6,6 +6,8 @@ written). Used by ``bench_chaos.py`` (which imports ``bench_recovery`` first: th
 from __future__ import annotations
 
 import itertools
+import math
+import statistics
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +42,14 @@ class Timeline:
                 if beat.rank == 0 and beat.phase == "checkpoint" and after.seq == beat.seq + 1:
                     total += after.time - beat.time
         return total
+
+    def median_iteration(self) -> float:
+        """The median time between consecutive rollout beats of one rank-0 process (a steady iteration)."""
+        gaps = []
+        for beats in self.by_pid().values():
+            rollouts = [b for b in beats if b.rank == 0 and b.phase == "rollout"]
+            gaps += [b.time - a.time for a, b in itertools.pairwise(rollouts) if b.iteration == a.iteration + 1]
+        return statistics.median(gaps) if gaps else math.nan
 
     def iteration_seconds(self) -> float:
         """Wall time per iteration of rank 0's first process, evaluation and saves included (the straight run)."""
