@@ -280,14 +280,16 @@ def test_credentials_never_reach_logs_checkpoints_or_policies(tmp_path, s3_serve
     assert secret not in manifest and '"secret": "***"' in manifest
 
 
-def test_a_failed_final_save_is_an_error_not_success(tmp_path) -> None:
+def test_a_failed_final_save_holds_then_is_an_error_not_success(tmp_path) -> None:
     storage = tmp_path / "run"
     (storage / "checkpoints").mkdir(parents=True)
     (storage / "checkpoints" / "step-000000008").write_text("a file where the final step directory should go")
-    result = subprocess.run(train_command(storage), cwd=REPO, env=child_env(), capture_output=True, text=True)
-    assert result.returncode == 1
+    env = child_env({STORAGE_WAIT_ENV: "2"})
+    result = subprocess.run(train_command(storage), cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == EXIT_STORAGE_DOWN
+    assert "training held at step 8" in result.stdout
     errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
-    assert len(errors) == 1 and "the final checkpoint, step 8, could not be saved" in errors[0]
+    assert len(errors) == 1 and "took no checkpoint for 2 s" in errors[0] and "newest committed step is 6" in errors[0]
     assert "Traceback" not in result.stderr
 
 
