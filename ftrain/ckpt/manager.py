@@ -74,6 +74,8 @@ class Checkpointer:
         self.committed_step: int | None = None
         self.on_commit: Callable[[int, dict], None] = lambda step, manifest: None
         self.while_waiting: Callable[[], None] = lambda: None
+        self.stopping: Callable[[], bool] = lambda: False
+        """Whether this rank was asked to stop: a held save then gives up after the try it is making."""
         self._pending: collections.deque[tuple[int, dict, float]] = collections.deque()
         """(step, snapshot, seconds the loop blocked for it) of the saves handed to the writer thread whose outcome
         has not been acted on yet."""
@@ -167,10 +169,11 @@ class Checkpointer:
         tries = 0
         while self.committed_step != trainer.iteration:
             since, why = self._failing
-            if time.monotonic() - since > self.storage_wait:
+            waited = time.monotonic() - since
+            if waited > self.storage_wait or self.stopping():
                 raise StorageUnavailable(
-                    f"the storage {self.storage.url} took no checkpoint for {self.storage_wait:g} s ({why}); the "
-                    f"newest committed step is {self.committed_step}: run the same command again once it is back"
+                    f"the storage {self.storage.url} took no checkpoint for {waited:.0f} s ({why}); the newest "
+                    f"committed step is {self.committed_step}: run the same command again once it is back"
                 )
             delay = backoff(HOLD_DELAY[0], tries, HOLD_DELAY[1])
             iterations, seconds = self.schedule.unsaved(trainer.iteration, time.monotonic())

@@ -104,6 +104,7 @@ class Trainer:
         self.checkpointer = Checkpointer(config, info, self.log, self.env.robot)
         self.checkpointer.on_commit = lambda step, manifest: self.hooks.call("on_checkpoint", self, step, manifest)
         self.checkpointer.while_waiting = lambda: self.heartbeat.beat("checkpoint")
+        self.checkpointer.stopping = lambda: self.stop.requested
         self._votes = Votes(False, False, False)
         self._config_json = json.dumps(config.public_dict())
         """The config as saved in common.pt: one string, made once (the manifest has it as a mapping)."""
