@@ -208,7 +208,8 @@ class Checkpointer:
         while self._pending and (len(self._pending) > keep or self._background.ready()):
             _, copy, blocked = self._pending.popleft()
             while (outcome := self._background.take(WAIT_BEAT)) is None:
-                self.while_waiting()
+                if self._writer.storing:  # waiting for the storage is work; waiting for a peer is not
+                    self.while_waiting()
             self._spare.append(copy)  # the writer is done with it
             self._act_on(outcome, blocked)
 

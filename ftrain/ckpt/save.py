@@ -106,6 +106,10 @@ class StepWriter:
         self._steps: dict[int, StepInfo] | None = None
         """Rank 0: the steps in storage, scanned at the first save and then kept up to date by this run's own saves
         and deletions, so that retention needs no listing after every commit."""
+        self.storing = False
+        """Whether this rank is busy with the storage for a save now (writing, or rank 0 committing), rather than
+        encoding or waiting for its peers: a rank waiting for its save beats only then, so that a stopped peer reads as
+        a hang and a slow storage does not."""
         self._listed = False
         """Rank 0: whether a commit has listed its step directory. The first one does: a storage that the ranks do
         not share (node-local directories on several nodes) shows there, once. Later commits trust the writers'
@@ -114,19 +118,25 @@ class StepWriter:
     def save(self, step: int, files: dict[str, dict], meta: dict | None, check_loadable: bool) -> Outcome:
         """Write this rank's ``files`` (name to state) of ``step``; ``meta`` (rank 0) goes into the manifest."""
         report = {"entries": {}, "fields": {}, "error": None, "unloadable": False}
+        self.storing = True
         try:
             report["entries"], report["fields"] = self._write(step, files, check_loadable)
         except CorruptCheckpoint as exc:  # only the loadability check raises it
             report["error"], report["unloadable"] = f"rank {self.info.rank}: {exc}: {UNLOADABLE_HINT}", True
         except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
             report["error"] = f"rank {self.info.rank}: {exc}"
+        finally:
+            self.storing = False
         reports = group.all_gather_object(report, self.info, self.collectives)
         outcome = None
         if self.info.is_main:
+            self.storing = True
             try:
                 outcome = self._commit(step, reports, meta)
             except Exception as exc:  # whatever rank 0 meets, every rank hears the same outcome
                 outcome = (Result.FAILED, step, f"commit: {type(exc).__name__}: {exc}")
+            finally:
+                self.storing = False
         result, _, detail = group.broadcast_object(outcome, self.info, self.collectives)
         return Outcome(Result(result), step, detail)
 

@@ -26,6 +26,9 @@ from ftrain.heartbeat import Heartbeat, Phase
 HANG_FLOOR = 5.0
 HANG_FACTOR = 10.0
 QUIET_PHASES = (Phase.DONE, Phase.PREEMPTED)
+ITERATION_PHASES = (Phase.ROLLOUT, Phase.UPDATE)
+"""Phases of every iteration: once a rank is past its first iteration and the next, it has been through them, however
+briefly (a phase of a few milliseconds may never be seen by a poll; unseen, it would get the start-up grace)."""
 """Phases after which a rank only exits: never a hang."""
 
 
@@ -91,6 +94,9 @@ class HangWatch:
             self.longest[previous.phase] = max(self.longest.get(previous.phase, 0.0), now - since)
         if beat.phase != Phase.START:
             self.first.setdefault(rank, beat.iteration)
+        if beat.iteration > self.first.get(rank, beat.iteration) + 1:
+            for phase in ITERATION_PHASES:  # done since the first iteration, if too fast for a poll to see them
+                self.longest.setdefault(phase, 0.0)
         self.changed[rank] = (beat, now)
 
     def _first_iteration(self, rank: int, beat: Heartbeat) -> bool:

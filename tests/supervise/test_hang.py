@@ -49,6 +49,21 @@ def test_start_up_has_the_grace_and_is_named_as_such():
     assert late.cause() == "killed: start-up hung" and "iteration" not in late.fields()
 
 
+def test_a_stop_is_caught_in_a_phase_too_fast_for_any_poll_to_have_seen():
+    """Updates of a few milliseconds between polls a tenth of a second apart: the watch never saw one, and rank 0 then
+    waits in an update for a stopped rank 1. Seen or not, a phase of every iteration gets the floor, not the grace."""
+    watch = HangWatch(timeout=None, startup_grace=GRACE, ranks=2)
+    watch.restart(now=0)
+    assert both(watch, 1, Phase.START, 0, now=0) is None
+    for iteration in range(6):  # each poll happens to see a rollout
+        assert both(watch, 2 + iteration, Phase.ROLLOUT, iteration, now=1 + iteration / 10) is None
+    assert Phase.UPDATE not in watch.longest or watch.longest[Phase.UPDATE] == 0.0
+    stuck = {0: beat(0, 20, Phase.UPDATE, 6), 1: beat(1, 20, Phase.ROLLOUT, 6)}
+    assert watch.check(stuck, now=1.6) is None
+    hang = watch.check(stuck, now=1.6 + HANG_FLOOR + 0.1)
+    assert hang is not None and hang.limit == HANG_FLOOR
+
+
 def test_a_slow_first_iteration_is_not_a_hang_and_a_stop_in_a_fast_phase_is_caught_in_seconds():
     watch = HangWatch(timeout=None, startup_grace=GRACE, ranks=2)
     watch.restart(now=0)
