@@ -55,6 +55,10 @@ class Heartbeat:
     time: float
     world: int = 1
     nodes: list[int] = field(default_factory=list)
+    longest: dict[str, float] = field(default_factory=dict)
+    """Phase -> the longest this process has spent in it, on its own clock, past start-up and its first iteration:
+    what the supervisor's hang limits are made of, whether or not one of its polls happened to see the phase (a
+    phase of milliseconds seldom meets a poll a tenth of a second apart)."""
 
 
 class HeartbeatWriter:
@@ -77,6 +81,11 @@ class HeartbeatWriter:
         self.iteration = 0
         self.committed_step: int | None = None
         self.resumed_step: int | None = None
+        self.longest: dict[str, float] = {}
+        self._timing: tuple[Phase, float] | None = None
+        """The phase being timed and when it began (None: start-up or the first iteration, not timed)."""
+        self._first: int | None = None
+        """The iteration of the first heartbeat past start-up."""
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
 
@@ -85,6 +94,14 @@ class HeartbeatWriter:
             self.iteration = iteration
         if self.path is None:
             return
+        now = time.monotonic()
+        if self._timing is not None:
+            timed, since = self._timing
+            self.longest[timed] = max(self.longest.get(timed, 0.0), now - since)
+        if phase != Phase.START and self._first is None:
+            self._first = self.iteration
+        past_first = phase != Phase.START and self.iteration > self._first
+        self._timing = (phase, now) if past_first else None
         self.seq += 1
         beat = Heartbeat(
             self.rank,
@@ -97,6 +114,7 @@ class HeartbeatWriter:
             time.time(),
             self.world,
             self.nodes,
+            {str(timed): round(seconds, 4) for timed, seconds in self.longest.items()},
         )
         tmp = self.path.with_suffix(f".tmp{os.getpid()}")
         tmp.write_text(json.dumps(asdict(beat)))

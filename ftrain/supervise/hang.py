@@ -3,7 +3,10 @@ caught in seconds.
 
 A heartbeat names the ``Phase`` its rank is in, which lasts until the rank's next heartbeat (``seq``). Each phase is
 timed on its own, as NVIDIA's resiliency extension times its sections, over all attempts: its limit is
-``max(HANG_FLOOR, HANG_FACTOR x its longest time so far)``, and ``--startup-grace`` while it has not been seen.
+``max(HANG_FLOOR, HANG_FACTOR x its longest time so far)``, and ``--startup-grace`` while it has not been seen. The
+ranks time their phases themselves and report the longest in their heartbeats (``Heartbeat.longest``): a phase of a
+few milliseconds seldom meets one of the supervisor's polls, and unseen it would keep the start-up grace, so that a
+rank stopped while its peer waits in such a phase would go unnoticed.
 Start-up (from the launch until every rank is past ``start``) and the first iteration after it get
 ``--startup-grace`` too, and are not counted in the phases' times: what they take depends on what the attempt starts
 from (a fresh start, a resume from a large checkpoint on slow storage), which no earlier attempt predicts, and a slow
@@ -26,9 +29,6 @@ from ftrain.heartbeat import Heartbeat, Phase
 HANG_FLOOR = 5.0
 HANG_FACTOR = 10.0
 QUIET_PHASES = (Phase.DONE, Phase.PREEMPTED)
-ITERATION_PHASES = (Phase.ROLLOUT, Phase.UPDATE)
-"""Phases of every iteration: once a rank is past its first iteration and the next, it has been through them, however
-briefly (a phase of a few milliseconds may never be seen by a poll; unseen, it would get the start-up grace)."""
 """Phases after which a rank only exits: never a hang."""
 
 
@@ -94,9 +94,8 @@ class HangWatch:
             self.longest[previous.phase] = max(self.longest.get(previous.phase, 0.0), now - since)
         if beat.phase != Phase.START:
             self.first.setdefault(rank, beat.iteration)
-        if beat.iteration > self.first.get(rank, beat.iteration) + 1:
-            for phase in ITERATION_PHASES:  # done since the first iteration, if too fast for a poll to see them
-                self.longest.setdefault(phase, 0.0)
+        for phase, seconds in beat.longest.items():  # the rank's own times: phases too fast for a poll count too
+            self.longest[Phase(phase)] = max(self.longest.get(Phase(phase), 0.0), seconds)
         self.changed[rank] = (beat, now)
 
     def _first_iteration(self, rank: int, beat: Heartbeat) -> bool:

@@ -21,8 +21,8 @@ from helpers import REPO, SMOKE, TESTS, child_env, events, finish, launch, train
 GRACE = 60.0
 
 
-def beat(rank: int, seq: int, phase: Phase, iteration: int) -> Heartbeat:
-    return Heartbeat(rank, os.getpid(), iteration, phase, None, None, seq, 0.0)
+def beat(rank: int, seq: int, phase: Phase, iteration: int, longest: dict | None = None) -> Heartbeat:
+    return Heartbeat(rank, os.getpid(), iteration, phase, None, None, seq, 0.0, longest=longest or {})
 
 
 def both(watch: HangWatch, seq: int, phase: Phase, iteration: int, now: float):
@@ -50,15 +50,17 @@ def test_start_up_has_the_grace_and_is_named_as_such():
 
 
 def test_a_stop_is_caught_in_a_phase_too_fast_for_any_poll_to_have_seen():
-    """Updates of a few milliseconds between polls a tenth of a second apart: the watch never saw one, and rank 0 then
-    waits in an update for a stopped rank 1. Seen or not, a phase of every iteration gets the floor, not the grace."""
+    """Updates and saves of a few milliseconds between polls a tenth of a second apart: the watch never saw one, and
+    rank 0 then waits in an update for a stopped rank 1. The ranks' own times in their heartbeats give the floor."""
     watch = HangWatch(timeout=None, startup_grace=GRACE, ranks=2)
     watch.restart(now=0)
     assert both(watch, 1, Phase.START, 0, now=0) is None
+    timed = {"rollout": 0.08, "update": 0.004, "checkpoint": 0.002}
     for iteration in range(6):  # each poll happens to see a rollout
-        assert both(watch, 2 + iteration, Phase.ROLLOUT, iteration, now=1 + iteration / 10) is None
-    assert Phase.UPDATE not in watch.longest or watch.longest[Phase.UPDATE] == 0.0
-    stuck = {0: beat(0, 20, Phase.UPDATE, 6), 1: beat(1, 20, Phase.ROLLOUT, 6)}
+        beats = {rank: beat(rank, 2 + iteration, Phase.ROLLOUT, iteration, timed) for rank in (0, 1)}
+        assert watch.check(beats, now=1 + iteration / 10) is None
+    assert watch.longest[Phase.UPDATE] == 0.004
+    stuck = {0: beat(0, 20, Phase.CHECKPOINT, 6, timed), 1: beat(1, 20, Phase.ROLLOUT, 6, timed)}
     assert watch.check(stuck, now=1.6) is None
     hang = watch.check(stuck, now=1.6 + HANG_FLOOR + 0.1)
     assert hang is not None and hang.limit == HANG_FLOOR

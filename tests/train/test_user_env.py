@@ -19,6 +19,7 @@ import pytest
 from ftrain.heartbeat import ENV_DIR, read_heartbeats
 
 from helpers import (
+    REPO,
     SMOKE,
     TESTS,
     child_env,
@@ -182,3 +183,22 @@ def test_bad_input_is_one_line_exit_2_and_no_restart_under_torchrun_and_supervis
             assert result.returncode != 0 and re.search(r"exitcode\s*:\s*2", result.stderr), where
             refusals = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
             assert len(refusals) == 1 and message in refusals[0], where
+
+
+def test_a_student_distils_from_a_teacher_of_ones_own_robot_and_resumes_exactly(work, tmp_path) -> None:
+    """Distillation is one more feature every MujocoEnv gets: the teacher and the student train the user's robot."""
+    teacher = tmp_path / "teacher"
+    run_train(teacher, *MEMORY_ARM, cwd=work)
+    distill = [f"teacher={teacher}", "env.id=userbot:MemoryArm-v0", "env.num_envs=4", "num_steps_per_env=16"]
+    distill += ["policy.hidden_dims=[32,32]", "algorithm.gradient_length=16", "checkpoint.interval=2"]
+    config = str(REPO / "configs" / "distill_halfcheetah.yaml")
+    straight = tmp_path / "straight"
+    result = run_train(straight, *distill, "iterations=6", ranks=2, config=config, cwd=work)
+    assert "teacher: " in result.stdout and "(step 8," in result.stdout
+    manifest = final_manifest(straight)
+    assert manifest["teacher"]["digest"] == final_manifest(teacher)["state_sha256"]
+    assert manifest["robot"]["env_class"] == "userbot.envs:MemoryArm"
+    resumed = tmp_path / "resumed"
+    run_train(resumed, *distill, "iterations=4", ranks=2, config=config, cwd=work)
+    run_train(resumed, *distill, "iterations=6", ranks=2, config=config, cwd=work)
+    assert final_manifest(resumed)["state_sha256"] == manifest["state_sha256"]
