@@ -73,17 +73,30 @@ class HangWatch:
             rank = min(starting) if starting else None
             return Hang(rank, Phase.START, round(now - self.launched, 1), self.startup_grace, ranks_seen=len(beats))
         working = {rank: beat for rank, beat in beats.items() if beat.phase not in QUIET_PHASES}
-        if not working or any(now - self.changed[rank][1] <= self.limit(rank, b) for rank, b in working.items()):
+        stopped = self._stopped(working, now)
+        if stopped is None and (
+            not working or any(now - self.changed[rank][1] <= self.limit(rank, b) for rank, b in working.items())
+        ):
             return None
         states = {r: process_state(b.pid) for r, b in sorted(beats.items())}
         # the others wait for it in a collective and may have been silent longer: name a stopped rank if any
         silent_longest = min(working, key=lambda rank: self.changed[rank][1])
-        rank = next((r for r, state in states.items() if state in ("T", "t", "D") and r in working), silent_longest)
+        named = next((r for r, state in states.items() if state in ("T", "t", "D") and r in working), silent_longest)
+        rank = named if stopped is None else stopped
         beat = beats[rank]
-        seconds, limit = round(now - self.changed[rank][1], 1), round(self.limit(rank, beat), 1)
+        limit = HANG_FLOOR if stopped is not None else self.limit(rank, beat)
+        seconds, limit = round(now - self.changed[rank][1], 1), round(limit, 1)
         processes = {str(r): state for r, state in states.items()}
         first = self._first_iteration(rank, beat) or None
         return Hang(rank, beat.phase, seconds, limit, iteration=beat.iteration, processes=processes, first=first)
+
+    def _stopped(self, working: dict[int, Heartbeat], now: float) -> int | None:
+        """A rank whose process has been stopped (SIGSTOP, a debugger) and silent past the floor, in any phase, the
+        first iteration's too (``auto`` only): a stopped process does no slow work."""
+        if self.timeout is not None:
+            return None
+        silent = [rank for rank, beat in working.items() if now - self.changed[rank][1] > HANG_FLOOR]
+        return next((rank for rank in silent if process_state(working[rank].pid) in ("T", "t")), None)
 
     def _observe(self, rank: int, beat: Heartbeat, now: float) -> None:
         """A new heartbeat ends the rank's previous phase: time it (past start-up and the first iteration)."""

@@ -14,7 +14,7 @@ import time
 import pytest
 
 from ftrain.heartbeat import Heartbeat, Phase
-from ftrain.supervise.hang import HANG_FACTOR, HANG_FLOOR, HangWatch
+from ftrain.supervise.hang import HANG_FACTOR, HANG_FLOOR, HangWatch, process_state
 
 from helpers import REPO, SMOKE, TESTS, child_env, events, finish, launch, training, wait_for
 
@@ -64,6 +64,27 @@ def test_a_stop_is_caught_in_a_phase_too_fast_for_any_poll_to_have_seen():
     assert watch.check(stuck, now=1.6) is None
     hang = watch.check(stuck, now=1.6 + HANG_FLOOR + 0.1)
     assert hang is not None and hang.limit == HANG_FLOOR
+
+
+def test_a_stopped_process_is_hung_after_the_floor_even_in_its_first_iteration():
+    """A rank stopped (SIGSTOP) right after a restart, in the first iteration that has the start-up grace: a stopped
+    process does no slow work, so the floor applies (a real stopped child process)."""
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        os.kill(child.pid, signal.SIGSTOP)
+        wait_for(lambda: process_state(child.pid) == "T", "the child stopped")
+        watch = HangWatch(timeout=None, startup_grace=GRACE, ranks=2)
+        watch.restart(now=0)
+        stopped = Heartbeat(1, child.pid, 0, Phase.ROLLOUT, None, None, 2, 0.0)
+        beats = {0: beat(0, 2, Phase.UPDATE, 0), 1: stopped}
+        assert watch.check({0: beat(0, 1, Phase.START, 0), 1: beat(1, 1, Phase.START, 0)}, now=0) is None
+        assert watch.check(beats, now=1) is None
+        assert watch.check(beats, now=1 + HANG_FLOOR) is None
+        hang = watch.check(beats, now=1.2 + HANG_FLOOR)
+        assert (hang.rank, hang.limit, hang.first, hang.processes["1"]) == (1, HANG_FLOOR, True, "T")
+    finally:
+        child.kill()
+        child.wait()
 
 
 def test_a_slow_first_iteration_is_not_a_hang_and_a_stop_in_a_fast_phase_is_caught_in_seconds():
