@@ -41,7 +41,7 @@ OFFLINE = {
     "WANDB_SILENT": "true",
     "WANDB_DISABLE_GIT": "true",
     "WANDB_DISABLE_CODE": "true",
-    "WANDB_X_DISABLE_STATS": "true",
+    "WANDB__DISABLE_STATS": "true",  # W&B reads its private settings from WANDB__NAME
     "WANDB_ERROR_REPORTING": "false",
     "MLFLOW_DISABLE_TELEMETRY": "true",
     "DO_NOT_TRACK": "true",
