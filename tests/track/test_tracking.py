@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from mlflow.tracking import MlflowClient
 from ftrain.config import load_config
 from ftrain.errors import UserError
 from ftrain.supervise.options import EXIT_DONE
+from ftrain.track.sender import GOES_ON, QUEUE_ROWS, Sender
 from ftrain.track.wandb_log import records
 
 from helpers import (
@@ -124,6 +126,7 @@ def test_one_tracker_run_across_restarts_every_iteration_once_no_secret(tmp_path
     assert config["storage"]["options"] == {"secret": "***"}
 
 
+@pytest.mark.slow
 def test_an_unreachable_tracker_costs_one_warning_and_never_stops_training(tmp_path):
     closed = f"http://127.0.0.1:{free_port()}"  # nothing listens there
     start = time.monotonic()
@@ -172,3 +175,50 @@ def test_a_tracker_is_off_until_one_of_its_keys_is_set(monkeypatch):
 
 def _same(logged: float, expected: float) -> bool:
     return (math.isnan(logged) and math.isnan(expected)) or logged == expected
+
+
+@pytest.mark.slow
+def test_a_fresh_storage_gets_a_fresh_tracker_run_and_a_resumed_one_continues_its_own(tmp_path):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    for storage, iterations in (("a", 6), ("b", 6), ("a", 10)):  # a, then b afresh, then a resumed from step 6
+        run_train(tmp_path / storage, f"iterations={iterations}", f"log.mlflow.tracking_uri={uri}", env=OFFLINE)
+    client = MlflowClient(uri)
+    runs = client.search_runs([client.get_experiment_by_name("smoke").experiment_id])
+    assert len(runs) == 2 and len({run.data.tags["ftrain.run_id"] for run in runs}) == 2
+    steps = {run.data.tags["ftrain.storage"]: client.get_metric_history(run.info.run_id, "env_steps") for run in runs}
+    assert sorted(metric.step for metric in steps[str(tmp_path / "a")]) == list(range(1, 11))
+    assert sorted(metric.step for metric in steps[str(tmp_path / "b")]) == list(range(1, 7))
+
+
+class Stuck:
+    """A tracker that does not answer until it is let go."""
+
+    name = "stuck"
+
+    def __init__(self) -> None:
+        self.answer = threading.Event()
+        self.logged: list[int] = []
+
+    def open(self) -> int:
+        self.answer.wait()
+        return -1
+
+    def log(self, step: int, values: dict[str, float]) -> None:
+        self.logged.append(step)
+
+    def close(self, finished: bool) -> None:
+        pass
+
+
+def test_a_stuck_tracker_never_blocks_sending_and_a_full_queue_is_one_warning():
+    tracker, lines = Stuck(), []
+    sender = Sender(tracker, lambda last: [], dict, lines.append)
+    start = time.perf_counter()
+    for step in range(1, QUEUE_ROWS + 501):
+        sender.send(step, {"x": float(step)})
+    assert time.perf_counter() - start < 1.0
+    dropped = f"stuck: it is {QUEUE_ROWS} iterations behind: dropping iterations from {QUEUE_ROWS + 1} on; {GOES_ON}"
+    assert lines == [dropped]
+    tracker.answer.set()
+    sender.close(finished=True)
+    assert tracker.logged == list(range(1, QUEUE_ROWS + 1)) and len(lines) == 1
