@@ -10,6 +10,7 @@ random stream the training uses (``uuid4`` reads the OS's entropy) or decides an
 
 from __future__ import annotations
 
+import os
 import uuid
 from typing import TYPE_CHECKING
 
@@ -28,19 +29,21 @@ if TYPE_CHECKING:
 class TrackingHook(Hook):
     def __init__(self, config: Config) -> None:
         self.config = config
+        self.storage = storage_identity(config.storage.url)
         self.run_id = ""
         self.senders: list[Sender] = []
 
     def state_dict(self) -> dict:
-        return {"run_id": self.run_id}
+        return {"run_id": self.run_id, "storage": self.storage}
 
     def load_state_dict(self, state: dict) -> None:
-        self.run_id = state["run_id"]
+        """A checkpoint of another storage (``resume=`` a step of another run) starts a training run of its own."""
+        self.run_id = state["run_id"] if state.get("storage") == self.storage else ""
 
     def on_start(self, trainer: Trainer) -> None:
         if not trainer.info.is_main:
             return
-        config, storage = self.config, display_url(self.config.storage.url)
+        config, storage = self.config, self.storage
         continued = config.resume == "auto" and recorded_run(config.log_dir, storage)
         self.run_id = self.run_id or continued or uuid.uuid4().hex[:16]
         record_run(config.log_dir, self.run_id, storage)
@@ -68,3 +71,8 @@ class TrackingHook(Hook):
     def on_end(self, trainer: Trainer) -> None:
         for sender in self.senders:
             sender.close(finished=trainer.iteration >= self.config.iterations)
+
+
+def storage_identity(url: str) -> str:
+    """Which storage a run lives in, as trackers may be told it: without credentials, a local path made absolute."""
+    return display_url(url) if "://" in url else os.path.abspath(url)

@@ -178,16 +178,20 @@ def _same(logged: float, expected: float) -> bool:
 
 
 @pytest.mark.slow
-def test_a_fresh_storage_gets_a_fresh_tracker_run_and_a_resumed_one_continues_its_own(tmp_path):
+def test_a_resize_continues_the_tracker_run_and_a_run_forked_into_another_storage_gets_its_own(tmp_path):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    for storage, iterations in (("a", 6), ("b", 6), ("a", 10)):  # a, then b afresh, then a resumed from step 6
-        run_train(tmp_path / storage, f"iterations={iterations}", f"log.mlflow.tracking_uri={uri}", env=OFFLINE)
+    run, fork, track = tmp_path / "run", tmp_path / "fork", f"log.mlflow.tracking_uri={uri}"
+    step = str(run / "checkpoints" / "step-000000006")
+    run_train(run, "iterations=6", track, ranks=2, env=OFFLINE)
+    run_train(fork, "iterations=8", track, f"resume={step}", env=OFFLINE)  # another storage: a new training run
+    run_train(run, "iterations=10", track, f"resume={step}", env=OFFLINE)  # the same run on 1 rank instead of 2
     client = MlflowClient(uri)
     runs = client.search_runs([client.get_experiment_by_name("smoke").experiment_id])
-    assert len(runs) == 2 and len({run.data.tags["ftrain.run_id"] for run in runs}) == 2
-    steps = {run.data.tags["ftrain.storage"]: client.get_metric_history(run.info.run_id, "env_steps") for run in runs}
-    assert sorted(metric.step for metric in steps[str(tmp_path / "a")]) == list(range(1, 11))
-    assert sorted(metric.step for metric in steps[str(tmp_path / "b")]) == list(range(1, 7))
+    assert len(runs) == 2 and len({found.data.tags["ftrain.run_id"] for found in runs}) == 2
+    by_storage = {found.data.tags["ftrain.storage"]: found.info.run_id for found in runs}
+    sizes = {metric.step: metric.value for metric in client.get_metric_history(by_storage[str(run)], "world_size")}
+    assert sizes == {**dict.fromkeys(range(1, 7), 2.0), **dict.fromkeys(range(7, 11), 1.0)}
+    assert sorted(metric.step for metric in client.get_metric_history(by_storage[str(fork)], "env_steps")) == [7, 8]
 
 
 class Stuck:
