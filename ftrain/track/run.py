@@ -6,6 +6,7 @@ from dataclasses import dataclass
 
 from ftrain.config import Config
 from ftrain.track.mlflow_run import MlflowRun
+from ftrain.track.sender import Tracker
 from ftrain.track.wandb_run import WandbRun
 
 
@@ -21,9 +22,9 @@ class RunInfo:
     log_dir: str
 
 
-def trackers(config: Config, run: RunInfo) -> list:
+def trackers(config: Config, run: RunInfo) -> list[Tracker]:
     """The trackers ``config.log`` turns on (their libraries are imported only when they open)."""
-    found = []
+    found: list[Tracker] = []
     if config.log.wandb.enabled:
         found.append(WandbRun(config.log.wandb, run))
     if config.log.mlflow.enabled:
