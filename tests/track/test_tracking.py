@@ -50,7 +50,7 @@ OFFLINE = {
 }
 """Nothing of these tests reaches a network: W&B offline, no telemetry."""
 SECRET = "tracker-test-secret-8Hq2Zr"
-ITERATIONS = 30
+ITERATIONS = 20
 
 
 def wandb_history(log_dir: Path) -> tuple[set[str], list[dict], list[dict]]:
@@ -79,6 +79,9 @@ def supervise(storage: Path, *overrides: str) -> subprocess.Popen:
 @pytest.mark.slow
 def test_one_tracker_run_across_restarts_every_iteration_once_no_secret(tmp_path):
     storage, mlflow_uri = tmp_path / "run", f"sqlite:///{tmp_path / 'mlflow.db'}"
+    # MLflow makes a new SQLite store's tables in migrations that a process killed meanwhile leaves half done (the
+    # store then fails every later open): the store exists before the run, as a store in use does
+    MlflowClient(mlflow_uri).search_experiments()
     proc = supervise(
         storage,
         f"iterations={ITERATIONS}",
@@ -181,17 +184,17 @@ def _same(logged: float, expected: float) -> bool:
 def test_a_resize_continues_the_tracker_run_and_a_run_forked_into_another_storage_gets_its_own(tmp_path):
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     run, fork, track = tmp_path / "run", tmp_path / "fork", f"log.mlflow.tracking_uri={uri}"
-    step = str(run / "checkpoints" / "step-000000006")
-    run_train(run, "iterations=6", track, ranks=2, env=OFFLINE)
-    run_train(fork, "iterations=8", track, f"resume={step}", env=OFFLINE)  # another storage: a new training run
-    run_train(run, "iterations=10", track, f"resume={step}", env=OFFLINE)  # the same run on 1 rank instead of 2
+    step = str(run / "checkpoints" / "step-000000004")
+    run_train(run, "iterations=4", track, ranks=2, env=OFFLINE)
+    run_train(fork, "iterations=5", track, f"resume={step}", env=OFFLINE)  # another storage: a new training run
+    run_train(run, "iterations=6", track, f"resume={step}", env=OFFLINE)  # the same run on 1 rank instead of 2
     client = MlflowClient(uri)
     runs = client.search_runs([client.get_experiment_by_name("smoke").experiment_id])
     assert len(runs) == 2 and len({found.data.tags["ftrain.run_id"] for found in runs}) == 2
     by_storage = {found.data.tags["ftrain.storage"]: found.info.run_id for found in runs}
     sizes = {metric.step: metric.value for metric in client.get_metric_history(by_storage[str(run)], "world_size")}
-    assert sizes == {**dict.fromkeys(range(1, 7), 2.0), **dict.fromkeys(range(7, 11), 1.0)}
-    assert sorted(metric.step for metric in client.get_metric_history(by_storage[str(fork)], "env_steps")) == [7, 8]
+    assert sizes == {1: 2.0, 2: 2.0, 3: 2.0, 4: 2.0, 5: 1.0, 6: 1.0}
+    assert [metric.step for metric in client.get_metric_history(by_storage[str(fork)], "env_steps")] == [5]
 
 
 class Stuck:
