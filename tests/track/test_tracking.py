@@ -147,7 +147,7 @@ def test_an_unreachable_tracker_costs_one_warning_and_never_stops_training(tmp_p
     warnings = [line for line in (result.stdout + result.stderr).splitlines() if "mlflow:" in line]
     assert len(warnings) == 1 and "did not answer" in warnings[0], warnings
     assert took < 60, f"training took {took:.0f} s with an unreachable tracker"
-    run_train(tmp_path / "plain", env=OFFLINE)  # the tracker changed nothing that was trained
+    run_train(tmp_path / "plain", env=OFFLINE, cwd=tmp_path)  # the tracker changed nothing that was trained
     assert final_manifest(tmp_path / "plain")["state_sha256"] == final_manifest(tmp_path / "run")["state_sha256"]
 
 
@@ -185,9 +185,9 @@ def test_a_resize_continues_the_tracker_run_and_a_run_forked_into_another_storag
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     run, fork, track = tmp_path / "run", tmp_path / "fork", f"log.mlflow.tracking_uri={uri}"
     step = str(run / "checkpoints" / "step-000000004")
-    run_train(run, "iterations=4", track, ranks=2, env=OFFLINE)
-    run_train(fork, "iterations=5", track, f"resume={step}", env=OFFLINE)  # another storage: a new training run
-    run_train(run, "iterations=6", track, f"resume={step}", env=OFFLINE)  # the same run on 1 rank instead of 2
+    run_train(run, "iterations=4", track, ranks=2, env=OFFLINE, cwd=tmp_path)  # MLflow's artifacts: ./mlruns
+    run_train(fork, "iterations=5", track, f"resume={step}", env=OFFLINE, cwd=tmp_path)  # another storage: a new run
+    run_train(run, "iterations=6", track, f"resume={step}", env=OFFLINE, cwd=tmp_path)  # the same run, 1 rank not 2
     client = MlflowClient(uri)
     runs = client.search_runs([client.get_experiment_by_name("smoke").experiment_id])
     assert len(runs) == 2 and len({found.data.tags["ftrain.run_id"] for found in runs}) == 2
