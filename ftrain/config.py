@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import importlib.util
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -111,11 +112,45 @@ class StorageConfig:
     """fsspec storage options (for s3: ``endpoint_url``, ``key``, ``secret``...)."""
 
 
+class Switched:
+    """A config section that is off until any of its keys is set."""
+
+    @property
+    def enabled(self) -> bool:
+        return self != type(self)()
+
+
+@dataclass
+class WandbConfig(Switched):
+    """Weights & Biases, on when any key is set (``pip install 'ftrain[wandb]'``); empty keys: W&B's own defaults."""
+
+    project: str = ""
+    """Default when W&B is on: the run's name."""
+    entity: str = ""
+    group: str = ""
+    tags: list[str] = field(default_factory=list)
+    mode: str = ""
+    """``online``, ``offline`` (sync later with ``wandb sync``) or ``disabled``; empty: ``WANDB_MODE`` or online."""
+
+
+@dataclass
+class MlflowConfig(Switched):
+    """MLflow, on when any key is set (``pip install 'ftrain[mlflow]'``)."""
+
+    tracking_uri: str = ""
+    """An MLflow server (``http://host:5000``) or store (``sqlite:///mlflow.db``); empty: ``MLFLOW_TRACKING_URI`` or
+    MLflow's default."""
+    experiment: str = ""
+    """Default when MLflow is on: the run's name."""
+
+
 @dataclass
 class LogConfig:
     console: bool = True
     tensorboard: bool = True
     csv: bool = True
+    wandb: WandbConfig = field(default_factory=WandbConfig)
+    mlflow: MlflowConfig = field(default_factory=MlflowConfig)
 
 
 @dataclass
@@ -183,6 +218,7 @@ class Config:
         data["storage"]["options"] = redact_options(self.storage.options)
         data["teacher"] = display_url(self.teacher)
         data["resume"] = display_url(self.resume)
+        data["log"]["mlflow"]["tracking_uri"] = display_url(self.log.mlflow.tracking_uri)
         return data
 
     def training_hash(self, robot: dict | None = None) -> str:
@@ -320,10 +356,19 @@ def validate(config: Config) -> None:
         raise UserError("algorithm.schedule=linear needs algorithm.schedule_iterations=N: the rate is 0 at iteration N")
     if config.reward.clip <= 0:
         raise UserError(f"reward.clip={config.reward.clip} must be a positive number")
+    if config.log.wandb.mode not in WANDB_MODES:
+        raise UserError(f"log.wandb.mode={config.log.wandb.mode!r} is unknown: use online, offline or disabled")
+    for key, tracker, module in (("log.wandb", config.log.wandb, "wandb"), ("log.mlflow", config.log.mlflow, "mlflow")):
+        if tracker.enabled and importlib.util.find_spec(module) is None:
+            raise UserError(
+                f"{key} is set but {module} is not installed: pip install 'ftrain[{module}]', or unset {key}"
+            )
     for hook in config.hooks:
         if ":" not in hook.target:
             raise UserError(f"hook target {hook.target!r} must be an import path like package.module:Class")
 
+
+WANDB_MODES = ("", "online", "offline", "disabled")
 
 ACTIVATIONS = (
     "elu",

@@ -204,6 +204,30 @@ class CsvHook(Hook):
             self.file.close()
 
 
+def read_metrics(log_dir: str, after: int, until: int) -> list[tuple[int, dict[str, float]]]:
+    """The rows ``CsvHook`` wrote for iterations ``after`` < i <= ``until``, as (iteration, metrics); a row being
+    written, or a file that is not there, yields nothing."""
+    path = Path(log_dir) / "metrics.csv"
+    if not path.exists():
+        return []
+    with path.open(newline="") as file:
+        rows = list(csv.DictReader(file))
+    found = []
+    for row in rows:
+        try:
+            iteration = int(row["iteration"])
+            metrics = {key: float(value) for key, value in row.items() if key not in CSV_ONLY and value}
+        except (TypeError, ValueError):
+            continue
+        if after < iteration <= until:
+            found.append((iteration, metrics))
+    return found
+
+
+CSV_ONLY = ("iteration", "resumed_from")
+"""Columns of metrics.csv that are not metrics."""
+
+
 def load_hook(target: str, kwargs: dict) -> Hook:
     module_name, _, class_name = target.partition(":")
     try:

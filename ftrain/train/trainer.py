@@ -36,6 +36,7 @@ from ftrain.train.lr_schedule import build_lr_schedule
 from ftrain.train.ppo import build_algorithm, load_learned_state
 from ftrain.train.reward_norm import build_reward_normalizer
 from ftrain.train.snapshot_hook import PolicySnapshotHook
+from ftrain.train.tracking import TrackingHook
 
 EXIT_CHECKPOINT = 1
 """Exit code when a checkpoint cannot be saved or loaded (the supervisor restarts; its crash-loop rule stops it)."""
@@ -280,6 +281,8 @@ def build_hooks(config: Config) -> Hooks:
         hooks.append(TensorBoardHook())
     if config.log.csv:
         hooks.append(CsvHook())
+    if config.log.wandb.enabled or config.log.mlflow.enabled:
+        hooks.append(TrackingHook(config))
     if config.snapshots.every:
         hooks.append(PolicySnapshotHook(config.snapshots))
     for hook_config in config.hooks:

@@ -1,0 +1,231 @@
+"""W&B (offline) and MLflow (a local SQLite store) fed by real supervised training whose workers are SIGKILLed, then
+read back from what the trackers wrote (W&B: its offline transaction logs); an unreachable tracker; bad input."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+from mlflow.tracking import MlflowClient
+
+from ftrain.config import load_config
+from ftrain.errors import UserError
+from ftrain.supervise.options import EXIT_DONE
+from ftrain.track.sender import GOES_ON, QUEUE_ROWS, Sender
+from ftrain.track.wandb_log import records
+
+from helpers import (
+    REPO,
+    SMOKE,
+    child_env,
+    events,
+    final_manifest,
+    finish,
+    free_port,
+    launch,
+    metrics_by_iteration,
+    run_train,
+    train_command,
+    training,
+    wait_for,
+)
+
+OFFLINE = {
+    "WANDB_MODE": "offline",
+    "WANDB_SILENT": "true",
+    "WANDB_DISABLE_GIT": "true",
+    "WANDB_DISABLE_CODE": "true",
+    "WANDB__DISABLE_STATS": "true",  # W&B reads its private settings from WANDB__NAME
+    "WANDB_ERROR_REPORTING": "false",
+    "MLFLOW_DISABLE_TELEMETRY": "true",
+    "DO_NOT_TRACK": "true",
+}
+"""Nothing of these tests reaches a network: W&B offline, no telemetry."""
+SECRET = "tracker-test-secret-8Hq2Zr"
+ITERATIONS = 20
+
+
+def wandb_history(log_dir: Path) -> tuple[set[str], list[dict], list[dict]]:
+    """The run ids, history rows (in the order written) and configs of every offline run directory of a run."""
+    ids, rows, configs = set(), [], []
+    for path in sorted(log_dir.glob("wandb/offline-run-*/run-*.wandb")):
+        for record in records(path):
+            kind = record.WhichOneof("record_type")
+            if kind == "run":
+                ids.add(record.run.run_id)
+                configs.append({item.key: json.loads(item.value_json) for item in record.run.config.update})
+            elif kind == "history":
+                rows.append(
+                    {"/".join(item.nested_key) or item.key: json.loads(item.value_json) for item in record.history.item}
+                )
+    return ids, rows, configs
+
+
+def supervise(storage: Path, *overrides: str) -> subprocess.Popen:
+    command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", "--backoff-initial", "0.2"]
+    command += [SMOKE, "--storage", str(storage), "log.console=false", "dist_timeout=10", *overrides]
+    output = open(f"{storage}.log", "ab")  # noqa: SIM115 - the child writes to it for its whole life
+    return launch(command, cwd=storage.parent, env=child_env(OFFLINE), stdout=output, stderr=subprocess.STDOUT)
+
+
+@pytest.mark.slow
+def test_one_tracker_run_across_restarts_every_iteration_once_no_secret(tmp_path):
+    storage, mlflow_uri = tmp_path / "run", f"sqlite:///{tmp_path / 'mlflow.db'}"
+    # MLflow makes a new SQLite store's tables in migrations that a process killed meanwhile leaves half done (the
+    # store then fails every later open): the store exists before the run, as a store in use does
+    MlflowClient(mlflow_uri).search_experiments()
+    proc = supervise(
+        storage,
+        f"iterations={ITERATIONS}",
+        "log.wandb.mode=offline",
+        "log.wandb.tags=[ci]",
+        f"log.mlflow.tracking_uri={mlflow_uri}",
+        f"storage.options={{secret: {SECRET}}}",
+    )
+    for rank, count in ((1, 1), (0, 2)):  # rank 1 then rank 0 SIGKILLed, each a few iterations past a recovery
+        recovered = [event for event in events(storage) if event["event"] == "recovered"]
+        start = (recovered[-1]["step"] or 0) if recovered else 0
+        os.kill(training(storage / "heartbeat", start + 5, [rank])[rank].pid, signal.SIGKILL)
+        wait_for(lambda n=count: len([e for e in events(storage) if e["event"] == "recovered"]) >= n, "a recovery")
+    assert finish(proc) == EXIT_DONE
+    assert final_manifest(storage)["step"] == ITERATIONS
+    restarts = [event for event in events(storage) if event["event"] == "restart"]
+    assert len(restarts) == 2
+
+    ids, rows, configs = wandb_history(storage)
+    assert len(ids) == 1  # one W&B run, continued by each start (a killed one may have flushed nothing to disk)
+    steps = [row["_step"] for row in rows]
+    assert steps == list(range(1, ITERATIONS + 1))  # every iteration once, in order, across the three starts
+    assert rows[-1]["supervisor/restarts"] == 2 and rows[-1]["world_size"] == 2
+    assert configs[-1]["storage"]["options"] == {"secret": "***"}
+    assert configs[-1]["ftrain"]["config_hash"] == final_manifest(storage)["config_hash"]
+    assert not [path for path in storage.rglob("*") if path.is_file() and SECRET.encode() in path.read_bytes()]
+
+    client = MlflowClient(mlflow_uri)
+    experiment = client.get_experiment_by_name("smoke")
+    (run,) = client.search_runs([experiment.experiment_id])
+    assert run.info.status == "FINISHED" and run.data.tags["ftrain.run_id"] in ids
+    csv_rows = metrics_by_iteration(storage)
+    for key in ("env_steps", "loss/value", "mean_return"):
+        history = client.get_metric_history(run.info.run_id, key)
+        assert sorted(metric.step for metric in history) == list(range(1, ITERATIONS + 1)), key
+        for metric in history:  # the values of the run that went on (bit for bit, so also those logged before)
+            assert _same(metric.value, float(csv_rows[metric.step][key])), (key, metric.step)
+    restarted = client.get_metric_history(run.info.run_id, "supervisor/restarts")
+    assert max(metric.value for metric in restarted) == 2
+    assert run.data.params["storage.options.secret"] == "***"
+    assert SECRET not in json.dumps([run.data.params, run.data.tags])
+    config = json.loads(
+        Path(client.download_artifacts(run.info.run_id, "ftrain/config.json", str(tmp_path))).read_text()
+    )
+    assert config["storage"]["options"] == {"secret": "***"}
+
+
+@pytest.mark.slow
+def test_an_unreachable_tracker_costs_one_warning_and_never_stops_training(tmp_path):
+    closed = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    start = time.monotonic()
+    result = subprocess.run(
+        [*train_command(tmp_path / "run"), f"log.mlflow.tracking_uri={closed}"],
+        cwd=tmp_path,
+        env=child_env(OFFLINE),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    took = time.monotonic() - start
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert final_manifest(tmp_path / "run")["step"] == 8
+    warnings = [line for line in (result.stdout + result.stderr).splitlines() if "mlflow:" in line]
+    assert len(warnings) == 1 and "did not answer" in warnings[0], warnings
+    assert took < 60, f"training took {took:.0f} s with an unreachable tracker"
+    run_train(tmp_path / "plain", env=OFFLINE, cwd=tmp_path)  # the tracker changed nothing that was trained
+    assert final_manifest(tmp_path / "plain")["state_sha256"] == final_manifest(tmp_path / "run")["state_sha256"]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "fragment"),
+    [
+        (["log.wandb.projekt=x"], "unknown config key log.wandb.'projekt': did you mean log.wandb.project?"),
+        (["log.wandb.mode=sometimes"], "log.wandb.mode='sometimes' is unknown"),
+        (["log.mlflow.experiment=x"], "log.mlflow is set but mlflow is not installed: pip install 'ftrain[mlflow]'"),
+    ],
+)
+def test_bad_tracker_input_is_one_line_and_exit_2(tmp_path, overrides, fragment):
+    hide = "import sys; sys.modules['mlflow'] = None; from ftrain.cli import main; sys.exit(main())"  # not installed
+    command = [sys.executable, "-c", hide, "train", SMOKE, "--storage", str(tmp_path / "run"), *overrides]
+    result = subprocess.run(command, cwd=REPO, env=child_env(OFFLINE), capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and fragment in result.stderr, result.stderr
+    assert "Traceback" not in result.stderr and not (tmp_path / "run").exists()
+
+
+def test_a_tracker_is_off_until_one_of_its_keys_is_set(monkeypatch):
+    config = load_config(SMOKE)
+    assert not config.log.wandb.enabled and not config.log.mlflow.enabled
+    assert load_config(SMOKE, ["log.wandb.mode=offline"]).log.wandb.enabled
+    monkeypatch.setitem(sys.modules, "wandb", None)  # as if not installed
+    with pytest.raises(UserError, match=r"pip install 'ftrain\[wandb\]'"):
+        load_config(SMOKE, ["log.wandb.project=p"])
+
+
+def _same(logged: float, expected: float) -> bool:
+    return (math.isnan(logged) and math.isnan(expected)) or logged == expected
+
+
+@pytest.mark.slow
+def test_a_resize_continues_the_tracker_run_and_a_run_forked_into_another_storage_gets_its_own(tmp_path):
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    run, fork, track = tmp_path / "run", tmp_path / "fork", f"log.mlflow.tracking_uri={uri}"
+    step = str(run / "checkpoints" / "step-000000004")
+    run_train(run, "iterations=4", track, ranks=2, env=OFFLINE, cwd=tmp_path)  # MLflow's artifacts: ./mlruns
+    run_train(fork, "iterations=5", track, f"resume={step}", env=OFFLINE, cwd=tmp_path)  # another storage: a new run
+    run_train(run, "iterations=6", track, f"resume={step}", env=OFFLINE, cwd=tmp_path)  # the same run, 1 rank not 2
+    client = MlflowClient(uri)
+    runs = client.search_runs([client.get_experiment_by_name("smoke").experiment_id])
+    assert len(runs) == 2 and len({found.data.tags["ftrain.run_id"] for found in runs}) == 2
+    by_storage = {found.data.tags["ftrain.storage"]: found.info.run_id for found in runs}
+    sizes = {metric.step: metric.value for metric in client.get_metric_history(by_storage[str(run)], "world_size")}
+    assert sizes == {1: 2.0, 2: 2.0, 3: 2.0, 4: 2.0, 5: 1.0, 6: 1.0}
+    assert [metric.step for metric in client.get_metric_history(by_storage[str(fork)], "env_steps")] == [5]
+
+
+class Stuck:
+    """A tracker that does not answer until it is let go."""
+
+    name = "stuck"
+
+    def __init__(self) -> None:
+        self.answer = threading.Event()
+        self.logged: list[int] = []
+
+    def open(self) -> int:
+        self.answer.wait()
+        return -1
+
+    def log(self, step: int, values: dict[str, float]) -> None:
+        self.logged.append(step)
+
+    def close(self, finished: bool) -> None:
+        pass
+
+
+def test_a_stuck_tracker_never_blocks_sending_and_a_full_queue_is_one_warning():
+    tracker, lines = Stuck(), []
+    sender = Sender(tracker, lambda last: [], dict, lines.append)
+    start = time.perf_counter()
+    for step in range(1, QUEUE_ROWS + 501):
+        sender.send(step, {"x": float(step)})
+    assert time.perf_counter() - start < 1.0
+    dropped = f"stuck: it is {QUEUE_ROWS} iterations behind: dropping iterations from {QUEUE_ROWS + 1} on; {GOES_ON}"
+    assert lines == [dropped]
+    tracker.answer.set()
+    sender.close(finished=True)
+    assert tracker.logged == list(range(1, QUEUE_ROWS + 1)) and len(lines) == 1
