@@ -22,7 +22,6 @@ Exit codes:
 from __future__ import annotations
 
 import os
-import signal
 from dataclasses import dataclass, field
 
 from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_STORAGE_DOWN, UserError
@@ -34,15 +33,6 @@ EXIT_MAX_RESTARTS = 4
 EXIT_PEER_LOST = 5
 EXIT_TOO_FEW_NODES = EXIT_RENDEZVOUS_TIMEOUT
 EXIT_STORAGE_WAIT = EXIT_STORAGE_DOWN
-EXIT_PREEMPTED = 128 + signal.SIGTERM
-EXIT_INTERRUPTED = 128 + signal.SIGINT
-STOPPED = (EXIT_PREEMPTED, EXIT_INTERRUPTED)
-"""The exit codes of a run stopped by a signal after saving."""
-
-
-def stop_code(signum: int) -> int:
-    """The exit code after a stop by ``signum``: 128 + the signal, as a shell reports it (130 for Ctrl-C)."""
-    return EXIT_INTERRUPTED if signum == signal.SIGINT else EXIT_PREEMPTED
 
 
 @dataclass
