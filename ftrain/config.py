@@ -250,6 +250,28 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
     return config
 
 
+STORAGE_OPTION = "--storage-option"
+
+
+def storage_option_overrides(words: list[str]) -> list[str]:
+    """``--storage-option KEY=VALUE`` words as the config overrides ``storage.options.KEY=VALUE``: every command that
+    opens a storage reads them as ``ftrain train`` reads its config, and the supervisor hides their credentials as it
+    hides any override's. The words are never quoted back: a value may be a secret."""
+    for number, word in enumerate(words, 1):
+        key, sep, _ = word.partition("=")
+        if not sep or not key.strip():
+            raise UserError(
+                f"{STORAGE_OPTION} number {number} is not KEY=VALUE: write it like {STORAGE_OPTION} "
+                "endpoint_url=http://127.0.0.1:9000"
+            )
+    return [f"storage.options.{word.strip()}" for word in words]
+
+
+def storage_options(words: list[str]) -> dict:
+    """The fsspec storage options of ``--storage-option`` words (see ``storage_option_overrides``)."""
+    return load_config(None, storage_option_overrides(words)).storage.options
+
+
 def config_from_dict(data: dict) -> Config:
     """The Config a checkpoint or an exported policy recorded (``Config.public_dict()``), typed and checked."""
     return build(Config, data, prefix="")
