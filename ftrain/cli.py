@@ -81,7 +81,7 @@ def _config_keys_help() -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     from ftrain.config import POLICY_FORMATS
-    from ftrain.supervise.options import SupervisorOptions
+    from ftrain.supervise.options import SupervisorOptions, exit_codes_help
 
     parser = argparse.ArgumentParser(
         prog="ftrain", description="Distributed, fault-tolerant PPO training on CPU (torchrun + gloo + rsl-rl)."
@@ -102,7 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
         "supervise",
         help="launch torchrun and restart it from the newest verified checkpoint after a crash or hang",
         description="Watchdog: launches torchrun, detects crashes, hangs and preemption, restarts from the newest "
-        "verified checkpoint. Exit codes: see README.",
+        "verified checkpoint.",
+        epilog=exit_codes_help(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _add_dataclass_arguments(supervise, SupervisorOptions)
     _add_run_arguments(supervise)

@@ -227,9 +227,12 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
         try:
             data = yaml.safe_load(file.read_text()) or {}
         except yaml.YAMLError as exc:
-            line = getattr(getattr(exc, "problem_mark", None), "line", None)
-            where = f" (line {line + 1})" if line is not None else ""
-            raise UserError(f"config file {path!r} is not valid YAML{where}: fix the syntax") from None
+            mark = getattr(exc, "problem_mark", None)
+            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+            problem = getattr(exc, "problem", None)
+            raise UserError(
+                f"config file {path!r} is not valid YAML{where}{f' ({problem})' if problem else ''}: fix the syntax"
+            ) from None
         if not isinstance(data, dict):
             raise UserError(f"config file {path!r} must hold a mapping of keys to values")
     for item in overrides:

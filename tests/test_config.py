@@ -65,7 +65,7 @@ def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> 
     ("args", "message"),
     [
         (["configs/missing.yaml"], "config file 'configs/missing.yaml' does not exist"),
-        ([SMOKE, "iteratons=3"], "unknown config key 'iteratons': did you mean iterations?"),
+        ([SMOKE, "iteratons=3"], "unknown config key iteratons: did you mean iterations?"),
         ([SMOKE, "env.id=NoSuchEnv-v0"], "env.id='NoSuchEnv-v0' is not a registered gymnasium environment"),
         ([SMOKE, "env.id=HalfCheeta-v5"], "did you mean 'HalfCheetah-v5'"),
         (

@@ -21,6 +21,7 @@ from ftrain.ckpt.format import (
     VERIFIED,
     StepInfo,
     Verification,
+    human_size,
     parse_checkpoint_url,
     step_dir,
     verify_step,
@@ -32,7 +33,6 @@ from ftrain.ckpt.storage import Storage
 from ftrain.config import CheckpointConfig
 from ftrain.errors import UserError
 
-_UNITS = ("B", "KiB", "MiB", "GiB", "TiB")
 WIDTH = 100
 """Columns of ``ls``'s table: it fits a terminal."""
 METRICS = ("mean_return", "eval_return")
@@ -60,7 +60,7 @@ def ls(url: str, options: dict | None = None) -> int:
         created = str((info.manifest or {}).get("created") or "-").replace("T", " ")[:16]
         returns = [_number(info.metrics.get(name)) for name in METRICS]
         kept = ", ".join(mark.value for mark in marks.get(info.step, []))
-        print(row.format(info.step, info.status, _size(info.size), created, *returns, kept).rstrip())
+        print(row.format(info.step, info.status, human_size(info.size), created, *returns, kept).rstrip())
         for problem in info.problems:
             print(_fit(f"{'':>11}{problem}"))
     if step is None:
@@ -118,7 +118,7 @@ def show(url: str, options: dict | None = None, as_json: bool = False) -> int:
         elif key == "files":
             print("files:")
             for name, entry in value.items():
-                print(f"  {name:<20} {_size(entry['size']):>9}  sha256 {entry['sha256']}")
+                print(f"  {name:<20} {human_size(entry['size']):>9}  sha256 {entry['sha256']}")
         elif isinstance(value, dict):
             print(f"{key}:")
             for sub, item in value.items():
@@ -207,13 +207,6 @@ def _open(url: str, options: dict | None) -> tuple[Storage, int | None]:
     if step is not None and not storage.list_files(step_dir(step)):
         raise UserError(f"{storage.where(step_dir(step))} does not exist: see ftrain ckpt ls {storage.url}")
     return storage, step
-
-
-def _size(n: int) -> str:
-    value, unit = float(n), 0
-    while value >= 1024 and unit < len(_UNITS) - 1:
-        value, unit = value / 1024, unit + 1
-    return f"{n} B" if unit == 0 else f"{value:.1f} {_UNITS[unit]}"
 
 
 def _marks(infos: list[StepInfo]) -> dict[int, list[Mark]]:

@@ -45,6 +45,15 @@ def blame(failures: dict[int, WorkerFailure], killed: set[int]) -> tuple[int, Wo
     return min(own.items(), key=order) if own else None
 
 
+ENDINGS = {"usage": "bad input", "done": "training finished"}
+"""How the summary names an ending whose event name is not plain words."""
+
+
+def in_words(event: str) -> str:
+    """The name of an ending (an event) for a person: ``usage`` is "bad input", ``crash_loop`` "crash loop"."""
+    return ENDINGS.get(event, event.replace("_", " "))
+
+
 @dataclass
 class Outcome:
     """How an attempt ended: ``failed`` (restart), ``storage_down`` (wait for the storage, then restart) or one of the

@@ -65,7 +65,7 @@ from ftrain.supervise.options import (
     parse_nodes,
 )
 from ftrain.supervise.outage import StorageWait
-from ftrain.supervise.outcome import Outcome, classify
+from ftrain.supervise.outcome import Outcome, classify, in_words
 from ftrain.supervise.restarts import RestartPolicy
 
 WORKER_MODULE_ENV = "FTRAIN_WORKER_MODULE"
@@ -391,7 +391,7 @@ class Supervisor:
         summary = {"restarts": restarts, "iterations_lost": lost, "downtime": round(downtime, 2)}
         self.events(
             "summary",
-            f"{event} (exit {code}): {restarts} restarts, {lost} iterations lost, {downtime:.1f} s downtime",
+            f"{in_words(event)} (exit {code}): {restarts} restarts, {lost} iterations lost, {downtime:.1f} s downtime",
             code=code,
             **summary,
         )

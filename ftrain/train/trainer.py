@@ -193,6 +193,11 @@ class Trainer:
         if resumed is None and self.info.distributed:
             self.alg.broadcast_parameters()
         self.heartbeat.resumed_step = resumed
+        if self.iteration >= self.config.iterations:
+            self.log(
+                f"the run is already past iterations={self.config.iterations}: it is at step {self.iteration}, "
+                f"nothing to train (pass iterations=N with N > {self.iteration} to train on)"
+            )
         self.heartbeat.committed_step = resumed
         self._write_resolved_config()
         self.alg.train_mode()

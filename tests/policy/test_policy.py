@@ -26,7 +26,7 @@ from ftrain.policy.load import load_policy
 from ftrain.policy.model import ClippedNormalization
 from ftrain.policy.play import play
 
-from helpers import REPO, child_env, final_manifest, flip_byte, run_train
+from helpers import REPO, child_env, final_manifest, flip_byte, needs_egl, run_train
 
 EPISODE_STEPS = 20
 STANDALONE = r"""
@@ -124,6 +124,7 @@ def check_video(path: Path, frames: int) -> None:
 
 
 @pytest.mark.slow
+@needs_egl
 def test_play_renders_mp4_and_gif(trained, tmp_path, capsys) -> None:
     video = tmp_path / "cheetah.mp4"
     assert main(["play", str(trained), "--episodes", "2", "--video", str(video)]) == 0
@@ -140,6 +141,7 @@ def test_play_renders_mp4_and_gif(trained, tmp_path, capsys) -> None:
 
 
 @pytest.mark.slow
+@needs_egl
 def test_play_on_a_terminal_counts_frames_live_and_prints_each_episode_as_it_ends(trained, tmp_path) -> None:
     ours, theirs = pty.openpty()
     command = [sys.executable, "-m", "ftrain", "play", str(trained), "--episodes", "2", "--video", "cheetah.gif"]
