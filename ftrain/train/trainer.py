@@ -195,8 +195,8 @@ class Trainer:
         self.heartbeat.resumed_step = resumed
         if self.iteration >= self.config.iterations:
             self.log(
-                f"the run is already past iterations={self.config.iterations}: it is at step {self.iteration}, "
-                f"nothing to train (pass iterations=N with N > {self.iteration} to train on)"
+                f"nothing to train: the run is already at step {self.iteration}, asked for iterations="
+                f"{self.config.iterations} (pass iterations=N with N > {self.iteration} to train on)"
             )
         self.heartbeat.committed_step = resumed
         self._write_resolved_config()
