@@ -412,9 +412,10 @@ def test_max_restarts_stops_with_its_own_code(tmp_path):
 
 
 @pytest.mark.slow
-def test_worker_bad_input_is_not_restarted(tmp_path):
+def test_worker_bad_input_is_not_restarted(tmp_path, capfd):
     proc = start_supervisor(tmp_path, fault="usage:-1:0")
     assert finish(proc) == 2
+    assert "ftrain supervise: bad input (exit 2): 0 restarts" in capfd.readouterr().err
     log = [event for event in events(tmp_path / "run") if event["event"] != "worker_died"]
     assert [event["event"] for event in log] == ["start", "exit", "usage", "summary"]
     assert log[1]["cause"] in (f"rank {rank} exited with code 2: stand-in bad input" for rank in (0, 1))
