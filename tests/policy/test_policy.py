@@ -85,7 +85,11 @@ def test_exports_run_without_ftrain_and_match_the_actor(trained, tmp_path, capsy
     files = {"torchscript": tmp_path / "policy.pt", "onnx": tmp_path / "policy.onnx"}
     for fmt, path in files.items():
         assert main(["export", str(trained), "--format", fmt, "-o", str(path)]) == 0
-        assert f"wrote {path}: {fmt} policy of step 4" in capsys.readouterr().out
+        printed = capsys.readouterr()
+        assert printed.out.startswith(f"wrote {path}: {fmt} policy of step 4") and printed.out.count("\n") == 1
+        assert "torch.onnx" not in printed.out + printed.err  # the exporter's progress lines stay off the console
+    graph = onnx.load(files["onnx"]).graph  # made by torch.export's exporter (dynamo=True), which labels its inputs
+    assert any(prop.key.startswith("pkg.torch.export") for value in graph.input for prop in value.metadata_props)
     policy = load_policy(str(trained))
     obs = sample_observations(policy, episodes=2, seed=7)
     np.save(tmp_path / "obs.npy", obs.numpy())
