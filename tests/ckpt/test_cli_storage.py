@@ -11,6 +11,8 @@ from pathlib import Path
 import pytest
 
 from ftrain.ckpt.format import MANIFEST, step_dir
+from ftrain.ckpt.storage import Storage
+from ftrain.config import storage_options
 
 from helpers import REPO, S3_SECRET, SMOKE, child_env, create_bucket, flip_byte, run_train
 
@@ -27,8 +29,9 @@ def ftrain(*args: str, env: dict | None = None, cwd: Path = REPO) -> subprocess.
 
 
 @pytest.fixture(scope="module")
-def s3_run(s3_server, tmp_path_factory) -> tuple[str, list[str]]:
-    """A trained smoke run on S3 (4 iterations, saved at 2 and 4): its URL and the storage options that reach it."""
+def s3_run(s3_server, tmp_path_factory) -> tuple[str, list[str], Path]:
+    """A trained smoke run on S3 (4 iterations, saved at 2 and 4): its URL, the storage options that reach it, and
+    the directory it ran in (its logs are in runs/smoke there)."""
     url = f"s3://{create_bucket(s3_server)}/run"
     options = [
         *("--storage-option", f"endpoint_url={s3_server['endpoint_url']}"),
@@ -40,11 +43,11 @@ def s3_run(s3_server, tmp_path_factory) -> tuple[str, list[str]]:
     assert result.returncode == 0, result.stderr[-3000:]
     assert f"[ftrain] saved step 4 to {url}/{step_dir(4)} (" in result.stdout
     assert S3_SECRET not in result.stdout + result.stderr
-    return url, options
+    return url, options, cwd
 
 
 def test_ckpt_play_and_export_read_s3_with_credentials_only_in_storage_options(s3_run, tmp_path) -> None:
-    url, options = s3_run
+    url, options, _ = s3_run
     listed = ftrain("ckpt", "ls", url, *options)
     assert listed.returncode == 0, listed.stderr
     assert [line.split()[:2] for line in listed.stdout.splitlines()[1:]] == [["4", "verified"], ["2", "verified"]]
@@ -64,7 +67,7 @@ def test_ckpt_play_and_export_read_s3_with_credentials_only_in_storage_options(s
 
 
 def test_s3_without_credentials_or_with_a_bad_option_is_one_line(s3_run, s3_server) -> None:
-    url, options = s3_run
+    url, options, _ = s3_run
     endpoint_only = ftrain("ckpt", "ls", url, env={"AWS_ENDPOINT_URL": s3_server["endpoint_url"]})
     assert endpoint_only.returncode == 2
     assert endpoint_only.stderr == (
@@ -105,3 +108,13 @@ def test_verify_tells_a_save_cut_short_from_a_committed_step_that_does_not_verif
 
     done = run_train(storage, "iterations=2", "log.console=true")  # resumes from step 2: 4 is corrupt, 6 incomplete
     assert "nothing to train: the run is already at step 2, asked for iterations=2 (pass iterations=N" in done.stdout
+
+
+def test_plot_reads_a_log_directory_on_s3(s3_run, tmp_path) -> None:
+    url, options, cwd = s3_run
+    logs = url.replace("/run", "/logs")
+    storage = Storage.open(logs, storage_options(options[1::2]))
+    storage.write_replace("metrics.csv", (cwd / "runs" / "smoke" / "metrics.csv").read_bytes())
+    plotted = ftrain("plot", logs, "-o", str(tmp_path / "curves.png"), *options)
+    assert plotted.returncode == 0, plotted.stderr
+    assert plotted.stdout == f"wrote {tmp_path / 'curves.png'}\n" and (tmp_path / "curves.png").stat().st_size > 0
