@@ -42,6 +42,8 @@ def s3_run(s3_server, tmp_path_factory) -> tuple[str, list[str], Path]:
     result = ftrain("train", SMOKE, "--storage", url, *options, "iterations=4", cwd=cwd)
     assert result.returncode == 0, result.stderr[-3000:]
     assert f"[ftrain] saved step 4 to {url}/{step_dir(4)} (" in result.stdout
+    play = f"[ftrain] play it: ftrain play {url}   export it: ftrain export {url} --format onnx   (with the storage "
+    assert play in result.stdout
     assert S3_SECRET not in result.stdout + result.stderr
     return url, options, cwd
 
