@@ -213,6 +213,9 @@ class Trainer:
             if stop:
                 name, code = signal.Signals(self._votes.stop).name, stop_code(self._votes.stop)
                 self.log(f"stopped by {name}: saved step {self.iteration}, exiting with code {code}")
+                # saved: once a rank has exited with the stop code, torchrun SIGTERMs the others, and a SIGTERM while
+                # Python shuts down (its handlers are gone by then) would kill this rank and read as a failure
+                signal.signal(signal.SIGTERM, signal.SIG_IGN)
                 break
         self.checkpointer.close()
         self.heartbeat.committed_step = self.checkpointer.committed_step

@@ -46,21 +46,29 @@ def test_a_lone_trainer_stopped_by_ctrl_c_saves_and_exits_130(tmp_path) -> None:
     assert f"[ftrain] stopped by SIGINT: saved step {step}, exiting with code 130" in proc.stdout.read()
 
 
-@pytest.mark.parametrize("target", ["torchrun", "workers"])
-def test_torchrun_as_the_supervisor_runs_it_exits_143_after_sigterm(tmp_path, target) -> None:
-    """SIGTERM to torchrun (it stops its workers with it) or to every worker (a scheduler's preemption): the workers
-    save and exit 143, and so does torchrun."""
+@pytest.mark.parametrize(
+    ("target", "stop", "code", "as_supervised"),
+    [
+        ("torchrun", signal.SIGINT, 130, False),
+        ("torchrun", signal.SIGTERM, 143, True),
+        ("workers", signal.SIGTERM, 143, True),
+    ],
+)
+def test_ftrain_torchrun_passes_the_stop_code_on(tmp_path, target, stop, code, as_supervised) -> None:
+    """A signal to torchrun (it stops its workers with it: Ctrl-C in a terminal reaches torchrun only) or to every
+    worker (a scheduler's preemption): the workers save and exit 128 + the signal, and so does torchrun, run by hand
+    or as the supervisor runs it (``--failures``: the workers' account goes to that file)."""
     storage, beats = tmp_path / "run", tmp_path / "beats"
     failures = tmp_path / "failures.json"
     command = train_command(storage, LONG, ranks=2)
     at = command.index("--standalone")
-    command = [sys.executable, "-m", TORCHRUN, str(failures), *command[at:]]
-    proc = start(command, beats)
+    options = [f"--failures={failures}"] if as_supervised else []
+    proc = start([sys.executable, "-m", TORCHRUN, *options, *command[at:]], beats)
     training(beats, 3, [0, 1])
     pids = [proc.pid] if target == "torchrun" else [beat.pid for beat in read_heartbeats(beats).values()]
     for pid in pids:
-        os.kill(pid, signal.SIGTERM)
-    assert finish(proc) == 143, proc.stdout.read()[-3000:]
+        os.kill(pid, stop)
+    assert finish(proc) == code, (proc.stdout.read()[-3000:], failures.exists() and failures.read_text())
     assert {beat.phase for beat in read_heartbeats(beats).values()} == {"preempted"}
     assert final_manifest(storage)["step"] >= 3
     if target == "workers":
