@@ -16,7 +16,7 @@ import sys
 import typing
 
 from ftrain import errorfile
-from ftrain.errors import EXIT_USAGE, UserError
+from ftrain.errors import EXIT_FAILED, EXIT_STORAGE_DOWN, EXIT_USAGE, StorageError, StorageUnavailable, UserError
 from ftrain.lifeline import watch_supervisor
 from ftrain.redact import reveal_credentials
 
@@ -33,7 +33,23 @@ OVERRIDES_HELP = (
 def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("config", help="YAML config file, e.g. configs/halfcheetah.yaml")
     parser.add_argument("--storage", help="where checkpoints go: a local path (default runs/<name>), file://, s3://...")
+    _add_storage_options(parser)
     parser.add_argument("overrides", nargs="*", metavar="key=value", help=OVERRIDES_HELP)
+
+
+def _add_storage_options(parser: argparse.ArgumentParser) -> None:
+    """``--storage-option``, the same on every command that opens a storage (``config.storage_option_overrides``)."""
+    from ftrain.config import STORAGE_OPTION
+
+    parser.add_argument(
+        STORAGE_OPTION,
+        dest="storage_option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an fsspec storage option, value parsed as YAML (repeatable; the same as storage.options.KEY=VALUE), "
+        "e.g. endpoint_url=http://127.0.0.1:9000 key=... secret=...; S3 also reads the AWS_* environment",
+    )
 
 
 def _add_dataclass_arguments(parser: argparse.ArgumentParser, options_class: type) -> None:
@@ -65,7 +81,7 @@ def _config_keys_help() -> str:
 
 def build_parser() -> argparse.ArgumentParser:
     from ftrain.config import POLICY_FORMATS
-    from ftrain.supervise.options import SupervisorOptions
+    from ftrain.supervise.options import SupervisorOptions, exit_codes_help
 
     parser = argparse.ArgumentParser(
         prog="ftrain", description="Distributed, fault-tolerant PPO training on CPU (torchrun + gloo + rsl-rl)."
@@ -86,7 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
         "supervise",
         help="launch torchrun and restart it from the newest verified checkpoint after a crash or hang",
         description="Watchdog: launches torchrun, detects crashes, hangs and preemption, restarts from the newest "
-        "verified checkpoint. Exit codes: see README.",
+        "verified checkpoint.",
+        epilog=exit_codes_help(),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     _add_dataclass_arguments(supervise, SupervisorOptions)
     _add_run_arguments(supervise)
@@ -98,15 +116,19 @@ def build_parser() -> argparse.ArgumentParser:
     ckpt_commands = ckpt.add_subparsers(dest="ckpt_command", required=True, metavar="ACTION", help="one of:")
     ls = ckpt_commands.add_parser("ls", help="list steps: verified / incomplete / corrupt / quarantined")
     ls.add_argument("url", help=f"{storage_url}, or {step_url}")
+    _add_storage_options(ls)
     verify = ckpt_commands.add_parser(
         "verify", help="verify every file of a storage or of one step (exit 1 on failure)"
     )
     verify.add_argument("url", help=f"{storage_url}, or {step_url}")
+    _add_storage_options(verify)
     show = ckpt_commands.add_parser("show", help="print the manifest of one step (default: newest verified)")
     show.add_argument("url", help=f"{step_url}, or {newest}")
     show.add_argument("--json", action="store_true", help="raw JSON")
+    _add_storage_options(show)
     prune = ckpt_commands.add_parser("prune", help="apply a retention policy")
     prune.add_argument("url", help=storage_url)
+    _add_storage_options(prune)
     prune.add_argument(
         "--keep-last", type=int, default=3, metavar="N", help="keep the newest N verified steps (default: %(default)s)"
     )
@@ -140,6 +162,7 @@ def build_parser() -> argparse.ArgumentParser:
         "unquarantine", help="lift the quarantine of one step if it verifies (exit 1 if it does not)"
     )
     unquarantine.add_argument("url", help=step_url)
+    _add_storage_options(unquarantine)
 
     bench = commands.add_parser("bench", help="throughput benchmark against rsl-rl and stable-baselines3")
     bench.add_argument(
@@ -164,6 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
         "(as rsl-rl and IsaacLab play); --stochastic samples. --video renders it headless (MUJOCO_GL=egl).",
     )
     play.add_argument("url", help=f"{policy_url}; or a file written by ftrain export")
+    _add_storage_options(play)
     play.add_argument("--episodes", type=int, default=1, metavar="N", help="episodes to play (default: %(default)s)")
     play.add_argument(
         "--stochastic", action="store_true", help="sample actions from the policy's distribution, as in training"
@@ -180,11 +204,13 @@ def build_parser() -> argparse.ArgumentParser:
         "by comparing its actions with the trained actor's on real observations.",
     )
     export.add_argument("url", help=policy_url)
+    _add_storage_options(export)
     export.add_argument("--format", required=True, choices=POLICY_FORMATS, help="the file format")
     export.add_argument("-o", "--output", help="file to write (default: <run>/exports/<run name>-step-<N>.pt or .onnx)")
 
     plot = commands.add_parser("plot", help="learning curves of a run as a PNG, restarts marked")
-    plot.add_argument("run", help="the run's log directory (holds metrics.csv)")
+    plot.add_argument("run", help="the run's log directory (holds metrics.csv): a local path or an fsspec URL")
+    _add_storage_options(plot)
     plot.add_argument("-o", "--output", help="PNG to write (default: <run>/curves.png)")
     return parser
 
@@ -207,13 +233,21 @@ def main(argv: list[str] | None = None) -> int:
     unknown = [word for word in extra if word.startswith("-") or "=" not in word]
     if unknown or (extra and not hasattr(args, "overrides")):
         parser.error(f"unrecognized arguments: {' '.join(unknown or extra)}")
-    if hasattr(args, "overrides"):
-        args.overrides += extra
     try:
+        if hasattr(args, "overrides"):
+            from ftrain.config import storage_option_overrides
+
+            args.overrides += [*extra, *storage_option_overrides(args.storage_option)]
         return _dispatch(args)
     except UserError as error:
         errorfile.report(str(error))
         return EXIT_USAGE
+    except StorageUnavailable as error:
+        errorfile.report(str(error))
+        return EXIT_STORAGE_DOWN
+    except StorageError as error:
+        errorfile.report(str(error))
+        return EXIT_FAILED
     except BrokenPipeError:
         if not _stdout_reader_gone():
             raise
@@ -243,17 +277,24 @@ def _dispatch(args: argparse.Namespace) -> int:
         options = SupervisorOptions(**{f.name: getattr(args, f.name) for f in dataclasses.fields(SupervisorOptions)})
         train_args = [args.config, *(["--storage", args.storage] if args.storage is not None else []), *args.overrides]
         return supervise(options, _run_config(args), train_args)
+    if args.command == "bench":
+        from ftrain.tools.bench import run_benchmark
+
+        return run_benchmark(args.iterations, args.settings)
+    from ftrain.config import storage_options
+
+    options = storage_options(args.storage_option)
     if args.command == "ckpt":
         from ftrain.ckpt import commands as ckpt_commands
 
         if args.ckpt_command == "ls":
-            return ckpt_commands.ls(args.url)
+            return ckpt_commands.ls(args.url, options)
         if args.ckpt_command == "verify":
-            return ckpt_commands.verify(args.url)
+            return ckpt_commands.verify(args.url, options)
         if args.ckpt_command == "show":
-            return ckpt_commands.show(args.url, as_json=args.json)
+            return ckpt_commands.show(args.url, options, as_json=args.json)
         if args.ckpt_command == "unquarantine":
-            return ckpt_commands.unquarantine(args.url)
+            return ckpt_commands.unquarantine(args.url, options)
         return ckpt_commands.prune(
             args.url,
             keep_last=args.keep_last,
@@ -263,28 +304,25 @@ def _dispatch(args: argparse.Namespace) -> int:
             pinned=args.pin,
             dry_run=args.dry_run,
             drop_bad=args.drop_bad,
+            options=options,
         )
-    if args.command == "bench":
-        from ftrain.tools.bench import run_benchmark
-
-        return run_benchmark(args.iterations, args.settings)
     if args.command == "play":
         from ftrain.policy.load import load_policy
         from ftrain.policy.play import play
 
-        policy = load_policy(args.url, log=_stderr)
+        policy = load_policy(args.url, options, log=_stderr)
         play(policy, args.episodes, deterministic=not args.stochastic, video=args.video, seed=args.seed)
         return 0
     if args.command == "export":
         from ftrain.policy.export import export
         from ftrain.policy.load import load_policy
 
-        export(load_policy(args.url, log=_stderr), args.format, args.output)
+        export(load_policy(args.url, options, log=_stderr), args.format, args.output)
         return 0
     if args.command == "plot":
         from ftrain.tools.plot import plot_run
 
-        plot_run(args.run, args.output)
+        plot_run(args.run, args.output, options)
         return 0
     raise AssertionError(args.command)
 

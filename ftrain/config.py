@@ -263,9 +263,12 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
         try:
             data = yaml.safe_load(file.read_text()) or {}
         except yaml.YAMLError as exc:
-            line = getattr(getattr(exc, "problem_mark", None), "line", None)
-            where = f" (line {line + 1})" if line is not None else ""
-            raise UserError(f"config file {path!r} is not valid YAML{where}: fix the syntax") from None
+            mark = getattr(exc, "problem_mark", None)
+            where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+            problem = getattr(exc, "problem", None)
+            raise UserError(
+                f"config file {path!r} is not valid YAML{where}{f' ({problem})' if problem else ''}: fix the syntax"
+            ) from None
         if not isinstance(data, dict):
             raise UserError(f"config file {path!r} must hold a mapping of keys to values")
     for item in overrides:
@@ -284,6 +287,28 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
         config.log_dir = default_log_dir(config.storage.url, config.name)
     validate(config)
     return config
+
+
+STORAGE_OPTION = "--storage-option"
+
+
+def storage_option_overrides(words: list[str]) -> list[str]:
+    """``--storage-option KEY=VALUE`` words as the config overrides ``storage.options.KEY=VALUE``: every command that
+    opens a storage reads them as ``ftrain train`` reads its config, and the supervisor hides their credentials as it
+    hides any override's. The words are never quoted back: a value may be a secret."""
+    for number, word in enumerate(words, 1):
+        key, sep, _ = word.partition("=")
+        if not sep or not key.strip():
+            raise UserError(
+                f"{STORAGE_OPTION} number {number} is not KEY=VALUE: write it like {STORAGE_OPTION} "
+                "endpoint_url=http://127.0.0.1:9000"
+            )
+    return [f"storage.options.{word.strip()}" for word in words]
+
+
+def storage_options(words: list[str]) -> dict:
+    """The fsspec storage options of ``--storage-option`` words (see ``storage_option_overrides``)."""
+    return load_config(None, storage_option_overrides(words)).storage.options
 
 
 def config_from_dict(data: dict) -> Config:

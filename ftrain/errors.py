@@ -1,9 +1,13 @@
-"""The one exception type that means "the user gave us bad input".
+"""The exception types that mean "the user gave us bad input" or "the storage failed", and the exit codes.
 
-`cli.main` prints its message as a single line and exits with `EXIT_USAGE`; everything else is a bug
-and keeps its traceback.
+`cli.main` prints their message as a single line and exits with the code that goes with it; everything else is a
+bug and keeps its traceback.
 """
 
+import signal
+
+EXIT_FAILED = 1
+"""A storage operation failed for good (``StorageError``) outside training."""
 EXIT_USAGE = 2
 EXIT_STORAGE_DOWN = 7
 """A worker, and ``ftrain supervise`` after ``--storage-wait``: the checkpoint storage did not answer. Not bad input and
@@ -14,7 +18,27 @@ nodes in time."""
 EXIT_STORAGE_HELD = 8
 """``ftrain supervise`` and ``ftrain train`` (every rank): another run, alive, holds the storage's lease
 (``ftrain.ckpt.lease``); nothing of that run is touched."""
+EXIT_PREEMPTED = 128 + signal.SIGTERM
+"""Stopped by SIGTERM after saving (workers, torchrun as the supervisor runs it, ``ftrain supervise``): 128 + the
+signal, as a shell reports it, so that schedulers that retry signal exits run it again."""
+EXIT_INTERRUPTED = 128 + signal.SIGINT
+"""Stopped by SIGINT (Ctrl-C) after saving: the same as ``EXIT_PREEMPTED``, with the shell's code for Ctrl-C."""
+STOPPED = (EXIT_PREEMPTED, EXIT_INTERRUPTED)
+"""The exit codes of a run stopped by a signal after saving."""
+
+
+def stop_code(signum: int) -> int:
+    """The exit code after a stop by ``signum``: 128 + the signal, as a shell reports it (130 for Ctrl-C)."""
+    return EXIT_INTERRUPTED if signum == signal.SIGINT else EXIT_PREEMPTED
 
 
 class UserError(Exception):
     """Bad input: the message names the input and the fix, and fits on one line."""
+
+
+class StorageError(Exception):
+    """A storage operation failed for good (after retrying when the cause looked transient)."""
+
+
+class StorageUnavailable(StorageError):
+    """The storage did not answer, or answered busy, through every retry: wait for it (never bad input)."""

@@ -38,6 +38,8 @@ class Phase(enum.StrEnum):
     ROLLOUT = "rollout"
     UPDATE = "update"
     EVALUATE = "evaluate"
+    SNAPSHOT = "snapshot"
+    """Rank 0 exports a policy snapshot (an ONNX export takes seconds)."""
     CHECKPOINT = "checkpoint"
     DONE = "done"
     PREEMPTED = "preempted"

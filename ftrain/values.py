@@ -81,7 +81,7 @@ def build(cls: type, data: dict, prefix: str) -> Any:
         if key not in names:
             near = difflib.get_close_matches(str(key), names, n=1, cutoff=0.5)
             hint = f"did you mean {prefix}{near[0]}?" if near else f"valid keys: {', '.join(prefix + n for n in names)}"
-            raise UserError(f"unknown config key {prefix}{key!r}: {hint}")
+            raise UserError(f"unknown config key {prefix}{key}: {hint}")
         kwargs[key] = convert(hints[key], value, f"{prefix}{key}")
     return cls(**kwargs)
 

@@ -50,8 +50,8 @@ from ftrain import procfs
 from ftrain.ckpt.format import read_manifest, shard_name, step_dir
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
+from ftrain.errors import EXIT_PREEMPTED
 from ftrain.heartbeat import Heartbeat
-from ftrain.supervise.options import EXIT_PREEMPTED
 from ftrain.tools.outage import S3Server
 
 KINDS = ("worker-kill", "worker-hang", "preempt-rerun", "corrupt-kill", "tree-kill", "storage-outage")

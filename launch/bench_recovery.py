@@ -36,10 +36,10 @@ sys.path.insert(0, str(REPO))
 
 from ftrain import procfs  # noqa: E402
 from ftrain.ckpt.format import CHECKPOINTS, MANIFEST  # noqa: E402
+from ftrain.errors import EXIT_PREEMPTED  # noqa: E402
 from ftrain.heartbeat import read_heartbeats  # noqa: E402
 from ftrain.supervise.auth import SECRET_ENV  # noqa: E402
 from ftrain.supervise.coordinator import free_port  # noqa: E402
-from ftrain.supervise.options import EXIT_PREEMPTED  # noqa: E402
 
 OVERRIDES = ["iterations=1000000", "dist_timeout=10", "log.console=false"]
 HANG_TIMEOUT = 3

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import ctypes.util
 import json
 import os
 import signal
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import boto3
+import pytest
 import torch
 
 from ftrain import procfs
@@ -200,6 +202,13 @@ def metrics_by_iteration(log_dir: str | Path) -> dict[int, dict[str, str]]:
     with (Path(log_dir) / "metrics.csv").open() as file:
         rows = {int(row["iteration"]): row for row in csv.DictReader(file)}
     return {it: {k: v for k, v in row.items() if k not in NOT_LEARNED} for it, row in rows.items()}
+
+
+needs_egl = pytest.mark.skipif(
+    ctypes.util.find_library("EGL") is None,
+    reason="headless rendering needs Mesa EGL (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri)",
+)
+"""For tests that render video (MUJOCO_GL=egl)."""
 
 
 # --- The S3 API server (moto) on 127.0.0.1 ---

@@ -49,6 +49,17 @@ def test_every_option_with_a_default_shows_it() -> None:
     assert "(default: 10)" in supervise and "(default: auto)" in supervise
 
 
+def test_supervise_help_lists_the_exit_codes_and_what_a_stop_signal_does() -> None:
+    from ftrain.supervise.options import EXIT_CODES
+
+    text = ftrain("supervise", "--help").stdout
+    assert "SIGTERM or SIGINT (Ctrl-C) to the supervisor makes the workers save" in text
+    for code, meaning in EXIT_CODES.items():
+        assert f"{code:>5}  {meaning}" in text
+    readme = (REPO / "README.md").read_text()
+    assert all(f"\n| {code} |" in readme for code in EXIT_CODES), "the README's exit-code table lists every code"
+
+
 def test_version_is_the_installed_one() -> None:
     result = ftrain("--version")
     assert result.returncode == 0

@@ -65,7 +65,8 @@ def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> 
     ("args", "message"),
     [
         (["configs/missing.yaml"], "config file 'configs/missing.yaml' does not exist"),
-        ([SMOKE, "iteratons=3"], "unknown config key 'iteratons': did you mean iterations?"),
+        ([SMOKE, "iteratons=3"], "unknown config key iteratons: did you mean iterations?"),
+        ([SMOKE, "algorithm.learning_rat=3e-4"], "unknown config key algorithm.learning_rat: did you mean algorithm."),
         ([SMOKE, "env.id=NoSuchEnv-v0"], "env.id='NoSuchEnv-v0' is not a registered gymnasium environment"),
         ([SMOKE, "env.id=HalfCheeta-v5"], "did you mean 'HalfCheetah-v5'"),
         (
@@ -88,3 +89,14 @@ def test_cli_bad_input_is_one_line_exit_2(args: list[str], message: str) -> None
     assert lines == [f"ftrain: error: {lines[0].removeprefix('ftrain: error: ')}"], result.stderr
     assert message in lines[0]
     assert "Traceback" not in result.stderr
+
+
+def test_a_yaml_error_names_the_file_the_line_the_column_and_the_problem(tmp_path) -> None:
+    config = tmp_path / "broken.yaml"
+    config.write_text("env:\n  num_envs: [4, 8\nseed: 1\n")
+    with pytest.raises(UserError) as raised:
+        load_config(str(config))
+    assert str(raised.value) == (
+        f"config file {str(config)!r} is not valid YAML at line 3, column 5 (expected ',' or ']', but got ':'): "
+        "fix the syntax"
+    )

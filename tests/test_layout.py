@@ -26,7 +26,7 @@ LAYERS = {
         "lifeline",
         "redact",
     },
-    "tools": {"train", "config", "errors", "progress"},
+    "tools": {"train", "ckpt", "config", "errors", "progress"},
     "supervise": {"ckpt", "config", "errors", "errorfile", "heartbeat", "redact", "procfs", "lifeline"},
     "train": {"policy", "ckpt", "dist", "config", "errors", "errorfile", "heartbeat", "track", "redact"},
     "track": {"config", "errors", "redact"},

@@ -3,10 +3,18 @@
 from __future__ import annotations
 
 import subprocess
+import sys
+from pathlib import Path
+
+import pytest
 
 from helpers import REPO
 
 
+@pytest.mark.skipif(
+    Path(sys.prefix).resolve() != (REPO / ".venv").resolve(),
+    reason=f"runs only in the .venv that launch/setup.sh made ({REPO / '.venv'}), not in {sys.prefix}",
+)
 def test_a_second_setup_skips_every_install_step() -> None:
     stamps = list((REPO / ".venv").glob(".ftrain-setup-*"))
     assert len(stamps) == 1, "launch/setup.sh leaves one stamp (launch/test.sh runs it before the tests)"

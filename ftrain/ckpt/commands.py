@@ -7,8 +7,11 @@ A URL is a run's storage root (the directory holding ``checkpoints/``) or one st
 
 from __future__ import annotations
 
+import enum
 import json
+import math
 import sys
+import time
 from collections.abc import Iterable
 
 from ftrain.ckpt.format import (
@@ -16,48 +19,77 @@ from ftrain.ckpt.format import (
     INCOMPLETE,
     QUARANTINE,
     VERIFIED,
+    StepInfo,
     Verification,
+    human_size,
     parse_checkpoint_url,
     step_dir,
     verify_step,
 )
-from ftrain.ckpt.retention import delete_step, retention_plan
+from ftrain.ckpt.retention import best_steps, delete_step, retention_plan
 from ftrain.ckpt.steps import ASIDE, scan, select_resume, set_aside_steps
 from ftrain.ckpt.steps import unquarantine as unquarantine_step
 from ftrain.ckpt.storage import Storage
+from ftrain.config import CheckpointConfig
 from ftrain.errors import UserError
 
-_UNITS = ("B", "KiB", "MiB", "GiB", "TiB")
+WIDTH = 100
+"""Columns of ``ls``'s table: it fits a terminal."""
+METRICS = ("mean_return", "eval_return")
+"""The metrics ``ls`` shows (a dash where a step has none)."""
+
+
+class Mark(enum.Enum):
+    """Why retention keeps a step, as ``ls`` marks it (by the newest run's ``checkpoint`` settings)."""
+
+    NEWEST = "newest"
+    BEST = "best"
+    PINNED = "pinned"
+    MILESTONE = "milestone"
 
 
 def ls(url: str, options: dict | None = None) -> int:
-    """One line per step: step, status, size, created, metrics (or, when not verified, the problems)."""
+    """A table of the steps, newest first: step, status, size, when created (UTC), the returns, and which steps
+    retention keeps as the newest, the best, pinned or milestones; under a step that is not verified, its problems."""
     storage, step = _open(url, options)
-    infos = [info for info in scan(storage) if step is None or info.step == step]
-    print(f"{'step':>10}  {'status':<11}  {'size':>9}  {'created':<20}  metrics / problems")
-    for info in infos:
-        fields = [" ".join(f"{k}={_number(v)}" for k, v in info.metrics.items()), *map(str, info.problems)]
-        detail = "; ".join(field for field in fields if field)
-        created = str((info.manifest or {}).get("created", "-"))
-        print(f"{info.step:>10}  {info.status:<11}  {_size(info.size):>9}  {created:<20}  {detail}")
+    every = scan(storage)
+    marks = _marks(every)
+    row = "{:>9}  {:<11}  {:>9}  {:<16}  {:>11}  {:>11}  {}"
+    print(row.format("step", "status", "size", "created (UTC)", *METRICS, "kept as"))
+    for info in (info for info in every if step is None or info.step == step):
+        created = str((info.manifest or {}).get("created") or "-").replace("T", " ")[:16]
+        returns = [_number(info.metrics.get(name)) for name in METRICS]
+        kept = ", ".join(mark.value for mark in marks.get(info.step, []))
+        print(row.format(info.step, info.status, human_size(info.size), created, *returns, kept).rstrip())
+        for problem in info.problems:
+            print(_fit(f"{'':>11}{problem}"))
     if step is None:
         for directory, reason in set_aside_steps(storage):
-            print(f"set aside: {storage.where(f'{ASIDE}/{directory}')} ({reason})")
+            print(_fit(f"set aside: {storage.where(f'{ASIDE}/{directory}')} ({reason})"))
     return 0
 
 
 def verify(url: str, options: dict | None = None) -> int:
-    """Verify every step (or the one step) with full digests: 0 if all verify, 1 otherwise, naming each failure."""
+    """Verify every committed step (or the one step) with full digests: 1 if any does not verify, naming each
+    failure, else 0. A step without a manifest was never committed (a save cut short): it is told with its age,
+    and fails nothing (``resume`` skips it, retention deletes it)."""
     storage, step = _open(url, options)
-    steps = [step] if step is not None else [info.step for info in scan(storage)]
+    infos = [info for info in scan(storage) if step is None or info.step == step]
+    committed = [info.step for info in infos if info.status != INCOMPLETE]
     failed = 0
-    for each in steps:
-        result = verify_step(storage, each, full=True)
-        print(f"step {each}: {'ok' if result.ok else 'FAILED'}")
+    for info in infos:
+        if info.status == INCOMPLETE:
+            age = _age(storage.modified(step_dir(info.step)))
+            print(f"step {info.step}: incomplete (never committed: no manifest; last written {age})")
+            continue
+        result = verify_step(storage, info.step, full=True)
+        print(f"step {info.step}: {'ok' if result.ok else 'FAILED'}")
         for problem in result.problems:
-            print(f"  {step_dir(each)}/{problem}")
+            print(f"  {step_dir(info.step)}/{problem}")
         failed += not result.ok
-    print(f"{len(steps) - failed} of {len(steps)} steps verified")
+    incomplete = len(infos) - len(committed)
+    never = f"; {incomplete} incomplete (never committed)" if incomplete else ""
+    print(f"{len(committed) - failed} of {len(committed)} committed steps verified{never}")
     return 1 if failed else 0
 
 
@@ -86,7 +118,7 @@ def show(url: str, options: dict | None = None, as_json: bool = False) -> int:
         elif key == "files":
             print("files:")
             for name, entry in value.items():
-                print(f"  {name:<20} {_size(entry['size']):>9}  sha256 {entry['sha256']}")
+                print(f"  {name:<20} {human_size(entry['size']):>9}  sha256 {entry['sha256']}")
         elif isinstance(value, dict):
             print(f"{key}:")
             for sub, item in value.items():
@@ -177,12 +209,41 @@ def _open(url: str, options: dict | None) -> tuple[Storage, int | None]:
     return storage, step
 
 
-def _size(n: int) -> str:
-    value, unit = float(n), 0
-    while value >= 1024 and unit < len(_UNITS) - 1:
-        value, unit = value / 1024, unit + 1
-    return f"{n} B" if unit == 0 else f"{value:.1f} {_UNITS[unit]}"
+def _marks(infos: list[StepInfo]) -> dict[int, list[Mark]]:
+    """Which verified steps retention keeps and why, by the ``checkpoint`` settings of the newest verified step's run
+    (the defaults where its manifest has none)."""
+    verified = [info for info in infos if info.status == VERIFIED]
+    if not verified:
+        return {}
+    recorded = ((verified[0].manifest or {}).get("config") or {}).get("checkpoint") or {}
+    settings = CheckpointConfig(**{k: v for k, v in recorded.items() if k in vars(CheckpointConfig())})
+    marks: dict[int, list[Mark]] = {verified[0].step: [Mark.NEWEST]}
+    for step in best_steps(verified, settings.keep_best, settings.best_metric):
+        marks.setdefault(step, []).append(Mark.BEST)
+    for info in verified:
+        if info.step in settings.pinned:
+            marks.setdefault(info.step, []).append(Mark.PINNED)
+        if settings.keep_every and info.step % settings.keep_every == 0:
+            marks.setdefault(info.step, []).append(Mark.MILESTONE)
+    return marks
+
+
+def _fit(line: str) -> str:
+    return line if len(line) <= WIDTH else line[: WIDTH - 3] + "..."
+
+
+def _age(modified: float | None) -> str:
+    if modified is None:
+        return "at an unknown time"
+    seconds = max(0.0, time.time() - modified)
+    for unit, size in (("day", 86400), ("h", 3600), ("min", 60)):
+        if seconds >= size:
+            count = int(seconds // size)
+            return f"{count} {unit}{'s' * (unit == 'day' and count != 1)} ago"
+    return f"{seconds:.0f} s ago"
 
 
 def _number(value: object) -> str:
-    return f"{value:.4g}" if isinstance(value, float) else str(value)
+    """A metric for the table: a dash where there is none (not measured, or not recorded)."""
+    measured = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    return f"{value:,.2f}" if measured else "-"

@@ -313,5 +313,16 @@ def _manifest_text(manifest: dict) -> str:
     return "{\n" + ",\n".join(lines) + "\n}\n"
 
 
+def human_size(n: int) -> str:
+    """``n`` bytes for a person: ``512 B``, ``5.3 KiB``, ``1.2 GiB``."""
+    value, unit = float(n), 0
+    while value >= 1024 and unit < len(_UNITS) - 1:
+        value, unit = value / 1024, unit + 1
+    return f"{n} B" if unit == 0 else f"{value:.1f} {_UNITS[unit]}"
+
+
+_UNITS = ("B", "KiB", "MiB", "GiB", "TiB")
+
+
 def now() -> str:
     return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())

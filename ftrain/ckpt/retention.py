@@ -30,11 +30,8 @@ def retention_plan(
     verified = [info for info in steps if info.status == VERIFIED]
     if not verified:
         return [info.step for info in steps if drop_bad and info.status in (CORRUPT, QUARANTINE)]
-    ranked = sorted(
-        (info for info in verified if _metric(info, best_metric) is not None), key=lambda i: -_metric(i, best_metric)
-    )
     keep = {verified[0].step, *pinned}
-    keep |= {info.step for info in verified[:keep_last]} | {info.step for info in ranked[:keep_best]}
+    keep |= {info.step for info in verified[:keep_last]} | set(best_steps(verified, keep_best, best_metric))
     if keep_every > 0:
         keep |= {info.step for info in verified if info.step % keep_every == 0}
     newest = verified[0].step
@@ -44,6 +41,16 @@ def retention_plan(
         for info in steps
         if info.status in deletable and info.step not in keep and not (info.status == INCOMPLETE and info.step > newest)
     ]
+
+
+def best_steps(steps: Iterable[StepInfo], count: int, metric: str) -> list[int]:
+    """The ``count`` verified steps with the highest ``metrics[metric]`` (steps without it do not count), best
+    first."""
+    ranked = sorted(
+        (info for info in steps if info.status == VERIFIED and _metric(info, metric) is not None),
+        key=lambda info: -_metric(info, metric),
+    )
+    return [info.step for info in ranked[:count]]
 
 
 def delete_step(storage: Storage, step: int, files: Iterable[str] = ()) -> None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import datetime
 import errno
 import logging
 import os
@@ -34,7 +35,7 @@ from botocore.exceptions import ConnectionError as BotoConnectionError
 from fsspec.implementations.local import LocalFileSystem
 from s3fs import S3FileSystem
 
-from ftrain.errors import UserError
+from ftrain.errors import StorageError, StorageUnavailable, UserError
 from ftrain.redact import SECRET_OPTIONS, display_url
 
 log = logging.getLogger(__name__)
@@ -53,14 +54,6 @@ _JITTER = random.Random()
 _SECRET_ENV = ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN")
 _THROTTLING = {"SlowDown", "Throttling", "ThrottlingException", "RequestLimitExceeded", "TooManyRequestsException"}
 _PROTOCOL = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*$")
-
-
-class StorageError(Exception):
-    """A storage operation failed for good (after retrying when the cause looked transient)."""
-
-
-class StorageUnavailable(StorageError):
-    """The storage did not answer, or answered busy, through every retry: wait for it (never bad input)."""
 
 
 def is_transient(exc: BaseException) -> bool:
@@ -186,6 +179,12 @@ class Storage:
         """Name -> size of the files directly under ``rel`` (one listing, no per-file requests)."""
         return {name: int(entry["size"]) for name, entry in self._list(rel).items() if entry["type"] == "file"}
 
+    def modified(self, rel: str) -> float | None:
+        """When the newest file directly under ``rel`` was written (epoch seconds); None if there is none, or the
+        storage does not say. How old an abandoned save is tells a dead one from one in flight."""
+        times = [_modified(entry) for entry in self._list(rel).values() if entry["type"] == "file"]
+        return max((time for time in times if time is not None), default=None)
+
     def delete(self, rel: str) -> None:
         """Delete one object if it exists."""
         with contextlib.suppress(FileNotFoundError):
@@ -287,8 +286,9 @@ class Storage:
     def _access_error(self, exc: Exception) -> UserError:
         if isinstance(exc, NoCredentialsError):
             return UserError(
-                f"no credentials for {self.url}: set AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY "
-                "or storage.options key and secret"
+                f"no credentials for {self.url} (endpoint {self._endpoint()}): set AWS_ACCESS_KEY_ID and "
+                "AWS_SECRET_ACCESS_KEY, or the storage options key and secret (--storage-option key=... "
+                "--storage-option secret=..., storage.options in a config)"
             )
         return UserError(f"access denied to {self.url} ({self._scrub(exc)}): check the credentials and permissions")
 
@@ -326,6 +326,14 @@ def _secret_values(options: dict) -> list[str]:
 def _url_secrets(url: str) -> list[str]:
     userinfo = urlsplit(url).netloc.rpartition("@")[0] if "://" in url else ""
     return [userinfo, *(unquote(part) for part in userinfo.split(":"))] if userinfo else []
+
+
+def _modified(entry: dict) -> float | None:
+    """An fsspec listing entry's modification time: ``mtime`` locally, ``LastModified`` on S3, ``created`` in memory."""
+    value = entry.get("mtime", entry.get("LastModified", entry.get("created")))
+    if isinstance(value, datetime.datetime):
+        return value.timestamp()
+    return float(value) if isinstance(value, (int, float)) else None
 
 
 def _s3_options(url: str, options: dict) -> str:

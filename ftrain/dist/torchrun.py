@@ -1,12 +1,16 @@
-"""torchrun as ``ftrain supervise`` runs it: ``python -m ftrain.dist.torchrun FAILURES <torchrun arguments>``.
+"""torchrun with ftrain's exit codes: ``python -m ftrain.dist.torchrun [--failures=FILE] <torchrun arguments>``.
 
-This is torchrun itself, in this process, except for how it ends when workers fail: instead of raising
-ChildFailedError (a traceback and a text report on stderr), it writes torchrun's own account of every failed worker
-to FAILURES, as JSON ``{global rank: {"exitcode": code, "error": the JSON of its error file or null}}`` (a negative
-code: killed by that signal; the error file: what the worker recorded, see ``ftrain/errorfile.py``), and exits 1.
-An elastic rendezvous that did not gather its minimum of nodes in time is one line on stderr and exit
-``EXIT_RENDEZVOUS_TIMEOUT``: not a failure to restart, a lack of nodes. It ends with its supervisor, however that
-ends (``ftrain/lifeline.py``).
+This is torchrun itself, in this process, except for how it ends. Stopped by a signal (SIGINT, SIGTERM), it stops the
+workers with it (torchrun's own shutdown: they save) and exits 128 + the signal (130, 143) where torchrun would raise
+and exit 1; when every worker that ended exited 130 or 143 (they were stopped and saved), it exits with that code. So
+a script tells a stop from a failure, which plain ``torchrun`` (exit 1 for both) does not let it.
+
+``ftrain supervise`` runs it with ``--failures=FILE``: instead of raising ChildFailedError (a traceback and a text
+report on stderr), it writes torchrun's own account of every failed worker to FILE, as JSON ``{global rank:
+{"exitcode": code, "error": the JSON of its error file or null}}`` (a negative code: killed by that signal; the error
+file: what the worker recorded, see ``ftrain/errorfile.py``), and exits 1 (or 130, 143, as above). An elastic
+rendezvous that did not gather its minimum of nodes in time is one line on stderr and exit ``EXIT_RENDEZVOUS_TIMEOUT``:
+not a failure to restart, a lack of nodes. It ends with its supervisor, however that ends (``ftrain/lifeline.py``).
 """
 
 from __future__ import annotations
@@ -16,22 +20,32 @@ import os
 import sys
 from pathlib import Path
 
+from torch.distributed.elastic.multiprocessing.api import SignalException
 from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
 from torch.distributed.elastic.rendezvous.api import RendezvousTimeoutError
 from torch.distributed.run import main as torchrun
 
-from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT
+from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, STOPPED
 from ftrain.lifeline import die_with_supervisor
 
 EXIT_WORKERS_FAILED = 1
+FAILURES_OPTION = "--failures="
 
 
 def main(argv: list[str]) -> int:
     die_with_supervisor()
-    failures_path, *arguments = argv
+    failures_path = argv[0].removeprefix(FAILURES_OPTION) if argv[:1] and argv[0].startswith(FAILURES_OPTION) else None
+    arguments = argv[1:] if failures_path is not None else argv
     try:
         torchrun(arguments)
     except ChildFailedError as failed:
+        codes = {failure.exitcode for failure in failed.failures.values()}
+        stopped = codes.pop() if len(codes) == 1 and codes <= set(STOPPED) else None
+        if failures_path is None:
+            if stopped is None:
+                raise  # torchrun's own report of the failure
+            print(f"torchrun: the workers saved and exited {stopped} (stopped by a signal)", file=sys.stderr)
+            return stopped
         failures = {
             rank: {"exitcode": failure.exitcode, "error": _recorded(failure.error_file, failure.error_file_data)}
             for rank, failure in failed.failures.items()
@@ -39,7 +53,9 @@ def main(argv: list[str]) -> int:
         path = Path(failures_path)
         path.with_suffix(".tmp").write_text(json.dumps(failures))
         os.replace(path.with_suffix(".tmp"), path)
-        return EXIT_WORKERS_FAILED
+        return stopped or EXIT_WORKERS_FAILED
+    except SignalException as signalled:  # the agent has stopped the workers with the same signal before raising
+        return 128 + int(signalled.sigval)
     except RendezvousTimeoutError as error:
         print(f"torchrun: rendezvous timed out: {' '.join(str(error).split())}", file=sys.stderr, flush=True)
         return EXIT_RENDEZVOUS_TIMEOUT

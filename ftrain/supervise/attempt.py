@@ -49,7 +49,7 @@ def torchrun_command(
         sys.executable,
         "-m",
         TORCHRUN,
-        str(log_dir / FAILURES),
+        f"--failures={log_dir / FAILURES}",
         "--max-restarts=0",
         f"--nproc-per-node={nproc_per_node}",
         f"--log-dir={log_dir}",

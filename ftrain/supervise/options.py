@@ -1,31 +1,22 @@
 """``ftrain supervise``'s options, exit codes and their parsing (one-line errors for bad values).
 
-Exit codes:
-
-- 0: training finished.
-- 2: bad input (config or options, or a worker exited with 2); nothing is restarted.
-- 3: crash loop: ``--crash-loop`` restarts in a row committed no new checkpoint.
-- 4: ``--max-restarts`` exhausted.
-- 5: several nodes: node 0's supervisor was unreachable for ``--rdzv-timeout`` seconds.
-- 6: elastic (``--nnodes MIN:MAX``): fewer than MIN nodes joined within ``--rdzv-timeout`` seconds. Nothing
-  committed is lost: start the missing nodes and run the same command again.
-- 7: the checkpoint storage did not answer for ``--storage-wait`` seconds. Nothing committed is lost: run the same
-  command again once it is back. (Until then, an unreachable storage is waited out, and restarts for it count
-  neither towards ``--max-restarts`` nor the crash loop.)
-- 8: another run holds the storage's lease (``ftrain/ckpt/lease.py``): one line names it and when its lease ends;
-  nothing of that run is touched, nothing is launched.
-- 143: preempted (SIGTERM): the workers saved; run the same command again to continue. 128 + SIGTERM,
-  so schedulers that retry signal exits (e.g. Kubernetes' ``ExitCode`` restart policy) run it again.
-- 130: interrupted (SIGINT, Ctrl-C): the same as 143, with the shell's code for Ctrl-C.
+Exit codes: ``EXIT_CODES`` (``ftrain supervise --help`` lists them; so does the README).
 """
 
 from __future__ import annotations
 
 import os
-import signal
 from dataclasses import dataclass, field
 
-from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_STORAGE_DOWN, UserError
+from ftrain.errors import (
+    EXIT_INTERRUPTED,
+    EXIT_PREEMPTED,
+    EXIT_RENDEZVOUS_TIMEOUT,
+    EXIT_STORAGE_DOWN,
+    EXIT_STORAGE_HELD,
+    EXIT_USAGE,
+    UserError,
+)
 from ftrain.supervise.auth import load_secret
 
 EXIT_DONE = 0
@@ -34,15 +25,30 @@ EXIT_MAX_RESTARTS = 4
 EXIT_PEER_LOST = 5
 EXIT_TOO_FEW_NODES = EXIT_RENDEZVOUS_TIMEOUT
 EXIT_STORAGE_WAIT = EXIT_STORAGE_DOWN
-EXIT_PREEMPTED = 128 + signal.SIGTERM
-EXIT_INTERRUPTED = 128 + signal.SIGINT
-STOPPED = (EXIT_PREEMPTED, EXIT_INTERRUPTED)
-"""The exit codes of a run stopped by a signal after saving."""
+
+EXIT_CODES = {
+    EXIT_DONE: "training finished",
+    EXIT_USAGE: "bad input (config, options, or a worker refused its input); nothing restarted",
+    EXIT_CRASH_LOOP: "crash loop: --crash-loop restarts in a row committed no new checkpoint",
+    EXIT_MAX_RESTARTS: "--max-restarts exhausted",
+    EXIT_PEER_LOST: "several nodes: node 0's supervisor unreachable for --rdzv-timeout seconds",
+    EXIT_TOO_FEW_NODES: "elastic: fewer than MIN nodes joined within --rdzv-timeout seconds; nothing committed lost",
+    EXIT_STORAGE_WAIT: "the checkpoint storage did not answer for --storage-wait seconds; nothing committed lost",
+    EXIT_STORAGE_HELD: "another run holds the storage (its lease); nothing of that run touched",
+    EXIT_INTERRUPTED: "interrupted (SIGINT, Ctrl-C): the workers saved; run the same command again to continue",
+    EXIT_PREEMPTED: "preempted (SIGTERM): the workers saved; run the same command again to continue",
+}
+"""Every exit code of ``ftrain supervise`` and what it means. Until ``--storage-wait`` runs out, an unreachable storage
+is waited out, and restarts for it count neither towards ``--max-restarts`` nor the crash loop."""
 
 
-def stop_code(signum: int) -> int:
-    """The exit code after a stop by ``signum``: 128 + the signal, as a shell reports it (130 for Ctrl-C)."""
-    return EXIT_INTERRUPTED if signum == signal.SIGINT else EXIT_PREEMPTED
+def exit_codes_help() -> str:
+    """The exit codes and the stop signals, for ``ftrain supervise --help``."""
+    codes = "\n".join(f"  {code:>3}  {meaning}" for code, meaning in EXIT_CODES.items())
+    return (
+        "SIGTERM or SIGINT (Ctrl-C) to the supervisor makes the workers save at the next iteration boundary\n"
+        "and exit; the supervisor then exits 143 or 130. A second signal stops them at once.\n\nexit codes:\n" + codes
+    )
 
 
 @dataclass

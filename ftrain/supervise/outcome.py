@@ -6,8 +6,8 @@ import math
 import signal
 from dataclasses import dataclass
 
-from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_STORAGE_DOWN, EXIT_USAGE
-from ftrain.supervise.options import EXIT_DONE, EXIT_PREEMPTED, EXIT_TOO_FEW_NODES
+from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_STORAGE_DOWN, EXIT_USAGE, STOPPED
+from ftrain.supervise.options import EXIT_DONE, EXIT_TOO_FEW_NODES
 
 
 @dataclass
@@ -45,6 +45,15 @@ def blame(failures: dict[int, WorkerFailure], killed: set[int]) -> tuple[int, Wo
     return min(own.items(), key=order) if own else None
 
 
+ENDINGS = {"usage": "bad input", "done": "training finished"}
+"""How the summary names an ending whose event name is not plain words."""
+
+
+def in_words(event: str) -> str:
+    """The name of an ending (an event) for a person: ``usage`` is "bad input", ``crash_loop`` "crash loop"."""
+    return ENDINGS.get(event, event.replace("_", " "))
+
+
 @dataclass
 class Outcome:
     """How an attempt ended: ``failed`` (restart), ``storage_down`` (wait for the storage, then restart) or one of the
@@ -69,7 +78,8 @@ def classify(
     superseded: bool,
     committed: int | None,
 ) -> Outcome:
-    """The outcome of an attempt whose torchrun exited with ``code``.
+    """The outcome of an attempt whose torchrun exited with ``code`` (``ftrain.dist.torchrun``: 130 or 143 when every
+    worker that ended exited so, after a stop by SIGINT or SIGTERM that reached the workers but not the supervisor).
 
     ``cause``: what to blame, in words; ``culprit``: the rank to blame and how it ended, if any;
     ``stopped``: the exit code for the signal that asked the supervisor to stop (None: no signal); ``orphans``:
@@ -82,12 +92,12 @@ def classify(
         return Outcome("preempted", stopped, f"preempted: {how} (newest step {committed})")
     if orphans:
         return Outcome("failed", None, cause)
-    if code == 0 and "preempted" not in phases:
-        return Outcome("done", EXIT_DONE, f"training finished (step {committed})")
     if code == 0:
+        return Outcome("done", EXIT_DONE, f"training finished (step {committed})")
+    if code in STOPPED and phases and phases <= {"preempted", "done"}:  # the workers were signalled, saved, exited
         if superseded:
             return Outcome("failed", None, "stopped because another node failed")
-        return Outcome("preempted", EXIT_PREEMPTED, f"preempted: the workers saved step {committed}; rerun to continue")
+        return Outcome("preempted", code, f"preempted: the workers saved step {committed}; rerun to continue")
     if code == EXIT_RENDEZVOUS_TIMEOUT and culprit is None:
         return Outcome(
             "too_few_nodes",

@@ -26,7 +26,8 @@ completed iterations; ``--backoff-initial`` after one that completed none, doubl
 ``--backoff-max``) and launch again; the workers resume from the newest verified checkpoint themselves.
 
 Preemption. SIGTERM or SIGINT to the supervisor: SIGTERM to the workers, which agree at the next iteration
-boundary, save and exit 0; SIGKILL after ``--stop-grace``; a second signal kills at once. No restart; the
+boundary, save and exit 143 (torchrun passes that on: ``ftrain/dist/torchrun.py``); SIGKILL after ``--stop-grace``;
+a second signal kills at once. No restart; the
 supervisor exits 128 + the signal (143 for SIGTERM, 130 for SIGINT, Ctrl-C).
 
 Several nodes: ``coordinator.py``. Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``.
@@ -47,6 +48,7 @@ from pathlib import Path
 from ftrain.ckpt.lease import storage_lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config, StorageConfig
+from ftrain.errors import STOPPED, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats
 from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, attempt_env, kill, new_log_dir, signal_name, torchrun_command
@@ -57,15 +59,13 @@ from ftrain.supervise.ledger import Ledger
 from ftrain.supervise.options import (
     EXIT_DONE,
     EXIT_PEER_LOST,
-    STOPPED,
     Nodes,
     SupervisorOptions,
     parse_hang_timeout,
     parse_nodes,
-    stop_code,
 )
 from ftrain.supervise.outage import StorageWait
-from ftrain.supervise.outcome import Outcome, classify
+from ftrain.supervise.outcome import Outcome, classify, in_words
 from ftrain.supervise.restarts import RestartPolicy
 
 WORKER_MODULE_ENV = "FTRAIN_WORKER_MODULE"
@@ -331,7 +331,7 @@ class Supervisor:
         phases = self._phases(attempt)
         cause = attempt.cause(code) if code or orphans else "exit code 0"
         superseded = (
-            code == 0 and self.nnodes > 1 and plan_key(self._current_plan(attempt.plan)) != plan_key(attempt.plan)
+            code in STOPPED and self.nnodes > 1 and plan_key(self._current_plan(attempt.plan)) != plan_key(attempt.plan)
         )
         stopped = stop_code(self.signals[0]) if self.signals else None
         committed = attempt.committed if attempt.committed is not None else self.policy.best_committed
@@ -391,7 +391,7 @@ class Supervisor:
         summary = {"restarts": restarts, "iterations_lost": lost, "downtime": round(downtime, 2)}
         self.events(
             "summary",
-            f"{event} (exit {code}): {restarts} restarts, {lost} iterations lost, {downtime:.1f} s downtime",
+            f"{in_words(event)} (exit {code}): {restarts} restarts, {lost} iterations lost, {downtime:.1f} s downtime",
             code=code,
             **summary,
         )

@@ -1,20 +1,24 @@
 """``ftrain plot``: a run's learning curves as one PNG, with its restarts and resumes marked.
 
-Reads ``<run>/metrics.csv`` (the CSV hook's: one row per iteration, the first row after a resume names the step in
-``resumed_from``; in files of older ftrain versions an iteration redone appears twice, and its last row wins) and,
-if the supervisor ran, ``<run>/events.jsonl``. Restarts are counted as the supervisor counts them: each ``restart``
-event, drawn at the step the next attempt resumed from. Every other resume (the same command run again after a
+Reads, from a local directory or any fsspec URL (a log directory copied to S3, say), ``<run>/metrics.csv`` (the CSV
+hook's: one row per iteration, the first row after a resume names the step in ``resumed_from``; in files of older
+ftrain versions an iteration redone appears twice, and its last row wins) and, if the supervisor ran,
+``<run>/events.jsonl``. Restarts are counted as the supervisor counts them: each ``restart`` event, drawn at the step
+the next attempt resumed from. Every other resume (the same command run again after a
 preemption or by hand) is a resume.
 """
 
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
+from ftrain.ckpt.storage import Storage
+from ftrain.config import default_log_dir
 from ftrain.errors import UserError
 
 METRICS = "metrics.csv"
@@ -32,24 +36,26 @@ class Plot:
     """The steps of the other resumes."""
 
 
-def read_metrics(run: Path) -> tuple[dict[str, list[float]], list[int]]:
+def read_metrics(run: str | Path, options: dict | None = None) -> tuple[dict[str, list[float]], list[int]]:
     """Columns by name, ordered by iteration (the last row of each iteration wins), and the steps resumed from: the
-    ``resumed_from`` column, and wherever the iterations go back (files of older versions)."""
-    path = run / METRICS
-    if not path.is_file():
+    ``resumed_from`` column, and wherever the iterations go back (files of older versions). ``options``: fsspec
+    storage options."""
+    storage = Storage.open(str(run), options)
+    path = storage.where(METRICS)
+    text = _read(storage, METRICS)
+    if text is None:
         raise UserError(f"{path} does not exist: pass a run's log directory (where training wrote {METRICS})")
     rows: dict[int, dict[str, str]] = {}
     restarts: set[int] = set()
     previous = 0
-    with path.open(newline="") as file:
-        for row in csv.DictReader(file):
-            iteration = int(row["iteration"])
-            if iteration <= previous:
-                restarts.add(iteration - 1)
-            if row.get("resumed_from"):
-                restarts.add(int(row["resumed_from"]))
-            previous = iteration
-            rows[iteration] = row
+    for row in csv.DictReader(io.StringIO(text, newline="")):
+        iteration = int(row["iteration"])
+        if iteration <= previous:
+            restarts.add(iteration - 1)
+        if row.get("resumed_from"):
+            restarts.add(int(row["resumed_from"]))
+        previous = iteration
+        rows[iteration] = row
     if not rows:
         raise UserError(f"{path} has no rows yet: plot the run after its first iteration")
     ordered = [rows[iteration] for iteration in sorted(rows)]
@@ -57,13 +63,10 @@ def read_metrics(run: Path) -> tuple[dict[str, list[float]], list[int]]:
     return columns, sorted(restarts)
 
 
-def read_restarts(run: Path) -> list[int]:
+def read_restarts(storage: Storage) -> list[int]:
     """The supervisor's restarts, each at the step the attempt after it resumed from (0: from the start)."""
-    path = run / EVENTS
-    if not path.is_file():
-        return []
     steps, restarted = [], False
-    for line in path.read_text().splitlines():
+    for line in (_read(storage, EVENTS) or "").splitlines():
         try:
             event = json.loads(line)
         except json.JSONDecodeError:
@@ -76,17 +79,18 @@ def read_restarts(run: Path) -> list[int]:
     return sorted(steps)
 
 
-def plot_run(run: str | Path, output: str | Path | None = None) -> Plot:
+def plot_run(run: str | Path, output: str | Path | None = None, options: dict | None = None) -> Plot:
     """Write the learning curves of the run whose log directory is ``run`` to ``output`` (default
-    ``<run>/curves.png``)."""
+    ``<run>/curves.png``; for a run elsewhere than on this machine, ``runs/<its name>/curves.png``). ``options``: fsspec
+    storage options."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    run = Path(run)
-    columns, resumed = read_metrics(run)
-    restarts = read_restarts(run)
+    storage = Storage.open(str(run), options)
+    columns, resumed = read_metrics(run, options)
+    restarts = read_restarts(storage)
     resumes = sorted(set(resumed) - set(restarts))
     iterations = columns.pop("iteration")
     panels = [
@@ -129,14 +133,23 @@ def plot_run(run: str | Path, output: str | Path | None = None) -> Plot:
     marks.append(_count(len(resumes), "resume") + " (dotted)" if resumes else "")
     marked = ", ".join(mark for mark in marks if mark)
     where = f", {marked}: at the step resumed from" if marked else ""
-    figure.suptitle(f"{run.resolve().name}: {int(iterations[-1])} iterations{where}")
+    name = Path(run).resolve().name if storage.is_local else PurePosixPath(storage.url).name
+    figure.suptitle(f"{name}: {int(iterations[-1])} iterations{where}")
     figure.tight_layout()
-    path = Path(output) if output else run / "curves.png"
+    path = Path(output) if output else Path(default_log_dir(str(run), name)) / "curves.png"
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=100)
     plt.close(figure)
     print(f"wrote {path}")
     return Plot(path, [title for title, _, _ in panels], restarts, resumes)
+
+
+def _read(storage: Storage, name: str) -> str | None:
+    """The text of ``name`` in ``storage``; None if it does not exist."""
+    try:
+        return storage.read(name).decode()
+    except FileNotFoundError:
+        return None
 
 
 def _count(n: int, noun: str) -> str:

@@ -19,6 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from ftrain.ckpt.format import human_size, step_dir
 from ftrain.errors import UserError
 
 if TYPE_CHECKING:
@@ -89,7 +90,8 @@ class Hooks:
 
 class ConsoleHook(Hook):
     """One line per iteration on rank 0: progress, throughput, returns (and the evaluation's, when there is one),
-    losses, learning rate, ETA.
+    losses, learning rate, ETA; a short line per committed checkpoint (step, where, size, seconds) and, at the end,
+    where the run is and how to play or export it.
 
     The ETA is the remaining iterations times the mean wall time of the last ``ETA_WINDOW`` iterations of this
     process, not counting the first ``ETA_SKIP`` after a (re)start (imports, the first save, warm caches); until
@@ -104,10 +106,14 @@ class ConsoleHook(Hook):
         self._last: float | None = None
         self._intervals = 0
         self._recent: collections.deque[float] = collections.deque(maxlen=self.ETA_WINDOW)
+        self._said_no_episode = False
 
     def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
         if not trainer.info.is_main:
             return
+        if not math.isfinite(metrics["mean_return"]) and not self._said_no_episode:
+            self._said_no_episode = True
+            print("[ftrain] no episode has finished yet: return and len show '-' until one has", flush=True)
         total = trainer.config.iterations
         eta = _duration((total - trainer.iteration) * self.seconds_per_iteration(metrics["iteration_time"]))
         losses = " ".join(f"{k.removeprefix('loss/')} {v:.3g}" for k, v in metrics.items() if k.startswith("loss/"))
@@ -117,6 +123,27 @@ class ConsoleHook(Hook):
             f" | return {_number(metrics['mean_return'], '.2f')} | len {_number(metrics['mean_length'], '.0f')}"
             f"{f' | eval {evaluated:.2f}' if math.isfinite(evaluated) else ''}"
             f" | {losses} | lr {metrics['learning_rate']:.2e} | ETA {eta}",
+            flush=True,
+        )
+
+    def on_checkpoint(self, trainer: Trainer, step: int, manifest: dict) -> None:
+        if trainer.info.is_main:
+            checkpointer = trainer.checkpointer
+            size = human_size(sum(entry["size"] for entry in manifest["files"].values()))
+            where = checkpointer.storage.where(step_dir(step))
+            print(f"[ftrain] saved step {step} to {where} ({size}, {checkpointer.last_commit_s:.1f} s)", flush=True)
+
+    def on_end(self, trainer: Trainer) -> None:
+        """Where the run is, for whoever comes back to it: storage, newest step, logs, and the commands to use it."""
+        if not trainer.info.is_main:
+            return
+        storage, step = trainer.checkpointer.storage.url, trainer.checkpointer.committed_step
+        options = trainer.config.storage.options
+        print(
+            f"[ftrain] run saved in {storage}: newest step {step if step is not None else '- (none committed)'}; "
+            f"logs in {trainer.config.log_dir}\n"
+            f"[ftrain] play it: ftrain play {storage}   export it: ftrain export {storage} --format onnx"
+            f"{'   (with the storage options of this run: --storage-option KEY=VALUE)' if options else ''}",
             flush=True,
         )
 

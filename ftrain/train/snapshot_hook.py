@@ -13,6 +13,7 @@ from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import StorageError
 from ftrain.config import SnapshotConfig
 from ftrain.errors import UserError
+from ftrain.heartbeat import Phase
 from ftrain.policy import export
 from ftrain.policy.load import Policy
 from ftrain.policy.model import OBS_GROUP
@@ -87,6 +88,7 @@ class PolicySnapshotHook(Hook):
             return
         step = trainer.iteration
         config = trainer.config
+        trainer.heartbeat.beat(Phase.SNAPSHOT, step)  # a phase of its own for the supervisor's timing: seconds
         policy = Policy(trainer.alg.get_policy(), config, self.storage.url, step, None, trainer.learned_digest())
         lineage = {
             "step": step,

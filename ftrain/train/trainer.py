@@ -26,7 +26,7 @@ from ftrain.ckpt.resume import CheckpointError
 from ftrain.ckpt.storage import StorageUnavailable
 from ftrain.config import Config
 from ftrain.dist import group
-from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD
+from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, stop_code
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter
 from ftrain.policy.robot import unsaved_state_notice
 from ftrain.train.envs import MujocoVecEnv
@@ -45,14 +45,20 @@ EPISODE_WINDOW = 100
 
 
 class StopRequest:
-    """SIGTERM or SIGINT: stop at the next iteration boundary (the ranks agree, save, and exit 0).
+    """SIGTERM or SIGINT: stop at the next iteration boundary (the ranks agree, save, and exit 143 or 130, 128 + the
+    signal, so that scripts and schedulers tell a stop from the end of training).
 
     Installed before anything slow starts, so an early signal is not lost. Repeated SIGTERMs are one request (a
     scheduler and torchrun may both forward it); a second SIGINT (Ctrl-C twice) stops at once.
     """
 
     def __init__(self) -> None:
-        self.requested = False
+        self.signal: int | None = None
+        """The first stop signal this rank received."""
+
+    @property
+    def requested(self) -> bool:
+        return self.signal is not None
 
     def install(self) -> None:
         signal.signal(signal.SIGTERM, self._handle)
@@ -62,15 +68,16 @@ class StopRequest:
         if self.requested and signum == signal.SIGINT:
             signal.signal(signal.SIGINT, signal.SIG_DFL)
             raise KeyboardInterrupt
-        self.requested = True
+        self.signal = self.signal or signum
 
 
 class Votes(typing.NamedTuple):
     """What the ranks decide together at an iteration boundary: each rank votes by its own signals and clock, the
     votes ride in the iteration's metrics all-reduce, and a vote of any rank carries, so every rank acts alike."""
 
-    stop: bool
-    """Stop here (a rank was asked to: SIGTERM or SIGINT): save and exit."""
+    stop: int | None
+    """Stop here (a rank was asked to): save and exit; the signal that asked, SIGTERM if any rank got one, else
+    SIGINT, so that every rank exits with the same code."""
     save: bool
     """Save here (the checkpoint schedule, or a retry after a failed save)."""
     hold: bool
@@ -106,7 +113,7 @@ class Trainer:
         self.checkpointer.on_commit = lambda step, manifest: self.hooks.call("on_checkpoint", self, step, manifest)
         self.checkpointer.while_waiting = lambda: self.heartbeat.beat("checkpoint")
         self.checkpointer.stopping = lambda: self.stop.requested
-        self._votes = Votes(False, False, False)
+        self._votes = Votes(None, False, False)
         self._config_json = json.dumps(config.public_dict())
         """The config as saved in common.pt: one string, made once (the manifest has it as a mapping)."""
 
@@ -187,6 +194,11 @@ class Trainer:
         if resumed is None and self.info.distributed:
             self.alg.broadcast_parameters()
         self.heartbeat.resumed_step = resumed
+        if self.iteration >= self.config.iterations:
+            self.log(
+                f"nothing to train: the run is already at step {self.iteration}, asked for iterations="
+                f"{self.config.iterations} (pass iterations=N with N > {self.iteration} to train on)"
+            )
         self.heartbeat.committed_step = resumed
         self._write_resolved_config()
         self.alg.train_mode()
@@ -194,18 +206,24 @@ class Trainer:
         self.heartbeat.beat("start", self.iteration)
         while self.iteration < self.config.iterations:
             self._iterate()
-            stop, last = self._votes.stop, self.iteration == self.config.iterations
+            stop, last = self._votes.stop is not None, self.iteration == self.config.iterations
             if stop or last or self._votes.save:
                 self.heartbeat.beat("checkpoint", self.iteration)
                 self.checkpointer.save(self, wait=stop, hold=stop or last or self._votes.hold)
                 self.heartbeat.committed_step = self.checkpointer.committed_step
             if stop:
-                self.log(f"stop requested: saved step {self.iteration}, exiting")
+                name, code = signal.Signals(self._votes.stop).name, stop_code(self._votes.stop)
+                self.log(f"stopped by {name}: saved step {self.iteration}, exiting with code {code}")
+                # saved: once a rank has exited with the stop code, torchrun SIGTERMs the others, and a SIGTERM while
+                # Python shuts down (its handlers are gone by then) would kill this rank and read as a failure
+                signal.signal(signal.SIGTERM, signal.SIG_IGN)
                 break
         self.checkpointer.close()
         self.heartbeat.committed_step = self.checkpointer.committed_step
         self.hooks.call("on_end", self)
         self.heartbeat.beat("preempted" if self.iteration < self.config.iterations else "done", self.iteration)
+        if self.iteration < self.config.iterations and self._votes.stop is not None:
+            return stop_code(self._votes.stop)
         return 0
 
     def _iterate(self) -> None:
@@ -241,11 +259,13 @@ class Trainer:
         returns = sum(ret for ret, _ in self.episodes)
         lengths = sum(length for _, length in self.episodes)
         steps = self.env.num_envs * self.config.num_steps_per_env
-        votes = (self.stop.requested, *self.checkpointer.votes(self.iteration))
+        stops = (self.stop.signal == signal.SIGTERM, self.stop.signal == signal.SIGINT)
+        votes = (*stops, *self.checkpointer.votes(self.iteration))
         total_returns, total_lengths, count, total_steps, *voted = group.all_reduce_sum(
             [returns, lengths, len(self.episodes), steps, *map(float, votes)], self.info
         )
-        self._votes = Votes(*(vote > 0 for vote in voted))
+        terms, ints, save, hold = (vote > 0 for vote in voted)
+        self._votes = Votes(signal.SIGTERM if terms else signal.SIGINT if ints else None, save, hold)
         self.env_steps += int(total_steps)
         previous = self.metrics
         iteration_time = collect_time + learn_time
@@ -293,9 +313,9 @@ def build_hooks(config: Config) -> Hooks:
 
 
 def train(config: Config) -> int:
-    """Entry point of ``ftrain train`` on every rank: 0 when done or stopped on request, 1 when checkpoints fail, 7
-    when the storage does not answer, 8 when another run holds the storage (``ftrain.ckpt.lease``: rank 0 holds it for
-    the run, or its supervisor does)."""
+    """Entry point of ``ftrain train`` on every rank: 0 when done, 143 or 130 when stopped by SIGTERM or SIGINT (and
+    saved), 1 when checkpoints fail, 7 when the storage does not answer, 8 when another run holds the storage
+    (``ftrain.ckpt.lease``: rank 0 holds it for the run, or its supervisor does)."""
     stop = StopRequest()
     stop.install()
     info = group.init(config.dist_timeout)

@@ -1,5 +1,6 @@
 import json
 import os
+import re
 import shlex
 import signal
 import subprocess
@@ -32,30 +33,46 @@ def run(tmp_path) -> str:
 
 
 def lines_by_step(text: str) -> dict[int, str]:
-    return {int(line.split()[0]): line for line in text.splitlines()[1:]}
+    """The table's row of each step, with the indented lines of problems under it."""
+    rows: dict[int, str] = {}
+    for line in text.splitlines()[1:]:
+        if line.split()[0].isdigit():
+            step = int(line.split()[0])
+            rows[step] = line
+        else:
+            rows[step] += "\n" + line
+    return rows
 
 
-def test_ls(run, capsys):
+def test_ls_is_a_table_that_fits_a_terminal_and_marks_what_retention_keeps(run, capsys):
+    make_step(Storage.open(run), 50, metrics={"mean_return": 5.0, "eval_return": None})
     assert ckpt_commands.ls(run) == 0
     out = capsys.readouterr().out
-    assert out.splitlines()[0].split()[:3] == ["step", "status", "size"]
+    assert out.splitlines()[0] == (
+        "     step  status            size  created (UTC)     mean_return  eval_return  kept as"
+    )
+    assert max(len(line) for line in out.splitlines()) <= ckpt_commands.WIDTH
+    assert "None" not in out
     rows = lines_by_step(out)
-    assert list(rows) == [40, 30, 25, 20, 10]
-    assert rows[30].split()[1] == "verified" and "mean_return=30 mean_length=1000" in rows[30]
-    assert "KiB" in rows[30] and "T" in rows[30].split()[4]  # size, created time
-    assert rows[25].split()[1] == "corrupt" and "rank-00001.pt: size mismatch" in rows[25]
+    assert list(rows) == [50, 40, 30, 25, 20, 10]
+    assert rows[50].split()[1] == "verified" and rows[50].endswith("5.00            -  newest")
+    assert rows[30].split()[1] == "verified" and rows[30].endswith("30.00            -  best")  # keep_best 1
+    assert rows[30].split()[3] == "KiB" and re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d", " ".join(rows[30].split()[4:6]))
+    assert rows[20].endswith("20.00            -")  # kept by nothing but keep_last
+    assert rows[25].split()[1] == "corrupt" and "\n           rank-00001.pt: size mismatch" in rows[25]
     assert rows[40].split()[1] == "incomplete" and "MANIFEST.json: missing" in rows[40]
 
 
 def test_verify_a_run_and_single_steps(run, capsys):
     assert ckpt_commands.verify(run) == 1
     out = capsys.readouterr().out
-    assert "step 30: ok" in out and "step 25: FAILED" in out and "step 40: FAILED" in out
+    assert "step 30: ok" in out and "step 25: FAILED" in out
+    assert "step 40: incomplete (never committed: no manifest; last written " in out
     assert "checkpoints/step-000000025/rank-00001.pt: size mismatch" in out
-    assert out.splitlines()[-1] == "3 of 5 steps verified"
+    assert out.splitlines()[-1] == "3 of 4 committed steps verified; 1 incomplete (never committed)"
 
     assert ckpt_commands.verify(f"{run}/checkpoints/step-000000020") == 0
-    assert capsys.readouterr().out.splitlines() == ["step 20: ok", "1 of 1 steps verified"]
+    assert capsys.readouterr().out.splitlines() == ["step 20: ok", "1 of 1 committed steps verified"]
 
     flip_shard_byte(Storage.open(run), 20)
     assert ckpt_commands.verify(f"{run}/checkpoints/step-000000020") == 1

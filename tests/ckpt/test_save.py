@@ -110,7 +110,7 @@ def test_sigterm_to_every_process_still_commits_the_stop_save_and_ranks_have_no_
     assert [pid for rank in ranks for pid in procfs.descendants(rank)] == [], "saves run inside the ranks, no helper"
     for pid in ranks:  # what Slurm does to the workers at the end of a job step
         os.kill(pid, signal.SIGTERM)
-    assert finish(proc) == 0, "the stop save must commit"
+    assert finish(proc) == 1, "plain torchrun: its workers exit 143 after the stop save, it exits 1"
     newest = max(manifests(storage))
     assert newest >= before
     assert verify_step(Storage.open(str(storage)), newest).ok

@@ -26,7 +26,7 @@ from ftrain.policy.load import load_policy
 from ftrain.policy.model import ClippedNormalization
 from ftrain.policy.play import play
 
-from helpers import REPO, child_env, final_manifest, flip_byte, run_train
+from helpers import REPO, child_env, final_manifest, flip_byte, needs_egl, run_train
 
 EPISODE_STEPS = 20
 STANDALONE = r"""
@@ -85,7 +85,11 @@ def test_exports_run_without_ftrain_and_match_the_actor(trained, tmp_path, capsy
     files = {"torchscript": tmp_path / "policy.pt", "onnx": tmp_path / "policy.onnx"}
     for fmt, path in files.items():
         assert main(["export", str(trained), "--format", fmt, "-o", str(path)]) == 0
-        assert f"wrote {path}: {fmt} policy of step 4" in capsys.readouterr().out
+        printed = capsys.readouterr()
+        assert printed.out.startswith(f"wrote {path}: {fmt} policy of step 4") and printed.out.count("\n") == 1
+        assert "torch.onnx" not in printed.out + printed.err  # the exporter's progress lines stay off the console
+    graph = onnx.load(files["onnx"]).graph  # made by torch.export's exporter (dynamo=True), which labels its inputs
+    assert any(prop.key.startswith("pkg.torch.export") for value in graph.input for prop in value.metadata_props)
     policy = load_policy(str(trained))
     obs = sample_observations(policy, episodes=2, seed=7)
     np.save(tmp_path / "obs.npy", obs.numpy())
@@ -124,6 +128,7 @@ def check_video(path: Path, frames: int) -> None:
 
 
 @pytest.mark.slow
+@needs_egl
 def test_play_renders_mp4_and_gif(trained, tmp_path, capsys) -> None:
     video = tmp_path / "cheetah.mp4"
     assert main(["play", str(trained), "--episodes", "2", "--video", str(video)]) == 0
@@ -140,6 +145,7 @@ def test_play_renders_mp4_and_gif(trained, tmp_path, capsys) -> None:
 
 
 @pytest.mark.slow
+@needs_egl
 def test_play_on_a_terminal_counts_frames_live_and_prints_each_episode_as_it_ends(trained, tmp_path) -> None:
     ours, theirs = pty.openpty()
     command = [sys.executable, "-m", "ftrain", "play", str(trained), "--episodes", "2", "--video", "cheetah.gif"]

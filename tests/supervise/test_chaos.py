@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from ftrain.errors import EXIT_PREEMPTED
 from ftrain.supervise.auth import SECRET_ENV
-from ftrain.supervise.options import EXIT_PREEMPTED
 
 from helpers import (
     REPO,

@@ -4,8 +4,8 @@ The stand-in (``python -m test_supervisor train CONFIG --storage DIR``, picked t
 ``FTRAIN_WORKER_MODULE`` hook) speaks the heartbeat protocol like the trainer and joins a real gloo process group,
 but its "training" is a SHA-256 chain over iterations and a checkpoint is a MANIFEST.json holding the chain. It
 resumes from the newest manifest, saves on SIGTERM at the next iteration boundary (all ranks agree through an
-all-reduce), and can inject a fault from ``FAKE_FAULT=kind:rank:iteration`` (crash / crash-always / usage;
-rank -1: every rank).
+all-reduce) and exits 128 + the signal, and can inject a fault from ``FAKE_FAULT=kind:rank:iteration`` (crash /
+crash-always / usage; rank -1: every rank).
 """
 
 from __future__ import annotations
@@ -100,8 +100,8 @@ def fake_worker(argv: list[str]) -> int:
     iteration, state = (manifest["step"], manifest["state"]) if manifest else (0, "seed")
     heartbeat.resumed_step = heartbeat.committed_step = manifest["step"] if manifest else None
     stop = []
-    signal.signal(signal.SIGTERM, lambda *_: stop.append(1))
-    signal.signal(signal.SIGINT, lambda *_: stop.append(1))
+    signal.signal(signal.SIGTERM, lambda signum, _: stop.append(signum))
+    signal.signal(signal.SIGINT, lambda signum, _: stop.append(signum))
     heartbeat.beat("start", iteration)
     while iteration < config.iterations:
         heartbeat.beat("rollout", iteration)
@@ -112,8 +112,8 @@ def fake_worker(argv: list[str]) -> int:
         time.sleep(PHASE_SECONDS)
         state = chain(state, iteration)
         iteration += 1
-        flag = torch.tensor([float(bool(stop))])
-        dist.all_reduce(flag)
+        flag = torch.tensor([float(128 + stop[0] if stop else 0)])  # like the trainer: every rank exits alike
+        dist.all_reduce(flag, op=dist.ReduceOp.MAX)
         if flag.item() or iteration % config.checkpoint.interval == 0 or iteration == config.iterations:
             heartbeat.beat("checkpoint")
             dist.barrier()
@@ -127,7 +127,7 @@ def fake_worker(argv: list[str]) -> int:
             break
     heartbeat.beat("preempted" if iteration < config.iterations else "done")
     dist.destroy_process_group()
-    return 0
+    return int(flag.item()) if iteration < config.iterations else 0
 
 
 # --- helpers -------------------------------------------------------------------------------------------------------
@@ -412,9 +412,10 @@ def test_max_restarts_stops_with_its_own_code(tmp_path):
 
 
 @pytest.mark.slow
-def test_worker_bad_input_is_not_restarted(tmp_path):
+def test_worker_bad_input_is_not_restarted(tmp_path, capfd):
     proc = start_supervisor(tmp_path, fault="usage:-1:0")
     assert finish(proc) == 2
+    assert "ftrain supervise: bad input (exit 2): 0 restarts" in capfd.readouterr().err
     log = [event for event in events(tmp_path / "run") if event["event"] != "worker_died"]
     assert [event["event"] for event in log] == ["start", "exit", "usage", "summary"]
     assert log[1]["cause"] in (f"rank {rank} exited with code 2: stand-in bad input" for rank in (0, 1))

@@ -225,7 +225,7 @@ def test_sigterm_to_one_worker_stops_both_ranks_at_one_boundary_and_the_rerun_co
     try:
         beat = wait_for(lambda: (b := read_heartbeats(heartbeats).get(1)) and b.iteration >= 3 and b, "iteration 3")
         os.kill(beat.pid, signal.SIGTERM)  # one rank only: the other learns it through the agreement
-        assert proc.wait(timeout=120) == 0
+        assert proc.wait(timeout=120) == 1  # both ranks exit 143; plain torchrun turns any worker's code into 1
     finally:
         if proc.poll() is None:
             kill_tree(proc)

@@ -1,0 +1,87 @@
+"""A stop by a signal saves and says so in the exit code, 128 + the signal (130 for SIGINT, 143 for SIGTERM), in
+every process that can tell: a lone ``ftrain train``, torchrun as the supervisor runs it (signalled itself, or its
+workers signalled as a scheduler does), ``ftrain supervise``. Real processes, real training, real signals."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from ftrain.heartbeat import ENV_DIR, read_heartbeats
+from ftrain.supervise.attempt import TORCHRUN
+
+from helpers import REPO, SMOKE, child_env, events, final_manifest, finish, launch, train_command, training
+
+pytestmark = pytest.mark.slow
+
+LONG = "iterations=100000"
+
+
+def start(command: list[str], heartbeats: Path) -> subprocess.Popen:
+    return launch(
+        command,
+        cwd=REPO,
+        env=child_env({ENV_DIR: str(heartbeats)}),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        start_new_session=True,
+    )
+
+
+def test_a_lone_trainer_stopped_by_ctrl_c_saves_and_exits_130(tmp_path) -> None:
+    storage = tmp_path / "run"
+    proc = start([*train_command(storage, LONG), "log.console=true"], tmp_path / "beats")
+    training(tmp_path / "beats", 3, [0])
+    proc.send_signal(signal.SIGINT)
+    assert finish(proc) == 130
+    step = final_manifest(storage)["step"]
+    assert 3 <= step < 100000
+    assert f"[ftrain] stopped by SIGINT: saved step {step}, exiting with code 130" in proc.stdout.read()
+
+
+@pytest.mark.parametrize(
+    ("target", "stop", "code", "as_supervised"),
+    [
+        ("torchrun", signal.SIGINT, 130, False),
+        ("torchrun", signal.SIGTERM, 143, True),
+        ("workers", signal.SIGTERM, 143, True),
+    ],
+)
+def test_ftrain_torchrun_passes_the_stop_code_on(tmp_path, target, stop, code, as_supervised) -> None:
+    """A signal to torchrun (it stops its workers with it: Ctrl-C in a terminal reaches torchrun only) or to every
+    worker (a scheduler's preemption): the workers save and exit 128 + the signal, and so does torchrun, run by hand
+    or as the supervisor runs it (``--failures``: the workers' account goes to that file)."""
+    storage, beats = tmp_path / "run", tmp_path / "beats"
+    failures = tmp_path / "failures.json"
+    command = train_command(storage, LONG, ranks=2)
+    at = command.index("--standalone")
+    options = [f"--failures={failures}"] if as_supervised else []
+    proc = start([sys.executable, "-m", TORCHRUN, *options, *command[at:]], beats)
+    training(beats, 3, [0, 1])
+    pids = [proc.pid] if target == "torchrun" else [beat.pid for beat in read_heartbeats(beats).values()]
+    for pid in pids:
+        os.kill(pid, stop)
+    assert finish(proc) == code, (proc.stdout.read()[-3000:], failures.exists() and failures.read_text())
+    assert {beat.phase for beat in read_heartbeats(beats).values()} == {"preempted"}
+    assert final_manifest(storage)["step"] >= 3
+    if target == "workers":
+        assert {failure["exitcode"] for failure in json.loads(failures.read_text()).values()} == {143}
+
+
+def test_ftrain_supervise_exits_130_after_ctrl_c_with_the_real_trainer(tmp_path) -> None:
+    storage = tmp_path / "run"
+    command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", SMOKE, "--storage", str(storage)]
+    proc = start([*command, LONG, "log.console=false"], tmp_path / "unused")
+    training(storage / "heartbeat", 3, [0, 1])
+    proc.send_signal(signal.SIGINT)
+    assert finish(proc) == 130
+    assert [event["event"] for event in events(storage)][-2:] == ["preempted", "summary"]
+    assert "ftrain supervise: preempted (exit 130): 0 restarts, 0 iterations lost" in proc.stdout.read()
+    assert final_manifest(storage)["step"] >= 3
