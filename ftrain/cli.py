@@ -38,8 +38,8 @@ def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_storage_options(parser: argparse.ArgumentParser) -> None:
-    """``--storage-option``, the same on every command that opens a storage (``config.storage_option_overrides``)."""
-    from ftrain.config import STORAGE_OPTION
+    """``--storage-option``, the same on every command that opens a storage (``values.storage_option_overrides``)."""
+    from ftrain.values import STORAGE_OPTION
 
     parser.add_argument(
         STORAGE_OPTION,
@@ -235,7 +235,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(unknown or extra)}")
     try:
         if hasattr(args, "overrides"):
-            from ftrain.config import storage_option_overrides
+            from ftrain.values import storage_option_overrides
 
             args.overrides += [*extra, *storage_option_overrides(args.storage_option)]
         return _dispatch(args)

@@ -16,7 +16,7 @@ import yaml
 
 from ftrain.errors import UserError
 from ftrain.redact import display_url, redact_options
-from ftrain.values import build, parse_amount, parse_value, set_dotted
+from ftrain.values import build, parse_amount, parse_value, set_dotted, storage_option_overrides
 
 POLICY_FORMATS = ("torchscript", "onnx")
 """The file formats a policy is exported and snapshotted in."""
@@ -287,23 +287,6 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
         config.log_dir = default_log_dir(config.storage.url, config.name)
     validate(config)
     return config
-
-
-STORAGE_OPTION = "--storage-option"
-
-
-def storage_option_overrides(words: list[str]) -> list[str]:
-    """``--storage-option KEY=VALUE`` words as the config overrides ``storage.options.KEY=VALUE``: every command that
-    opens a storage reads them as ``ftrain train`` reads its config, and the supervisor hides their credentials as it
-    hides any override's. The words are never quoted back: a value may be a secret."""
-    for number, word in enumerate(words, 1):
-        key, sep, _ = word.partition("=")
-        if not sep or not key.strip():
-            raise UserError(
-                f"{STORAGE_OPTION} number {number} is not KEY=VALUE: write it like {STORAGE_OPTION} "
-                "endpoint_url=http://127.0.0.1:9000"
-            )
-    return [f"storage.options.{word.strip()}" for word in words]
 
 
 def storage_options(words: list[str]) -> dict:

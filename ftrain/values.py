@@ -1,5 +1,6 @@
-"""Config values: YAML data converted into the config's dataclasses, and amounts of work (a number of iterations, or
-a duration such as ``"30s"``, ``"5m"``, ``"1h"``), with one-line errors naming the key.
+"""Config values: YAML data converted into the config's dataclasses, amounts of work (a number of iterations, or a
+duration such as ``"30s"``, ``"5m"``, ``"1h"``), and ``--storage-option`` words as overrides, with one-line errors
+naming the key.
 
 Torch-free, like the config: the supervisor validates a run's config before it launches anything.
 """
@@ -125,3 +126,20 @@ def convert(kind: Any, value: Any, key: str) -> Any:
             raise UserError(f"{key}={value!r} must be a string")
         return str(value)
     return value
+
+
+STORAGE_OPTION = "--storage-option"
+
+
+def storage_option_overrides(words: list[str]) -> list[str]:
+    """``--storage-option KEY=VALUE`` words as the config overrides ``storage.options.KEY=VALUE``: every command that
+    opens a storage reads them as ``ftrain train`` reads its config, and the supervisor hides their credentials as it
+    hides any override's. The words are never quoted back: a value may be a secret."""
+    for number, word in enumerate(words, 1):
+        key, sep, _ = word.partition("=")
+        if not sep or not key.strip():
+            raise UserError(
+                f"{STORAGE_OPTION} number {number} is not KEY=VALUE: write it like {STORAGE_OPTION} "
+                "endpoint_url=http://127.0.0.1:9000"
+            )
+    return [f"storage.options.{word.strip()}" for word in words]

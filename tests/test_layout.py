@@ -20,6 +20,7 @@ LAYERS = {
         "tools",
         "ckpt",
         "config",
+        "values",
         "errors",
         "errorfile",
         "progress",

@@ -154,7 +154,7 @@ def test_an_unreachable_tracker_costs_one_warning_and_never_stops_training(tmp_p
 @pytest.mark.parametrize(
     ("overrides", "fragment"),
     [
-        (["log.wandb.projekt=x"], "unknown config key log.wandb.'projekt': did you mean log.wandb.project?"),
+        (["log.wandb.projekt=x"], "unknown config key log.wandb.projekt: did you mean log.wandb.project?"),
         (["log.wandb.mode=sometimes"], "log.wandb.mode='sometimes' is unknown"),
         (["log.mlflow.experiment=x"], "log.mlflow is set but mlflow is not installed: pip install 'ftrain[mlflow]'"),
     ],
