@@ -7,7 +7,6 @@ A URL is a run's storage root (the directory holding ``checkpoints/``) or one st
 
 from __future__ import annotations
 
-import enum
 import json
 import math
 import sys
@@ -26,7 +25,7 @@ from ftrain.ckpt.format import (
     step_dir,
     verify_step,
 )
-from ftrain.ckpt.retention import best_steps, delete_step, retention_plan
+from ftrain.ckpt.retention import Kept, delete_step, kept, retention_plan
 from ftrain.ckpt.steps import ASIDE, scan, select_resume, set_aside_steps
 from ftrain.ckpt.steps import unquarantine as unquarantine_step
 from ftrain.ckpt.storage import Storage
@@ -39,18 +38,10 @@ METRICS = ("mean_return", "eval_return")
 """The metrics ``ls`` shows (a dash where a step has none)."""
 
 
-class Mark(enum.Enum):
-    """Why retention keeps a step, as ``ls`` marks it (by the newest run's ``checkpoint`` settings)."""
-
-    NEWEST = "newest"
-    BEST = "best"
-    PINNED = "pinned"
-    MILESTONE = "milestone"
-
-
 def ls(url: str, options: dict | None = None) -> int:
     """A table of the steps, newest first: step, status, size, when created (UTC), the returns, and which steps
-    retention keeps as the newest, the best, pinned or milestones; under a step that is not verified, its problems."""
+    retention keeps as the newest, the best, pinned or milestones (not those it keeps only as among the last few);
+    under a step that is not verified, its problems."""
     storage, step = _open(url, options)
     every = scan(storage)
     marks = _marks(every)
@@ -59,8 +50,8 @@ def ls(url: str, options: dict | None = None) -> int:
     for info in (info for info in every if step is None or info.step == step):
         created = str((info.manifest or {}).get("created") or "-").replace("T", " ")[:16]
         returns = [_number(info.metrics.get(name)) for name in METRICS]
-        kept = ", ".join(mark.value for mark in marks.get(info.step, []))
-        print(row.format(info.step, info.status, human_size(info.size), created, *returns, kept).rstrip())
+        why = ", ".join(reason.value for reason in marks.get(info.step, []) if reason is not Kept.LAST)
+        print(row.format(info.step, info.status, human_size(info.size), created, *returns, why).rstrip())
         for problem in info.problems:
             print(_fit(f"{'':>11}{problem}"))
     if step is None:
@@ -209,7 +200,7 @@ def _open(url: str, options: dict | None) -> tuple[Storage, int | None]:
     return storage, step
 
 
-def _marks(infos: list[StepInfo]) -> dict[int, list[Mark]]:
+def _marks(infos: list[StepInfo]) -> dict[int, list[Kept]]:
     """Which verified steps retention keeps and why, by the ``checkpoint`` settings of the newest verified step's run
     (the defaults where its manifest has none)."""
     verified = [info for info in infos if info.status == VERIFIED]
@@ -217,15 +208,9 @@ def _marks(infos: list[StepInfo]) -> dict[int, list[Mark]]:
         return {}
     recorded = ((verified[0].manifest or {}).get("config") or {}).get("checkpoint") or {}
     settings = CheckpointConfig(**{k: v for k, v in recorded.items() if k in vars(CheckpointConfig())})
-    marks: dict[int, list[Mark]] = {verified[0].step: [Mark.NEWEST]}
-    for step in best_steps(verified, settings.keep_best, settings.best_metric):
-        marks.setdefault(step, []).append(Mark.BEST)
-    for info in verified:
-        if info.step in settings.pinned:
-            marks.setdefault(info.step, []).append(Mark.PINNED)
-        if settings.keep_every and info.step % settings.keep_every == 0:
-            marks.setdefault(info.step, []).append(Mark.MILESTONE)
-    return marks
+    return kept(
+        verified, settings.keep_last, settings.keep_best, settings.best_metric, settings.keep_every, settings.pinned
+    )
 
 
 def _fit(line: str) -> str:

@@ -86,8 +86,6 @@ class Checkpointer:
         self._told = -math.inf
         self._checked_loadable = False
         self.last_blocking_s = 0.0
-        self._submitted: dict[int, float] = {}
-        """When the save of each step in flight was started (monotonic seconds)."""
         self.last_commit_s = 0.0
         """Seconds from the start of the newest committed save to its commit (what the console tells)."""
         self._static_meta = {  # computed once: package metadata lookups cost ~10 ms
@@ -148,7 +146,6 @@ class Checkpointer:
             return
         self._settle(MAX_IN_FLIGHT - 1)
         self.schedule.started(step, time.monotonic())
-        self._submitted[step] = time.monotonic()
         files = {shard_name(self.info.rank): trainer.rank_state()}
         meta = None
         if self.info.is_main:
@@ -222,8 +219,6 @@ class Checkpointer:
         """Every rank hears the same outcome and says so: a failure and a recovery are each one line per rank."""
         step, detail, now = outcome.step, outcome.detail, time.monotonic()
         self.schedule.settled(step, outcome.result is Result.COMMITTED, blocked + outcome.cpu_s)
-        started = self._submitted.get(step, now)
-        self._submitted = {pending: since for pending, since in self._submitted.items() if pending > step}
         if outcome.result is Result.UNLOADABLE:
             raise CheckpointError(detail)
         if outcome.result is Result.COMMITTED:
@@ -232,7 +227,7 @@ class Checkpointer:
                 self.log(f"checkpoint step {step} committed: saves work again after {since:.0f} s", every_rank=True)
             self._failing = None
             self.committed_step = step
-            self.last_commit_s = now - started
+            self.last_commit_s = now - self.schedule.committed[1]  # from when its state was taken
             self.on_commit(step, detail)
             return
         first = self._failing is None

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import enum
 import math
 from collections.abc import Iterable
 
@@ -30,10 +31,7 @@ def retention_plan(
     verified = [info for info in steps if info.status == VERIFIED]
     if not verified:
         return [info.step for info in steps if drop_bad and info.status in (CORRUPT, QUARANTINE)]
-    keep = {verified[0].step, *pinned}
-    keep |= {info.step for info in verified[:keep_last]} | set(best_steps(verified, keep_best, best_metric))
-    if keep_every > 0:
-        keep |= {info.step for info in verified if info.step % keep_every == 0}
+    keep = {*pinned, *kept(verified, keep_last, keep_best, best_metric, keep_every, pinned)}
     newest = verified[0].step
     deletable = {VERIFIED, INCOMPLETE} | ({CORRUPT, QUARANTINE} if drop_bad else set())
     return [
@@ -43,14 +41,44 @@ def retention_plan(
     ]
 
 
-def best_steps(steps: Iterable[StepInfo], count: int, metric: str) -> list[int]:
-    """The ``count`` verified steps with the highest ``metrics[metric]`` (steps without it do not count), best
-    first."""
-    ranked = sorted(
-        (info for info in steps if info.status == VERIFIED and _metric(info, metric) is not None),
-        key=lambda info: -_metric(info, metric),
-    )
-    return [info.step for info in ranked[:count]]
+class Kept(enum.Enum):
+    """Why retention keeps a verified step."""
+
+    NEWEST = "newest"
+    LAST = "last"
+    BEST = "best"
+    PINNED = "pinned"
+    MILESTONE = "milestone"
+
+
+def kept(
+    verified: list[StepInfo],
+    keep_last: int,
+    keep_best: int = 0,
+    best_metric: str = "mean_return",
+    keep_every: int = 0,
+    pinned: Iterable[int] = (),
+) -> dict[int, list[Kept]]:
+    """The steps of ``verified`` (newest first) that retention keeps, each with why (see ``retention_plan``)."""
+    pinned = set(pinned)
+    measured = [info for info in verified if _metric(info, best_metric) is not None]
+    best = {info.step for info in sorted(measured, key=lambda info: -_metric(info, best_metric))[:keep_best]}
+    reasons = {}
+    for index, info in enumerate(verified):
+        why = [
+            reason
+            for reason, holds in (
+                (Kept.NEWEST, index == 0),
+                (Kept.LAST, index < keep_last),
+                (Kept.BEST, info.step in best),
+                (Kept.PINNED, info.step in pinned),
+                (Kept.MILESTONE, keep_every > 0 and info.step % keep_every == 0),
+            )
+            if holds
+        ]
+        if why:
+            reasons[info.step] = why
+    return reasons
 
 
 def delete_step(storage: Storage, step: int, files: Iterable[str] = ()) -> None:
