@@ -22,6 +22,9 @@ from typing import TYPE_CHECKING
 from ftrain.ckpt.format import human_size, step_dir
 from ftrain.errors import UserError
 
+METRICS_CSV = "metrics.csv"
+"""What ``CsvHook`` writes in the log directory, and ``read_metrics`` reads."""
+
 if TYPE_CHECKING:
     from ftrain.train.trainer import Trainer
 
@@ -197,7 +200,7 @@ class CsvHook(Hook):
     def on_start(self, trainer: Trainer) -> None:
         if not trainer.info.is_main:
             return
-        path = Path(trainer.config.log_dir) / "metrics.csv"
+        path = Path(trainer.config.log_dir) / METRICS_CSV
         self.resumed_from = trainer.iteration or None
         if not (path.exists() and path.stat().st_size):
             return
@@ -218,7 +221,7 @@ class CsvHook(Hook):
         if not trainer.info.is_main:
             return
         if self.writer is None:
-            self.file = (Path(trainer.config.log_dir) / "metrics.csv").open("w", newline="")
+            self.file = (Path(trainer.config.log_dir) / METRICS_CSV).open("w", newline="")
             fields = ["iteration", *metrics, "resumed_from"]
             self.writer = csv.DictWriter(self.file, fields, extrasaction="ignore")
             self.writer.writeheader()
@@ -234,7 +237,7 @@ class CsvHook(Hook):
 def read_metrics(log_dir: str, after: int, until: int) -> list[tuple[int, dict[str, float]]]:
     """The rows ``CsvHook`` wrote for iterations ``after`` < i <= ``until``, as (iteration, metrics); a row being
     written, or a file that is not there, yields nothing."""
-    path = Path(log_dir) / "metrics.csv"
+    path = Path(log_dir) / METRICS_CSV
     if not path.exists():
         return []
     with path.open(newline="") as file:
