@@ -100,6 +100,9 @@ class CheckpointConfig:
     """Keep every step that is a multiple of this as a milestone (0: none)."""
     pinned: list[int] = field(default_factory=list)
     async_save: bool = True
+    spool: bool = True
+    """On a remote storage and one node: every step goes to ``<log_dir>/spool`` on local disk first, and a restart
+    resumes from there when it is newer (also while the storage is down): see ``ftrain.ckpt.spool``."""
     retries: int = 4
     """Retries of a transient storage error, with bounded exponential backoff."""
 

@@ -32,7 +32,7 @@ LAYERS = {
     "train": {"policy", "ckpt", "dist", "config", "errors", "errorfile", "heartbeat", "track", "redact"},
     "track": {"config", "errors", "redact"},
     "policy": {"ckpt", "config", "errors", "progress"},
-    "ckpt": {"dist", "config", "values", "errors", "heartbeat", "redact"},
+    "ckpt": {"dist", "config", "values", "errors", "heartbeat", "lifeline", "redact"},
     "dist": {"errors", "lifeline"},
     "config": {"values", "errors", "redact"},
     "values": {"errors"},

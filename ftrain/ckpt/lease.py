@@ -135,19 +135,24 @@ class Record:
 
 
 def storage_lease(
-    config: Config, log: Callable[[str], None], secret: bytes | None = None, endpoint: tuple[str, int] | None = None
+    config: Config,
+    log: Callable[[str], None],
+    secret: bytes | None = None,
+    endpoint: tuple[str, int] | None = None,
+    retries: int | None = None,
 ) -> Lease:
     """The lease of ``config``'s storage for this run, not taken yet. The run is ``FTRAIN_RUN_ID``; else, with a
     ``secret``, the nodes whose supervisors share it and the rendezvous ``endpoint`` (a digest of both); else
-    torchrun's run id (``TORCHELASTIC_RUN_ID``, from ``--rdzv-id``); else a new random one."""
+    torchrun's run id (``TORCHELASTIC_RUN_ID``, from ``--rdzv-id``); else a new random one. ``retries``: of the
+    storage's requests (default: ``checkpoint.retries``)."""
     if os.environ.get(RUN_ID_ENV):
         run_id = os.environ[RUN_ID_ENV]
     elif secret is not None:
         run_id = hashlib.sha256(b"ftrain-run:" + secret + repr(endpoint).encode()).hexdigest()[:16]
     else:
         run_id = os.environ.get("TORCHELASTIC_RUN_ID") or secrets.token_hex(8)
-    storage = Storage.open(config.storage.url, config.storage.options, retries=config.checkpoint.retries)
-    return Lease(storage, run_id, log)
+    retries = config.checkpoint.retries if retries is None else retries
+    return Lease(Storage.open(config.storage.url, config.storage.options, retries=retries), run_id, log)
 
 
 class Lease:
@@ -297,11 +302,9 @@ def claim(config: Config, is_main: bool, agree: Callable[[list | None], list | N
     lease, outcome, failure = None, None, None
     if is_main:
         try:
-            lease = storage_lease(config, log)
             if os.environ.get(TOKEN_ENV):
-                lease.check()
-                lease = None
-            elif taken := lease.hold():
+                _check_for_supervisor(config, log)
+            elif taken := (lease := storage_lease(config, log)).hold():
                 log(taken)
         except Exception as error:
             lease, failure = None, error
@@ -312,6 +315,15 @@ def claim(config: Config, is_main: bool, agree: Callable[[list | None], list | N
     if outcome:
         raise _AGREED[outcome[0]](outcome[1])
     return lease
+
+
+def _check_for_supervisor(config: Config, log: Callable[[str], None]) -> None:
+    """A supervised worker's check that no other run holds the storage, in one try. The supervisor holds the lease:
+    a storage that does not answer now is not checked (the run may go on from its spool, see ``ftrain.ckpt.spool``)."""
+    try:
+        storage_lease(config, log, retries=0).check()
+    except StorageUnavailable as error:
+        log(f"the lease was not checked, the storage does not answer ({error}); the supervisor holds it")
 
 
 def _read(storage: Storage) -> tuple[Record, str] | None:

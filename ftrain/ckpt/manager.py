@@ -26,10 +26,12 @@ from ftrain.ckpt.format import COMMON, STATE_FORMAT, shard_name
 from ftrain.ckpt.resume import Checkpointable, CheckpointError
 from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, snapshot
 from ftrain.ckpt.schedule import DEFAULT_STORAGE_WAIT, STORAGE_WAIT_ENV, SaveSchedule
+from ftrain.ckpt.spool import Spool
 from ftrain.ckpt.storage import Storage, StorageUnavailable, backoff
 from ftrain.config import Config
 from ftrain.dist import group
 from ftrain.errors import UserError
+from ftrain.lifeline import SUPERVISOR_ENV
 from ftrain.values import parse_amount
 
 MAX_IN_FLIGHT = 2
@@ -53,7 +55,7 @@ class Checkpointer:
         self.robot = robot
         self.info = info
         self.log = log
-        self.storage = Storage.open(config.storage.url, config.storage.options, retries=config.checkpoint.retries)
+        self.storage, self._down = _open_storage(config)
         if info.distributed and self.storage.url.startswith("memory://"):
             raise UserError(
                 f"storage {self.storage.url} lives inside one process, but this run has {info.world_size} ranks: "
@@ -61,7 +63,8 @@ class Checkpointer:
             )
         background = config.checkpoint.async_save
         collectives = group.new_group(config.dist_timeout, info) if background else None
-        self._writer = StepWriter(self.storage, config.checkpoint, info, collectives, log)
+        self.spool = Spool.open(config, self.storage, info)
+        self._writer = StepWriter(self.storage, config.checkpoint, info, collectives, log, self.spool)
         self._background = BackgroundWriter(self._writer) if background else None
         policy = config.checkpoint
         self.schedule = SaveSchedule(
@@ -101,10 +104,12 @@ class Checkpointer:
 
     def restore(self, trainer: Checkpointable) -> int | None:
         """Load the step to start from into ``trainer`` (see ``resume.py``); the step, or None for a fresh start."""
-        resumed = resume.restore(trainer, self.config, self.info, self.storage, self.log, self.robot)
+        resumed = resume.restore(
+            trainer, self.config, self.info, self.storage, self.log, self.robot, self.spool, self._down
+        )
         if resumed.own:
-            self.committed_step = resumed.step
-            self.schedule.committed = (resumed.step, time.monotonic())
+            self.committed_step = self._writer.newest_committed = resumed.committed
+            self.schedule.committed = (resumed.committed, time.monotonic())
         self._static_meta["world_sizes"] = resumed.world_sizes
         return resumed.step
 
@@ -241,6 +246,19 @@ class Checkpointer:
                 f"{self.config.checkpoint.max_unsaved}",
                 every_rank=True,
             )
+
+
+def _open_storage(config: Config) -> tuple[Storage, StorageUnavailable | None]:
+    """The run's storage, and why it does not answer (None: it does). Under a supervisor a storage that does not
+    answer is opened all the same (its bucket not checked): the run may resume from the spool, and the supervisor
+    holds the lease, so no other run writes there."""
+    try:
+        return Storage.open(config.storage.url, config.storage.options, retries=config.checkpoint.retries), None
+    except StorageUnavailable as down:
+        if not os.environ.get(SUPERVISOR_ENV) or not config.checkpoint.spool:
+            raise
+        options, retries = config.storage.options, config.checkpoint.retries
+        return Storage.open(config.storage.url, options, retries, check_bucket=False), down
 
 
 def _versions() -> dict:

@@ -7,7 +7,8 @@ start fresh ones, seeded from (run seed, rank, step); shards of ranks beyond the
 settings stay as configured, so the global batch follows the world size. At the same world size a resume continues
 bit for bit.
 
-Rank 0 decides (newest step that verifies, or the one ``resume=`` names) and tells the others. Every rank then
+Rank 0 decides (newest step that verifies, or the one ``resume=`` names; a newer one in this node's spool, see
+``spool.py``, also while the storage does not answer) and tells the others. Every rank then
 reads and checks its own files, and the ranks agree on what went wrong, if anything, so that all stop with the
 same one line:
 
@@ -37,6 +38,9 @@ from ftrain.ckpt.format import (
     shard_name,
     step_dir,
 )
+from ftrain.ckpt.retention import delete_step
+from ftrain.ckpt.spool import FIELD as SPOOL_FIELD
+from ftrain.ckpt.spool import Spool
 from ftrain.ckpt.steps import clear_newer, quarantine, resolve_checkpoint_url, scan, select_resume
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import Config
@@ -74,6 +78,8 @@ class Resumed:
     """Whether that step lies in this run's own storage."""
     world_sizes: list
     """``[[first step, world size], ...]``: the run's world sizes so far, this one last."""
+    committed: int | None = None
+    """The storage's newest committed step as far as the resume knows: ``step``, unless it came from the spool."""
 
 
 def restore(
@@ -83,9 +89,13 @@ def restore(
     storage: Storage,
     log: Callable[[str], None],
     robot: dict | None = None,
+    spool: Spool | None = None,
+    down: StorageUnavailable | None = None,
 ) -> Resumed:
-    """Load the step rank 0 chose into ``trainer``, which trains ``robot`` (see ``check_compatible``)."""
-    decision = decide(config, info, storage, log, robot) if info.is_main else None
+    """Load the step rank 0 chose into ``trainer``, which trains ``robot`` (see ``check_compatible``), from the
+    storage, the ``spool`` or another run's storage (``resume=URL``); ``down``: why the storage did not answer when it
+    was opened just now (it is not asked again)."""
+    decision = decide(config, info, storage, log, robot, spool, down) if info.is_main else None
     decision = group.broadcast_object(decision, info)
     if decision["kind"] == "usage":
         raise UserError(decision["why"])
@@ -96,8 +106,8 @@ def restore(
     if decision["kind"] == "fresh":
         log(decision["why"])
         return Resumed(None, False, [[0, info.world_size]])
-    url, step, manifest = decision["url"], decision["step"], decision["manifest"]
-    source = storage if url is None else Storage.open(url, config.storage.options)
+    url, step, manifest, spooled = decision["url"], decision["step"], decision["manifest"], decision["spooled"]
+    source = spool.storage if spooled else storage if url is None else Storage.open(url, config.storage.options)
     failure = _load(trainer, source, step, manifest, info.rank)
     failures = [f for f in group.all_gather_object(failure, info) if f]
     where = source.where(step_dir(step))
@@ -115,18 +125,20 @@ def restore(
             raise CheckpointError(f"checkpoint {where} could not be read ({reasons}): nothing marked, try again")
         if kind == "unavailable":
             raise StorageUnavailable(f"checkpoint {where} could not be read ({reasons}): the storage does not answer")
-        if url is None and info.is_main:
+        if spooled and info.is_main:
+            delete_step(spool.storage, step)
+        elif url is None and info.is_main:
             quarantine(storage, step, reasons)
         raise CheckpointError(
             f"checkpoint {where} does not match its manifest ({reasons}): quarantined, the next start falls back to "
             "an older step"
         )
-    log(f"resumed from step {step} ({'this storage' if url is None else url}), iteration {trainer.iteration}")
+    log(f"resumed from step {step} ({decision['where']}), iteration {trainer.iteration}")
     world_sizes = manifest.get("world_sizes") or [[0, manifest["world_size"]]]
     if manifest["world_size"] != info.world_size:
         log(resize_line(manifest["world_size"], info.world_size, step, config))
         world_sizes = [*world_sizes, [step, info.world_size]]
-    return Resumed(step, url is None, world_sizes)
+    return Resumed(step, url is None, world_sizes, decision["committed"])
 
 
 def resize_line(old: int, new: int, step: int, config: Config) -> str:
@@ -165,45 +177,106 @@ def _load(trainer: Checkpointable, storage: Storage, step: int, manifest: dict, 
 
 
 def decide(
-    config: Config, info: group.RankInfo, storage: Storage, log: Callable[[str], None], robot: dict | None = None
+    config: Config,
+    info: group.RankInfo,
+    storage: Storage,
+    log: Callable[[str], None],
+    robot: dict | None = None,
+    spool: Spool | None = None,
+    down: StorageUnavailable | None = None,
 ) -> dict:
-    """On rank 0: ``{"kind": "fresh" | "resume" | "usage" | "storage", ...}`` (JSON, for the other ranks)."""
+    """On rank 0: ``{"kind": "fresh" | "resume" | "usage" | "storage" | "unavailable", ...}`` (JSON, for the other
+    ranks). A start that does not resume from the spool empties it: it only ever holds the history of this start."""
     try:
-        resume = config.resume
-        if resume == "never":
-            if any(step.status == VERIFIED for step in scan(storage)):
-                raise UserError(
-                    f"resume=never but {storage.url} already holds checkpoints: use resume=auto to continue, or a "
-                    "new --storage"
-                )
-            clear_newer(storage, 0, log)
-            return {"kind": "fresh", "why": "resume=never: starting fresh"}
-        if resume == "auto":
-            found = select_resume(storage, log=log)
-            if found is None:
-                bad = sorted(step.step for step in scan(storage) if step.status != INCOMPLETE)
-                if bad:
-                    raise UserError(
-                        f"no checkpoint in {storage.url} verifies, and steps {bad} are corrupt: inspect them (ftrain "
-                        f"ckpt ls {storage.url}), then remove them (ftrain ckpt prune --drop-bad) to start over, or "
-                        "use another --storage"
-                    )
-                clear_newer(storage, 0, log)
-                return {"kind": "fresh", "why": f"no verified checkpoint in {storage.url}: starting fresh"}
-            step, manifest = found
-            url = None
-        else:
-            _, step, manifest = resolve_checkpoint_url(resume, config.storage.options, log)
-            url = parse_checkpoint_url(resume)[0]
+        decision = _decide(config, storage, log, robot, spool, down)
+    except UserError as error:
+        decision = {"kind": "usage", "why": str(error)}
+    except StorageUnavailable as error:
+        decision = {"kind": "unavailable", "why": f"checkpoint storage {storage.url} does not answer: {error}"}
+    except (StorageError, OSError) as error:
+        decision = {"kind": "storage", "why": f"checkpoint storage {storage.url} failed while choosing a step: {error}"}
+    if spool is not None and decision["kind"] in ("fresh", "resume") and not decision.get("spooled"):
+        try:
+            spool.clear()
+        except (StorageError, OSError) as error:
+            log(f"could not empty the spool {spool.storage.url} ({error}): its steps are not resumed from")
+    return decision
+
+
+def _decide(
+    config: Config,
+    storage: Storage,
+    log: Callable[[str], None],
+    robot: dict | None,
+    spool: Spool | None,
+    down: StorageUnavailable | None,
+) -> dict:
+    resume = config.resume
+    if down is not None and (resume != "auto" or spool is None):
+        raise down
+    if resume == "never":
+        if any(step.status == VERIFIED for step in scan(storage)):
+            raise UserError(
+                f"resume=never but {storage.url} already holds checkpoints: use resume=auto to continue, or a "
+                "new --storage"
+            )
+        clear_newer(storage, 0, log)
+        return {"kind": "fresh", "why": "resume=never: starting fresh"}
+    if resume != "auto":
+        _, step, manifest = resolve_checkpoint_url(resume, config.storage.options, log)
         check_compatible(config, step, manifest, robot)
         clear_newer(storage, step, log)
-        return {"kind": "resume", "url": url, "step": step, "manifest": manifest}
-    except UserError as error:
-        return {"kind": "usage", "why": str(error)}
+        url = parse_checkpoint_url(resume)[0]
+        return _resume(step, manifest, url=url, where=url, committed=None)
+    found = None
+    try:
+        if down is None:
+            found = select_resume(storage, log=log)
     except StorageUnavailable as error:
-        return {"kind": "unavailable", "why": f"checkpoint storage {storage.url} does not answer: {error}"}
-    except (StorageError, OSError) as error:
-        return {"kind": "storage", "why": f"checkpoint storage {storage.url} failed while choosing a step: {error}"}
+        if spool is None:
+            raise
+        down = error
+    reachable = down is None
+    spooled = spool.newest(found, reachable, log) if spool is not None else None
+    if spooled is not None:
+        step, manifest = spooled
+        check_compatible(config, step, manifest, robot)
+        if reachable:
+            clear_newer(storage, step, log)
+        committed = found[0] if found else manifest[SPOOL_FIELD]["base"]
+        newest = f"the storage's newest is step {committed}" if reachable else f"{storage.url} does not answer"
+        where = f"the spool {spool.storage.url}: {newest}"
+        return _resume(step, manifest, url=None, where=where, committed=committed, spooled=True)
+    if down is not None:
+        raise down
+    if found is None:
+        bad = sorted(step.step for step in scan(storage) if step.status != INCOMPLETE)
+        if bad:
+            raise UserError(
+                f"no checkpoint in {storage.url} verifies, and steps {bad} are corrupt: inspect them (ftrain "
+                f"ckpt ls {storage.url}), then remove them (ftrain ckpt prune --drop-bad) to start over, or "
+                "use another --storage"
+            )
+        clear_newer(storage, 0, log)
+        return {"kind": "fresh", "why": f"no verified checkpoint in {storage.url}: starting fresh"}
+    step, manifest = found
+    check_compatible(config, step, manifest, robot)
+    clear_newer(storage, step, log)
+    return _resume(step, manifest, url=None, where="this storage", committed=step)
+
+
+def _resume(
+    step: int, manifest: dict, url: str | None, where: str, committed: int | None, spooled: bool = False
+) -> dict:
+    return {
+        "kind": "resume",
+        "url": url,
+        "step": step,
+        "manifest": manifest,
+        "where": where,
+        "committed": committed,
+        "spooled": spooled,
+    }
 
 
 def check_compatible(config: Config, step: int, manifest: dict, robot: dict | None = None) -> None:

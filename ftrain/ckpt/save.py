@@ -13,8 +13,10 @@ snapshot, a copy of the state's tensors at the iteration boundary (:func:`snapsh
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import enum
+import functools
 import queue
 import threading
 import time
@@ -38,6 +40,7 @@ from ftrain.ckpt.format import (
     write_file,
 )
 from ftrain.ckpt.retention import delete_step, retention_plan
+from ftrain.ckpt.spool import Spool
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
 from ftrain.config import CheckpointConfig
@@ -96,9 +99,16 @@ class StepWriter:
         info: group.RankInfo,
         collectives: dist.ProcessGroup | None,
         log: Callable[[str], None],
+        spool: Spool | None = None,
     ) -> None:
-        """``collectives``: the group the ranks agree in (None: the default group)."""
+        """``collectives``: the group the ranks agree in (None: the default group); ``spool``: where every step goes
+        first (``spool.py``)."""
         self.storage = storage
+        self.spool = spool
+        self.newest_committed: int | None = None
+        """The newest step committed to the storage as far as this rank knows (rank 0: as soon as it commits), which
+        a spooled step records as the storage history it continues."""
+        self._spool_failing = False
         self.policy = policy
         self.info = info
         self.collectives = collectives
@@ -116,13 +126,22 @@ class StepWriter:
         own successful exclusive creates (a listing is a request per save on S3)."""
 
     def save(self, step: int, files: dict[str, dict], meta: dict | None, check_loadable: bool) -> Outcome:
-        """Write this rank's ``files`` (name to state) of ``step``; ``meta`` (rank 0) goes into the manifest."""
+        """Write this rank's ``files`` (name to state) of ``step``, to the spool first if there is one; ``meta``
+        (rank 0) goes into the manifest."""
         report = {"entries": {}, "fields": {}, "error": None, "unloadable": False}
-        self.storing = True
+        encoded = {}
         try:
-            report["entries"], report["fields"] = self._write(step, files, check_loadable)
+            encoded, report["fields"] = self._encode(files, check_loadable)
         except CorruptCheckpoint as exc:  # only the loadability check raises it
             report["error"], report["unloadable"] = f"rank {self.info.rank}: {exc}: {UNLOADABLE_HINT}", True
+        except Exception as exc:
+            report["error"] = f"rank {self.info.rank}: {type(exc).__name__}: {exc}"
+        if self.spool is not None:
+            self._spool(step, encoded, meta, report)
+        self.storing = True
+        try:
+            if report["error"] is None:
+                report["entries"] = self._write(functools.partial(write_file, self.storage), step, encoded)
         except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
             report["error"] = f"rank {self.info.rank}: {exc}"
         finally:
@@ -140,8 +159,8 @@ class StepWriter:
         result, _, detail = group.broadcast_object(outcome, self.info, self.collectives)
         return Outcome(Result(result), step, detail)
 
-    def _write(self, step: int, files: dict[str, dict], check_loadable: bool) -> tuple[dict, dict]:
-        """Encode and write ``files``: their manifest entries, and the manifest fields that come from common.pt."""
+    def _encode(self, files: dict[str, dict], check_loadable: bool) -> tuple[dict[str, bytes], dict]:
+        """``files`` encoded, and the manifest fields that come from common.pt."""
         encoded = {name: encode(state) for name, state in files.items()}
         if check_loadable:
             for name, data in encoded.items():
@@ -152,11 +171,49 @@ class StepWriter:
             fields["state_sha256"] = state_digest(learned_state(common))
             if "teacher" in common["ftrain"]:  # plain data: source, step, digest
                 fields["teacher"] = common["ftrain"]["teacher"]
+        return encoded, fields
+
+    @staticmethod
+    def _write(write: Callable[[int, str, bytes], FileEntry], step: int, encoded: dict[str, bytes]) -> dict:
+        """Write ``encoded`` with ``write``: their manifest entries."""
         entries = {}
         for name, data in encoded.items():
-            entry = write_file(self.storage, step, name, data)
+            entry = write(step, name, data)
             entries[name] = [entry.size, entry.sha256]
-        return entries, fields
+        return entries
+
+    def _spool(self, step: int, encoded: dict[str, bytes], meta: dict | None, report: dict) -> None:
+        """Write and commit ``step`` to the spool (see ``spool.py``). A failure leaves the storage's save alone: rank
+        0 says so once and empties the spool, so that no older spooled step is ever taken for the newest."""
+        entries, error = None, None
+        self.storing = True
+        try:
+            if report["error"] is None:  # else the save fails anyway
+                entries = self._write(self.spool.write, step, encoded)
+        except Exception as exc:
+            error = f"rank {self.info.rank}: {exc}"
+        finally:
+            self.storing = False
+        spooled = group.all_gather_object([entries, error], self.info, self.collectives)
+        errors = [error for _, error in spooled if error]
+        if not self.info.is_main or (not errors and any(entries is None for entries, _ in spooled)):
+            return
+        try:
+            if not errors:
+                files = {name: FileEntry(*entry) for entries, _ in spooled for name, entry in entries.items()}
+                self.spool.commit(step, files, meta | report["fields"], self.newest_committed)
+                self._spool_failing = False
+                return
+        except Exception as exc:
+            errors = [f"commit: {exc}"]
+        if not self._spool_failing:
+            self.log(
+                f"the spool {self.spool.storage.url} failed at step {step} ({'; '.join(errors)}): emptied; saves go "
+                "to the storage alone until it works again"
+            )
+        self._spool_failing = True
+        with contextlib.suppress(Exception):
+            self.spool.clear()
 
     def _commit(self, step: int, reports: list[dict], meta: dict) -> tuple:
         errors = [report["error"] for report in reports if report["error"]]
@@ -176,6 +233,7 @@ class StepWriter:
             self._steps[step] = StepInfo(step, INCOMPLETE)  # abandoned: retention deletes it
             return (Result.FAILED, step, "; ".join(errors))
         self._steps[step] = StepInfo(step, VERIFIED, sum(entry.size for entry in files.values()), manifest)
+        self.newest_committed = step
         self._apply_retention()
         return (Result.COMMITTED, step, manifest)
 

@@ -88,12 +88,11 @@ class Storage:
         options: dict | None = None,
         retries: int = DEFAULT_RETRIES,
         base_delay: float = DEFAULT_BASE_DELAY,
+        check_bucket: bool = True,
     ) -> Storage:
-        """Open the storage at ``url`` with fsspec ``options``; on S3, check the bucket is reachable and exists.
-
-        ``retries`` is how often a transient error is retried (so at most ``retries + 1`` attempts), waiting
-        ``base_delay * 2**n`` seconds (at most ``MAX_DELAY``) before retry ``n + 1``.
-        """
+        """Open the storage at ``url`` with fsspec ``options``; on S3, ``check_bucket`` that it answers and exists.
+        ``retries``: how often a transient error is retried, waiting ``base_delay * 2**n`` seconds (at most
+        ``MAX_DELAY``) before retry ``n + 1``."""
         if not isinstance(url, str) or not url.strip():
             raise UserError("storage URL is empty: pass a local path or an fsspec URL such as s3://bucket/prefix")
         if retries < 0:
@@ -121,7 +120,8 @@ class Storage:
         storage = cls(fs, root, shown, secrets, retries, base_delay)
         if isinstance(fs, S3FileSystem):
             fs.retries = 1  # s3fs's own retry loop: one attempt, ours does the retrying
-            storage._check_bucket()
+            if check_bucket:
+                storage._check_bucket()
         return storage
 
     def __repr__(self) -> str:

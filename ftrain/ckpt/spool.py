@@ -1,0 +1,102 @@
+"""The spool: a node-local copy of a run's newest checkpoints, so that a crash loses seconds of work, not what was
+trained while a remote storage was down.
+
+A run on a remote storage (``s3://``...) on one node saves every step to ``<log_dir>/spool`` first (the same layout
+and manifests as any storage, on local disk), then to the storage. A restart resumes from the spool's newest step
+instead of the storage's when it is newer and continues the storage's history (:meth:`Spool.newest`), so a process
+killed during an outage, or just after it before the newest state reached the storage, goes on from where it was.
+The storage stays the truth: the spool keeps only its newest ``KEEP`` steps, the run's last step must commit to the
+storage, and a machine that is lost takes its spool with it (hence node-local only: on several nodes each spool
+would hold only its own node's shards, so there is none).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+from ftrain.ckpt.format import MANIFEST, VERIFIED, FileEntry, commit, step_dir, write_file
+from ftrain.ckpt.retention import delete_step
+from ftrain.ckpt.steps import scan
+from ftrain.ckpt.storage import Storage
+from ftrain.config import Config
+from ftrain.dist import group
+from ftrain.lifeline import SUPERVISOR_ENV
+
+KEEP = 3
+"""Spooled steps kept: the newest, and two before it (one of them is usually the storage's newest commit, which
+tells that the spool continues the storage's history)."""
+FIELD = "spool"
+"""The manifest field of a spooled step: ``{"storage": URL, "base": step, "supervisor": "pid:start"}``."""
+
+
+class Spool:
+    """The spool of one run on this node: a local storage, written by every rank, committed by rank 0."""
+
+    def __init__(self, storage: Storage, remote_url: str) -> None:
+        self.storage = storage
+        self.remote_url = remote_url
+        self.supervisor = os.environ.get(SUPERVISOR_ENV, "")
+        """The supervisor of this process (pid and start time), which holds the storage's lease while it lives."""
+
+    @classmethod
+    def open(cls, config: Config, remote: Storage, info: group.RankInfo) -> Spool | None:
+        """The spool of ``config``'s run, or None: switched off, a local storage (it is its own spool), or ranks on
+        several nodes."""
+        single_node = int(os.environ.get("LOCAL_WORLD_SIZE", info.world_size)) == info.world_size
+        if not config.checkpoint.spool or remote.is_local or not single_node:
+            return None
+        return cls(Storage.open(str(Path(config.log_dir) / "spool")), remote.url)
+
+    def write(self, step: int, name: str, data: bytes) -> FileEntry:
+        """One file of ``step``; what an earlier attempt at the same step left is replaced (the spool is this
+        node's alone)."""
+        self.storage.delete(f"{step_dir(step)}/{name}")
+        return write_file(self.storage, step, name, data)
+
+    def commit(self, step: int, files: dict[str, FileEntry], meta: dict, base: int | None) -> None:
+        """Rank 0: commit ``step`` to the spool, ``base`` being the storage's newest committed step as far as this
+        rank knows; then only the newest ``KEEP`` steps stay."""
+        self.storage.delete(f"{step_dir(step)}/{MANIFEST}")
+        record = {"storage": self.remote_url, "base": base, "supervisor": self.supervisor}
+        commit(self.storage, step, files, meta | {FIELD: record})
+        for info in scan(self.storage)[KEEP:]:
+            delete_step(self.storage, info.step)
+
+    def clear(self) -> None:
+        """Forget every spooled step (a spool that failed, or a run that starts over)."""
+        for info in scan(self.storage):
+            delete_step(self.storage, info.step)
+
+    def newest(self, remote: tuple[int, dict] | None, reachable: bool, log: Callable[[str], None]) -> tuple | None:
+        """``(step, manifest)`` of the spooled step to resume from instead of the storage's newest step ``remote``
+        (None: the storage has none), or None.
+
+        Reachable storage: the spool's newest step must be newer than the storage's, and continue its history: the
+        storage's newest step is the one it was spooled on (``base``), or the spool holds that step too, with the
+        same state. Unreachable storage: the spooled step must have been written under this supervisor, which has
+        held the storage's lease since, so no other run can have committed to it.
+        """
+        spooled = [info for info in scan(self.storage) if info.status == VERIFIED]
+        ours = [info for info in spooled if info.manifest.get(FIELD, {}).get("storage") == self.remote_url]
+        if not ours:
+            return None
+        newest = ours[0]
+        record = newest.manifest[FIELD]
+        if not reachable:
+            trusted = bool(self.supervisor) and record["supervisor"] == self.supervisor
+            why = "" if trusted else "it was written under another supervisor"
+        elif remote is not None and remote[0] >= newest.step:
+            return None
+        else:
+            remote_step = remote[0] if remote is not None else None
+            same = {info.step: info.manifest.get("state_sha256") for info in ours}
+            trusted = record["base"] == remote_step or (
+                remote is not None and same.get(remote_step) == remote[1].get("state_sha256")
+            )
+            why = "" if trusted else f"the storage's newest step {remote_step} is not in its history"
+        if not trusted:
+            log(f"not resuming from spooled step {newest.step} ({self.storage.url}): {why}")
+            return None
+        return newest.step, newest.manifest

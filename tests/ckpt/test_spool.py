@@ -1,0 +1,73 @@
+"""The spool's rule for when a spooled step may stand in for the storage's newest (``ftrain/ckpt/spool.py``), on real
+local storages: only when it continues the storage's history, and while the storage does not answer, only under the
+supervisor that wrote it."""
+
+from __future__ import annotations
+
+from ftrain.ckpt.format import commit, write_file
+from ftrain.ckpt.spool import KEEP, Spool
+from ftrain.ckpt.storage import Storage
+from ftrain.lifeline import SUPERVISOR_ENV
+
+REMOTE = "s3://bucket/run"
+
+
+def spool_with(tmp_path, monkeypatch, steps: dict[int, tuple[str, int | None]], supervisor: str = "1:100") -> Spool:
+    """A spool holding ``steps`` (step: (state digest, base)), written under ``supervisor``."""
+    monkeypatch.setenv(SUPERVISOR_ENV, supervisor)
+    spool = Spool(Storage.open(str(tmp_path / "spool")), REMOTE)
+    for step, (digest, base) in steps.items():
+        entry = spool.write(step, "common.pt", digest.encode())
+        spool.commit(step, {"common.pt": entry}, {"state_sha256": digest}, base)
+    return spool
+
+
+def remote_step(tmp_path, step: int, digest: str) -> tuple[int, dict]:
+    """``(step, manifest)`` of a step committed to a storage standing in for the remote one."""
+    storage = Storage.open(str(tmp_path / "remote"))
+    entry = write_file(storage, step, "common.pt", digest.encode())
+    return step, commit(storage, step, {"common.pt": entry}, {"state_sha256": digest})
+
+
+def test_a_newer_spooled_step_on_the_storages_newest_is_resumed_from(tmp_path, monkeypatch):
+    spool = spool_with(tmp_path, monkeypatch, {30: ("c", 20)})
+    assert spool.newest(remote_step(tmp_path, 20, "b"), True, print)[0] == 30
+
+
+def test_the_storages_newest_step_in_the_spool_with_the_same_state_tells_the_history_too(tmp_path, monkeypatch):
+    spool = spool_with(tmp_path, monkeypatch, {20: ("b", 10), 30: ("c", 10)})  # 20 committed, not yet heard of
+    assert spool.newest(remote_step(tmp_path, 20, "b"), True, print)[0] == 30
+
+
+def test_a_spooled_step_that_does_not_continue_the_storage_is_not_resumed_from(tmp_path, monkeypatch):
+    lines = []
+    spool = spool_with(tmp_path, monkeypatch, {20: ("x", 10), 30: ("c", 10)})
+    assert spool.newest(remote_step(tmp_path, 20, "b"), True, lines.append) is None  # another history's step 20
+    assert spool.newest(None, True, lines.append) is None  # the storage was emptied since
+    assert all("not in its history" in line for line in lines) and len(lines) == 2
+
+
+def test_the_storage_newer_than_the_spool_wins(tmp_path, monkeypatch):
+    spool = spool_with(tmp_path, monkeypatch, {30: ("c", 20)})
+    assert spool.newest(remote_step(tmp_path, 30, "c"), True, print) is None
+
+
+def test_a_fresh_run_whose_storage_never_committed_resumes_from_its_spool(tmp_path, monkeypatch):
+    assert spool_with(tmp_path, monkeypatch, {5: ("a", None)}).newest(None, True, print)[0] == 5
+
+
+def test_while_the_storage_is_down_only_the_supervisor_that_spooled_may_resume(tmp_path, monkeypatch):
+    spool = spool_with(tmp_path, monkeypatch, {30: ("c", 20)}, supervisor="1:100")
+    assert spool.newest(None, False, print)[0] == 30
+    monkeypatch.setenv(SUPERVISOR_ENV, "2:200")  # the same command again: another supervisor
+    lines = []
+    assert Spool(spool.storage, REMOTE).newest(None, False, lines.append) is None
+    assert "another supervisor" in lines[0]
+    monkeypatch.delenv(SUPERVISOR_ENV)  # unsupervised
+    assert Spool(spool.storage, REMOTE).newest(None, False, print) is None
+
+
+def test_another_storages_steps_are_ignored_and_only_the_newest_steps_are_kept(tmp_path, monkeypatch):
+    spool = spool_with(tmp_path, monkeypatch, {step: (str(step), None) for step in range(1, KEEP + 3)})
+    assert sorted(int(name[5:]) for name in spool.storage.list_dirs("checkpoints")) == list(range(3, KEEP + 3))
+    assert Spool(spool.storage, "s3://bucket/other").newest(None, True, print) is None
