@@ -25,6 +25,7 @@ from collections.abc import Callable
 import torch
 import torch.distributed as dist
 
+from ftrain.ckpt.fence import Fence, Fenced
 from ftrain.ckpt.format import (
     COMMON,
     INCOMPLETE,
@@ -109,6 +110,7 @@ class StepWriter:
         """The newest step committed to the storage as far as this rank knows (rank 0: as soon as it commits), which
         a spooled step records as the storage history it continues."""
         self._spool_failing = False
+        self.fence = Fence.from_env(storage) if info.is_main else None
         self.policy = policy
         self.info = info
         self.collectives = collectives
@@ -225,8 +227,14 @@ class StepWriter:
         fields = {key: value for report in reports for key, value in report["fields"].items()}  # from common.pt
         if not errors:
             try:
+                if self.fence is not None:
+                    self.fence.check()
+                    fields["generation"] = [self.fence.run, self.fence.generation]
                 manifest = commit(self.storage, step, files, meta | fields, check_present=not self._listed)
                 self._listed = True
+            except Fenced as exc:
+                self.log(f"checkpoint step {step} refused: {exc}")
+                errors = [f"commit: {exc}"]
             except Exception as exc:
                 errors = [f"commit: {exc}"]
         if errors:

@@ -1,0 +1,64 @@
+"""Fencing: a commit from an older generation of a run than the newest one that has committed is refused.
+
+On several nodes ``ftrain supervise`` numbers its attempts across the nodes (a node that fails or leaves moves every
+node to the next one) and hands the run and that number to the workers as ``FTRAIN_GENERATION``. A node cut off from
+the others (partitioned, or paused and resumed) still runs its old attempt: a save it had in flight must not commit
+after the others went on without it. ``<storage>/FENCE.json`` holds the newest generation that committed: rank 0
+reads it before it writes a manifest (one small read per commit), refuses to commit below it, and raises it, by a
+compare-and-swap (``cas.py``), at its generation's first commit; every manifest records its ``generation``. What is
+left is the time between that read and the manifest's write (one request): a node stopped exactly there commits once
+when it goes on (a state of the run from before the others went on, which their newer steps then pass).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+
+from ftrain.ckpt import cas
+from ftrain.ckpt.storage import Storage
+
+GENERATION_ENV = "FTRAIN_GENERATION"
+"""``RUN:N``: the run (its supervisors' token: a run started again is another one) and its attempt number."""
+FENCE = "FENCE.json"
+
+
+class Fenced(Exception):
+    """A newer generation of the run has committed: this one must not (one-line message)."""
+
+
+class Fence:
+    """Rank 0's guard of the commits of generation ``generation`` of run ``run`` to ``storage``."""
+
+    def __init__(self, storage: Storage, run: str, generation: int) -> None:
+        self.storage = storage
+        self.run = run
+        self.generation = generation
+
+    @classmethod
+    def from_env(cls, storage: Storage) -> Fence | None:
+        """The fence of this process's generation; None where the launcher numbers none (one node: nothing to
+        fence)."""
+        run, _, generation = os.environ.get(GENERATION_ENV, "").rpartition(":")
+        return cls(storage, run, int(generation)) if run and generation.isdigit() else None
+
+    def check(self) -> None:
+        """Before a commit: Fenced if a newer generation of this run has committed; else make sure FENCE.json names
+        this one (another run's record is replaced: the lease lets one run at a time write the storage)."""
+        while True:
+            current = cas.read(self.storage, FENCE)
+            record = json.loads(current[0]) if current is not None else {}
+            newest = record.get("generation", -1) if record.get("run") == self.run else -1
+            if newest > self.generation:
+                raise Fenced(
+                    f"generation {self.generation} of the run is fenced off: generation {newest} has committed since "
+                    "(this node was cut off from the others), so it commits nothing more"
+                )
+            if newest == self.generation:
+                return
+            ours = json.dumps({"run": self.run, "generation": self.generation}).encode()
+            try:
+                cas.write(self.storage, FENCE, ours, current[1] if current is not None else None)
+                return
+            except cas.Conflict:
+                continue
