@@ -1,12 +1,16 @@
-"""Fixtures only: storage backends (a real S3 API server on 127.0.0.1) and clean-up. Helpers live in helpers.py."""
+"""Fixtures only: storage backends (a real S3 API server on 127.0.0.1), an etcd server, and clean-up. Helpers live in
+helpers.py."""
 
+import shutil
+import subprocess
+import urllib.request
 import uuid
 
 import pytest
 
 from ftrain.tools.outage import S3Server, free_port, start_moto, stop
 
-from helpers import BACKENDS, S3_KEY, S3_REGION, S3_SECRET, S3Outage, create_bucket, stop_launched
+from helpers import BACKENDS, S3_KEY, S3_REGION, S3_SECRET, S3Outage, create_bucket, stop_launched, wait_for
 
 # --- Storage backends: a real S3 API server (moto) on 127.0.0.1, plus local, file:// and memory:// URLs ---
 
@@ -63,6 +67,36 @@ def storage_url(request, tmp_path, monkeypatch):
     if request.param == "memory":
         return f"memory://ftrain-test/{uuid.uuid4().hex}", None
     return request.getfixturevalue("s3_url")
+
+
+@pytest.fixture
+def etcd_server(tmp_path):
+    """A private etcd (v2 API on, as torch's etcd-v2 rendezvous needs) on free ports of 127.0.0.1, its data in
+    ``tmp_path``; yields its client address ``HOST:PORT``. Skips where there is no etcd binary."""
+    binary = shutil.which("etcd")
+    if binary is None:
+        pytest.skip("no etcd binary: install Debian's etcd-server (launch/setup.sh does, as root)")
+    client, peer = f"http://127.0.0.1:{free_port()}", f"http://127.0.0.1:{free_port()}"
+    command = [binary, "--enable-v2", "--data-dir", str(tmp_path / "etcd"), "--listen-client-urls", client]
+    command += ["--advertise-client-urls", client, "--listen-peer-urls", peer, "--initial-advertise-peer-urls", peer]
+    command += ["--initial-cluster", f"default={peer}"]
+    with open(tmp_path / "etcd.log", "ab") as log:
+        proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        wait_for(lambda: _answers(f"{client}/version") or proc.poll() is not None, "etcd", timeout=30, interval=0.1)
+        assert proc.poll() is None, (tmp_path / "etcd.log").read_text()
+        yield client.removeprefix("http://")
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+
+
+def _answers(url: str) -> bool:
+    try:
+        with urllib.request.urlopen(url, timeout=1):
+            return True
+    except OSError:
+        return False
 
 
 @pytest.fixture(autouse=True)

@@ -29,8 +29,8 @@ from ftrain import errorfile, procfs
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, TOKEN_ENV
 from ftrain.lifeline import supervisor_env
 from ftrain.supervise.auth import SECRET_ENV
-from ftrain.supervise.coordinator import Plan
 from ftrain.supervise.outcome import WorkerFailure, blame
+from ftrain.supervise.plan import Plan
 
 POLL = 0.1
 TORCHRUN = "ftrain.dist.torchrun"

@@ -2,11 +2,10 @@
 
 Torch-free (config, heartbeat, the storage lease and the standard library): it launches and watches processes.
 
-Launch. Every attempt is a new ``torchrun --max-restarts=0`` in its own session, with ``FTRAIN_HEARTBEAT_DIR``
-set, and a rendezvous nothing has used before: ``--standalone`` on one node (a new TCP store on a free port);
-on several nodes a static rendezvous on a new port per attempt (see "Several nodes"). torchrun's own restarts
-keep one TCP store, from which restarted workers read stale gloo peer addresses; a new torchrun cannot. Credentials
-reach the workers in their environment, never on a command line; no process outlives the supervisor (``attempt.py``).
+Launch. Every attempt is a new ``torchrun --max-restarts=0`` in its own session, with ``FTRAIN_HEARTBEAT_DIR`` set,
+and a rendezvous nothing has used before (``link.rendezvous``): torchrun's own restarts keep one TCP store, from which
+restarted workers read stale gloo peer addresses; a new torchrun cannot. Credentials reach the workers in their
+environment, never on a command line; no process outlives the supervisor (``attempt.py``).
 
 Detect. Crash: torchrun exits non-zero, or is killed (its workers, each in a session of its own, are then
 orphans: the supervisor finds every process of an attempt by the ``FTRAIN_ATTEMPT_TOKEN`` in its environment).
@@ -27,13 +26,11 @@ completed iterations; ``--backoff-initial`` after one that completed none, doubl
 
 Preemption. SIGTERM or SIGINT to the supervisor: SIGTERM to the workers, which agree at the next iteration
 boundary, save and exit 143 (torchrun passes that on: ``ftrain/dist/torchrun.py``); SIGKILL after ``--stop-grace``;
-a second signal kills at once. No restart; the
-supervisor exits 128 + the signal (143 for SIGTERM, 130 for SIGINT, Ctrl-C).
+a second signal kills at once. No restart; the supervisor exits 128 + the signal (143 for SIGTERM, 130 for SIGINT).
 
-Several nodes: ``coordinator.py``. Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``.
-
-Test hook (private): ``FTRAIN_WORKER_MODULE`` names the module torchrun runs as ``-m MODULE train ...`` (default
-``ftrain``), so the tests can supervise a small stand-in that speaks the heartbeat protocol.
+Several nodes: ``link.py`` (c10d: node 0 coordinates, ``coordinator.py``; etcd-v2: etcd, ``etcd_plan.py``).
+Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``. Test hook (private):
+``FTRAIN_WORKER_MODULE`` names the module torchrun runs (``-m MODULE train ...``, default ``ftrain``).
 """
 
 from __future__ import annotations
@@ -52,10 +49,10 @@ from ftrain.errors import STOPPED, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats
 from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, attempt_env, kill, new_log_dir, signal_name, torchrun_command
-from ftrain.supervise.coordinator import Coordinator, Link, Plan, plan_key, rendezvous_args
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.hang import QUIET_PHASES, HangWatch, process_state
 from ftrain.supervise.ledger import Ledger
+from ftrain.supervise.link import connect, rendezvous
 from ftrain.supervise.options import (
     EXIT_DONE,
     EXIT_PEER_LOST,
@@ -66,6 +63,7 @@ from ftrain.supervise.options import (
 )
 from ftrain.supervise.outage import StorageWait
 from ftrain.supervise.outcome import Outcome, classify, in_words
+from ftrain.supervise.plan import Plan, plan_key
 from ftrain.supervise.restarts import RestartPolicy
 
 WORKER_MODULE_ENV = "FTRAIN_WORKER_MODULE"
@@ -85,10 +83,15 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     (config file, ``--storage``, overrides), which every worker gets."""
     hang_timeout = parse_hang_timeout(options.hang_timeout)
     nodes = parse_nodes(options)
-    supervisor = Supervisor(options, nodes, Path(config.log_dir), hang_timeout, train_args, config.storage)
+    try:
+        supervisor = Supervisor(options, nodes, Path(config.log_dir), hang_timeout, train_args, config.storage)
+    except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
+        print(f"ftrain supervise: error: {error}", file=sys.stderr)
+        return EXIT_PEER_LOST
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     events = supervisor.events
-    lease = lambda: storage_lease(config, lambda line: events("lease", line, detail=line), nodes.secret, nodes.endpoint)  # noqa: E731
+    log = lambda line: events("lease", line, detail=line)  # noqa: E731
+    lease = lambda: storage_lease(config, log, nodes.run_key, nodes.endpoint)  # noqa: E731
     refused = lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr)  # noqa: E731
     try:  # the lease is taken before anything is launched: an unreachable storage is waited out then too
         return supervisor.storage_wait.retrying(lambda: lease().run(supervisor.run, refused), supervisor.end)
@@ -119,15 +122,14 @@ class Supervisor:
         self.nnodes = nodes.count
         self.train_args = train_args
         multi = nodes.count > 1
-        node_dir = f"node-{options.node_rank}" if multi else ""
+        self.events = EventLog(log_dir / "events.jsonl", None)
+        self.link, self.coordinator = connect(nodes, options, self.events)
+        self.node = self.link.node
+        self.events.node = self.node if multi else None
+        node_dir = f"node-{self.node}" if multi else ""
         self.heartbeat_dir = (log_dir / "heartbeat" / node_dir).resolve()
         self.attempt_logs = log_dir / "torchrun" / node_dir
-        self.events = EventLog(log_dir / "events.jsonl", options.node_rank if multi else None)
         self.hangs = HangWatch(hang_timeout, options.startup_grace, options.nproc_per_node)
-        coordinating = options.node_rank == 0 or not multi
-        self.coordinator = Coordinator(multi, nodes.secret, self.events) if coordinating else None
-        self.server = self.coordinator.serve(*nodes.endpoint) if multi and self.coordinator else None
-        self.link = Link(options.node_rank, self.coordinator, nodes.endpoint, nodes.secret)
         self.signals: list[int] = []
         self.policy = RestartPolicy(options)
         self.ledger = Ledger(options.nproc_per_node, self.events)
@@ -137,9 +139,8 @@ class Supervisor:
         self.signals.append(number)
 
     def close(self) -> None:
-        if self.server is not None:
-            self.server.shutdown()
-            self.server.server_close()
+        if self.coordinator is not None:
+            self.coordinator.close()
 
     def run(self) -> int:
         try:
@@ -201,25 +202,25 @@ class Supervisor:
                 if not waiting:
                     waiting = True
                     timeout = self.options.rdzv_timeout
-                    message = f"waiting up to {timeout:g} s for node 0 at {self.options.rdzv_endpoint} ({error})"
+                    message = f"waiting up to {timeout:g} s for {self.link.peer} ({error})"
                     print(f"ftrain supervise: {message}", file=sys.stderr, flush=True)
             if plan is not None and plan.final is not None:
                 raise _Stop("peer_ended", plan.final, f"another node ended the run with exit code {plan.final}")
             if plan is not None and (previous is None or plan_key(plan) != plan_key(previous)):
                 return plan
             if time.monotonic() > deadline:
-                raise _Stop("peer_lost", EXIT_PEER_LOST, f"node 0 at {self.options.rdzv_endpoint} did not answer")
+                raise _Stop("peer_lost", EXIT_PEER_LOST, f"{self.link.peer} did not answer")
             time.sleep(PEER_POLL / 5)
 
     def _launch(self, plan: Plan) -> Attempt:
         token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
         train_args, hidden = hide_credentials(self.train_args)
-        env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.options.node_rank, hidden)
+        env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.node, hidden)
         env[STORAGE_WAIT_ENV] = str(self.options.storage_wait)
-        rendezvous = ["--standalone"] if self.nnodes == 1 else rendezvous_args(plan, self.nodes, self.options)
         module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
         logs = new_log_dir(self.attempt_logs, plan)
-        command = torchrun_command(self.options.nproc_per_node, rendezvous, module, train_args, logs)
+        arguments = rendezvous(plan, self.nodes, self.options)
+        command = torchrun_command(self.options.nproc_per_node, arguments, module, train_args, logs)
         logged = redact_command(command)
         message = f"attempt {plan.attempt}: launching torchrun"
         self.events("start", message, attempt=plan.attempt, command=logged, logs=str(logs))
