@@ -2,15 +2,25 @@
 helpers.py."""
 
 import shutil
+import socket
 import subprocess
-import urllib.request
 import uuid
 
 import pytest
 
 from ftrain.tools.outage import S3Server, free_port, start_moto, stop
 
-from helpers import BACKENDS, S3_KEY, S3_REGION, S3_SECRET, S3Outage, create_bucket, stop_launched, wait_for
+from helpers import (
+    BACKENDS,
+    S3_KEY,
+    S3_REGION,
+    S3_SECRET,
+    S3Outage,
+    create_bucket,
+    make_certificates,
+    stop_launched,
+    wait_for,
+)
 
 # --- Storage backends: a real S3 API server (moto) on 127.0.0.1, plus local, file:// and memory:// URLs ---
 
@@ -73,28 +83,44 @@ def storage_url(request, tmp_path, monkeypatch):
 def etcd_server(tmp_path):
     """A private etcd (v2 API on, as torch's etcd-v2 rendezvous needs) on free ports of 127.0.0.1, its data in
     ``tmp_path``; yields its client address ``HOST:PORT``. Skips where there is no etcd binary."""
+    yield from _etcd(tmp_path, "http", [])
+
+
+@pytest.fixture
+def etcd_tls_server(tmp_path):
+    """The same over TLS, answering only clients with a certificate of its CA; yields ``(HOST:PORT, certificates)``
+    (``helpers.make_certificates``)."""
+    certificates = make_certificates(tmp_path)
+    options = ["--cert-file", certificates["server"], "--key-file", certificates["server_key"]]
+    options += ["--trusted-ca-file", certificates["ca"], "--client-cert-auth"]
+    for endpoint in _etcd(tmp_path, "https", options):
+        yield endpoint, certificates
+
+
+def _etcd(tmp_path, scheme: str, options: list):
     binary = shutil.which("etcd")
     if binary is None:
         pytest.skip("no etcd binary: install Debian's etcd-server (launch/setup.sh does, as root)")
-    client, peer = f"http://127.0.0.1:{free_port()}", f"http://127.0.0.1:{free_port()}"
+    port = free_port()
+    client, peer = f"{scheme}://127.0.0.1:{port}", f"http://127.0.0.1:{free_port()}"
     command = [binary, "--enable-v2", "--data-dir", str(tmp_path / "etcd"), "--listen-client-urls", client]
     command += ["--advertise-client-urls", client, "--listen-peer-urls", peer, "--initial-advertise-peer-urls", peer]
-    command += ["--initial-cluster", f"default={peer}"]
+    command += ["--initial-cluster", f"default={peer}", *map(str, options)]
     with open(tmp_path / "etcd.log", "ab") as log:
         proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
     try:
-        wait_for(lambda: _answers(f"{client}/version") or proc.poll() is not None, "etcd", timeout=30, interval=0.1)
+        wait_for(lambda: _listens(port) or proc.poll() is not None, "etcd", timeout=30, interval=0.1)
         assert proc.poll() is None, (tmp_path / "etcd.log").read_text()
-        yield client.removeprefix("http://")
+        yield f"127.0.0.1:{port}"
     finally:
         proc.terminate()
         proc.wait(timeout=30)
 
 
-def _answers(url: str) -> bool:
+def _listens(port: int) -> bool:
     try:
-        with urllib.request.urlopen(url, timeout=1):
-            return True
+        socket.create_connection(("127.0.0.1", port), timeout=1).close()
+        return True
     except OSError:
         return False
 

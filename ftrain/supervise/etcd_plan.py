@@ -76,7 +76,7 @@ class EtcdLink:
                 return
             except ConnectionError as error:
                 if time.monotonic() > deadline:
-                    raise ConnectionError(f"{self.peer} did not answer within {timeout:g} s ({error})") from None
+                    raise ConnectionError(f"{self.peer} not reached within {timeout:g} s ({error})") from None
                 if not tries:
                     message = f"waiting up to {timeout:g} s for {self.peer} ({error})"
                     print(f"ftrain supervise: {message}", file=sys.stderr, flush=True)

@@ -19,7 +19,7 @@ from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT
 from ftrain.heartbeat import read_heartbeats
 from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.coordinator import rendezvous_args
-from ftrain.supervise.options import EXIT_TOO_FEW_NODES, Nodes, SupervisorOptions
+from ftrain.supervise.options import EXIT_PEER_LOST, EXIT_TOO_FEW_NODES, Nodes, SupervisorOptions
 from ftrain.supervise.plan import Plan
 
 from helpers import (
@@ -156,6 +156,26 @@ def test_on_etcd_losing_the_node_of_rank_0_the_others_go_on_at_world_2_and_finis
         print(f"node {node}: world 2 trains {recovered:.1f} s after the kill ({shrink['downtime']} s down)")
         assert recovered < 3 + 10, shrink
     assert verify_cli(storage) == 0
+
+
+@pytest.mark.cluster
+def test_on_etcd_over_tls_the_certificates_come_from_rdzv_conf_files(tmp_path, etcd_tls_server) -> None:
+    """torchrun's rendezvous and the supervisors' plan both reach an etcd that takes only clients with a certificate
+    of its CA, through the files ``--rdzv-conf`` names; without the client certificate etcd refuses (exit 5)."""
+    endpoint, files = etcd_tls_server
+    tls = f"protocol=https,ca_cert={files['ca']}"
+    refused = start_node(tmp_path / "refused", 0, "1:2", [*etcd(endpoint), "--rdzv-conf", tls], rdzv_timeout="3")
+    assert finish(refused, timeout=60) == EXIT_PEER_LOST
+    assert "SSL" in Path(f"{tmp_path / 'refused'}.node0.log").read_text()  # the handshake failed, not the address
+    tls += f",ssl_cert={files['client']},ssl_cert_key={files['client_key']}"
+    storage = tmp_path / "run"
+    node = start_node(storage, 0, "1:2", [*etcd(endpoint), "--rdzv-conf", tls], "iterations=10", rejoin_timeout="1")
+    assert finish(node, timeout=120) == 0
+    assert final_manifest(storage)["step"] == 10
+    (start,) = [event for event in events(storage) if event["event"] == "start"]
+    assert f"ssl_cert_key={files['client_key']}" in " ".join(start["command"])  # a file's name, never its contents
+    for output in (storage / "events.jsonl", Path(f"{storage}.node0.log")):
+        assert "PRIVATE KEY" not in output.read_text()
 
 
 def test_below_min_nodes_wait_then_exit_6_and_keep_every_checkpoint(tmp_path) -> None:
