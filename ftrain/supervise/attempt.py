@@ -180,6 +180,18 @@ class Attempt:
             for rank, failure in failures.items()
         }
 
+    def exit_fields(self, cause: str, phases: set[str]) -> dict:
+        """What the ``exit`` event records: the attempt, torchrun's code, the ``cause``, each failed rank's code and
+        error, and the final heartbeat ``phases``."""
+        return {
+            "attempt": self.plan.attempt,
+            "code": self.proc.returncode,
+            "cause": cause,
+            "failures": {str(rank): failure.code for rank, failure in sorted(self.failures.items())},
+            "errors": {str(rank): failure.error for rank, failure in sorted(self.failures.items()) if failure.error},
+            "phases": sorted(phases),
+        }
+
     def cause(self, code: int) -> str:
         """What ended the attempt, in one line: the worker to blame and what it recorded, else torchrun; where the
         output is when nothing was recorded."""

@@ -29,6 +29,8 @@ class Plan:
     port: int | None
     """c10d: the port of node 0's rendezvous for this attempt (etcd-v2: None, etcd hosts the rendezvous)."""
     final: int | None = None
+    left: int | None = None
+    """The node whose leaving (its preemption, in an elastic etcd-v2 run) started this attempt; None after a failure."""
 
 
 def plan_key(plan: Plan) -> dict:
@@ -38,11 +40,14 @@ def plan_key(plan: Plan) -> dict:
 
 def apply(plan: Plan, request: dict, port: Callable[[], int | None]) -> Plan:
     """The plan after a node's ``request``: ``fail`` (``token``, ``attempt``) moves every node to the next attempt
-    (only the first report of the current attempt's failure counts) on a new rendezvous ``port()``; ``finish``
-    (``code``) ends the run with that exit code, once. Requests of another run's token change nothing."""
+    (only the first report of the current attempt's failure counts) on a new rendezvous ``port()``; so does ``leave``
+    (``node`` leaves the run, the others regroup without it); ``finish`` (``code``) ends the run with that exit code,
+    once. Requests of another run's token change nothing."""
     ours = request.get("token") == plan.token and plan.final is None
-    if request["op"] == "fail" and ours and request.get("attempt") == plan.attempt:
-        return Plan(plan.token, plan.attempt + 1, port())
+    if request["op"] in ("fail", "leave") and ours and request.get("attempt") == plan.attempt:
+        return Plan(
+            plan.token, plan.attempt + 1, port(), left=request.get("node") if request["op"] == "leave" else None
+        )
     if request["op"] == "finish" and ours:
         return dataclasses.replace(plan, final=request["code"])
     return plan

@@ -24,9 +24,9 @@ once (its collectives cannot agree on a save; commits are crash-safe). Then back
 completed iterations; ``--backoff-initial`` after one that completed none, doubled for each further one, at most
 ``--backoff-max``) and launch again; the workers resume from the newest verified checkpoint themselves.
 
-Preemption. SIGTERM or SIGINT to the supervisor: SIGTERM to the workers, which agree at the next iteration
-boundary, save and exit 143 (torchrun passes that on: ``ftrain/dist/torchrun.py``); SIGKILL after ``--stop-grace``;
-a second signal kills at once. No restart; the supervisor exits 128 + the signal (143 for SIGTERM, 130 for SIGINT).
+Preemption. SIGTERM or SIGINT: SIGTERM to the workers, which agree at the next iteration boundary, save and exit 143
+(``ftrain/dist/torchrun.py`` passes it on); SIGKILL after ``--stop-grace``, or at a second signal. No restart: exit
+128 + the signal (143; 130 for SIGINT). Elastic on etcd-v2 this node leaves alone: the others regroup from the save.
 
 Several nodes: ``link.py`` (c10d: node 0 coordinates, ``coordinator.py``; etcd-v2: etcd, ``etcd_plan.py``).
 Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``. Test hook (private):
@@ -56,13 +56,14 @@ from ftrain.supervise.link import connect, rendezvous
 from ftrain.supervise.options import (
     EXIT_DONE,
     EXIT_PEER_LOST,
+    Backend,
     Nodes,
     SupervisorOptions,
     parse_hang_timeout,
     parse_nodes,
 )
 from ftrain.supervise.outage import StorageWait
-from ftrain.supervise.outcome import Outcome, classify, in_words
+from ftrain.supervise.outcome import Outcome, classify
 from ftrain.supervise.plan import Plan, plan_key
 from ftrain.supervise.restarts import RestartPolicy
 
@@ -154,6 +155,9 @@ class Supervisor:
         while True:
             attempt = self._launch(plan)
             outcome = self._watch(attempt)
+            if outcome.event == "regroup":
+                plan = self._next_plan(plan)
+                continue
             if not outcome.failed:
                 raise _Stop(outcome.event, outcome.code, outcome.message)
             if outcome.event == "storage_down":
@@ -284,11 +288,8 @@ class Supervisor:
 
     def _check_peers(self, attempt: Attempt, now: float) -> Outcome | None:
         """Several nodes: stop this node's group when another node failed the attempt or ended the run."""
-        try:
-            plan = self.link.ask("plan")
-        except OSError:
-            return None
-        if plan.final == EXIT_DONE or plan.final in STOPPED:
+        plan = self._tell("plan")
+        if plan is None or plan.final == EXIT_DONE or plan.final in STOPPED:
             return None
         if plan.final is not None:
             attempt.stop(self.options.stop_grace)
@@ -296,6 +297,9 @@ class Supervisor:
             return Outcome("peer_ended", plan.final, f"another node ended the run with exit code {plan.final}")
         if plan_key(plan) == plan_key(attempt.plan):
             return None
+        if plan.left is not None:
+            attempt.stop(self.options.stop_grace)  # the workers save, as they do for the leaving node's stop
+            return self._regroup(attempt, plan, f"stopped: node {plan.left} left")
         self.events(
             "superseded",
             f"attempt {attempt.plan.attempt}: another node failed; stopping this node's workers",
@@ -310,11 +314,14 @@ class Supervisor:
         name = signal_name(self.signals[0])
         self.events(
             "preempt",
-            f"{name}: asking the workers to save and exit (SIGKILL in {self.options.stop_grace:g} s)",
+            f"{name}: asking the workers to save and exit (SIGKILL in {self.options.stop_grace:g} s)"
+            + ("; this node leaves, the others go on from the save" if self._leaves_alone() else ""),
             attempt=attempt.plan.attempt,
             signal=name,
         )
-        if self.nnodes > 1:
+        if self._leaves_alone():
+            self._tell("leave", node=self.node, **plan_key(attempt.plan))
+        elif self.nnodes > 1:
             self._tell("finish", code=stop_code(self.signals[0]))
         attempt.terminate()
 
@@ -331,16 +338,25 @@ class Supervisor:
             attempt.kill()
         phases = self._phases(attempt)
         cause = attempt.cause(code) if code or orphans else "exit code 0"
-        superseded = (
-            code in STOPPED and self.nnodes > 1 and plan_key(self._current_plan(attempt.plan)) != plan_key(attempt.plan)
-        )
+        current = (self._tell("plan") if code in STOPPED and self.nnodes > 1 else None) or attempt.plan
+        superseded = plan_key(current) != plan_key(attempt.plan)
         stopped = stop_code(self.signals[0]) if self.signals else None
         committed = attempt.committed if attempt.committed is not None else self.policy.best_committed
         outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
+        if superseded and current.left is not None and outcome.failed:  # saved for a node that left: no failure
+            return self._regroup(attempt, current, cause, phases)
         self._log_exit(attempt, cause, f"attempt {attempt.plan.attempt}: {cause}" if outcome.failed else "", phases)
         if outcome.failed:
             self._failed(attempt, now)
         return outcome
+
+    def _regroup(self, attempt: Attempt, plan: Plan, cause: str, phases: set[str] | None = None) -> Outcome:
+        """Another node left (preempted) and the workers saved: the others go on without it, no failure counted."""
+        self._log_exit(attempt, cause, phases=phases)
+        message = f"attempt {attempt.plan.attempt}: node {plan.left} left the run; regrouping without it"
+        self.ledger.left.add(plan.left)
+        self.events("regroup", message, attempt=attempt.plan.attempt, left=plan.left)
+        return Outcome("regroup", None, message)
 
     def _phases(self, attempt: Attempt) -> set[str]:
         """The phases of the final heartbeats (after the attempt's processes are gone)."""
@@ -350,22 +366,7 @@ class Supervisor:
 
     def _log_exit(self, attempt: Attempt, cause: str, message: str = "", phases: set[str] | None = None) -> None:
         """The ``exit`` event; ``phases``: the final heartbeat phases, if the caller has read them already."""
-        self.events(
-            "exit",
-            message,
-            attempt=attempt.plan.attempt,
-            code=attempt.proc.returncode,
-            cause=cause,
-            failures={str(rank): failure.code for rank, failure in sorted(attempt.failures.items())},
-            errors={str(rank): failure.error for rank, failure in sorted(attempt.failures.items()) if failure.error},
-            phases=sorted(self._phases(attempt) if phases is None else phases),
-        )
-
-    def _current_plan(self, fallback: Plan) -> Plan:
-        try:
-            return self.link.ask("plan")
-        except OSError:
-            return fallback
+        self.events("exit", message, **attempt.exit_fields(cause, self._phases(attempt) if phases is None else phases))
 
     def _failed(self, attempt: Attempt, now: float) -> None:
         """Once per attempt: remember the failure for the summary and tell node 0 (one node: the local counter)."""
@@ -375,25 +376,24 @@ class Supervisor:
         self.ledger.failed(attempt.completed, now)
         self._tell("fail", **plan_key(attempt.plan))
 
-    def _tell(self, op: str, **fields) -> None:
+    def _tell(self, op: str, **fields) -> Plan | None:
+        """Ask the plan's keeper (node 0 or etcd); its plan, or None when it cannot be reached."""
         with contextlib.suppress(OSError):
-            self.link.ask(op, **fields)
+            return self.link.ask(op, **fields)
+        return None
 
     def end(self, ending: Outcome) -> int:
         """The run ends: record it, tell the other nodes, sum up; the exit code."""
         event, code, message = ending.event, ending.code, ending.message
         self.events(event, message, code=code)
-        if self.nnodes > 1:
+        if self.nnodes > 1 and not (event == "preempted" and self._leaves_alone()):
             self._tell("finish", code=code)
             if self.coordinator is not None:
                 self.coordinator.wait_informed(self.nnodes, LINGER)
-        lost, downtime = self.ledger.lost, self.ledger.downtime
-        restarts = self.policy.restarts
-        summary = {"restarts": restarts, "iterations_lost": lost, "downtime": round(downtime, 2)}
-        self.events(
-            "summary",
-            f"{in_words(event)} (exit {code}): {restarts} restarts, {lost} iterations lost, {downtime:.1f} s downtime",
-            code=code,
-            **summary,
-        )
+        self.ledger.summarize(event, code, self.policy.restarts)
         return code
+
+    def _leaves_alone(self) -> bool:
+        """Whether this node's preemption leaves the others training (an elastic etcd-v2 run, where no node is
+        special): they regroup without it from the workers' save, as long as MIN nodes remain."""
+        return self.nodes.elastic and self.nodes.backend is Backend.ETCD
