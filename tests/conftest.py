@@ -2,12 +2,11 @@
 helpers.py."""
 
 import shutil
-import socket
-import subprocess
 import uuid
 
 import pytest
 
+from ftrain.tools import etcd_server as etcd_tools
 from ftrain.tools.outage import S3Server, free_port, start_moto, stop
 
 from helpers import (
@@ -19,7 +18,6 @@ from helpers import (
     create_bucket,
     make_certificates,
     stop_launched,
-    wait_for,
 )
 
 # --- Storage backends: a real S3 API server (moto) on 127.0.0.1, plus local, file:// and memory:// URLs ---
@@ -83,46 +81,24 @@ def storage_url(request, tmp_path, monkeypatch):
 def etcd_server(tmp_path):
     """A private etcd (v2 API on, as torch's etcd-v2 rendezvous needs) on free ports of 127.0.0.1, its data in
     ``tmp_path``; yields its client address ``HOST:PORT``. Skips where there is no etcd binary."""
-    yield from _etcd(tmp_path, "http", [])
+    _skip_without_etcd()
+    with etcd_tools.etcd_server(tmp_path) as endpoint:
+        yield endpoint
 
 
 @pytest.fixture
 def etcd_tls_server(tmp_path):
     """The same over TLS, answering only clients with a certificate of its CA; yields ``(HOST:PORT, certificates)``
     (``helpers.make_certificates``)."""
+    _skip_without_etcd()
     certificates = make_certificates(tmp_path)
-    options = ["--cert-file", certificates["server"], "--key-file", certificates["server_key"]]
-    options += ["--trusted-ca-file", certificates["ca"], "--client-cert-auth"]
-    for endpoint in _etcd(tmp_path, "https", options):
+    with etcd_tools.etcd_server(tmp_path, certificates) as endpoint:
         yield endpoint, certificates
 
 
-def _etcd(tmp_path, scheme: str, options: list):
-    binary = shutil.which("etcd")
-    if binary is None:
-        pytest.skip("no etcd binary: install Debian's etcd-server (launch/setup.sh does, as root)")
-    port = free_port()
-    client, peer = f"{scheme}://127.0.0.1:{port}", f"http://127.0.0.1:{free_port()}"
-    command = [binary, "--enable-v2", "--data-dir", str(tmp_path / "etcd"), "--listen-client-urls", client]
-    command += ["--advertise-client-urls", client, "--listen-peer-urls", peer, "--initial-advertise-peer-urls", peer]
-    command += ["--initial-cluster", f"default={peer}", *map(str, options)]
-    with open(tmp_path / "etcd.log", "ab") as log:
-        proc = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT)
-    try:
-        wait_for(lambda: _listens(port) or proc.poll() is not None, "etcd", timeout=30, interval=0.1)
-        assert proc.poll() is None, (tmp_path / "etcd.log").read_text()
-        yield f"127.0.0.1:{port}"
-    finally:
-        proc.terminate()
-        proc.wait(timeout=30)
-
-
-def _listens(port: int) -> bool:
-    try:
-        socket.create_connection(("127.0.0.1", port), timeout=1).close()
-        return True
-    except OSError:
-        return False
+def _skip_without_etcd() -> None:
+    if shutil.which("etcd") is None:
+        pytest.skip(etcd_tools.MISSING)
 
 
 @pytest.fixture(autouse=True)
