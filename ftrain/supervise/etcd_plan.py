@@ -7,9 +7,9 @@ not tell a hang (it waits), bad input or an unreachable storage from a crash (it
 its restarts on an outage), nor does it count restarts that commit nothing, and its restarts reuse one rendezvous
 whose first round's store a node keeps (see ``attempt.attempt_env``). So the supervisors keep their own restart
 policy (``--max-restarts=0`` for torchrun, one fresh rendezvous per attempt, as with c10d) and keep in etcd only
-what node 0's coordinator keeps for c10d: the plan (``plan.py``: the current attempt and the run's end), changed by
-compare-and-swap. The crash-loop count was never shared (each node counts its own). Each node also takes a number
-from etcd for its logs and events (``node-N``): a node that starts again gets a new one.
+what node 0's coordinator keeps for c10d: the plan (``plan.py``: the current attempt, the run's end, a node that
+left), changed by compare-and-swap. The crash-loop count was never shared (each node counts its own). Each node
+also takes a number from etcd for its logs and events (``node-N``): a node that starts again gets a new one.
 
 Keys, under ``/ftrain/<--rdzv-id>``: ``plan`` (JSON) and ``nodes`` (the next node number). A supervisor that finds
 the plan of an ended run starts a new one (a new token): running the same command again after a stop continues.
@@ -62,11 +62,11 @@ class EtcdLink:
     def __init__(self, nodes: Nodes, timeout: float) -> None:
         """Takes a node number and, if the plan in etcd is of an ended run, starts a new plan; waits up to
         ``timeout`` seconds for etcd (``ConnectionError`` then)."""
+        self.client = etcd_client(nodes)  # first: a missing python-etcd is one line
         import etcd
 
         self._etcd = etcd
         self.peer = "etcd at {}:{}".format(*nodes.endpoint)
-        self.client = etcd_client(nodes)
         self.key = f"{PREFIX}/{nodes.run_id}"
         deadline = time.monotonic() + timeout
         for tries in itertools.count():
