@@ -204,6 +204,17 @@ def test_on_etcd_one_nodes_preemption_saves_it_leaves_with_143_and_the_others_go
 
 
 @pytest.mark.cluster
+def test_on_etcd_the_same_command_after_the_end_of_a_run_starts_it_again_from_its_step(tmp_path, etcd_server) -> None:
+    """etcd keeps the ended run's record (its final exit code); a supervisor that finds it starts the run anew."""
+    storage = tmp_path / "run"
+    for iterations in (5, 10):
+        node = start_node(storage, 0, "1:2", etcd(etcd_server), f"iterations={iterations}", rejoin_timeout="1")
+        assert finish(node, timeout=120) == 0
+        assert final_manifest(storage)["step"] == iterations
+    assert [event["step"] for event in events(storage) if event["event"] == "resumed"] == [None, 5]
+
+
+@pytest.mark.cluster
 def test_on_etcd_over_tls_the_certificates_come_from_rdzv_conf_files(tmp_path, etcd_tls_server) -> None:
     """torchrun's rendezvous and the supervisors' plan both reach an etcd that takes only clients with a certificate
     of its CA, through the files ``--rdzv-conf`` names; without the client certificate etcd refuses (exit 5)."""
