@@ -167,7 +167,7 @@ class Nodes:
     least: int = 1
     """The fewest nodes it trains on: ``count`` unless elastic."""
     endpoint: tuple[str, int] | None = None
-    """Several nodes: node 0's ``(host, port)``."""
+    """Several nodes: ``(host, port)`` of node 0 (c10d) or of etcd (etcd-v2)."""
     secret: bytes | None = None
     """c10d: what the nodes' messages to node 0 and its replies are signed with."""
     backend: Backend = Backend.C10D
