@@ -12,7 +12,7 @@ its phase changes. The supervisor reads them without importing torch. Fields:
 - ``resumed_step``: the step this process resumed from (None for a fresh start).
 - ``seq``: increases with every write, so a reader sees progress even when the clock does not move.
 - ``time``: wall-clock seconds, for humans and hang timing only; nothing trained depends on it.
-- ``world``: the world size; ``nodes``: the ``--node-rank`` of every node in it (see ``NODE_ENV``), sorted.
+- ``world``: the world size; ``nodes``: the number of every node in it (see ``NODE_ENV``), sorted.
 """
 
 from __future__ import annotations
@@ -28,7 +28,8 @@ ENV_DIR = "FTRAIN_HEARTBEAT_DIR"
 TOKEN_ENV = "FTRAIN_ATTEMPT_TOKEN"
 """Set by the supervisor in every worker's environment: how it finds all processes of an attempt."""
 NODE_ENV = "FTRAIN_NODE"
-"""Set by the supervisor in every worker's environment: its ``--node-rank``, which the heartbeats list in ``nodes``."""
+"""Set by the supervisor in every worker's environment: its node's number (``--node-rank``; etcd-v2: taken from etcd),
+which the heartbeats list in ``nodes``."""
 
 
 class Phase(enum.StrEnum):

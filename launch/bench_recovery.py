@@ -13,6 +13,11 @@ fault and not in the step resumed from. The kill and hang scenarios inject every
 torchrun and worker are SIGKILLed at once, and started again once the other two train on. Two rows: ``shrink``,
 from the kill to the first iteration of the 2-rank world, and ``grow``, from node 2's start to the first iteration
 of the 3-rank world (the ``resize`` events); lost iterations as above.
+
+``etcd-node-loss`` and ``etcd-preempt``: the same three nodes meeting through a private etcd (``--rdzv-backend
+etcd-v2``, where no node is special); each trial hits the node whose worker is rank 0, killing its whole process tree
+or sending its supervisor SIGTERM (it saves and leaves, exit 143), then starts it again (a new node to etcd). Rows:
+from the fault to the first iteration of the 2-rank world, and from the start to the first of the 3-rank world.
 """
 
 from __future__ import annotations
@@ -29,6 +34,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
@@ -40,6 +46,7 @@ from ftrain.errors import EXIT_PREEMPTED  # noqa: E402
 from ftrain.heartbeat import read_heartbeats  # noqa: E402
 from ftrain.supervise.auth import SECRET_ENV  # noqa: E402
 from ftrain.supervise.coordinator import free_port  # noqa: E402
+from ftrain.tools.etcd_server import etcd_server  # noqa: E402
 
 OVERRIDES = ["iterations=1000000", "dist_timeout=10", "log.console=false"]
 HANG_TIMEOUT = 3
@@ -52,6 +59,8 @@ SCENARIOS = (
     "preempt",
     "two-nodes-kill",
     "node-loss",
+    "etcd-node-loss",
+    "etcd-preempt",
 )
 REJOIN_TIMEOUT = 5
 
@@ -257,23 +266,90 @@ def node_loss_trials(trials: int, work: Path) -> dict[str, list[dict]]:
     try:
         nodes[0].training(resumed_step(nodes[0]) + 2, ranks=1)
         for _ in range(trials):
-            resizes = len(nodes[0].events("resize"))
-            at = time.time()
-            kill_tree(nodes[2].proc)  # the machine is gone: supervisor, torchrun and worker at once
-            shrink = nodes[0].next_event("resize", resizes)
-            results["node-loss-shrink"].append(resize_result(shrink, at))
-            nodes[0].training(shrink["step"] + 2, ranks=1)
-            at = time.time()
-            nodes[2] = node(2)
-            grow = nodes[0].next_event("resize", resizes + 1)
-            results["node-return-grow"].append(resize_result(grow, at))
-            nodes[0].training(grow["step"] + 2, ranks=1)
-            shrunk, grown = (format_trial(results[name][-1]) for name in results)
-            print(f"  node-loss trial {len(results['node-loss-shrink'])}: shrink {shrunk}; grow {grown}", flush=True)
+            lose_and_return(nodes, 2, lose_machine, lambda: node(2), nodes[0], results, "node-loss")
     finally:
         for each in nodes:
             each.stop()
     return results
+
+
+def etcd_trials(fault: str, trials: int, work: Path) -> dict[str, list[dict]]:
+    """Three elastic nodes meeting through etcd; each trial hits rank 0's node (``fault``: ``kill`` its process tree,
+    or ``preempt``: SIGTERM to its supervisor), then starts it again."""
+    storage = work / f"etcd-{fault}" / "run"
+    storage.parent.mkdir(parents=True)
+    results: dict[str, list[dict]] = {f"etcd-rank0-node-{fault}": [], f"etcd-node-return-{fault}": []}
+    with etcd_server(storage.parent) as endpoint:
+        options = ("--nproc-per-node", "1", "--nnodes", "2:3", "--rdzv-backend", "etcd-v2", "--rdzv-endpoint", endpoint)
+        options += ("--rdzv-id", "bench", "--rejoin-timeout", str(REJOIN_TIMEOUT), "--max-restarts", str(trials + 5))
+        nodes = [Supervised(storage, *options) for _ in range(3)]
+        lose = lose_machine if fault == "kill" else preempt
+        try:
+            for _ in range(trials):
+                rank0, observer = numbered(storage, nodes)
+                start = lambda: Supervised(storage, *options)  # noqa: E731 - a new node to etcd
+                lose_and_return(nodes, nodes.index(rank0), lose, start, observer, results, f"etcd-{fault}")
+        finally:
+            for each in nodes:
+                each.stop()
+    return results
+
+
+def lose_and_return(
+    nodes: list[Supervised],
+    index: int,
+    lose: Callable[[Supervised], None],
+    start: Callable[[], Supervised],
+    observer: Supervised,
+    results: dict[str, list[dict]],
+    label: str,
+) -> None:
+    """One trial: ``lose`` node ``index``, wait for the ``observer``'s shrink, ``start`` the node again, wait for the
+    grow; the two ``resize`` events go to ``results``' two rows (shrink, then grow)."""
+    shrinks, grows = results
+    resizes = len(observer.events("resize"))
+    at = time.time()
+    lose(nodes[index])
+    shrink = observer.next_event("resize", resizes)
+    results[shrinks].append(resize_result(shrink, at))
+    observer.training(shrink["step"] + 2, ranks=1)
+    at = time.time()
+    nodes[index] = start()
+    grow = observer.next_event("resize", resizes + 1)
+    results[grows].append(resize_result(grow, at))
+    observer.training(grow["step"] + 2, ranks=1)
+    shrunk, grown = format_trial(results[shrinks][-1]), format_trial(results[grows][-1])
+    print(f"  {label} trial {len(results[grows])}: shrink {shrunk}; grow {grown}", flush=True)
+
+
+def lose_machine(node: Supervised) -> None:
+    """The machine is gone: supervisor, torchrun and worker at once."""
+    kill_tree(node.proc)
+
+
+def preempt(node: Supervised) -> None:
+    """SIGTERM to the node's supervisor: the workers save, and it leaves with 143."""
+    node.proc.send_signal(signal.SIGTERM)
+    assert node.proc.wait(timeout=120) == EXIT_PREEMPTED
+
+
+def numbered(storage: Path, nodes: list[Supervised]) -> tuple[Supervised, Supervised]:
+    """Once a 3-rank world trains: every node learns its number (etcd gave it); the node whose worker is rank 0, and
+    the one of rank 1 (to watch)."""
+
+    def world_of_three() -> dict[int, tuple[Supervised, Path]] | None:
+        found = {}
+        for directory in storage.glob("heartbeat/node-*"):
+            for beat in read_heartbeats(directory).values():
+                owner = [node for node in nodes if beat.pid in procfs.descendants(node.proc.pid)]
+                if beat.world == 3 and beat.phase in ("rollout", "update") and owner:
+                    found[beat.rank] = (owner[0], directory)
+        return found if len(found) == 3 else None
+
+    found = wait_for(world_of_three, 180, "a world of 3 ranks training", interval=0.2)
+    for owner, directory in found.values():
+        owner.node, owner.heartbeats = int(directory.name.removeprefix("node-")), directory
+    return found[0][0], found[1][0]
 
 
 def kill_tree(proc: subprocess.Popen) -> None:
@@ -308,6 +384,8 @@ def main() -> int:
             summary[scenario] = two_node_trials(args.trials, work)
         elif scenario == "node-loss":
             summary.update(node_loss_trials(args.trials, work))
+        elif scenario.startswith("etcd-"):
+            summary.update(etcd_trials("kill" if scenario == "etcd-node-loss" else "preempt", args.trials, work))
         else:
             summary[scenario] = fault_trials(scenario, args.trials, work)
     header = ("scenario", "trials", "median s", "worst s", "lost med", "lost max", "1st restart")

@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Sets up everything ftrain needs on a fresh Debian machine, idempotently, one line per step:
-#   - Debian's Mesa EGL libraries for headless MuJoCo rendering (when run as root and missing);
+#   - Debian's Mesa EGL libraries for headless MuJoCo rendering, and etcd-server (when run as root and missing);
 #   - a virtualenv in .venv with the CPU build of torch 2.13.0 installed FIRST (a bare torch requirement would
-#     pull a multi-GB CUDA build), then ftrain itself with its test, export, render and bench extras.
+#     pull a multi-GB CUDA build), then ftrain itself with its test, export, render, etcd and bench extras.
 # torch comes from PyTorch's CPU wheel index when it answers (TORCH_INDEX_URL overrides it), else from the default
 # package index (which, on a machine without that index, may serve the CUDA build). A stamp in .venv, keyed by
 # pyproject.toml and the torch version, skips the pip steps when nothing changed: a second run starts in seconds.
@@ -20,6 +20,17 @@ if ! dpkg -s "${render_packages[@]}" >/dev/null 2>&1; then
     apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${render_packages[@]}" >/dev/null
   else
     say "warning: ${render_packages[*]} are missing; install them for 'ftrain play --video'" >&2
+  fi
+fi
+
+# etcd (3.4 in Debian 12, serving the v2 API torchrun's etcd-v2 rendezvous speaks) for multi-node runs without a
+# special node and for the tests of them (which skip without it).
+if ! command -v etcd >/dev/null; then
+  if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null; then
+    say "installing etcd-server (the etcd-v2 rendezvous)..."
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq etcd-server >/dev/null
+  else
+    say "warning: etcd is missing; install Debian's etcd-server for 'ftrain supervise --rdzv-backend etcd-v2'" >&2
   fi
 fi
 

@@ -1,12 +1,24 @@
-"""Fixtures only: storage backends (a real S3 API server on 127.0.0.1) and clean-up. Helpers live in helpers.py."""
+"""Fixtures only: storage backends (a real S3 API server on 127.0.0.1), an etcd server, and clean-up. Helpers live in
+helpers.py."""
 
+import shutil
 import uuid
 
 import pytest
 
+from ftrain.tools import etcd_server as etcd_tools
 from ftrain.tools.outage import S3Server, free_port, start_moto, stop
 
-from helpers import BACKENDS, S3_KEY, S3_REGION, S3_SECRET, S3Outage, create_bucket, stop_launched
+from helpers import (
+    BACKENDS,
+    S3_KEY,
+    S3_REGION,
+    S3_SECRET,
+    S3Outage,
+    create_bucket,
+    make_certificates,
+    stop_launched,
+)
 
 # --- Storage backends: a real S3 API server (moto) on 127.0.0.1, plus local, file:// and memory:// URLs ---
 
@@ -63,6 +75,30 @@ def storage_url(request, tmp_path, monkeypatch):
     if request.param == "memory":
         return f"memory://ftrain-test/{uuid.uuid4().hex}", None
     return request.getfixturevalue("s3_url")
+
+
+@pytest.fixture
+def etcd_server(tmp_path):
+    """A private etcd (v2 API on, as torch's etcd-v2 rendezvous needs) on free ports of 127.0.0.1, its data in
+    ``tmp_path``; yields its client address ``HOST:PORT``. Skips where there is no etcd binary."""
+    _skip_without_etcd()
+    with etcd_tools.etcd_server(tmp_path) as endpoint:
+        yield endpoint
+
+
+@pytest.fixture
+def etcd_tls_server(tmp_path):
+    """The same over TLS, answering only clients with a certificate of its CA; yields ``(HOST:PORT, certificates)``
+    (``helpers.make_certificates``)."""
+    _skip_without_etcd()
+    certificates = make_certificates(tmp_path)
+    with etcd_tools.etcd_server(tmp_path, certificates) as endpoint:
+        yield endpoint, certificates
+
+
+def _skip_without_etcd() -> None:
+    if shutil.which("etcd") is None:
+        pytest.skip(etcd_tools.MISSING)
 
 
 @pytest.fixture(autouse=True)

@@ -303,3 +303,44 @@ def assert_same(actual: object, expected: object) -> None:
             assert_same(a, e)
     else:
         assert actual == expected
+
+
+def make_certificates(directory: Path) -> dict[str, Path]:
+    """A certificate authority, a server certificate for 127.0.0.1 and a client certificate it signed, as PEM files:
+    ``ca``, ``server``, ``server_key``, ``client``, ``client_key``."""
+    import datetime
+    import ipaddress
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+    from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
+    now = datetime.datetime.now(datetime.timezone.utc)
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca_name = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "ftrain test CA")])
+    paths = {}
+
+    def issue(name: str, key, subject, issuer_key, *extensions) -> x509.Certificate:
+        builder = x509.CertificateBuilder().subject_name(subject).issuer_name(ca_name).public_key(key.public_key())
+        builder = builder.serial_number(x509.random_serial_number()).not_valid_before(now)
+        builder = builder.not_valid_after(now + datetime.timedelta(days=1))
+        for extension, critical in extensions:
+            builder = builder.add_extension(extension, critical=critical)
+        certificate = builder.sign(issuer_key, hashes.SHA256())
+        paths[name] = directory / f"{name}.pem"
+        paths[name].write_bytes(certificate.public_bytes(serialization.Encoding.PEM))
+        if key is not ca_key:
+            paths[f"{name}_key"] = directory / f"{name}-key.pem"
+            encoding, form = serialization.Encoding.PEM, serialization.PrivateFormat.TraditionalOpenSSL
+            paths[f"{name}_key"].write_bytes(key.private_bytes(encoding, form, serialization.NoEncryption()))
+        return certificate
+
+    issue("ca", ca_key, ca_name, ca_key, (x509.BasicConstraints(ca=True, path_length=None), True))
+    host = x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))])
+    server = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "127.0.0.1")])
+    usage = x509.ExtendedKeyUsage([ExtendedKeyUsageOID.SERVER_AUTH, ExtendedKeyUsageOID.CLIENT_AUTH])
+    issue("server", ec.generate_private_key(ec.SECP256R1()), server, ca_key, (host, False), (usage, False))
+    client = x509.Name([x509.NameAttribute(NameOID.COMMON_NAME, "ftrain node")])
+    issue("client", ec.generate_private_key(ec.SECP256R1()), client, ca_key, (host, False), (usage, False))
+    return paths

@@ -29,8 +29,8 @@ from ftrain import errorfile, procfs
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, TOKEN_ENV
 from ftrain.lifeline import supervisor_env
 from ftrain.supervise.auth import SECRET_ENV
-from ftrain.supervise.coordinator import Plan
 from ftrain.supervise.outcome import WorkerFailure, blame
+from ftrain.supervise.plan import Plan
 
 POLL = 0.1
 TORCHRUN = "ftrain.dist.torchrun"
@@ -178,6 +178,18 @@ class Attempt:
                 failure["exitcode"], errorfile.message(failure["error"]), errorfile.recorded_at(failure["error"])
             )
             for rank, failure in failures.items()
+        }
+
+    def exit_fields(self, cause: str, phases: set[str]) -> dict:
+        """What the ``exit`` event records: the attempt, torchrun's code, the ``cause``, each failed rank's code and
+        error, and the final heartbeat ``phases``."""
+        return {
+            "attempt": self.plan.attempt,
+            "code": self.proc.returncode,
+            "cause": cause,
+            "failures": {str(rank): failure.code for rank, failure in sorted(self.failures.items())},
+            "errors": {str(rank): failure.error for rank, failure in sorted(self.failures.items()) if failure.error},
+            "phases": sorted(phases),
         }
 
     def cause(self, code: int) -> str:

@@ -24,11 +24,11 @@ import socketserver
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 
 from ftrain.errors import UserError
 from ftrain.supervise.auth import HOW_TO_SET, REPLY, REQUEST, Refused, read_line, seal, unseal
 from ftrain.supervise.options import Nodes, SupervisorOptions
+from ftrain.supervise.plan import Plan, apply, elastic_rendezvous
 
 POLL = 0.1
 """Seconds between two looks at whether every node has learnt the outcome."""
@@ -37,28 +37,15 @@ CONNECTION_TIMEOUT = 5.0
 MAX_LOGGED_REFUSALS = 1000
 """Refused connections recorded in events.jsonl at most (a flood must not fill the disk)."""
 OPS = ("plan", "fail", "finish")
-KEEP_ALIVE_INTERVAL = 1
-KEEP_ALIVE_MISSES = 3
-"""Elastic rendezvous: seconds between two keep-alives of a node's torchrun, and how many it may miss."""
 GONE_AFTER = 3.0
 """Seconds without a request after which node 0 no longer waits for a node to learn the outcome."""
-
-
-@dataclass
-class Plan:
-    """The attempt every node runs now, as node 0 decides; ``final`` is set once the run has ended."""
-
-    token: str
-    attempt: int
-    port: int | None
-    final: int | None = None
 
 
 class Coordinator:
     """Node 0's record of the current attempt. On one node it is just the attempt counter.
 
-    A failed attempt moves the plan to the next attempt and a new rendezvous port (only the first report of
-    a failure counts); ``finish`` publishes the exit code that ends the run on every node.
+    Requests change the plan by ``plan.apply``: a failure moves every node to the next attempt on a new rendezvous
+    port, ``finish`` publishes the exit code that ends the run on every node.
     """
 
     def __init__(self, multi_node: bool, secret: bytes | None = None, log: Callable[..., None] | None = None) -> None:
@@ -73,6 +60,7 @@ class Coordinator:
         """When each node last asked (nodes of an elastic run may be gone for good)."""
         self._refusals: dict[str, int] = {}
         """Refused connections so far, by reason."""
+        self._server: _Server | None = None
 
     @property
     def token(self) -> str:
@@ -84,12 +72,7 @@ class Coordinator:
 
     def handle(self, request: dict) -> dict:
         with self._lock:
-            plan = self._plan
-            ours = request.get("token") == plan.token
-            if request["op"] == "fail" and ours and request.get("attempt") == plan.attempt and plan.final is None:
-                self._plan = plan = Plan(plan.token, plan.attempt + 1, self._port())
-            elif request["op"] == "finish" and ours and plan.final is None:
-                plan.final = request["code"]
+            self._plan = plan = apply(self._plan, request, self._port)
             if plan.final is not None:
                 self._informed.add(request["node"])
             self._seen[request["node"]] = time.monotonic()
@@ -106,7 +89,14 @@ class Coordinator:
             ) from None
         server.coordinator = self
         threading.Thread(target=server.serve_forever, args=(POLL,), daemon=True).start()
+        self._server = server
         return server
+
+    def close(self) -> None:
+        """Stop answering (if serving)."""
+        if self._server is not None:
+            self._server.shutdown()
+            self._server.server_close()
 
     def refuse(self, peer: tuple[str, int], reason: str) -> None:
         """A connection that brought no signed request of this run: a ``refused`` event (the first of each reason
@@ -176,6 +166,7 @@ class Link:
         self.node = node
         self.coordinator = coordinator
         self.address = address
+        self.peer = "node 0 at {}:{}".format(*address) if address else "node 0"
         self.secret = secret
         self.token = coordinator.token if coordinator is not None else None
 
@@ -205,24 +196,14 @@ def free_port() -> int:
         return sock.getsockname()[1]
 
 
-def plan_key(plan: Plan) -> dict:
-    """What identifies an attempt across nodes."""
-    return {"token": plan.token, "attempt": plan.attempt}
-
-
 def rendezvous_args(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> list[str]:
     """torchrun's rendezvous for ``plan``, under a run id of this attempt; node 0's torchrun hosts the store on the
     plan's fresh port.
 
     A fixed number of nodes meets in a static rendezvous: node R runs global ranks R x nproc and up, every time.
-    Elastic (``MIN:MAX``) nodes meet in torchrun's c10d rendezvous: it starts once MIN nodes have joined and
-    ``--rejoin-timeout`` has passed or MAX have joined (a node lost for good is thus left behind), gives up after
-    ``--rdzv-timeout`` (``ftrain.dist.torchrun`` then exits ``EXIT_RENDEZVOUS_TIMEOUT``), and, once training, lets
-    its agents restart their workers with a larger world when a node joins late (the workers save on that SIGTERM:
-    the world grows at a checkpoint boundary). A node that stops sending keep-alives drops out after
-    ``KEEP_ALIVE_INTERVAL`` x ``KEEP_ALIVE_MISSES`` seconds.
+    Elastic (``MIN:MAX``) nodes meet in torchrun's c10d rendezvous (``plan.elastic_rendezvous``).
     """
-    run_id = f"--rdzv-id=ftrain-{plan.token}-{plan.attempt}"
+    run_id = f"ftrain-{plan.token}-{plan.attempt}"
     if not nodes.elastic:
         return [
             f"--nnodes={nodes.count}",
@@ -230,20 +211,9 @@ def rendezvous_args(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> lis
             "--rdzv-backend=static",
             f"--master-addr={nodes.endpoint[0]}",
             f"--master-port={plan.port}",
-            run_id,
+            f"--rdzv-id={run_id}",
             f"--rdzv-conf=timeout={math.ceil(options.rdzv_timeout)}",
         ]
-    conf = {
-        "is_host": int(options.node_rank == 0),  # on one machine (tests) every node would match the host's address
-        "join_timeout": math.ceil(options.rdzv_timeout),
-        "last_call_timeout": math.ceil(options.rejoin_timeout),
-        "keep_alive_interval": KEEP_ALIVE_INTERVAL,
-        "keep_alive_max_attempt": KEEP_ALIVE_MISSES,
-    }
-    return [
-        f"--nnodes={nodes.least}:{nodes.count}",
-        "--rdzv-backend=c10d",
-        f"--rdzv-endpoint={nodes.endpoint[0]}:{plan.port}",
-        run_id,
-        "--rdzv-conf=" + ",".join(f"{key}={value}" for key, value in conf.items()),
-    ]
+    endpoint = f"{nodes.endpoint[0]}:{plan.port}"
+    is_host = int(options.node_rank == 0)  # on one machine (tests) every node would match the host's address
+    return elastic_rendezvous("c10d", endpoint, run_id, nodes, options, is_host=is_host)

@@ -1,7 +1,8 @@
 """``events.jsonl``: one JSON line per supervisor decision, the ones with a message printed as well.
 
 Record. One JSON line per decision in ``<log_dir>/events.jsonl``: ``start``, ``resumed``, ``worker_died``,
-``exit``, ``hang``, ``superseded``, ``restart``, ``recovered``, ``storage_wait`` and ``storage_back`` (an
+``exit``, ``hang``, ``superseded``, ``regroup`` (etcd-v2, elastic: another node left, preempted; this node's
+workers saved and it goes on without it), ``restart``, ``recovered``, ``storage_wait`` and ``storage_back`` (an
 unreachable storage waited out: why, how long), ``resize`` (the world size changed: old and new
 world and nodes, why, the step resumed from, iterations lost, downtime), ``preempt``, ``refused`` (node 0: a
 connection that brought no signed request), ``lease`` (the storage's lease taken over from a run that is gone, lost

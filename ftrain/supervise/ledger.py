@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from ftrain.heartbeat import Heartbeat, Phase
 from ftrain.supervise.attempt import Attempt
 from ftrain.supervise.hang import QUIET_PHASES
+from ftrain.supervise.outcome import in_words
 
 
 @dataclass
@@ -35,6 +36,8 @@ class Ledger:
         self.world: int | None = None
         """World size of the last worker group that trained, and the nodes it spanned."""
         self.nodes: list[int] = []
+        self.left: set[int] = set()
+        """Nodes that left the run on their own (preempted), as opposed to lost."""
 
     def failed(self, completed: int, now: float) -> None:
         """An attempt failed at ``now`` after ``completed`` iterations (several failures before a recovery are one)."""
@@ -96,12 +99,25 @@ class Ledger:
         self.world, self.nodes = attempt.world, nodes
         return regrouped
 
+    def summarize(self, ending: str, code: int, restarts: int) -> None:
+        """The ``summary`` event that closes the run (``ending``: its event): restarts, iterations lost, downtime."""
+        lost, downtime = self.lost, self.downtime
+        self.events(
+            "summary",
+            f"{in_words(ending)} (exit {code}): {restarts} restarts, {lost} iterations lost, {downtime:.1f} s downtime",
+            code=code,
+            restarts=restarts,
+            iterations_lost=lost,
+            downtime=round(downtime, 2),
+        )
+
     def _resized(self, attempt: Attempt, nodes: list[int], lost: int, downtime: float) -> None:
-        left, joined = sorted(set(self.nodes) - set(nodes)), sorted(set(nodes) - set(self.nodes))
-        why = "; ".join(
-            [f"node {', '.join(map(str, left))} lost"] * bool(left)
-            + [f"node {', '.join(map(str, joined))} joined"] * bool(joined)
-        ) or ("fewer ranks" if attempt.world < self.world else "more ranks")
+        gone, joined = set(self.nodes) - set(nodes), sorted(set(nodes) - set(self.nodes))
+        left, dropped = sorted(gone & self.left), sorted(gone - self.left)
+        changes = ((dropped, "lost"), (left, "left (preempted)"), (joined, "joined"))
+        why = "; ".join(f"node {', '.join(map(str, group))} {what}" for group, what in changes if group) or (
+            "fewer ranks" if attempt.world < self.world else "more ranks"
+        )
         self.events(
             "resize",
             f"attempt {attempt.plan.attempt}: world {self.world} -> {attempt.world} ranks ({why}), resumed from step "

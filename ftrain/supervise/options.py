@@ -5,8 +5,11 @@ Exit codes: ``EXIT_CODES`` (``ftrain supervise --help`` lists them; so does the 
 
 from __future__ import annotations
 
+import enum
 import os
+import re
 from dataclasses import dataclass, field
+from pathlib import Path
 
 from ftrain.errors import (
     EXIT_INTERRUPTED,
@@ -31,12 +34,13 @@ EXIT_CODES = {
     EXIT_USAGE: "bad input (config, options, or a worker refused its input); nothing restarted",
     EXIT_CRASH_LOOP: "crash loop: --crash-loop restarts in a row committed no new checkpoint",
     EXIT_MAX_RESTARTS: "--max-restarts exhausted",
-    EXIT_PEER_LOST: "several nodes: node 0's supervisor unreachable for --rdzv-timeout seconds",
+    EXIT_PEER_LOST: "several nodes: node 0's supervisor (c10d) or etcd unreachable for --rdzv-timeout seconds",
     EXIT_TOO_FEW_NODES: "elastic: fewer than MIN nodes joined within --rdzv-timeout seconds; nothing committed lost",
     EXIT_STORAGE_WAIT: "the checkpoint storage did not answer for --storage-wait seconds; nothing committed lost",
     EXIT_STORAGE_HELD: "another run holds the storage (its lease); nothing of that run touched",
     EXIT_INTERRUPTED: "interrupted (SIGINT, Ctrl-C): the workers saved; run the same command again to continue",
-    EXIT_PREEMPTED: "preempted (SIGTERM): the workers saved; run the same command again to continue",
+    EXIT_PREEMPTED: "preempted (SIGTERM): the workers saved; run the same command again to continue (elastic on "
+    "etcd-v2: this node left, the others go on)",
 }
 """Every exit code of ``ftrain supervise`` and what it means. Until ``--storage-wait`` runs out, an unreachable storage
 is waited out, and restarts for it count neither towards ``--max-restarts`` nor the crash loop."""
@@ -58,9 +62,30 @@ class SupervisorOptions:
         default="1",
         metadata={"help": "number of nodes, or MIN:MAX to go on with fewer (elastic); the same command on every node"},
     )
-    node_rank: int = field(default=0, metadata={"help": "this node's rank, 0 .. nnodes-1 (node 0 coordinates)"})
+    node_rank: int = field(
+        default=0, metadata={"help": "c10d: this node's rank, 0 .. nnodes-1 (node 0 coordinates); etcd-v2: not used"}
+    )
+    rdzv_backend: str = field(
+        default="c10d",
+        metadata={
+            "help": "several nodes: c10d (node 0 hosts the rendezvous and coordinates: it must live) or etcd-v2 "
+            "(an etcd server outside the nodes holds both: any node may be lost)"
+        },
+    )
     rdzv_endpoint: str = field(
-        default="", metadata={"help": "several nodes: HOST:PORT, node 0's address and a free port for its supervisor"}
+        default="",
+        metadata={
+            "help": "several nodes: HOST:PORT; c10d: node 0's address and a free port for its supervisor; etcd-v2: "
+            "etcd's client address (HOST:2379)"
+        },
+    )
+    rdzv_id: str = field(default="", metadata={"help": "etcd-v2: the run's name, the same on every node"})
+    rdzv_conf: str = field(
+        default="",
+        metadata={
+            "help": "etcd-v2: connection settings as torchrun's --rdzv-conf names them, KEY=VALUE,...: protocol "
+            "(http or https), ca_cert, ssl_cert, ssl_cert_key (file paths), read_timeout (seconds)"
+        },
     )
     rdzv_secret_file: str = field(
         default="",
@@ -118,6 +143,23 @@ def parse_hang_timeout(value: str) -> float | None:
     return seconds
 
 
+class Backend(enum.Enum):
+    """Where the nodes of a run meet: node 0 (torchrun's c10d store and ftrain's coordinator) or an etcd server."""
+
+    C10D = "c10d"
+    ETCD = "etcd-v2"
+
+
+ETCD_CONF = {
+    "protocol": ("http", "https"),
+    "ca_cert": Path,
+    "ssl_cert": Path,
+    "ssl_cert_key": Path,
+    "read_timeout": int,
+}
+"""The etcd connection settings ``--rdzv-conf`` takes (torch's etcd-v2 names): allowed values, a file or a number."""
+
+
 @dataclass(frozen=True)
 class Nodes:
     count: int
@@ -125,9 +167,19 @@ class Nodes:
     least: int = 1
     """The fewest nodes it trains on: ``count`` unless elastic."""
     endpoint: tuple[str, int] | None = None
-    """Several nodes: node 0's ``(host, port)``."""
+    """Several nodes: ``(host, port)`` of node 0 (c10d) or of etcd (etcd-v2)."""
     secret: bytes | None = None
-    """Several nodes: what their messages to node 0 and its replies are signed with."""
+    """c10d: what the nodes' messages to node 0 and its replies are signed with."""
+    backend: Backend = Backend.C10D
+    run_id: str = ""
+    """etcd-v2: the run's name (``--rdzv-id``)."""
+    conf: tuple[tuple[str, str], ...] = ()
+    """etcd-v2: the connection settings of ``--rdzv-conf``."""
+
+    @property
+    def run_key(self) -> bytes | None:
+        """What the nodes of one run share, and no other run: the secret (c10d) or the run's name (etcd-v2)."""
+        return self.run_id.encode() if self.backend is Backend.ETCD else self.secret
 
     @property
     def elastic(self) -> bool:
@@ -144,11 +196,45 @@ def parse_nodes(options: SupervisorOptions) -> Nodes:
         raise UserError(f"--nproc-per-node={options.nproc_per_node} must be at least 1")
     if not options.rejoin_timeout >= 0:
         raise UserError(f"--rejoin-timeout={options.rejoin_timeout} must be a number of seconds, 0 or more")
+    backends = {backend.value: backend for backend in Backend}
+    if options.rdzv_backend not in backends:
+        raise UserError(f"--rdzv-backend={options.rdzv_backend!r} must be one of {', '.join(backends)}")
+    backend = backends[options.rdzv_backend]
+    if backend is Backend.C10D and options.rdzv_conf:
+        raise UserError("--rdzv-conf is for --rdzv-backend etcd-v2 (c10d takes no connection settings): drop it")
     if nnodes == 1:
         return Nodes(1)
-    if not 0 <= options.node_rank < nnodes:
-        raise UserError(f"--node-rank={options.node_rank} must be between 0 and {nnodes - 1}")
     host, _, port = options.rdzv_endpoint.rpartition(":")
     if not host or not port.isdigit():
-        raise UserError("several nodes need --rdzv-endpoint=HOST:PORT, node 0's address and a free port")
+        where = "etcd's client address" if backend is Backend.ETCD else "node 0's address and a free port"
+        raise UserError(f"several nodes need --rdzv-endpoint=HOST:PORT, {where}")
+    if backend is Backend.ETCD:
+        if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", options.rdzv_id):
+            raise UserError("--rdzv-backend etcd-v2 needs --rdzv-id=NAME (letters, digits, _.-), alike on every node")
+        conf = parse_etcd_conf(options.rdzv_conf)
+        return Nodes(nnodes, least, (host, int(port)), backend=backend, run_id=options.rdzv_id, conf=conf)
+    if not 0 <= options.node_rank < nnodes:
+        raise UserError(f"--node-rank={options.node_rank} must be between 0 and {nnodes - 1}")
     return Nodes(nnodes, least, (host, int(port)), load_secret(options.rdzv_secret_file, os.environ))
+
+
+def parse_etcd_conf(text: str) -> tuple[tuple[str, str], ...]:
+    """``--rdzv-conf KEY=VALUE,...``: etcd connection settings only (the rendezvous timeouts come from
+    ``--rejoin-timeout`` and ``--rdzv-timeout``); certificates and keys as files, never as values."""
+    pairs = []
+    for item in filter(None, text.split(",")):
+        key, _, value = item.partition("=")
+        allowed = ETCD_CONF.get(key)
+        if allowed is None:
+            raise UserError(
+                f"--rdzv-conf: {key!r} is not an etcd connection setting ({', '.join(ETCD_CONF)}); the rendezvous "
+                "timeouts come from --rejoin-timeout and --rdzv-timeout"
+            )
+        if allowed is Path and not Path(value).is_file():
+            raise UserError(f"--rdzv-conf: {key}={value!r} must name a readable file (a PEM certificate or key)")
+        if allowed is int and not (value.isdigit() and int(value) > 0):
+            raise UserError(f"--rdzv-conf: {key}={value!r} must be a positive number of seconds")
+        if isinstance(allowed, tuple) and value not in allowed:
+            raise UserError(f"--rdzv-conf: {key}={value!r} must be one of {', '.join(allowed)}")
+        pairs.append((key, value))
+    return tuple(pairs)

@@ -2,11 +2,10 @@
 
 Torch-free (config, heartbeat, the storage lease and the standard library): it launches and watches processes.
 
-Launch. Every attempt is a new ``torchrun --max-restarts=0`` in its own session, with ``FTRAIN_HEARTBEAT_DIR``
-set, and a rendezvous nothing has used before: ``--standalone`` on one node (a new TCP store on a free port);
-on several nodes a static rendezvous on a new port per attempt (see "Several nodes"). torchrun's own restarts
-keep one TCP store, from which restarted workers read stale gloo peer addresses; a new torchrun cannot. Credentials
-reach the workers in their environment, never on a command line; no process outlives the supervisor (``attempt.py``).
+Launch. Every attempt is a new ``torchrun --max-restarts=0`` in its own session, with ``FTRAIN_HEARTBEAT_DIR`` set,
+and a rendezvous nothing has used before (``link.rendezvous``): torchrun's own restarts keep one TCP store, from which
+restarted workers read stale gloo peer addresses; a new torchrun cannot. Credentials reach the workers in their
+environment, never on a command line; no process outlives the supervisor (``attempt.py``).
 
 Detect. Crash: torchrun exits non-zero, or is killed (its workers, each in a session of its own, are then
 orphans: the supervisor finds every process of an attempt by the ``FTRAIN_ATTEMPT_TOKEN`` in its environment).
@@ -25,15 +24,13 @@ once (its collectives cannot agree on a save; commits are crash-safe). Then back
 completed iterations; ``--backoff-initial`` after one that completed none, doubled for each further one, at most
 ``--backoff-max``) and launch again; the workers resume from the newest verified checkpoint themselves.
 
-Preemption. SIGTERM or SIGINT to the supervisor: SIGTERM to the workers, which agree at the next iteration
-boundary, save and exit 143 (torchrun passes that on: ``ftrain/dist/torchrun.py``); SIGKILL after ``--stop-grace``;
-a second signal kills at once. No restart; the
-supervisor exits 128 + the signal (143 for SIGTERM, 130 for SIGINT, Ctrl-C).
+Preemption. SIGTERM or SIGINT: SIGTERM to the workers, which agree at the next iteration boundary, save and exit 143
+(``ftrain/dist/torchrun.py`` passes it on); SIGKILL after ``--stop-grace``, or at a second signal. No restart: exit
+128 + the signal (143; 130 for SIGINT). Elastic on etcd-v2 this node leaves alone: the others regroup from the save.
 
-Several nodes: ``coordinator.py``. Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``.
-
-Test hook (private): ``FTRAIN_WORKER_MODULE`` names the module torchrun runs as ``-m MODULE train ...`` (default
-``ftrain``), so the tests can supervise a small stand-in that speaks the heartbeat protocol.
+Several nodes: ``link.py`` (c10d: node 0 coordinates, ``coordinator.py``; etcd-v2: etcd, ``etcd_plan.py``).
+Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``. Test hook (private):
+``FTRAIN_WORKER_MODULE`` names the module torchrun runs (``-m MODULE train ...``, default ``ftrain``).
 """
 
 from __future__ import annotations
@@ -52,20 +49,22 @@ from ftrain.errors import STOPPED, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats
 from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, attempt_env, kill, new_log_dir, signal_name, torchrun_command
-from ftrain.supervise.coordinator import Coordinator, Link, Plan, plan_key, rendezvous_args
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.hang import QUIET_PHASES, HangWatch, process_state
 from ftrain.supervise.ledger import Ledger
+from ftrain.supervise.link import connect, rendezvous
 from ftrain.supervise.options import (
     EXIT_DONE,
     EXIT_PEER_LOST,
+    Backend,
     Nodes,
     SupervisorOptions,
     parse_hang_timeout,
     parse_nodes,
 )
 from ftrain.supervise.outage import StorageWait
-from ftrain.supervise.outcome import Outcome, classify, in_words
+from ftrain.supervise.outcome import Outcome, classify
+from ftrain.supervise.plan import Plan, plan_key
 from ftrain.supervise.restarts import RestartPolicy
 
 WORKER_MODULE_ENV = "FTRAIN_WORKER_MODULE"
@@ -85,10 +84,15 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     (config file, ``--storage``, overrides), which every worker gets."""
     hang_timeout = parse_hang_timeout(options.hang_timeout)
     nodes = parse_nodes(options)
-    supervisor = Supervisor(options, nodes, Path(config.log_dir), hang_timeout, train_args, config.storage)
+    try:
+        supervisor = Supervisor(options, nodes, Path(config.log_dir), hang_timeout, train_args, config.storage)
+    except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
+        print(f"ftrain supervise: error: {error}", file=sys.stderr)
+        return EXIT_PEER_LOST
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     events = supervisor.events
-    lease = lambda: storage_lease(config, lambda line: events("lease", line, detail=line), nodes.secret, nodes.endpoint)  # noqa: E731
+    log = lambda line: events("lease", line, detail=line)  # noqa: E731
+    lease = lambda: storage_lease(config, log, nodes.run_key, nodes.endpoint)  # noqa: E731
     refused = lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr)  # noqa: E731
     try:  # the lease is taken before anything is launched: an unreachable storage is waited out then too
         return supervisor.storage_wait.retrying(lambda: lease().run(supervisor.run, refused), supervisor.end)
@@ -119,15 +123,14 @@ class Supervisor:
         self.nnodes = nodes.count
         self.train_args = train_args
         multi = nodes.count > 1
-        node_dir = f"node-{options.node_rank}" if multi else ""
+        self.events = EventLog(log_dir / "events.jsonl", None)
+        self.link, self.coordinator = connect(nodes, options, self.events)
+        self.node = self.link.node
+        self.events.node = self.node if multi else None
+        node_dir = f"node-{self.node}" if multi else ""
         self.heartbeat_dir = (log_dir / "heartbeat" / node_dir).resolve()
         self.attempt_logs = log_dir / "torchrun" / node_dir
-        self.events = EventLog(log_dir / "events.jsonl", options.node_rank if multi else None)
         self.hangs = HangWatch(hang_timeout, options.startup_grace, options.nproc_per_node)
-        coordinating = options.node_rank == 0 or not multi
-        self.coordinator = Coordinator(multi, nodes.secret, self.events) if coordinating else None
-        self.server = self.coordinator.serve(*nodes.endpoint) if multi and self.coordinator else None
-        self.link = Link(options.node_rank, self.coordinator, nodes.endpoint, nodes.secret)
         self.signals: list[int] = []
         self.policy = RestartPolicy(options)
         self.ledger = Ledger(options.nproc_per_node, self.events)
@@ -137,9 +140,8 @@ class Supervisor:
         self.signals.append(number)
 
     def close(self) -> None:
-        if self.server is not None:
-            self.server.shutdown()
-            self.server.server_close()
+        if self.coordinator is not None:
+            self.coordinator.close()
 
     def run(self) -> int:
         try:
@@ -153,6 +155,9 @@ class Supervisor:
         while True:
             attempt = self._launch(plan)
             outcome = self._watch(attempt)
+            if outcome.event == "regroup":
+                plan = self._next_plan(plan)
+                continue
             if not outcome.failed:
                 raise _Stop(outcome.event, outcome.code, outcome.message)
             if outcome.event == "storage_down":
@@ -201,25 +206,25 @@ class Supervisor:
                 if not waiting:
                     waiting = True
                     timeout = self.options.rdzv_timeout
-                    message = f"waiting up to {timeout:g} s for node 0 at {self.options.rdzv_endpoint} ({error})"
+                    message = f"waiting up to {timeout:g} s for {self.link.peer} ({error})"
                     print(f"ftrain supervise: {message}", file=sys.stderr, flush=True)
             if plan is not None and plan.final is not None:
                 raise _Stop("peer_ended", plan.final, f"another node ended the run with exit code {plan.final}")
             if plan is not None and (previous is None or plan_key(plan) != plan_key(previous)):
                 return plan
             if time.monotonic() > deadline:
-                raise _Stop("peer_lost", EXIT_PEER_LOST, f"node 0 at {self.options.rdzv_endpoint} did not answer")
+                raise _Stop("peer_lost", EXIT_PEER_LOST, f"{self.link.peer} did not answer")
             time.sleep(PEER_POLL / 5)
 
     def _launch(self, plan: Plan) -> Attempt:
         token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
         train_args, hidden = hide_credentials(self.train_args)
-        env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.options.node_rank, hidden)
+        env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.node, hidden)
         env[STORAGE_WAIT_ENV] = str(self.options.storage_wait)
-        rendezvous = ["--standalone"] if self.nnodes == 1 else rendezvous_args(plan, self.nodes, self.options)
         module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
         logs = new_log_dir(self.attempt_logs, plan)
-        command = torchrun_command(self.options.nproc_per_node, rendezvous, module, train_args, logs)
+        arguments = rendezvous(plan, self.nodes, self.options)
+        command = torchrun_command(self.options.nproc_per_node, arguments, module, train_args, logs)
         logged = redact_command(command)
         message = f"attempt {plan.attempt}: launching torchrun"
         self.events("start", message, attempt=plan.attempt, command=logged, logs=str(logs))
@@ -283,11 +288,8 @@ class Supervisor:
 
     def _check_peers(self, attempt: Attempt, now: float) -> Outcome | None:
         """Several nodes: stop this node's group when another node failed the attempt or ended the run."""
-        try:
-            plan = self.link.ask("plan")
-        except OSError:
-            return None
-        if plan.final == EXIT_DONE or plan.final in STOPPED:
+        plan = self._tell("plan")
+        if plan is None or plan.final == EXIT_DONE or plan.final in STOPPED:
             return None
         if plan.final is not None:
             attempt.stop(self.options.stop_grace)
@@ -295,6 +297,9 @@ class Supervisor:
             return Outcome("peer_ended", plan.final, f"another node ended the run with exit code {plan.final}")
         if plan_key(plan) == plan_key(attempt.plan):
             return None
+        if plan.left is not None:
+            attempt.stop(self.options.stop_grace)  # the workers save, as they do for the leaving node's stop
+            return self._regroup(attempt, plan, f"stopped: node {plan.left} left")
         self.events(
             "superseded",
             f"attempt {attempt.plan.attempt}: another node failed; stopping this node's workers",
@@ -309,11 +314,14 @@ class Supervisor:
         name = signal_name(self.signals[0])
         self.events(
             "preempt",
-            f"{name}: asking the workers to save and exit (SIGKILL in {self.options.stop_grace:g} s)",
+            f"{name}: asking the workers to save and exit (SIGKILL in {self.options.stop_grace:g} s)"
+            + ("; this node leaves, the others go on from the save" if self._leaves_alone() else ""),
             attempt=attempt.plan.attempt,
             signal=name,
         )
-        if self.nnodes > 1:
+        if self._leaves_alone():
+            self._tell("leave", node=self.node, **plan_key(attempt.plan))
+        elif self.nnodes > 1:
             self._tell("finish", code=stop_code(self.signals[0]))
         attempt.terminate()
 
@@ -330,16 +338,25 @@ class Supervisor:
             attempt.kill()
         phases = self._phases(attempt)
         cause = attempt.cause(code) if code or orphans else "exit code 0"
-        superseded = (
-            code in STOPPED and self.nnodes > 1 and plan_key(self._current_plan(attempt.plan)) != plan_key(attempt.plan)
-        )
+        current = (self._tell("plan") if code in STOPPED and self.nnodes > 1 else None) or attempt.plan
+        superseded = plan_key(current) != plan_key(attempt.plan)
         stopped = stop_code(self.signals[0]) if self.signals else None
         committed = attempt.committed if attempt.committed is not None else self.policy.best_committed
         outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
+        if superseded and current.left is not None and outcome.failed:  # saved for a node that left: no failure
+            return self._regroup(attempt, current, cause, phases)
         self._log_exit(attempt, cause, f"attempt {attempt.plan.attempt}: {cause}" if outcome.failed else "", phases)
         if outcome.failed:
             self._failed(attempt, now)
         return outcome
+
+    def _regroup(self, attempt: Attempt, plan: Plan, cause: str, phases: set[str] | None = None) -> Outcome:
+        """Another node left (preempted) and the workers saved: the others go on without it, no failure counted."""
+        self._log_exit(attempt, cause, phases=phases)
+        message = f"attempt {attempt.plan.attempt}: node {plan.left} left the run; regrouping without it"
+        self.ledger.left.add(plan.left)
+        self.events("regroup", message, attempt=attempt.plan.attempt, left=plan.left)
+        return Outcome("regroup", None, message)
 
     def _phases(self, attempt: Attempt) -> set[str]:
         """The phases of the final heartbeats (after the attempt's processes are gone)."""
@@ -349,22 +366,7 @@ class Supervisor:
 
     def _log_exit(self, attempt: Attempt, cause: str, message: str = "", phases: set[str] | None = None) -> None:
         """The ``exit`` event; ``phases``: the final heartbeat phases, if the caller has read them already."""
-        self.events(
-            "exit",
-            message,
-            attempt=attempt.plan.attempt,
-            code=attempt.proc.returncode,
-            cause=cause,
-            failures={str(rank): failure.code for rank, failure in sorted(attempt.failures.items())},
-            errors={str(rank): failure.error for rank, failure in sorted(attempt.failures.items()) if failure.error},
-            phases=sorted(self._phases(attempt) if phases is None else phases),
-        )
-
-    def _current_plan(self, fallback: Plan) -> Plan:
-        try:
-            return self.link.ask("plan")
-        except OSError:
-            return fallback
+        self.events("exit", message, **attempt.exit_fields(cause, self._phases(attempt) if phases is None else phases))
 
     def _failed(self, attempt: Attempt, now: float) -> None:
         """Once per attempt: remember the failure for the summary and tell node 0 (one node: the local counter)."""
@@ -374,25 +376,24 @@ class Supervisor:
         self.ledger.failed(attempt.completed, now)
         self._tell("fail", **plan_key(attempt.plan))
 
-    def _tell(self, op: str, **fields) -> None:
+    def _tell(self, op: str, **fields) -> Plan | None:
+        """Ask the plan's keeper (node 0 or etcd); its plan, or None when it cannot be reached."""
         with contextlib.suppress(OSError):
-            self.link.ask(op, **fields)
+            return self.link.ask(op, **fields)
+        return None
 
     def end(self, ending: Outcome) -> int:
         """The run ends: record it, tell the other nodes, sum up; the exit code."""
         event, code, message = ending.event, ending.code, ending.message
         self.events(event, message, code=code)
-        if self.nnodes > 1:
+        if self.nnodes > 1 and not (event == "preempted" and self._leaves_alone()):
             self._tell("finish", code=code)
             if self.coordinator is not None:
                 self.coordinator.wait_informed(self.nnodes, LINGER)
-        lost, downtime = self.ledger.lost, self.ledger.downtime
-        restarts = self.policy.restarts
-        summary = {"restarts": restarts, "iterations_lost": lost, "downtime": round(downtime, 2)}
-        self.events(
-            "summary",
-            f"{in_words(event)} (exit {code}): {restarts} restarts, {lost} iterations lost, {downtime:.1f} s downtime",
-            code=code,
-            **summary,
-        )
+        self.ledger.summarize(event, code, self.policy.restarts)
         return code
+
+    def _leaves_alone(self) -> bool:
+        """Whether this node's preemption leaves the others training (an elastic etcd-v2 run, where no node is
+        special): they regroup without it from the workers' save, as long as MIN nodes remain."""
+        return self.nodes.elastic and self.nodes.backend is Backend.ETCD

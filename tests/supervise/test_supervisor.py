@@ -178,6 +178,9 @@ def assert_finished(run: Path, iterations: int = ITERATIONS) -> None:
     assert manifest == {"step": iterations, "state": expected_state(iterations)}
 
 
+ETCD = ["--rdzv-backend", "etcd-v2", "--rdzv-endpoint", "127.0.0.1:2379", "--rdzv-id", "run"]
+"""The node options of an etcd-v2 run (no etcd needed to refuse bad input)."""
+
 # --- in-process units ----------------------------------------------------------------------------------------------
 
 
@@ -282,6 +285,11 @@ def test_several_nodes_refuse_to_start_without_a_secret_or_off_their_address(tmp
         (["--hang-timeout", "soon"], [], "--hang-timeout"),
         (["--nnodes", "3:2"], [], "--nnodes"),
         (["--nnodes", "2"], [], "--rdzv-endpoint"),
+        (["--nnodes", "2", "--rdzv-backend", "etcd"], [], "--rdzv-backend='etcd' must be one of c10d, etcd-v2"),
+        (["--nnodes", "2", *ETCD[:-2]], [], "--rdzv-backend etcd-v2 needs --rdzv-id=NAME"),
+        (["--nnodes", "2", *ETCD, "--rdzv-conf", "password=hunter2"], [], "'password' is not an etcd connection"),
+        (["--nnodes", "2", *ETCD, "--rdzv-conf", "ssl_cert=missing.pem"], [], "must name a readable file"),
+        (["--nnodes", "2", "--rdzv-conf", "protocol=https"], [], "--rdzv-conf is for --rdzv-backend etcd-v2"),
         ([], ["iterations=zero"], "iterations"),
         ([], ["env.id=Pendulum-v1"], "env.id='Pendulum-v1' is not a MuJoCo environment"),
     ],
@@ -292,8 +300,18 @@ def test_bad_input_fails_before_launch(tmp_path, options, overrides, fragment):
         [*command, "--storage", str(tmp_path / "run"), *overrides], cwd=REPO, capture_output=True, text=True, timeout=60
     )
     assert done.returncode == 2, done.stderr
-    assert fragment in done.stderr and "Traceback" not in done.stderr
+    assert fragment in done.stderr and "Traceback" not in done.stderr and "hunter2" not in done.stderr
     assert not (tmp_path / "run").exists()
+
+
+def test_etcd_that_does_not_answer_ends_with_exit_5_after_the_rendezvous_timeout(tmp_path):
+    etcd = ["--rdzv-backend", "etcd-v2", "--rdzv-endpoint", f"127.0.0.1:{free_port()}", "--rdzv-id", "run"]
+    command = [sys.executable, "-m", "ftrain", "supervise", "--nnodes", "2", *etcd, "--rdzv-timeout", "2"]
+    command += [str(write_config(tmp_path)), "--storage", str(tmp_path / "run")]
+    done = subprocess.run(command, cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert done.returncode == options.EXIT_PEER_LOST, done.stderr
+    assert "waiting up to 2 s for etcd at 127.0.0.1:" in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.splitlines()[-1].startswith("ftrain supervise: error: etcd at 127.0.0.1:"), done.stderr
 
 
 # --- supervised runs -----------------------------------------------------------------------------------------------

@@ -1,0 +1,35 @@
+"""This node's line to what the nodes of a run agree on (``plan.py``), and torchrun's rendezvous, by backend: node 0's
+coordinator with c10d (``coordinator.py``), etcd with etcd-v2 (``etcd_plan.py``, where the coordinator is not used)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from ftrain.supervise.coordinator import Coordinator, Link, rendezvous_args
+from ftrain.supervise.etcd_plan import EtcdLink, etcd_rendezvous_args
+from ftrain.supervise.options import Backend, Nodes, SupervisorOptions
+from ftrain.supervise.plan import Plan
+
+
+def connect(
+    nodes: Nodes, options: SupervisorOptions, log: Callable[..., None]
+) -> tuple[Link | EtcdLink, Coordinator | None]:
+    """This node's link, and the coordinator it holds if it is node 0 of a c10d run (serving the others: ``close`` it)
+    or alone. etcd-v2: waits up to ``--rdzv-timeout`` for etcd (``ConnectionError`` then). ``log``: records refused
+    connections (an EventLog)."""
+    if nodes.backend is Backend.ETCD:
+        return EtcdLink(nodes, options.rdzv_timeout), None
+    multi = nodes.count > 1
+    coordinator = Coordinator(multi, nodes.secret, log) if options.node_rank == 0 or not multi else None
+    if multi and coordinator is not None:
+        coordinator.serve(*nodes.endpoint)
+    return Link(options.node_rank, coordinator, nodes.endpoint, nodes.secret), coordinator
+
+
+def rendezvous(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> list[str]:
+    """torchrun's rendezvous arguments for ``plan``'s attempt: a fresh rendezvous every time."""
+    if nodes.count == 1:
+        return ["--standalone"]
+    if nodes.backend is Backend.ETCD:
+        return etcd_rendezvous_args(plan, nodes, options)
+    return rendezvous_args(plan, nodes, options)
