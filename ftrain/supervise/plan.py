@@ -12,6 +12,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from ftrain.ckpt.fence import GENERATION_ENV
 from ftrain.supervise.options import Nodes, SupervisorOptions
 
 KEEP_ALIVE_INTERVAL = 1
@@ -51,6 +52,12 @@ def apply(plan: Plan, request: dict, port: Callable[[], int | None]) -> Plan:
     if request["op"] == "finish" and ours:
         return dataclasses.replace(plan, final=request["code"])
     return plan
+
+
+def generation_env(plan: Plan, nnodes: int) -> dict[str, str]:
+    """The workers' generation on several nodes (``ftrain.ckpt.fence``: a node cut off from the others commits
+    nothing once they have committed in a later attempt); none on one node."""
+    return {GENERATION_ENV: f"{plan.token}:{plan.attempt}"} if nnodes > 1 else {}
 
 
 def elastic_rendezvous(

@@ -64,7 +64,7 @@ from ftrain.supervise.options import (
 )
 from ftrain.supervise.outage import StorageWait
 from ftrain.supervise.outcome import Outcome, classify
-from ftrain.supervise.plan import Plan, plan_key
+from ftrain.supervise.plan import Plan, generation_env, plan_key
 from ftrain.supervise.restarts import RestartPolicy
 
 WORKER_MODULE_ENV = "FTRAIN_WORKER_MODULE"
@@ -220,7 +220,7 @@ class Supervisor:
         token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
         train_args, hidden = hide_credentials(self.train_args)
         env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.node, hidden)
-        env[STORAGE_WAIT_ENV] = str(self.options.storage_wait)
+        env |= {STORAGE_WAIT_ENV: str(self.options.storage_wait), **generation_env(plan, self.nnodes)}
         module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
         logs = new_log_dir(self.attempt_logs, plan)
         arguments = rendezvous(plan, self.nodes, self.options)

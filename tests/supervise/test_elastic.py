@@ -4,6 +4,7 @@ through node 0 (c10d, the default) or through a real etcd (``etcd_server``), whe
 
 from __future__ import annotations
 
+import json
 import re
 import signal
 import subprocess
@@ -162,6 +163,9 @@ def test_on_etcd_losing_the_node_of_rank_0_the_others_go_on_at_world_2_and_finis
     manifest = final_manifest(storage)
     assert manifest["step"] == iterations and manifest["world_size"] == 2
     assert [world for _, world in manifest["world_sizes"]] == [3, 2], manifest["world_sizes"]
+    run, generation = manifest["generation"]  # fencing: the attempt after the loss committed, and FENCE.json says so
+    fence = json.loads((storage / "FENCE.json").read_text())
+    assert generation >= 1 and fence == {"run": run, "generation": generation}
     for node in survivors:
         (shrink,) = node_events(storage, "resize", node)
         assert (shrink["old_world"], shrink["new_world"], shrink["why"]) == (3, 2, f"node {lost} lost"), shrink
