@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Sets up everything ftrain needs on a fresh Debian machine, idempotently, one line per step:
-#   - Debian's Mesa EGL libraries for headless MuJoCo rendering, and etcd-server (when run as root and missing);
+#   - Debian's Mesa EGL libraries for headless MuJoCo rendering, etcd-server, and SLURM and munge for the SLURM tests
+#     (when run as root and missing; the SLURM tests start daemons of their own, with their own configuration);
 #   - a virtualenv in .venv with the CPU build of torch 2.13.0 installed FIRST (a bare torch requirement would
 #     pull a multi-GB CUDA build), then ftrain itself with its test, export, render, etcd and bench extras.
 # torch comes from PyTorch's CPU wheel index when it answers (TORCH_INDEX_URL overrides it), else from the default
@@ -13,26 +14,23 @@ TORCH_VERSION=2.13.0
 TORCH_INDEX_URL=${TORCH_INDEX_URL:-https://download.pytorch.org/whl/cpu}
 say() { echo "setup: $*"; }
 
-render_packages=(libegl1 libegl-mesa0 libgl1-mesa-dri)
-if ! dpkg -s "${render_packages[@]}" >/dev/null 2>&1; then
+# debian_packages WHAT PACKAGE...: install Debian packages that are missing (as root, with apt-get), else warn.
+debian_packages() {
+  local what=$1
+  shift
+  dpkg -s "$@" >/dev/null 2>&1 && return 0
   if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null; then
-    say "installing ${render_packages[*]} (headless rendering)..."
-    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${render_packages[@]}" >/dev/null
+    say "installing $* ($what)..."
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "$@" >/dev/null
   else
-    say "warning: ${render_packages[*]} are missing; install them for 'ftrain play --video'" >&2
+    say "warning: $* are missing; install them for $what" >&2
   fi
-fi
-
+}
+debian_packages "headless rendering: 'ftrain play --video'" libegl1 libegl-mesa0 libgl1-mesa-dri
 # etcd (3.4 in Debian 12, serving the v2 API torchrun's etcd-v2 rendezvous speaks) for multi-node runs without a
 # special node and for the tests of them (which skip without it).
-if ! command -v etcd >/dev/null; then
-  if [[ $(id -u) -eq 0 ]] && command -v apt-get >/dev/null; then
-    say "installing etcd-server (the etcd-v2 rendezvous)..."
-    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq etcd-server >/dev/null
-  else
-    say "warning: etcd is missing; install Debian's etcd-server for 'ftrain supervise --rdzv-backend etcd-v2'" >&2
-  fi
-fi
+debian_packages "the etcd-v2 rendezvous: 'ftrain supervise --rdzv-backend etcd-v2'" etcd-server
+debian_packages "the private SLURM cluster of the tests in tests/cluster" slurm-wlm munge
 
 python=${PYTHON:-python3}
 if [[ ! -x .venv/bin/python ]]; then
