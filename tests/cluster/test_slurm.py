@@ -1,0 +1,136 @@
+"""``launch/slurm.sbatch`` as written, on a private SLURM cluster (``slurm_cluster.py``): real slurmctld, slurmd and
+munged, real srun, torchrun and workers, the signals SLURM itself sends. Each job runs on 2 of the 3 nodes with one
+rank per node (``--cpus-per-task=1``); the assertions read SLURM's own records (``scontrol show job``, the jobcomp
+file) and the storage (every committed step verifies; the final state is the state of the same run outside SLURM)."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from slurm_cluster import SlurmCluster
+
+from helpers import REPO, SMOKE, TESTS, child_env, events, final_manifest, run_train, training
+
+pytestmark = [pytest.mark.slow, pytest.mark.slurm]
+
+ITERATIONS = 150
+INTERVAL = 25
+OVERRIDES = (f"iterations={ITERATIONS}", f"checkpoint.interval={INTERVAL}", "dist_timeout=10")
+
+
+def pace(seconds: float) -> str:
+    """Iterations of at least ``seconds``: a run that lasts while SLURM stops and moves it (state is unchanged)."""
+    return f"hooks=[{{target: 'probe_hooks:PacingHook', kwargs: {{seconds: {seconds}}}}}]"
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory) -> str:
+    """``state_sha256`` of the same run outside SLURM: torchrun, 2 ranks, no interruption."""
+    storage = tmp_path_factory.mktemp("reference") / "run"
+    run_train(storage, *OVERRIDES, ranks=2)
+    return final_manifest(storage)["state_sha256"]
+
+
+def submit(slurm: SlurmCluster, storage: Path, *sbatch: str, seconds: float = 0.1, env: dict | None = None) -> int:
+    """``sbatch [sbatch options] launch/slurm.sbatch configs/smoke.yaml --storage STORAGE ...`` from the repo."""
+    options = ["--cpus-per-task=1", f"--output={storage}.out", *sbatch]
+    command = [*options, "launch/slurm.sbatch", SMOKE, "--storage", str(storage), *OVERRIDES, pace(seconds)]
+    return slurm.sbatch(*command, cwd=REPO, env=child_env({"PYTHONPATH": str(TESTS), **(env or {})}))
+
+
+def both_nodes_training(storage: Path, iteration: int = 10) -> None:
+    """Wait for both nodes to train past ``iteration`` (one rank per node: node N runs rank N)."""
+    for node in (0, 1):
+        training(storage / "heartbeat" / f"node-{node}", iteration, ranks=(node,))
+
+
+def finished(slurm: SlurmCluster, job_id: int, storage: Path) -> dict[str, str]:
+    """The job's record once it ended; a job that did not complete fails the test with its output."""
+    job = slurm.wait_state(job_id, "COMPLETED", "FAILED", "CANCELLED", "TIMEOUT", "NODE_FAIL", timeout=400)
+    assert job["JobState"] == "COMPLETED" and job["ExitCode"] == "0:0", f"{job}\n{Path(f'{storage}.out').read_text()}"
+    return job
+
+
+def assert_verified_and_equal(storage: Path, reference: str) -> None:
+    """Every committed step verifies, and the final one is step ITERATIONS with the reference state."""
+    verify = subprocess.run(
+        [sys.executable, "-m", "ftrain", "ckpt", "verify", str(storage)], cwd=REPO, env=child_env(), text=True
+    )
+    assert verify.returncode == 0
+    manifest = final_manifest(storage)
+    assert (manifest["step"], manifest["state_sha256"]) == (ITERATIONS, reference)
+
+
+def assert_nothing_lost(storage: Path) -> None:
+    """Every iteration ran exactly once (metrics.csv has a row per iteration run; a redone one would repeat), and
+    every supervisor's summary says 0 iterations lost."""
+    with (storage / "metrics.csv").open() as file:
+        iterations = [int(row["iteration"]) for row in csv.DictReader(file)]
+    assert iterations == list(range(1, len(iterations) + 1)), "an iteration was run twice"
+    assert all(event["iterations_lost"] == 0 for event in events(storage) if event["event"] == "summary")
+
+
+def starts(storage: Path, node: int = 0) -> list[int | None]:
+    """The step each start of node ``node``'s supervisor resumed from (None: fresh)."""
+    return [e["step"] for e in events(storage) if e["event"] == "resumed" and e["node"] == node]
+
+
+def test_a_job_trains_on_two_nodes_as_one_world_and_ends_completed(slurm, reference, tmp_path):
+    storage = tmp_path / "run"
+    job = finished(slurm, submit(slurm, storage, seconds=0), storage)
+    assert (job["Restarts"], job["NumNodes"], job["NumTasks"]) == ("0", "2", "2")
+    assert [end["JobState"] for end in slurm.ends(job["JobId"])] == ["COMPLETED"]
+    assert {e["node"] for e in events(storage) if e["event"] == "done"} == {0, 1}
+    assert final_manifest(storage)["world_size"] == 2
+    assert_verified_and_equal(storage, reference)
+
+
+def test_scontrol_requeue_saves_requeues_and_continues_with_nothing_lost(slurm, reference, tmp_path):
+    storage = tmp_path / "run"
+    job_id = submit(slurm, storage)
+    both_nodes_training(storage)
+    slurm.run("scontrol", "requeue", str(job_id))
+    job = finished(slurm, job_id, storage)
+    assert job["Restarts"] == "1"
+    assert [end["JobState"] for end in slurm.ends(job_id)] == ["PENDING", "COMPLETED"]  # requeued, then done
+    assert [e["node"] for e in events(storage) if e["event"] == "preempted"] in ([0, 1], [1, 0])
+    fresh, resumed = starts(storage)
+    assert fresh is None and 10 <= resumed < ITERATIONS and resumed % INTERVAL, "resumed from the step saved on stop"
+    assert_nothing_lost(storage)
+    assert_verified_and_equal(storage, reference)
+
+
+def test_scancel_saves_and_the_job_is_not_requeued(slurm, tmp_path):
+    storage = tmp_path / "run"
+    job_id = submit(slurm, storage)
+    both_nodes_training(storage)
+    slurm.run("scancel", str(job_id))
+    slurm.wait(lambda: len([e for e in events(storage) if e["event"] == "summary"]) == 2, "both summaries", 120)
+    job = slurm.wait_state(job_id, "CANCELLED", "PENDING", "RUNNING", "COMPLETED")
+    assert (job["JobState"], job["Restarts"]) == ("CANCELLED", "0")
+    assert [end["JobState"] for end in slurm.ends(job_id)] == ["CANCELLED"]
+    summaries = [e for e in events(storage) if e["event"] == "summary"]
+    assert [e["code"] for e in summaries] == [143, 143]  # both supervisors: saved on SIGTERM
+    with (storage / "metrics.csv").open() as file:
+        last = max(int(row["iteration"]) for row in csv.DictReader(file))
+    assert final_manifest(storage)["step"] == last < ITERATIONS  # the newest iteration saved: nothing lost
+    assert_nothing_lost(storage)
+
+
+def test_the_time_limit_signal_saves_requeues_and_the_job_completes_with_nothing_lost(slurm, reference, tmp_path):
+    """``--time=2 --signal=TERM@30``: slurmctld checks time limits every 30 s, so the signal comes 30 to 60 s into a
+    start; a run of ~80 s gets it at least once (and maybe again in its second start)."""
+    storage = tmp_path / "run"
+    job_id = submit(slurm, storage, "--time=2", "--signal=TERM@30", seconds=0.5)
+    job = finished(slurm, job_id, storage)
+    restarts = int(job["Restarts"])
+    assert restarts >= 1
+    assert [end["JobState"] for end in slurm.ends(job_id)] == ["PENDING"] * restarts + ["COMPLETED"]
+    assert len([e for e in events(storage) if e["event"] == "preempted"]) == 2 * restarts
+    assert "requeueing job" in Path(f"{storage}.out").read_text()  # the script requeued it, not SLURM
+    assert_nothing_lost(storage)
+    assert_verified_and_equal(storage, reference)
