@@ -29,8 +29,8 @@ CPUS = 16
 as ``launch/slurm.sbatch`` asks for by default."""
 CLUSTER_ENV = "FTRAIN_TEST_SLURM"
 NODE_ENV = "FTRAIN_TEST_SLURM_NODE"
-"""Set in the daemons' environment (and so in every ``slurmstepd`` a ``slurmd`` starts): how ``stop`` and
-``kill_node`` find this cluster's processes among the machine's."""
+"""Set in the daemons' environment (the first reaches every ``slurmstepd`` and job process, the second only the node's
+``slurmd``): how ``stop`` and ``kill_node`` find this cluster's processes among the machine's."""
 
 
 def missing() -> str | None:
@@ -185,7 +185,16 @@ class SlurmCluster:
     def kill_node(self, node: str) -> None:
         """``node`` dies: SIGKILL to its ``slurmd``, its ``slurmstepd`` processes and every process of a job below
         them, at once and until none is left."""
-        self._kill(lambda: set(procfs.with_environment(NODE_ENV, node)) & self._processes())
+        self._kill(lambda: self._node_processes(node))
+
+    def _node_processes(self, node: str) -> set[int]:
+        """``node``'s ``slurmd``, the job processes SLURM started there (``SLURMD_NODENAME``) and their
+        ``slurmstepd`` parents."""
+        ours = self._processes()
+        tasks = set(procfs.with_environment("SLURMD_NODENAME", node)) & ours
+        parents = {int(fields[1]) for fields in map(procfs.stat_fields, tasks) if fields}
+        stepds = {pid for pid in parents if procfs.read(pid, "cmdline").startswith(b"slurmstepd")}
+        return (set(procfs.with_environment(NODE_ENV, node)) & ours) | tasks | stepds
 
     def stop(self) -> None:
         """Every daemon and job process of the cluster gone, its directory removed."""

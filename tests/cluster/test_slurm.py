@@ -35,11 +35,20 @@ def reference(tmp_path_factory) -> str:
     return final_manifest(storage)["state_sha256"]
 
 
-def submit(slurm: SlurmCluster, storage: Path, *sbatch: str, seconds: float = 0.1, env: dict | None = None) -> int:
-    """``sbatch [sbatch options] launch/slurm.sbatch configs/smoke.yaml --storage STORAGE ...`` from the repo."""
+def submit(
+    slurm: SlurmCluster,
+    storage: Path,
+    *sbatch: str,
+    seconds: float = 0.1,
+    supervise: tuple[str, ...] = (),
+    env: dict | None = None,
+) -> int:
+    """``sbatch [sbatch options] launch/slurm.sbatch [supervise options] configs/smoke.yaml --storage STORAGE ...``
+    from the repo."""
     options = ["--cpus-per-task=1", f"--output={storage}.out", *sbatch]
-    command = [*options, "launch/slurm.sbatch", SMOKE, "--storage", str(storage), *OVERRIDES, pace(seconds)]
-    return slurm.sbatch(*command, cwd=REPO, env=child_env({"PYTHONPATH": str(TESTS), **(env or {})}))
+    command = [*options, "launch/slurm.sbatch", *supervise, SMOKE, "--storage", str(storage), *OVERRIDES]
+    env = child_env({"PYTHONPATH": str(TESTS), **(env or {})})
+    return slurm.sbatch(*command, pace(seconds), cwd=REPO, env=env)
 
 
 def both_nodes_training(storage: Path, iteration: int = 10) -> None:
@@ -134,3 +143,34 @@ def test_the_time_limit_signal_saves_requeues_and_the_job_completes_with_nothing
     assert "requeueing job" in Path(f"{storage}.out").read_text()  # the script requeued it, not SLURM
     assert_nothing_lost(storage)
     assert_verified_and_equal(storage, reference)
+
+
+def test_a_lost_node_requeues_the_job_which_continues_on_the_nodes_left(slurm, reference, tmp_path):
+    """n2 dies (its slurmd and every process of the job on it); SLURM marks it DOWN, requeues the job (--requeue),
+    which starts again on n1 and n3 from the newest verified step: the same world size, so the same final state."""
+    storage = tmp_path / "run"
+    job_id = submit(slurm, storage)
+    both_nodes_training(storage, INTERVAL + 5)  # a step committed
+    slurm.kill_node("n2")
+    job = finished(slurm, job_id, storage)
+    assert job["Restarts"] == "1" and "n2" not in slurm.run("scontrol", "show", "hostnames", job["NodeList"])
+    assert [end["JobState"] for end in slurm.ends(job_id)][-1] == "COMPLETED"
+    fresh, resumed = starts(storage)[0], starts(storage)[-1]
+    assert fresh is None and resumed >= INTERVAL
+    assert_verified_and_equal(storage, reference)
+
+
+def test_an_elastic_job_trains_on_when_a_node_dies(slurm, tmp_path):
+    """``FTRAIN_NNODES=1:2 sbatch --no-kill``: n2 dies, the job keeps n1, where node 0 trains on alone to the end."""
+    storage = tmp_path / "run"
+    job_id = submit(slurm, storage, "--no-kill", supervise=("--rejoin-timeout=3",), env={"FTRAIN_NNODES": "1:2"})
+    both_nodes_training(storage, INTERVAL + 5)
+    slurm.kill_node("n2")
+    job = finished(slurm, job_id, storage)
+    assert (job["Restarts"], job["NodeList"]) == ("0", "n1")  # not requeued: the allocation shrank to n1
+    manifest = final_manifest(storage)
+    assert manifest["step"] == ITERATIONS and [world for _, world in manifest["world_sizes"]] == [2, 1]
+    (resize,) = [e for e in events(storage) if e["event"] == "resize" and e["node"] == 0]
+    assert (resize["old_world"], resize["new_world"], resize["why"]) == (2, 1, "node 1 lost"), resize
+    verify = subprocess.run([sys.executable, "-m", "ftrain", "ckpt", "verify", str(storage)], cwd=REPO, env=child_env())
+    assert verify.returncode == 0
