@@ -53,7 +53,7 @@ def slurm_conf(root: Path, nodes: list[str]) -> str:
         "SlurmdUser=root",
         "AuthType=auth/munge",
         "CredType=cred/munge",
-        f"AuthInfo=socket={root}/munge/socket,cred_expire=10",  # a requeued job waits this long (default 120 s)
+        f"AuthInfo=socket={root}/munge/socket,cred_expire=5",  # a requeued job waits this long (default 120 s)
         f"StateSaveLocation={root}/state",
         f"SlurmdSpoolDir={root}/spool/%n",
         f"SlurmctldPidFile={root}/slurmctld.pid",
@@ -70,7 +70,7 @@ def slurm_conf(root: Path, nodes: list[str]) -> str:
         "JobRequeue=1",
         "ReturnToService=2",  # a node whose slurmd starts again is back in service
         "SlurmdTimeout=10",  # a node whose slurmd is gone is DOWN after 10 s
-        "KillWait=30",
+        "KillWait=15",  # SIGTERM to SIGKILL when a job ends: saves of smoke-sized runs take a second
         "MinJobAge=3600",
         "JobCompType=jobcomp/filetxt",
         f"JobCompLoc={root}/jobcomp.txt",
