@@ -4,6 +4,7 @@ skip, with the reason, where it cannot run), and after each test every job gone 
 from __future__ import annotations
 
 import pytest
+
 from slurm_cluster import SlurmCluster, missing
 
 

@@ -18,11 +18,14 @@ import signal
 import subprocess
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 from ftrain import procfs
 from ftrain.tools.outage import free_port
 
+T = TypeVar("T")
 COMMANDS = ("munged", "slurmctld", "slurmd", "sbatch", "scontrol")
 CPUS = 16
 """CPUs each node declares (``SlurmdParameters=config_overrides`` believes it, whatever the machine has): as many
@@ -174,7 +177,8 @@ class SlurmCluster:
         self.run("scancel", "--partition=test")
         self.wait(lambda: not self.run("squeue", "--noheader").strip(), "no job left", timeout=120)
 
-    def wait(self, predicate, what: str, timeout: float):
+    def wait(self, predicate: Callable[[], T], what: str, timeout: float) -> T:
+        """``predicate()`` once it is true; a cluster that does not get there fails the test, naming its logs."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if value := predicate():
@@ -192,7 +196,7 @@ class SlurmCluster:
         ``slurmstepd`` parents."""
         ours = self._processes()
         tasks = set(procfs.with_environment("SLURMD_NODENAME", node)) & ours
-        parents = {int(fields[1]) for fields in map(procfs.stat_fields, tasks) if fields}
+        parents = {int(stat[1]) for stat in map(procfs.stat_fields, tasks) if stat}
         stepds = {pid for pid in parents if procfs.read(pid, "cmdline").startswith(b"slurmstepd")}
         return (set(procfs.with_environment(NODE_ENV, node)) & ours) | tasks | stepds
 
@@ -204,7 +208,7 @@ class SlurmCluster:
     def _processes(self) -> set[int]:
         return set(procfs.with_environment(CLUSTER_ENV, str(self.root)))
 
-    def _kill(self, find) -> None:
+    def _kill(self, find: Callable[[], set[int]]) -> None:
         while pids := {pid for top in find() for pid in [top, *procfs.descendants(top)]}:
             for pid in pids:
                 with contextlib.suppress(ProcessLookupError):

@@ -11,9 +11,9 @@ import sys
 from pathlib import Path
 
 import pytest
-from slurm_cluster import SlurmCluster
 
 from helpers import REPO, SMOKE, TESTS, child_env, events, final_manifest, run_train, training
+from slurm_cluster import SlurmCluster
 
 pytestmark = [
     pytest.mark.slow,
@@ -71,12 +71,14 @@ def finished(slurm: SlurmCluster, job_id: int, storage: Path) -> dict[str, str]:
     return job
 
 
+def assert_every_step_verifies(storage: Path) -> None:
+    verify = subprocess.run([sys.executable, "-m", "ftrain", "ckpt", "verify", str(storage)], cwd=REPO, env=child_env())
+    assert verify.returncode == 0
+
+
 def assert_verified_and_equal(storage: Path, reference: str) -> None:
     """Every committed step verifies, and the final one is step ITERATIONS with the reference state."""
-    verify = subprocess.run(
-        [sys.executable, "-m", "ftrain", "ckpt", "verify", str(storage)], cwd=REPO, env=child_env(), text=True
-    )
-    assert verify.returncode == 0
+    assert_every_step_verifies(storage)
     manifest = final_manifest(storage)
     assert (manifest["step"], manifest["state_sha256"]) == (ITERATIONS, reference)
 
@@ -180,5 +182,4 @@ def test_an_elastic_job_trains_on_when_a_node_dies(slurm, tmp_path):
     (resize,) = [e for e in events(storage) if e["event"] == "resize" and e["node"] == 0]
     assert (resize["old_world"], resize["new_world"], resize["why"]) == (2, 1, "node 1 lost"), resize
     assert resize["lost"] <= INTERVAL, resize
-    verify = subprocess.run([sys.executable, "-m", "ftrain", "ckpt", "verify", str(storage)], cwd=REPO, env=child_env())
-    assert verify.returncode == 0
+    assert_every_step_verifies(storage)
