@@ -27,10 +27,13 @@ debian_packages() {
   fi
 }
 debian_packages "headless rendering: 'ftrain play --video'" libegl1 libegl-mesa0 libgl1-mesa-dri
-# etcd (3.4 in Debian 12, serving the v2 API torchrun's etcd-v2 rendezvous speaks) for multi-node runs without a
-# special node and for the tests of them (which skip without it).
-debian_packages "the etcd-v2 rendezvous: 'ftrain supervise --rdzv-backend etcd-v2'" etcd-server
-debian_packages "the private SLURM cluster of the tests in tests/cluster" slurm-wlm munge
+# For the tests only (launch/test.sh sets FTRAIN_TEST_DEPS=1), as they bring daemons and SLURM's own commands, which
+# a training node must not get by accident: etcd (3.4 in Debian 12, serving the v2 API torchrun's etcd-v2 rendezvous
+# speaks) and SLURM with munge for the private clusters of the tests (which skip without them). Never fatal.
+if [[ ${FTRAIN_TEST_DEPS:-0} == 1 ]]; then
+  debian_packages "the tests of the etcd-v2 rendezvous" etcd-server || say "warning: etcd-server not installed" >&2
+  debian_packages "the private SLURM cluster of tests/cluster" slurm-wlm munge || say "warning: SLURM not installed" >&2
+fi
 
 python=${PYTHON:-python3}
 if [[ ! -x .venv/bin/python ]]; then

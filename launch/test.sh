@@ -4,7 +4,7 @@
 # skipped with the reason where slurm-wlm and munge are missing or not root), `-m "not slurm"` everything else.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash launch/setup.sh
+FTRAIN_TEST_DEPS=1 bash launch/setup.sh
 .venv/bin/ruff check ftrain tests launch examples
 .venv/bin/ruff format --check ftrain tests launch examples
 exec .venv/bin/python -m pytest -p no:cacheprovider "$@"

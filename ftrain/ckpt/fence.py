@@ -47,7 +47,7 @@ class Fence:
         this one (another run's record is replaced: the lease lets one run at a time write the storage)."""
         while True:
             current = cas.read(self.storage, FENCE)
-            record = json.loads(current[0]) if current is not None else {}
+            record = _parse(current[0]) if current is not None else {}
             newest = record.get("generation", -1) if record.get("run") == self.run else -1
             if newest > self.generation:
                 raise Fenced(
@@ -62,3 +62,12 @@ class Fence:
                 return
             except cas.Conflict:
                 continue
+
+
+def _parse(data: bytes) -> dict:
+    """A fence record; an unreadable one (a hand edit, a truncated file) counts as none, and is written over."""
+    try:
+        record = json.loads(data)
+    except ValueError:
+        return {}
+    return record if isinstance(record, dict) and isinstance(record.get("generation"), int) else {}

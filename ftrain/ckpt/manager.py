@@ -224,7 +224,7 @@ class Checkpointer:
         """Every rank hears the same outcome and says so: a failure and a recovery are each one line per rank."""
         step, detail, now = outcome.step, outcome.detail, time.monotonic()
         self.schedule.settled(step, outcome.result is Result.COMMITTED, blocked + outcome.cpu_s)
-        if outcome.result is Result.UNLOADABLE:
+        if outcome.result in (Result.UNLOADABLE, Result.FENCED):
             raise CheckpointError(detail)
         if outcome.result is Result.COMMITTED:
             if self._failing is not None:

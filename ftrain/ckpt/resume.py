@@ -130,8 +130,8 @@ def restore(
         elif url is None and info.is_main:
             quarantine(storage, step, reasons)
         raise CheckpointError(
-            f"checkpoint {where} does not match its manifest ({reasons}): quarantined, the next start falls back to "
-            "an older step"
+            f"checkpoint {where} does not match its manifest ({reasons}): "
+            f"{'deleted from the spool' if spooled else 'quarantined'}, the next start falls back to an older step"
         )
     log(f"resumed from step {step} ({decision['where']}), iteration {trainer.iteration}")
     world_sizes = manifest.get("world_sizes") or [[0, manifest["world_size"]]]
@@ -199,7 +199,7 @@ def decide(
         try:
             spool.clear()
         except (StorageError, OSError) as error:
-            log(f"could not empty the spool {spool.storage.url} ({error}): its steps are not resumed from")
+            log(f"could not empty the spool {spool.storage.url} ({error})")
     return decision
 
 
@@ -237,7 +237,7 @@ def _decide(
             raise
         down = error
     reachable = down is None
-    spooled = spool.newest(found, reachable, log) if spool is not None else None
+    spooled = _spooled(spool, found, reachable, log) if spool is not None else None
     if spooled is not None:
         step, manifest = spooled
         check_compatible(config, step, manifest, robot)
@@ -263,6 +263,16 @@ def _decide(
     check_compatible(config, step, manifest, robot)
     clear_newer(storage, step, log)
     return _resume(step, manifest, url=None, where="this storage", committed=step)
+
+
+def _spooled(spool: Spool, found: tuple | None, reachable: bool, log: Callable[[str], None]) -> tuple | None:
+    """The spooled step to resume from (``Spool.newest``); a spool that cannot be read is passed over, with a line:
+    it is optional, the storage is not."""
+    try:
+        return spool.newest(found, reachable, log)
+    except (StorageError, OSError, KeyError, TypeError, ValueError) as error:
+        log(f"the spool {spool.storage.url} could not be read ({type(error).__name__}: {error}): not resumed from")
+        return None
 
 
 def _resume(

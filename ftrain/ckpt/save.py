@@ -58,6 +58,8 @@ class Result(str, enum.Enum):
     """Not committed (a write, the listing or the manifest failed): earlier steps are intact; training goes on."""
     UNLOADABLE = "unloadable"
     """Written state that would not load back: training must stop."""
+    FENCED = "fenced"
+    """A newer generation of the run has committed (``fence.py``): this rank is cut off and must stop."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -234,7 +236,8 @@ class StepWriter:
                 self._listed = True
             except Fenced as exc:
                 self.log(f"checkpoint step {step} refused: {exc}")
-                errors = [f"commit: {exc}"]
+                self._steps[step] = StepInfo(step, INCOMPLETE)
+                return (Result.FENCED, step, str(exc))
             except Exception as exc:
                 errors = [f"commit: {exc}"]
         if errors:

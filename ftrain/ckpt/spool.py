@@ -12,6 +12,7 @@ would hold only its own node's shards, so there is none).
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -19,7 +20,7 @@ from pathlib import Path
 from ftrain.ckpt.format import MANIFEST, VERIFIED, FileEntry, commit, step_dir, write_file
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.steps import scan
-from ftrain.ckpt.storage import Storage
+from ftrain.ckpt.storage import Storage, StorageError
 from ftrain.config import Config
 from ftrain.dist import group
 from ftrain.lifeline import SUPERVISOR_ENV
@@ -43,11 +44,17 @@ class Spool:
     @classmethod
     def open(cls, config: Config, remote: Storage, info: group.RankInfo) -> Spool | None:
         """The spool of ``config``'s run, or None: switched off, a local storage (it is its own spool), or ranks on
-        several nodes."""
+        several nodes (then emptied)."""
         single_node = int(os.environ.get("LOCAL_WORLD_SIZE", info.world_size)) == info.world_size
-        if not config.checkpoint.spool or remote.is_local or not single_node:
+        if not config.checkpoint.spool or remote.is_local:
             return None
-        return cls(Storage.open(str(Path(config.log_dir) / "spool")), remote.url)
+        spool = cls(Storage.open(str(Path(config.log_dir) / "spool")), remote.url)
+        if single_node:
+            return spool
+        if info.local_rank == 0:  # what a one-node phase of an elastic run spooled is older than the others' commits
+            with contextlib.suppress(StorageError, OSError):  # best effort: nodes on one host may share a log_dir
+                spool.clear()
+        return None
 
     def write(self, step: int, name: str, data: bytes) -> FileEntry:
         """One file of ``step``; what an earlier attempt at the same step left is replaced (the spool is this

@@ -182,6 +182,12 @@ class Nodes:
         return self.run_id.encode() if self.backend is Backend.ETCD else self.secret
 
     @property
+    def lease_endpoint(self) -> tuple[str, int] | None:
+        """What names the run for the storage's lease besides ``run_key``: node 0's endpoint (c10d); none on etcd,
+        whose address each node may spell its own way."""
+        return None if self.backend is Backend.ETCD else self.endpoint
+
+    @property
     def elastic(self) -> bool:
         return self.least < self.count
 

@@ -92,7 +92,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     events = supervisor.events
     log = lambda line: events("lease", line, detail=line)  # noqa: E731
-    lease = lambda: storage_lease(config, log, nodes.run_key, nodes.endpoint)  # noqa: E731
+    lease = lambda: storage_lease(config, log, nodes.run_key, nodes.lease_endpoint)  # noqa: E731
     refused = lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr)  # noqa: E731
     try:  # the lease is taken before anything is launched: an unreachable storage is waited out then too
         return supervisor.storage_wait.retrying(lambda: lease().run(supervisor.run, refused), supervisor.end)
@@ -394,6 +394,7 @@ class Supervisor:
         return code
 
     def _leaves_alone(self) -> bool:
-        """Whether this node's preemption leaves the others training (an elastic etcd-v2 run, where no node is
-        special): they regroup without it from the workers' save, as long as MIN nodes remain."""
-        return self.nodes.elastic and self.nodes.backend is Backend.ETCD
+        """Whether this node's preemption leaves the others training from the workers' save: an elastic etcd-v2 run
+        (no node is special) with MIN nodes left without it."""
+        left = len(self.ledger.nodes) - 1 >= self.nodes.least
+        return self.nodes.elastic and self.nodes.backend is Backend.ETCD and left

@@ -199,7 +199,10 @@ class Trainer:
                 f"nothing to train: the run is already at step {self.iteration}, asked for iterations="
                 f"{self.config.iterations} (pass iterations=N with N > {self.iteration} to train on)"
             )
-        self.heartbeat.committed_step = resumed
+        if self.iteration >= self.config.iterations and self.checkpointer.committed_step != self.iteration:
+            self.checkpointer.save(self, hold=True)  # the last step came from the spool: the storage must have it
+        committed = self.checkpointer.committed_step
+        self.heartbeat.committed_step = resumed if committed is None else committed
         self._write_resolved_config()
         self.alg.train_mode()
         self.hooks.call("on_start", self)

@@ -3,6 +3,8 @@ is refused once a newer one has committed, and says so; another run's record doe
 
 from __future__ import annotations
 
+import json
+
 import pytest
 import torch
 
@@ -34,7 +36,7 @@ def test_an_older_generation_commits_nothing_once_a_newer_one_has(storage, monke
     assert save(storage, 10, monkeypatch, "run-a:1", lines).result is Result.COMMITTED
     assert save(storage, 20, monkeypatch, "run-a:2", lines).result is Result.COMMITTED  # the others went on
     late = save(storage, 15, monkeypatch, "run-a:1", lines)  # the node that was cut off
-    assert late.result is Result.FAILED and "fenced off: generation 2 has committed" in late.detail
+    assert late.result is Result.FENCED and "fenced off: generation 2 has committed" in late.detail  # the rank stops
     assert any(line.startswith("checkpoint step 15 refused") for line in lines)
     assert [(info.step, info.manifest["generation"]) for info in scan(storage) if info.manifest] == [
         (20, ["run-a", 2]),
@@ -49,6 +51,12 @@ def test_a_new_run_is_not_fenced_by_the_record_of_an_earlier_one(storage, monkey
     Fence(storage, "run-b", 1).check()
     with pytest.raises(Fenced, match="generation 1 has committed"):
         Fence(storage, "run-b", 0).check()
+
+
+def test_an_unreadable_fence_record_counts_as_none_and_is_written_over(storage):
+    storage.write_replace(FENCE, b"{not json")
+    Fence(storage, "run-a", 3).check()
+    assert json.loads(storage.read(FENCE)) == {"run": "run-a", "generation": 3}
 
 
 def test_without_a_generation_nothing_is_fenced_or_written(tmp_path, monkeypatch):

@@ -138,6 +138,25 @@ def test_two_ranks_on_s3_killed_and_resumed(tmp_path, s3_server, s3_env) -> None
     assert s3_server["secret"] not in json.dumps(manifest)
 
 
+def test_a_last_step_only_in_the_spool_reaches_the_storage_before_the_run_ends(tmp_path, s3_server, s3_env) -> None:
+    """The run's last step was spooled, but its save to S3 never landed (here: deleted): the next start resumes
+    from the spool, finds nothing to train, and commits that step to S3 before it calls the run done."""
+    from conftest import create_bucket
+
+    from ftrain.ckpt.retention import delete_step
+    from ftrain.ckpt.storage import Storage
+
+    url = f"s3://{create_bucket(s3_server)}/run"
+    overrides = ["iterations=8", f"log_dir={tmp_path / 'logs'}"]
+    run_train(url, *overrides, env=s3_env)
+    final = json.loads(_read_s3_manifest(url, 8, s3_env))
+    options = {"endpoint_url": s3_env["AWS_ENDPOINT_URL"], "key": s3_server["key"], "secret": s3_server["secret"]}
+    delete_step(Storage.open(url, options), 8)
+    result = run_train(url, *overrides, env=s3_env)
+    assert "resumed from step 8 (the spool " in result.stdout and "nothing to train" in result.stdout, result.stdout
+    assert json.loads(_read_s3_manifest(url, 8, s3_env))["state_sha256"] == final["state_sha256"]
+
+
 def _read_s3_manifest(url: str, step: int, env: dict) -> str:
     from ftrain.ckpt.storage import Storage
 
