@@ -23,6 +23,7 @@ from helpers import (
     SMOKE,
     TESTS,
     child_env,
+    create_bucket,
     events,
     final_manifest,
     flip_byte,
@@ -122,8 +123,6 @@ def test_resume_refuses_other_env_count_config_and_format(tmp_path) -> None:
 
 
 def test_two_ranks_on_s3_killed_and_resumed(tmp_path, s3_server, s3_env) -> None:
-    from conftest import create_bucket
-
     url = f"s3://{create_bucket(s3_server)}/runs/hc"
     overrides = ["iterations=8", f"log_dir={tmp_path / 'logs'}"]
     run_train(tmp_path / "reference", "iterations=8", ranks=2)
@@ -141,8 +140,6 @@ def test_two_ranks_on_s3_killed_and_resumed(tmp_path, s3_server, s3_env) -> None
 def test_a_last_step_only_in_the_spool_reaches_the_storage_before_the_run_ends(tmp_path, s3_server, s3_env) -> None:
     """The run's last step was spooled, but its save to S3 never landed (here: deleted): the next start resumes
     from the spool, finds nothing to train, and commits that step to S3 before it calls the run done."""
-    from conftest import create_bucket
-
     from ftrain.ckpt.retention import delete_step
     from ftrain.ckpt.storage import Storage
 
@@ -262,8 +259,6 @@ def test_sigterm_to_one_worker_stops_both_ranks_at_one_boundary_and_the_rerun_co
 
 
 def test_credentials_never_reach_logs_checkpoints_or_policies(tmp_path, s3_server) -> None:
-    from conftest import create_bucket
-
     secret = s3_server["secret"]
     options = (
         f"storage.options={{endpoint_url: '{s3_server['endpoint_url']}', key: {s3_server['key']}, secret: {secret}}}"
