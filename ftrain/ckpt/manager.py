@@ -252,13 +252,13 @@ def _open_storage(config: Config) -> tuple[Storage, StorageUnavailable | None]:
     """The run's storage, and why it does not answer (None: it does). Under a supervisor a storage that does not
     answer is opened all the same (its bucket not checked): the run may resume from the spool, and the supervisor
     holds the lease, so no other run writes there."""
+    url, options, retries = config.storage.url, config.storage.options, config.checkpoint.retries
     try:
-        return Storage.open(config.storage.url, config.storage.options, retries=config.checkpoint.retries), None
+        return Storage.open(url, options, retries), None
     except StorageUnavailable as down:
         if not os.environ.get(SUPERVISOR_ENV) or not config.checkpoint.spool:
             raise
-        options, retries = config.storage.options, config.checkpoint.retries
-        return Storage.open(config.storage.url, options, retries, check_bucket=False), down
+        return Storage.open(url, options, retries, check_bucket=False), down
 
 
 def _versions() -> dict:

@@ -95,7 +95,7 @@ def restore(
     """Load the step rank 0 chose into ``trainer``, which trains ``robot`` (see ``check_compatible``), from the
     storage, the ``spool`` or another run's storage (``resume=URL``); ``down``: why the storage did not answer when it
     was opened just now (it is not asked again)."""
-    decision = decide(config, info, storage, log, robot, spool, down) if info.is_main else None
+    decision = decide(config, storage, log, robot, spool, down) if info.is_main else None
     decision = group.broadcast_object(decision, info)
     if decision["kind"] == "usage":
         raise UserError(decision["why"])
@@ -178,7 +178,6 @@ def _load(trainer: Checkpointable, storage: Storage, step: int, manifest: dict, 
 
 def decide(
     config: Config,
-    info: group.RankInfo,
     storage: Storage,
     log: Callable[[str], None],
     robot: dict | None = None,
