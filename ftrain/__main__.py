@@ -1,7 +1,13 @@
-"""``python -m ftrain`` and ``torchrun -m ftrain``."""
+"""``python -m ftrain`` and ``torchrun -m ftrain``: a worker of a supervisor with a warm pool runs there (see
+``ftrain/warm``)."""
 
 import sys
 
-from ftrain.cli import main
+from ftrain.warm import handover
 
-sys.exit(main())
+code = handover("train", sys.argv[1:]) if sys.argv[1:2] == ["train"] else None
+if code is None:
+    from ftrain.cli import main
+
+    code = main()
+sys.exit(code)

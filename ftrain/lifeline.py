@@ -37,14 +37,23 @@ def supervisor_env() -> dict[str, str]:
 
 
 def die_with_supervisor() -> None:
-    """In torchrun, first: SIGKILL from the kernel when the supervisor ends, or now if it already has."""
+    """In torchrun (and the warm worker pool), first: SIGKILL from the kernel when the supervisor ends, or now if it
+    already has."""
     supervisor = _supervisor()
-    if supervisor is None or not sys.platform.startswith("linux"):
+    if supervisor is not None:
+        die_with_parent(supervisor[0])
+        if not _alive(supervisor):
+            os.kill(os.getpid(), signal.SIGKILL)
+
+
+def die_with_parent(parent: int) -> None:
+    """SIGKILL from the kernel when process ``parent``, this one's parent, ends; now if it already has (Linux)."""
+    if not sys.platform.startswith("linux"):
         return
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
         raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
-    if os.getppid() != supervisor[0] or not _alive(supervisor):
+    if os.getppid() != parent:
         os.kill(os.getpid(), signal.SIGKILL)
 
 

@@ -132,8 +132,9 @@ def events(log_dir: str | Path) -> list[dict]:
 
 
 def torchrun_pid(supervisor_pid: int) -> int:
-    """The torchrun agent a supervisor launched (waits until there is one)."""
-    module = TORCHRUN.encode()
+    """The torchrun agent a supervisor launched (waits until there is one): ``ftrain.dist.torchrun``, or with warm
+    workers its stand-in ``ftrain.warm torchrun``, the process the supervisor watches."""
+    module = TORCHRUN.rpartition(".")[2].encode()
 
     def find() -> int | None:
         for pid in procfs.pids():

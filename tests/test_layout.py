@@ -12,7 +12,7 @@ from helpers import REPO
 
 PACKAGE = REPO / "ftrain"
 LAYERS = {
-    "__main__": {"cli"},
+    "__main__": {"cli", "warm"},
     "cli": {
         "supervise",
         "train",
@@ -37,6 +37,7 @@ LAYERS = {
     "config": {"values", "errors", "redact"},
     "values": {"errors"},
     "heartbeat": set(),
+    "warm": {"lifeline"},
     "lifeline": {"procfs", "heartbeat"},
     "procfs": set(),
     "errorfile": set(),

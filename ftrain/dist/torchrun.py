@@ -34,6 +34,12 @@ FAILURES_OPTION = "--failures="
 
 def main(argv: list[str]) -> int:
     die_with_supervisor()
+    return run(argv)
+
+
+def run(argv: list[str]) -> int:
+    """torchrun in this process: ``main`` without the tie to the supervisor (the warm pool forks it: ``ftrain/warm``,
+    where it ends with the pool)."""
     failures_path = argv[0].removeprefix(FAILURES_OPTION) if argv[:1] and argv[0].startswith(FAILURES_OPTION) else None
     arguments = argv[1:] if failures_path is not None else argv
     try:

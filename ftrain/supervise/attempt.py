@@ -29,36 +29,21 @@ from ftrain import errorfile, procfs
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, TOKEN_ENV
 from ftrain.lifeline import supervisor_env
 from ftrain.supervise.auth import SECRET_ENV
+from ftrain.supervise.options import SupervisorOptions, Workers, parse_workers
 from ftrain.supervise.outcome import WorkerFailure, blame
 from ftrain.supervise.plan import Plan
 
 POLL = 0.1
 TORCHRUN = "ftrain.dist.torchrun"
 """torchrun, in a process of its own (the module imports torch: the supervisor only names it)."""
+WARM = "ftrain.warm"
+"""The warm pool and torchrun's stand-in (``python -m ftrain.warm serve | torchrun ...``)."""
+WORKER_MODULE_ENV = "FTRAIN_WORKER_MODULE"
+"""Test hook (private): the module torchrun runs (``-m MODULE train ...``, default ``ftrain``)."""
 FAILURES = "failures.json"
 OUTPUT = "stderr.log"
 KEPT_LOGS = 5
 """Attempts whose directory is kept."""
-
-
-def torchrun_command(
-    nproc_per_node: int, rendezvous: list[str], module: str, train_args: list[str], log_dir: Path
-) -> list[str]:
-    """One attempt: torchrun without restarts of its own (the supervisor owns the restart policy)."""
-    return [
-        sys.executable,
-        "-m",
-        TORCHRUN,
-        f"--failures={log_dir / FAILURES}",
-        "--max-restarts=0",
-        f"--nproc-per-node={nproc_per_node}",
-        f"--log-dir={log_dir}",
-        *rendezvous,
-        "-m",
-        module,
-        "train",
-        *train_args,
-    ]
 
 
 def attempt_env(
@@ -79,15 +64,64 @@ def attempt_env(
     for stale in heartbeat_dir.glob("rank-*"):
         stale.unlink(missing_ok=True)
     return {
-        **{name: value for name, value in os.environ.items() if name != SECRET_ENV},  # the workers do not need it
+        **_inherited(),
         ENV_DIR: str(heartbeat_dir),
         TOKEN_ENV: token,
         NODE_ENV: str(node),
         "TORCH_DISABLE_SHARE_RDZV_TCP_STORE": os.environ.get("TORCH_DISABLE_SHARE_RDZV_TCP_STORE", "1"),
         "TORCH_ELASTIC_SHUTDOWN_TIMEOUT": str(math.ceil(stop_grace)),
-        **supervisor_env(),
         **hidden,
     }
+
+
+def _inherited() -> dict[str, str]:
+    """The supervisor's environment but its secret (the workers do not need it), naming it as their supervisor."""
+    return {**{name: value for name, value in os.environ.items() if name != SECRET_ENV}, **supervisor_env()}
+
+
+class Launcher:
+    """How this node starts its attempts: torchrun's command line, warm (torchrun and its workers forked from this
+    node's pool, ``ftrain/warm``, started here) or cold. A test's own worker module (``WORKER_MODULE_ENV``) starts
+    cold: the pool preloads ftrain's."""
+
+    def __init__(self, options: SupervisorOptions, log_dir: Path) -> None:
+        self.nproc_per_node = options.nproc_per_node
+        self.module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
+        warm = parse_workers(options.workers) is Workers.WARM and self.module == "ftrain"
+        self.pool = self._start_pool(log_dir / "warm-pool.log") if warm else None
+
+    def command(self, rendezvous: list[str], train_args: list[str], log_dir: Path) -> list[str]:
+        """One attempt: torchrun without restarts of its own (the supervisor owns the restart policy)."""
+        return [
+            sys.executable,
+            "-m",
+            *([WARM, "torchrun"] if self.pool else [TORCHRUN]),
+            f"--failures={log_dir / FAILURES}",
+            "--max-restarts=0",
+            f"--nproc-per-node={self.nproc_per_node}",
+            f"--log-dir={log_dir}",
+            *rendezvous,
+            "-m",
+            self.module,
+            "train",
+            *train_args,
+        ]
+
+    def close(self) -> None:
+        if self.pool is not None:
+            self.pool.kill()
+            self.pool.wait()
+
+    def _start_pool(self, log: Path) -> subprocess.Popen:
+        """The pool, output to ``log``. Its environment is the workers' as far as it is known before torchrun: imports
+        that read one (OpenMP's thread count: torchrun's 1 for several workers a node) see what a cold worker's do."""
+        env = _inherited()
+        if self.nproc_per_node > 1:
+            env.setdefault("OMP_NUM_THREADS", "1")
+        log.parent.mkdir(parents=True, exist_ok=True)
+        with log.open("ab") as output:
+            command = [sys.executable, "-u", "-m", WARM, "serve"]
+            return subprocess.Popen(command, env=env, stdout=output, stderr=subprocess.STDOUT, start_new_session=True)
 
 
 def new_log_dir(root: Path, plan: Plan) -> Path:

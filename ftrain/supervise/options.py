@@ -129,6 +129,26 @@ class SupervisorOptions:
     stop_grace: float = field(
         default=30.0, metadata={"help": "seconds between SIGTERM and SIGKILL when stopping workers (time to save)"}
     )
+    workers: str = field(
+        default="warm",
+        metadata={
+            "help": "warm: fork each worker from a process of this node that imported torch, rsl-rl and MuJoCo once "
+            "(a restart skips seconds of imports; see ftrain/warm); cold: a fresh Python process per worker"
+        },
+    )
+
+
+class Workers(enum.StrEnum):
+    """How an attempt's workers start: forked from the node's warm pool, or as fresh processes."""
+
+    WARM = "warm"
+    COLD = "cold"
+
+
+def parse_workers(value: str) -> Workers:
+    if value not in tuple(Workers):
+        raise UserError(f"--workers={value!r} must be one of {', '.join(Workers)}")
+    return Workers(value)
 
 
 def parse_hang_timeout(value: str) -> float | None:

@@ -29,8 +29,7 @@ Preemption. SIGTERM or SIGINT: SIGTERM to the workers, which agree at the next i
 128 + the signal (143; 130 for SIGINT). Elastic on etcd-v2 this node leaves alone: the others regroup from the save.
 
 Several nodes: ``link.py`` (c10d: node 0 coordinates, ``coordinator.py``; etcd-v2: etcd, ``etcd_plan.py``).
-Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``. Test hook (private):
-``FTRAIN_WORKER_MODULE`` names the module torchrun runs (``-m MODULE train ...``, default ``ftrain``).
+Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``. Warm starts: ``attempt.Launcher``.
 """
 
 from __future__ import annotations
@@ -48,7 +47,7 @@ from ftrain.config import Config, StorageConfig
 from ftrain.errors import STOPPED, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats
 from ftrain.redact import hide_credentials, redact_command
-from ftrain.supervise.attempt import Attempt, attempt_env, kill, new_log_dir, signal_name, torchrun_command
+from ftrain.supervise.attempt import Attempt, Launcher, attempt_env, kill, new_log_dir, signal_name
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.hang import QUIET_PHASES, HangWatch, process_state
 from ftrain.supervise.ledger import Ledger
@@ -66,8 +65,6 @@ from ftrain.supervise.outage import StorageWait
 from ftrain.supervise.outcome import Outcome, classify
 from ftrain.supervise.plan import Plan, generation_env, plan_key
 from ftrain.supervise.restarts import RestartPolicy
-
-WORKER_MODULE_ENV = "FTRAIN_WORKER_MODULE"
 
 POLL = 0.1
 """Seconds between two looks at torchrun and the heartbeats."""
@@ -135,6 +132,7 @@ class Supervisor:
         self.policy = RestartPolicy(options)
         self.ledger = Ledger(options.nproc_per_node, self.events)
         self.storage_wait = StorageWait(storage, options.storage_wait, self.events, self._sleep)
+        self.launcher = Launcher(options, self.attempt_logs)
 
     def on_signal(self, number: int, frame: object) -> None:
         self.signals.append(number)
@@ -142,6 +140,7 @@ class Supervisor:
     def close(self) -> None:
         if self.coordinator is not None:
             self.coordinator.close()
+        self.launcher.close()
 
     def run(self) -> int:
         try:
@@ -221,10 +220,9 @@ class Supervisor:
         train_args, hidden = hide_credentials(self.train_args)
         env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.node, hidden)
         env |= {STORAGE_WAIT_ENV: str(self.options.storage_wait), **generation_env(plan, self.nnodes)}
-        module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
         logs = new_log_dir(self.attempt_logs, plan)
         arguments = rendezvous(plan, self.nodes, self.options)
-        command = torchrun_command(self.options.nproc_per_node, arguments, module, train_args, logs)
+        command = self.launcher.command(arguments, train_args, logs)
         logged = redact_command(command)
         message = f"attempt {plan.attempt}: launching torchrun"
         self.events("start", message, attempt=plan.attempt, command=logged, logs=str(logs))

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from ftrain import procfs
 from ftrain.errors import EXIT_PREEMPTED
 from ftrain.supervise.auth import SECRET_ENV
 
@@ -58,9 +59,10 @@ def wait_event(storage: Path, name: str, count: int) -> dict:
 
 @pytest.fixture(scope="module")
 def reference(tmp_path_factory) -> str:
-    """``state_sha256`` of the final step of an uninterrupted supervised run."""
+    """``state_sha256`` of the final step of an uninterrupted supervised run of cold workers (each a fresh Python
+    process): the chaos runs, of warm workers (forked from the warm pool, the default), must end on the same bits."""
     storage = tmp_path_factory.mktemp("reference") / "run"
-    assert finish(start(storage)) == 0
+    assert finish(start(storage, "--workers", "cold")) == 0
     manifest = final_manifest(storage)
     step = manifest["step"]
     assert step == 100
@@ -74,6 +76,8 @@ def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
 
     # 1. SIGKILL of one worker
     beats = training(heartbeats, 4)
+    pool = procfs.stat_fields(beats[1].pid)[1]
+    assert b"ftrain.warm\x00serve" in procfs.read(int(pool), "cmdline")  # a warm worker, forked by the pool
     os.kill(beats[1].pid, signal.SIGKILL)
     recovered = wait_event(storage, "recovered", 1)
 

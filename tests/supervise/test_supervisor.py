@@ -26,10 +26,10 @@ import pytest
 from ftrain import errorfile
 from ftrain.heartbeat import ENV_DIR, HeartbeatWriter
 from ftrain.supervise import options
+from ftrain.supervise.attempt import WORKER_MODULE_ENV
 from ftrain.supervise.auth import MAX_MESSAGE, REQUEST, SECRET_ENV, Refused, seal
 from ftrain.supervise.coordinator import CONNECTION_TIMEOUT, Coordinator, Link
 from ftrain.supervise.events import EventLog
-from ftrain.supervise.supervisor import WORKER_MODULE_ENV
 
 from helpers import (
     REPO,
