@@ -39,14 +39,15 @@ def missing() -> str | None:
 
 
 class Bed:
-    """``hosts`` namespaces, host N at ``address(N)``, each linked to the bridge by a veth pair (``DEVICE`` on its
-    side, ``port(N)`` on the bridge's)."""
+    """``hosts`` namespaces, host N at ``address(N)`` on its ``DEVICE``: one end of a veth pair whose other end,
+    ``port(N)``, is on the bridge; or, with a delay, a TAP of ``delay_hub.py``, which runs in the bridge's namespace."""
 
     def __init__(self, hosts: int) -> None:
         self.prefix = f"ftrain-{os.getpid()}-{uuid.uuid4().hex[:6]}"
         self.bridge = f"{self.prefix}-bridge"
         self.hosts = [f"{self.prefix}-h{host}" for host in range(hosts)]
         self.made: list[str] = []
+        self.hub: subprocess.Popen | None = None
 
     @staticmethod
     def address(host: int) -> str:
@@ -83,14 +84,16 @@ class Bed:
     def _hub(self, delay: float) -> None:
         """``delay_hub.py`` in the bridge's namespace (``stop`` kills it with the rest), once its TAPs exist."""
         command = ["ip", "netns", "exec", self.bridge, sys.executable, str(HUB), str(delay), DEVICE, *self.hosts]
-        hub = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        if hub.stdout.readline().strip() != "ready":
-            raise RuntimeError(f"delay_hub.py did not start: {hub.communicate()[1][-2000:]}")
+        self.hub = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        if self.hub.stdout.readline().strip() != "ready":
+            raise RuntimeError(f"delay_hub.py did not start: {self.hub.communicate()[1][-2000:]}")
 
     def stop(self) -> None:
         """Every process in the namespaces killed, every namespace deleted: also after a failure half-way."""
         for name in self.made:
             self._kill(name)
+        if self.hub is not None:
+            self.hub.communicate()
         for name in reversed(self.made):
             subprocess.run(["ip", "netns", "delete", name], capture_output=True)
         self.made.clear()

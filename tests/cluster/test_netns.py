@@ -16,8 +16,10 @@ from ftrain import procfs
 from elastic_nodes import (
     KEEP_ALL,
     assert_fenced_history,
+    etcd,
     node_events,
     rank_zero,
+    start_node,
     three_etcd_nodes,
     verify_cli,
     wait_resizes,
@@ -117,9 +119,10 @@ def test_with_20_ms_on_every_link_training_runs_and_checkpoints(tmp_path, networ
     print(f"a TCP connect from host 0 to etcd takes {1000 * round_trip:.0f} ms")
     assert round_trip >= 2 * DELAY_MS / 1000
     storage, iterations = tmp_path / "run", 10
-    nodes, _, _ = three_etcd_nodes(storage, endpoint, iterations, hosts=hosts(bed))
+    overrides = (f"iterations={iterations}",)
+    nodes = [start_node(storage, host, "2:3", etcd(endpoint), *overrides, **hosts(bed)[host]) for host in range(3)]
     assert [finish(proc, timeout=180) for proc in nodes] == [0, 0, 0]
     manifest = final_manifest(storage)
-    assert (manifest["step"], manifest["world_size"]) == (iterations, 3)
+    assert (manifest["step"], manifest["world_size"], manifest["world_sizes"]) == (iterations, 3, [[0, 3]])
     assert len(manifests(storage)) >= 2  # more than one checkpoint committed across the slow links
     assert verify_cli(storage) == 0
