@@ -111,9 +111,9 @@ def connect_seconds(bed: Bed, host: int, endpoint: str) -> float:
 
 @pytest.mark.parametrize("network", [DELAY_MS], indirect=True)
 def test_with_20_ms_on_every_link_training_runs_and_checkpoints(tmp_path, network) -> None:
-    """Every host's packets leave 20 ms late (a round trip of 40 ms more, as between data centres): the
+    """Every frame between two hosts arrives 20 ms late (a round trip 40 ms longer, as between data centres): the
     rendezvous, the workers' store and gloo's collectives all cross it, and the run trains, checkpoints and
-    finishes with every step verifying."""
+    finishes at world size 3 with every step verifying."""
     bed, endpoint = network
     round_trip = connect_seconds(bed, 0, endpoint)
     print(f"a TCP connect from host 0 to etcd takes {1000 * round_trip:.0f} ms")
