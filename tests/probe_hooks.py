@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import itertools
 import json
+import os
 import time
 from pathlib import Path
 
+from ftrain.ckpt.fence import GENERATION_ENV, Fence
 from ftrain.dist import group
 from ftrain.train.hooks import Hook
 
@@ -100,3 +103,26 @@ class SlowFirstIterationHook(Hook):
         if self.first and trainer.iteration == 0:
             time.sleep(self.seconds)
         self.first = False
+
+
+class HoldCommitHook(Hook):
+    """Rank 0 of a run's first attempt (generation ``RUN:0``) holds its ``commit``-th commit where the shards are
+    written and gathered and the fence is not yet read: it writes its pid to ``marker`` and waits until ``release``
+    exists. A test pauses the node there and resumes it after the others went on: a commit in flight, exactly."""
+
+    def __init__(self, marker: str, release: str, commit: int) -> None:
+        self.marker, self.release, self.commit = Path(marker), Path(release), commit
+
+    def on_start(self, trainer) -> None:
+        if not trainer.info.is_main or not os.environ.get(GENERATION_ENV, "").endswith(":0"):
+            return
+        check, calls = Fence.check, itertools.count(1)
+
+        def held(fence: Fence) -> None:
+            if next(calls) == self.commit:
+                self.marker.write_text(str(os.getpid()))
+                while not self.release.exists():
+                    time.sleep(0.05)
+            check(fence)
+
+        Fence.check = held

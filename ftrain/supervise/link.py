@@ -3,12 +3,13 @@ coordinator with c10d (``coordinator.py``), etcd with etcd-v2 (``etcd_plan.py``,
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 
 from ftrain.supervise.coordinator import Coordinator, Link, rendezvous_args
 from ftrain.supervise.etcd_plan import EtcdLink, etcd_rendezvous_args
 from ftrain.supervise.options import Backend, Nodes, SupervisorOptions
-from ftrain.supervise.plan import Plan
+from ftrain.supervise.plan import Plan, generation_env
 
 
 def connect(
@@ -27,9 +28,21 @@ def connect(
 
 
 def rendezvous(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> list[str]:
-    """torchrun's rendezvous arguments for ``plan``'s attempt: a fresh rendezvous every time."""
+    """torchrun's rendezvous arguments for ``plan``'s attempt: a fresh rendezvous every time. ``--local-addr``: the
+    address this node gives the others, where its hostname resolves to none they reach (a host that shares its name
+    with others, or whose name maps to 127.0.0.1: they would dial their own loopback)."""
     if nodes.count == 1:
         return ["--standalone"]
+    local = [f"--local-addr={options.local_addr}"] if options.local_addr else []
     if nodes.backend is Backend.ETCD:
-        return etcd_rendezvous_args(plan, nodes, options)
-    return rendezvous_args(plan, nodes, options)
+        return [*etcd_rendezvous_args(plan, nodes, options), *local]
+    return [*rendezvous_args(plan, nodes, options), *local]
+
+
+def worker_env(plan: Plan, nodes: Nodes) -> dict[str, str]:
+    """What the workers of ``plan``'s attempt add to their environment on several nodes: their generation
+    (``fence.py``) and, with ``--local-addr``, ``GLOO_SOCKET_IFNAME``, the interface that holds it: else gloo binds
+    to what the hostname resolves to and gives the other ranks that address (127.0.0.1 where the hostname maps to it:
+    they dial their own loopback). A ``GLOO_SOCKET_IFNAME`` of the user's wins."""
+    gloo = {"GLOO_SOCKET_IFNAME": os.environ.get("GLOO_SOCKET_IFNAME", nodes.interface)} if nodes.interface else {}
+    return {**generation_env(plan, nodes.count), **gloo}

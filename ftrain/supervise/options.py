@@ -20,6 +20,7 @@ from ftrain.errors import (
     EXIT_USAGE,
     UserError,
 )
+from ftrain.supervise.address import interface_of
 from ftrain.supervise.auth import load_secret
 
 EXIT_DONE = 0
@@ -80,6 +81,14 @@ class SupervisorOptions:
         },
     )
     rdzv_id: str = field(default="", metadata={"help": "etcd-v2: the run's name, the same on every node"})
+    local_addr: str = field(
+        default="",
+        metadata={
+            "help": "several nodes: this node's address as the others reach it (torchrun's --local-addr; default: "
+            "what its hostname resolves to): the workers' store listens there when this node has rank 0, and gloo "
+            "binds to the interface that holds it"
+        },
+    )
     rdzv_conf: str = field(
         default="",
         metadata={
@@ -195,6 +204,8 @@ class Nodes:
     """etcd-v2: the run's name (``--rdzv-id``)."""
     conf: tuple[tuple[str, str], ...] = ()
     """etcd-v2: the connection settings of ``--rdzv-conf``."""
+    interface: str = ""
+    """Several nodes with ``--local-addr``: the network interface that holds it, for the workers' gloo."""
 
     @property
     def run_key(self) -> bytes | None:
@@ -234,14 +245,19 @@ def parse_nodes(options: SupervisorOptions) -> Nodes:
     if not host or not port.isdigit():
         where = "etcd's client address" if backend is Backend.ETCD else "node 0's address and a free port"
         raise UserError(f"several nodes need --rdzv-endpoint=HOST:PORT, {where}")
+    interface = interface_of(options.local_addr) if options.local_addr else ""
     if backend is Backend.ETCD:
         if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", options.rdzv_id):
             raise UserError("--rdzv-backend etcd-v2 needs --rdzv-id=NAME (letters, digits, _.-), alike on every node")
         conf = parse_etcd_conf(options.rdzv_conf)
-        return Nodes(nnodes, least, (host, int(port)), backend=backend, run_id=options.rdzv_id, conf=conf)
+        return Nodes(
+            nnodes, least, (host, int(port)), backend=backend, run_id=options.rdzv_id, conf=conf, interface=interface
+        )
     if not 0 <= options.node_rank < nnodes:
         raise UserError(f"--node-rank={options.node_rank} must be between 0 and {nnodes - 1}")
-    return Nodes(nnodes, least, (host, int(port)), load_secret(options.rdzv_secret_file, os.environ))
+    return Nodes(
+        nnodes, least, (host, int(port)), load_secret(options.rdzv_secret_file, os.environ), interface=interface
+    )
 
 
 def parse_etcd_conf(text: str) -> tuple[tuple[str, str], ...]:

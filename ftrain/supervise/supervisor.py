@@ -51,7 +51,7 @@ from ftrain.supervise.attempt import Attempt, Launcher, attempt_env, kill, new_l
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.hang import QUIET_PHASES, HangWatch, process_state
 from ftrain.supervise.ledger import Ledger
-from ftrain.supervise.link import connect, rendezvous
+from ftrain.supervise.link import connect, rendezvous, worker_env
 from ftrain.supervise.options import (
     EXIT_DONE,
     EXIT_PEER_LOST,
@@ -63,7 +63,7 @@ from ftrain.supervise.options import (
 )
 from ftrain.supervise.outage import StorageWait
 from ftrain.supervise.outcome import Outcome, classify
-from ftrain.supervise.plan import Plan, generation_env, plan_key
+from ftrain.supervise.plan import Plan, plan_key
 from ftrain.supervise.restarts import RestartPolicy
 
 POLL = 0.1
@@ -219,7 +219,7 @@ class Supervisor:
         token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
         train_args, hidden = hide_credentials(self.train_args)
         env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.node, hidden)
-        env |= {STORAGE_WAIT_ENV: str(self.options.storage_wait), **generation_env(plan, self.nnodes)}
+        env |= {STORAGE_WAIT_ENV: str(self.options.storage_wait), **worker_env(plan, self.nodes)}
         logs = new_log_dir(self.attempt_logs, plan)
         arguments = rendezvous(plan, self.nodes, self.options)
         command = self.launcher.command(arguments, train_args, logs)

@@ -5,6 +5,7 @@ through node 0 (c10d, the default) or through a real etcd (``etcd_server``), whe
 from __future__ import annotations
 
 import json
+import os
 import re
 import signal
 import subprocess
@@ -18,16 +19,24 @@ from ftrain import procfs
 from ftrain.ckpt.format import verify_step
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_PREEMPTED, EXIT_RENDEZVOUS_TIMEOUT
-from ftrain.heartbeat import read_heartbeats
-from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.coordinator import rendezvous_args
 from ftrain.supervise.options import EXIT_PEER_LOST, EXIT_TOO_FEW_NODES, Nodes, SupervisorOptions
 from ftrain.supervise.plan import Plan
 
+from elastic_nodes import (
+    INTERVAL,
+    KEEP_ALL,
+    PACING,
+    assert_fenced_history,
+    etcd,
+    node_events,
+    start_node,
+    three_etcd_nodes,
+    training_world,
+    verify_cli,
+    wait_resizes,
+)
 from helpers import (
-    REPO,
-    SMOKE,
-    TESTS,
     child_env,
     events,
     final_manifest,
@@ -42,54 +51,11 @@ from helpers import (
 pytestmark = pytest.mark.slow
 
 HERE = Path(__file__).resolve().parent
-INTERVAL = 5
-PACE = "hooks=[{target: 'probe_hooks:PacingHook', kwargs: {seconds: 0.15}}]"
-"""Iterations of at least 0.15 s: a run that lasts while nodes come and go, however fast the machine."""
 
 
 def c10d(node: int, endpoint: str) -> list[str]:
     """The node options of a c10d run: node 0's address, and this node's rank."""
     return ["--node-rank", str(node), "--rdzv-endpoint", endpoint]
-
-
-def etcd(endpoint: str) -> list[str]:
-    """The node options of an etcd-v2 run: the same on every node."""
-    return ["--rdzv-backend", "etcd-v2", "--rdzv-endpoint", endpoint, "--rdzv-id", "test-run"]
-
-
-def start_node(
-    storage: Path, node: int, nnodes: str, rendezvous: list[str], *overrides: str, **kw: str
-) -> subprocess.Popen:
-    """One node of an elastic run: ``ftrain supervise`` with one rank, ``rendezvous`` its node options (``c10d`` or
-    ``etcd``); output in ``<storage>.node<N>.log``."""
-    options = {"rejoin_timeout": "3", "rdzv_timeout": "60", "backoff_initial": "0.2", "stop_grace": "20", **kw}
-    command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "1", "--nnodes", nnodes, *rendezvous]
-    command += [f"--{key.replace('_', '-')}={value}" for key, value in options.items()]
-    command += [SMOKE, "--storage", str(storage), f"checkpoint.interval={INTERVAL}", "dist_timeout=10"]
-    command += ["log.console=false", PACE, *overrides]
-    output = open(f"{storage}.node{node}.log", "ab")  # noqa: SIM115 - the child writes to it for its whole life
-    env = child_env({SECRET_ENV: "ftrain-test-elastic-secret", "PYTHONPATH": str(TESTS)})
-    return launch(command, cwd=REPO, env=env, stdout=output, stderr=subprocess.STDOUT)
-
-
-def node_events(storage: Path, name: str, node: int) -> list[dict]:
-    return [event for event in events(storage) if event["event"] == name and event.get("node") == node]
-
-
-def wait_resizes(storage: Path, nodes: list[int], count: int, timeout: float = 180) -> None:
-    def done() -> bool:
-        return all(len(node_events(storage, "resize", node)) >= count for node in nodes)
-
-    wait_for(done, f"{count} resize events on nodes {nodes}", timeout=timeout, interval=0.2)
-
-
-def training_world(storage: Path, world: int, node: int = 0) -> bool:
-    """Whether a world of ``world`` ranks trains on ``node`` and has committed a checkpoint."""
-    beats = (storage / "heartbeat" / f"node-{node}").glob("rank-*.json")
-    training = any(
-        f'"world": {world}' in path.read_text() and '"phase": "rollout"' in path.read_text() for path in beats
-    )
-    return training and bool(manifests(storage))
 
 
 def test_three_nodes_shrink_to_two_when_one_is_lost_and_grow_back_when_it_returns(tmp_path) -> None:
@@ -116,34 +82,8 @@ def test_three_nodes_shrink_to_two_when_one_is_lost_and_grow_back_when_it_return
     assert verify_cli(storage) == 0
 
 
-def verify_cli(storage: Path) -> int:
-    """``ftrain ckpt verify`` of a run's storage: its exit code (0: every committed step verifies)."""
-    command = [sys.executable, "-m", "ftrain", "ckpt", "verify", str(storage)]
-    return subprocess.run(command, cwd=REPO, env=child_env(), text=True).returncode
-
-
 RECOVERY_BOUND = 30
 """Seconds from losing a node to the first iteration of the smaller world, at most, in a test on a busy machine."""
-
-
-def rank_zero(storage: Path, world: int) -> tuple[int, int] | None:
-    """The node (its number) whose worker is global rank 0 of a world of ``world`` ranks, and that worker's pid."""
-    for directory in storage.glob("heartbeat/node-*"):
-        beat = read_heartbeats(directory).get(0)
-        if beat is not None and beat.world == world:
-            return int(directory.name.removeprefix("node-")), beat.pid
-    return None
-
-
-def three_etcd_nodes(storage: Path, endpoint: str, iterations: int) -> tuple[list[subprocess.Popen], int, int]:
-    """Three nodes of an etcd-v2 run (``--nnodes 2:3``) training at world size 3 with a checkpoint committed: their
-    supervisors, and the number and list index of the node whose worker is rank 0 (etcd numbered the nodes 0, 1, 2
-    as they started)."""
-    nodes = [start_node(storage, label, "2:3", etcd(endpoint), f"iterations={iterations}") for label in range(3)]
-    trains = lambda: any(training_world(storage, 3, node) for node in range(3))  # noqa: E731
-    wait_for(trains, "a world of 3 ranks training", timeout=120, interval=0.2)
-    node, worker = wait_for(lambda: rank_zero(storage, 3), "rank 0's node")
-    return nodes, node, next(index for index, proc in enumerate(nodes) if worker in procfs.descendants(proc.pid))
 
 
 @pytest.mark.cluster
@@ -204,6 +144,38 @@ def test_on_etcd_one_nodes_preemption_saves_it_leaves_with_143_and_the_others_go
         print(f"node {node}: world 2 trains {shrink['downtime']} s after the workers saved")
         (summary,) = node_events(storage, "summary", node)
         assert (summary["restarts"], summary["iterations_lost"]) == (0, 0), summary
+    assert verify_cli(storage) == 0
+
+
+@pytest.mark.cluster
+def test_on_etcd_a_node_paused_mid_commit_across_a_shrink_commits_nothing_when_resumed(tmp_path, etcd_server) -> None:
+    """Fencing: the node of rank 0 is paused (SIGSTOP on its supervisor, torchrun and worker) with its third save's
+    shards written and the commit not yet made (``HoldCommitHook``); the other two shrink to world 2 and commit at a
+    newer generation. Resumed (SIGCONT), rank 0 goes on with that commit: the fence refuses it, and says so."""
+    storage, iterations, marker, release = tmp_path / "run", 60, tmp_path / "held", tmp_path / "release"
+    hold = f"{{target: 'probe_hooks:HoldCommitHook', kwargs: {{marker: '{marker}', release: '{release}', commit: 3}}}}"
+    nodes, paused, index = three_etcd_nodes(storage, etcd_server, iterations, KEEP_ALL, hooks=(PACING, hold))
+    worker = int(wait_for(lambda: marker.exists() and marker.read_text(), "rank 0 holding its commit", timeout=60))
+    tree = [nodes[index].pid, *procfs.descendants(nodes[index].pid)]
+    assert worker in tree
+    for pid in tree:
+        os.kill(pid, signal.SIGSTOP)
+    others = sorted({0, 1, 2} - {paused})
+    wait_resizes(storage, others, 1, timeout=90)
+    newer = lambda: json.loads((storage / "FENCE.json").read_text())["generation"] > 0  # noqa: E731
+    wait_for(newer, "a commit of the world of 2", timeout=60, interval=0.2)
+    release.touch()
+    for pid in tree:
+        os.kill(pid, signal.SIGCONT)
+    assert [finish(proc, timeout=180) for proc in nodes] == [0, 0, 0]
+
+    console = Path(f"{storage}.node{index}.log").read_text()
+    refused = re.search(r"checkpoint step (\d+) refused: generation 0 of the run is fenced off", console)
+    assert refused, console
+    history = assert_fenced_history(storage)
+    print(f"paused node {paused}: refused step {refused[1]}; committed (step, generation): {history}")
+    assert history[0][1] == 0 and all(generation > 0 for step, generation in history if step >= int(refused[1]))
+    assert final_manifest(storage)["step"] == iterations
     assert verify_cli(storage) == 0
 
 
