@@ -2,22 +2,19 @@
 
     .venv/bin/python launch/bench_recovery.py [--trials 10] [--scenarios kill-rank0-iteration hang ...]
 
-Scenarios: SIGKILL of rank 0 or rank 1 in the middle of an iteration or of a checkpoint save (a step directory
-without its manifest yet, or the ``checkpoint`` phase), SIGSTOP of rank 1 (a hang, ``--hang-timeout 3``), SIGTERM to
-the supervisor (preemption) followed by the same command again, and, on two supervisors as two nodes on 127.0.0.1,
-SIGKILL of node 1's worker. Recovery is the time from the fault to the next completed iteration (the supervisor's
-``recovered`` event; for preemption, the rerun's first iteration); lost iterations are those completed before the
-fault and not in the step resumed from. The kill and hang scenarios inject every trial into one long run.
+Scenarios: SIGKILL of rank 0 or 1 in the middle of an iteration or of a save (a step directory without its manifest
+yet, or the ``checkpoint`` phase), SIGSTOP of rank 1 (a hang, ``--hang-timeout 3``), SIGTERM to the supervisor
+(preemption) and the same command again, and SIGKILL of node 1's worker of two supervisors as two nodes. Recovery
+is from the fault to the next completed iteration (the ``recovered`` event; for preemption, the rerun's first
+iteration); lost iterations: completed before the fault, not in the step resumed from. Kills and hangs: every trial
+into one long run.
 
 ``node-loss``: three elastic nodes (``--nnodes 2:3``, one rank each, ``--rejoin-timeout 5``); node 2's supervisor,
-torchrun and worker are SIGKILLed at once, and started again once the other two train on. Two rows: ``shrink``,
-from the kill to the first iteration of the 2-rank world, and ``grow``, from node 2's start to the first iteration
-of the 3-rank world (the ``resize`` events); lost iterations as above.
-
-``etcd-node-loss`` and ``etcd-preempt``: the same three nodes meeting through a private etcd (``--rdzv-backend
-etcd-v2``, where no node is special); each trial hits the node whose worker is rank 0, killing its whole process tree
-or sending its supervisor SIGTERM (it saves and leaves, exit 143), then starts it again (a new node to etcd). Rows:
-from the fault to the first iteration of the 2-rank world, and from the start to the first of the 3-rank world.
+torchrun and worker are SIGKILLed at once, then started again. ``etcd-node-loss`` and ``etcd-preempt``: the same
+three nodes meeting through a private etcd (``--rdzv-backend etcd-v2``: no node is special), each trial hitting the
+node whose worker is rank 0 (its whole process tree SIGKILLed, or SIGTERM to its supervisor: it saves and leaves
+with 143), then starting it again (a new node to etcd). Two rows each (the ``resize`` events): from the fault to the
+first iteration of the 2-rank world, and from the node's start to the first of the 3-rank world.
 """
 
 from __future__ import annotations
@@ -131,8 +128,7 @@ class Supervised:
 def wait_for(predicate, timeout: float, what: str, interval: float = 0.005):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
-        value = predicate()
-        if value:
+        if value := predicate():
             return value
         time.sleep(interval)
     raise TimeoutError(f"timed out after {timeout} s waiting for {what}")
@@ -140,12 +136,9 @@ def wait_for(predicate, timeout: float, what: str, interval: float = 0.005):
 
 def save_in_flight(storage: Path, beats_dir: Path) -> bool:
     """A checkpoint is being written: a step directory without its manifest, or a rank in the checkpoint phase."""
-    checkpoints = storage / CHECKPOINTS
-    if checkpoints.exists():
-        for step in os.scandir(checkpoints):
-            if not os.path.exists(os.path.join(step.path, MANIFEST)):
-                return True
-    return any(beat.phase == "checkpoint" for beat in read_heartbeats(beats_dir).values())
+    steps = os.scandir(storage / CHECKPOINTS) if (storage / CHECKPOINTS).exists() else []
+    unfinished = any(not os.path.exists(os.path.join(step.path, MANIFEST)) for step in steps)
+    return unfinished or any(beat.phase == "checkpoint" for beat in read_heartbeats(beats_dir).values())
 
 
 def resumed_step(run: Supervised) -> int:
@@ -266,7 +259,7 @@ def node_loss_trials(trials: int, work: Path) -> dict[str, list[dict]]:
     try:
         nodes[0].training(resumed_step(nodes[0]) + 2, ranks=1)
         for _ in range(trials):
-            lose_and_return(nodes, 2, lose_machine, lambda: node(2), nodes[0], results, "node-loss")
+            lose_and_return(nodes, 2, kill_tree, lambda: node(2), nodes[0], results, "node-loss")
     finally:
         for each in nodes:
             each.stop()
@@ -283,7 +276,7 @@ def etcd_trials(fault: str, trials: int, work: Path) -> dict[str, list[dict]]:
         options = ("--nproc-per-node", "1", "--nnodes", "2:3", "--rdzv-backend", "etcd-v2", "--rdzv-endpoint", endpoint)
         options += ("--rdzv-id", "bench", "--rejoin-timeout", str(REJOIN_TIMEOUT), "--max-restarts", str(trials + 5))
         nodes = [Supervised(storage, *options) for _ in range(3)]
-        lose = lose_machine if fault == "kill" else preempt
+        lose = kill_tree if fault == "kill" else preempt
         try:
             for _ in range(trials):
                 rank0, observer = numbered(storage, nodes)
@@ -298,51 +291,47 @@ def etcd_trials(fault: str, trials: int, work: Path) -> dict[str, list[dict]]:
 def lose_and_return(
     nodes: list[Supervised],
     index: int,
-    lose: Callable[[Supervised], None],
+    lose: Callable[[subprocess.Popen], None],
     start: Callable[[], Supervised],
     observer: Supervised,
     results: dict[str, list[dict]],
     label: str,
 ) -> None:
-    """One trial: ``lose`` node ``index``, wait for the ``observer``'s shrink, ``start`` the node again, wait for the
-    grow; the two ``resize`` events go to ``results``' two rows (shrink, then grow)."""
+    """One trial: ``lose`` node ``index`` through its supervisor's process (``kill_tree``: the machine is gone, or
+    ``preempt``), wait for the ``observer``'s shrink, ``start`` the node again, wait for the grow; the two ``resize``
+    events go to ``results``' two rows (shrink, then grow)."""
     shrinks, grows = results
     resizes = len(observer.events("resize"))
     at = time.time()
-    lose(nodes[index])
+    lose(nodes[index].proc)
     shrink = observer.next_event("resize", resizes)
     results[shrinks].append(resize_result(shrink, at))
-    observer.training(shrink["step"] + 2, ranks=1)
+    observer.training((shrink["step"] or 0) + 2, ranks=1)  # None: resumed fresh
     at = time.time()
     nodes[index] = start()
     grow = observer.next_event("resize", resizes + 1)
     results[grows].append(resize_result(grow, at))
-    observer.training(grow["step"] + 2, ranks=1)
+    observer.training((grow["step"] or 0) + 2, ranks=1)
     shrunk, grown = format_trial(results[shrinks][-1]), format_trial(results[grows][-1])
     print(f"  {label} trial {len(results[grows])}: shrink {shrunk}; grow {grown}", flush=True)
 
 
-def lose_machine(node: Supervised) -> None:
-    """The machine is gone: supervisor, torchrun and worker at once."""
-    kill_tree(node.proc)
-
-
-def preempt(node: Supervised) -> None:
-    """SIGTERM to the node's supervisor: the workers save, and it leaves with 143."""
-    node.proc.send_signal(signal.SIGTERM)
-    assert node.proc.wait(timeout=120) == EXIT_PREEMPTED
+def preempt(supervisor: subprocess.Popen) -> None:
+    """SIGTERM to a node's supervisor: the workers save, and it leaves with 143."""
+    supervisor.send_signal(signal.SIGTERM)
+    assert supervisor.wait(timeout=120) == EXIT_PREEMPTED
 
 
 def numbered(storage: Path, nodes: list[Supervised]) -> tuple[Supervised, Supervised]:
-    """Once a 3-rank world trains: every node learns its number (etcd gave it); the node whose worker is rank 0, and
-    the one of rank 1 (to watch)."""
+    """Once a 3-rank world trains past its first commit (a fault before a supervisor saw the world of 3 counts as a
+    restart, not a resize): every node learns its number (from etcd); the nodes of rank 0 and of rank 1 (to watch)."""
 
     def world_of_three() -> dict[int, tuple[Supervised, Path]] | None:
         found = {}
         for directory in storage.glob("heartbeat/node-*"):
             for beat in read_heartbeats(directory).values():
                 owner = [node for node in nodes if beat.pid in procfs.descendants(node.proc.pid)]
-                if beat.world == 3 and beat.phase in ("rollout", "update") and owner:
+                if beat.world == 3 and beat.committed_step and beat.phase in ("rollout", "update") and owner:
                     found[beat.rank] = (owner[0], directory)
         return found if len(found) == 3 else None
 

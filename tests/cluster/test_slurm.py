@@ -12,7 +12,10 @@ from pathlib import Path
 
 import pytest
 
-from helpers import REPO, SMOKE, TESTS, child_env, events, final_manifest, run_train, training
+from ftrain import procfs
+from ftrain.heartbeat import Heartbeat, read_heartbeats
+
+from helpers import REPO, SMOKE, TESTS, child_env, events, final_manifest, run_train, wait_for
 from slurm_cluster import SlurmCluster
 
 pytestmark = [
@@ -58,10 +61,25 @@ def submit(
     return slurm.sbatch(*command, pace(seconds), cwd=REPO, env=env)
 
 
-def both_nodes_training(storage: Path, iteration: int = 10) -> None:
-    """Wait for both nodes to train past ``iteration`` (one rank per node: node N runs rank N)."""
-    for node in (0, 1):
-        training(storage / "heartbeat" / f"node-{node}", iteration, ranks=(node,))
+def both_nodes_training(storage: Path, iteration: int = 10) -> dict[int, tuple[int, Heartbeat]]:
+    """Once both nodes (one rank each) train a world of 2 past ``iteration``: rank -> (its node's number, from its
+    heartbeat directory: SLURM's node id with c10d, etcd's number with etcd; its heartbeat)."""
+
+    def ready() -> dict[int, tuple[int, Heartbeat]] | None:
+        found = {}
+        for directory in storage.glob("heartbeat/node-*"):
+            for beat in read_heartbeats(directory).values():
+                if beat.world == 2 and beat.iteration >= iteration and beat.phase in ("rollout", "update"):
+                    found[beat.rank] = (int(directory.name.removeprefix("node-")), beat)
+        return found if len(found) == 2 else None
+
+    return wait_for(ready, f"both nodes at iteration {iteration}")
+
+
+def slurm_node(pid: int) -> str:
+    """The SLURM node a job process runs on (``SLURMD_NODENAME``, which slurmd puts in every task's environment)."""
+    variables = procfs.read(pid, "environ").split(b"\0")
+    return next(v.split(b"=", 1)[1].decode() for v in variables if v.startswith(b"SLURMD_NODENAME="))
 
 
 def finished(slurm: SlurmCluster, job_id: int, storage: Path) -> dict[str, str]:
@@ -169,17 +187,35 @@ def test_a_lost_node_requeues_the_job_which_continues_on_the_nodes_left(slurm, r
     assert_verified_and_equal(storage, reference)
 
 
-def test_an_elastic_job_trains_on_when_a_node_dies(slurm, tmp_path):
-    """``FTRAIN_NNODES=1:2 sbatch --no-kill``: n2 dies, the job keeps n1, where node 0 trains on alone to the end."""
+@pytest.mark.parametrize("rendezvous", ["c10d", "etcd"])
+def test_an_elastic_job_trains_on_when_a_node_dies(slurm, rendezvous, request, tmp_path):
+    """``FTRAIN_NNODES=1:2 sbatch --no-kill``: a node dies, the job keeps the other, which trains on alone to the end.
+    c10d: n2 dies (node 1; node 0 must live). etcd (``FTRAIN_ETCD``): the node of rank 0 dies, which hosts the
+    workers' store: either node, as torch orders nodes by host name, then by torchrun's pid (here one host name).
+    When that is the batch host (n1), the training ends on n2 all the same, but SLURM's record cannot: the batch
+    script died with its host, and SLURM keeps the job RUNNING on n2 until its time limit or ``scancel``."""
     storage = tmp_path / "run"
-    job_id = submit(slurm, storage, "--no-kill", supervise=("--rejoin-timeout=3",), env={"FTRAIN_NNODES": "1:2"})
-    both_nodes_training(storage, INTERVAL + 5)
-    slurm.kill_node("n2")
-    job = finished(slurm, job_id, storage)
-    assert (job["Restarts"], job["NodeList"]) == ("0", "n1")  # not requeued: the allocation shrank to n1
+    env = {"FTRAIN_NNODES": "1:2"}
+    if rendezvous == "etcd":
+        env["FTRAIN_ETCD"] = request.getfixturevalue("etcd_server")
+    job_id = submit(slurm, storage, "--no-kill", supervise=("--rejoin-timeout=3",), env=env)
+    beats = both_nodes_training(storage, INTERVAL + 5)
+    lost_rank = 1 if rendezvous == "c10d" else 0
+    (lost, beat), (kept, _) = beats[lost_rank], beats[1 - lost_rank]
+    victim, job = slurm_node(beat.pid), slurm.job(job_id)
+    (survivor,) = set(slurm.run("scontrol", "show", "hostnames", job["NodeList"]).split()) - {victim}
+    slurm.kill_node(victim)
+    if victim == job["BatchHost"]:
+        slurm.wait(lambda: any(e["event"] == "summary" for e in events(storage)), "the survivor's summary", 180)
+        job = slurm.wait(lambda: (j := slurm.job(job_id))["NodeList"] == survivor and j, "the job shrunk", 60)
+        assert job["JobState"] == "RUNNING", job  # n1 DOWN and out of the job, which lives on without its script
+    else:
+        job = finished(slurm, job_id, storage)
+        assert (job["Restarts"], job["NodeList"]) == ("0", survivor)  # not requeued: the allocation shrank
+    assert [(e["node"], e["code"]) for e in events(storage) if e["event"] == "summary"] == [(kept, 0)]
     manifest = final_manifest(storage)
     assert manifest["step"] == ITERATIONS and [world for _, world in manifest["world_sizes"]] == [2, 1]
-    (resize,) = [e for e in events(storage) if e["event"] == "resize" and e["node"] == 0]
-    assert (resize["old_world"], resize["new_world"], resize["why"]) == (2, 1, "node 1 lost"), resize
+    (resize,) = [e for e in events(storage) if e["event"] == "resize" and e["node"] == kept]
+    assert (resize["old_world"], resize["new_world"], resize["why"]) == (2, 1, f"node {lost} lost"), resize
     assert resize["lost"] <= INTERVAL, resize
     assert_every_step_verifies(storage)
