@@ -2,11 +2,11 @@
 
 Resuming is ``resume.py``; one save is ``save.py``; when to save is ``schedule.py``. This module acts on what the
 ranks agreed for each save: a committed step (hooks hear of it), a failed one (training goes on, and the newest state
-is tried again as soon as the failed save has settled), an unloadable one (stop). A save that must commit (the last
-one of a run, a stop, or one with more unsaved work than ``checkpoint.max_unsaved``) holds training until it does:
-it is retried with backoff, one line each time, for up to the storage wait (``FTRAIN_STORAGE_WAIT``, which
-``ftrain supervise`` sets from ``--storage-wait``), then the rank ends with ``StorageUnavailable``: nothing committed
-is lost.
+is tried again as soon as the failed save has settled, then after waits that double up to ``RETRY_DELAY``), an
+unloadable one (stop). A save that must commit (the last one of a run, a stop, or one with more unsaved work than
+``checkpoint.max_unsaved``) holds training until it does: it is retried with backoff, one line each time, for up to
+the storage wait (``FTRAIN_STORAGE_WAIT``, which ``ftrain supervise`` sets from ``--storage-wait``), then the rank ends
+with ``StorageUnavailable``: nothing committed is lost.
 
 With ``checkpoint.async_save`` (the default) a save is a snapshot handed to the rank's writer thread, and up to
 ``MAX_IN_FLIGHT`` may be in flight; without it, the rank writes and agrees inline, a plain ``torch.save`` per file.
@@ -41,6 +41,10 @@ WAIT_BEAT = 0.5
 """Seconds between two calls of ``while_waiting`` while a rank waits for a save (its heartbeat: not a hang)."""
 HOLD_DELAY = (1.0, 30.0)
 """Seconds between two tries of a held save: the first, and the longest (doubling, with jitter)."""
+RETRY_DELAY = 8.0
+"""The longest wait between two tries of a failed save while training goes on (the first comes as soon as the
+failed one has settled, then 1, 2, 4 s...): each try is a snapshot, a spool write and requests to the storage,
+which back to back took 13 s of the two cores during two 60 s outages (``launch/bench_chaos.py``)."""
 FAILURE_LINES = 30.0
 """Seconds between two lines about saves that keep failing (the first failure and the recovery are always told)."""
 
@@ -86,6 +90,8 @@ class Checkpointer:
         """Snapshots whose saves are over: the next snapshots copy into their memory."""
         self._failing: tuple[float, str] | None = None
         """(since when, why) saves fail; None while the newest settled save committed."""
+        self._failures = 0
+        """Saves failed in a row."""
         self._told = -math.inf
         self._checked_loadable = False
         self.last_blocking_s = 0.0
@@ -120,7 +126,9 @@ class Checkpointer:
         self._settle(MAX_IN_FLIGHT)  # the outcomes that have arrived
         now = time.monotonic()
         if self._failing is not None:
-            return not self._pending, self.schedule.over_bound(iteration, now)
+            delay = 0.0 if self._failures < 2 else min(RETRY_DELAY, 2.0 ** (self._failures - 2))
+            hold = self.schedule.over_bound(iteration, now)
+            return not self._pending and (hold or now - self.schedule.last_save >= delay), hold
         return self.schedule.due(iteration, now), False
 
     def save(self, trainer: Checkpointable, wait: bool = False, hold: bool = False) -> None:
@@ -231,12 +239,14 @@ class Checkpointer:
                 since = now - self._failing[0]
                 self.log(f"checkpoint step {step} committed: saves work again after {since:.0f} s", every_rank=True)
             self._failing = None
+            self._failures = 0
             self.committed_step = step
             self.last_commit_s = now - self.schedule.committed[1]  # from when its state was taken
             self.on_commit(step, detail)
             return
         first = self._failing is None
         self._failing = (now if first else self._failing[0], detail)
+        self._failures += 1
         if first or now - self._told >= FAILURE_LINES:
             self._told = now
             iterations, seconds = self.schedule.unsaved(step, now)

@@ -27,6 +27,7 @@ May import: lifeline, and by name in the pool (``__main__.py``) the entries it f
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -121,10 +122,12 @@ def handover(entry: str, argv: list[str]) -> int | None:
         print(f"ftrain: the warm pool ended while it ran {entry} for this process", file=sys.stderr)
         return 1
     status = ended[0]["status"]
-    if os.WIFSIGNALED(status):
+    if os.WIFSIGNALED(status):  # end by the same signal: torchrun tells "killed by SIGKILL" from "exited 1"
         number = os.WTERMSIG(status)
-        signal.signal(number, signal.SIG_DFL)
+        with contextlib.suppress(OSError, ValueError):  # SIGKILL and SIGSTOP have no handler to reset
+            signal.signal(number, signal.SIG_DFL)
         os.kill(os.getpid(), number)
+        return 128 + number  # a signal this process cannot die of
     return os.waitstatus_to_exitcode(status)
 
 

@@ -75,7 +75,8 @@ def test_the_pool_runs_the_command_with_the_stand_ins_streams_directory_environm
 
 def test_the_fork_lives_in_the_stand_ins_directory_and_environment_and_dies_with_it(pool, tmp_path):
     """A fork that runs (here torchrun's stand-in for a worker that sleeps) sees the stand-in's working directory
-    and environment; SIGSTOPped and then left by its SIGKILLed stand-in, the pool SIGKILLs it."""
+    and environment; SIGSTOPped and then left by its SIGKILLed stand-in, the pool SIGKILLs it; SIGKILLed, its
+    stand-in ends by SIGKILL too."""
     argv = ["--standalone", "--nproc-per-node=1", "--no-python", "sleep", "300"]
     sleep = b"sleep\x00300\x00"
     waiting = stand_in("torchrun", argv, cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -93,6 +94,14 @@ def test_the_fork_lives_in_the_stand_ins_directory_and_environment_and_dies_with
         waiting.kill()
         waiting.wait()
         wait_for(lambda: procfs.stat_fields(child)[:1] in ([], ["Z"]), "the stopped fork to be killed", timeout=10)
+    finally:
+        os.kill(sleeper, signal.SIGKILL)
+
+    mirror = stand_in("torchrun", argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    sleeper = wait_for(sleeping, "the next torchrun's worker", timeout=120)
+    try:
+        os.kill(int(procfs.stat_fields(sleeper)[1]), signal.SIGKILL)
+        assert mirror.wait(timeout=30) == -signal.SIGKILL  # the stand-in ends as its fork did
     finally:
         os.kill(sleeper, signal.SIGKILL)
 
