@@ -6,8 +6,9 @@ then checks that its parent is still that supervisor (it may have ended before t
 children, must outlive a torchrun that dies alone (the supervisor then has them save: see ``supervise/supervisor.py``),
 so a kernel tie to their parent does not fit them: each runs a thread that looks at the supervisor every ``POLL``
 seconds and, once it is gone, SIGKILLs every process of its attempt (found by the attempt token, so a stopped sibling
-too, which no thread of its own can end), itself last. Without ``FTRAIN_SUPERVISOR`` (plain ``torchrun -m ftrain
-train``) nothing of this happens.
+too, which no thread of its own can end), itself last. Warm workers (``ftrain/warm``) carry the token in their
+stand-ins, whose end makes the pool SIGKILL their forks; the pool itself dies with the supervisor, and its forks with
+it. Without ``FTRAIN_SUPERVISOR`` (plain ``torchrun -m ftrain train``) nothing of this happens.
 """
 
 from __future__ import annotations

@@ -28,7 +28,7 @@ LAYERS = {
         "redact",
     },
     "tools": {"train", "ckpt", "config", "errors", "progress"},
-    "supervise": {"ckpt", "config", "errors", "errorfile", "heartbeat", "redact", "procfs", "lifeline"},
+    "supervise": {"ckpt", "config", "errors", "errorfile", "heartbeat", "redact", "procfs", "lifeline", "warm"},
     "train": {"policy", "ckpt", "dist", "config", "errors", "errorfile", "heartbeat", "track", "redact"},
     "track": {"config", "errors", "redact"},
     "policy": {"ckpt", "config", "errors", "progress"},

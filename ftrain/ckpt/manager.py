@@ -2,7 +2,7 @@
 
 Resuming is ``resume.py``; one save is ``save.py``; when to save is ``schedule.py``. This module acts on what the
 ranks agreed for each save: a committed step (hooks hear of it), a failed one (training goes on, and the newest state
-is tried again as soon as the failed save has settled, then after waits that double up to ``RETRY_DELAY``), an
+is tried again as soon as the failed save has settled, then after waits that double up to ``RETRY_DELAY_MAX``), an
 unloadable one (stop). A save that must commit (the last one of a run, a stop, or one with more unsaved work than
 ``checkpoint.max_unsaved``) holds training until it does: it is retried with backoff, one line each time, for up to
 the storage wait (``FTRAIN_STORAGE_WAIT``, which ``ftrain supervise`` sets from ``--storage-wait``), then the rank ends
@@ -41,9 +41,9 @@ WAIT_BEAT = 0.5
 """Seconds between two calls of ``while_waiting`` while a rank waits for a save (its heartbeat: not a hang)."""
 HOLD_DELAY = (1.0, 30.0)
 """Seconds between two tries of a held save: the first, and the longest (doubling, with jitter)."""
-RETRY_DELAY = 8.0
-"""The longest wait between two tries of a failed save while training goes on (the first comes as soon as the
-failed one has settled, then 1, 2, 4 s...): each try is a snapshot, a spool write and requests to the storage,
+RETRY_DELAY_MAX = 8.0
+"""The longest wait between a failed save's end and the next try while training goes on (the first comes as soon as
+the failed one has settled, then after 1, 2, 4 s...): each try is a snapshot, a spool write and requests to the storage,
 which back to back took 13 s of the two cores during two 60 s outages (``launch/bench_chaos.py``)."""
 FAILURE_LINES = 30.0
 """Seconds between two lines about saves that keep failing (the first failure and the recovery are always told)."""
@@ -92,6 +92,8 @@ class Checkpointer:
         """(since when, why) saves fail; None while the newest settled save committed."""
         self._failures = 0
         """Saves failed in a row."""
+        self._failed_at = -math.inf
+        """When the newest failed save settled (monotonic)."""
         self._told = -math.inf
         self._checked_loadable = False
         self.last_blocking_s = 0.0
@@ -121,14 +123,14 @@ class Checkpointer:
 
     def votes(self, iteration: int) -> tuple[bool, bool]:
         """This rank's votes after ``iteration``, which the ranks sum: save now, and hold (train no further until
-        that save commits). While saves fail: save as soon as the failed one has settled, hold once more work than
-        ``checkpoint.max_unsaved`` is unsaved."""
+        that save commits). While saves fail: save once the failed one has settled and its wait is over, hold once
+        more work than ``checkpoint.max_unsaved`` is unsaved."""
         self._settle(MAX_IN_FLIGHT)  # the outcomes that have arrived
         now = time.monotonic()
         if self._failing is not None:
-            delay = 0.0 if self._failures < 2 else min(RETRY_DELAY, 2.0 ** (self._failures - 2))
+            delay = 0.0 if self._failures < 2 else min(RETRY_DELAY_MAX, 2.0 ** min(self._failures - 2, 8))
             hold = self.schedule.over_bound(iteration, now)
-            return not self._pending and (hold or now - self.schedule.last_save >= delay), hold
+            return not self._pending and (hold or now - self._failed_at >= delay), hold
         return self.schedule.due(iteration, now), False
 
     def save(self, trainer: Checkpointable, wait: bool = False, hold: bool = False) -> None:
@@ -247,6 +249,7 @@ class Checkpointer:
         first = self._failing is None
         self._failing = (now if first else self._failing[0], detail)
         self._failures += 1
+        self._failed_at = now
         if first or now - self._told >= FAILURE_LINES:
             self._told = now
             iterations, seconds = self.schedule.unsaved(step, now)

@@ -18,8 +18,10 @@ import contextlib
 import json
 import math
 import os
+import secrets
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -27,11 +29,12 @@ from pathlib import Path
 
 from ftrain import errorfile, procfs
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, TOKEN_ENV
-from ftrain.lifeline import supervisor_env
+from ftrain.lifeline import SUPERVISOR_ENV, supervisor_env
 from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.options import SupervisorOptions, Workers, parse_workers
 from ftrain.supervise.outcome import WorkerFailure, blame
 from ftrain.supervise.plan import Plan
+from ftrain.warm import LISTENER_ENV, POOL_ENV, address
 
 POLL = 0.1
 TORCHRUN = "ftrain.dist.torchrun"
@@ -80,19 +83,25 @@ def _inherited() -> dict[str, str]:
 
 
 class Launcher:
-    """How this node starts its attempts: torchrun's command line, warm (torchrun and its workers forked from this
-    node's pool, ``ftrain/warm``, started here) or cold. A test's own worker module (``WORKER_MODULE_ENV``) starts
-    cold: the pool preloads ftrain's."""
+    """How this node starts its attempts: warm (torchrun and its workers forked from this node's pool, ``ftrain/warm``,
+    started here) or cold. A test's own worker module (``WORKER_MODULE_ENV``) starts cold: the pool preloads ftrain's.
+    """
 
-    def __init__(self, options: SupervisorOptions, log_dir: Path) -> None:
+    def __init__(self, options: SupervisorOptions, log: Path) -> None:
+        """``log``: the pool's output."""
         self.nproc_per_node = options.nproc_per_node
         self.module = os.environ.get(WORKER_MODULE_ENV, "ftrain")
+        self.secret = secrets.token_hex(16)
         warm = parse_workers(options.workers) is Workers.WARM and self.module == "ftrain"
-        self.pool = self._start_pool(log_dir / "warm-pool.log") if warm else None
+        self.pool = self._start_pool(log) if warm else None
 
-    def command(self, rendezvous: list[str], train_args: list[str], log_dir: Path) -> list[str]:
-        """One attempt: torchrun without restarts of its own (the supervisor owns the restart policy)."""
-        return [
+    def command(self, rendezvous: list[str], train_args: list[str], log_dir: Path) -> tuple[list[str], dict[str, str]]:
+        """One attempt: torchrun without restarts of its own (the supervisor owns the restart policy), and what its
+        environment adds for a warm start."""
+        if self.pool is not None and self.pool.poll() is not None:
+            print(f"ftrain supervise: the warm pool ended (exit {self.pool.returncode}): cold starts", file=sys.stderr)
+            self.pool = None
+        command = [
             sys.executable,
             "-m",
             *([WARM, "torchrun"] if self.pool else [TORCHRUN]),
@@ -106,22 +115,40 @@ class Launcher:
             "train",
             *train_args,
         ]
+        return command, {POOL_ENV: f"{self.pool.pid}:{self.secret}"} if self.pool else {}
 
     def close(self) -> None:
         if self.pool is not None:
             self.pool.kill()
             self.pool.wait()
 
-    def _start_pool(self, log: Path) -> subprocess.Popen:
-        """The pool, output to ``log``. Its environment is the workers' as far as it is known before torchrun: imports
-        that read one (OpenMP's thread count: torchrun's 1 for several workers a node) see what a cold worker's do."""
+    def _start_pool(self, log: Path) -> subprocess.Popen | None:
+        """The pool on a socket bound here (none, with a line, where its name is taken). Its environment is the
+        workers' as far as it is known before torchrun: imports that read one (OpenMP's thread count: torchrun's 1 for
+        several workers a node) see what a cold worker's do."""
         env = _inherited()
+        listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            listener.bind(address(env[SUPERVISOR_ENV]))
+            listener.listen(64)
+        except (OSError, KeyError) as error:  # KeyError: no /proc to name this supervisor by
+            listener.close()
+            print(f"ftrain supervise: no warm pool ({error}): cold starts", file=sys.stderr)
+            return None
+        env[LISTENER_ENV] = f"{listener.fileno()}:{self.secret}"
         if self.nproc_per_node > 1:
             env.setdefault("OMP_NUM_THREADS", "1")
         log.parent.mkdir(parents=True, exist_ok=True)
-        with log.open("ab") as output:
+        with listener, log.open("ab") as output:
             command = [sys.executable, "-u", "-m", WARM, "serve"]
-            return subprocess.Popen(command, env=env, stdout=output, stderr=subprocess.STDOUT, start_new_session=True)
+            return subprocess.Popen(
+                command,
+                env=env,
+                stdout=output,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+                pass_fds=[listener.fileno()],
+            )
 
 
 def new_log_dir(root: Path, plan: Plan) -> Path:

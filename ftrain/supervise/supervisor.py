@@ -132,7 +132,7 @@ class Supervisor:
         self.policy = RestartPolicy(options)
         self.ledger = Ledger(options.nproc_per_node, self.events)
         self.storage_wait = StorageWait(storage, options.storage_wait, self.events, self._sleep)
-        self.launcher = Launcher(options, self.attempt_logs)
+        self.launcher = Launcher(options, log_dir / f"warm-pool{'-' + node_dir if node_dir else ''}.log")
 
     def on_signal(self, number: int, frame: object) -> None:
         self.signals.append(number)
@@ -222,12 +222,12 @@ class Supervisor:
         env |= {STORAGE_WAIT_ENV: str(self.options.storage_wait), **worker_env(plan, self.nodes)}
         logs = new_log_dir(self.attempt_logs, plan)
         arguments = rendezvous(plan, self.nodes, self.options)
-        command = self.launcher.command(arguments, train_args, logs)
+        command, warm = self.launcher.command(arguments, train_args, logs)
         logged = redact_command(command)
         message = f"attempt {plan.attempt}: launching torchrun"
         self.events("start", message, attempt=plan.attempt, command=logged, logs=str(logs))
         self.hangs.restart(time.monotonic())
-        return Attempt(plan, command, env, token, logs)
+        return Attempt(plan, command, env | warm, token, logs)
 
     def _watch(self, attempt: Attempt) -> Outcome:
         preempt_deadline = None
@@ -271,7 +271,7 @@ class Supervisor:
     def _check_workers(self, attempt: Attempt, beats: dict[int, Heartbeat]) -> None:
         """A worker that died mid-training dooms the others (no collective can complete): SIGKILL them now rather
         than wait for them to fail on the broken group and for torchrun to notice (1-2 s measured here); torchrun
-        still reports every exit code."""
+        still reports every exit code (the dead rank's own: a warm worker's stand-in is left to report it)."""
         dead = [r for r, b in beats.items() if b.phase not in QUIET_PHASES and process_state(b.pid) in ("gone", "Z")]
         if dead:
             latest = read_heartbeats(self.heartbeat_dir)  # a rank may have finished since we looked
@@ -281,8 +281,8 @@ class Supervisor:
         attempt.dead = sorted(dead)
         attempt.killed = set(beats) - set(dead)
         self.events("worker_died", attempt=attempt.plan.attempt, ranks=attempt.dead)
-        for pid in attempt.workers():
-            kill(pid, signal.SIGKILL)
+        for rank in attempt.killed:
+            kill(beats[rank].pid, signal.SIGKILL)
 
     def _check_peers(self, attempt: Attempt, now: float) -> Outcome | None:
         """Several nodes: stop this node's group when another node failed the attempt or ended the run."""

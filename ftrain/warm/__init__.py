@@ -19,8 +19,9 @@ finds stand-ins by their attempt's token), the pool SIGKILLs its child at once, 
 pool cannot be reached (``--workers cold``, plain ``torchrun -m ftrain train``, or it ended) or closes the connection
 before it forks, the stand-in simply runs the command itself, cold.
 
-The socket is in Linux's abstract namespace (no file to leave behind) and the pool serves only processes of its own
-user (``SO_PEERCRED``): whoever may run code as that user could run ``ftrain train`` anyway.
+The supervisor binds the socket (in Linux's abstract namespace: no file to leave behind) before it starts the pool,
+and hands it over; a name someone else holds already means cold starts, with a line. A stand-in talks only to the
+pool's pid (``SO_PEERCRED``), the pool only to processes of its user that know the secret of ``POOL_ENV``.
 
 May import: lifeline, and by name in the pool (``__main__.py``) the entries it forks: cli, dist.
 """
@@ -37,6 +38,17 @@ import sys
 
 from ftrain.lifeline import SUPERVISOR_ENV
 
+POOL_ENV = "FTRAIN_WARM_POOL"
+"""In the attempts' environment: ``PID:SECRET`` of this node's pool. A stand-in talks only to that process (the
+socket's name can be guessed, and bound first, by anyone on the machine) and proves itself with the secret (a
+process of the same user in another container may share the network namespace, and so the name)."""
+LISTENER_ENV = "FTRAIN_WARM_LISTENER"
+"""In the pool's environment: the descriptor of the socket the supervisor bound for it, ``FD:SECRET``."""
+START_TIMEOUT = 120.0
+"""Seconds a stand-in waits for its fork (the pool may still be importing, at the first attempt) before it runs
+cold."""
+PEER = struct.Struct("iII")
+"""``struct ucred``: pid, uid, gid of the process at the other end of a Unix socket."""
 HEADER = struct.Struct("!I")
 """The length of a JSON message that follows."""
 STREAMS = (0, 1, 2)
@@ -58,66 +70,82 @@ def send_message(connection: socket.socket, message: dict, fds: tuple[int, ...] 
 
 
 def receive_message(connection: socket.socket, max_fds: int = 0) -> tuple[dict, list[int]] | None:
-    """The next message and the file descriptors that came with it; None once the other end has closed."""
+    """The next message and the descriptors that came with it; None once the other end has closed. A message cut
+    short, or not JSON, raises (OSError, ValueError), its descriptors closed."""
     header, fds = (
         socket.recv_fds(connection, HEADER.size, max_fds)[:2] if max_fds else (connection.recv(HEADER.size), [])
     )
-    while header and len(header) < HEADER.size:
-        header += connection.recv(HEADER.size - len(header))
-    if len(header) < HEADER.size:
+    if not header:
         return None
-    (length,) = HEADER.unpack(header)
+    try:
+        (length,) = HEADER.unpack(header + _receive(connection, HEADER.size - len(header)))
+        return json.loads(_receive(connection, length)), fds
+    except (OSError, ValueError):
+        for fd in fds:
+            os.close(fd)
+        raise
+
+
+def _receive(connection: socket.socket, size: int) -> bytes:
     data = b""
-    while len(data) < length:
-        chunk = connection.recv(length - len(data))
+    while len(data) < size:
+        chunk = connection.recv(size - len(data))
         if not chunk:
-            return None
+            raise ConnectionError("closed within a message")
         data += chunk
-    return json.loads(data), fds
+    return data
 
 
 def handover(entry: str, argv: list[str]) -> int | None:
     """In a stand-in for ``entry`` (see ``ENTRIES``) under a supervisor whose pool answers: the pool's fork runs
     ``entry`` with ``argv``, this process waits for it and returns its exit code (or ends by its signal). None: no
     pool here, run cold."""
-    supervisor = os.environ.get(SUPERVISOR_ENV)
-    if not supervisor:
+    supervisor, (pool, _, secret) = os.environ.get(SUPERVISOR_ENV), os.environ.get(POOL_ENV, "").partition(":")
+    if not supervisor or not pool.isdigit():
         return None
+    _open_streams()
     connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    connection.settimeout(START_TIMEOUT)
     try:
         connection.connect(address(supervisor))
+        server, uid, _ = PEER.unpack(connection.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, PEER.size))
     except OSError:
+        connection.close()
+        return None
+    if (server, uid) != (int(pool), os.getuid()):  # not the pool this supervisor started: tell it nothing
         connection.close()
         return None
     pending: list[int] = []
     worker: list[int] = []
 
     def forward(number: int, frame: object) -> None:
-        if worker:
-            os.kill(worker[0], number)
-        else:
+        if not worker:
             pending.append(number)
+            return
+        with contextlib.suppress(ProcessLookupError):  # it has ended: its status is on the way
+            os.killpg(worker[0], number)  # its group, as torchrun signals a worker's (the fork leads its own)
 
     previous = {number: signal.signal(number, forward) for number in FORWARDED}
-    request = {
-        "entry": entry,
-        "argv": argv,
-        "sys_argv": sys.argv,
-        "env": dict(os.environ),
-        "cwd": os.getcwd(),
-        "umask": _umask(),
-    }
-    send_message(connection, request, STREAMS)
-    started = receive_message(connection)
-    if started is None:  # the pool ended before it forked this worker (it could not import them): run cold
+    request = {"secret": secret, "entry": entry, "argv": argv, "sys_argv": sys.argv, "env": dict(os.environ)}
+    try:
+        send_message(connection, {**request, "cwd": os.getcwd(), "umask": _umask()}, STREAMS)
+        started = receive_message(connection)
+    except (OSError, ValueError):  # refused, or no fork within START_TIMEOUT
+        started = None
+    if started is None:  # the pool did not fork it: run cold, with the signals that came meanwhile
+        connection.close()
         for number, handler in previous.items():
             signal.signal(number, handler)
-        connection.close()
+        for number in pending:
+            signal.raise_signal(number)
         return None
+    connection.settimeout(None)
     worker.append(started[0]["pid"])
     for number in pending:
-        os.kill(worker[0], number)
+        forward(number, None)
     ended = receive_message(connection)
+    for number in FORWARDED:  # its status is in: a late signal must not end this process otherwise
+        signal.signal(number, signal.SIG_IGN)
     if ended is None:  # the pool died, and its workers with it
         print(f"ftrain: the warm pool ended while it ran {entry} for this process", file=sys.stderr)
         return 1
@@ -129,6 +157,16 @@ def handover(entry: str, argv: list[str]) -> int | None:
         os.kill(os.getpid(), number)
         return 128 + number  # a signal this process cannot die of
     return os.waitstatus_to_exitcode(status)
+
+
+def _open_streams() -> None:
+    """Standard streams that are closed get /dev/null: else the connection would take descriptor 0 and be handed to
+    the fork as its stdin (and never close while it lives)."""
+    for stream in STREAMS:
+        try:
+            os.fstat(stream)
+        except OSError:
+            os.dup2(os.open(os.devnull, os.O_RDWR), stream)
 
 
 def _umask() -> int:

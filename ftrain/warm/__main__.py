@@ -1,6 +1,6 @@
 """``python -u -m ftrain.warm serve``: the warm pool, which ``ftrain supervise`` starts beside its attempts (see
-``__init__``). It binds its socket at once (a stand-in that comes early waits in the queue instead of starting
-cold), imports what it forks, then forks one child per stand-in. A forked child leaves the pool's loop with the
+``__init__``), on a socket the supervisor bound (a stand-in that comes early waits in its queue instead of starting
+cold). It imports what it forks, then forks one child per stand-in. A forked child leaves the pool's loop with the
 stand-in's request and runs its entry as the stand-in would have.
 
 ``python -m ftrain.warm torchrun ARGS``: the supervisor's stand-in for ``python -m ftrain.dist.torchrun ARGS``."""
@@ -9,33 +9,36 @@ from __future__ import annotations
 
 import atexit
 import contextlib
+import hmac
 import importlib
 import os
 import select
 import signal
 import socket
-import struct
 import sys
 import threading
 import traceback
+import weakref
 from typing import NoReturn
 
-from ftrain.lifeline import SUPERVISOR_ENV, die_with_parent, die_with_supervisor
-from ftrain.warm import ENTRIES, STREAMS, address, handover, receive_message, send_message
+from ftrain.lifeline import die_with_parent, die_with_supervisor
+from ftrain.warm import ENTRIES, LISTENER_ENV, PEER, STREAMS, handover, receive_message, send_message
 
 PRELOAD = ("ftrain.train.trainer", "ftrain.policy.robot", "gymnasium.envs.mujoco")
 """What ``ftrain train`` imports before its first iteration, MuJoCo's gymnasium environments included (the entries'
 modules come first)."""
 TORCHRUN = "torchrun"
-PEER = struct.Struct("3i")
-"""``struct ucred``: pid, uid, gid of a connected process."""
+"""The entry of torchrun's stand-in."""
+REQUEST_TIMEOUT = 10.0
+"""Seconds a stand-in has to send its request once connected: one that stalls must not stall the pool."""
 
 
 class Pool:
-    def __init__(self, listener: socket.socket) -> None:
+    def __init__(self, listener: socket.socket, secret: str) -> None:
         self.listener = listener
-        self.workers: dict[int, socket.socket | None] = {}
-        """Forked worker -> its stand-in's connection (None once the stand-in is gone)."""
+        self.secret = secret
+        self.forks: dict[int, socket.socket | None] = {}
+        """Forked process -> its stand-in's connection (None once the stand-in is gone)."""
         self.wakeup, wakeup_write = socket.socketpair()
         for end in (self.wakeup, wakeup_write):
             end.setblocking(False)
@@ -44,9 +47,9 @@ class Pool:
         signal.set_wakeup_fd(wakeup_write.fileno())
 
     def serve(self) -> dict:
-        """Fork workers until killed; returns only in a forked worker, with its stand-in's request."""
+        """Fork until killed; returns only in a forked child, with its stand-in's request."""
         while True:
-            connections = [connection for connection in self.workers.values() if connection is not None]
+            connections = [connection for connection in self.forks.values() if connection is not None]
             for ready in select.select([self.listener, self.wakeup, *connections], [], [])[0]:
                 if ready is self.listener:
                     request = self._accept()
@@ -60,30 +63,40 @@ class Pool:
                     self._stand_in_gone(ready)
 
     def _accept(self) -> dict | None:
+        """One stand-in's request: forked (its child gets the request back), or refused by closing the connection
+        (another user, a wrong secret, a broken request, a failed fork): the stand-in then runs cold."""
         connection, _ = self.listener.accept()
-        _, uid, _ = PEER.unpack(connection.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, PEER.size))
-        received = receive_message(connection, len(STREAMS)) if uid == os.getuid() else None
-        if received is None:
+        streams: list[int] = []
+        try:
+            connection.settimeout(REQUEST_TIMEOUT)
+            _, uid, _ = PEER.unpack(connection.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, PEER.size))
+            received = receive_message(connection, len(STREAMS)) if uid == os.getuid() else None
+            if received is None or not hmac.compare_digest(str(received[0].get("secret")), self.secret):
+                raise ConnectionRefusedError("not a stand-in of this pool")
+            request, streams = received
+            pool = os.getpid()
+            fork = os.fork()
+        except (OSError, ValueError):
+            for stream in streams:
+                os.close(stream)
             connection.close()
             return None
-        request, streams = received
-        pool = os.getpid()
-        worker = os.fork()
-        if worker == 0:
+        if fork == 0:
             self._become(request, streams, pool, connection)
             return request
         for stream in streams:
             os.close(stream)
-        self.workers[worker] = connection
+        connection.settimeout(None)
+        self.forks[fork] = connection
         with contextlib.suppress(OSError):
-            send_message(connection, {"pid": worker})
+            send_message(connection, {"pid": fork})
         return None
 
     def _become(self, request: dict, streams: list[int], pool: int, connection: socket.socket) -> None:
-        """In the forked child: the worker the stand-in would have been, in its own session like torchrun's."""
+        """In the forked child: the process the stand-in would have been, in its own session like torchrun's."""
         signal.set_wakeup_fd(-1)
         signal.signal(signal.SIGCHLD, signal.SIG_DFL)
-        for end in [*self.sockets, connection, *filter(None, self.workers.values())]:
+        for end in [*self.sockets, connection, *filter(None, self.forks.values())]:
             end.close()
         os.setsid()
         die_with_parent(pool)
@@ -98,24 +111,25 @@ class Pool:
         sys.argv = request["sys_argv"]
 
     def _stand_in_gone(self, connection: socket.socket) -> None:
-        """A stand-in's connection is readable only when it ends: its worker goes too, stopped (hung) or not."""
-        for worker, known in self.workers.items():
+        """A stand-in's connection is readable only when it ends: its fork goes too (with its process group, as
+        torchrun ends a worker's), stopped (hung) or not."""
+        for fork, known in self.forks.items():
             if known is connection:
                 with contextlib.suppress(ProcessLookupError):
-                    os.kill(worker, signal.SIGKILL)
-                self.workers[worker] = None
+                    os.killpg(fork, signal.SIGKILL)
+                self.forks[fork] = None
         connection.close()
 
     def _reap(self) -> None:
-        """Tell each stand-in how its worker ended: its wait status."""
+        """Tell each stand-in how its fork ended: its wait status."""
         while True:
             try:
-                worker, status = os.waitpid(-1, os.WNOHANG)
+                fork, status = os.waitpid(-1, os.WNOHANG)
             except ChildProcessError:
                 return
-            if worker == 0:
+            if fork == 0:
                 return
-            connection = self.workers.pop(worker, None)
+            connection = self.forks.pop(fork, None)
             if connection is not None:
                 with contextlib.suppress(OSError):
                     send_message(connection, {"status": status})
@@ -124,30 +138,42 @@ class Pool:
 
 def serve() -> NoReturn:
     die_with_supervisor()
-    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    listener.bind(address(os.environ[SUPERVISOR_ENV]))
-    listener.listen(64)
+    fd, _, secret = os.environ[LISTENER_ENV].partition(":")
+    listener = socket.socket(fileno=int(fd))
+    del os.environ[LISTENER_ENV]
     entries = {name: getattr(importlib.import_module(module), function) for name, (module, function) in ENTRIES.items()}
     for name in PRELOAD:
         importlib.import_module(name)
-    request = Pool(listener).serve()
+    _forget_exit_functions()
+    request = Pool(listener, secret).serve()
     try:
         code = entries[request["entry"]](request["argv"])
     except SystemExit as stop:
-        code = stop.code if isinstance(stop.code, int) else (print(stop.code, file=sys.stderr) or 1)
+        code = stop.code
     except BaseException:
         traceback.print_exc()
         code = 1
-    exit_fast(code)
+    if code is not None and not isinstance(code, int):
+        print(code, file=sys.stderr)
+        code = 1
+    exit_fast(code or 0)
+
+
+def _forget_exit_functions() -> None:
+    """What the imports registered to run at exit belongs to the pool, not to its forks: e.g. wandb removes its
+    temporary directories at exit, which the first fork to end would do for every fork after it."""
+    atexit._clear()
+    for finalizer in list(weakref.finalize._registry):
+        finalizer.atexit = False
+    weakref.finalize._registered_with_atexit = False
 
 
 def exit_fast(code: int) -> NoReturn:
-    """End a forked child as Python's multiprocessing ends its own: after the threads that keep a process alive, the
-    atexit functions and a flush, but without tearing the interpreter down, which writes to every object the pool
-    imported and so copies all of its memory (1.1-1.5 s measured, against 0.06 s)."""
-    for thread in threading.enumerate():
-        if thread is not threading.main_thread() and not thread.daemon:
-            thread.join()
+    """End a forked child as Python's multiprocessing ends its own: after the threads that keep a process alive
+    (``threading._shutdown``, as a normal exit does; it also stops idle thread pools) and this process's own exit
+    functions, then a flush, but without tearing the interpreter down, which writes to every object the pool imported
+    and so copies all of its memory (1.1-1.5 s measured, against 0.06 s)."""
+    threading._shutdown()
     atexit._run_exitfuncs()
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(OSError, ValueError):
