@@ -115,7 +115,7 @@ class Launcher:
             "train",
             *train_args,
         ]
-        return command, {POOL_ENV: f"{self.pool.pid}:{self.secret}"} if self.pool else {}
+        return command, {POOL_ENV: self.secret} if self.pool else {}
 
     def close(self) -> None:
         if self.pool is not None:

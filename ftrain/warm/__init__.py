@@ -20,8 +20,8 @@ pool cannot be reached (``--workers cold``, plain ``torchrun -m ftrain train``, 
 before it forks, the stand-in simply runs the command itself, cold.
 
 The supervisor binds the socket (in Linux's abstract namespace: no file to leave behind) before it starts the pool,
-and hands it over; a name someone else holds already means cold starts, with a line. A stand-in talks only to the
-pool's pid (``SO_PEERCRED``), the pool only to processes of its user that know the secret of ``POOL_ENV``.
+and hands it over; a name someone else holds already means cold starts, with a line. A stand-in talks only to its
+supervisor's socket (``SO_PEERCRED``), the pool only to processes of its user that know the secret of ``POOL_ENV``.
 
 May import: lifeline, and by name in the pool (``__main__.py``) the entries it forks: cli, dist.
 """
@@ -39,9 +39,10 @@ import sys
 from ftrain.lifeline import SUPERVISOR_ENV
 
 POOL_ENV = "FTRAIN_WARM_POOL"
-"""In the attempts' environment: ``PID:SECRET`` of this node's pool. A stand-in talks only to that process (the
-socket's name can be guessed, and bound first, by anyone on the machine) and proves itself with the secret (a
-process of the same user in another container may share the network namespace, and so the name)."""
+"""In the attempts' environment: the secret of this node's pool. A stand-in talks only to a socket its supervisor
+listens on (``SO_PEERCRED`` names the process that called ``listen``: the socket's name can be guessed, and bound
+first, by anyone on the machine) and proves itself with the secret (a process of the same user in another container
+may share the network namespace, and so the name)."""
 LISTENER_ENV = "FTRAIN_WARM_LISTENER"
 """In the pool's environment: the descriptor of the socket the supervisor bound for it, ``FD:SECRET``."""
 START_TIMEOUT = 120.0
@@ -100,8 +101,8 @@ def handover(entry: str, argv: list[str]) -> int | None:
     """In a stand-in for ``entry`` (see ``ENTRIES``) under a supervisor whose pool answers: the pool's fork runs
     ``entry`` with ``argv``, this process waits for it and returns its exit code (or ends by its signal). None: no
     pool here, run cold."""
-    supervisor, (pool, _, secret) = os.environ.get(SUPERVISOR_ENV), os.environ.get(POOL_ENV, "").partition(":")
-    if not supervisor or not pool.isdigit():
+    supervisor, secret = os.environ.get(SUPERVISOR_ENV), os.environ.get(POOL_ENV)
+    if not supervisor or not secret:
         return None
     _open_streams()
     connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -112,7 +113,7 @@ def handover(entry: str, argv: list[str]) -> int | None:
     except OSError:
         connection.close()
         return None
-    if (server, uid) != (int(pool), os.getuid()):  # not the pool this supervisor started: tell it nothing
+    if (str(server), uid) != (supervisor.partition(":")[0], os.getuid()):  # not bound by our supervisor: tell nothing
         connection.close()
         return None
     pending: list[int] = []

@@ -71,9 +71,10 @@ class Pool:
             connection.settimeout(REQUEST_TIMEOUT)
             _, uid, _ = PEER.unpack(connection.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, PEER.size))
             received = receive_message(connection, len(STREAMS)) if uid == os.getuid() else None
-            if received is None or not hmac.compare_digest(str(received[0].get("secret")), self.secret):
+            request, streams = received or ({}, [])
+            secret = str(request.get("secret") if isinstance(request, dict) else None).encode()
+            if not hmac.compare_digest(secret, self.secret.encode()):
                 raise ConnectionRefusedError("not a stand-in of this pool")
-            request, streams = received
             pool = os.getpid()
             fork = os.fork()
         except (OSError, ValueError):

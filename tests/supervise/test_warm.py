@@ -115,7 +115,7 @@ def test_no_pool_a_stranger_or_a_wrong_secret_means_a_cold_start(pool) -> None:
     if os.getuid() != 0 or SYSTEM_PYTHON is None:
         pytest.skip("another user's process needs root and a system python3 (/usr/bin) that any user may run")
     supervisor = lifeline.supervisor_env()[lifeline.SUPERVISOR_ENV]
-    secret = pool[1][POOL_ENV].partition(":")[2]
+    secret = pool[1][POOL_ENV]
 
     def ask(secret: str, **popen: object) -> str:
         command = [SYSTEM_PYTHON, "-c", STRANGER, supervisor, secret]
