@@ -40,7 +40,7 @@ def supervisor_env() -> dict[str, str]:
 def die_with_supervisor() -> None:
     """In torchrun (and the warm worker pool), first: SIGKILL from the kernel when the supervisor ends, or now if it
     already has."""
-    supervisor = _supervisor()
+    supervisor = named_supervisor()
     if supervisor is not None:
         die_with_parent(supervisor[0])
         if not _alive(supervisor):
@@ -60,7 +60,7 @@ def die_with_parent(parent: int) -> None:
 
 def watch_supervisor() -> None:
     """In a worker: once the supervisor is gone, SIGKILL every process of this attempt, this one last."""
-    supervisor, token = _supervisor(), os.environ.get(TOKEN_ENV)
+    supervisor, token = named_supervisor(), os.environ.get(TOKEN_ENV)
     if supervisor is not None and token:
         threading.Thread(target=_watch, args=(supervisor, token), name="ftrain-lifeline", daemon=True).start()
 
@@ -75,7 +75,8 @@ def _watch(supervisor: tuple[int, str], token: str) -> None:
     os.kill(os.getpid(), signal.SIGKILL)
 
 
-def _supervisor() -> tuple[int, str] | None:
+def named_supervisor() -> tuple[int, str] | None:
+    """``(pid, start time)`` of the supervisor this process's environment names (``SUPERVISOR_ENV``), or None."""
     pid, _, started = os.environ.get(SUPERVISOR_ENV, "").partition(":")
     return (int(pid), started) if pid.isdigit() and started else None
 

@@ -36,7 +36,7 @@ import socket
 import struct
 import sys
 
-from ftrain.lifeline import SUPERVISOR_ENV
+from ftrain.lifeline import SUPERVISOR_ENV, named_supervisor
 
 POOL_ENV = "FTRAIN_WARM_POOL"
 """In the attempts' environment: the secret of this node's pool. A stand-in talks only to a socket its supervisor
@@ -101,19 +101,19 @@ def handover(entry: str, argv: list[str]) -> int | None:
     """In a stand-in for ``entry`` (see ``ENTRIES``) under a supervisor whose pool answers: the pool's fork runs
     ``entry`` with ``argv``, this process waits for it and returns its exit code (or ends by its signal). None: no
     pool here, run cold."""
-    supervisor, secret = os.environ.get(SUPERVISOR_ENV), os.environ.get(POOL_ENV)
-    if not supervisor or not secret:
+    named, secret = named_supervisor(), os.environ.get(POOL_ENV)
+    if named is None or not secret:
         return None
     _open_streams()
     connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     connection.settimeout(START_TIMEOUT)
     try:
-        connection.connect(address(supervisor))
+        connection.connect(address(os.environ[SUPERVISOR_ENV]))
         server, uid, _ = PEER.unpack(connection.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, PEER.size))
     except OSError:
         connection.close()
         return None
-    if (str(server), uid) != (supervisor.partition(":")[0], os.getuid()):  # not bound by our supervisor: tell nothing
+    if (server, uid) != (named[0], os.getuid()):  # not bound by our supervisor: tell it nothing
         connection.close()
         return None
     pending: list[int] = []
