@@ -15,6 +15,7 @@ With ``checkpoint.async_save`` (the default) a save is a snapshot handed to the 
 from __future__ import annotations
 
 import collections
+import dataclasses
 import importlib.metadata
 import math
 import os
@@ -47,6 +48,16 @@ the failed one has settled, then after 1, 2, 4 s...): each try is a snapshot, a 
 which back to back took 13 s of the two cores during two 60 s outages (``launch/bench_chaos.py``)."""
 FAILURE_LINES = 30.0
 """Seconds between two lines about saves that keep failing (the first failure and the recovery are always told)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Failing:
+    """Saves that failed in a row: since when, when the newest settled (monotonic), how many, and why."""
+
+    since: float
+    last: float
+    count: int
+    why: str
 
 
 class Checkpointer:
@@ -88,12 +99,8 @@ class Checkpointer:
         has not been acted on yet."""
         self._spare: list[dict] = []
         """Snapshots whose saves are over: the next snapshots copy into their memory."""
-        self._failing: tuple[float, str] | None = None
-        """(since when, why) saves fail; None while the newest settled save committed."""
-        self._failures = 0
-        """Saves failed in a row."""
-        self._failed_at = -math.inf
-        """When the newest failed save settled (monotonic)."""
+        self._failing: Failing | None = None
+        """Saves failing in a row; None while the newest settled save committed."""
         self._told = -math.inf
         self._checked_loadable = False
         self.last_blocking_s = 0.0
@@ -128,9 +135,10 @@ class Checkpointer:
         self._settle(MAX_IN_FLIGHT)  # the outcomes that have arrived
         now = time.monotonic()
         if self._failing is not None:
-            delay = 0.0 if self._failures < 2 else min(RETRY_DELAY_MAX, 2.0 ** min(self._failures - 2, 8))
+            count = self._failing.count
+            delay = 0.0 if count < 2 else min(RETRY_DELAY_MAX, 2.0 ** min(count - 2, 8))
             hold = self.schedule.over_bound(iteration, now)
-            return not self._pending and (hold or now - self._failed_at >= delay), hold
+            return not self._pending and (hold or now - self._failing.last >= delay), hold
         return self.schedule.due(iteration, now), False
 
     def save(self, trainer: Checkpointable, wait: bool = False, hold: bool = False) -> None:
@@ -185,7 +193,7 @@ class Checkpointer:
         self._settle(0)
         tries = 0
         while self.committed_step != trainer.iteration:
-            since, why = self._failing
+            since, why = self._failing.since, self._failing.why
             waited = time.monotonic() - since
             if waited > self.storage_wait or self.stopping():
                 raise StorageUnavailable(
@@ -238,18 +246,16 @@ class Checkpointer:
             raise CheckpointError(detail)
         if outcome.result is Result.COMMITTED:
             if self._failing is not None:
-                since = now - self._failing[0]
+                since = now - self._failing.since
                 self.log(f"checkpoint step {step} committed: saves work again after {since:.0f} s", every_rank=True)
             self._failing = None
-            self._failures = 0
             self.committed_step = step
             self.last_commit_s = now - self.schedule.committed[1]  # from when its state was taken
             self.on_commit(step, detail)
             return
         first = self._failing is None
-        self._failing = (now if first else self._failing[0], detail)
-        self._failures += 1
-        self._failed_at = now
+        count = 1 if first else self._failing.count + 1
+        self._failing = Failing(now if first else self._failing.since, now, count, detail)
         if first or now - self._told >= FAILURE_LINES:
             self._told = now
             iterations, seconds = self.schedule.unsaved(step, now)
