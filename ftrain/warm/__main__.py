@@ -97,6 +97,8 @@ class Pool:
         """In the forked child: the process the stand-in would have been, in its own session like torchrun's."""
         signal.set_wakeup_fd(-1)
         signal.signal(signal.SIGCHLD, signal.SIG_DFL)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # as in a process just started (STOP_SIGNALS)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         for end in [*self.sockets, connection, *filter(None, self.forks.values())]:
             end.close()
         os.setsid()
@@ -137,8 +139,16 @@ class Pool:
                 connection.close()
 
 
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+"""What the pool ignores: a stop that reaches every process of a run (SLURM signals every process of a job step) is
+for the workers, which save; the pool ends only with its supervisor (``close``, or ``die_with_supervisor``), and its
+forks with it, so a pool that died of it would take the workers down before their save."""
+
+
 def serve() -> NoReturn:
     die_with_supervisor()
+    for number in STOP_SIGNALS:
+        signal.signal(number, signal.SIG_IGN)
     fd, _, secret = os.environ[LISTENER_ENV].partition(":")
     listener = socket.socket(fileno=int(fd))
     del os.environ[LISTENER_ENV]

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -103,9 +104,12 @@ def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
     recovered = wait_event(storage, "recovered", 4)
     assert after(recovered) < corrupted
 
-    # 5. SIGTERM to the supervisor: the workers save, it exits 143; the same command continues
+    # 5. SIGTERM to every process of the run at once, as SLURM stops a job step (the supervisor, the warm pool,
+    # torchrun, the workers and their stand-ins): the workers save, it exits 143; the same command continues
     training(heartbeats, after(recovered) + 3)
-    proc.send_signal(signal.SIGTERM)
+    for pid in [proc.pid, *procfs.descendants(proc.pid)]:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGTERM)
     assert finish(proc) == EXIT_PREEMPTED
     saved = final_manifest(storage)["step"]
     assert finish(start(storage, log="rerun")) == 0
