@@ -124,8 +124,8 @@ def test_workers_get_credentials_off_the_command_line(tmp_path, s3_server) -> No
         s3_server, url, log_dir, "--nproc-per-node", "2", overrides=("iterations=30", *dotted)
     )
     training(log_dir / "heartbeat", 1)
-    agent = torchrun_pid(proc.pid)
-    command_lines = {pid: procfs.read(pid, "cmdline") for pid in [agent, *procfs.descendants(agent)]}
+    agent = torchrun_pid(proc.pid)  # every process of the run is below the supervisor: the warm pool and its forks too
+    command_lines = {pid: procfs.read(pid, "cmdline") for pid in procfs.descendants(proc.pid)}
     assert finish(proc, timeout=300) == 0, console.read_text()[-3000:]  # exit 0: trained to the end
     workers = [line for pid, line in command_lines.items() if pid != agent and b"-m\0ftrain\0train\0" in line]
     assert len(workers) == 2 and all(b"storage.options.secret=***" in line for line in workers)

@@ -35,10 +35,16 @@ def hosts(bed: Bed) -> list[dict]:
     return [{"launcher": bed.launcher(host), "local_addr": bed.address(host)} for host in range(3)]
 
 
-def worker_env(storage, world: int) -> dict[str, str]:
-    """The environment of rank 0's worker in a world of ``world`` ranks."""
-    _, pid = wait_for(lambda: rank_zero(storage, world), f"rank 0 of a world of {world}")
-    return dict(item.partition("=")[::2] for item in procfs.read(pid, "environ").decode().split("\0") if item)
+def worker_env(storage, world: int, supervisor: int) -> dict[str, str]:
+    """The environment torchrun gave rank 0's worker in a world of ``world`` ranks, below ``supervisor``: /proc's view
+    of the process torchrun started for it (a warm worker is forked from the pool, whose environment /proc shows for
+    it; the stand-in torchrun started holds the worker's)."""
+    wait_for(lambda: rank_zero(storage, world), f"rank 0 of a world of {world}")
+    for pid in procfs.descendants(supervisor):
+        env = dict(item.partition("=")[::2] for item in procfs.read(pid, "environ").decode().split("\0") if item)
+        if env.get("RANK") == "0" and env.get("WORLD_SIZE") == str(world):
+            return env
+    raise AssertionError(f"no process below {supervisor} has the environment of rank 0 of {world}")
 
 
 def test_node_0s_machine_loses_every_process_and_the_others_finish_at_world_2(tmp_path, network) -> None:
@@ -47,7 +53,8 @@ def test_node_0s_machine_loses_every_process_and_the_others_finish_at_world_2(tm
     bed, endpoint = network
     storage, iterations = tmp_path / "run", 50
     nodes, lost, index = three_etcd_nodes(storage, endpoint, iterations, hosts=hosts(bed))
-    env = worker_env(storage, 3)  # the store on rank 0's own address, gloo on each host's interface to the bridge
+    # the store on rank 0's own address, gloo on each host's interface to the bridge
+    env = worker_env(storage, 3, nodes[index].pid)
     assert (env["MASTER_ADDR"], env["GLOO_SOCKET_IFNAME"]) == (bed.address(index), DEVICE), env
     assert nodes[index].pid in bed.kill(index)
     nodes[index].wait()

@@ -200,7 +200,8 @@ def test_an_elastic_job_trains_on_when_a_node_dies(slurm, rendezvous, request, t
         env["FTRAIN_ETCD"] = request.getfixturevalue("etcd_server")
     job_id = submit(slurm, storage, "--no-kill", supervise=("--rejoin-timeout=3",), env=env)
     beats = both_nodes_training(storage, INTERVAL + 5)
-    lost_rank = 1 if rendezvous == "c10d" else 0
+    # c10d: node 1, whichever rank its worker has (torch orders one host's nodes by torchrun's pid); etcd: rank 0's
+    lost_rank = next(rank for rank, (node, _) in beats.items() if node == 1) if rendezvous == "c10d" else 0
     (lost, beat), (kept, _) = beats[lost_rank], beats[1 - lost_rank]
     victim, job = slurm_node(beat.pid), slurm.job(job_id)
     (survivor,) = set(slurm.run("scontrol", "show", "hostnames", job["NodeList"]).split()) - {victim}
