@@ -36,7 +36,7 @@ CONNECTION_TIMEOUT = 5.0
 """Seconds a connection to node 0 may take to deliver its request, or a reply to come back."""
 MAX_LOGGED_REFUSALS = 1000
 """Refused connections recorded in events.jsonl at most (a flood must not fill the disk)."""
-OPS = ("plan", "fail", "finish")
+OPS = ("plan", "fail", "leave", "finish")
 GONE_AFTER = 3.0
 """Seconds without a request after which node 0 no longer waits for a node to learn the outcome."""
 
@@ -216,4 +216,4 @@ def rendezvous_args(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> lis
         ]
     endpoint = f"{nodes.endpoint[0]}:{plan.port}"
     is_host = int(options.node_rank == 0)  # on one machine (tests) every node would match the host's address
-    return elastic_rendezvous("c10d", endpoint, run_id, nodes, options, is_host=is_host)
+    return elastic_rendezvous("c10d", plan, endpoint, run_id, nodes, options, is_host=is_host)

@@ -133,4 +133,4 @@ def etcd_rendezvous_args(plan: Plan, nodes: Nodes, options: SupervisorOptions) -
     (``TORCH_DISABLE_SHARE_RDZV_TCP_STORE=1``, see ``attempt.attempt_env``): a node lost takes no other's store."""
     endpoint = "{}:{}".format(*nodes.endpoint)
     run_id = f"{nodes.run_id}-{plan.token}-{plan.attempt}"
-    return elastic_rendezvous("etcd-v2", endpoint, run_id, nodes, options, **dict(nodes.conf))
+    return elastic_rendezvous("etcd-v2", plan, endpoint, run_id, nodes, options, **dict(nodes.conf))

@@ -40,8 +40,8 @@ EXIT_CODES = {
     EXIT_STORAGE_WAIT: "the checkpoint storage did not answer for --storage-wait seconds; nothing committed lost",
     EXIT_STORAGE_HELD: "another run holds the storage (its lease); nothing of that run touched",
     EXIT_INTERRUPTED: "interrupted (SIGINT, Ctrl-C): the workers saved; run the same command again to continue",
-    EXIT_PREEMPTED: "preempted (SIGTERM): the workers saved; run the same command again to continue (elastic on "
-    "etcd-v2: this node left, the others go on)",
+    EXIT_PREEMPTED: "preempted (SIGTERM): the workers saved; run the same command again to continue (elastic, MIN "
+    "nodes left, on etcd-v2 or c10d's nodes but 0: this node left, the others go on)",
 }
 """Every exit code of ``ftrain supervise`` and what it means. Until ``--storage-wait`` runs out, an unreachable storage
 is waited out, and restarts for it count neither towards ``--max-restarts`` nor the crash loop."""

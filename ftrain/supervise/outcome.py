@@ -84,7 +84,9 @@ def classify(
     ``cause``: what to blame, in words; ``culprit``: the rank to blame and how it ended, if any;
     ``stopped``: the exit code for the signal that asked the supervisor to stop (None: no signal); ``orphans``:
     workers outlived torchrun; ``phases``: the final heartbeat phases; ``superseded``: several nodes, and another node
-    has failed this attempt; ``committed``: the newest step committed.
+    ended this attempt: it failed it, or (elastic, the run going on) its torchrun stopped every rank's workers for a
+    node that joined late (the first agent to see the new node stops its workers, and through the iteration boundary
+    they agree on, everyone's, before the other agents have looked); ``committed``: the newest step committed.
     """
     if stopped is not None:
         saved = bool(phases) and phases <= {"preempted", "done"}
@@ -96,7 +98,7 @@ def classify(
         return Outcome("done", EXIT_DONE, f"training finished (step {committed})")
     if code in STOPPED and phases and phases <= {"preempted", "done"}:  # the workers were signalled, saved, exited
         if superseded:
-            return Outcome("failed", None, "stopped because another node failed")
+            return Outcome("failed", None, "stopped by another node (it failed, or restarted for a node that joined)")
         return Outcome("preempted", code, f"preempted: the workers saved step {committed}; rerun to continue")
     if code == EXIT_RENDEZVOUS_TIMEOUT and culprit is None:
         return Outcome(

@@ -18,6 +18,8 @@ from ftrain.supervise.options import Nodes, SupervisorOptions
 KEEP_ALIVE_INTERVAL = 1
 KEEP_ALIVE_MISSES = 3
 """Elastic rendezvous: seconds between two keep-alives of a node's torchrun, and how many it may miss."""
+REGROUP_LAST_CALL = 1
+"""Seconds a regroup after a node left waits for more than MIN nodes (torch's least; it polls once a second)."""
 
 
 @dataclass
@@ -61,17 +63,21 @@ def generation_env(plan: Plan, nnodes: int) -> dict[str, str]:
 
 
 def elastic_rendezvous(
-    backend: str, endpoint: str, run_id: str, nodes: Nodes, options: SupervisorOptions, **conf: object
+    backend: str, plan: Plan, endpoint: str, run_id: str, nodes: Nodes, options: SupervisorOptions, **conf: object
 ) -> list[str]:
-    """torchrun's elastic rendezvous arguments (c10d or etcd-v2): it starts once MIN nodes have joined and
-    ``--rejoin-timeout`` has passed or MAX have joined (a node lost for good is thus left behind), gives up after
-    ``--rdzv-timeout`` (``ftrain.dist.torchrun`` then exits ``EXIT_RENDEZVOUS_TIMEOUT``), and, once training, lets
-    its agents restart their workers with a larger world when a node joins late (the workers save on that SIGTERM:
-    the world grows at a checkpoint boundary). A node that stops sending keep-alives drops out after
-    ``KEEP_ALIVE_INTERVAL`` x ``KEEP_ALIVE_MISSES`` seconds. ``conf``: the backend's own settings."""
+    """torchrun's elastic rendezvous arguments (c10d or etcd-v2) for ``plan``'s attempt: it starts once MIN nodes
+    have joined and ``--rejoin-timeout`` has passed or MAX have joined (a node lost for good is thus left behind),
+    gives up after ``--rdzv-timeout`` (``ftrain.dist.torchrun`` then exits ``EXIT_RENDEZVOUS_TIMEOUT``), and, once
+    training, lets its agents restart their workers with a larger world when a node joins late (the workers save on
+    that SIGTERM: the world grows at a checkpoint boundary). A regroup after a node left on its own (``plan.left``,
+    its preemption) waits no ``--rejoin-timeout``: every node that is not leaving launches at once, so the wait is
+    ``REGROUP_LAST_CALL``, and one that still comes later joins as a late node does. A node that stops sending
+    keep-alives drops out after ``KEEP_ALIVE_INTERVAL`` x ``KEEP_ALIVE_MISSES`` seconds. ``conf``: the backend's own
+    settings."""
+    rejoin = REGROUP_LAST_CALL if plan.left is not None else max(REGROUP_LAST_CALL, math.ceil(options.rejoin_timeout))
     settings = {
         "join_timeout": math.ceil(options.rdzv_timeout),
-        "last_call_timeout": math.ceil(options.rejoin_timeout),
+        "last_call_timeout": rejoin,
         "keep_alive_interval": KEEP_ALIVE_INTERVAL,
         "keep_alive_max_attempt": KEEP_ALIVE_MISSES,
         **conf,

@@ -26,7 +26,8 @@ completed iterations; ``--backoff-initial`` after one that completed none, doubl
 
 Preemption. SIGTERM or SIGINT: SIGTERM to the workers, which agree at the next iteration boundary, save and exit 143
 (``ftrain/dist/torchrun.py`` passes it on); SIGKILL after ``--stop-grace``, or at a second signal. No restart: exit
-128 + the signal (143; 130 for SIGINT). Elastic on etcd-v2 this node leaves alone: the others regroup from the save.
+128 + the signal (143; 130 for SIGINT). Elastic, this node leaves alone while MIN nodes remain (etcd-v2: any node;
+c10d: any but node 0): the others regroup from the save.
 
 Several nodes: ``link.py`` (c10d: node 0 coordinates, ``coordinator.py``; etcd-v2: etcd, ``etcd_plan.py``).
 Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``. Warm starts: ``attempt.Launcher``.
@@ -336,12 +337,13 @@ class Supervisor:
             attempt.kill()
         phases = self._phases(attempt)
         cause = attempt.cause(code) if code or orphans else "exit code 0"
-        current = (self._tell("plan") if code in STOPPED and self.nnodes > 1 else None) or attempt.plan
-        superseded = plan_key(current) != plan_key(attempt.plan)
+        current = self._tell("plan") if code in STOPPED and self.nnodes > 1 else None  # None: not known
+        moved = current is not None and plan_key(current) != plan_key(attempt.plan)
+        superseded = moved or (self.nodes.elastic and current is not None and current.final is None)  # see classify
         stopped = stop_code(self.signals[0]) if self.signals else None
         committed = attempt.committed if attempt.committed is not None else self.policy.best_committed
         outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
-        if superseded and current.left is not None and outcome.failed:  # saved for a node that left: no failure
+        if moved and current.left is not None and outcome.failed:  # saved for a node that left: no failure
             return self._regroup(attempt, current, cause, phases)
         self._log_exit(attempt, cause, f"attempt {attempt.plan.attempt}: {cause}" if outcome.failed else "", phases)
         if outcome.failed:
@@ -392,7 +394,7 @@ class Supervisor:
         return code
 
     def _leaves_alone(self) -> bool:
-        """Whether this node's preemption leaves the others training from the workers' save: an elastic etcd-v2 run
-        (no node is special) with MIN nodes left without it."""
+        """Whether this node's preemption leaves the others training from the workers' save: an elastic run with MIN
+        nodes left without it, on etcd-v2 or (c10d) not node 0, which keeps the plan and hosts the rendezvous."""
         left = len(self.ledger.nodes) - 1 >= self.nodes.least
-        return self.nodes.elastic and self.nodes.backend is Backend.ETCD and left
+        return self.nodes.elastic and (self.nodes.backend is Backend.ETCD or self.node != 0) and left

@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 import signal
 
+import pytest
+
 from ftrain import errorfile
 from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_USAGE
 from ftrain.supervise.outcome import WorkerFailure, blame, classify
@@ -67,3 +69,14 @@ def test_a_rank_that_could_not_reach_the_storage_is_blamed_after_a_refusal_and_b
     assert blame({0: unreachable, 1: refused}, killed=set()) == (1, refused)
     outcome = classify(1, "", (0, unreachable), None, False, {"start"}, False, None)
     assert outcome.event == "storage_down" and outcome.failed and outcome.code is None
+
+
+@pytest.mark.parametrize(("superseded", "event", "code"), [(False, "preempted", 143), (True, "failed", None)])
+def test_workers_that_saved_and_stopped_unasked_are_preempted_unless_another_node_ended_the_attempt(
+    superseded, event, code
+):
+    """torchrun exits 143, every worker saved, and nobody signalled this supervisor: stopped from outside (preempted),
+    unless another node ended the attempt (it failed, or its torchrun restarted every rank's workers for a node that
+    joined late, before this node's torchrun saw the new node): then a restart."""
+    outcome = classify(143, "rank 0 exited with code 143", None, None, False, {"preempted"}, superseded, 40)
+    assert (outcome.event, outcome.code) == (event, code), outcome

@@ -133,6 +133,16 @@ def test_on_etcd_one_nodes_preemption_saves_it_leaves_with_143_and_the_others_go
     assert manifest["step"] == iterations and manifest["world_size"] == 2
     (_, three), (saved, two) = manifest["world_sizes"]
     assert (three, two) == (3, 2), manifest["world_sizes"]
+    assert_left_alone(storage, leaving, index, saved)
+    for node in sorted({0, 1, 2} - {leaving}):
+        (summary,) = node_events(storage, "summary", node)
+        assert (summary["restarts"], summary["iterations_lost"]) == (0, 0), summary
+    assert verify_cli(storage) == 0
+
+
+def assert_left_alone(storage: Path, leaving: int, index: int, saved: int) -> None:
+    """Node ``leaving`` (started as the ``index``-th) was preempted and left with 143 once the workers had saved
+    ``saved``; the other two regrouped at world size 2 from that step: no restart, 0 iterations lost."""
     assert [event["code"] for event in node_events(storage, "preempted", leaving)] == [EXIT_PREEMPTED]
     console = Path(f"{storage}.node{index}.log").read_text()
     assert f"preempted: the workers saved (newest step {saved})" in console, console
@@ -142,6 +152,31 @@ def test_on_etcd_one_nodes_preemption_saves_it_leaves_with_143_and_the_others_go
         assert regroup["left"] == leaving and shrink["why"] == f"node {leaving} left (preempted)", shrink
         assert (shrink["new_world"], shrink["step"], shrink["lost"]) == (2, saved, 0), shrink
         print(f"node {node}: world 2 trains {shrink['downtime']} s after the workers saved")
+
+
+def test_on_c10d_a_nodes_preemption_leaves_the_others_training_and_node_0s_stops_every_node(tmp_path) -> None:
+    """c10d: a node other than node 0 leaves on its own as on etcd (node 2's SIGTERM: every rank saves, node 2 exits
+    143, nodes 0 and 1 regroup at world 2 from that step). Node 0 keeps the plan and hosts the rendezvous: its
+    preemption saves and stops every node (143), and the same command continues from that step."""
+    storage, endpoint = tmp_path / "run", f"127.0.0.1:{free_port()}"
+    nodes = [start_node(storage, node, "2:3", c10d(node, endpoint), "iterations=400") for node in range(3)]
+    wait_for(lambda: training_world(storage, 3), "a world of 3 ranks training", timeout=180, interval=0.2)
+    nodes[2].send_signal(signal.SIGTERM)
+    assert finish(nodes[2], timeout=60) == EXIT_PREEMPTED
+    wait_resizes(storage, [0, 1], 1, timeout=60)
+    shrunk = lambda: final_manifest(storage)["world_size"] == 2  # noqa: E731
+    wait_for(shrunk, "a commit of the world of 2", timeout=60, interval=0.2)
+    (_, three), (saved, two) = final_manifest(storage)["world_sizes"]
+    assert (three, two) == (3, 2)
+    assert_left_alone(storage, 2, 2, saved)
+
+    nodes[0].send_signal(signal.SIGTERM)
+    assert [finish(proc, timeout=60) for proc in nodes[:2]] == [EXIT_PREEMPTED, EXIT_PREEMPTED]
+    stopped = final_manifest(storage)["step"]
+    assert f"preempted: the workers saved (newest step {stopped})" in Path(f"{storage}.node0.log").read_text()
+    for node in (0, 1):
+        assert [event["code"] for event in node_events(storage, "preempted", node)] == [EXIT_PREEMPTED]
+        assert len(node_events(storage, "regroup", node)) == 1  # node 2's leaving: node 0's stopped the run
         (summary,) = node_events(storage, "summary", node)
         assert (summary["restarts"], summary["iterations_lost"]) == (0, 0), summary
     assert verify_cli(storage) == 0
