@@ -41,3 +41,15 @@ def test_without_local_addr_the_hostname_decides_as_before(monkeypatch) -> None:
 def test_an_address_of_no_interface_here_is_refused() -> None:
     with pytest.raises(UserError, match=re.escape("--local-addr='198.51.100.7' is no IPv4")):
         parse_nodes(SupervisorOptions(nnodes="2:3", local_addr="198.51.100.7", **ETCD))
+
+
+@pytest.mark.parametrize("backend", [ETCD, {"rdzv_endpoint": "127.0.0.1:29400"}])
+@pytest.mark.parametrize(("rejoin", "left", "last_call"), [(5, None, 5), (0.2, None, 1), (5, 2, 1)])
+def test_a_regroup_after_a_node_left_waits_no_rejoin_timeout(monkeypatch, backend, rejoin, left, last_call) -> None:
+    """The rendezvous waits ``--rejoin-timeout`` for nodes beyond MIN (a lost node may come back), at least 1 s (torch
+    refuses 0), but after a node left on its own (``Plan.left``) nobody is missing: 1 s."""
+    monkeypatch.setenv(SECRET_ENV, "a-secret-of-sixteen-or-more")
+    options = SupervisorOptions(nnodes="2:3", rejoin_timeout=rejoin, **backend)
+    arguments = rendezvous(Plan("token", 1, 29401, left=left), parse_nodes(options), options)
+    (conf,) = [argument for argument in arguments if argument.startswith("--rdzv-conf=")]
+    assert f"last_call_timeout={last_call}," in conf, conf
