@@ -31,6 +31,11 @@ TORCHRUN = "torchrun"
 """The entry of torchrun's stand-in."""
 REQUEST_TIMEOUT = 10.0
 """Seconds a stand-in has to send its request once connected: one that stalls must not stall the pool."""
+STOP_SIGNALS = {signal.SIGTERM: signal.SIG_DFL, signal.SIGINT: signal.default_int_handler}
+"""What the pool ignores, and the handlers a fork gets back (Python's at start): a stop that reaches every process of
+a run (SLURM signals every process of a job step) is for the workers, which save; the pool ends only with its
+supervisor (``close``, or ``die_with_supervisor``), and its forks with it, so a pool that died of it would take the
+workers down before their save."""
 
 
 class Pool:
@@ -96,8 +101,8 @@ class Pool:
         stand-in learns its pid only then: a signal passed on to its process group reaches it, and is not ignored."""
         signal.set_wakeup_fd(-1)
         signal.signal(signal.SIGCHLD, signal.SIG_DFL)
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)  # as in a process just started (STOP_SIGNALS)
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        for number, handler in STOP_SIGNALS.items():  # as in a process just started
+            signal.signal(number, handler)
         for end in [*self.sockets, *filter(None, self.forks.values())]:
             end.close()
         os.setsid()
@@ -140,12 +145,6 @@ class Pool:
                 with contextlib.suppress(OSError):
                     send_message(connection, {"status": status})
                 connection.close()
-
-
-STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
-"""What the pool ignores: a stop that reaches every process of a run (SLURM signals every process of a job step) is
-for the workers, which save; the pool ends only with its supervisor (``close``, or ``die_with_supervisor``), and its
-forks with it, so a pool that died of it would take the workers down before their save."""
 
 
 def serve() -> NoReturn:

@@ -157,7 +157,7 @@ def assert_left_alone(storage: Path, leaving: int, index: int, saved: int) -> No
 def test_on_c10d_a_nodes_preemption_leaves_the_others_training_and_node_0s_stops_every_node(tmp_path) -> None:
     """c10d: a node other than node 0 leaves on its own as on etcd (node 2's SIGTERM: every rank saves, node 2 exits
     143, nodes 0 and 1 regroup at world 2 from that step). Node 0 keeps the plan and hosts the rendezvous: its
-    preemption saves and stops every node (143), and the same command continues from that step."""
+    preemption saves and stops every node (143), from the newest step."""
     storage, endpoint = tmp_path / "run", f"127.0.0.1:{free_port()}"
     nodes = [start_node(storage, node, "2:3", c10d(node, endpoint), "iterations=400") for node in range(3)]
     wait_for(lambda: training_world(storage, 3), "a world of 3 ranks training", timeout=180, interval=0.2)
