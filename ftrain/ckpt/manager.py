@@ -2,11 +2,13 @@
 
 Resuming is ``resume.py``; one save is ``save.py``; when to save is ``schedule.py``. This module acts on what the
 ranks agreed for each save: a committed step (hooks hear of it), a failed one (training goes on, and the newest state
-is tried again as soon as the failed save has settled, then after waits that double up to ``RETRY_DELAY_MAX``), an
-unloadable one (stop). A save that must commit (the last one of a run, a stop, or one with more unsaved work than
-``checkpoint.max_unsaved``) holds training until it does: it is retried with backoff, one line each time, for up to
-the storage wait (``FTRAIN_STORAGE_WAIT``, which ``ftrain supervise`` sets from ``--storage-wait``), then the rank ends
-with ``StorageUnavailable``: nothing committed is lost.
+is tried again as soon as the failed save has settled, then after waits that double up to ``RETRY_DELAY_MAX``; in
+between, saves on the schedule go to the spool alone, so that a crash while the storage is down loses no more than
+usual), an unloadable one (stop). A start that finds the storage down counts as a failed save. A save that must
+commit (the last one of a run, a stop, or one with more unsaved work than ``checkpoint.max_unsaved``) holds training
+until it does: it is retried with backoff, one line each time, for up to the storage wait (``FTRAIN_STORAGE_WAIT``,
+which ``ftrain supervise`` sets from ``--storage-wait``), then the rank ends with ``StorageUnavailable``: nothing
+committed is lost.
 
 With ``checkpoint.async_save`` (the default) a save is a snapshot handed to the rank's writer thread, and up to
 ``MAX_IN_FLIGHT`` may be in flight; without it, the rank writes and agrees inline, a plain ``torch.save`` per file.
@@ -25,7 +27,7 @@ from collections.abc import Callable
 from ftrain.ckpt import resume
 from ftrain.ckpt.format import COMMON, STATE_FORMAT, shard_name
 from ftrain.ckpt.resume import Checkpointable, CheckpointError
-from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, snapshot
+from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, Target, snapshot
 from ftrain.ckpt.schedule import DEFAULT_STORAGE_WAIT, STORAGE_WAIT_ENV, SaveSchedule
 from ftrain.ckpt.spool import Spool
 from ftrain.ckpt.storage import Storage, StorageUnavailable, backoff
@@ -43,9 +45,12 @@ WAIT_BEAT = 0.5
 HOLD_DELAY = (1.0, 30.0)
 """Seconds between two tries of a held save: the first, and the longest (doubling, with jitter)."""
 RETRY_DELAY_MAX = 8.0
-"""The longest wait between a failed save's end and the next try while training goes on (the first comes as soon as
-the failed one has settled, then after 1, 2, 4 s...): each try is a snapshot, a spool write and requests to the storage,
-which back to back took 13 s of the two cores during two 60 s outages (``launch/bench_chaos.py``)."""
+"""The longest wait between a failed save's end and the next try of the storage while training goes on (the first
+comes as soon as the failed one has settled, then after 1, 2, 4 s...): each try is requests to the storage, which back
+to back took 13 s of the two cores during two 60 s outages (``launch/bench_chaos.py``)."""
+QUICK_CHECK_RETRIES = 1
+"""Retries of a supervised start's first request to a storage it may do without (resuming from the spool): a start
+while the storage is down would otherwise wait out every retry (3 s with the default ``checkpoint.retries``)."""
 FAILURE_LINES = 30.0
 """Seconds between two lines about saves that keep failing (the first failure and the recovery are always told)."""
 
@@ -99,7 +104,8 @@ class Checkpointer:
         has not been acted on yet."""
         self._spare: list[dict] = []
         """Snapshots whose saves are over: the next snapshots copy into their memory."""
-        self._failing: Failing | None = None
+        now = time.monotonic()
+        self._failing = None if self._down is None else Failing(now, now, 1, str(self._down))
         """Saves failing in a row; None while the newest settled save committed."""
         self._told = -math.inf
         self._checked_loadable = False
@@ -128,27 +134,38 @@ class Checkpointer:
         self._static_meta["world_sizes"] = resumed.world_sizes
         return resumed.step
 
-    def votes(self, iteration: int) -> tuple[bool, bool]:
-        """This rank's votes after ``iteration``, which the ranks sum: save now, and hold (train no further until
-        that save commits). While saves fail: save once the failed one has settled and its wait is over, hold once
-        more work than ``checkpoint.max_unsaved`` is unsaved."""
+    def votes(self, iteration: int) -> tuple[bool, bool, bool]:
+        """This rank's votes after ``iteration``, which the ranks sum: save now, save to the storage (not to the
+        spool alone), and hold (train no further until that save commits).
+
+        While saves fail, and nothing is in flight: to the storage once the failed save's wait is over, or when more
+        work than ``checkpoint.max_unsaved`` is unsaved (hold); to the spool alone when the schedule says, and for the
+        first save of a start (it is waited for, see ``save``: not on a storage that just failed)."""
         self._settle(MAX_IN_FLIGHT)  # the outcomes that have arrived
         now = time.monotonic()
-        if self._failing is not None:
-            count = self._failing.count
-            delay = 0.0 if count < 2 else min(RETRY_DELAY_MAX, 2.0 ** min(count - 2, 8))
-            hold = self.schedule.over_bound(iteration, now)
-            return not self._pending and (hold or now - self._failing.last >= delay), hold
-        return self.schedule.due(iteration, now), False
+        due = self.schedule.due(iteration, now)
+        if self._failing is None:
+            return due, due, False
+        count = self._failing.count
+        delay = 0.0 if count < 2 else min(RETRY_DELAY_MAX, 2.0 ** min(count - 2, 8))
+        hold = self.schedule.over_bound(iteration, now)
+        idle = not self._pending
+        store = idle and (hold or (self._checked_loadable and now - self._failing.last >= delay))
+        spool = idle and self.spool is not None and (due or not self._checked_loadable)
+        return store or spool, store, hold
 
-    def save(self, trainer: Checkpointable, wait: bool = False, hold: bool = False) -> None:
+    def save(self, trainer: Checkpointable, wait: bool = False, hold: bool = False, store: bool = True) -> None:
         """Save the state of ``trainer`` as step ``trainer.iteration``.
 
         In the background: snapshot now, the writer thread does the rest. Waited for: with ``wait``, and the first
         save of a run (it checks that what is saved loads back). ``hold``: train no further until this state is
         committed (the save that ends a run, or too much unsaved work): retry until it is, or StorageUnavailable.
+        Without ``store`` (and without ``hold``), the state goes to the spool alone.
         """
-        self._submit(trainer, wait)
+        if not (store or hold or self.spool is None):
+            self._submit(trainer, wait, Target.SPOOL)
+        else:
+            self._submit(trainer, wait, Target.STORAGE if self._failing is None else Target.TRY)
         if hold:
             self._hold(trainer)
 
@@ -162,7 +179,7 @@ class Checkpointer:
         if self._background is not None:
             self._background.close(timeout=self.config.dist_timeout + 5)
 
-    def _submit(self, trainer: Checkpointable, wait: bool) -> None:
+    def _submit(self, trainer: Checkpointable, wait: bool, target: Target) -> None:
         started = time.perf_counter()
         step = trainer.iteration
         if step == self.committed_step or step in (pending for pending, *_ in self._pending):
@@ -177,12 +194,12 @@ class Checkpointer:
         first = not self._checked_loadable
         self._checked_loadable = True
         if self._background is None:
-            outcome = self._writer.save(step, files, meta, first)
+            outcome = self._writer.save(step, files, meta, first, target)
             self.last_blocking_s = time.perf_counter() - started
             self._act_on(outcome, self.last_blocking_s)
             return
         copy = snapshot(files, self._spare.pop() if self._spare else None)
-        self._background.submit(step, copy, meta, first)
+        self._background.submit(step, copy, meta, first, target)
         self.last_blocking_s = time.perf_counter() - started
         self._pending.append((step, copy, self.last_blocking_s))
         if wait or first:
@@ -208,7 +225,7 @@ class Checkpointer:
             )
             self._pause(delay)
             tries += 1
-            self._submit(trainer, wait=True)
+            self._submit(trainer, wait=True, target=Target.TRY)
 
     def _pause(self, seconds: float) -> None:
         deadline = time.monotonic() + seconds
@@ -244,6 +261,8 @@ class Checkpointer:
         self.schedule.settled(step, outcome.result is Result.COMMITTED, blocked + outcome.cpu_s)
         if outcome.result in (Result.UNLOADABLE, Result.FENCED):
             raise CheckpointError(detail)
+        if outcome.result is Result.SPOOLED:
+            return
         if outcome.result is Result.COMMITTED:
             if self._failing is not None:
                 since = now - self._failing.since
@@ -269,15 +288,17 @@ class Checkpointer:
 
 def _open_storage(config: Config) -> tuple[Storage, StorageUnavailable | None]:
     """The run's storage, and why it does not answer (None: it does). Under a supervisor a storage that does not
-    answer is opened all the same (its bucket not checked): the run may resume from the spool, and the supervisor
-    holds the lease, so no other run writes there."""
+    answer is opened all the same, after ``QUICK_CHECK_RETRIES``: the run may resume from the spool, and the
+    supervisor holds the lease, so no other run writes there."""
     url, options, retries = config.storage.url, config.storage.options, config.checkpoint.retries
-    try:
-        return Storage.open(url, options, retries), None
-    except StorageUnavailable as down:
-        if not os.environ.get(SUPERVISOR_ENV) or not config.checkpoint.spool:
-            raise
-        return Storage.open(url, options, retries, check_bucket=False), down
+    may_spool = bool(os.environ.get(SUPERVISOR_ENV)) and config.checkpoint.spool
+    storage = Storage.open(url, options, retries, check_bucket=not may_spool)
+    if may_spool:
+        try:
+            storage.with_retries(min(retries, QUICK_CHECK_RETRIES)).check()
+        except StorageUnavailable as down:
+            return storage, down
+    return storage, None
 
 
 def _versions() -> dict:

@@ -60,6 +60,19 @@ class Result(str, enum.Enum):
     """Written state that would not load back: training must stop."""
     FENCED = "fenced"
     """A newer generation of the run has committed (``fence.py``): this rank is cut off and must stop."""
+    SPOOLED = "spooled"
+    """Written to the spool alone, as asked (while the storage is down): the storage has not changed."""
+
+
+class Target(enum.Enum):
+    """Where a save goes (the spool, if there is one, always comes first)."""
+
+    STORAGE = "storage"
+    """The storage, each request retried ``checkpoint.retries`` times."""
+    TRY = "try"
+    """The storage, one attempt per request: saves are failing, and the wait between two tries is their backoff."""
+    SPOOL = "spool"
+    """The spool alone: the storage is down and its next try is not due."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,6 +120,7 @@ class StepWriter:
         """``collectives``: the group the ranks agree in (None: the default group); ``spool``: where every step goes
         first (``spool.py``)."""
         self.storage = storage
+        self._one_attempt = storage.with_retries(0)
         self.spool = spool
         self.newest_committed: int | None = None
         """The newest step committed to the storage as far as this rank knows (rank 0: as soon as it commits), which
@@ -129,9 +143,16 @@ class StepWriter:
         not share (node-local directories on several nodes) shows there, once. Later commits trust the writers'
         own successful exclusive creates (a listing is a request per save on S3)."""
 
-    def save(self, step: int, files: dict[str, dict], meta: dict | None, check_loadable: bool) -> Outcome:
-        """Write this rank's ``files`` (name to state) of ``step``, to the spool first if there is one; ``meta``
-        (rank 0) goes into the manifest."""
+    def save(
+        self,
+        step: int,
+        files: dict[str, dict],
+        meta: dict | None,
+        check_loadable: bool,
+        target: Target = Target.STORAGE,
+    ) -> Outcome:
+        """Write this rank's ``files`` (name to state) of ``step`` to the spool if there is one, then to ``target``;
+        ``meta`` (rank 0) goes into the manifest."""
         report = {"entries": {}, "fields": {}, "error": None, "unloadable": False}
         encoded = {}
         try:
@@ -141,11 +162,14 @@ class StepWriter:
         except Exception as exc:
             report["error"] = f"rank {self.info.rank}: {type(exc).__name__}: {exc}"
         if self.spool is not None:
-            self._spool(step, encoded, meta, report)
+            unloadable = self._spool(step, encoded, meta, report)
+            if target is Target.SPOOL:
+                return Outcome(Result.UNLOADABLE if unloadable else Result.SPOOLED, step, "; ".join(unloadable))
+        storage = self._one_attempt if target is Target.TRY else self.storage
         self.storing = True
         try:
             if report["error"] is None:
-                report["entries"] = self._write(functools.partial(write_file, self.storage), step, encoded)
+                report["entries"] = self._write(functools.partial(write_file, storage), step, encoded)
         except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
             report["error"] = f"rank {self.info.rank}: {exc}"
         finally:
@@ -155,7 +179,7 @@ class StepWriter:
         if self.info.is_main:
             self.storing = True
             try:
-                outcome = self._commit(step, reports, meta)
+                outcome = self._commit(storage, step, reports, meta)
             except Exception as exc:  # whatever rank 0 meets, every rank hears the same outcome
                 outcome = (Result.FAILED, step, f"commit: {type(exc).__name__}: {exc}")
             finally:
@@ -186,9 +210,10 @@ class StepWriter:
             entries[name] = [entry.size, entry.sha256]
         return entries
 
-    def _spool(self, step: int, encoded: dict[str, bytes], meta: dict | None, report: dict) -> None:
-        """Write and commit ``step`` to the spool (see ``spool.py``). A failure leaves the storage's save alone: rank
-        0 says so once and empties the spool, so that no older spooled step is ever taken for the newest."""
+    def _spool(self, step: int, encoded: dict[str, bytes], meta: dict | None, report: dict) -> list[str]:
+        """Write and commit ``step`` to the spool (see ``spool.py``): why the state of any rank would not load back
+        (every rank learns it). A failure leaves the storage's save alone: rank 0 says so once and empties the spool,
+        so that no older spooled step is ever taken for the newest."""
         entries, error = None, None
         self.storing = True
         try:
@@ -198,16 +223,18 @@ class StepWriter:
             error = f"rank {self.info.rank}: {exc}"
         finally:
             self.storing = False
-        spooled = group.all_gather_object([entries, error], self.info, self.collectives)
-        errors = [error for _, error in spooled if error]
-        if not self.info.is_main or (not errors and any(entries is None for entries, _ in spooled)):
-            return
+        unloadable = report["error"] if report["unloadable"] else None
+        spooled = group.all_gather_object([entries, error, unloadable], self.info, self.collectives)
+        errors = [error for _, error, _ in spooled if error]
+        unloadable = [why for *_, why in spooled if why]
+        if not self.info.is_main or (not errors and any(entries is None for entries, *_ in spooled)):
+            return unloadable
         try:
             if not errors:
-                files = {name: FileEntry(*entry) for entries, _ in spooled for name, entry in entries.items()}
+                files = {name: FileEntry(*entry) for entries, *_ in spooled for name, entry in entries.items()}
                 self.spool.commit(step, files, meta | report["fields"], self.newest_committed)
                 self._spool_failing = False
-                return
+                return unloadable
         except Exception as exc:
             errors = [f"commit: {exc}"]
         if not self._spool_failing:
@@ -218,13 +245,14 @@ class StepWriter:
         self._spool_failing = True
         with contextlib.suppress(Exception):
             self.spool.clear()
+        return unloadable
 
-    def _commit(self, step: int, reports: list[dict], meta: dict) -> tuple:
+    def _commit(self, storage: Storage, step: int, reports: list[dict], meta: dict) -> tuple:
         errors = [report["error"] for report in reports if report["error"]]
         if any(report["unloadable"] for report in reports):
             return (Result.UNLOADABLE, step, "; ".join(errors))
         if self._steps is None:
-            self._steps = {info.step: info for info in scan(self.storage)}  # may fail: save() reports it
+            self._steps = {info.step: info for info in scan(storage)}  # may fail: save() reports it
         files = {name: FileEntry(*entry) for report in reports for name, entry in report["entries"].items()}
         fields = {key: value for report in reports for key, value in report["fields"].items()}  # from common.pt
         if not errors:
@@ -232,7 +260,7 @@ class StepWriter:
                 if self.fence is not None:
                     self.fence.check()
                     fields["generation"] = [self.fence.run, self.fence.generation]
-                manifest = commit(self.storage, step, files, meta | fields, check_present=not self._listed)
+                manifest = commit(storage, step, files, meta | fields, check_present=not self._listed)
                 self._listed = True
             except Fenced as exc:
                 self.log(f"checkpoint step {step} refused: {exc}")
@@ -279,8 +307,10 @@ class BackgroundWriter:
         self._thread = threading.Thread(target=self._run, name="ftrain-checkpoint-writer", daemon=True)
         self._thread.start()
 
-    def submit(self, step: int, files: dict[str, dict], meta: dict | None, check_loadable: bool) -> None:
-        self._jobs.put((step, files, meta, check_loadable))
+    def submit(
+        self, step: int, files: dict[str, dict], meta: dict | None, check_loadable: bool, target: Target
+    ) -> None:
+        self._jobs.put((step, files, meta, check_loadable, target))
 
     def ready(self) -> bool:
         """Whether the oldest outcome not yet taken has arrived."""

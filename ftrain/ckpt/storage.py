@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import copy
 import datetime
 import errno
 import logging
 import os
 import random
 import re
-import shutil
-import threading
 import time
 from collections.abc import Callable, Iterable
 from typing import Any, TypeVar
@@ -35,6 +34,7 @@ from botocore.exceptions import ConnectionError as BotoConnectionError
 from fsspec.implementations.local import LocalFileSystem
 from s3fs import S3FileSystem
 
+from ftrain.ckpt import localfs
 from ftrain.errors import StorageError, StorageUnavailable, UserError
 from ftrain.redact import SECRET_OPTIONS, display_url
 
@@ -120,9 +120,15 @@ class Storage:
         storage = cls(fs, root, shown, secrets, retries, base_delay)
         if isinstance(fs, S3FileSystem):
             fs.retries = 1  # s3fs's own retry loop: one attempt, ours does the retrying
-            if check_bucket:
-                storage._check_bucket()
+        if check_bucket:
+            storage.check()
         return storage
+
+    def with_retries(self, retries: int) -> Storage:
+        """The same storage, with transient errors retried ``retries`` times instead."""
+        other = copy.copy(self)
+        other.retries = retries
+        return other
 
     def __repr__(self) -> str:
         return f"Storage({self.url!r})"
@@ -145,7 +151,7 @@ class Storage:
         def create() -> None:
             try:
                 if self.is_local:
-                    _write_local(path, data, exclusive=True)
+                    localfs.write(path, data, exclusive=True)
                 else:
                     self.fs.pipe_file(path, data, mode="create")
             except FileExistsError:
@@ -158,7 +164,7 @@ class Storage:
         """Create or overwrite ``rel`` (not atomic: for markers and other objects that are not a commit)."""
         path = self._path(rel)
         if self.is_local:
-            self._call("write", rel, _write_local, path, data, exclusive=False)
+            self._call("write", rel, localfs.write, path, data, exclusive=False)
         else:
             self._call("write", rel, self.fs.pipe_file, path, data)
 
@@ -197,7 +203,7 @@ class Storage:
         directories of its own (delete the tree then)."""
         paths = [self._path(f"{rel}/{name}") for name in names]
         if self.is_local:
-            return self._call("delete", rel, _delete_local_files, self._path(rel), paths)
+            return self._call("delete", rel, localfs.delete_files, self._path(rel), paths)
         if isinstance(self.fs, S3FileSystem):  # no directories, and a batch delete takes absent keys
             self._call("delete", rel, self.fs.rm, paths)
             return True
@@ -207,7 +213,7 @@ class Storage:
         """Delete ``rel`` and everything below it, if it exists."""
         with contextlib.suppress(FileNotFoundError):
             if self.is_local:  # fsspec would walk the tree first, then delete entry by entry
-                self._call("delete", rel, _delete_local, self._path(rel))
+                self._call("delete", rel, localfs.delete, self._path(rel))
             else:
                 self._call("delete", rel, self.fs.rm, self._path(rel), recursive=True)
 
@@ -259,7 +265,10 @@ class Storage:
                 log.warning("%s %s: %s; retry %d/%d in %.2fs", what, where, reason, attempt, self.retries, delay)
                 time.sleep(delay)
 
-    def _check_bucket(self) -> None:
+    def check(self) -> None:
+        """On S3, that the bucket answers and exists."""
+        if not isinstance(self.fs, S3FileSystem):
+            return
         bucket = self.root.split("/", 1)[0]
         if not bucket:
             raise UserError(f"storage URL {self.url!r} names no bucket: use s3://bucket/prefix")
@@ -349,51 +358,3 @@ def _s3_options(url: str, options: dict) -> str:
     config.setdefault("retries", {"total_max_attempts": 1})
     options["config_kwargs"] = config
     return url
-
-
-def _delete_local(path: str) -> None:
-    if os.path.isdir(path) and not os.path.islink(path):
-        shutil.rmtree(path)
-    else:
-        os.remove(path)
-
-
-def _delete_local_files(directory: str, paths: list[str]) -> bool:
-    for path in paths:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(path)
-    try:
-        os.rmdir(directory)
-    except FileNotFoundError:
-        pass
-    except OSError as error:
-        if error.errno not in (errno.ENOTEMPTY, errno.EEXIST):  # POSIX allows either for a non-empty directory
-            raise
-        return False
-    return True
-
-
-def _write_local(path: str, data: bytes, exclusive: bool) -> None:
-    """Write and fsync a local file (and its directory). ``exclusive``: the data goes to a temporary name in the same
-    directory, which is then linked to ``path`` (FileExistsError if it exists), so the file is complete whenever it is
-    visible and a failed create leaves nothing under ``path``."""
-    directory = os.path.dirname(path)
-    os.makedirs(directory, exist_ok=True)
-    target = f"{path}.tmp-{os.getpid()}-{threading.get_ident()}" if exclusive else path
-    fd = os.open(target, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-    try:
-        with os.fdopen(fd, "wb") as file:
-            file.write(data)
-            file.flush()
-            os.fsync(file.fileno())
-        if target != path:
-            os.link(target, path)
-    finally:
-        if target != path:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(target)
-    dir_fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)

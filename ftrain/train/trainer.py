@@ -80,6 +80,8 @@ class Votes(typing.NamedTuple):
     SIGINT, so that every rank exits with the same code."""
     save: bool
     """Save here (the checkpoint schedule, or a retry after a failed save)."""
+    store: bool
+    """That save goes to the storage, not to the spool alone (which it does while saves fail, between retries)."""
     hold: bool
     """Train no further until this save commits (saves failing, and too much unsaved work)."""
 
@@ -113,7 +115,7 @@ class Trainer:
         self.checkpointer.on_commit = lambda step, manifest: self.hooks.call("on_checkpoint", self, step, manifest)
         self.checkpointer.while_waiting = lambda: self.heartbeat.beat("checkpoint")
         self.checkpointer.stopping = lambda: self.stop.requested
-        self._votes = Votes(None, False, False)
+        self._votes = Votes(None, False, False, False)
         self._config_json = json.dumps(config.public_dict())
         """The config as saved in common.pt: one string, made once (the manifest has it as a mapping)."""
 
@@ -212,7 +214,8 @@ class Trainer:
             stop, last = self._votes.stop is not None, self.iteration == self.config.iterations
             if stop or last or self._votes.save:
                 self.heartbeat.beat("checkpoint", self.iteration)
-                self.checkpointer.save(self, wait=stop, hold=stop or last or self._votes.hold)
+                hold = stop or last or self._votes.hold
+                self.checkpointer.save(self, wait=stop, hold=hold, store=self._votes.store)
                 self.heartbeat.committed_step = self.checkpointer.committed_step
             if stop:
                 name, code = signal.Signals(self._votes.stop).name, stop_code(self._votes.stop)
@@ -267,8 +270,8 @@ class Trainer:
         total_returns, total_lengths, count, total_steps, *voted = group.all_reduce_sum(
             [returns, lengths, len(self.episodes), steps, *map(float, votes)], self.info
         )
-        terms, ints, save, hold = (vote > 0 for vote in voted)
-        self._votes = Votes(signal.SIGTERM if terms else signal.SIGINT if ints else None, save, hold)
+        terms, ints, save, store, hold = (vote > 0 for vote in voted)
+        self._votes = Votes(signal.SIGTERM if terms else signal.SIGINT if ints else None, save, store, hold)
         self.env_steps += int(total_steps)
         previous = self.metrics
         iteration_time = collect_time + learn_time
