@@ -6,9 +6,9 @@ is tried again as soon as the failed save has settled, then after waits that dou
 between, saves on the schedule go to the spool alone, so that a crash while the storage is down loses no more than
 usual), an unloadable one (stop). A start that finds the storage down counts as a failed save. A save that must
 commit (the last one of a run, a stop, or one with more unsaved work than ``checkpoint.max_unsaved``) holds training
-until it does: it is retried with backoff, one line each time, for up to the storage wait (``FTRAIN_STORAGE_WAIT``,
-which ``ftrain supervise`` sets from ``--storage-wait``), then the rank ends with ``StorageUnavailable``: nothing
-committed is lost.
+until it does: it is retried with backoff (``HOLD_DELAY``), a line every ``WAIT_LINES`` seconds, for up to the
+storage wait (``FTRAIN_STORAGE_WAIT``, which ``ftrain supervise`` sets from ``--storage-wait``), then the rank ends
+with ``StorageUnavailable``: nothing committed is lost.
 
 With ``checkpoint.async_save`` (the default) a save is a snapshot handed to the rank's writer thread, and up to
 ``MAX_IN_FLIGHT`` may be in flight; without it, the rank writes and agrees inline, a plain ``torch.save`` per file.
@@ -30,7 +30,7 @@ from ftrain.ckpt.resume import Checkpointable, CheckpointError
 from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, Target, snapshot
 from ftrain.ckpt.schedule import DEFAULT_STORAGE_WAIT, STORAGE_WAIT_ENV, SaveSchedule
 from ftrain.ckpt.spool import Spool
-from ftrain.ckpt.storage import Storage, StorageUnavailable, backoff
+from ftrain.ckpt.storage import WAIT_LINES, Storage, StorageUnavailable, backoff
 from ftrain.config import Config
 from ftrain.dist import group
 from ftrain.errors import UserError
@@ -42,8 +42,10 @@ MAX_IN_FLIGHT = 2
 the loop."""
 WAIT_BEAT = 0.5
 """Seconds between two calls of ``while_waiting`` while a rank waits for a save (its heartbeat: not a hang)."""
-HOLD_DELAY = (1.0, 30.0)
-"""Seconds between two tries of a held save: the first, and the longest (doubling, with jitter)."""
+HOLD_DELAY = (1.0, 5.0)
+"""Seconds between two tries of a held save: the first, and the longest (doubling, with jitter). Short: every second
+between the storage's return and the next try is lost to the whole run, and a try of a storage that is down costs one
+request per file (``Target.TRY``)."""
 RETRY_DELAY_MAX = 8.0
 """The longest wait between a failed save's end and the next try of the storage while training goes on (the first
 comes as soon as the failed one has settled, then after 1, 2, 4 s...): each try is requests to the storage, which back
@@ -51,8 +53,6 @@ to back took 13 s of the two cores during two 60 s outages (``launch/bench_chaos
 QUICK_CHECK_RETRIES = 1
 """Retries of a supervised start's first request to a storage it may do without (resuming from the spool): a start
 while the storage is down would otherwise wait out every retry (3 s with the default ``checkpoint.retries``)."""
-FAILURE_LINES = 30.0
-"""Seconds between two lines about saves that keep failing (the first failure and the recovery are always told)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -206,9 +206,10 @@ class Checkpointer:
             self._settle(0)
 
     def _hold(self, trainer: Checkpointable) -> None:
-        """Retry the state of ``trainer`` until it is committed, with backoff, a line for each try, heartbeats."""
+        """Retry the state of ``trainer`` until it is committed: with backoff, heartbeats, and a line at the first try
+        and then every ``WAIT_LINES`` seconds."""
         self._settle(0)
-        tries = 0
+        tries, told = 0, -math.inf
         while self.committed_step != trainer.iteration:
             since, why = self._failing.since, self._failing.why
             waited = time.monotonic() - since
@@ -219,10 +220,12 @@ class Checkpointer:
                 )
             delay = backoff(HOLD_DELAY[0], tries, HOLD_DELAY[1])
             iterations, seconds = self.schedule.unsaved(trainer.iteration, time.monotonic())
-            self.log(
-                f"training held at step {trainer.iteration}: {iterations} iterations ({seconds:.0f} s) unsaved, "
-                f"saves failing for {time.monotonic() - since:.0f} s; next try in {delay:.1f} s"
-            )
+            if time.monotonic() - told >= WAIT_LINES:
+                told = time.monotonic()
+                self.log(
+                    f"training held at step {trainer.iteration}: {iterations} iterations ({seconds:.0f} s) unsaved, "
+                    f"saves failing for {waited:.0f} s; next try in {delay:.1f} s"
+                )
             self._pause(delay)
             tries += 1
             self._submit(trainer, wait=True, target=Target.TRY)
@@ -275,7 +278,7 @@ class Checkpointer:
         first = self._failing is None
         count = 1 if first else self._failing.count + 1
         self._failing = Failing(now if first else self._failing.since, now, count, detail)
-        if first or now - self._told >= FAILURE_LINES:
+        if first or now - self._told >= WAIT_LINES:
             self._told = now
             iterations, seconds = self.schedule.unsaved(step, now)
             self.log(

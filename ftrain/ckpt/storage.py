@@ -305,6 +305,11 @@ class Storage:
         return _scrub(exc, self._secrets)
 
 
+WAIT_LINES = 30.0
+"""Seconds between two console lines about a wait for the storage (the first and the end of a wait are always told):
+where the tries come every few seconds, a line each would flood the log of a long outage."""
+
+
 def backoff(base: float, attempt: int, longest: float) -> float:
     """Seconds before retry ``attempt + 1``: ``base * 2**attempt``, at most ``longest``, with +-25% jitter so that
     many ranks or nodes do not knock at a recovering server at the same instant."""

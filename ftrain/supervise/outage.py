@@ -1,27 +1,30 @@
 """Waiting out an unreachable checkpoint storage.
 
 A worker that cannot reach the storage ends with exit 7 (``StorageUnavailable``): an infrastructure fault, not bad
-input. The supervisor then probes the storage itself, with backoff and one line per try, and starts the workers again
-once it answers; such restarts count neither towards ``--max-restarts`` nor the crash loop. After ``--storage-wait``
-seconds it gives up with exit 7; nothing committed is lost. The workers get the same wait (``FTRAIN_STORAGE_WAIT``)
+input. The supervisor then probes the storage itself, with backoff (a line at the first probe, then every
+``WAIT_LINES`` seconds), and starts the workers again once it answers; such restarts count neither towards
+``--max-restarts`` nor the crash loop. After ``--storage-wait`` seconds it gives up with exit 7; nothing committed is
+lost. The workers get the same wait (``FTRAIN_STORAGE_WAIT``)
 for a save they must commit.
 """
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from collections.abc import Callable
 
-from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable, backoff
+from ftrain.ckpt.storage import WAIT_LINES, Storage, StorageError, StorageUnavailable, backoff
 from ftrain.config import StorageConfig
 from ftrain.errors import EXIT_USAGE, UserError
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.options import EXIT_STORAGE_WAIT
 from ftrain.supervise.outcome import Outcome
 
-PROBES = (1.0, 30.0)
-"""Seconds between two probes: the first, and the longest (doubling, with jitter)."""
+PROBES = (1.0, 5.0)
+"""Seconds between two probes: the first, and the longest (doubling, with jitter). Short: every second between the
+storage's return and the next probe is lost to the whole run, and a probe is one request."""
 
 
 class StorageWait:
@@ -47,7 +50,7 @@ class StorageWait:
         """Probe until the storage answers (None), or the ending of the run: it did not within the limit, or what it
         answers no waiting fixes (a bucket gone, access denied)."""
         url = self.storage.url
-        started, since, tries = time.monotonic(), time.strftime("%H:%M:%S"), 0
+        started, since, tries, told = time.monotonic(), time.strftime("%H:%M:%S"), 0, -math.inf
         self.events("storage_wait", f"{why}; waiting up to {self.limit:g} s for it", storage=url, cause=why)
         while True:
             try:
@@ -66,11 +69,13 @@ class StorageWait:
                     "run the same command again once it is back",
                 )
             delay = backoff(PROBES[0], tries, PROBES[1])
-            print(
-                f"ftrain supervise: storage {url} unreachable since {since} ({problem}); next try in {delay:.0f} s",
-                file=sys.stderr,
-                flush=True,
-            )
+            if waited - told >= WAIT_LINES:
+                told = waited
+                print(
+                    f"ftrain supervise: storage {url} unreachable since {since} ({problem}); next try in {delay:.0f} s",
+                    file=sys.stderr,
+                    flush=True,
+                )
             self.sleep(delay)
             tries += 1
 
