@@ -337,6 +337,11 @@ def report(args: argparse.Namespace, straight: dict, chaos: dict, imports: float
     )
     steady = (straight["timeline"].median_iteration(), chaos["timeline"].median_iteration())
     print(f"median iteration: uninterrupted run {steady[0]:.3f} s, chaos run {steady[1]:.3f} s (other load)")
+    scaled = straight["wall"] * steady[1] / steady[0]
+    print(  # the host's speed drifts by 10-20% between two runs of a few minutes here
+        f"goodput at the chaos run's training speed (the uninterrupted run scaled by the median iterations, "
+        f"{scaled:.1f} s): {scaled / chaos['wall']:.3f}"
+    )
     print(f"importing torch, mujoco, rsl_rl, gymnasium alone: {imports:.2f} s (median of 3; a cold restart pays it)")
     print(
         f"restarts with no start-up at all (launch to ready x restarts, {sum(ready):.1f} s less): goodput "
