@@ -100,7 +100,8 @@ def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
     corrupted = final_manifest(storage)["step"]
     flip_byte(storage / "checkpoints" / f"step-{corrupted:09d}" / "rank-00001.pt")
     os.kill(beats[1].pid, signal.SIGKILL)
-    os.kill(beats[0].pid, signal.SIGCONT)
+    with contextlib.suppress(ProcessLookupError):  # torchrun may have seen rank 1 die and ended rank 0 already
+        os.kill(beats[0].pid, signal.SIGCONT)
     recovered = wait_event(storage, "recovered", 4)
     assert after(recovered) < corrupted
 
