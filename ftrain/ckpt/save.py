@@ -223,8 +223,8 @@ class StepWriter:
             error = f"rank {self.info.rank}: {exc}"
         finally:
             self.storing = False
-        unloadable = report["error"] if report["unloadable"] else None
-        spooled = group.all_gather_object([entries, error, unloadable], self.info, self.collectives)
+        mine = report["error"] if report["unloadable"] else None
+        spooled = group.all_gather_object([entries, error, mine], self.info, self.collectives)
         errors = [error for _, error, _ in spooled if error]
         unloadable = [why for *_, why in spooled if why]
         if not self.info.is_main or (not errors and any(entries is None for entries, *_ in spooled)):
