@@ -30,7 +30,7 @@ from ftrain.ckpt.resume import Checkpointable, CheckpointError
 from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, Target, snapshot
 from ftrain.ckpt.schedule import DEFAULT_STORAGE_WAIT, STORAGE_WAIT_ENV, SaveSchedule
 from ftrain.ckpt.spool import Spool
-from ftrain.ckpt.storage import WAIT_LINES, Storage, StorageUnavailable, backoff
+from ftrain.ckpt.storage import Storage, StorageUnavailable, WaitLines, backoff
 from ftrain.config import Config
 from ftrain.dist import group
 from ftrain.errors import UserError
@@ -107,7 +107,7 @@ class Checkpointer:
         now = time.monotonic()
         self._failing = None if self._down is None else Failing(now, now, 1, str(self._down))
         """Saves failing in a row; None while the newest settled save committed."""
-        self._told = -math.inf
+        self._failure_lines = WaitLines()
         self._checked_loadable = False
         self.last_blocking_s = 0.0
         self.last_commit_s = 0.0
@@ -209,7 +209,7 @@ class Checkpointer:
         """Retry the state of ``trainer`` until it is committed: with backoff, heartbeats, and a line at the first try
         and then every ``WAIT_LINES`` seconds."""
         self._settle(0)
-        tries, told = 0, -math.inf
+        tries, lines = 0, WaitLines()
         while self.committed_step != trainer.iteration:
             since, why = self._failing.since, self._failing.why
             waited = time.monotonic() - since
@@ -220,8 +220,7 @@ class Checkpointer:
                 )
             delay = backoff(HOLD_DELAY[0], tries, HOLD_DELAY[1])
             iterations, seconds = self.schedule.unsaved(trainer.iteration, time.monotonic())
-            if time.monotonic() - told >= WAIT_LINES:
-                told = time.monotonic()
+            if lines.due():
                 self.log(
                     f"training held at step {trainer.iteration}: {iterations} iterations ({seconds:.0f} s) unsaved, "
                     f"saves failing for {waited:.0f} s; next try in {delay:.1f} s"
@@ -278,8 +277,7 @@ class Checkpointer:
         first = self._failing is None
         count = 1 if first else self._failing.count + 1
         self._failing = Failing(now if first else self._failing.since, now, count, detail)
-        if first or now - self._told >= WAIT_LINES:
-            self._told = now
+        if self._failure_lines.due(always=first):
             iterations, seconds = self.schedule.unsaved(step, now)
             self.log(
                 f"checkpoint step {step} not committed, earlier steps intact ({detail}); {iterations} iterations "

@@ -20,6 +20,7 @@ import copy
 import datetime
 import errno
 import logging
+import math
 import os
 import random
 import re
@@ -308,6 +309,21 @@ class Storage:
 WAIT_LINES = 30.0
 """Seconds between two console lines about a wait for the storage (the first and the end of a wait are always told):
 where the tries come every few seconds, a line each would flood the log of a long outage."""
+
+
+class WaitLines:
+    """When the next line about a wait for the storage is due: the first at once, then every ``WAIT_LINES`` s."""
+
+    def __init__(self) -> None:
+        self._told = -math.inf
+
+    def due(self, always: bool = False) -> bool:
+        """Whether to print a line now (``always``: yes, and the next one is ``WAIT_LINES`` seconds from now)."""
+        now = time.monotonic()
+        if not always and now - self._told < WAIT_LINES:
+            return False
+        self._told = now
+        return True
 
 
 def backoff(base: float, attempt: int, longest: float) -> float:

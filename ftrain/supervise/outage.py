@@ -10,12 +10,11 @@ for a save they must commit.
 
 from __future__ import annotations
 
-import math
 import sys
 import time
 from collections.abc import Callable
 
-from ftrain.ckpt.storage import WAIT_LINES, Storage, StorageError, StorageUnavailable, backoff
+from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable, WaitLines, backoff
 from ftrain.config import StorageConfig
 from ftrain.errors import EXIT_USAGE, UserError
 from ftrain.supervise.events import EventLog
@@ -50,7 +49,7 @@ class StorageWait:
         """Probe until the storage answers (None), or the ending of the run: it did not within the limit, or what it
         answers no waiting fixes (a bucket gone, access denied)."""
         url = self.storage.url
-        started, since, tries, told = time.monotonic(), time.strftime("%H:%M:%S"), 0, -math.inf
+        started, since, tries, lines = time.monotonic(), time.strftime("%H:%M:%S"), 0, WaitLines()
         self.events("storage_wait", f"{why}; waiting up to {self.limit:g} s for it", storage=url, cause=why)
         while True:
             try:
@@ -69,8 +68,7 @@ class StorageWait:
                     "run the same command again once it is back",
                 )
             delay = backoff(PROBES[0], tries, PROBES[1])
-            if waited - told >= WAIT_LINES:
-                told = waited
+            if lines.due():
                 print(
                     f"ftrain supervise: storage {url} unreachable since {since} ({problem}); next try in {delay:.0f} s",
                     file=sys.stderr,
