@@ -1,11 +1,29 @@
 #!/usr/bin/env bash
-# Set up, lint, then run the whole test suite (real torchrun, real MuJoCo, a real S3 API server on 127.0.0.1).
-# Extra arguments go to pytest: e.g. `-m slurm` runs only the SLURM lane (tests/cluster: a private SLURM cluster;
-# skipped with the reason where slurm-wlm and munge are missing or not root), `-m cluster` the multi-node lane (etcd;
-# tests/cluster/test_netns.py: machines in network namespaces, as root), `-m "not slurm"` everything else.
+# Set up, lint, then run the test suite (real torchrun, real MuJoCo, a real S3 API server on 127.0.0.1), ending with
+# the 15 slowest tests. Lanes:
+#   bash launch/test.sh                 the whole suite, what CI runs: everything but the opt-in `scale` lane
+#   bash launch/test.sh --lane scale    one lane alone (pytest markers: scale, slurm, cluster, slow; `fast` is
+#                                       `not slow`: no servers, no multi-process runs)
+#   bash launch/test.sh --all           every lane, `scale` included
+# Further arguments go to pytest (a later `-m` wins over the lane's). The SLURM lane (tests/cluster) runs a private
+# SLURM cluster and skips with the reason where slurm-wlm and munge are missing or not root; the cluster lane needs
+# etcd and, for tests/cluster/test_netns.py, network namespaces (root).
 set -euo pipefail
 cd "$(dirname "$0")/.."
+
+select=(-m "not scale")
+case "${1:-}" in
+  --all) select=(); shift ;;
+  --lane)
+    [[ $# -ge 2 ]] || { echo "launch/test.sh: --lane needs a name: scale, slurm, cluster, slow or fast" >&2; exit 2; }
+    lane=$2
+    shift 2
+    [[ $lane == fast ]] && lane="not slow"
+    select=(-m "$lane")
+    ;;
+esac
+
 FTRAIN_TEST_DEPS=1 bash launch/setup.sh
 .venv/bin/ruff check ftrain tests launch examples
 .venv/bin/ruff format --check ftrain tests launch examples
-exec .venv/bin/python -m pytest -p no:cacheprovider "$@"
+exec .venv/bin/python -m pytest -p no:cacheprovider --durations=15 "${select[@]}" "$@"

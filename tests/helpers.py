@@ -154,7 +154,9 @@ def kill_tree(proc: subprocess.Popen) -> None:
     proc.wait()
 
 
-def wait_for(predicate, what: str, timeout: float = 120.0, interval: float = 0.005):
+def wait_for(predicate, what: str, timeout: float = 120.0, interval: float = 0.05):
+    """``predicate()``'s first true value, asked every ``interval`` seconds; fails the test after ``timeout``. 50 ms,
+    not less: every look reads ``/proc`` or files, CPU taken from the processes under test."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         value = predicate()

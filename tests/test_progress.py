@@ -5,8 +5,22 @@ from __future__ import annotations
 import io
 import os
 import pty
+import select
+import time
 
 from ftrain.progress import Progress
+
+WRITTEN = "\rrendering: 25 frames\rrendering: 50 frames\r                    \r"
+
+
+def read_terminal(fd: int, size: int, timeout: float = 30.0) -> str:
+    """What the terminal ``fd`` shows, read until ``size`` characters came or ``timeout`` passed: one ``os.read``
+    returns what has arrived so far, which under load is part of it."""
+    seen, deadline = b"", time.monotonic() + timeout
+    while len(seen) < size and (left := deadline - time.monotonic()) > 0:
+        if select.select([fd], [], [], left)[0]:
+            seen += os.read(fd, size - len(seen))
+    return seen.decode()
 
 
 def test_a_terminal_sees_the_line_rewritten_and_cleared() -> None:
@@ -17,9 +31,9 @@ def test_a_terminal_sees_the_line_rewritten_and_cleared() -> None:
         progress.show("rendering: 50 frames")
         progress.clear()
         terminal.flush()
-        written = os.read(ours, 1000).decode()
+        written = read_terminal(ours, len(WRITTEN))
     os.close(ours)
-    assert written == "\rrendering: 25 frames\rrendering: 50 frames\r                    \r"
+    assert written == WRITTEN
 
 
 def test_a_file_or_pipe_sees_nothing() -> None:

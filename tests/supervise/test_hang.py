@@ -1,6 +1,6 @@
 """Hangs told from slow work, both ways: each phase has its own limit, learnt from its own times; start-up and the
 first iteration after it get the start-up grace. In-process against made-up heartbeats, then a real supervised run
-whose first iteration takes 45 s (not a hang) and whose worker, stopped later, is caught within seconds."""
+whose first iteration takes twice the floor (not a hang) and whose worker, stopped later, is caught within seconds."""
 
 from __future__ import annotations
 
@@ -19,6 +19,8 @@ from ftrain.supervise.hang import HANG_FACTOR, HANG_FLOOR, HangWatch, process_st
 from helpers import REPO, SMOKE, TESTS, child_env, events, finish, launch, training, wait_for
 
 GRACE = 60.0
+FIRST = 2 * HANG_FLOOR
+"""Seconds the real run's first iteration takes: past the floor, so only the start-up grace lets it pass."""
 
 
 def beat(rank: int, seq: int, phase: Phase, iteration: int, longest: dict | None = None) -> Heartbeat:
@@ -148,27 +150,28 @@ def test_a_fixed_timeout_holds_for_every_phase_after_start_up():
 
 
 @pytest.mark.slow
-def test_a_45_s_first_iteration_is_not_a_hang_and_a_stopped_worker_is_caught_in_seconds(tmp_path):
-    """The issue's numbers, in one real supervised run: the first iteration of a fresh start sleeps 45 s (both
-    ranks); later a worker is stopped in the middle of 0.05 s phases."""
+def test_a_slow_first_iteration_is_not_a_hang_and_a_stopped_worker_is_caught_in_seconds(tmp_path):
+    """In one real supervised run: the first iteration of a fresh start sleeps ``FIRST`` s (both ranks), twice the
+    floor any later phase gets; later a worker is stopped in the middle of 0.05 s phases and is called hung at the
+    floor (asserted within the floor + ``FIRST``: a margin for a machine 3x slower)."""
     run = tmp_path / "run"
     command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", "--backoff-initial", "0.2"]
     command += [SMOKE, "--storage", str(run), "iterations=60", "log.console=false"]
-    command += ["hooks=[{target: 'probe_hooks:SlowFirstIterationHook', kwargs: {seconds: 45}}]"]
+    command += [f"hooks=[{{target: 'probe_hooks:SlowFirstIterationHook', kwargs: {{seconds: {FIRST}}}}}]"]
     output = (tmp_path / "supervise.log").open("wb")
     env = child_env({"PYTHONPATH": str(TESTS)})
     supervisor = launch(command, cwd=REPO, env=env, stdout=output, stderr=subprocess.STDOUT)
     victim = training(run / "heartbeat", 8)[1]
-    assert not [event for event in events(run) if event["event"] == "hang"]  # the 45 s first iteration passed
+    assert not [event for event in events(run) if event["event"] == "hang"]  # the slow first iteration passed
     stopped = time.time()
     os.kill(victim.pid, signal.SIGSTOP)
     hang = wait_for(lambda: next((e for e in events(run) if e["event"] == "hang"), None), "a hang", 60, 0.05)
     detected = hang["time"] - stopped
     print(f"the stopped worker was called hung {detected:.2f} s after its SIGSTOP (limit {hang['limit']} s)")
     assert hang["rank"] == 1 and hang["processes"]["1"] == "T" and hang["limit"] == HANG_FLOOR
-    assert detected < 8
+    assert detected < HANG_FLOOR + FIRST
     assert finish(supervisor, timeout=180) == 0, (tmp_path / "supervise.log").read_text()[-3000:]
     with (run / "metrics.csv").open() as file:
-        assert float(next(csv.DictReader(file))["collect_time"]) >= 45  # the first iteration was that slow
+        assert float(next(csv.DictReader(file))["collect_time"]) >= FIRST  # the first iteration was that slow
     first = next(e for e in events(run) if e["event"] == "exit")
     assert [e["event"] for e in events(run)].count("hang") == 1 and first["cause"] == "killed: rank 1 hung"
