@@ -303,12 +303,15 @@ def config_from_dict(data: dict) -> Config:
 
 
 def default_log_dir(storage_url: str, name: str) -> str:
-    """Logs go next to the checkpoints when storage is local, else to ``runs/<name>`` on this machine."""
+    """Logs go next to the checkpoints when storage is local, else to ``runs/<name>/<the storage>`` on this machine
+    (``s3://bkt/exp1`` -> ``runs/exp/s3/bkt/exp1``): two runs of one config on two storages keep their logs apart."""
     if "://" not in storage_url:
         return storage_url
     if storage_url.startswith("file://"):
         return storage_url[len("file://") :]
-    return f"runs/{name}"
+    protocol, _, where = display_url(storage_url).partition("://")
+    parts = [part for part in where.split("/") if part not in ("", ".", "..")]
+    return "/".join(["runs", name, protocol, *parts])
 
 
 def validate(config: Config) -> None:

@@ -22,7 +22,9 @@ def test_overrides_are_typed_and_dotted() -> None:
 
 
 def test_storage_decides_log_dir() -> None:
-    assert load_config(SMOKE, [], storage="s3://bucket/runs/x").log_dir == "runs/smoke"
+    assert load_config(SMOKE, [], storage="s3://bucket/runs/x").log_dir == "runs/smoke/s3/bucket/runs/x"
+    secret = load_config(SMOKE, [], storage="s3://AKIA1:S3CR3T@bucket/exp1/").log_dir
+    assert secret == "runs/smoke/s3/bucket/exp1"  # two storages, two directories; no credential in a path
     assert load_config(SMOKE, [], storage="file:///tmp/x").log_dir == "/tmp/x"
     assert load_config(SMOKE, ["log_dir=elsewhere"], storage="s3://b/x").log_dir == "elsewhere"
 

@@ -9,6 +9,7 @@ process the supervisor starts.
 
 from __future__ import annotations
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -16,8 +17,21 @@ from pathlib import Path
 import pytest
 
 from ftrain import procfs
+from ftrain.errors import EXIT_PREEMPTED
 
-from helpers import REPO, SMOKE, child_env, create_bucket, finish, free_port, launch, torchrun_pid, training
+from helpers import (
+    REPO,
+    SMOKE,
+    child_env,
+    create_bucket,
+    events,
+    finish,
+    free_port,
+    launch,
+    torchrun_pid,
+    training,
+    wait_for,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -132,3 +146,30 @@ def test_workers_get_credentials_off_the_command_line(tmp_path, s3_server) -> No
     for pid, line in command_lines.items():
         for secret in secrets:
             assert secret.encode() not in line, f"process {pid}'s command line shows a credential: {line!r}"
+
+
+def test_a_storage_down_at_start_is_waited_for_without_a_credential_and_sigterm_ends_it_with_143(tmp_path) -> None:
+    """The storage-wait path: the supervisor waits for an S3 endpoint that refuses connections; its lines and its
+    records name the storage without the credentials of its URL. A SIGTERM then (a job preempted during the outage)
+    ends it as a preemption: exit 143, one line, a summary, no traceback."""
+    secrets = ("AKIAHIDDENKEY77", "S3CR3TVALUE99")
+    url = f"s3://{secrets[0]}:{secrets[1]}@nobucket/run"
+    env = child_env({"AWS_ENDPOINT_URL": f"http://127.0.0.1:{free_port()}"})  # nothing listens there
+    console = tmp_path / "console"
+    with console.open("wb") as output:
+        command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "1", SMOKE, "--storage", url]
+        proc = launch([*command, "iterations=2"], cwd=tmp_path, env=env, stdout=output, stderr=subprocess.STDOUT)
+    log_dir = tmp_path / "runs" / "smoke" / "s3" / "nobucket" / "run"  # the default for a remote storage
+    wait_for(lambda: "unreachable since" in console.read_text(), "the storage-wait line", timeout=120)
+    proc.send_signal(signal.SIGTERM)
+    assert finish(proc, timeout=60) == EXIT_PREEMPTED
+    printed = console.read_text()
+    assert "Traceback" not in printed and "stopped by a signal" in printed, printed
+    assert "storage s3://nobucket/run unreachable since" in printed, printed
+    recorded = [event["event"] for event in events(log_dir)]
+    assert recorded[0] == "storage_wait" and recorded[-2:] == ["preempted", "summary"], recorded
+    files = [path for path in tmp_path.rglob("*") if path.is_file()]
+    assert log_dir / "events.jsonl" in files
+    for path in files:
+        for secret in secrets:
+            assert secret.encode() not in path.read_bytes(), f"a credential leaked into {path.relative_to(tmp_path)}"

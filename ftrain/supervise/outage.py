@@ -17,6 +17,7 @@ from collections.abc import Callable
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable, WaitLines, backoff
 from ftrain.config import StorageConfig
 from ftrain.errors import EXIT_USAGE, UserError
+from ftrain.redact import display_url
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.options import EXIT_STORAGE_WAIT
 from ftrain.supervise.outcome import Outcome
@@ -48,12 +49,12 @@ class StorageWait:
     def __call__(self, why: str) -> Outcome | None:
         """Probe until the storage answers (None), or the ending of the run: it did not within the limit, or what it
         answers no waiting fixes (a bucket gone, access denied)."""
-        url = self.storage.url
+        url = display_url(self.storage.url)  # for people and records; the probe gets the real one
         started, since, tries, lines = time.monotonic(), time.strftime("%H:%M:%S"), 0, WaitLines()
         self.events("storage_wait", f"{why}; waiting up to {self.limit:g} s for it", storage=url, cause=why)
         while True:
             try:
-                problem = probe(url, self.storage.options)
+                problem = probe(self.storage.url, self.storage.options)
             except UserError as error:
                 return Outcome("usage", EXIT_USAGE, str(error))
             waited = time.monotonic() - started

@@ -1,5 +1,4 @@
 """``ftrain supervise``: launch torchrun, watch its workers, restart them from the newest verified checkpoint.
-
 Torch-free (config, heartbeat, the storage lease and the standard library): it launches and watches processes.
 
 Launch. Every attempt is a new ``torchrun --max-restarts=0`` in its own session, with ``FTRAIN_HEARTBEAT_DIR`` set,
@@ -16,8 +15,6 @@ Hang: every working rank has stayed in the phase its heartbeat names longer than
 max(5 s, 10 x the longest time seen in that phase), ``--startup-grace`` for start-up, the first iteration after it
 and a phase not seen yet; see ``hang.py``), or one fixed ``--hang-timeout``.
 
-Storage. A worker that cannot reach the checkpoint storage exits 7: the supervisor waits for it (``outage.py``).
-
 Recover. A worker that died mid-training dooms the others: they get SIGKILL at once. Orphans of a killed
 torchrun get SIGTERM (they agree, save, exit), then SIGKILL after ``--stop-grace``. A hung group gets SIGKILL at
 once (its collectives cannot agree on a save; commits are crash-safe). Then back off (not after an attempt that
@@ -31,6 +28,7 @@ c10d: any but node 0): the others regroup from the save.
 
 Several nodes: ``link.py`` (c10d: node 0 coordinates, ``coordinator.py``; etcd-v2: etcd, ``etcd_plan.py``).
 Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``. Warm starts: ``attempt.Launcher``.
+A worker that cannot reach the storage exits 7: it is waited for (``outage.py``). One run per log dir: ``claim.py``.
 """
 
 from __future__ import annotations
@@ -49,6 +47,7 @@ from ftrain.errors import STOPPED, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats
 from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, Launcher, attempt_env, kill, new_log_dir, signal_name
+from ftrain.supervise.claim import claim_log_dir
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.hang import QUIET_PHASES, HangWatch, process_state
 from ftrain.supervise.ledger import Ledger
@@ -94,16 +93,18 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     refused = lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr)  # noqa: E731
     try:  # the lease is taken before anything is launched: an unreachable storage is waited out then too
         return supervisor.storage_wait.retrying(lambda: lease().run(supervisor.run, refused), supervisor.end)
+    except _Stop as stop:  # a signal or another node ended the run, in the loop or while the storage was waited for
+        return supervisor.end(stop.ending)
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
         supervisor.close()
 
 
-class _Stop(Exception):
-    def __init__(self, event: str, code: int, message: str) -> None:
-        super().__init__(message)
-        self.event, self.code, self.message = event, code, message
+class _Stop(Exception):  # the run ends, wherever the supervisor was: ``supervise`` records it
+    def __init__(self, ending: Outcome) -> None:
+        super().__init__(ending.message)
+        self.ending = ending
 
 
 class Supervisor:
@@ -125,6 +126,7 @@ class Supervisor:
         self.link, self.coordinator = connect(nodes, options, self.events)
         self.node = self.link.node
         self.events.node = self.node if multi else None
+        self.claim = claim_log_dir(log_dir, self.events.node)  # refused: the process ends, the coordinator with it
         node_dir = f"node-{self.node}" if multi else ""
         self.heartbeat_dir = (log_dir / "heartbeat" / node_dir).resolve()
         self.attempt_logs = log_dir / "torchrun" / node_dir
@@ -142,15 +144,10 @@ class Supervisor:
         if self.coordinator is not None:
             self.coordinator.close()
         self.launcher.close()
+        self.claim.close()
 
     def run(self) -> int:
-        try:
-            self._loop()
-        except _Stop as stop:
-            return self.end(Outcome(stop.event, stop.code, stop.message))
-        raise AssertionError("the supervision loop only ends by _Stop")
-
-    def _loop(self) -> None:
+        """Attempts until the run ends, which raises ``_Stop``."""
         plan = self._next_plan(None)
         while True:
             attempt = self._launch(plan)
@@ -159,17 +156,17 @@ class Supervisor:
                 plan = self._next_plan(plan)
                 continue
             if not outcome.failed:
-                raise _Stop(outcome.event, outcome.code, outcome.message)
+                raise _Stop(outcome)
             if outcome.event == "storage_down":
                 ending = self.storage_wait(outcome.message)
                 if ending is not None:
-                    raise _Stop(ending.event, ending.code, ending.message)
+                    raise _Stop(ending)
                 plan = self._next_plan(plan)
                 self.events("restart", f"attempt {plan.attempt}: the storage answers again", attempt=plan.attempt)
                 continue
             delay = self.policy.judge(attempt)
             if isinstance(delay, Outcome):
-                raise _Stop(delay.event, delay.code, delay.message)
+                raise _Stop(delay)
             self._sleep(delay)
             plan = self._next_plan(plan)
             self.events(
@@ -191,7 +188,7 @@ class Supervisor:
         if self.signals:
             self.events("preempt", signal=signal_name(self.signals[0]))
             code = stop_code(self.signals[0])
-            raise _Stop("preempted", code, "stopped by a signal while no workers ran; rerun to continue")
+            raise _Stop(Outcome("preempted", code, "stopped by a signal while no workers ran; rerun to continue"))
 
     def _next_plan(self, previous: Plan | None) -> Plan:
         """The next attempt to run (on several nodes: wait until node 0 has moved on from ``previous``)."""
@@ -209,11 +206,12 @@ class Supervisor:
                     message = f"waiting up to {timeout:g} s for {self.link.peer} ({error})"
                     print(f"ftrain supervise: {message}", file=sys.stderr, flush=True)
             if plan is not None and plan.final is not None:
-                raise _Stop("peer_ended", plan.final, f"another node ended the run with exit code {plan.final}")
+                ended = f"another node ended the run with exit code {plan.final}"
+                raise _Stop(Outcome("peer_ended", plan.final, ended))
             if plan is not None and (previous is None or plan_key(plan) != plan_key(previous)):
                 return plan
             if time.monotonic() > deadline:
-                raise _Stop("peer_lost", EXIT_PEER_LOST, f"{self.link.peer} did not answer")
+                raise _Stop(Outcome("peer_lost", EXIT_PEER_LOST, f"{self.link.peer} did not answer"))
             time.sleep(PEER_POLL / 5)
 
     def _launch(self, plan: Plan) -> Attempt:

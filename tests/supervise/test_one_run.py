@@ -5,6 +5,7 @@ on another host is taken over."""
 
 from __future__ import annotations
 
+import csv
 import json
 import re
 import subprocess
@@ -24,6 +25,7 @@ from helpers import (
     REPO,
     SMOKE,
     child_env,
+    create_bucket,
     events,
     final_manifest,
     finish,
@@ -165,3 +167,33 @@ def test_a_lease_that_expired_on_another_host_is_taken_over(tmp_path, s3_url, s3
     assert "took over the lease of" in result.stdout and "from run far-run" in result.stdout
     assert "the lease of pid 4242 on host node-far-away expired at" in result.stdout
     assert not Storage.open(url, options).exists(LEASE)  # released at the end
+
+
+def test_two_runs_of_one_config_from_one_directory_keep_their_logs_apart(tmp_path, s3_server, s3_env) -> None:
+    """exp1 and exp2 from one checkout: two storages, so two log directories (``runs/<name>/s3/<bucket>/<prefix>``),
+    each with one run's events, metrics and heartbeats; neither stops, prunes or restarts anything of the other. A
+    second supervisor on a log directory in use is refused with one line and touches nothing."""
+    bucket = create_bucket(s3_server)
+
+    def command(prefix: str) -> list[str]:
+        supervise = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node=1", SMOKE]
+        return [*supervise, "--storage", f"s3://{bucket}/{prefix}", "iterations=40", "log.console=false"]
+
+    env = child_env(s3_env)
+    runs = {prefix: launch(command(prefix), cwd=tmp_path, env=env) for prefix in ("exp1", "exp2")}
+    logs = {prefix: tmp_path / "runs" / "smoke" / "s3" / bucket / prefix for prefix in runs}
+    for prefix in runs:
+        training(logs[prefix] / "heartbeat", 2, ranks=[0])
+    again = subprocess.run(command("exp1"), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    assert again.returncode == 2, again.stderr
+    assert f"log directory {Path('runs/smoke/s3', bucket, 'exp1')} is in use by another run" in again.stderr
+    assert len(again.stderr.strip().splitlines()) == 1, again.stderr
+    assert [finish(proc, timeout=180) for proc in runs.values()] == [0, 0]
+    for prefix, log_dir in logs.items():
+        recorded = events(log_dir)
+        assert [e["event"] for e in recorded].count("start") == 1 and recorded[-1]["event"] == "summary", recorded
+        assert recorded[-1]["restarts"] == 0, recorded[-1]
+        with (log_dir / "metrics.csv").open() as file:
+            assert [int(row["iteration"]) for row in csv.DictReader(file)] == list(range(1, 41)), prefix
+        spooled = sorted(path.parent.name for path in (log_dir / "spool").glob("checkpoints/*/MANIFEST.json"))
+        assert spooled and spooled[-1] == "step-000000040", (prefix, spooled)
