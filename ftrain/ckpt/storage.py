@@ -50,7 +50,9 @@ S3_TIMEOUTS = {"connect_timeout": 5, "read_timeout": 15}
 """botocore's defaults are 60 s each: a paused server would hold one request for minutes, longer than the ranks'
 collectives wait for each other. Large objects go up in parts, each its own request."""
 _JITTER = random.Random()
-"""Jitter of the retry delays: a generator of its own, so that retrying never moves the random streams of training."""
+"""Jitter of the retry delays: a generator of its own, so that retrying never moves the random streams of training;
+reseeded in every forked child (warm workers are forks of one pool: they would back off in step)."""
+os.register_at_fork(after_in_child=_JITTER.seed)
 
 _SECRET_ENV = ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN")
 _THROTTLING = {"SlowDown", "Throttling", "ThrottlingException", "RequestLimitExceeded", "TooManyRequestsException"}

@@ -8,7 +8,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
+from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable, backoff
 from ftrain.errors import UserError
 from ftrain.redact import display_url
 
@@ -285,3 +285,18 @@ def test_a_local_file_is_complete_whenever_it_is_visible(tmp_path):
         storage.write_exclusive("checkpoints/MANIFEST.json", b"other")
     assert sorted(p.name for p in path.parent.iterdir()) == ["MANIFEST.json"]
     assert path.read_bytes() == data
+
+
+def test_forked_processes_back_off_apart() -> None:
+    """Warm workers are forks of one pool: each draws its own retry jitter, not the pool's sequence in step."""
+    delays = []
+    for _ in range(2):
+        read, write = os.pipe()
+        if (pid := os.fork()) == 0:
+            os.write(write, repr([backoff(1.0, 3, 100.0) for _ in range(4)]).encode())
+            os._exit(0)
+        os.close(write)
+        os.waitpid(pid, 0)
+        with os.fdopen(read) as pipe:
+            delays.append(pipe.read())
+    assert delays[0] != delays[1]
