@@ -56,12 +56,16 @@ os.register_at_fork(after_in_child=_JITTER.seed)
 
 _SECRET_ENV = ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN")
 _THROTTLING = {"SlowDown", "Throttling", "ThrottlingException", "RequestLimitExceeded", "TooManyRequestsException"}
+_MOUNT_FAILURES = {errno.EIO, errno.ESTALE, errno.ENOTCONN, errno.EHOSTDOWN, errno.ENOLINK}
 _PROTOCOL = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*$")
 
 
 def is_transient(exc: BaseException) -> bool:
-    """Worth retrying: the connection failed or timed out, or the server was busy (5xx, 429, throttling)."""
+    """Worth retrying: the connection failed or timed out, the server was busy (5xx, 429, throttling), or a mounted
+    filesystem failed as a hung NFS or FUSE mount does (EIO, ESTALE, ENOTCONN): an outage, waited out like S3's."""
     if isinstance(exc, (ConnectionError, TimeoutError, asyncio.TimeoutError, BotoConnectionError, HTTPClientError)):
+        return True
+    if isinstance(exc, OSError) and exc.errno in _MOUNT_FAILURES:
         return True
     response = getattr(exc.__cause__, "response", None) or getattr(exc, "response", None)
     if not isinstance(response, dict):

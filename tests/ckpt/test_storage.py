@@ -1,4 +1,5 @@
 import contextlib
+import errno
 import logging
 import os
 import socket
@@ -300,3 +301,21 @@ def test_forked_processes_back_off_apart() -> None:
         with os.fdopen(read) as pipe:
             delays.append(pipe.read())
     assert delays[0] != delays[1]
+
+
+@pytest.mark.parametrize("code", [errno.EIO, errno.ESTALE, errno.ENOTCONN])
+def test_a_failing_mount_is_an_outage_not_bad_input(tmp_path, code) -> None:
+    """What a hung NFS or FUSE mount raises is retried, then reported as the storage being unavailable (the supervisor
+    waits for it), not a crash; a file that is not there is still just missing."""
+    storage = Storage.open(str(tmp_path), retries=1)
+    calls = []
+
+    def failing_mount() -> None:
+        calls.append(code)
+        raise OSError(code, os.strerror(code), str(tmp_path))
+
+    with pytest.raises(StorageUnavailable, match="failed after 2 attempts"):
+        storage._call("read", "x", failing_mount)
+    assert calls == [code, code]
+    with pytest.raises(FileNotFoundError):
+        storage.read("missing")
