@@ -106,7 +106,7 @@ def test_refused_while_another_process_holds_it_then_taken_over_at_once_when_it_
     holder.wait()
     started = time.monotonic()
     taken = second.acquire()
-    assert time.monotonic() - started < 5  # the dead pid is seen at once: no waiting for the expiry
+    assert time.monotonic() - started < 20  # the dead pid is seen at once: no waiting for the 60 s expiry
     assert taken is not None and f"pid {holder.pid} on host" in taken and "is gone" in taken and "first-run" in taken
     now = record(storage)
     assert now.run_id == "second-run" and now.generation == 2

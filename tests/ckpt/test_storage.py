@@ -124,7 +124,7 @@ def test_unreachable_endpoint_is_unavailable_not_bad_input_after_bounded_attempt
     with pytest.raises(StorageUnavailable, match=r"cannot reach the S3 endpoint .* after 3 attempts") as error:
         Storage.open(f"s3://{S3_KEY}:{S3_SECRET}@bucket/run", options, retries=2, base_delay=0.01)
     assert not isinstance(error.value, UserError)
-    assert time.monotonic() - start < 5
+    assert time.monotonic() - start < 15  # bounded: botocore alone would retry for minutes
     assert len(caplog.records) == 2
     for text in (str(error.value), caplog.text):
         assert S3_SECRET not in text and S3_KEY not in text
@@ -226,7 +226,7 @@ def test_persistent_outage_raises_storage_error_after_bounded_attempts(flaky_s3,
     start = time.monotonic()
     with pytest.raises(StorageError, match=r"read s3://.*/run/x failed after 4 attempts") as error:
         storage.read("x")
-    assert time.monotonic() - start < 5
+    assert time.monotonic() - start < 15  # bounded: botocore alone would retry for minutes
     assert len(caplog.records) == 3
     for text in (str(error.value), caplog.text):
         assert S3_SECRET not in text and S3_KEY not in text

@@ -82,8 +82,9 @@ def test_three_nodes_shrink_to_two_when_one_is_lost_and_grow_back_when_it_return
     assert verify_cli(storage) == 0
 
 
-RECOVERY_BOUND = 30
-"""Seconds from losing a node to the first iteration of the smaller world, at most, in a test on a busy machine."""
+RECOVERY_BOUND = 45
+"""Seconds from losing a node to the first iteration of the smaller world, at most, in a test on a busy machine: 3x
+the 15 s target (a test machine may be that much slower than a quiet one)."""
 
 
 @pytest.mark.cluster
