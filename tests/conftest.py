@@ -3,6 +3,7 @@ helpers.py."""
 
 import shutil
 import uuid
+from collections.abc import Callable
 
 import pytest
 
@@ -16,7 +17,9 @@ from helpers import (
     S3_SECRET,
     S3Outage,
     create_bucket,
+    final_manifest,
     make_certificates,
+    run_train,
     stop_launched,
 )
 
@@ -75,6 +78,23 @@ def storage_url(request, tmp_path, monkeypatch):
     if request.param == "memory":
         return f"memory://ftrain-test/{uuid.uuid4().hex}", None
     return request.getfixturevalue("s3_url")
+
+
+@pytest.fixture(scope="session")
+def reference_state(tmp_path_factory) -> Callable[[int], str]:
+    """``state_sha256(iterations)``: the final state of an uninterrupted 2-rank run of configs/smoke.yaml (torchrun,
+    cold workers) of that many iterations, trained once per test run. Faults, supervision, SLURM, warm workers, the
+    storage and the checkpoint schedule change nothing that is trained, so every fault test compares with it."""
+    states: dict[int, str] = {}
+
+    def state(iterations: int) -> str:
+        if iterations not in states:
+            storage = tmp_path_factory.mktemp(f"reference-{iterations}") / "run"
+            run_train(storage, f"iterations={iterations}", ranks=2)
+            states[iterations] = final_manifest(storage)["state_sha256"]
+        return states[iterations]
+
+    return state
 
 
 @pytest.fixture

@@ -15,7 +15,7 @@ import pytest
 from ftrain import procfs
 from ftrain.heartbeat import Heartbeat, read_heartbeats
 
-from helpers import REPO, SMOKE, TESTS, child_env, events, final_manifest, run_train, wait_for
+from helpers import REPO, SMOKE, TESTS, child_env, events, final_manifest, wait_for
 from slurm_cluster import SlurmCluster
 
 pytestmark = [
@@ -37,12 +37,10 @@ def pace(seconds: float) -> str:
     return f"hooks=[{{target: 'probe_hooks:PacingHook', kwargs: {{seconds: {seconds}}}}}]"
 
 
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory) -> str:
-    """``state_sha256`` of the same run outside SLURM: torchrun, 2 ranks, no interruption."""
-    storage = tmp_path_factory.mktemp("reference") / "run"
-    run_train(storage, *OVERRIDES, ranks=2)
-    return final_manifest(storage)["state_sha256"]
+@pytest.fixture
+def reference(reference_state) -> str:
+    """The state of the same run outside SLURM: torchrun, 2 ranks, no interruption."""
+    return reference_state(ITERATIONS)
 
 
 def submit(

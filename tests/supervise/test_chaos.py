@@ -58,16 +58,11 @@ def wait_event(storage: Path, name: str, count: int) -> dict:
     return wait_for(found, f"{count} {name} events", interval=0.05)  # each look re-reads the whole log
 
 
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory) -> str:
-    """``state_sha256`` of the final step of an uninterrupted supervised run of cold workers (each a fresh Python
-    process): the chaos runs, of warm workers (forked from the warm pool, the default), must end on the same bits."""
-    storage = tmp_path_factory.mktemp("reference") / "run"
-    assert finish(start(storage, "--workers", "cold")) == 0
-    manifest = final_manifest(storage)
-    step = manifest["step"]
-    assert step == 100
-    return manifest["state_sha256"]
+@pytest.fixture
+def reference(reference_state) -> str:
+    """The state an uninterrupted run of cold workers (each a fresh Python process) ends on: the chaos runs, of warm
+    workers (forked from the warm pool, the default), must end on the same bits."""
+    return reference_state(100)
 
 
 def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):

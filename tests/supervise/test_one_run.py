@@ -64,12 +64,10 @@ def refused(proc: subprocess.Popen, holders: list[int]) -> tuple[str, str]:
     return lines[0], output
 
 
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory) -> str:
-    """``state_sha256`` of the final step of the same 2-rank run, alone on its storage."""
-    storage = tmp_path_factory.mktemp("reference") / "run"
-    run_train(storage, *OVERRIDES, ranks=2)
-    return final_manifest(storage)["state_sha256"]
+@pytest.fixture
+def reference(reference_state) -> str:
+    """The state of the same 2-rank run, alone on its storage."""
+    return reference_state(300)
 
 
 def test_a_second_run_beside_a_supervised_one_is_refused_and_the_first_ends_as_alone(tmp_path, reference):

@@ -20,7 +20,7 @@ import pytest
 from ftrain.ckpt.steps import select_resume
 from ftrain.ckpt.storage import Storage
 
-from helpers import REPO, child_env, events, final_manifest, finish, launch, torchrun_pid, training, wait_for
+from helpers import REPO, child_env, events, finish, launch, torchrun_pid, training, wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -45,12 +45,10 @@ def start(storage: str | Path, logs: Path, env: dict | None = None, more: list[s
     return launch([*command, *overrides], cwd=REPO, env=child_env(env), stdout=output, stderr=subprocess.STDOUT)
 
 
-@pytest.fixture(scope="module")
-def reference(tmp_path_factory) -> str:
-    """``state_sha256`` of an uninterrupted supervised run (local storage: the state does not depend on it)."""
-    root = tmp_path_factory.mktemp("reference")
-    assert finish(start(root / "run", root / "logs")) == 0
-    return final_manifest(root / "run")["state_sha256"]
+@pytest.fixture
+def reference(reference_state) -> str:
+    """The state of the same run uninterrupted (the storage and its outages change nothing that is trained)."""
+    return reference_state(ITERATIONS)
 
 
 def wait_event(logs: Path, name: str) -> dict:
