@@ -5,7 +5,9 @@
 #   bash launch/test.sh --lane scale    one lane alone (pytest markers: scale, slurm, cluster, slow; `fast` is
 #                                       `not slow`: no servers, no multi-process runs)
 #   bash launch/test.sh --all           every lane, `scale` included
-# Further arguments go to pytest (a later `-m` wins over the lane's). The SLURM lane (tests/cluster) runs a private
+# Tests run in FTRAIN_TEST_WORKERS processes (pytest-xdist, default 2), a file at a time each: most of the suite waits
+# (for a rendezvous, a SLURM controller, a timeout), so two files at once fill two cores (`-n 0`: one process).
+# Further arguments go to pytest (a later `-m` or `-n` wins over the lane's). The SLURM lane (tests/cluster) runs a private
 # SLURM cluster and skips with the reason where slurm-wlm and munge are missing or not root; the cluster lane needs
 # etcd and, for tests/cluster/test_netns.py, network namespaces (root).
 set -euo pipefail
@@ -26,4 +28,5 @@ esac
 FTRAIN_TEST_DEPS=1 bash launch/setup.sh
 .venv/bin/ruff check ftrain tests launch examples
 .venv/bin/ruff format --check ftrain tests launch examples
-exec .venv/bin/python -m pytest -p no:cacheprovider --durations=15 "${select[@]}" "$@"
+workers=(-n "${FTRAIN_TEST_WORKERS:-2}" --dist loadfile)
+exec .venv/bin/python -m pytest -p no:cacheprovider --durations=15 "${workers[@]}" "${select[@]}" "$@"

@@ -23,6 +23,24 @@ from helpers import (
     stop_launched,
 )
 
+# --- Lanes: the fast lane (-m "not slow") has no servers and no multi-process runs ---
+
+SERVERS = frozenset({"s3_server", "s3_url", "s3_env", "s3_outage", "etcd_server", "etcd_tls_server", "slurm"})
+"""Fixtures that start a server (moto's S3, etcd, a private SLURM cluster): a test that uses one is slow."""
+LANES_OF_THEIR_OWN = ("cluster", "slurm", "scale")
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Mark ``slow`` what the fast lane must not run, whatever its file says: a test that starts a server (or whose
+    ``storage_url`` is S3), and every test of the cluster, SLURM and scale lanes."""
+    for item in items:
+        params = getattr(item, "callspec", None)
+        on_s3 = params is not None and params.params.get("storage_url") == "s3"
+        servers = SERVERS.intersection(getattr(item, "fixturenames", ()))
+        if servers or on_s3 or any(item.get_closest_marker(lane) for lane in LANES_OF_THEIR_OWN):
+            item.add_marker(pytest.mark.slow)
+
+
 # --- Storage backends: a real S3 API server (moto) on 127.0.0.1, plus local, file:// and memory:// URLs ---
 
 
