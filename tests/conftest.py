@@ -31,11 +31,11 @@ LANES_OF_THEIR_OWN = ("cluster", "slurm", "scale")
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Mark ``slow`` what the fast lane must not run, whatever its file says: a test that starts a server (or whose
-    ``storage_url`` is S3), and every test of the cluster, SLURM and scale lanes."""
+    """Mark ``slow`` what the fast lane must not run, whatever its file says: a test that starts a server (or runs on
+    a backend parametrized as ``"s3"``), and every test of the cluster, SLURM and scale lanes."""
     for item in items:
         params = getattr(item, "callspec", None)
-        on_s3 = params is not None and params.params.get("storage_url") == "s3"
+        on_s3 = params is not None and any(value == "s3" for value in params.params.values() if isinstance(value, str))
         servers = SERVERS.intersection(getattr(item, "fixturenames", ()))
         if servers or on_s3 or any(item.get_closest_marker(lane) for lane in LANES_OF_THEIR_OWN):
             item.add_marker(pytest.mark.slow)

@@ -11,6 +11,7 @@ import pytest
 from helpers import REPO
 
 
+@pytest.mark.slow  # runs launch/setup.sh
 @pytest.mark.skipif(
     Path(sys.prefix).resolve() != (REPO / ".venv").resolve(),
     reason=f"runs only in the .venv that launch/setup.sh made ({REPO / '.venv'}), not in {sys.prefix}",

@@ -134,6 +134,7 @@ def test_commands_on_s3(s3_url, capsys):
     assert [info.step for info in scan(Storage.open(url, options))] == [40, 30, 25, 20]
 
 
+@pytest.mark.slow  # an ftrain process of its own
 def test_output_into_a_pipe_whose_reader_has_gone_ends_quietly(run):
     """``ftrain ckpt show URL | head -1``: once ``head`` has its line and exits, the next write fails (EPIPE); that
     ends the command like any tool killed by SIGPIPE (141), with no traceback."""

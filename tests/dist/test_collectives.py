@@ -7,11 +7,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from helpers import REPO, child_env
 
 WORKER = REPO / "tests" / "dist" / "collectives_worker.py"
 
 
+@pytest.mark.slow  # ranks under torchrun
 def test_objects_travel_as_json_and_a_peer_cannot_send_code(tmp_path) -> None:
     marker = tmp_path / "code-ran"
     out = tmp_path / "report"

@@ -6,9 +6,12 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from helpers import REPO, child_env
 
 
+@pytest.mark.slow  # ranks under torchrun
 def test_shared_memory_all_reduce_is_exact_leaves_nothing_and_notices_a_dead_peer(tmp_path) -> None:
     out = tmp_path / "report.json"
     launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node=2"]

@@ -28,6 +28,8 @@ from ftrain.policy.play import play
 
 from helpers import REPO, child_env, final_manifest, flip_byte, needs_egl, run_train
 
+pytestmark = pytest.mark.slow  # every test plays or exports a policy trained first
+
 EPISODE_STEPS = 20
 STANDALONE = r"""
 import sys
@@ -127,7 +129,6 @@ def check_video(path: Path, frames: int) -> None:
     assert not np.array_equal(decoded[0], decoded[-1]), "nothing moves"
 
 
-@pytest.mark.slow
 @needs_egl
 def test_play_renders_mp4_and_gif(trained, tmp_path, capsys) -> None:
     video = tmp_path / "cheetah.mp4"
@@ -144,7 +145,6 @@ def test_play_renders_mp4_and_gif(trained, tmp_path, capsys) -> None:
     check_video(gif, result.frames)
 
 
-@pytest.mark.slow
 @needs_egl
 def test_play_on_a_terminal_counts_frames_live_and_prints_each_episode_as_it_ends(trained, tmp_path) -> None:
     ours, theirs = pty.openpty()

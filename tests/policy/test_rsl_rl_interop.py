@@ -20,7 +20,8 @@ from ftrain.train.envs import MujocoVecEnv
 from helpers import final_manifest, run_train
 
 
-@pytest.mark.parametrize("ranks", [1, pytest.param(2, marks=pytest.mark.slow)])
+@pytest.mark.slow  # trains first
+@pytest.mark.parametrize("ranks", [1, 2])
 def test_rsl_rl_loads_the_newest_common_pt_and_acts_like_ftrain(tmp_path, ranks: int) -> None:
     storage = tmp_path / "run"
     run_train(storage, "iterations=4", ranks=ranks)

@@ -59,6 +59,7 @@ def stand_in(pool: tuple, entry: str, argv: list[str], **popen: object) -> subpr
     return subprocess.Popen([sys.executable, "-c", code], cwd=popen.pop("cwd", REPO), env=env, **popen)
 
 
+@pytest.mark.slow  # a warm pool: imports torch, MuJoCo and rsl-rl
 def test_the_pool_runs_the_command_with_the_stand_ins_streams_directory_environment_and_exit_code(pool, tmp_path):
     """``ftrain --version`` exits 0 by SystemExit after printing to the stand-in's stdout; a usage error exits 2 with
     argparse's line on the stand-in's stderr."""
@@ -74,6 +75,7 @@ def test_the_pool_runs_the_command_with_the_stand_ins_streams_directory_environm
     )
 
 
+@pytest.mark.slow  # a warm pool: imports torch, MuJoCo and rsl-rl
 def test_the_fork_lives_in_the_stand_ins_directory_and_environment_and_dies_with_it(pool, tmp_path):
     """A fork that runs (here torchrun's stand-in for a worker that sleeps) sees the stand-in's working directory
     and environment; SIGSTOPped and then left by its SIGKILLed stand-in, the pool SIGKILLs it; SIGKILLed, its
@@ -107,6 +109,7 @@ def test_the_fork_lives_in_the_stand_ins_directory_and_environment_and_dies_with
         os.kill(sleeper, signal.SIGKILL)
 
 
+@pytest.mark.slow  # a warm pool: imports torch, MuJoCo and rsl-rl
 def test_no_pool_a_stranger_or_a_wrong_secret_means_a_cold_start(pool) -> None:
     """Without a pool the stand-in runs cold at once; the pool closes the connection of another user's process
     (``SO_PEERCRED``), or of one without the secret, without forking, which a stand-in takes as: run cold."""

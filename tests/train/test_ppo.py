@@ -17,7 +17,8 @@ from ftrain.train.ppo import build_ppo
 from helpers import REPO, SMOKE, child_env
 
 
-@pytest.mark.parametrize("ranks", [1, pytest.param(2, marks=pytest.mark.slow)])
+@pytest.mark.slow  # a worker process of its own
+@pytest.mark.parametrize("ranks", [1, 2])
 def test_fused_ppo_matches_rsl_rl_ppo(tmp_path, ranks: int) -> None:
     out = tmp_path / "report.json"
     launcher = [sys.executable]

@@ -64,7 +64,13 @@ def kill_during(
 
 
 @pytest.mark.parametrize(
-    ("env_id", "ranks"), [("HalfCheetah-v5", 1), ("HalfCheetah-v5", 2), ("Ant-v5", 1), ("Ant-v5", 2)]
+    ("env_id", "ranks"),
+    [  # each env's state and each world size in every run; their other two pairings in the opt-in scale lane
+        pytest.param("HalfCheetah-v5", 1, marks=pytest.mark.scale),
+        ("HalfCheetah-v5", 2),
+        ("Ant-v5", 1),
+        pytest.param("Ant-v5", 2, marks=pytest.mark.scale),
+    ],
 )
 def test_killed_anywhere_resumes_bit_for_bit(tmp_path, env_id: str, ranks: int) -> None:
     overrides = [f"env.id={env_id}", "iterations=10", "checkpoint.interval=2", "env.num_envs=8", "num_steps_per_env=32"]

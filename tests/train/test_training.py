@@ -34,6 +34,7 @@ def test_ranks_agree_after_every_iteration_and_the_seed_decides(tmp_path) -> Non
     assert metrics_by_iteration(tmp_path / "a") == metrics_by_iteration(tmp_path / "b")
 
 
+@pytest.mark.slow
 def test_single_process_and_outputs(tmp_path) -> None:
     """Started elsewhere than in the repository, to see that MuJoCo neither prints its warnings (HalfCheetah's model
     uses a deprecated attribute: a warning and a blank line per environment) nor appends them to a MUJOCO_LOG.TXT in
