@@ -87,12 +87,16 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
         print(f"ftrain supervise: error: {error}", file=sys.stderr)
         return EXIT_PEER_LOST
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
-    events = supervisor.events
-    log = lambda line: events("lease", line, detail=line)  # noqa: E731
+    log = lambda line: supervisor.events("lease", line, detail=line)  # noqa: E731
     lease = lambda: storage_lease(config, log, nodes.run_key, nodes.lease_endpoint)  # noqa: E731
     refused = lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr)  # noqa: E731
+
+    def claimed() -> int:  # with the storage's lease, the log directory too (claim.py)
+        with claim_log_dir(Path(config.log_dir), supervisor.events.node):
+            return supervisor.run()
+
     try:  # the lease is taken before anything is launched: an unreachable storage is waited out then too
-        return supervisor.storage_wait.retrying(lambda: lease().run(supervisor.run, refused), supervisor.end)
+        return supervisor.storage_wait.retrying(lambda: lease().run(claimed, refused), supervisor.end)
     except _Stop as stop:  # a signal or another node ended the run, in the loop or while the storage was waited for
         return supervisor.end(stop.ending)
     finally:
@@ -126,7 +130,6 @@ class Supervisor:
         self.link, self.coordinator = connect(nodes, options, self.events)
         self.node = self.link.node
         self.events.node = self.node if multi else None
-        self.claim = claim_log_dir(log_dir, self.events.node)  # refused: the process ends, the coordinator with it
         node_dir = f"node-{self.node}" if multi else ""
         self.heartbeat_dir = (log_dir / "heartbeat" / node_dir).resolve()
         self.attempt_logs = log_dir / "torchrun" / node_dir
@@ -144,7 +147,6 @@ class Supervisor:
         if self.coordinator is not None:
             self.coordinator.close()
         self.launcher.close()
-        self.claim.close()
 
     def run(self) -> int:
         """Attempts until the run ends, which raises ``_Stop``."""

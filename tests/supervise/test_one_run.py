@@ -170,7 +170,7 @@ def test_a_lease_that_expired_on_another_host_is_taken_over(tmp_path, s3_url, s3
 def test_two_runs_of_one_config_from_one_directory_keep_their_logs_apart(tmp_path, s3_server, s3_env) -> None:
     """exp1 and exp2 from one checkout: two storages, so two log directories (``runs/<name>/s3/<bucket>/<prefix>``),
     each with one run's events, metrics and heartbeats; neither stops, prunes or restarts anything of the other. A
-    second supervisor on a log directory in use is refused with one line and touches nothing."""
+    supervisor told to log into a directory in use is refused with one line and touches nothing."""
     bucket = create_bucket(s3_server)
 
     def command(prefix: str) -> list[str]:
@@ -182,9 +182,11 @@ def test_two_runs_of_one_config_from_one_directory_keep_their_logs_apart(tmp_pat
     logs = {prefix: tmp_path / "runs" / "smoke" / "s3" / bucket / prefix for prefix in runs}
     for prefix in runs:
         training(logs[prefix] / "heartbeat", 2, ranks=[0])
-    again = subprocess.run(command("exp1"), cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
+    shared = Path("runs/smoke/s3", bucket, "exp1")  # a third storage, told to log where exp1 logs
+    third = [*command("exp3"), f"log_dir={shared}"]
+    again = subprocess.run(third, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert again.returncode == 2, again.stderr
-    assert f"log directory {Path('runs/smoke/s3', bucket, 'exp1')} is in use by another run" in again.stderr
+    assert f"log directory {shared} is in use by another run (supervisor pid " in again.stderr, again.stderr
     assert len(again.stderr.strip().splitlines()) == 1, again.stderr
     assert [finish(proc, timeout=180) for proc in runs.values()] == [0, 0]
     for prefix, log_dir in logs.items():
