@@ -126,9 +126,11 @@ def finish(proc: subprocess.Popen, timeout: float = 180) -> int:
 
 
 def events(log_dir: str | Path) -> list[dict]:
-    """The supervisor's ``events.jsonl`` of a run, one dict per decision."""
+    """The supervisor's ``events.jsonl`` of a run, one dict per decision: its whole lines (a line being appended
+    while the test looks, seen under load, is not one yet)."""
     path = Path(log_dir) / "events.jsonl"
-    return [json.loads(line) for line in path.read_text().splitlines()] if path.exists() else []
+    text = path.read_text() if path.exists() else ""
+    return [json.loads(line) for line in text[: text.rfind("\n") + 1].splitlines()]
 
 
 def torchrun_pid(supervisor_pid: int) -> int:

@@ -31,7 +31,7 @@ def ftrain(*args: str, env: dict | None = None, cwd: Path = REPO) -> subprocess.
 @pytest.fixture(scope="module")
 def s3_run(s3_server, tmp_path_factory) -> tuple[str, list[str], Path]:
     """A trained smoke run on S3 (4 iterations, saved at 2 and 4): its URL, the storage options that reach it, and
-    the directory it ran in (its logs are in runs/smoke there)."""
+    the directory it ran in (its logs are in runs/smoke/s3/<bucket>/run there)."""
     url = f"s3://{create_bucket(s3_server)}/run"
     options = [
         *("--storage-option", f"endpoint_url={s3_server['endpoint_url']}"),
@@ -116,7 +116,8 @@ def test_plot_reads_a_log_directory_on_s3(s3_run, tmp_path) -> None:
     url, options, cwd = s3_run
     logs = url.replace("/run", "/logs")
     storage = Storage.open(logs, storage_options(options[1::2]))
-    storage.write_replace("metrics.csv", (cwd / "runs" / "smoke" / "metrics.csv").read_bytes())
+    local_logs = cwd / "runs" / "smoke" / "s3" / url.removeprefix("s3://")  # the default for a remote storage
+    storage.write_replace("metrics.csv", (local_logs / "metrics.csv").read_bytes())
     plotted = ftrain("plot", logs, "-o", str(tmp_path / "curves.png"), *options)
     assert plotted.returncode == 0, plotted.stderr
     assert plotted.stdout == f"wrote {tmp_path / 'curves.png'}\n" and (tmp_path / "curves.png").stat().st_size > 0
