@@ -6,7 +6,8 @@
 #                                       `not slow`: no servers, no multi-process runs)
 #   bash launch/test.sh --all           every lane, `scale` included
 # Tests run in FTRAIN_TEST_WORKERS processes (pytest-xdist, default 2), a file at a time each: most of the suite waits
-# (for a rendezvous, a SLURM controller, a timeout), so two files at once fill two cores (`-n 0`: one process).
+# (for a rendezvous, a SLURM controller, a timeout), so two files at once fill two cores (`-n 0`: one process). The
+# longest files go first (tests/conftest.py: LONGEST_FIRST), so that no worker is left with one at the end.
 # Further arguments go to pytest (a later `-m` or `-n` wins over the lane's). The SLURM lane (tests/cluster) runs a private
 # SLURM cluster and skips with the reason where slurm-wlm and munge are missing or not root; the cluster lane needs
 # etcd and, for tests/cluster/test_netns.py, network namespaces (root).
@@ -28,5 +29,5 @@ esac
 FTRAIN_TEST_DEPS=1 bash launch/setup.sh
 .venv/bin/ruff check ftrain tests launch examples
 .venv/bin/ruff format --check ftrain tests launch examples
-workers=(-n "${FTRAIN_TEST_WORKERS:-2}" --dist loadfile)
+workers=(-n "${FTRAIN_TEST_WORKERS:-2}" --dist loadfile --no-loadscope-reorder)  # files in the order of tests/conftest.py
 exec .venv/bin/python -m pytest -p no:cacheprovider --durations=15 "${workers[@]}" "${select[@]}" "$@"

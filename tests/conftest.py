@@ -30,9 +30,30 @@ SERVERS = frozenset({"s3_server", "s3_url", "s3_env", "s3_outage", "etcd_server"
 LANES_OF_THEIR_OWN = ("cluster", "slurm", "scale")
 
 
+LONGEST_FIRST = (
+    "test_readme.py",
+    "cluster/test_slurm.py",
+    "train/test_resume.py",
+    "supervise/test_elastic.py",
+    "train/test_user_env.py",
+    "cluster/test_netns.py",
+    "supervise/test_outages.py",
+    "train/test_distillation.py",
+)
+"""The files that take longest (``--durations``), run first: xdist hands out a file at a time, and a long file taken
+last keeps one worker busy while the other has nothing left to do."""
+
+
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Mark ``slow`` what the fast lane must not run, whatever its file says: a test that starts a server (or runs on
-    a backend parametrized as ``"s3"``), and every test of the cluster, SLURM and scale lanes."""
+    """Order the files longest first (``LONGEST_FIRST``, the rest as collected; each file's tests stay together and in
+    order), and mark ``slow`` what the fast lane must not run, whatever its file says: a test that starts a server
+    (or runs on a backend parametrized as ``"s3"``), and every test of the cluster, SLURM and scale lanes."""
+
+    def rank(item: pytest.Item) -> int:
+        path = item.path.as_posix()
+        return next((n for n, name in enumerate(LONGEST_FIRST) if path.endswith(f"tests/{name}")), len(LONGEST_FIRST))
+
+    items.sort(key=rank)  # stable: the rest keep their order
     for item in items:
         params = getattr(item, "callspec", None)
         on_s3 = params is not None and any(value == "s3" for value in params.params.values() if isinstance(value, str))
