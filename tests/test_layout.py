@@ -46,8 +46,10 @@ LAYERS = {
     "errors": set(),
 }
 """What each package (or top-level module) of ftrain may import from the others."""
-LAZY_IMPORTS_ALLOWED = {"ftrain.cli"}
-"""The CLI imports each subcommand's package when it runs, so that ``ftrain --help`` starts fast."""
+LAZY_IMPORTS_ALLOWED = {"ftrain.cli", "ftrain.tools.bench"}
+"""The CLI imports each subcommand's package when it runs, so that ``ftrain --help`` starts fast; the benchmark
+imports what each case measures (torch, rsl-rl, SB3, the envs) in that case, so that ``launch/bench_*.py --help`` does
+too."""
 MAX_LINES = 400
 
 

@@ -17,7 +17,6 @@ import os
 from collections.abc import Iterator
 
 import fsspec.asyn
-from s3fs import S3FileSystem
 
 from ftrain.ckpt.storage import Storage
 
@@ -31,7 +30,7 @@ class Conflict(Exception):
 
 def read(storage: Storage, rel: str) -> tuple[bytes, str] | None:
     """The object's bytes and version, None if there is none."""
-    if not isinstance(storage.fs, S3FileSystem):
+    if not storage.is_s3:
         try:
             data = storage.read(rel)
         except FileNotFoundError:
@@ -52,7 +51,7 @@ def read(storage: Storage, rel: str) -> tuple[bytes, str] | None:
 
 def write(storage: Storage, rel: str, data: bytes, version: str | None) -> None:
     """Put ``data`` if the object's version is still ``version`` (None: if there is no object); Conflict if not."""
-    if isinstance(storage.fs, S3FileSystem):
+    if storage.is_s3:
         bucket, key = _s3_key(storage, rel)
         condition = {"IfMatch": version} if version else {"IfNoneMatch": "*"}
         _s3_conditional(storage, rel, "put_object", Bucket=bucket, Key=key, Body=data, **condition)
@@ -69,7 +68,7 @@ def write(storage: Storage, rel: str, data: bytes, version: str | None) -> None:
 
 def delete(storage: Storage, rel: str, version: str) -> None:
     """Delete the object if its version is still ``version``; Conflict if not (or if it is gone)."""
-    if isinstance(storage.fs, S3FileSystem):
+    if storage.is_s3:
         bucket, key = _s3_key(storage, rel)
         _s3_conditional(storage, rel, "delete_object", Bucket=bucket, Key=key, IfMatch=version)
         return

@@ -19,8 +19,6 @@ import re
 import time
 from dataclasses import dataclass, field
 
-import torch
-
 from ftrain.ckpt.storage import Storage
 
 FORMAT_VERSION = 1
@@ -118,6 +116,8 @@ def parse_checkpoint_url(url: str) -> tuple[str, int | None]:
 
 def encode(state: dict) -> bytes:
     """``state`` as a ``torch.save`` file."""
+    import torch  # here, not at the top: the manifest-only commands (ls, verify, prune) start in a tenth of the time
+
     buffer = io.BytesIO()
     torch.save(state, buffer)
     return buffer.getvalue()
@@ -125,6 +125,8 @@ def encode(state: dict) -> bytes:
 
 def decode(data: bytes, name: str = "checkpoint data") -> dict:
     """Load with ``weights_only=True``: tensors, numbers, strings, lists and dicts; anything else is refused."""
+    import torch
+
     try:
         state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as exc:
@@ -144,6 +146,8 @@ def state_digest(state: dict) -> str:
     """SHA-256 of every tensor and plain value in ``state``, in a canonical order: sorted by path (dict keys and list
     positions joined with ``/``), each path followed by its type, and for a tensor its dtype, shape and bytes (C
     order). It depends on the values only, not on dict order or on how a file encodes them."""
+    import torch
+
     digest = hashlib.sha256()
     for path, value in sorted(_leaves(state, ""), key=lambda leaf: leaf[0]):
         if isinstance(value, torch.Tensor):

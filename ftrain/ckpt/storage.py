@@ -33,7 +33,6 @@ import fsspec
 from botocore.exceptions import BotoCoreError, HTTPClientError, NoCredentialsError
 from botocore.exceptions import ConnectionError as BotoConnectionError
 from fsspec.implementations.local import LocalFileSystem
-from s3fs import S3FileSystem
 
 from ftrain.ckpt import localfs
 from ftrain.errors import StorageError, StorageUnavailable, UserError
@@ -57,6 +56,9 @@ os.register_at_fork(after_in_child=_JITTER.seed)
 _SECRET_ENV = ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN")
 _THROTTLING = {"SlowDown", "Throttling", "ThrottlingException", "RequestLimitExceeded", "TooManyRequestsException"}
 _MOUNT_FAILURES = {errno.EIO, errno.ESTALE, errno.ENOTCONN, errno.EHOSTDOWN, errno.ENOLINK}
+S3_PROTOCOLS = frozenset({"s3", "s3a"})
+"""s3fs's protocols. Its class is imported (by fsspec) only for a storage that names one: importing s3fs takes a
+second, in every ``ftrain ckpt`` command and every worker of a run on a local directory."""
 _PROTOCOL = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*$")
 
 
@@ -118,14 +120,14 @@ class Storage:
             ) from None
         except ImportError as exc:
             raise UserError(f"storage URL {shown!r} needs a package that is not installed: {exc}") from None
-        if protocol in S3FileSystem.protocol:
+        if protocol in S3_PROTOCOLS:
             url = _s3_options(url, options)
         try:
             fs, root = fsspec.core.url_to_fs(url, **options)
         except Exception as exc:
             raise UserError(f"cannot open storage {shown!r}: {_scrub(exc, secrets)}") from None
         storage = cls(fs, root, shown, secrets, retries, base_delay)
-        if isinstance(fs, S3FileSystem):
+        if storage.is_s3:
             fs.retries = 1  # s3fs's own retry loop: one attempt, ours does the retrying
         if check_bucket:
             storage.check()
@@ -143,6 +145,11 @@ class Storage:
     @property
     def is_local(self) -> bool:
         return isinstance(self.fs, LocalFileSystem)
+
+    @property
+    def is_s3(self) -> bool:
+        protocols = (self.fs.protocol,) if isinstance(self.fs.protocol, str) else self.fs.protocol
+        return not S3_PROTOCOLS.isdisjoint(protocols)
 
     def write_exclusive(self, rel: str, data: bytes) -> None:
         """Create ``rel`` holding ``data``; FileExistsError if it exists with other content.
@@ -211,7 +218,7 @@ class Storage:
         paths = [self._path(f"{rel}/{name}") for name in names]
         if self.is_local:
             return self._call("delete", rel, localfs.delete_files, self._path(rel), paths)
-        if isinstance(self.fs, S3FileSystem):  # no directories, and a batch delete takes absent keys
+        if self.is_s3:  # no directories, and a batch delete takes absent keys
             self._call("delete", rel, self.fs.rm, paths)
             return True
         return False
@@ -274,7 +281,7 @@ class Storage:
 
     def check(self) -> None:
         """On S3, that the bucket answers and exists."""
-        if not isinstance(self.fs, S3FileSystem):
+        if not self.is_s3:
             return
         bucket = self.root.split("/", 1)[0]
         if not bucket:

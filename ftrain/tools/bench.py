@@ -24,11 +24,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import torch
-
 from ftrain.config import load_config
 from ftrain.progress import Progress
-from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.hooks import Hook
 
 ENV_ID = "HalfCheetah-v5"
@@ -96,6 +93,8 @@ class ThroughputHook(Hook):
         self.last = now
 
     def on_end(self, trainer) -> None:
+        import torch  # here, as each library below: ``launch/bench_*.py --help`` and the cases not run stay cheap
+
         if not trainer.info.is_main:
             return
         state = {"common": trainer.common_state(), "rank": trainer.rank_state()}
@@ -142,6 +141,8 @@ def measure_rsl_rl(iterations: int, setting: Setting) -> float:
 
     from rsl_rl.runners import OnPolicyRunner
 
+    from ftrain.train.envs import MujocoVecEnv
+
     env = MujocoVecEnv(ENV_ID, NUM_ENVS, seed=0)
     model = {
         "class_name": "MLPModel",
@@ -165,6 +166,7 @@ def measure_rsl_rl(iterations: int, setting: Setting) -> float:
 
 
 def measure_sb3(iterations: int, setting: Setting) -> float:
+    import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.env_util import make_vec_env
 
