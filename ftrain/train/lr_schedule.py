@@ -29,3 +29,22 @@ class LinearSchedule:
 
 def build_lr_schedule(config: AlgorithmConfig) -> LinearSchedule | None:
     return LinearSchedule(config) if config.schedule == "linear" else None
+
+
+def horizon_notice(config: AlgorithmConfig, iterations: int) -> str | None:
+    """The line that says a linear schedule's horizon is not the run's length (``iterations=200`` on a config that
+    anneals over 1954: the rate ends far from zero; a run lengthened past its horizon trains on at rate zero)."""
+    horizon = config.schedule_iterations
+    if config.schedule != "linear" or horizon == iterations:
+        return None
+    fix = f"set algorithm.schedule_iterations={iterations} to anneal over this run"
+    if horizon > iterations:
+        final = config.learning_rate * (1.0 - (iterations - 1) / horizon)
+        return (
+            f"learning rate: algorithm.schedule_iterations={horizon} but iterations={iterations}, so the rate ends "
+            f"at {final:.3g}, not near 0: {fix}"
+        )
+    return (
+        f"learning rate: algorithm.schedule_iterations={horizon} but iterations={iterations}, so the last "
+        f"{iterations - horizon} iterations run at rate 0 and change nothing: {fix}"
+    )

@@ -32,7 +32,7 @@ from ftrain.policy.robot import unsaved_state_notice
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.evaluation import EvalHook
 from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
-from ftrain.train.lr_schedule import build_lr_schedule
+from ftrain.train.lr_schedule import build_lr_schedule, horizon_notice
 from ftrain.train.ppo import build_algorithm, load_learned_state
 from ftrain.train.reward_norm import build_reward_normalizer
 from ftrain.train.snapshot_hook import PolicySnapshotHook
@@ -100,6 +100,8 @@ class Trainer:
         self.alg = build_algorithm(config, self.env, info)
         self.reward_norm = build_reward_normalizer(config, info)
         self.lr_schedule = build_lr_schedule(config.algorithm)
+        if notice := horizon_notice(config.algorithm, config.iterations):
+            self.log(notice)
         if hasattr(self.alg, "teacher_identity"):  # which teacher a distillation learns from, at once
             teacher = self.alg.teacher_identity
             self.log(f"teacher: {teacher['source']} (step {teacher['step']}, state_sha256 {teacher['digest'][:16]})")
