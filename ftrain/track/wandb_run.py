@@ -1,9 +1,11 @@
 """Weights & Biases: the run's id is ftrain's, so every start of a training run continues one W&B run
-(``resume="allow"``); offline, each start writes its own directory under ``<log_dir>/wandb`` and ``wandb sync``
-joins them. Imported lazily: W&B is an optional extra."""
+(``resume="allow"``); offline, each start writes its own directory under ``<log_dir>/wandb`` (``$WANDB_DIR/wandb``
+where the user set that, as W&B itself does) and ``wandb sync`` joins them. Imported lazily: W&B is an optional
+extra."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -35,7 +37,7 @@ class WandbRun:
             id=self.info.run_id,
             resume="allow",
             name=self.info.name,
-            dir=self.info.log_dir,
+            dir=os.environ.get("WANDB_DIR") or self.info.log_dir,
             config={**self.info.config, "ftrain": self.info.identity},
             allow_val_change=True,  # a resize changes the world size; allow_config_change the config
             settings=wandb.Settings(console="off", silent=True),

@@ -182,11 +182,15 @@ def _same(logged: float, expected: float) -> bool:
 
 @pytest.mark.slow
 def test_a_resize_continues_the_tracker_run_and_a_run_forked_into_another_storage_gets_its_own(tmp_path):
+    """MLflow across a resize and a fork; the fork also logs to W&B offline, whose files go where the user's
+    ``WANDB_DIR`` says (not to the log directory)."""
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
     run, fork, track = tmp_path / "run", tmp_path / "fork", f"log.mlflow.tracking_uri={uri}"
     step = str(run / "checkpoints" / "step-000000004")
     run_train(run, "iterations=4", track, ranks=2, env=OFFLINE, cwd=tmp_path)  # MLflow's artifacts: ./mlruns
-    run_train(fork, "iterations=5", track, f"resume={step}", env=OFFLINE, cwd=tmp_path)  # another storage: a new run
+    own_dir = {**OFFLINE, "WANDB_DIR": str(tmp_path / "mine")}  # another storage: a new run; W&B's files in WANDB_DIR
+    run_train(fork, "iterations=5", track, "log.wandb.mode=offline", f"resume={step}", env=own_dir, cwd=tmp_path)
+    assert wandb_history(tmp_path / "mine")[0] and not (fork / "wandb").exists()
     run_train(run, "iterations=6", track, f"resume={step}", env=OFFLINE, cwd=tmp_path)  # the same run, 1 rank not 2
     client = MlflowClient(uri)
     runs = client.search_runs([client.get_experiment_by_name("smoke").experiment_id])
