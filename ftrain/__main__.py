@@ -3,8 +3,11 @@
 
 import sys
 
+from ftrain.proctitle import name_process, rank_role
 from ftrain.warm import handover
 
+if sys.argv[1:2] == ["train"]:
+    name_process(rank_role("stand-in"))  # a worker forked by the pool names itself once it knows its run
 code = handover("train", sys.argv[1:]) if sys.argv[1:2] == ["train"] else None
 if code is None:
     from ftrain.cli import main

@@ -18,6 +18,7 @@ import typing
 from ftrain import errorfile
 from ftrain.errors import EXIT_FAILED, EXIT_STORAGE_DOWN, EXIT_USAGE, StorageError, StorageUnavailable, UserError
 from ftrain.lifeline import watch_supervisor
+from ftrain.proctitle import name_process, rank_role
 from ftrain.redact import reveal_credentials
 
 if typing.TYPE_CHECKING:
@@ -263,6 +264,7 @@ def main(argv: list[str] | None = None) -> int:
 def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "train":
         config = _run_config(args)
+        name_process(rank_role("worker"), config.name)
         watch_supervisor()
         from ftrain.policy.robot import make_env
         from ftrain.train.trainer import train
@@ -276,7 +278,9 @@ def _dispatch(args: argparse.Namespace) -> int:
 
         options = SupervisorOptions(**{f.name: getattr(args, f.name) for f in dataclasses.fields(SupervisorOptions)})
         train_args = [args.config, *(["--storage", args.storage] if args.storage is not None else []), *args.overrides]
-        return supervise(options, _run_config(args), train_args)
+        config = _run_config(args)
+        name_process("supervisor", config.name)
+        return supervise(options, config, train_args)
     if args.command == "bench":
         from ftrain.tools.bench import run_benchmark
 

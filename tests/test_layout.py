@@ -12,7 +12,7 @@ from helpers import REPO
 
 PACKAGE = REPO / "ftrain"
 LAYERS = {
-    "__main__": {"cli", "warm"},
+    "__main__": {"cli", "warm", "proctitle"},
     "cli": {
         "supervise",
         "train",
@@ -26,6 +26,7 @@ LAYERS = {
         "progress",
         "lifeline",
         "redact",
+        "proctitle",
     },
     "tools": {"train", "ckpt", "config", "errors", "progress"},
     "supervise": {"ckpt", "config", "errors", "errorfile", "heartbeat", "redact", "procfs", "lifeline", "warm"},
@@ -33,17 +34,18 @@ LAYERS = {
     "track": {"config", "errors", "redact"},
     "policy": {"ckpt", "config", "errors", "progress"},
     "ckpt": {"dist", "config", "values", "errors", "heartbeat", "lifeline", "redact"},
-    "dist": {"errors", "lifeline"},
+    "dist": {"errors", "lifeline", "proctitle"},
     "config": {"values", "errors", "redact"},
     "values": {"errors"},
     "heartbeat": set(),
-    "warm": {"lifeline"},
+    "warm": {"lifeline", "proctitle"},
     "lifeline": {"procfs", "heartbeat"},
     "procfs": set(),
     "errorfile": set(),
     "redact": set(),
     "progress": set(),
     "errors": set(),
+    "proctitle": set(),
 }
 """What each package (or top-level module) of ftrain may import from the others."""
 LAZY_IMPORTS_ALLOWED = {"ftrain.cli", "ftrain.tools.bench"}

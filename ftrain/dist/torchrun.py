@@ -27,6 +27,7 @@ from torch.distributed.run import main as torchrun
 
 from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, STOPPED
 from ftrain.lifeline import die_with_supervisor
+from ftrain.proctitle import name_process
 
 EXIT_WORKERS_FAILED = 1
 FAILURES_OPTION = "--failures="
@@ -40,6 +41,7 @@ def main(argv: list[str]) -> int:
 def run(argv: list[str]) -> int:
     """torchrun in this process: ``main`` without the tie to the supervisor (the warm pool forks it: ``ftrain/warm``,
     where it ends with the pool)."""
+    name_process("torchrun agent")
     failures_path = argv[0].removeprefix(FAILURES_OPTION) if argv[:1] and argv[0].startswith(FAILURES_OPTION) else None
     arguments = argv[1:] if failures_path is not None else argv
     try:

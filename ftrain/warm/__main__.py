@@ -22,6 +22,7 @@ import weakref
 from typing import NoReturn
 
 from ftrain.lifeline import die_with_parent, die_with_supervisor
+from ftrain.proctitle import name_process
 from ftrain.warm import ENTRIES, LISTENER_ENV, PEER, STREAMS, handover, receive_message, send_message
 
 PRELOAD = ("ftrain.train.trainer", "ftrain.policy.robot", "gymnasium.envs.mujoco")
@@ -149,6 +150,7 @@ class Pool:
 
 def serve() -> NoReturn:
     die_with_supervisor()
+    name_process(f"warm pool of supervisor {os.getppid()}")
     for number in STOP_SIGNALS:
         signal.signal(number, signal.SIG_IGN)
     fd, _, secret = os.environ[LISTENER_ENV].partition(":")
@@ -204,6 +206,7 @@ def exit_fast(code: int | None, died_of: int | None = None) -> NoReturn:
 def stand_in_for_torchrun(argv: list[str]) -> int:
     """Like ``python -m ftrain.dist.torchrun ARGV``, which it becomes where no pool answers."""
     die_with_supervisor()
+    name_process("torchrun stand-in")
     code = handover(TORCHRUN, argv)
     if code is None:
         module = ENTRIES[TORCHRUN][0]

@@ -72,8 +72,12 @@ def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
 
     # 1. SIGKILL of one worker
     beats = training(heartbeats, 4)
-    pool = procfs.stat_fields(beats[1].pid)[1]
-    assert b"ftrain.warm\x00serve" in procfs.read(int(pool), "cmdline")  # a warm worker, forked by the pool
+    pool = int(procfs.stat_fields(beats[1].pid)[1])
+    # each process says what it is in ps: a warm worker, forked by the pool, which the supervisor started
+    assert procfs.read(beats[1].pid, "cmdline").startswith(b"ftrain: rank 1/2 worker (run smoke)")
+    assert procfs.read(pool, "cmdline").startswith(f"ftrain: warm pool of supervisor {proc.pid}".encode())
+    assert procfs.read(proc.pid, "cmdline").startswith(b"ftrain: supervisor (run smoke)")
+    assert procfs.read(torchrun_pid(proc.pid), "cmdline").startswith(b"ftrain: torchrun stand-in")
     os.kill(beats[1].pid, signal.SIGKILL)
     recovered = wait_event(storage, "recovered", 1)
 

@@ -1,0 +1,19 @@
+"""Process titles: what ``ps``, ``top`` and ``py-spy`` show for each process of a run, e.g. ``ftrain: rank 1/2 worker
+(run hc)`` instead of ``python -u -m ftrain.warm serve`` for a warm worker (setproctitle, as gunicorn, Ray and Celery
+name theirs). The title replaces what ``/proc/<pid>/cmdline`` shows; the environment and ``sys.argv`` stay."""
+
+from __future__ import annotations
+
+import os
+
+from setproctitle import setproctitle
+
+
+def name_process(role: str, run: str | None = None) -> None:
+    setproctitle(f"ftrain: {role}" + (f" (run {run})" if run else ""))
+
+
+def rank_role(kind: str) -> str:
+    """``rank R/W KIND`` from torchrun's environment of this process (``KIND`` alone outside torchrun)."""
+    rank, world = os.environ.get("RANK"), os.environ.get("WORLD_SIZE")
+    return f"rank {rank}/{world} {kind}" if rank is not None and world is not None else kind
