@@ -61,7 +61,9 @@ if ! .venv/bin/python -c "import torch, sys; sys.exit(torch.__version__.split('+
   fi
 fi
 say "installing ftrain and its test, export, render and bench extras..."
-"${pip[@]}" -e ".[test,bench]"
+# setuptools' editable install warns, in a banner, that a folder named like the package may shadow it: the checkout
+# is that folder, by design
+PYTHONWARNINGS="ignore:Editable installation" "${pip[@]}" -e ".[test,bench]"
 rm -f .venv/.ftrain-setup-*
 touch "$stamp"
 say "done"
