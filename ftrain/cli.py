@@ -58,9 +58,9 @@ def _add_dataclass_arguments(parser: argparse.ArgumentParser, options_class: typ
     hints = typing.get_type_hints(options_class)
     for field in dataclasses.fields(options_class):
         flag = "--" + field.name.replace("_", "-")
-        kind = hints[field.name]
-        kind = kind if kind in (int, float) else str
-        help_text = field.metadata["help"] + (" (default: %(default)s)" if field.default != "" else "")
+        kind = next((arg for arg in typing.get_args(hints[field.name]) if arg is not type(None)), hints[field.name])
+        kind = kind if kind in (int, float) else str  # ``float | None``: a float, None where the help says why
+        help_text = field.metadata["help"] + (" (default: %(default)s)" if field.default not in ("", None) else "")
         parser.add_argument(flag, dest=field.name, type=kind, default=field.default, help=help_text)
 
 

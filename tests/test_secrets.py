@@ -149,8 +149,8 @@ def test_workers_get_credentials_off_the_command_line(tmp_path, s3_server) -> No
 
 
 def test_a_storage_down_at_start_is_waited_for_without_a_credential_and_sigterm_ends_it_with_143(tmp_path) -> None:
-    """The storage-wait path: the supervisor waits for an S3 endpoint that refuses connections; its lines and its
-    records name the storage without the credentials of its URL. A SIGTERM then (a job preempted during the outage)
+    """The storage-wait path: the supervisor waits for an S3 endpoint that refuses connections, which it never
+    reached (one line says so); its lines and its records name the storage without the credentials of its URL. A SIGTERM then (a job preempted during the outage)
     ends it as a preemption: exit 143, one line, a summary, no traceback."""
     secrets = ("AKIAHIDDENKEY77", "S3CR3TVALUE99")
     url = f"s3://{secrets[0]}:{secrets[1]}@nobucket/run"
@@ -160,12 +160,15 @@ def test_a_storage_down_at_start_is_waited_for_without_a_credential_and_sigterm_
         command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "1", SMOKE, "--storage", url]
         proc = launch([*command, "iterations=2"], cwd=tmp_path, env=env, stdout=output, stderr=subprocess.STDOUT)
     log_dir = tmp_path / "runs" / "smoke" / "s3" / "nobucket" / "run"  # the default for a remote storage
-    wait_for(lambda: "unreachable since" in console.read_text(), "the storage-wait line", timeout=120)
+    wait_for(lambda: "has not answered" in console.read_text(), "the storage-wait line", timeout=120)
     proc.send_signal(signal.SIGTERM)
     assert finish(proc, timeout=60) == EXIT_PREEMPTED
     printed = console.read_text()
     assert "Traceback" not in printed and "stopped by a signal" in printed, printed
-    assert "storage s3://nobucket/run unreachable since" in printed, printed
+    # never reached since the command started: one line says so, with a wait of minutes, not an hour
+    (line,) = [line for line in printed.splitlines() if "s3://nobucket/run" in line]
+    assert "storage s3://nobucket/run has not answered since this command started" in line, printed
+    assert "check its URL and endpoint; waiting up to 300 s (--storage-wait)" in line, printed
     recorded = [event["event"] for event in events(log_dir)]
     assert recorded[0] == "storage_wait" and recorded[-2:] == ["preempted", "summary"], recorded
     files = [path for path in tmp_path.rglob("*") if path.is_file()]

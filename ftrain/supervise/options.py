@@ -131,9 +131,12 @@ class SupervisorOptions:
     crash_loop: int = field(
         default=3, metadata={"help": "stop (exit 3) after this many restarts in a row commit no new step (0: never)"}
     )
-    storage_wait: float = field(
-        default=3600.0,
-        metadata={"help": "seconds to wait for an unreachable checkpoint storage before giving up (exit 7)"},
+    storage_wait: float | None = field(
+        default=None,
+        metadata={
+            "help": "seconds to wait for an unreachable checkpoint storage before giving up (exit 7); default 3600, "
+            "300 for one that has not answered since the command started (a wrong URL or endpoint, more likely)"
+        },
     )
     stop_grace: float = field(
         default=30.0, metadata={"help": "seconds between SIGTERM and SIGKILL when stopping workers (time to save)"}

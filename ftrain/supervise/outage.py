@@ -1,11 +1,12 @@
 """Waiting out an unreachable checkpoint storage.
 
 A worker that cannot reach the storage ends with exit 7 (``StorageUnavailable``): an infrastructure fault, not bad
-input. The supervisor then probes the storage itself, with backoff (a line at the first probe, then every
+input. The supervisor then probes the storage itself, with backoff (a line when the wait starts, then every
 ``WAIT_LINES`` seconds), and starts the workers again once it answers; such restarts count neither towards
 ``--max-restarts`` nor the crash loop. After ``--storage-wait`` seconds it gives up with exit 7; nothing committed is
-lost. The workers get the same wait (``FTRAIN_STORAGE_WAIT``)
-for a save they must commit.
+lost. The workers get the same wait (``FTRAIN_STORAGE_WAIT``) for a save they must commit. Before its first look the
+supervisor has reached nothing: a storage that does not answer then is said to be maybe misnamed, and waited for
+5 minutes instead of an hour (``WAITS``).
 """
 
 from __future__ import annotations
@@ -25,33 +26,49 @@ from ftrain.supervise.outcome import Outcome
 PROBES = (1.0, 5.0)
 """Seconds between two probes: the first, and the longest (doubling, with jitter). Short: every second between the
 storage's return and the next probe is lost to the whole run, and a probe is one request."""
+WAITS = (300.0, 3600.0)
+"""``--storage-wait``'s default: for a storage that has not answered once since the command started (a wrong URL or
+endpoint is then likelier than an outage, and an hour is long to learn that), and for one that answered and went
+away."""
 
 
 class StorageWait:
-    def __init__(self, storage: StorageConfig, limit: float, events: EventLog, sleep: Callable[[float], None]) -> None:
-        """``limit``: seconds to wait; ``sleep``: the supervisor's sleep, which ends the run on a signal."""
+    def __init__(
+        self, storage: StorageConfig, limit: float | None, events: EventLog, sleep: Callable[[float], None]
+    ) -> None:
+        """``limit``: seconds to wait (None: ``WAITS``); ``sleep``: the supervisor's sleep, which ends the run on a
+        signal."""
         self.storage = storage
-        self.limit = limit
+        self.explicit_limit = limit
         self.events = events
         self.sleep = sleep
+        self.reached = False
+        """Whether the storage has answered since the command started (its lease was taken, or a probe answered)."""
+
+    @property
+    def limit(self) -> float:
+        return self.explicit_limit if self.explicit_limit is not None else WAITS[self.reached]
 
     def retrying(self, action: Callable[[], int], end: Callable[[Outcome], int]) -> int:
-        """``action()``, again once the storage answers whenever it raises StorageUnavailable; ``end(ending)`` if it
-        does not answer within the limit."""
-        while True:
+        """``action()`` once the storage answers, and again whenever it raises StorageUnavailable; ``end(ending)`` if
+        it does not answer within the limit. A storage not reached yet gets one probe first: one line if it does not
+        answer, instead of a line for each retry of the action's first request."""
+        ending = None if self.reached else self(None)
+        while ending is None:
             try:
                 return action()
             except StorageUnavailable as error:
                 ending = self(str(error))
-                if ending is not None:
-                    return end(ending)
+        return end(ending)
 
-    def __call__(self, why: str) -> Outcome | None:
+    def __call__(self, why: str | None) -> Outcome | None:
         """Probe until the storage answers (None), or the ending of the run: it did not within the limit, or what it
-        answers no waiting fixes (a bucket gone, access denied)."""
+        answers no waiting fixes (a bucket gone, access denied). ``why``: what found it unreachable (None: nothing
+        yet, this is a first look)."""
         url = display_url(self.storage.url)  # for people and records; the probe gets the real one
         started, since, tries, lines = time.monotonic(), time.strftime("%H:%M:%S"), 0, WaitLines()
-        self.events("storage_wait", f"{why}; waiting up to {self.limit:g} s for it", storage=url, cause=why)
+        if why is not None:
+            self._waiting(url, why, lines)
         while True:
             try:
                 problem = probe(self.storage.url, self.storage.options)
@@ -59,8 +76,13 @@ class StorageWait:
                 return Outcome("usage", EXIT_USAGE, str(error))
             waited = time.monotonic() - started
             if problem is None:
-                self.events("storage_back", f"the storage answers again after {waited:.0f} s", waited=round(waited, 2))
+                if why is not None or tries:
+                    back = f"the storage answers again after {waited:.0f} s"
+                    self.events("storage_back", back, waited=round(waited, 2))
+                self.reached = True
                 return None
+            if why is None and not tries:
+                self._waiting(url, problem, lines)
             if waited > self.limit:
                 return Outcome(
                     "storage_down",
@@ -77,6 +99,19 @@ class StorageWait:
                 )
             self.sleep(delay)
             tries += 1
+
+    def _waiting(self, url: str, why: str, lines: WaitLines) -> None:
+        """The wait's first line (the next comes ``WAIT_LINES`` seconds later): a storage never reached may be a
+        wrong URL or endpoint."""
+        if self.reached:
+            line = f"{why}; waiting up to {self.limit:g} s for it"
+        else:
+            line = (
+                f"storage {url} has not answered since this command started ({why}): check its URL and endpoint; "
+                f"waiting up to {self.limit:g} s (--storage-wait)"
+            )
+        self.events("storage_wait", line, storage=url, cause=why)
+        lines.due(always=True)
 
 
 def probe(url: str, options: dict | None = None) -> str | None:

@@ -92,6 +92,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     refused = lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr)  # noqa: E731
 
     def claimed() -> int:  # with the storage's lease, the log directory too (claim.py)
+        supervisor.storage_wait.reached = True
         with claim_log_dir(Path(config.log_dir), supervisor.events.node):
             return supervisor.run()
 
@@ -125,12 +126,11 @@ class Supervisor:
         self.nodes = nodes
         self.nnodes = nodes.count
         self.train_args = train_args
-        multi = nodes.count > 1
         self.events = EventLog(log_dir / "events.jsonl", None)
         self.link, self.coordinator = connect(nodes, options, self.events)
         self.node = self.link.node
-        self.events.node = self.node if multi else None
-        node_dir = f"node-{self.node}" if multi else ""
+        self.events.node = self.node if nodes.count > 1 else None
+        node_dir = f"node-{self.node}" if nodes.count > 1 else ""
         self.heartbeat_dir = (log_dir / "heartbeat" / node_dir).resolve()
         self.attempt_logs = log_dir / "torchrun" / node_dir
         self.hangs = HangWatch(hang_timeout, options.startup_grace, options.nproc_per_node)
@@ -220,7 +220,7 @@ class Supervisor:
         token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
         train_args, hidden = hide_credentials(self.train_args)
         env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.node, hidden)
-        env |= {STORAGE_WAIT_ENV: str(self.options.storage_wait), **worker_env(plan, self.nodes)}
+        env |= {STORAGE_WAIT_ENV: str(self.storage_wait.limit), **worker_env(plan, self.nodes)}
         logs = new_log_dir(self.attempt_logs, plan)
         arguments = rendezvous(plan, self.nodes, self.options)
         command, warm = self.launcher.command(arguments, train_args, logs)
