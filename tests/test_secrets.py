@@ -150,8 +150,9 @@ def test_workers_get_credentials_off_the_command_line(tmp_path, s3_server) -> No
 
 def test_a_storage_down_at_start_is_waited_for_without_a_credential_and_sigterm_ends_it_with_143(tmp_path) -> None:
     """The storage-wait path: the supervisor waits for an S3 endpoint that refuses connections, which it never
-    reached (one line says so); its lines and its records name the storage without the credentials of its URL. A SIGTERM then (a job preempted during the outage)
-    ends it as a preemption: exit 143, one line, a summary, no traceback."""
+    reached (one line says so); its lines and its records name the storage without the credentials of its URL. A
+    SIGTERM then (a job preempted during the outage) ends it as a preemption: exit 143, one line, a summary, no
+    traceback."""
     secrets = ("AKIAHIDDENKEY77", "S3CR3TVALUE99")
     url = f"s3://{secrets[0]}:{secrets[1]}@nobucket/run"
     env = child_env({"AWS_ENDPOINT_URL": f"http://127.0.0.1:{free_port()}"})  # nothing listens there
