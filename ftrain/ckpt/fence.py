@@ -1,4 +1,5 @@
-"""Fencing: a commit from an older generation of a run than the newest one that has committed is refused.
+"""Fencing: a commit from an older generation of a run than the newest one that has committed is refused, and so is
+a commit of a run that lost the storage's lease to another run (``LeaseToken``, see ``lease.py``).
 
 On several nodes ``ftrain supervise`` numbers its attempts across the nodes (a node that fails or leaves moves every
 node to the next one) and hands the run and that number to the workers as ``FTRAIN_GENERATION``. A node cut off from
@@ -16,6 +17,8 @@ import json
 import os
 
 from ftrain.ckpt import cas
+from ftrain.ckpt.lease import GENERATION_ENV as LEASE_GENERATION_ENV
+from ftrain.ckpt.lease import RUN_ID_ENV, LeaseLost, lost_message, read_record
 from ftrain.ckpt.storage import Storage
 
 GENERATION_ENV = "FTRAIN_GENERATION"
@@ -62,6 +65,29 @@ class Fence:
                 return
             except cas.Conflict:
                 continue
+
+
+class LeaseToken:
+    """Rank 0's check, right before it writes a manifest, that the lease of ``storage`` is still run ``run_id``'s
+    at ``generation`` (see the module doc)."""
+
+    def __init__(self, storage: Storage, run_id: str, generation: int) -> None:
+        self.storage = storage
+        self.run_id = run_id
+        self.generation = generation
+
+    @classmethod
+    def from_env(cls, storage: Storage) -> LeaseToken | None:
+        """The token of the lease this process's run holds; None where no lease was taken (``ftrain train`` run
+        without torchrun's rank 0 or a supervisor holding one)."""
+        run_id, generation = os.environ.get(RUN_ID_ENV), os.environ.get(LEASE_GENERATION_ENV, "")
+        return cls(storage, run_id, int(generation)) if run_id and generation.isdigit() else None
+
+    def check(self) -> None:
+        """LeaseLost if another run has taken the lease since this run's generation."""
+        current = read_record(self.storage)
+        if current is not None and current[0].run_id != self.run_id and current[0].generation > self.generation:
+            raise LeaseLost(lost_message(self.storage, current[0], self.generation))
 
 
 def _parse(data: bytes) -> dict:

@@ -11,6 +11,13 @@ after a crash never waits for the expiry), and a process seen running there hold
 Every change is a compare-and-swap of the record read (``cas.py``: conditional requests on S3, ``flock`` and an
 atomic replace locally), so of two processes that race, one wins and the other reads again.
 
+The generation is the run's fencing token. It only grows: a release keeps the record (with no holders), so the next
+run takes generation + 1. A run that finds a newer generation of another run in the record (its lease expired while
+it was paused, or cut off, and another run took the storage) has lost the storage for good: it never takes it back,
+and rank 0 reads the record right before every manifest it writes (``fence.LeaseToken``: one small read per commit) and
+commits nothing once another run's generation is there; the workers then exit 8. What is left is the time between
+that read and the manifest's write (one request), as for ``fence.py``.
+
 Torch-free: the supervisor holds the lease for its workers; unsupervised, rank 0 of the world does (see ``claim``).
 """
 
@@ -40,12 +47,21 @@ LEASE = "LEASE.json"
 RUN_ID_ENV = "FTRAIN_RUN_ID"
 """A run's identity: set by ``ftrain supervise`` for its workers (or by the user to name a run, e.g. a batch job id
 that survives a requeue); unset, torchrun's ``TORCHELASTIC_RUN_ID`` (its ``--rdzv-id``)."""
+GENERATION_ENV = "FTRAIN_LEASE_GENERATION"
+"""The generation of the lease the run holds, set with ``FTRAIN_RUN_ID`` by its holder: what its commits are checked
+against (``fence.LeaseToken``)."""
+TTL_ENV = "FTRAIN_LEASE_TTL"
+"""Seconds a lease lives after its last renewal, where ``TTL`` does not suit (a storage slow to answer)."""
 TTL = 60.0
 """Seconds a lease lives after its last renewal; renewed every third of that."""
 
 
 class LeaseHeld(Exception):
     """Another run, alive, holds the storage; the message names it and when its lease ends, in one line."""
+
+
+class LeaseLost(LeaseHeld):
+    """Another run took the storage after this one held it (a newer generation): this run must stop writing."""
 
 
 _AGREED = {kind.__name__: kind for kind in (LeaseHeld, UserError, StorageUnavailable, StorageError)}
@@ -152,7 +168,8 @@ def storage_lease(
     else:
         run_id = os.environ.get("TORCHELASTIC_RUN_ID") or secrets.token_hex(8)
     retries = config.checkpoint.retries if retries is None else retries
-    return Lease(Storage.open(config.storage.url, config.storage.options, retries=retries), run_id, log)
+    storage = Storage.open(config.storage.url, config.storage.options, retries=retries)
+    return Lease(storage, run_id, log, float(os.environ.get(TTL_ENV) or TTL))
 
 
 class Lease:
@@ -167,15 +184,20 @@ class Lease:
         self.process = Process.current()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._lost_to: str | None = None
+        self.generation: int | None = None
+        """The generation this run holds, once taken."""
+        self.lost: str | None = None
+        """Why the storage is lost to another run, once it is (for good)."""
 
     def acquire(self) -> str | None:
-        """Take the lease (or join this run's); LeaseHeld if another run holds it. A line saying so if this took
-        over another run's lease, else None."""
+        """Take the lease (or join this run's); LeaseHeld if another run holds it, LeaseLost if another run took it
+        after this one held it. A line saying so if this took over another run's live lease, else None."""
         while True:
             now = time.time()
-            current = _read(self.storage)
+            current = read_record(self.storage)
             record, version = current if current is not None else (None, None)
+            if record is not None and record.run_id != self.run_id and self.generation is not None:
+                raise LeaseLost(lost_message(self.storage, record, self.generation))
             if record is not None and record.run_id != self.run_id and record.live(now):
                 raise LeaseHeld(self._held_message(record, now))
             ours = record is not None and record.run_id == self.run_id
@@ -186,23 +208,26 @@ class Lease:
                 cas.write(self.storage, LEASE, new.encode(), version)
             except cas.Conflict:
                 continue
-            return None if ours or record is None else self._taken_message(record)
+            self.generation = generation
+            return None if ours or record is None or not record.entries else self._taken_message(record)
 
     def renew(self) -> str | None:
-        """Renew this process's entry; take the lease again if it lapsed and nobody else took it (a line saying so).
-        While another run holds it, a line saying so once."""
+        """Renew this process's entry; take the lease again if it lapsed and nobody else took it. Once another run
+        has taken it, a line saying so, once: the storage is lost for good (``lost``)."""
+        if self.lost is not None:
+            return None
         try:
-            taken = self.acquire()
-        except LeaseHeld as held:
-            message = None if self._lost_to == str(held) else f"lost the lease: {held}"
-            self._lost_to = str(held)
-            return message
-        self._lost_to = None
-        return taken
+            return self.acquire()
+        except LeaseLost as lost:
+            self.lost = str(lost)
+            return self.lost
 
     def hold(self) -> str | None:
-        """``acquire``, then renew every ``ttl / 3`` from a daemon thread; returns what ``acquire`` did."""
+        """``acquire``, then renew every ``ttl / 3`` from a daemon thread; returns what ``acquire`` did. This
+        process's environment names the run and its generation from then on (``RUN_ID_ENV``, ``GENERATION_ENV``):
+        its own commits and its child processes' are checked against them (``fence.LeaseToken``)."""
         taken = self.acquire()
+        os.environ[RUN_ID_ENV], os.environ[GENERATION_ENV] = self.run_id, str(self.generation)
         self._thread = threading.Thread(target=self._keep, name="ftrain-lease", daemon=True)
         self._thread.start()
         return taken
@@ -218,7 +243,6 @@ class Lease:
             return EXIT_STORAGE_HELD
         if taken:
             self.log(taken)
-        os.environ[RUN_ID_ENV] = self.run_id
         try:
             return body()
         finally:
@@ -237,7 +261,7 @@ class Lease:
 
     def check(self) -> None:
         """LeaseHeld if another run, alive, holds the lease (a worker whose supervisor holds it for its run)."""
-        current = _read(self.storage)
+        current = read_record(self.storage)
         if current is not None and current[0].run_id != self.run_id and current[0].live(time.time()):
             raise LeaseHeld(self._held_message(current[0], time.time()))
 
@@ -260,17 +284,16 @@ class Lease:
                 self.log(message)
 
     def _drop(self) -> None:
+        """This process's entry out of the record; the record stays, with its generation, when that was the last
+        (the next run takes the generation after it)."""
         while True:
-            current = _read(self.storage)
+            current = read_record(self.storage)
             if current is None or current[0].run_id != self.run_id:
                 return
             record, version = current
             keep = tuple(e for e in record.live(time.time()) if e.process != self.process)
             try:
-                if keep:
-                    cas.write(self.storage, LEASE, dataclasses.replace(record, entries=keep).encode(), version)
-                else:
-                    cas.delete(self.storage, LEASE, version)
+                cas.write(self.storage, LEASE, dataclasses.replace(record, entries=keep).encode(), version)
                 return
             except cas.Conflict:
                 continue
@@ -292,6 +315,13 @@ class Lease:
             for e in record.entries
         )
         return f"took over the lease of {self.storage.url} from run {record.run_id}: {holders or 'no holder'}"
+
+
+def lost_message(storage: Storage, record: Record, generation: int) -> str:
+    return (
+        f"the lease of {storage.url} was taken by run {record.run_id} (generation {record.generation}; this run's is "
+        f"{generation}): this run lost the storage and commits nothing more"
+    )
 
 
 def claim(config: Config, is_main: bool, agree: Callable[[list | None], list | None], log: Callable[[str], None]):
@@ -326,7 +356,7 @@ def _check_for_supervisor(config: Config, log: Callable[[str], None]) -> None:
         log(f"the lease was not checked, the storage does not answer ({error}); the supervisor holds it")
 
 
-def _read(storage: Storage) -> tuple[Record, str] | None:
+def read_record(storage: Storage) -> tuple[Record, str] | None:
     current = cas.read(storage, LEASE)
     if current is None:
         return None

@@ -26,6 +26,7 @@ from collections.abc import Callable
 
 from ftrain.ckpt import resume
 from ftrain.ckpt.format import COMMON, STATE_FORMAT, shard_name
+from ftrain.ckpt.lease import LeaseLost
 from ftrain.ckpt.resume import Checkpointable, CheckpointError
 from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, Target, snapshot
 from ftrain.ckpt.schedule import DEFAULT_STORAGE_WAIT, STORAGE_WAIT_ENV, SaveSchedule
@@ -261,6 +262,8 @@ class Checkpointer:
         """Every rank hears the same outcome and says so: a failure and a recovery are each one line per rank."""
         step, detail, now = outcome.step, outcome.detail, time.monotonic()
         self.schedule.settled(step, outcome.result is Result.COMMITTED, blocked + outcome.cpu_s)
+        if outcome.result is Result.LEASE_LOST:
+            raise LeaseLost(detail)
         if outcome.result in (Result.UNLOADABLE, Result.FENCED):
             raise CheckpointError(detail)
         if outcome.result is Result.SPOOLED:

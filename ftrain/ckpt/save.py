@@ -25,7 +25,7 @@ from collections.abc import Callable
 import torch
 import torch.distributed as dist
 
-from ftrain.ckpt.fence import Fence, Fenced
+from ftrain.ckpt.fence import Fence, Fenced, LeaseToken
 from ftrain.ckpt.format import (
     COMMON,
     INCOMPLETE,
@@ -40,6 +40,7 @@ from ftrain.ckpt.format import (
     state_digest,
     write_file,
 )
+from ftrain.ckpt.lease import LeaseLost
 from ftrain.ckpt.retention import delete_step, retention_plan
 from ftrain.ckpt.spool import Spool
 from ftrain.ckpt.steps import scan
@@ -60,6 +61,8 @@ class Result(str, enum.Enum):
     """Written state that would not load back: training must stop."""
     FENCED = "fenced"
     """A newer generation of the run has committed (``fence.py``): this rank is cut off and must stop."""
+    LEASE_LOST = "lease_lost"
+    """Another run has taken the storage's lease (``lease.py``): this run must stop, with exit 8."""
     SPOOLED = "spooled"
     """Written to the spool alone, as asked (while the storage is down): the storage has not changed."""
 
@@ -127,6 +130,7 @@ class StepWriter:
         a spooled step records as the storage history it continues."""
         self._spool_failing = False
         self.fence = Fence.from_env(storage) if info.is_main else None
+        self.lease = LeaseToken.from_env(storage) if info.is_main else None
         self.policy = policy
         self.info = info
         self.collectives = collectives
@@ -257,11 +261,18 @@ class StepWriter:
         fields = {key: value for report in reports for key, value in report["fields"].items()}  # from common.pt
         if not errors:
             try:
+                if self.lease is not None:
+                    self.lease.check()
+                    fields["lease_generation"] = self.lease.generation
                 if self.fence is not None:
                     self.fence.check()
                     fields["generation"] = [self.fence.run, self.fence.generation]
                 manifest = commit(storage, step, files, meta | fields, check_present=not self._listed)
                 self._listed = True
+            except LeaseLost as exc:
+                self.log(f"checkpoint step {step} refused: {exc}")
+                self._steps[step] = StepInfo(step, INCOMPLETE)
+                return (Result.LEASE_LOST, step, str(exc))
             except Fenced as exc:
                 self.log(f"checkpoint step {step} refused: {exc}")
                 self._steps[step] = StepInfo(step, INCOMPLETE)

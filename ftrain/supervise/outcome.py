@@ -6,7 +6,7 @@ import math
 import signal
 from dataclasses import dataclass
 
-from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_STORAGE_DOWN, EXIT_USAGE, STOPPED
+from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, EXIT_USAGE, STOPPED
 from ftrain.supervise.options import EXIT_DONE, EXIT_TOO_FEW_NODES
 
 
@@ -27,24 +27,27 @@ def blame(failures: dict[int, WorkerFailure], killed: set[int]) -> tuple[int, Wo
 
     Ranks the supervisor ``killed`` do not count. Of the others, a rank that refused its input comes first (the
     lowest: every rank refuses alike, and the others may have been stopped by torchrun before they could exit 2), then
-    one that could not reach the storage (exit 7), then a rank killed by a signal (someone killed it; the rest then
-    failed on the broken group), then the rank that recorded an error first (the others' errors, a broken connection,
-    followed it), then a specific exit code before 1 (what a broken group gives) or SIGTERM (what torchrun sends the
-    survivors), then the lowest rank. torchrun's own
+    one that found the storage taken by another run (exit 8), then one that could not reach the storage (exit 7), then
+    a rank killed by a signal (someone killed it; the rest then failed on the broken group), then the rank that
+    recorded an error first (the others' errors, a broken connection, followed it), then a specific exit code before 1
+    (what a broken group gives) or SIGTERM (what torchrun sends the survivors), then the lowest rank. torchrun's own
     root cause is only the first failure it noticed, arbitrary when several die within a poll.
     """
     own = {rank: failure for rank, failure in failures.items() if rank not in killed} or failures
 
     def order(item: tuple[int, WorkerFailure]) -> tuple:
         rank, failure = item
-        if failure.code in (EXIT_USAGE, EXIT_STORAGE_DOWN):
-            return (False, failure.code != EXIT_USAGE, rank)
+        if failure.code in FINAL_FIRST:
+            return (False, FINAL_FIRST.index(failure.code), rank)
         signalled = failure.code < 0 and failure.code != -signal.SIGTERM
         return (True, not signalled, failure.recorded_at, failure.code in (1, -signal.SIGTERM), rank)
 
     return min(own.items(), key=order) if own else None
 
 
+FINAL_FIRST = (EXIT_USAGE, EXIT_STORAGE_HELD, EXIT_STORAGE_DOWN)
+"""Exit codes that name their cause (bad input, the storage lost to another run, the storage down), in the order
+they are blamed before any other."""
 ENDINGS = {"usage": "bad input", "done": "training finished"}
 """How the summary names an ending whose event name is not plain words."""
 
@@ -113,4 +116,8 @@ def classify(
         rank, failure = culprit
         refusal = f"refused its input: {failure.error}" if failure.error else f"exited with code {EXIT_USAGE}"
         return Outcome("usage", EXIT_USAGE, f"rank {rank} {refusal}; not restarting")
+    if culprit is not None and culprit[1].code == EXIT_STORAGE_HELD:  # another run took the storage: a restart would
+        rank, failure = culprit  # be refused too
+        held = failure.error or "another run holds the storage"
+        return Outcome("storage_held", EXIT_STORAGE_HELD, f"rank {rank}: {held}; not restarting")
     return Outcome("failed", None, cause)

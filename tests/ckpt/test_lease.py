@@ -14,7 +14,8 @@ import time
 import pytest
 
 from ftrain.ckpt import cas
-from ftrain.ckpt.lease import LEASE, Entry, Lease, LeaseHeld, Process, Record
+from ftrain.ckpt.fence import LeaseToken
+from ftrain.ckpt.lease import GENERATION_ENV, LEASE, RUN_ID_ENV, Entry, Lease, LeaseHeld, LeaseLost, Process, Record
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
 
@@ -47,6 +48,15 @@ HOLDER = textwrap.dedent(
     time.sleep(600)
     """
 )
+
+
+@pytest.fixture(autouse=True)
+def own_environment(monkeypatch):
+    """``hold`` names the run in this process's environment, which the test processes started later inherit: each
+    test's names go with it."""
+    for name in (RUN_ID_ENV, GENERATION_ENV):
+        monkeypatch.setenv(name, "")
+        monkeypatch.delenv(name)
 
 
 @pytest.fixture(params=["local", "s3"])
@@ -156,14 +166,15 @@ def test_every_node_of_one_run_is_admitted_and_renews_its_own_entry(storage):
         Lease(storage, "another-run", print).acquire()
 
 
-def test_release_lets_the_next_run_start_at_once(storage):
+def test_release_lets_the_next_run_start_at_once_at_the_next_generation(storage):
     first = Lease(storage, "first", print)
     assert first.hold() is None
-    assert record(storage).run_id == "first"
+    assert (record(storage).run_id, record(storage).generation) == ("first", 1)
+    assert (os.environ[RUN_ID_ENV], os.environ[GENERATION_ENV]) == ("first", "1")  # for its commits and workers
     first.release()
-    assert not storage.exists(LEASE)
-    assert Lease(storage, "second", print).acquire() is None
-    assert record(storage).generation == 1
+    assert record(storage).entries == ()  # no holder; the generation stays, so that it only grows
+    assert Lease(storage, "second", print).acquire() is None  # nothing said: nobody held it
+    assert (record(storage).run_id, record(storage).generation) == ("second", 2)
 
 
 def test_a_write_from_a_stale_read_is_refused_by_the_storage(storage):
@@ -183,17 +194,30 @@ def test_a_write_from_a_stale_read_is_refused_by_the_storage(storage):
     assert record(storage).run_id == "mine"
 
 
-def test_renewal_says_once_that_the_lease_was_lost_and_takes_it_back_when_it_lapses(storage):
+def test_a_lease_taken_by_another_run_is_lost_for_good_and_said_once(storage):
     lease = Lease(storage, "mine", print)
     lease.acquire()
-    storage.write_replace(LEASE, foreign("intruder", time.time()).encode())  # taken over during a long outage
+    assert lease.renew() is None and record(storage).generation == 1  # renewed, nothing to say
+    storage.write_replace(LEASE, foreign("intruder", time.time(), generation=2).encode())  # taken during an outage
     lost = lease.renew()
-    assert lost is not None and lost.startswith("lost the lease: ") and "intruder" in lost
-    assert lease.renew() is None  # said once
-    storage.write_replace(LEASE, foreign("intruder", time.time() - 100).encode())
-    taken = lease.renew()
-    assert taken is not None and "from run intruder" in taken
-    assert record(storage).run_id == "mine"
+    assert lost is not None and "taken by run intruder (generation 2; this run's is 1)" in lost, lost
+    assert lease.lost == lost and lease.renew() is None  # said once
+    storage.write_replace(LEASE, foreign("intruder", time.time() - 100, generation=2).encode())  # and it lapsed
+    assert lease.renew() is None and record(storage).run_id == "intruder"  # never taken back: two writers
+
+
+def test_a_commit_of_a_run_whose_lease_another_run_took_is_refused(storage):
+    mine = Lease(storage, "mine", print)
+    mine.hold()
+    token = LeaseToken.from_env(storage)
+    assert (token.run_id, token.generation) == ("mine", 1)
+    token.check()  # still ours
+    mine.release()
+    token.check()  # released, nobody took it: the run's own last commits (the supervisor releases last)
+    other = Lease(storage, "other", print)
+    other.acquire()
+    with pytest.raises(LeaseLost, match=r"taken by run other \(generation 2; this run's is 1\): this run lost"):
+        token.check()
 
 
 def test_the_keeper_renews_and_outlives_a_failing_storage(tmp_path):
@@ -214,7 +238,7 @@ def test_the_keeper_renews_and_outlives_a_failing_storage(tmp_path):
     wait_for(lambda: any("renewed the lease again after" in line for line in said), "the renewal back", timeout=10)
     assert record(storage).run_id == "mine"
     lease.release()
-    assert not lease._thread.is_alive() and not storage.exists(LEASE)
+    assert not lease._thread.is_alive() and record(storage).entries == ()
 
 
 def test_an_unreadable_lease_is_bad_input_and_left_alone(storage):

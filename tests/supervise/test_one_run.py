@@ -5,9 +5,13 @@ on another host is taken over."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
+import os
 import re
+import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -16,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from ftrain import procfs
-from ftrain.ckpt.lease import LEASE, Entry, Process, Record
+from ftrain.ckpt.lease import LEASE, TTL_ENV, Entry, Process, Record
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD
 from ftrain.supervise.auth import SECRET_ENV
@@ -32,6 +36,7 @@ from helpers import (
     free_port,
     kill_tree,
     launch,
+    manifests,
     run_train,
     train_command,
     training,
@@ -70,6 +75,12 @@ def reference(reference_state) -> str:
     return reference_state(300)
 
 
+def released(storage: Storage | Path) -> bool:
+    """The lease has no holder left (its record stays, with its generation)."""
+    storage = storage if isinstance(storage, Storage) else Storage.open(str(storage))
+    return Record.decode(storage.read(LEASE)).entries == ()
+
+
 def test_a_second_run_beside_a_supervised_one_is_refused_and_the_first_ends_as_alone(tmp_path, reference):
     storage = tmp_path / "run"
     first = launch(supervise_command(storage), cwd=REPO, env=child_env())
@@ -88,7 +99,7 @@ def test_a_second_run_beside_a_supervised_one_is_refused_and_the_first_ends_as_a
     assert final_manifest(storage)["state_sha256"] == reference
     names = [event["event"] for event in events(storage)]
     assert names.count("start") == 1 and names[-2:] == ["done", "summary"]  # the refused runs wrote nothing here
-    assert not (storage / LEASE).exists()  # released at the end: the same command again starts at once
+    assert released(storage)  # at the end: the same command again starts at once
 
 
 def test_a_second_torchrun_beside_a_torchrun_run_is_refused_and_the_first_ends_as_alone(
@@ -114,7 +125,7 @@ def test_a_second_torchrun_beside_a_torchrun_run_is_refused_and_the_first_ends_a
     storage = Storage.open(*s3_url)
     step = max(storage.list_dirs("checkpoints"))
     assert json.loads(storage.read(f"checkpoints/{step}/MANIFEST.json"))["state_sha256"] == reference
-    assert not storage.exists(LEASE)
+    assert released(storage)
 
 
 def test_the_same_command_again_after_a_sigkill_takes_over_at_once(tmp_path):
@@ -152,7 +163,7 @@ def test_every_node_of_a_supervised_run_is_admitted_and_holds_the_lease(tmp_path
     wait_for(lambda: holders() == {proc.pid for proc in supervisors}, "both supervisors in the lease")
     assert [finish(proc) for proc in supervisors] == [0, 0]
     assert final_manifest(storage)["step"] == 60
-    assert not (storage / LEASE).exists()
+    assert released(storage)
 
 
 def test_a_lease_that_expired_on_another_host_is_taken_over(tmp_path, s3_url, s3_env):
@@ -164,7 +175,8 @@ def test_a_lease_that_expired_on_another_host_is_taken_over(tmp_path, s3_url, s3
     result = run_train(url, f"log_dir={tmp_path / 'logs'}", env=s3_env)
     assert "took over the lease of" in result.stdout and "from run far-run" in result.stdout
     assert "the lease of pid 4242 on host node-far-away expired at" in result.stdout
-    assert not Storage.open(url, options).exists(LEASE)  # released at the end
+    assert released(Storage.open(url, options))  # at the end, at the generation after the expired one's
+    assert Record.decode(Storage.open(url, options).read(LEASE)).generation == 8
 
 
 def test_two_runs_of_one_config_from_one_directory_keep_their_logs_apart(tmp_path, s3_server, s3_env) -> None:
@@ -197,3 +209,56 @@ def test_two_runs_of_one_config_from_one_directory_keep_their_logs_apart(tmp_pat
             assert [int(row["iteration"]) for row in csv.DictReader(file)] == list(range(1, 41)), prefix
         spooled = sorted(path.parent.name for path in (log_dir / "spool").glob("checkpoints/*/MANIFEST.json"))
         assert spooled and spooled[-1] == "step-000000040", (prefix, spooled)
+
+
+@pytest.mark.skipif(os.geteuid() != 0 or not shutil.which("unshare"), reason="another host: a UTS namespace (root)")
+def test_a_run_paused_past_its_lease_whose_storage_another_run_took_commits_nothing_more(tmp_path) -> None:
+    """Run A (a 4 s lease) is SIGSTOPped; run B, on "another host" (a hostname of its own: A's entry can only
+    expire there), takes the lease at the next generation, trains on from A's newest step and ends. A, continued,
+    commits nothing over B's steps: its rank 0 finds B's generation in the lease before its next manifest, and A
+    stops with exit 8 and one line; its supervisor never takes the lease back."""
+    storage = tmp_path / "run"
+    command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node=1", SMOKE, "--storage", str(storage)]
+    a_log = tmp_path / "a.log"
+    with a_log.open("wb") as output:
+        first = launch(
+            [*command, "iterations=400", "checkpoint.interval=2"],
+            cwd=REPO,
+            env=child_env({TTL_ENV: "4"}),
+            stdout=output,
+            stderr=subprocess.STDOUT,
+        )
+    wait_for(lambda: len(manifests(storage)) >= 2, "run A's first commits", timeout=120)
+    paused = [first.pid, *procfs.descendants(first.pid)]
+    for pid in paused:
+        os.kill(pid, signal.SIGSTOP)
+    try:
+        time.sleep(5)  # past A's lease, which only expiry ends from another host
+        newest = final_manifest(storage)["step"]
+        assert {manifest["lease_generation"] for manifest in manifests(storage).values()} == {1}
+        elsewhere = ["unshare", "--uts", "sh", "-c", 'hostname elsewhere && exec "$@"', "sh"]
+        second = subprocess.run(
+            [*elsewhere, *command, f"iterations={newest + 10}", "checkpoint.interval=2", f"log_dir={tmp_path / 'b'}"],
+            cwd=REPO,
+            env=child_env(),
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert second.returncode == 0, second.stderr[-3000:]
+        assert "took over the lease of" in second.stderr and "expired at" in second.stderr
+    finally:
+        for pid in paused:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGCONT)
+    assert finish(first, timeout=120) == EXIT_STORAGE_HELD
+    said = a_log.read_text()
+    assert "Traceback" not in said, said
+    assert "taken by run" in said and "(generation 2; this run's is 1): this run lost the storage" in said, said
+
+    ending = final_manifest(storage)
+    assert ending["step"] == newest + 10 and ending["lease_generation"] == 2
+    after = {step: manifest["lease_generation"] for step, manifest in manifests(storage).items() if step > newest}
+    assert after and set(after.values()) == {2}, after  # every step past the takeover is B's
+    lease = Record.decode((storage / LEASE).read_bytes())
+    assert (lease.generation, lease.entries) == (2, ())  # B's, released; A did not take it back
