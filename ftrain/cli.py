@@ -31,10 +31,21 @@ OVERRIDES_HELP = (
 )
 
 
+QUIET, VERBOSE = "log.console=false", "log.console_saves=every"
+"""What ``-q`` and ``-v`` stand for: overrides, which reach every worker with the others."""
+
+
 def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("config", help="YAML config file, e.g. configs/halfcheetah.yaml")
     parser.add_argument("--storage", help="where checkpoints go: a local path (default runs/<name>), file://, s3://...")
     _add_storage_options(parser)
+    loudness = parser.add_mutually_exclusive_group()
+    loudness.add_argument(
+        "-q", "--quiet", dest="loudness", action="store_const", const=QUIET, help="no line per iteration or save"
+    )
+    loudness.add_argument(
+        "-v", "--verbose", dest="loudness", action="store_const", const=VERBOSE, help="a line for every save"
+    )
     parser.add_argument("overrides", nargs="*", metavar="key=value", help=OVERRIDES_HELP)
 
 
@@ -238,7 +249,7 @@ def main(argv: list[str] | None = None) -> int:
         if hasattr(args, "overrides"):
             from ftrain.values import storage_option_overrides
 
-            args.overrides += [*extra, *storage_option_overrides(args.storage_option)]
+            args.overrides += [*extra, *storage_option_overrides(args.storage_option), *filter(None, [args.loudness])]
         return _dispatch(args)
     except UserError as error:
         errorfile.report(str(error))

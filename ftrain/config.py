@@ -150,6 +150,9 @@ class MlflowConfig(Switched):
 @dataclass
 class LogConfig:
     console: bool = True
+    console_saves: str = "milestones"
+    """Which committed saves get a line of their own on the console: ``milestones`` (a process's first, each quarter
+    of the run, the last; the progress line says how long ago the newest was) or ``every`` (``-v``)."""
     tensorboard: bool = True
     csv: bool = True
     wandb: WandbConfig = field(default_factory=WandbConfig)
@@ -343,6 +346,7 @@ def validate(config: Config) -> None:
         "algorithm.loss_type": (config.algorithm.loss_type, ("mse", "huber")),
         "policy.std_type": (config.policy.std_type, ("scalar", "log")),
         "policy.activation": (config.policy.activation, ACTIVATIONS),
+        "log.console_saves": (config.log.console_saves, ("milestones", "every")),
     }
     for key, (value, allowed) in choices.items():
         if value not in allowed:

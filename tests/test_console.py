@@ -93,3 +93,25 @@ def test_supervised_crashes_are_one_cause_line_each(tmp_path) -> None:
     assert exits[0]["cause"].startswith("rank 1 exited with code 1: RuntimeError: probe crash after iteration 3")
     assert exits[1]["cause"] == "rank 0 killed by SIGKILL"
     assert events(storage)[-1]["restarts"] == 2
+
+
+def test_verbose_says_every_save_and_quiet_says_nothing_per_iteration(tmp_path) -> None:
+    """The default says the saves at milestones (``tests/train/test_eta.py``); ``-v`` every one; ``-q`` neither
+    iterations nor saves, only what went wrong and where the run ended."""
+    said = {}
+    for flag in ("-v", "-q"):
+        command = [sys.executable, "-m", "ftrain", "train", flag, SMOKE, "--storage", str(tmp_path / flag)]
+        result = subprocess.run(
+            [*command, "iterations=8", "checkpoint.interval=1"],
+            cwd=REPO,
+            env=child_env(),
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
+        assert result.returncode == 0, result.stderr[-3000:]
+        said[flag] = result.stdout.splitlines()
+    saves = [line for line in said["-v"] if line.startswith("[ftrain] saved step ")]
+    assert [int(line.split()[3]) for line in saves] == list(range(1, 9)), said["-v"]
+    assert [line for line in said["-v"] if line.startswith("it ")][-1].startswith("it 8/8 | ")
+    assert not [line for line in said["-q"] if line.startswith(("it ", "[ftrain] saved step"))], said["-q"]

@@ -93,8 +93,10 @@ class Hooks:
 
 class ConsoleHook(Hook):
     """One line per iteration on rank 0: progress, throughput, returns (and the evaluation's, when there is one),
-    losses, learning rate, ETA; a short line per committed checkpoint (step, where, size, seconds) and, at the end,
-    where the run is and how to play or export it.
+    losses, learning rate, how long ago the newest save committed, ETA; a short line (step, where, size, seconds) for
+    the saves a person wants to see: the first of the process, the first past each quarter of the run, the last
+    (``every_save``: each; a failed, slow or spooled save has its own line from the checkpointer); at the end, where
+    the run is and how to play or export it.
 
     The ETA is the remaining iterations times the mean wall time of the last ``ETA_WINDOW`` iterations of this
     process, not counting the first ``ETA_SKIP`` after a (re)start (imports, the first save, warm caches); until
@@ -103,9 +105,13 @@ class ConsoleHook(Hook):
 
     ETA_WINDOW = 20
     ETA_SKIP = 2
+    MILESTONES = 4
 
-    def __init__(self, clock: Callable[[], float] = time.perf_counter) -> None:
+    def __init__(self, clock: Callable[[], float] = time.perf_counter, every_save: bool = False) -> None:
         self.clock = clock
+        self.every_save = every_save
+        self._saved: tuple[int, float] | None = None
+        """The newest committed step this process saw, and when."""
         self._last: float | None = None
         self._intervals = 0
         self._recent: collections.deque[float] = collections.deque(maxlen=self.ETA_WINDOW)
@@ -125,12 +131,18 @@ class ConsoleHook(Hook):
             f"it {trainer.iteration}/{total} | {metrics['steps_per_s']:,.0f} steps/s"
             f" | return {_number(metrics['mean_return'], '.2f')} | len {_number(metrics['mean_length'], '.0f')}"
             f"{f' | eval {evaluated:.2f}' if math.isfinite(evaluated) else ''}"
-            f" | {losses} | lr {metrics['learning_rate']:.2e} | ETA {eta}",
+            f" | {losses} | lr {metrics['learning_rate']:.2e}"
+            f"{f' | saved {_duration(self.clock() - self._saved[1])} ago' if self._saved else ''} | ETA {eta}",
             flush=True,
         )
 
     def on_checkpoint(self, trainer: Trainer, step: int, manifest: dict) -> None:
-        if trainer.info.is_main:
+        if not trainer.info.is_main:
+            return
+        previous, self._saved = self._saved, (step, self.clock())
+        quarter = max(1, trainer.config.iterations // self.MILESTONES)
+        milestone = previous is None or step // quarter > previous[0] // quarter or step >= trainer.config.iterations
+        if self.every_save or milestone:
             checkpointer = trainer.checkpointer
             size = human_size(sum(entry["size"] for entry in manifest["files"].values()))
             where = checkpointer.storage.where(step_dir(step))

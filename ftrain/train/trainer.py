@@ -304,7 +304,7 @@ def build_hooks(config: Config) -> Hooks:
     if config.eval.every:
         hooks.append(EvalHook(config.eval))
     if config.log.console:
-        hooks.append(ConsoleHook())
+        hooks.append(ConsoleHook(every_save=config.log.console_saves == "every"))
     if config.log.tensorboard:
         hooks.append(TensorBoardHook())
     if config.log.csv:

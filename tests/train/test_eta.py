@@ -1,6 +1,9 @@
-"""The console line's ETA: smoothed over recent iterations, blind to the slow first ones after a (re)start."""
+"""The console line's ETA: smoothed over recent iterations, blind to the slow first ones after a (re)start; and which
+saves the console says (a quiet console: milestones, and how long ago in the progress line)."""
 
 from __future__ import annotations
+
+from types import SimpleNamespace
 
 import pytest
 
@@ -38,3 +41,46 @@ def test_one_slow_iteration_moves_the_estimate_a_little() -> None:
     assert found[24] == 1.0
     assert found[25] == pytest.approx(1.2)  # 5 s once, over a window of 20
     assert found[26] == pytest.approx(1.2)
+
+
+def saves_said(iterations: int, steps: range, every_save: bool, capsys) -> list[int]:
+    """The steps whose commit the console says in a line of its own, and the progress line after the last."""
+    clock = Clock()
+    hook = ConsoleHook(clock, every_save=every_save)
+    storage = SimpleNamespace(where=lambda rel: f"runs/x/{rel}")
+    trainer = SimpleNamespace(
+        info=SimpleNamespace(is_main=True),
+        config=SimpleNamespace(iterations=iterations),
+        checkpointer=SimpleNamespace(storage=storage, last_commit_s=0.1),
+        iteration=0,
+    )
+    for step in steps:
+        clock.now += 1.0
+        hook.on_checkpoint(trainer, step, {"files": {"common.pt": {"size": 10}}})
+    return [int(line.split()[3]) for line in capsys.readouterr().out.splitlines() if "saved step" in line]
+
+
+def test_the_console_says_the_first_save_each_quarter_and_the_last_and_every_one_when_asked(capsys) -> None:
+    assert saves_said(20, range(1, 21), False, capsys) == [1, 5, 10, 15, 20]  # 5 lines for 20 saves
+    assert saves_said(20, range(9, 21), False, capsys) == [9, 10, 15, 20]  # a resumed process: its first, then on
+    assert saves_said(20, range(1, 21), True, capsys) == list(range(1, 21))  # -v
+
+
+def test_the_progress_line_says_how_long_ago_the_newest_save_was(capsys) -> None:
+    clock = Clock()
+    hook = ConsoleHook(clock)
+    storage = SimpleNamespace(where=lambda rel: rel)
+    trainer = SimpleNamespace(
+        info=SimpleNamespace(is_main=True),
+        config=SimpleNamespace(iterations=100),
+        checkpointer=SimpleNamespace(storage=storage, last_commit_s=0.1),
+        iteration=5,
+    )
+    metrics = {"iteration_time": 1.0, "mean_return": 1.0, "mean_length": 10.0, "steps_per_s": 100.0}
+    metrics |= {"learning_rate": 1e-3, "loss/value": 0.5}
+    hook.after_iteration(trainer, metrics)
+    assert "saved" not in capsys.readouterr().out  # nothing committed yet
+    hook.on_checkpoint(trainer, 5, {"files": {}})
+    clock.now += 14
+    hook.after_iteration(trainer, metrics)
+    assert " | saved 0m14s ago | ETA " in capsys.readouterr().out.splitlines()[-1]
