@@ -388,17 +388,5 @@ def validate(config: Config) -> None:
 
 WANDB_MODES = ("", "online", "offline", "disabled")
 
-ACTIVATIONS = (
-    "elu",
-    "selu",
-    "relu",
-    "crelu",
-    "lrelu",
-    "tanh",
-    "sigmoid",
-    "softplus",
-    "gelu",
-    "swish",
-    "mish",
-    "identity",
-)
+ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "softplus", "gelu", "swish", "mish")
+ACTIVATIONS += ("identity",)  # rsl-rl's names (resolve_nn_activation)
