@@ -1,11 +1,14 @@
 """Process titles: what ``ps``, ``top`` and ``py-spy`` show for each process of a run, e.g. ``ftrain: rank 1/2 worker
 (run hc)`` instead of ``python -u -m ftrain.warm serve`` for a warm worker (setproctitle, as gunicorn, Ray and Celery
-name theirs). The title replaces what ``/proc/<pid>/cmdline`` shows; the environment and ``sys.argv`` stay."""
+name theirs). The title replaces what ``/proc/<pid>/cmdline`` shows, within the length of the command line it
+replaces (``SPT_NOENV``): a longer one would overwrite the memory that ``/proc/<pid>/environ`` shows, where the
+supervisor finds the processes of an attempt by their token (``supervise/attempt.py``). ``sys.argv`` stays."""
 
 from __future__ import annotations
 
 import os
 
+os.environ["SPT_NOENV"] = "1"  # read when setproctitle is imported
 from setproctitle import setproctitle
 
 

@@ -141,8 +141,11 @@ def test_workers_get_credentials_off_the_command_line(tmp_path, s3_server) -> No
     agent = torchrun_pid(proc.pid)  # every process of the run is below the supervisor: the warm pool and its forks too
     command_lines = {pid: procfs.read(pid, "cmdline") for pid in procfs.descendants(proc.pid)}
     assert finish(proc, timeout=300) == 0, console.read_text()[-3000:]  # exit 0: trained to the end
-    workers = [line for pid, line in command_lines.items() if pid != agent and b"-m\0ftrain\0train\0" in line]
-    assert len(workers) == 2 and all(b"storage.options.secret=***" in line for line in workers)
+    # ps shows each worker and its stand-in by its title (ftrain/proctitle.py) once it has started, no arguments
+    titles = sorted(line.rstrip(b"\0") for pid, line in command_lines.items() if line.startswith(b"ftrain: rank "))
+    ranks = [b"ftrain: rank 0/2 stand-in", b"ftrain: rank 0/2 worker (run smoke)"]
+    assert titles == [*ranks, *(title.replace(b"0/2", b"1/2") for title in ranks)], titles
+    assert agent in command_lines
     for pid, line in command_lines.items():
         for secret in secrets:
             assert secret.encode() not in line, f"process {pid}'s command line shows a credential: {line!r}"
