@@ -60,6 +60,9 @@ class Problem:
         return f"{self.file}: {self.reason}"
 
 
+NEVER_COMMITTED = Problem(MANIFEST, "missing: the step was never committed")
+
+
 @dataclass
 class Verification:
     step: int
@@ -70,6 +73,11 @@ class Verification:
     @property
     def ok(self) -> bool:
         return not self.problems
+
+    @property
+    def never_committed(self) -> bool:
+        """No manifest, by a direct look: an abandoned save, which may be deleted."""
+        return NEVER_COMMITTED in self.problems
 
 
 @dataclass
@@ -243,15 +251,17 @@ def read_verified(storage: Storage, step: int, name: str, manifest: dict) -> dic
 
 
 def verify_listed(storage: Storage, step: int, present: dict[str, int], full: bool) -> Verification:
-    """``verify_step`` with the directory's listing ``present`` (name -> size) already at hand."""
+    """``verify_step`` with the directory's listing ``present`` (name -> size) already at hand. The manifest is read
+    even where the listing lacks it: a listing can lag behind the files (a shared filesystem that caches directories,
+    NFS across nodes; an fsspec listings cache), and a step taken for never committed may be deleted. A shard the
+    listing lacks makes the step corrupt, which is set aside, never deleted."""
     result = Verification(step)
     if MANIFEST not in present:
-        result.problems.append(Problem(MANIFEST, "missing: the step was never committed"))
-        return result
+        storage.forget_listing(step_dir(step))
     try:
         result.manifest = read_manifest(storage, step)
     except FileNotFoundError:
-        result.problems.append(Problem(MANIFEST, "missing: the step was never committed"))
+        result.problems.append(NEVER_COMMITTED)
         return result
     except CorruptCheckpoint as exc:
         result.problems.append(Problem(MANIFEST, f"unusable: {exc}"))

@@ -56,7 +56,7 @@ def scan(storage: Storage, full: bool = False) -> list[StepInfo]:
             )
             continue
         result = verify_listed(storage, step, present, full)
-        status = VERIFIED if result.ok else INCOMPLETE if MANIFEST not in present else CORRUPT
+        status = VERIFIED if result.ok else INCOMPLETE if result.never_committed else CORRUPT
         strays = bool(result.manifest) and bool(present.keys() - result.manifest["files"].keys() - {MANIFEST})
         infos.append(StepInfo(step, status, size, result.manifest, result.problems, strays))
     return sorted(infos, key=lambda info: info.step, reverse=True)

@@ -188,6 +188,11 @@ class Storage:
     def exists(self, rel: str) -> bool:
         return self._call("check", rel, self.fs.exists, self._path(rel))
 
+    def forget_listing(self, rel: str) -> None:
+        """Drop what a listings cache holds of directory ``rel`` (fsspec's, where storage options turn it on): the
+        next look below it asks the storage itself."""
+        self.fs.invalidate_cache(self._path(rel))
+
     def size(self, rel: str) -> int:
         return self._call("stat", rel, self.fs.size, self._path(rel))
 

@@ -347,3 +347,22 @@ def test_unquarantine_lifts_only_a_step_that_verifies(storage):
     assert unquarantine(storage, 10).ok
     assert not unquarantine(storage, 20).ok
     assert {i.step: i.status for i in scan(storage)} == {20: QUARANTINE, 10: VERIFIED}
+
+
+def test_a_step_whose_manifest_a_lagging_listing_lacks_is_not_taken_for_abandoned(s3_url):
+    """A shared filesystem that caches directories (NFS across nodes) lists a step without the manifest that came
+    after; here S3 read through fsspec's listings cache does the same. Starting from step 20, the steps past it are
+    cleared: step 40 must not be deleted as never committed. Its manifest is read directly, and it is a verified step
+    of another history (refused, nothing touched)."""
+    url, options = s3_url
+    writer, reader = Storage.open(url, options), Storage.open(url, {**options, "use_listings_cache": True})
+    make_step(writer, 20)
+    files = {name: write_file(writer, 40, name, encode({"step": 40})) for name in ("common.pt", "rank-00000.pt")}
+    assert [info.step for info in scan(reader)] == [40, 20]
+    assert MANIFEST not in reader.list_files(step_dir(40))  # the reader lists step 40 before it is committed
+    commit(writer, 40, files, {"iteration": 40, "world_size": 1, "metrics": {}})
+    assert MANIFEST not in reader.list_files(step_dir(40))  # and its listing lags behind
+    assert {info.step: info.status for info in scan(reader)} == {40: VERIFIED, 20: VERIFIED}
+    with pytest.raises(UserError, match="already holds verified checkpoint step 40"):
+        clear_newer(reader, 20, log=print)
+    assert verify_step(writer, 40).ok
