@@ -9,11 +9,16 @@ from __future__ import annotations
 import os
 
 os.environ["SPT_NOENV"] = "1"  # read when setproctitle is imported
-from setproctitle import setproctitle
+from setproctitle import setproctitle, setthreadtitle
 
 
 def name_process(role: str, run: str | None = None) -> None:
+    """The title ``ftrain: ROLE (run RUN)``; the process's short name (``/proc/<pid>/comm``, 15 bytes, what ``top``
+    shows by default) ``ftrain-ROLE`` without spaces: tools that split ``/proc/<pid>/stat`` at spaces (SLURM's
+    proctrack/linuxproc among them) lose a process whose name has one, and with it its children, which then miss the
+    signals of a time limit or a requeue."""
     setproctitle(f"ftrain: {role}" + (f" (run {run})" if run else ""))
+    setthreadtitle("ftrain-" + role.replace("rank ", "r").replace("/", "of").replace(" ", "-"))
 
 
 def rank_role(kind: str) -> str:

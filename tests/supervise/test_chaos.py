@@ -78,6 +78,12 @@ def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
     assert procfs.read(pool, "cmdline").startswith(f"ftrain: warm pool of supervisor {proc.pid}".encode())
     assert procfs.read(proc.pid, "cmdline").startswith(b"ftrain: supervisor (run smoke)")
     assert procfs.read(torchrun_pid(proc.pid), "cmdline").startswith(b"ftrain: torchrun stand-in")
+    # their short names have no space: SLURM's proctrack/linuxproc splits /proc/<pid>/stat at spaces
+    assert [procfs.read(pid, "comm") for pid in (proc.pid, pool, beats[1].pid)] == [
+        b"ftrain-supervis\n",
+        b"ftrain-warm-poo\n",
+        b"ftrain-r1of2-wo\n",
+    ]
     os.kill(beats[1].pid, signal.SIGKILL)
     recovered = wait_event(storage, "recovered", 1)
 
