@@ -269,14 +269,10 @@ class StepWriter:
                     fields["generation"] = [self.fence.run, self.fence.generation]
                 manifest = commit(storage, step, files, meta | fields, check_present=not self._listed)
                 self._listed = True
-            except LeaseLost as exc:
+            except (LeaseLost, Fenced) as exc:  # a newer holder of the storage, or generation of the run, committed
                 self.log(f"checkpoint step {step} refused: {exc}")
                 self._steps[step] = StepInfo(step, INCOMPLETE)
-                return (Result.LEASE_LOST, step, str(exc))
-            except Fenced as exc:
-                self.log(f"checkpoint step {step} refused: {exc}")
-                self._steps[step] = StepInfo(step, INCOMPLETE)
-                return (Result.FENCED, step, str(exc))
+                return (Result.LEASE_LOST if isinstance(exc, LeaseLost) else Result.FENCED, step, str(exc))
             except Exception as exc:
                 errors = [f"commit: {exc}"]
         if errors:

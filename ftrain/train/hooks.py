@@ -95,8 +95,8 @@ class ConsoleHook(Hook):
     """One line per iteration on rank 0: progress, throughput, returns (and the evaluation's, when there is one),
     losses, learning rate, how long ago the newest save committed, ETA; a short line (step, where, size, seconds) for
     the saves a person wants to see: the first of the process, the first past each quarter of the run, the last
-    (``every_save``: each; a failed, slow or spooled save has its own line from the checkpointer); at the end, where
-    the run is and how to play or export it.
+    (``every_save``: each; a failed save, a recovery and a hold have lines of their own from the checkpointer); at
+    the end, where the run is and how to play or export it.
 
     The ETA is the remaining iterations times the mean wall time of the last ``ETA_WINDOW`` iterations of this
     process, not counting the first ``ETA_SKIP`` after a (re)start (imports, the first save, warm caches); until
