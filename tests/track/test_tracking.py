@@ -176,6 +176,21 @@ def test_a_tracker_is_off_until_one_of_its_keys_is_set(monkeypatch):
         load_config(SMOKE, ["log.wandb.project=p"])
 
 
+def test_a_worker_without_a_tracker_never_runs_wandb_and_leaves_nothing_in_tmp(tmp_path):
+    """rsl-rl imports wandb; ftrain defers its code to first use: no second of start-up per worker, and none of the
+    temporary directories wandb makes on import (removed only at a clean exit, so a killed worker left them)."""
+    left = "sum('wandb' in name for name in os.listdir(os.environ['TMPDIR']))"
+    probe = (
+        f"import os, sys, ftrain.train.trainer; print('wandb.sdk' in sys.modules, {left});"
+        f"import wandb; wandb.Settings; print('wandb.sdk' in sys.modules, {left});"
+        "os._exit(0)"  # as a forked worker ends
+    )
+    env = {**child_env(), "TMPDIR": str(tmp_path)}
+    command = [sys.executable, "-c", probe]
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert result.stdout.split() == ["False", "0", "True", "2"], result.stdout + result.stderr
+
+
 def _same(logged: float, expected: float) -> bool:
     return (math.isnan(logged) and math.isnan(expected)) or logged == expected
 
