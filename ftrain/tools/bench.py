@@ -69,19 +69,28 @@ SETTINGS = {"fixed": lambda: Setting(24, 5, 4, (64, 64), "elu"), "config": shipp
 
 class ThroughputHook(Hook):
     """Rank 0 writes, to ``path`` as JSON: the steady-state global steps/s (iterations after the warm-up), the same
-    from the median iteration time (robust to the bursts of other work that these machines see), how long each
-    save blocked the loop, and the time of a plain ``torch.save`` of the same state, for reference."""
+    from the median iteration time (robust to the bursts of other work that these machines see), the mean
+    milliseconds of each phase (``ftrain.train.phases``) over the timed iterations, how long each save blocked the
+    loop, and the time of a plain ``torch.save`` of the same state, for reference.
 
-    def __init__(self, path: str, warmup: int = WARMUP) -> None:
+    ``barrier``: a directory where each of ``parties`` runs started side by side checks in after its warm-up and
+    waits for the others, so that their timed iterations run at the same time."""
+
+    def __init__(self, path: str, warmup: int = WARMUP, barrier: str | None = None, parties: int = 1) -> None:
         self.path = path
         self.warmup = warmup
+        self.barrier = barrier
+        self.parties = parties
         self.start: tuple[float, float] | None = None
         self.last: tuple[float, float] | None = None
         self.blocking: list[float] = []
         self.iterations: list[tuple[float, float]] = []
         """(seconds, env steps) of each timed iteration, save included."""
+        self.phases: dict[str, list[float]] = {}
 
     def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        if trainer.iteration == self.warmup and self.barrier is not None:
+            _meet(Path(self.barrier), Path(self.path).stem, self.parties)
         now = (time.perf_counter(), metrics["env_steps"])
         if trainer.iteration == self.warmup:
             self.start = now
@@ -90,6 +99,9 @@ class ThroughputHook(Hook):
             trainer.checkpointer.last_blocking_s = 0.0
             self.steps_per_s = (now[1] - self.start[1]) / (now[0] - self.start[0])
             self.iterations.append((now[0] - self.last[0], now[1] - self.last[1]))
+            for name, value in metrics.items():
+                if name.startswith("time/"):
+                    self.phases.setdefault(name.removeprefix("time/").removesuffix("_ms"), []).append(value)
         self.last = now
 
     def on_end(self, trainer) -> None:
@@ -109,8 +121,20 @@ class ThroughputHook(Hook):
             "median_steps_per_s": steps / seconds,
             "blocking_s": saves,
             "torch_save_s": torch_save_s,
+            "phases_ms": {name: statistics.mean(values) for name, values in self.phases.items()},
         }
         Path(self.path).write_text(json.dumps(result))
+
+
+def _meet(barrier: Path, name: str, parties: int, timeout: float = 600.0) -> None:
+    """Check in at ``barrier`` and wait until ``parties`` have (a file each: the runs share nothing else)."""
+    barrier.mkdir(parents=True, exist_ok=True)
+    (barrier / name).touch()
+    deadline = time.monotonic() + timeout
+    while len(list(barrier.iterdir())) < parties:
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"{parties} side-by-side runs did not all reach {barrier} within {timeout:.0f} s")
+        time.sleep(0.01)
 
 
 def _timed(step_count: int, work) -> float:
@@ -191,27 +215,53 @@ def run_ftrain(
     iterations: int, ranks: int, storage: str | None = None, overrides: tuple[str, ...] = (), env: dict | None = None
 ) -> dict:
     """``ftrain train`` on the HalfCheetah config, measured by :class:`ThroughputHook`; its JSON report."""
+    return run_side_by_side(iterations, [ranks], storage, overrides, env)[0]
+
+
+def run_side_by_side(
+    iterations: int,
+    ranks: list[int],
+    storage: str | None = None,
+    overrides: tuple[str, ...] = (),
+    env: dict | None = None,
+) -> list[dict]:
+    """One ``ftrain train`` run per entry of ``ranks`` (its rank count), all started at once, whose timed iterations
+    begin together (:class:`ThroughputHook`'s barrier); their JSON reports. ``storage``: the one run's, if only one."""
     with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "throughput.json"
-        hook = f"hooks=[{{target: 'ftrain.tools.bench:ThroughputHook', kwargs: {{path: '{out}'}}}}]"
-        args = [
-            str(CONFIG),
-            "--storage",
-            storage or str(Path(tmp) / "run"),
-            f"iterations={WARMUP + iterations}",
-            f"checkpoint.interval={10**6}",
-            f"log_dir={Path(tmp) / 'logs'}",
-            "log.console=false",
-            "log.tensorboard=false",
-            "log.csv=false",
-            "eval.every=0",
-            hook,
-            *overrides,
-        ]
-        launcher = ["-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={ranks}", "-m", "ftrain"]
-        cmd = [sys.executable, *(launcher if ranks > 1 else ["-m", "ftrain"]), "train", *args]
-        subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1", **(env or {})})
-        return json.loads(out.read_text())
+        runs = []
+        for index, count in enumerate(ranks):
+            out = Path(tmp) / f"throughput-{index}.json"
+            kwargs = f"path: '{out}', barrier: '{Path(tmp) / 'barrier'}', parties: {len(ranks)}"
+            args = [
+                str(CONFIG),
+                "--storage",
+                storage or str(Path(tmp) / f"run-{index}"),
+                f"iterations={WARMUP + iterations}",
+                f"checkpoint.interval={10**6}",
+                f"log_dir={Path(tmp) / f'logs-{index}'}",
+                "log.console=false",
+                "log.tensorboard=false",
+                "log.csv=false",
+                "eval.every=0",
+                f"hooks=[{{target: 'ftrain.tools.bench:ThroughputHook', kwargs: {{{kwargs}}}}}]",
+                *overrides,
+            ]
+            launcher = ["-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={count}", "-m", "ftrain"]
+            cmd = [sys.executable, *(launcher if count > 1 else ["-m", "ftrain"]), "train", *args]
+            environment = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
+            with out.with_suffix(".log").open("w") as log:  # not a pipe: a full one would stall a run, and the barrier
+                runs.append((subprocess.Popen(cmd, env=environment, stdout=log, stderr=subprocess.STDOUT), out))
+        while (codes := [process.poll() for process, _ in runs]).count(None) and not any(codes):
+            time.sleep(0.2)  # all running, or all done well
+        failed = [(process, out) for process, out in runs if process.returncode]
+        for process, _ in runs:  # one failed: the others would wait for it at the barrier
+            if process.poll() is None:
+                process.kill()
+                process.wait()
+        for process, out in failed:
+            output = out.with_suffix(".log").read_text()[-4000:]
+            raise subprocess.CalledProcessError(process.returncode, process.args, output)
+        return [json.loads(out.read_text()) for _, out in runs]
 
 
 def measure_ftrain(iterations: int, setting: Setting, ranks: int) -> float:

@@ -31,16 +31,23 @@ from ftrain.errors import UserError
 from ftrain.policy.load import load_policy
 from ftrain.policy.model import OBS_GROUP, build_actor, build_model
 from ftrain.train.envs import MujocoVecEnv
+from ftrain.train.phases import Phases
 
 
 class FusedPPO(PPO):
     """rsl-rl PPO (MLP policies) with one all-reduce per minibatch, over shared memory where ranks share a host."""
 
     def __init__(
-        self, *args, reducer: SharedMemoryAllReduce | None = None, reshuffle_each_epoch: bool = False, **kwargs
+        self,
+        *args,
+        reducer: SharedMemoryAllReduce | None = None,
+        reshuffle_each_epoch: bool = False,
+        phases: Phases | None = None,
+        **kwargs,
     ) -> None:
         super().__init__(*args, **kwargs)
         self.reducer = reducer
+        self.phases = phases or Phases()
         self.reshuffle_each_epoch = reshuffle_each_epoch
         self._actor_params = list(self.actor.parameters())
         self._critic_params = list(self.critic.parameters())
@@ -142,10 +149,11 @@ class FusedPPO(PPO):
         return packed[offset] if kl_mean is not None else None
 
     def _sum_over_ranks(self, tensor: torch.Tensor) -> torch.Tensor:
-        if self.reducer is not None:
-            return self.reducer.all_reduce_(tensor)
-        dist.all_reduce(tensor)
-        return tensor
+        with self.phases("sync_update"):
+            if self.reducer is not None:
+                return self.reducer.all_reduce_(tensor)
+            dist.all_reduce(tensor)
+            return tensor
 
     def _update_normalizers(self, obs: torch.Tensor) -> None:
         """rsl-rl's ``EmpiricalNormalization.update`` for actor and critic at once, from global batch moments.
@@ -188,7 +196,7 @@ class FusedPPO(PPO):
             group["lr"] = self.learning_rate
 
 
-def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo) -> FusedPPO:
+def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases | None = None) -> FusedPPO:
     obs = env.get_observations()
     actor = build_actor(config, obs, env.num_actions)
     critic = build_model(config, obs, "critic", 1)
@@ -218,6 +226,7 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo) -> FusedPPO:
         multi_gpu_cfg=info.rsl_rl_cfg(),
         reducer=reducer,
         reshuffle_each_epoch=a.reshuffle_each_epoch,
+        phases=phases,
     )
 
 
@@ -262,10 +271,13 @@ def _check_teacher_fits(config: Config, env: MujocoVecEnv, teacher) -> None:
         )
 
 
-def build_algorithm(config: Config, env: MujocoVecEnv, info: RankInfo) -> PPO | Distillation:
+def build_algorithm(
+    config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases | None = None
+) -> PPO | Distillation:
+    """``phases``: where PPO's update charges its all-reduces (rsl-rl's Distillation keeps them in its update)."""
     if config.algorithm.class_name == "Distillation":
         return build_distillation(config, env, info)
-    return build_ppo(config, env, info)
+    return build_ppo(config, env, info, phases)
 
 
 def load_learned_state(alg: PPO | Distillation, state: dict, learning_rate: float) -> None:

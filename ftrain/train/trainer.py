@@ -33,6 +33,7 @@ from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.evaluation import EvalHook
 from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
 from ftrain.train.lr_schedule import build_lr_schedule, horizon_notice
+from ftrain.train.phases import Phases
 from ftrain.train.ppo import build_algorithm, load_learned_state
 from ftrain.train.reward_norm import build_reward_normalizer
 from ftrain.train.snapshot_hook import PolicySnapshotHook
@@ -97,7 +98,8 @@ class Trainer:
         self.env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs, config.env.imports)
         if notice := unsaved_state_notice(self.env.robot):
             self.log(notice)
-        self.alg = build_algorithm(config, self.env, info)
+        self.phases = Phases()
+        self.alg = build_algorithm(config, self.env, info, self.phases)
         self.reward_norm = build_reward_normalizer(config, info)
         self.lr_schedule = build_lr_schedule(config.algorithm)
         if notice := horizon_notice(config.algorithm, config.iterations):
@@ -211,6 +213,7 @@ class Trainer:
         self.alg.train_mode()
         self.hooks.call("on_start", self)
         self.heartbeat.beat("start", self.iteration)
+        self.phases.take()  # the first row counts from here, not from start-up
         while self.iteration < self.config.iterations:
             self._iterate()
             stop, last = self._votes.stop is not None, self.iteration == self.config.iterations
@@ -237,42 +240,57 @@ class Trainer:
     def _iterate(self) -> None:
         start = time.perf_counter()
         self.heartbeat.beat("rollout", self.iteration)
-        obs = self.env.get_observations()
-        with torch.inference_mode():
-            for _ in range(self.config.num_steps_per_env):
-                actions = self.alg.act(obs)
-                obs, rewards, dones, extras = self.env.step(actions)
-                if self.reward_norm is not None:
-                    rewards = self.reward_norm(rewards, dones)
-                self.alg.process_env_step(obs, rewards, dones, extras)
-                self.episodes.extend(zip(*extras["episodes"], strict=True))
-            self.alg.compute_returns(obs)
+        self._collect()
         if self.reward_norm is not None:
-            self.reward_norm.update()
+            with self.phases("sync_rewards"):  # an all-reduce of the returns' moments: where the ranks first meet
+                self.reward_norm.update()
         self.hooks.call("after_rollout", self)
         collected = time.perf_counter()
         self.heartbeat.beat("update")
         if self.lr_schedule is not None:
             self.lr_schedule.apply(self.alg, self.iteration)
-        losses = self.alg.update()
+        with self.phases("update"):
+            losses = self.alg.update()
         self.hooks.call("after_update", self, losses)
         learned = time.perf_counter()
         self.iteration += 1
         self._record_metrics(losses, collected - start, learned - collected)
         self.hooks.call("after_iteration", self, self.metrics)
 
+    def _collect(self) -> None:
+        """One rollout of ``num_steps_per_env`` steps into the algorithm's storage, then its returns."""
+        phase = self.phases
+        obs = self.env.get_observations()
+        with torch.inference_mode():
+            for _ in range(self.config.num_steps_per_env):
+                with phase("policy"):
+                    actions = self.alg.act(obs)
+                with phase("env"):
+                    obs, rewards, dones, extras = self.env.step(actions)
+                with phase("buffer"):
+                    if self.reward_norm is not None:
+                        rewards = self.reward_norm(rewards, dones)
+                    self.alg.process_env_step(obs, rewards, dones, extras)
+                    self.episodes.extend(zip(*extras["episodes"], strict=True))
+            with phase("buffer"):
+                self.alg.compute_returns(obs)
+
     def _record_metrics(self, losses: dict[str, float], collect_time: float, learn_time: float) -> None:
-        """Global metrics: the episode window and the step count are summed over ranks in one collective, and so
-        are the votes (see ``Votes``)."""
+        """Global metrics: the episode window, the step count and the phases' times are summed over ranks in one
+        collective, and so are the votes (see ``Votes``)."""
         returns = sum(ret for ret, _ in self.episodes)
         lengths = sum(length for _, length in self.episodes)
         steps = self.env.num_envs * self.config.num_steps_per_env
         stops = (self.stop.signal == signal.SIGTERM, self.stop.signal == signal.SIGINT)
         votes = (*stops, *self.checkpointer.votes(self.iteration))
-        total_returns, total_lengths, count, total_steps, *voted = group.all_reduce_sum(
-            [returns, lengths, len(self.episodes), steps, *map(float, votes)], self.info
-        )
-        terms, ints, save, store, hold = (vote > 0 for vote in voted)
+        phases = self.phases.take()
+        with self.phases("sync_metrics"):
+            total_returns, total_lengths, count, total_steps, *summed = group.all_reduce_sum(
+                [returns, lengths, len(self.episodes), steps, *map(float, votes), *phases.values()], self.info
+            )
+        terms, ints, save, store, hold = (vote > 0 for vote in summed[: len(votes)])
+        per_rank = (total / self.info.world_size for total in summed[len(votes) :])
+        phase_ms = {f"time/{name}_ms": 1000 * seconds for name, seconds in zip(phases, per_rank, strict=True)}
         self._votes = Votes(signal.SIGTERM if terms else signal.SIGINT if ints else None, save, store, hold)
         self.env_steps += int(total_steps)
         previous = self.metrics
@@ -288,6 +306,7 @@ class Trainer:
             "collect_time": collect_time,
             "learn_time": learn_time,
             "iteration_time": iteration_time,
+            **phase_ms,
         }
 
     def _write_resolved_config(self) -> None:

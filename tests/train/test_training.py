@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import csv
 import json
 
 import pytest
+
+from ftrain.train.phases import PHASES
 
 from helpers import TESTS, final_manifest, metrics_by_iteration, run_train
 
@@ -97,3 +100,10 @@ def test_it_learns_inverted_pendulum_with_two_ranks(tmp_path, additions: list[st
     last = float(metrics[60]["mean_return"])
     assert first < 30, f"an untrained policy should fall quickly, got {first}"
     assert last > 100, f"PPO did not learn to balance: mean return {last} after 60 iterations"
+    with (tmp_path / "run" / "metrics.csv").open() as file:
+        rows = list(csv.DictReader(file))
+    for row in rows[1:]:  # where each iteration's time went (mean over the 2 ranks): it adds up to the iteration's
+        phases = {name: float(row[f"time/{name}_ms"]) for name in PHASES}
+        assert min(phases.values()) >= 0 and sum(phases.values()) >= 0.8 * 1000 * float(row["iteration_time"]), row
+        assert phases["env"] > 0 and phases["update"] > 0 and phases["sync_update"] > 0 and phases["sync_metrics"] > 0
+    assert all(float(row["time/sync_rewards_ms"]) > 0 for row in rows) == bool(additions)  # reward normalisation
