@@ -5,6 +5,7 @@ Torch-free on purpose: the supervisor loads and validates the config before it l
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import hashlib
 import importlib.util
@@ -228,23 +229,30 @@ class Config:
         return data
 
     def training_hash(self, robot: dict | None = None) -> str:
-        """Digest of everything that decides what is trained (not run length, storage, logging or retention), with
-        the identity of the ``robot`` trained (``ftrain.policy.robot.identity``: its env class and model files)
-        unless that is gymnasium's own, so that runs from before robots were hashed still resume."""
-        data = self.to_dict()
-        run_only = ("name", "iterations", "resume", "allow_config_change", "log_dir", "dist_timeout", "checkpoint")
-        for key in (*run_only, "storage", "log", "eval", "snapshots", "hooks"):
-            data.pop(key)
-        data["env"].pop("imports")  # where the code is found, not what it is: the robot's identity says that
+        """Digest of everything that decides what is trained (``training_part``), with the identity of the ``robot``
+        trained (``ftrain.policy.robot.identity``: its env class and model files) unless that is gymnasium's own, so
+        that runs from before robots were hashed still resume."""
+        data = training_part(self.to_dict())
         if robot is not None and not robot["builtin"]:
             data["robot"] = robot["digest"]
-        defaults = Config().to_dict()
-        for key in KEYS_ADDED_LATER:
-            section, _, leaf = key.rpartition(".")
-            node, default = (data[section], defaults[section]) if section else (data, defaults)
-            if node[leaf] == default[leaf]:
-                del node[leaf]
         return hashlib.sha256(json.dumps(data, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def training_part(data: dict) -> dict:
+    """Of a config as a dict (``to_dict``, ``public_dict`` or a manifest's ``config``), what decides what is trained:
+    not run length, storage, logging or retention, nor where the env's code is imported from."""
+    data = copy.deepcopy(data)
+    run_only = ("name", "iterations", "resume", "allow_config_change", "log_dir", "dist_timeout", "checkpoint")
+    for key in (*run_only, "storage", "log", "eval", "snapshots", "hooks"):
+        data.pop(key, None)
+    data["env"].pop("imports", None)  # where the code is found, not what it is: the robot's identity says that
+    defaults = Config().to_dict()
+    for key in KEYS_ADDED_LATER:
+        section, _, leaf = key.rpartition(".")
+        node, default = (data[section], defaults[section]) if section else (data, defaults)
+        if leaf in node and node[leaf] == default[leaf]:
+            del node[leaf]
+    return data
 
 
 KEYS_ADDED_LATER = (

@@ -58,6 +58,8 @@ class Heartbeat:
     time: float
     world: int = 1
     nodes: list[int] = field(default_factory=list)
+    config_change: str | None = None
+    """What ``allow_config_change`` let change at the resume (``ftrain.ckpt.changes``), for the ``resumed`` event."""
     longest: dict[str, float] = field(default_factory=dict)
     """Phase -> the longest this process has spent in it, on its own clock, past start-up and its first iteration:
     what the supervisor's hang limits are made of, whether or not one of its polls happened to see the phase (a
@@ -84,6 +86,7 @@ class HeartbeatWriter:
         self.iteration = 0
         self.committed_step: int | None = None
         self.resumed_step: int | None = None
+        self.config_change: str | None = None
         self.longest: dict[str, float] = {}
         self._timing: tuple[Phase, float] | None = None
         """The phase being timed and when it began (None: start-up or the first iteration, not timed)."""
@@ -117,6 +120,7 @@ class HeartbeatWriter:
             time.time(),
             self.world,
             self.nodes,
+            self.config_change,
             {str(timed): round(seconds, 4) for timed, seconds in self.longest.items()},
         )
         tmp = self.path.with_suffix(f".tmp{os.getpid()}")

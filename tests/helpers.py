@@ -32,7 +32,7 @@ from ftrain.tools.outage import free_port as free_port  # the tests take it from
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
 SMOKE = str(REPO / "configs" / "smoke.yaml")
-NOT_LEARNED = ("steps_per_s", "collect_time", "learn_time", "iteration_time", "resumed_from", "time/")
+NOT_LEARNED = ("steps_per_s", "collect_time", "learn_time", "iteration_time", "resumed_from", "config_change", "time/")
 """The only columns of metrics.csv (or their prefixes) allowed to differ between identical runs: wall-clock times, the
 phases' too, and where a resumed run started."""
 

@@ -96,6 +96,8 @@ class Checkpointer:
         )
         self.storage_wait = float(os.environ.get(STORAGE_WAIT_ENV, DEFAULT_STORAGE_WAIT))
         self.committed_step: int | None = None
+        self.config_change: str | None = None
+        """What ``allow_config_change`` let change at the resume, in words (``ftrain.ckpt.changes``)."""
         self.on_commit: Callable[[int, dict], None] = lambda step, manifest: None
         self.while_waiting: Callable[[], None] = lambda: None
         self.stopping: Callable[[], bool] = lambda: False
@@ -133,6 +135,7 @@ class Checkpointer:
             self.committed_step = self._writer.newest_committed = resumed.committed
             self.schedule.committed = (resumed.committed, time.monotonic())
         self._static_meta["world_sizes"] = resumed.world_sizes
+        self.config_change = resumed.config_change
         return resumed.step
 
     def votes(self, iteration: int) -> tuple[bool, bool, bool]:

@@ -26,6 +26,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
+from ftrain.ckpt.changes import config_change, robot_change
 from ftrain.ckpt.format import (
     COMMON,
     INCOMPLETE,
@@ -80,6 +81,8 @@ class Resumed:
     """``[[first step, world size], ...]``: the run's world sizes so far, this one last."""
     committed: int | None = None
     """The storage's newest committed step as far as the resume knows: ``step``, unless it came from the spool."""
+    config_change: str | None = None
+    """What ``allow_config_change`` let change since ``step`` (``ftrain.ckpt.changes``), in words."""
 
 
 def restore(
@@ -134,11 +137,14 @@ def restore(
             f"{'deleted from the spool' if spooled else 'quarantined'}, the next start falls back to an older step"
         )
     log(f"resumed from step {step} ({decision['where']}), iteration {trainer.iteration}")
+    change = config_change(manifest["config"], config.public_dict(), manifest.get("robot"), robot)
+    if change:  # only allow_config_change lets a change this far
+        log(f"changed since step {step} (allow_config_change=true): {change}")
     world_sizes = manifest.get("world_sizes") or [[0, manifest["world_size"]]]
     if manifest["world_size"] != info.world_size:
         log(resize_line(manifest["world_size"], info.world_size, step, config))
         world_sizes = [*world_sizes, [step, info.world_size]]
-    return Resumed(step, url is None, world_sizes, decision["committed"])
+    return Resumed(step, url is None, world_sizes, decision["committed"], change)
 
 
 def resize_line(old: int, new: int, step: int, config: Config) -> str:
@@ -323,25 +329,9 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
             "allow_config_change=true to go on with the robot as it is now"
         )
     if manifest["config_hash"] != config.training_hash(robot) and not config.allow_config_change:
+        keys = config_change(manifest["config"], config.public_dict(), None, None)
         raise UserError(
-            f"checkpoint step {step} was trained with a different config (hash {manifest['config_hash']}, now "
-            f"{config.training_hash(robot)}): restore the config, or pass allow_config_change=true"
+            f"checkpoint step {step} was trained with a different config "
+            f"({keys or 'hash ' + manifest['config_hash'] + ', now ' + config.training_hash(robot)}): restore the "
+            "config, or pass allow_config_change=true"
         )
-
-
-def robot_change(saved: dict | None, current: dict | None) -> str | None:
-    """What differs between the robot a checkpoint recorded and the one trained now, in words (None: nothing, or
-    one of them is not known)."""
-    if saved is None or current is None:
-        return None
-    if saved["env_class"] != current["env_class"]:
-        return f"its env class was {saved['env_class']}, now {current['env_class']}"
-    before, now = saved["mjcf"], current["mjcf"]
-    for name in [*before, *(name for name in now if name not in before)]:
-        if name not in now:
-            return f"its model no longer uses {name}"
-        if name not in before:
-            return f"its model now uses {name}, which it did not"
-        if before[name] != now[name]:
-            return f"{name} has changed (sha256 {before[name][:12]}, now {now[name][:12]})"
-    return None

@@ -71,8 +71,10 @@ class Ledger:
             if not past_start:
                 return regrouped
             attempt.seen = True
-            attempt.resumed = min(past_start, key=lambda beat: beat.rank).resumed_step
-            self.events("resumed", attempt=attempt.plan.attempt, step=attempt.resumed)
+            first = min(past_start, key=lambda beat: beat.rank)
+            attempt.resumed = first.resumed_step
+            change = {"config_change": first.config_change} if first.config_change else {}
+            self.events("resumed", attempt=attempt.plan.attempt, step=attempt.resumed, **change)
         base = attempt.resumed or 0
         if attempt.progressed or len(group) < self.ranks or not all(beat.iteration > base for beat in group.values()):
             return regrouped

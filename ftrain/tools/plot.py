@@ -5,7 +5,8 @@ hook's: one row per iteration, the first row after a resume names the step in ``
 ftrain versions an iteration redone appears twice, and its last row wins) and, if the supervisor ran,
 ``<run>/events.jsonl``. Restarts are counted as the supervisor counts them: each ``restart`` event, drawn at the step
 the next attempt resumed from. Every other resume (the same command run again after a
-preemption or by hand) is a resume.
+preemption or by hand) is a resume, and one that ``allow_config_change=true`` let through with a changed config
+(``config_change`` in its row) is a config change.
 """
 
 from __future__ import annotations
@@ -34,12 +35,16 @@ class Plot:
     """The steps at which restarts are marked (the supervisor's restarts, at the step each resumed from)."""
     resumes: list[int]
     """The steps of the other resumes."""
+    changes: list[int]
+    """The steps resumed from with a changed config (``allow_config_change=true``)."""
 
 
-def read_metrics(run: str | Path, options: dict | None = None) -> tuple[dict[str, list[float]], list[int]]:
-    """Columns by name, ordered by iteration (the last row of each iteration wins), and the steps resumed from: the
-    ``resumed_from`` column, and wherever the iterations go back (files of older versions). ``options``: fsspec
-    storage options."""
+def read_metrics(
+    run: str | Path, options: dict | None = None
+) -> tuple[dict[str, list[float]], list[int], dict[int, str]]:
+    """Columns by name, ordered by iteration (the last row of each iteration wins), the steps resumed from (the
+    ``resumed_from`` column, and wherever the iterations go back: files of older versions), and those of them resumed
+    with a changed config, with what changed. ``options``: fsspec storage options."""
     storage = Storage.open(str(run), options)
     path = storage.where(METRICS)
     text = _read(storage, METRICS)
@@ -47,6 +52,7 @@ def read_metrics(run: str | Path, options: dict | None = None) -> tuple[dict[str
         raise UserError(f"{path} does not exist: pass a run's log directory (where training wrote {METRICS})")
     rows: dict[int, dict[str, str]] = {}
     restarts: set[int] = set()
+    changes: dict[int, str] = {}
     previous = 0
     for row in csv.DictReader(io.StringIO(text, newline="")):
         iteration = int(row["iteration"])
@@ -54,13 +60,15 @@ def read_metrics(run: str | Path, options: dict | None = None) -> tuple[dict[str
             restarts.add(iteration - 1)
         if row.get("resumed_from"):
             restarts.add(int(row["resumed_from"]))
+            if row.get("config_change"):
+                changes[int(row["resumed_from"])] = row["config_change"]
         previous = iteration
         rows[iteration] = row
     if not rows:
         raise UserError(f"{path} has no rows yet: plot the run after its first iteration")
     ordered = [rows[iteration] for iteration in sorted(rows)]
-    columns = {name: [_number(row.get(name)) for row in ordered] for name in ordered[-1]}
-    return columns, sorted(restarts)
+    columns = {name: [_number(row.get(name)) for row in ordered] for name in ordered[-1] if name != "config_change"}
+    return columns, sorted(restarts), changes
 
 
 def read_restarts(storage: Storage) -> list[int]:
@@ -89,9 +97,10 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     import matplotlib.pyplot as plt
 
     storage = Storage.open(str(run), options)
-    columns, resumed = read_metrics(run, options)
-    restarts = read_restarts(storage)
-    resumes = sorted(set(resumed) - set(restarts))
+    columns, resumed, changed = read_metrics(run, options)
+    changes = sorted(changed)
+    restarts = sorted(set(read_restarts(storage)) - set(changes))
+    resumes = sorted(set(resumed) - set(restarts) - set(changes))
     iterations = columns.pop("iteration")
     panels = [
         (
@@ -122,6 +131,9 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
             ax.axvline(step, color="tab:red", linestyle="--", linewidth=1, label="restart" if index == 0 else None)
         for index, step in enumerate(resumes):
             ax.axvline(step, color="tab:gray", linestyle=":", linewidth=1, label="resume" if index == 0 else None)
+        for index, step in enumerate(changes):
+            label = "config change" if index == 0 else None
+            ax.axvline(step, color="tab:orange", linestyle="-.", linewidth=1.5, label=label)
         ax.set_title(title)
         ax.set_xlabel("iteration")
         ax.set_ylabel(unit)
@@ -131,6 +143,7 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
         ax.set_visible(False)
     marks = [_count(len(restarts), "restart") + " (dashed)" if restarts else ""]
     marks.append(_count(len(resumes), "resume") + " (dotted)" if resumes else "")
+    marks.append(_count(len(changes), "config change") + " (dash-dot)" if changes else "")
     marked = ", ".join(mark for mark in marks if mark)
     where = f", {marked}: at the step resumed from" if marked else ""
     name = Path(run).resolve().name if storage.is_local else PurePosixPath(storage.url).name
@@ -141,7 +154,7 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     figure.savefig(path, dpi=100)
     plt.close(figure)
     print(f"wrote {path}")
-    return Plot(path, [title for title, _, _ in panels], restarts, resumes)
+    return Plot(path, [title for title, _, _ in panels], restarts, resumes, changes)
 
 
 def _read(storage: Storage, name: str) -> str | None:

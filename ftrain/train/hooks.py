@@ -202,23 +202,26 @@ class TensorBoardHook(Hook):
 class CsvHook(Hook):
     """``<log_dir>/metrics.csv`` on rank 0, one row per iteration: a resumed run first drops the rows past the step
     it resumed from (the iterations it is about to redo), then appends; its first row names that step in
-    ``resumed_from`` (empty in every other row)."""
+    ``resumed_from`` (empty in every other row), and ``config_change`` what ``allow_config_change`` let change there."""
 
     def __init__(self) -> None:
         self.file = None
         self.writer: csv.DictWriter | None = None
         self.resumed_from: int | None = None
+        self.config_change: str | None = None
 
     def on_start(self, trainer: Trainer) -> None:
         if not trainer.info.is_main:
             return
         path = Path(trainer.config.log_dir) / METRICS_CSV
         self.resumed_from = trainer.iteration or None
+        self.config_change = trainer.checkpointer.config_change
         if not (path.exists() and path.stat().st_size):
             return
         with path.open(newline="") as existing:
             reader = csv.DictReader(existing)
             fields = list(reader.fieldnames or [])
+            fields += [name for name in CSV_ONLY if name not in fields]  # a file of an older version gains them
             kept = [row for row in reader if int(row["iteration"]) <= trainer.iteration]
         tmp = path.with_suffix(".csv.tmp")
         with tmp.open("w", newline="") as file:
@@ -234,11 +237,12 @@ class CsvHook(Hook):
             return
         if self.writer is None:
             self.file = (Path(trainer.config.log_dir) / METRICS_CSV).open("w", newline="")
-            fields = ["iteration", *metrics, "resumed_from"]
+            fields = ["iteration", *metrics, *CSV_ONLY[1:]]
             self.writer = csv.DictWriter(self.file, fields, extrasaction="ignore")
             self.writer.writeheader()
-        self.writer.writerow({"iteration": trainer.iteration, **metrics, "resumed_from": self.resumed_from or ""})
-        self.resumed_from = None
+        resume = {"resumed_from": self.resumed_from or "", "config_change": self.config_change or ""}
+        self.writer.writerow({"iteration": trainer.iteration, **metrics, **resume})
+        self.resumed_from = self.config_change = None
         self.file.flush()
 
     def on_end(self, trainer: Trainer) -> None:
@@ -266,7 +270,7 @@ def read_metrics(log_dir: str, after: int, until: int) -> list[tuple[int, dict[s
     return found
 
 
-CSV_ONLY = ("iteration", "resumed_from")
+CSV_ONLY = ("iteration", "resumed_from", "config_change")
 """Columns of metrics.csv that are not metrics."""
 
 

@@ -200,6 +200,7 @@ class Trainer:
         if resumed is None and self.info.distributed:
             self.alg.broadcast_parameters()
         self.heartbeat.resumed_step = resumed
+        self.heartbeat.config_change = self.checkpointer.config_change
         if self.iteration >= self.config.iterations:
             self.log(
                 f"nothing to train: the run is already at step {self.iteration}, asked for iterations="

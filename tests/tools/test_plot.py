@@ -42,10 +42,11 @@ def test_metrics_keep_one_row_per_iteration_from_the_run_that_continued(resumed)
         raw = list(csv.DictReader(file))
     assert [int(row["iteration"]) for row in raw] == [1, 2, 3, 4, 5, 6, 7, 8]
     assert [row["resumed_from"] for row in raw] == ["", "", "", "", "4", "", "", ""]
-    columns, resumed_from = read_metrics(resumed)
+    assert [row["config_change"] for row in raw] == [""] * 8
+    columns, resumed_from, changes = read_metrics(resumed)
     assert columns["iteration"] == [1, 2, 3, 4, 5, 6, 7, 8]
     assert columns["steps_per_s"] == [float(row["steps_per_s"]) for row in raw]
-    assert resumed_from == [4]
+    assert resumed_from == [4] and changes == {}
 
 
 def test_files_of_older_versions_keep_the_last_row_of_each_iteration(resumed, tmp_path) -> None:
@@ -57,9 +58,9 @@ def test_files_of_older_versions_keep_the_last_row_of_each_iteration(resumed, tm
         writer = csv.DictWriter(file, [name for name in rows[0] if name != "resumed_from"], extrasaction="ignore")
         writer.writeheader()
         writer.writerows([*rows[:6], {**rows[4], "steps_per_s": "1"}, *rows[5:]])  # 5, 6 twice, the last rows win
-    columns, resumed_from = read_metrics(run)
+    columns, resumed_from, changes = read_metrics(run)
     assert columns["iteration"] == [1, 2, 3, 4, 5, 6, 7, 8] and columns["steps_per_s"][4] == 1.0
-    assert resumed_from == [4]
+    assert resumed_from == [4] and changes == {}
 
 
 def test_plot_marks_a_resume_that_was_no_restart(resumed, tmp_path) -> None:

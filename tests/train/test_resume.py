@@ -3,6 +3,7 @@ same learned state and the same per-iteration metrics as an uninterrupted run.""
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import re
@@ -17,6 +18,7 @@ from ftrain.ckpt.format import QUARANTINED
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.errors import EXIT_STORAGE_DOWN
 from ftrain.heartbeat import ENV_DIR, read_heartbeats
+from ftrain.tools.plot import plot_run
 
 from helpers import (
     REPO,
@@ -124,9 +126,27 @@ def test_resume_refuses_other_env_count_config_and_format(tmp_path) -> None:
         assert result.returncode == 2 and message in result.stderr
         assert not (storage / "checkpoints/step-000000002" / QUARANTINED).exists(), "refused, not quarantined"
     manifest_file.write_text(current)
-    result = run_train(storage, "iterations=4", "algorithm.clip_param=0.1", "allow_config_change=true")
+    changed = "algorithm.clip_param 0.2 -> 0.1; algorithm.gamma 0.99 -> 0.98"
+    refused = subprocess.run(
+        train_command(storage, "iterations=4", "algorithm.clip_param=0.1", "algorithm.gamma=0.98"),
+        cwd=REPO,
+        env=child_env(),
+        capture_output=True,
+        text=True,
+    )
+    assert refused.returncode == 2 and f"trained with a different config ({changed}): restore" in refused.stderr
+    allowed = ["iterations=4", "algorithm.clip_param=0.1", "algorithm.gamma=0.98", "allow_config_change=true"]
+    supervise = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "1", SMOKE, "--storage", str(storage)]
+    result = subprocess.run([*supervise, *allowed], cwd=REPO, env=child_env(), capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
     assert "resumed from step 2" in result.stdout
+    assert f"changed since step 2 (allow_config_change=true): {changed}" in result.stdout  # in one line
     assert json.loads((storage / "checkpoints/step-000000004/MANIFEST.json").read_text())["iteration"] == 4
+    with (storage / "metrics.csv").open() as file:
+        rows = {row["iteration"]: row for row in csv.DictReader(file)}
+    assert (rows["3"]["resumed_from"], rows["3"]["config_change"], rows["4"]["config_change"]) == ("2", changed, "")
+    assert [event.get("config_change") for event in events(storage) if event["event"] == "resumed"] == [changed]
+    assert plot_run(storage, tmp_path / "curves.png").changes == [2]
 
 
 def test_two_ranks_on_s3_killed_and_resumed(tmp_path, s3_server, s3_env) -> None:

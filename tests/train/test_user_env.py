@@ -135,6 +135,8 @@ def test_unsaved_python_state_is_said_once_and_an_edited_robot_is_refused(work, 
             path.write_text(original)
     resumed = run_train(storage, "env.id=userbot:ForgetfulArm-v0", "iterations=4", "allow_config_change=true", cwd=work)
     assert "resumed from step 2" in resumed.stdout
+    said = "changed since step 2 (allow_config_change=true): robot: meshes/block.obj has changed (sha256 "
+    assert said in resumed.stdout, resumed.stdout
     assert final_manifest(storage)["robot"]["mjcf"]["meshes/block.obj"] != robot["mjcf"]["meshes/block.obj"]
 
 

@@ -1,0 +1,61 @@
+"""What a resume changes: the training keys of the config (old -> new) and the robot's files, in words.
+
+A resume refused for a changed config names what changed, and one that ``allow_config_change=true`` lets through
+says so in one line, which the run also records (``metrics.csv``'s ``config_change``, the supervisor's ``resumed``
+event) and ``ftrain plot`` marks as a change, not a plain resume.
+"""
+
+from __future__ import annotations
+
+import json
+
+from ftrain.config import training_part
+
+
+def config_change(saved: dict, current: dict, saved_robot: dict | None, robot: dict | None) -> str | None:
+    """What differs, as ``key old -> new`` for each training key and the robot's change; None: nothing.
+
+    ``saved``: a manifest's ``config`` (``public_dict``), ``current``: this run's ``public_dict``; ``saved_robot``,
+    ``robot``: their robots' identities (``ftrain.policy.robot.identity``; None: not known)."""
+    before, now = _leaves(training_part(saved)), _leaves(training_part(current))
+    parts = [
+        f"{key} {_text(before.get(key))} -> {_text(now.get(key))}"
+        for key in sorted(before.keys() | now.keys())
+        if before.get(key) != now.get(key)
+    ]
+    if changed := robot_change(saved_robot, robot):
+        parts.append(f"robot: {changed}")
+    return "; ".join(parts) or None
+
+
+def robot_change(saved: dict | None, current: dict | None) -> str | None:
+    """What differs between the robot a checkpoint recorded and the one trained now, in words (None: nothing, or
+    one of them is not known)."""
+    if saved is None or current is None:
+        return None
+    if saved["env_class"] != current["env_class"]:
+        return f"its env class was {saved['env_class']}, now {current['env_class']}"
+    before, now = saved["mjcf"], current["mjcf"]
+    for name in [*before, *(name for name in now if name not in before)]:
+        if name not in now:
+            return f"its model no longer uses {name}"
+        if name not in before:
+            return f"its model now uses {name}, which it did not"
+        if before[name] != now[name]:
+            return f"{name} has changed (sha256 {before[name][:12]}, now {now[name][:12]})"
+    return None
+
+
+def _leaves(data: dict, prefix: str = "") -> dict[str, object]:
+    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``; lists stay whole values."""
+    leaves = {}
+    for key, value in data.items():
+        if isinstance(value, dict) and value:
+            leaves.update(_leaves(value, f"{prefix}{key}."))
+        else:
+            leaves[f"{prefix}{key}"] = value
+    return leaves
+
+
+def _text(value: object) -> str:
+    return "(unset)" if value is None else json.dumps(value) if isinstance(value, (dict, list, str)) else str(value)
