@@ -143,3 +143,14 @@ def storage_option_overrides(words: list[str]) -> list[str]:
                 "endpoint_url=http://127.0.0.1:9000"
             )
     return [f"storage.options.{word.strip()}" for word in words]
+
+
+def dotted(data: dict, prefix: str = "") -> dict[str, object]:
+    """A nested config dict by dotted key, ``{"a": {"b": 1}}`` -> ``{"a.b": 1}``; lists and empty dicts are values."""
+    leaves: dict[str, object] = {}
+    for key, value in data.items():
+        if isinstance(value, dict) and value:
+            leaves.update(dotted(value, f"{prefix}{key}."))
+        else:
+            leaves[f"{prefix}{key}"] = value
+    return leaves

@@ -31,7 +31,7 @@ LAYERS = {
     "tools": {"train", "ckpt", "config", "errors", "progress"},
     "supervise": {"ckpt", "config", "errors", "errorfile", "heartbeat", "redact", "procfs", "lifeline", "warm"},
     "train": {"policy", "ckpt", "dist", "config", "errors", "errorfile", "heartbeat", "track", "redact"},
-    "track": {"config", "errors", "redact"},
+    "track": {"config", "values", "errors", "redact"},
     "policy": {"ckpt", "config", "errors", "progress"},
     "ckpt": {"dist", "config", "values", "errors", "heartbeat", "lifeline", "redact"},
     "dist": {"errors", "lifeline", "proctitle"},

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 
 from ftrain.config import training_part
+from ftrain.values import dotted
 
 
 def config_change(saved: dict, current: dict, saved_robot: dict | None, robot: dict | None) -> str | None:
@@ -17,7 +18,7 @@ def config_change(saved: dict, current: dict, saved_robot: dict | None, robot: d
 
     ``saved``: a manifest's ``config`` (``public_dict``), ``current``: this run's ``public_dict``; ``saved_robot``,
     ``robot``: their robots' identities (``ftrain.policy.robot.identity``; None: not known)."""
-    before, now = _leaves(training_part(saved)), _leaves(training_part(current))
+    before, now = dotted(training_part(saved)), dotted(training_part(current))
     parts = [
         f"{key} {_text(before.get(key))} -> {_text(now.get(key))}"
         for key in sorted(before.keys() | now.keys())
@@ -44,17 +45,6 @@ def robot_change(saved: dict | None, current: dict | None) -> str | None:
         if before[name] != now[name]:
             return f"{name} has changed (sha256 {before[name][:12]}, now {now[name][:12]})"
     return None
-
-
-def _leaves(data: dict, prefix: str = "") -> dict[str, object]:
-    """``{"a": {"b": 1}}`` -> ``{"a.b": 1}``; lists stay whole values."""
-    leaves = {}
-    for key, value in data.items():
-        if isinstance(value, dict) and value:
-            leaves.update(_leaves(value, f"{prefix}{key}."))
-        else:
-            leaves[f"{prefix}{key}"] = value
-    return leaves
 
 
 def _text(value: object) -> str:

@@ -8,6 +8,7 @@ import time
 from typing import TYPE_CHECKING
 
 from ftrain.config import MlflowConfig
+from ftrain.values import dotted
 
 if TYPE_CHECKING:
     from ftrain.track.run import RunInfo
@@ -44,7 +45,7 @@ class MlflowRun:
         else:  # params are fixed once logged: the config as it was at the start (config.json follows changes)
             tags = {RUN_TAG: self.info.run_id}
             self.run_id = client.create_run(experiment_id, tags=tags, run_name=self.info.name).info.run_id
-            params = [Param(key, value) for key, value in _flat(self.info.config).items()]
+            params = [Param(key, str(value)) for key, value in dotted(self.info.config).items()]
             for start in range(0, len(params), PARAMS_PER_BATCH):
                 client.log_batch(self.run_id, params=params[start : start + PARAMS_PER_BATCH])
             last = -1
@@ -61,14 +62,3 @@ class MlflowRun:
 
     def close(self, finished: bool) -> None:
         self.client.set_terminated(self.run_id, "FINISHED" if finished else "KILLED")
-
-
-def _flat(data: dict, prefix: str = "") -> dict[str, str]:
-    """Nested config as MLflow params: dotted keys, values as text."""
-    flat = {}
-    for key, value in data.items():
-        if isinstance(value, dict) and value:
-            flat.update(_flat(value, f"{prefix}{key}."))
-        else:
-            flat[f"{prefix}{key}"] = str(value)
-    return flat
