@@ -290,6 +290,10 @@ def _dispatch(args: argparse.Namespace) -> int:
         options = SupervisorOptions(**{f.name: getattr(args, f.name) for f in dataclasses.fields(SupervisorOptions)})
         train_args = [args.config, *(["--storage", args.storage] if args.storage is not None else []), *args.overrides]
         config = _run_config(args)
+        if ":" in config.env.id or config.env.imports:  # the user's env: checked in a child, before anything starts
+            from ftrain.policy.env_check import check_in_child
+
+            check_in_child(config.env)
         name_process("supervisor", config.name)
         return supervise(options, config, train_args)
     if args.command == "bench":

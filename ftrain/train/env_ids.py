@@ -1,9 +1,9 @@
 """The env id check ``ftrain supervise`` makes before it launches anything: gymnasium's registry only.
 
 It imports gymnasium but not MuJoCo, torch or the user's module (the supervisor stays free of them), so it checks
-only ids of gymnasium's own. An id of the user's (``module:EnvId``, or one registered by ``env.imports``) is checked
-by each worker, which makes the env (``ftrain.policy.robot``) and refuses it in one line with exit code 2: the
-supervisor reports that line and does not restart.
+only ids of gymnasium's own. An env of the user's (``module:EnvId``, or an id registered by ``env.imports``) the
+supervisor has made once in a child (``ftrain.policy.env_check``), and each worker makes it again
+(``ftrain.policy.robot``), refusing it in one line with exit code 2, which is what plain torchrun relies on.
 """
 
 from __future__ import annotations

@@ -1,0 +1,46 @@
+"""The check of an env of the user's own that ``ftrain supervise`` makes before it launches or creates anything.
+
+``python -m ftrain.policy.env_check ENV_JSON`` makes the env once (``robot.make_env``: the module imported, the id
+registered, the model compiled, the spaces flat) and closes it; a UserError is its one line and exit code 2. It runs
+in a child so that the supervisor stays free of MuJoCo and of the user's module, whose import may do anything: ~1 s,
+where a refused worker took 7-9 s and left the run's log directory behind.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+from ftrain.config import EnvConfig
+from ftrain.errors import UserError
+
+TIMEOUT = 120.0
+"""Seconds the check may take; past them (a module that hangs on import) the workers meet the env as before."""
+
+
+def check_in_child(env: EnvConfig) -> None:
+    """UserError with the child's line if ``env`` cannot be trained; anything else is left to the workers."""
+    command = [sys.executable, "-m", __name__, json.dumps(dataclasses.asdict(env))]
+    try:
+        done = subprocess.run(command, capture_output=True, text=True, timeout=TIMEOUT)
+    except subprocess.TimeoutExpired:
+        return
+    if done.returncode == 2 and done.stderr.strip():
+        raise UserError(done.stderr.strip().splitlines()[-1])
+
+
+def main(argv: list[str]) -> int:
+    from ftrain.policy.robot import make_env
+
+    try:
+        make_env(EnvConfig(**json.loads(argv[0]))).close()
+    except UserError as error:
+        print(error, file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
