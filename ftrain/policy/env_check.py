@@ -1,6 +1,6 @@
 """The check of an env of the user's own that ``ftrain supervise`` makes before it launches or creates anything.
 
-``python -m ftrain.policy.env_check ENV_JSON`` makes the env once (``robot.make_env``: the module imported, the id
+``python -m ftrain.policy.robot ENV_JSON`` makes the env once (``robot.make_env``: the module imported, the id
 registered, the model compiled, the spaces flat) and closes it; a UserError is its one line and exit code 2. It runs
 in a child so that the supervisor stays free of MuJoCo and of the user's module, whose import may do anything: ~1 s,
 where a refused worker took 7-9 s and left the run's log directory behind.
@@ -22,25 +22,10 @@ TIMEOUT = 120.0
 
 def check_in_child(env: EnvConfig) -> None:
     """UserError with the child's line if ``env`` cannot be trained; anything else is left to the workers."""
-    command = [sys.executable, "-m", __name__, json.dumps(dataclasses.asdict(env))]
+    command = [sys.executable, "-m", "ftrain.policy.robot", json.dumps(dataclasses.asdict(env))]
     try:
         done = subprocess.run(command, capture_output=True, text=True, timeout=TIMEOUT)
     except subprocess.TimeoutExpired:
         return
     if done.returncode == 2 and done.stderr.strip():
         raise UserError(done.stderr.strip().splitlines()[-1])
-
-
-def main(argv: list[str]) -> int:
-    from ftrain.policy.robot import make_env
-
-    try:
-        make_env(EnvConfig(**json.loads(argv[0]))).close()
-    except UserError as error:
-        print(error, file=sys.stderr)
-        return 2
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
