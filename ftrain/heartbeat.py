@@ -13,6 +13,11 @@ its phase changes. The supervisor reads them without importing torch. Fields:
 - ``seq``: increases with every write, so a reader sees progress even when the clock does not move.
 - ``time``: wall-clock seconds, for humans and hang timing only; nothing trained depends on it.
 - ``world``: the world size; ``nodes``: the number of every node in it (see ``NODE_ENV``), sorted.
+- ``config_change``: what ``allow_config_change`` let change at the resume (None: nothing).
+
+The other way, ``<dir>/stop`` holds why the supervisor stops the workers, which it does with SIGTERM whatever it got:
+a SIGINT passed on as such would reach a warm worker twice (from its stand-in too), and a second SIGINT stops a
+worker without a save. So that the workers' last line still names what the user sent (Ctrl-C, say).
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from __future__ import annotations
 import enum
 import json
 import os
+import signal
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -30,6 +36,26 @@ TOKEN_ENV = "FTRAIN_ATTEMPT_TOKEN"
 NODE_ENV = "FTRAIN_NODE"
 """Set by the supervisor in every worker's environment: its node's number (``--node-rank``; etcd-v2: taken from etcd),
 which the heartbeats list in ``nodes``."""
+
+
+STOP_FILE = "stop"
+
+
+def write_stop_reason(directory: str | os.PathLike, received: int) -> None:
+    """Before the supervisor SIGTERMs the workers of ``directory``: that it ``received`` this signal."""
+    name = signal.Signals(received).name
+    reason = f"{name} to the supervisor" + (" (Ctrl-C), passed on as SIGTERM" if name == "SIGINT" else "")
+    tmp = Path(directory) / f"{STOP_FILE}.tmp"
+    tmp.write_text(reason)
+    os.replace(tmp, Path(directory) / STOP_FILE)
+
+
+def read_stop_reason(directory: str | os.PathLike | None) -> str | None:
+    """What ``write_stop_reason`` wrote in ``directory`` (None: no supervisor, or it did not stop the workers)."""
+    try:
+        return (Path(directory) / STOP_FILE).read_text() or None if directory else None
+    except OSError:
+        return None
 
 
 class Phase(enum.StrEnum):

@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 from ftrain import errorfile, procfs
-from ftrain.heartbeat import ENV_DIR, NODE_ENV, TOKEN_ENV
+from ftrain.heartbeat import ENV_DIR, NODE_ENV, STOP_FILE, TOKEN_ENV
 from ftrain.lifeline import SUPERVISOR_ENV, supervisor_env
 from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.options import SupervisorOptions, Workers, parse_workers
@@ -64,7 +64,7 @@ def attempt_env(
     restart count 0, next to the first round's); with it off, each round's rank 0 hosts a fresh store
     (``tests/supervise/test_elastic.py`` grows a world both ways)."""
     heartbeat_dir.mkdir(parents=True, exist_ok=True)
-    for stale in heartbeat_dir.glob("rank-*"):
+    for stale in [*heartbeat_dir.glob("rank-*"), heartbeat_dir / STOP_FILE]:
         stale.unlink(missing_ok=True)
     return {
         **_inherited(),

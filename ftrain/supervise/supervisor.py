@@ -44,7 +44,7 @@ from ftrain.ckpt.lease import storage_lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config, StorageConfig
 from ftrain.errors import STOPPED, stop_code
-from ftrain.heartbeat import Heartbeat, read_heartbeats
+from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, Launcher, attempt_env, kill, new_log_dir, signal_name
 from ftrain.supervise.claim import claim_log_dir
@@ -311,17 +311,14 @@ class Supervisor:
 
     def _preempt(self, attempt: Attempt) -> None:
         name = signal_name(self.signals[0])
-        self.events(
-            "preempt",
-            f"{name}: asking the workers to save and exit (SIGKILL in {self.options.stop_grace:g} s)"
-            + ("; this node leaves, the others go on from the save" if self._leaves_alone() else ""),
-            attempt=attempt.plan.attempt,
-            signal=name,
-        )
+        leaves = "; this node leaves, the others go on from the save" if self._leaves_alone() else ""
+        asking = f"{name}: asking the workers to save and exit (SIGKILL in {self.options.stop_grace:g} s){leaves}"
+        self.events("preempt", asking, attempt=attempt.plan.attempt, signal=name)
         if self._leaves_alone():
             self._tell("leave", node=self.node, **plan_key(attempt.plan))
         elif self.nnodes > 1:
             self._tell("finish", code=stop_code(self.signals[0]))
+        write_stop_reason(self.heartbeat_dir, self.signals[0])
         attempt.terminate()
 
     def _exited(self, attempt: Attempt, code: int) -> Outcome:

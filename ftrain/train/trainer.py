@@ -27,7 +27,7 @@ from ftrain.ckpt.storage import StorageUnavailable
 from ftrain.config import Config
 from ftrain.dist import group
 from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, stop_code
-from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter
+from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter, read_stop_reason
 from ftrain.policy.robot import unsaved_state_notice
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.evaluation import EvalHook
@@ -225,6 +225,7 @@ class Trainer:
                 self.heartbeat.committed_step = self.checkpointer.committed_step
             if stop:
                 name, code = signal.Signals(self._votes.stop).name, stop_code(self._votes.stop)
+                name = read_stop_reason(os.environ.get(ENV_DIR)) or name  # what the user sent, if a supervisor's stop
                 self.log(f"stopped by {name}: saved step {self.iteration}, exiting with code {code}")
                 # saved: once a rank has exited with the stop code, torchrun SIGTERMs the others, and a SIGTERM while
                 # Python shuts down (its handlers are gone by then) would kill this rank and read as a failure

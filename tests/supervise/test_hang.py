@@ -13,7 +13,8 @@ import time
 
 import pytest
 
-from ftrain.heartbeat import Heartbeat, Phase
+from ftrain.heartbeat import Heartbeat, Phase, read_stop_reason, write_stop_reason
+from ftrain.supervise.attempt import attempt_env
 from ftrain.supervise.hang import HANG_FACTOR, HANG_FLOOR, HangWatch, process_state
 
 from helpers import REPO, SMOKE, TESTS, child_env, events, finish, launch, training, wait_for
@@ -175,3 +176,17 @@ def test_a_slow_first_iteration_is_not_a_hang_and_a_stopped_worker_is_caught_in_
         assert float(next(csv.DictReader(file))["collect_time"]) >= FIRST  # the first iteration was that slow
     first = next(e for e in events(run) if e["event"] == "exit")
     assert [e["event"] for e in events(run)].count("hang") == 1 and first["cause"] == "killed: rank 1 hung"
+
+
+def test_the_reason_for_a_stop_is_read_by_the_workers_and_gone_at_the_next_attempt(tmp_path) -> None:
+    """The supervisor stops workers with SIGTERM whatever it got, and says in the heartbeat directory what that was."""
+    beats = tmp_path / "heartbeat"
+    attempt_env(beats, "token", 1.0, 0, {})
+    assert read_stop_reason(beats) is None and read_stop_reason(None) is None
+    write_stop_reason(beats, signal.SIGINT)
+    assert read_stop_reason(beats) == "SIGINT to the supervisor (Ctrl-C), passed on as SIGTERM"
+    write_stop_reason(beats, signal.SIGTERM)
+    assert read_stop_reason(beats) == "SIGTERM to the supervisor"
+    (beats / "rank-0.json").write_text("{}")
+    attempt_env(beats, "token", 1.0, 0, {})  # the next attempt's workers were not stopped
+    assert read_stop_reason(beats) is None and not list(beats.iterdir())
