@@ -76,7 +76,7 @@ def _add_dataclass_arguments(parser: argparse.ArgumentParser, options_class: typ
 
 
 def _config_keys_help() -> str:
-    """Every config key with its default, for ``ftrain train --help`` (the README explains them)."""
+    """Every config key with its default, for ``ftrain train --help`` (docs/configuration.md explains them)."""
     from ftrain.config import Config
 
     def flatten(data: dict, prefix: str = "") -> list[str]:
@@ -235,22 +235,28 @@ def _version() -> str:
         return "(not installed: pip install -e .)"
 
 
-def main(argv: list[str] | None = None) -> int:
+def parse(argv: list[str]) -> argparse.Namespace:
+    """``argv`` as ``ftrain`` reads it: overrides may come before or after options such as --storage, and
+    ``--storage-option``, ``-q`` and ``-v`` become overrides. A usage error exits 2 (argparse); a bad value is a
+    UserError."""
     parser = build_parser()
-    argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["train"]:  # a worker of ``ftrain supervise``: the credentials come from the environment
-        argv = ["train", *reveal_credentials(argv[1:], os.environ)]
-    # overrides may come before or after options such as --storage: gather the key=value words from both places
     args, extra = parser.parse_known_args(argv)
     unknown = [word for word in extra if word.startswith("-") or "=" not in word]
     if unknown or (extra and not hasattr(args, "overrides")):
         parser.error(f"unrecognized arguments: {' '.join(unknown or extra)}")
-    try:
-        if hasattr(args, "overrides"):
-            from ftrain.values import storage_option_overrides
+    if hasattr(args, "overrides"):
+        from ftrain.values import storage_option_overrides
 
-            args.overrides += [*extra, *storage_option_overrides(args.storage_option), *filter(None, [args.loudness])]
-        return _dispatch(args)
+        args.overrides += [*extra, *storage_option_overrides(args.storage_option), *filter(None, [args.loudness])]
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["train"]:  # a worker of ``ftrain supervise``: the credentials come from the environment
+        argv = ["train", *reveal_credentials(argv[1:], os.environ)]
+    try:
+        return _dispatch(parse(argv))
     except UserError as error:
         errorfile.report(str(error))
         return EXIT_USAGE

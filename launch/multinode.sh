@@ -10,7 +10,7 @@
 # requests signed with FTRAIN_RDZV_SECRET (or with the contents of the file `--rdzv-secret-file FILE` names).
 # Node 0 must live.
 #
-# Or through an etcd server outside the nodes (no special node: any node may be lost; see README, Supervision):
+# Or through an etcd server outside the nodes (no special node: any node may be lost; see docs/clusters.md):
 #   ETCD=10.0.0.9:2379 RUN_ID=hc-1 NNODES=2:4 bash launch/multinode.sh configs/halfcheetah.yaml --storage s3://bucket/runs/hc
 # the same line on every node, no rank, no secret. Start etcd first (etcd 3.4 or 3.5, v2 API on), e.g. Debian's:
 #   etcd --enable-v2 --data-dir /var/lib/ftrain-etcd --listen-client-urls http://10.0.0.9:2379 --advertise-client-urls http://10.0.0.9:2379
@@ -18,7 +18,7 @@
 #
 # Storage must be shared by all nodes (s3://, or a shared filesystem). NPROC_PER_NODE defaults to the node's CPU
 # count. Extra arguments go to `ftrain supervise`. NNODES=MIN:MAX (e.g. 2:4) trains elastically on as many nodes as
-# there are (see README, Supervision); with c10d NODE_RANK then only needs to be 0 on the node at HEAD and distinct
+# there are (see docs/clusters.md); with c10d NODE_RANK then only needs to be 0 on the node at HEAD and distinct
 # elsewhere. After SIGTERM every node exits 143 once the workers have saved: run the same commands again to continue.
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -56,8 +56,8 @@ def test_supervise_help_lists_the_exit_codes_and_what_a_stop_signal_does() -> No
     assert "SIGTERM or SIGINT (Ctrl-C) to the supervisor makes the workers save" in text
     for code, meaning in EXIT_CODES.items():
         assert f"{code:>5}  {meaning}" in text
-    readme = (REPO / "README.md").read_text()
-    assert all(f"\n| {code} |" in readme for code in EXIT_CODES), "the README's exit-code table lists every code"
+    docs = (REPO / "docs" / "supervision.md").read_text()
+    assert all(f"\n| {code} |" in docs for code in EXIT_CODES), "the docs' exit-code table lists every code"
 
 
 def test_version_is_the_installed_one() -> None:

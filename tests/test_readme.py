@@ -1,6 +1,9 @@
-"""The README's "Using it" and "Your own robot" blocks, every line as a reader runs it, in order, in a scratch directory
-laid out like the repository (``configs/``, ``launch/``, ``examples/``, ``.venv/``); each line in a shell that ran the
-block's ``source`` lines first.
+"""The commands the README and ``docs/`` show. The README's "Using it" and docs/own-robot.md's walk-through run, every
+line as a reader runs it, in order, in a scratch directory laid out like the repository (``configs/``, ``launch/``,
+``examples/``, ``.venv/``); each line in a shell that ran the block's ``source`` lines first. Every other ``ftrain``
+command of the docs (several nodes, etcd, SLURM, trackers: they need machines, servers or accounts the suite does not
+have in that form) is parsed by ftrain's own parser and its config loaded, and every script they name exists; the
+tests in ``tests/cluster`` and ``tests/track`` run their equivalents.
 
 Two things differ from a reader's run, so that the block takes minutes instead of hours:
 
@@ -16,6 +19,7 @@ when the virtualenv installed ftrain from this checkout, as ``launch/setup.sh`` 
 from __future__ import annotations
 
 import itertools
+import re
 import shlex
 import subprocess
 import sys
@@ -38,11 +42,28 @@ SMOKE_SIZED = (
 OUTPUT_OPTIONS = ("-o", "--video")
 
 
-def block(heading: str) -> list[str]:
-    """The command lines of the first code block after ``heading`` (comments and blank lines left out)."""
-    section = (REPO / "README.md").read_text().split(f"\n{heading}\n", 1)[1]
+DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
+
+
+def block(heading: str, page: str = "README.md") -> list[str]:
+    """The command lines of the first code block after ``heading`` in ``page`` (comments and blank lines left out)."""
+    section = ("\n" + (REPO / page).read_text()).split(f"\n{heading}\n", 1)[1]
     lines = section.split("```bash\n", 1)[1].split("\n```", 1)[0]
     return [line for line in lines.splitlines() if line.strip() and not line.startswith("#")]
+
+
+def every_command() -> list[tuple[str, str]]:
+    """(page, command) for every command of every bash block of the README and docs/, continuation lines joined and
+    ``&&`` chains split."""
+    found = []
+    for page in DOCS:
+        for code in page.read_text().split("```bash\n")[1:]:
+            text = code.split("\n```", 1)[0].replace("\\\n", " ")
+            for line in text.splitlines():
+                line = line.split(" # ", 1)[0].strip()  # a comment after the command
+                if line and not line.startswith("#"):
+                    found += [(page.name, part.strip()) for part in line.split("&&")]
+    return found
 
 
 def using_it() -> list[str]:
@@ -59,6 +80,41 @@ def as_tested(line: str) -> str:
     return line
 
 
+def test_every_ftrain_command_of_the_docs_parses_its_config_loads_and_its_scripts_exist() -> None:
+    from ftrain.cli import parse
+    from ftrain.config import load_config
+
+    checked = 0
+    for page, command in every_command():
+        words = shlex.split(command)
+        while words and "=" in words[0] and not words[0].startswith("-"):  # FTRAIN_NNODES=1:2 sbatch ...
+            words = words[1:]
+        for word in words:
+            if word.startswith(("launch/", "configs/", "examples/")):
+                assert (REPO / word).exists(), f"{page}: {command!r} names {word}, which does not exist"
+        if words[0] == "sbatch":  # the script's arguments are ftrain supervise's
+            words = ["ftrain", "supervise", *words[words.index("launch/slurm.sbatch") + 1 :]]
+        if words[0] != "ftrain" and "ftrain" not in words[:6]:
+            continue
+        arguments = words[words.index("ftrain") + 1 :]
+        try:
+            args = parse(arguments)
+        except SystemExit:
+            pytest.fail(f"{page}: {command!r} does not parse")
+        if args.command in ("train", "supervise"):
+            load_config(args.config, args.overrides, args.storage)  # a UserError names the key
+        checked += 1
+    assert checked >= 20, f"only {checked} ftrain commands found in the docs"
+
+
+def test_every_link_between_the_readme_and_the_docs_leads_to_a_page() -> None:
+    links = [(page, target) for page in DOCS for target in re.findall(r"\]\(([^)#:]+\.md)\)", page.read_text())]
+    missing = [f"{page.name} -> {target}" for page, target in links if not (page.parent / target).is_file()]
+    assert not missing and len(links) >= 10, missing
+    pages = {target.split("/")[-1] for page, target in links if page.name == "README.md"}
+    assert pages == {page.name for page in DOCS[1:]}, "the README links every page of docs/"
+
+
 @pytest.mark.slow
 def test_every_line_of_using_it_works_as_written(tmp_path) -> None:
     lines = using_it()
@@ -68,8 +124,8 @@ def test_every_line_of_using_it_works_as_written(tmp_path) -> None:
 
 @pytest.mark.slow
 def test_every_line_of_your_own_robot_works_as_written(tmp_path) -> None:
-    """The "Your own robot" walk-through: train the example arm, show its identity, play it on video, export it."""
-    lines = block("## Your own robot")
+    """docs/own-robot.md's walk-through: train the example arm, show its identity, play it on video, export it."""
+    lines = block("# Your own robot", "docs/own-robot.md")
     assert any("configs/reach.yaml" in line for line in lines), "no README block found"
     run_as_a_reader(tmp_path, lines)
 

@@ -1,6 +1,6 @@
 """``ftrain supervise``'s options, exit codes and their parsing (one-line errors for bad values).
 
-Exit codes: ``EXIT_CODES`` (``ftrain supervise --help`` lists them; so does the README).
+Exit codes: ``EXIT_CODES`` (``ftrain supervise --help`` lists them; so does docs/supervision.md).
 """
 
 from __future__ import annotations
