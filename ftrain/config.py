@@ -114,6 +114,8 @@ class StorageConfig:
     """Local path or fsspec URL; default ``runs/<name>``."""
     options: dict = field(default_factory=dict)
     """fsspec storage options (for s3: ``endpoint_url``, ``key``, ``secret``...)."""
+    plain_writes: bool = False
+    """Accept a storage without conditional writes (not local, not an S3 that honours them; see ``ckpt/cas.py``)."""
 
 
 class Switched:
@@ -365,11 +367,8 @@ def validate(config: Config) -> None:
             f"algorithm.num_mini_batches={config.algorithm.num_mini_batches} is more than the {batch} samples of a "
             f"rollout (env.num_envs x num_steps_per_env): use at most {batch}"
         )
-    if not config.snapshots.formats:
-        raise UserError("snapshots.formats is empty: list torchscript and/or onnx")
-    for fmt in config.snapshots.formats:
-        if fmt not in POLICY_FORMATS:
-            raise UserError(f"snapshots.formats: {fmt!r} is unknown: use torchscript and/or onnx")
+    if not config.snapshots.formats or set(config.snapshots.formats) - set(POLICY_FORMATS):
+        raise UserError(f"snapshots.formats={config.snapshots.formats} is not a list of torchscript and/or onnx")
     parse_amount("checkpoint.interval", config.checkpoint.interval, auto=True)
     parse_amount("checkpoint.max_unsaved", config.checkpoint.max_unsaved)
     if not 0 < config.checkpoint.max_overhead < 1:

@@ -6,6 +6,12 @@ delete a DELETE with ``If-Match``: the server decides, atomically. Local: the ve
 read-check-write runs under an exclusive ``flock`` of a side file ``<object>.lock`` (released by the kernel if the
 process dies), and the new object is put in place by an atomic rename of a fsynced temporary file. Other protocols
 (``memory://``: one process): a plain check, then the write.
+
+The lease, the fence and every manifest's exclusive create rest on this, so a run checks its storage before it
+takes the lease (``require_atomic``): an S3 server that ignores the conditions (some S3-compatible ones do) would
+turn them into silent overwrites, and is found by a probe, once per process: a create of an object that exists and
+a write with a wrong ETag, each of which must be refused. A storage of another protocol (``gcs://``, ``abfs://``...)
+gets no conditional write here; both are refused in one line, unless ``storage.plain_writes=true`` accepts the risk.
 """
 
 from __future__ import annotations
@@ -14,18 +20,52 @@ import contextlib
 import fcntl
 import hashlib
 import os
+import secrets
 from collections.abc import Iterator
 
 import fsspec.asyn
 
 from ftrain.ckpt.storage import Storage
+from ftrain.errors import UserError
 
 _CONFLICTS = ("PreconditionFailed", "ConditionalRequestConflict")
 """S3's answers to a condition that did not hold (412), or to a conditional write racing another one (409)."""
 
 
+PROBE = "CAS_PROBE"
+"""The name of the probe's object (with a random suffix), deleted right after."""
+RISK = (
+    "two runs or nodes could overwrite each other's lease, fence and manifests; use a local or shared path, or an S3 "
+    "service that honours If-Match and If-None-Match (AWS S3, MinIO, Ceph), or pass storage.plain_writes=true to "
+    "accept the risk"
+)
+_checked: set[str] = set()
+"""The storages this process found atomic."""
+
+
 class Conflict(Exception):
     """The object changed since it was read (another process wrote it): read it again."""
+
+
+def require_atomic(storage: Storage, plain_writes: bool = False) -> None:
+    """UserError unless a compare-and-swap on ``storage`` is atomic (see the module doc); ``plain_writes``: accept
+    one that is not."""
+    if plain_writes or storage.is_local or storage.fs.protocol == "memory" or storage.url in _checked:
+        return
+    if not storage.is_s3:
+        raise UserError(f"storage {storage.url} offers no conditional writes that ftrain uses: {RISK}")
+    name = f"{PROBE}-{secrets.token_hex(4)}"
+    write(storage, name, b"0", None)
+    try:
+        for condition, version in (("If-None-Match: *", None), ("If-Match with another ETag", '"0"')):
+            try:
+                write(storage, name, b"1", version)
+            except Conflict:
+                continue
+            raise UserError(f"storage {storage.url} ignores conditional writes ({condition} was not refused): {RISK}")
+    finally:
+        storage.delete(name)
+    _checked.add(storage.url)
 
 
 def read(storage: Storage, rel: str) -> tuple[bytes, str] | None:

@@ -169,15 +169,19 @@ def storage_lease(
         run_id = os.environ.get("TORCHELASTIC_RUN_ID") or secrets.token_hex(8)
     retries = config.checkpoint.retries if retries is None else retries
     storage = Storage.open(config.storage.url, config.storage.options, retries=retries)
-    return Lease(storage, run_id, log, float(os.environ.get(TTL_ENV) or TTL))
+    return Lease(storage, run_id, log, float(os.environ.get(TTL_ENV) or TTL), config.storage.plain_writes)
 
 
 class Lease:
     """The lease of ``storage`` for run ``run_id``, held by this process: ``hold`` takes it and keeps renewing it
     from a thread until ``release``. Storage failures while renewing are logged and retried, never raised."""
 
-    def __init__(self, storage: Storage, run_id: str, log: Callable[[str], None], ttl: float = TTL) -> None:
+    def __init__(
+        self, storage: Storage, run_id: str, log: Callable[[str], None], ttl: float = TTL, plain_writes: bool = False
+    ) -> None:
+        """``plain_writes``: hold it even on a storage without conditional writes (``cas.require_atomic``)."""
         self.storage = storage
+        self.plain_writes = plain_writes
         self.run_id = run_id
         self.log = log
         self.ttl = ttl
@@ -226,6 +230,7 @@ class Lease:
         """``acquire``, then renew every ``ttl / 3`` from a daemon thread; returns what ``acquire`` did. This
         process's environment names the run and its generation from then on (``RUN_ID_ENV``, ``GENERATION_ENV``):
         its own commits and its child processes' are checked against them (``fence.LeaseToken``)."""
+        cas.require_atomic(self.storage, self.plain_writes)  # a lease rests on conditional writes
         taken = self.acquire()
         os.environ[RUN_ID_ENV], os.environ[GENERATION_ENV] = self.run_id, str(self.generation)
         self._thread = threading.Thread(target=self._keep, name="ftrain-lease", daemon=True)
