@@ -35,6 +35,8 @@ QUARANTINED = "QUARANTINED.json"
 COMMON = "common.pt"
 """The state every rank shares (models, optimizer, counters, hooks), written once."""
 VERIFIED, INCOMPLETE, CORRUPT, QUARANTINE = "verified", "incomplete", "corrupt", "quarantined"
+UNSETTLED = "unsettled"
+"""A writer's own step whose commit failed and whose manifest it could not look at: never deleted by its retention."""
 
 STEP_DIR = re.compile(r"^step-(\d+)$")
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")

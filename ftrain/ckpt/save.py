@@ -29,6 +29,7 @@ from ftrain.ckpt.fence import Fence, Fenced, LeaseToken
 from ftrain.ckpt.format import (
     COMMON,
     INCOMPLETE,
+    UNSETTLED,
     VERIFIED,
     CorruptCheckpoint,
     FileEntry,
@@ -38,6 +39,7 @@ from ftrain.ckpt.format import (
     encode,
     learned_state,
     state_digest,
+    verify_step,
     write_file,
 )
 from ftrain.ckpt.lease import LeaseLost
@@ -275,13 +277,29 @@ class StepWriter:
                 return (Result.LEASE_LOST if isinstance(exc, LeaseLost) else Result.FENCED, step, str(exc))
             except Exception as exc:
                 errors = [f"commit: {exc}"]
+                if (manifest := self._landed(step, files)) is not None:
+                    errors = []  # its answer was lost, not the manifest
         if errors:
-            self._steps[step] = StepInfo(step, INCOMPLETE)  # abandoned: retention deletes it
+            if self._steps.get(step, StepInfo(step, INCOMPLETE)).status != UNSETTLED:
+                self._steps[step] = StepInfo(step, INCOMPLETE)  # abandoned: retention deletes it
             return (Result.FAILED, step, "; ".join(errors))
         self._steps[step] = StepInfo(step, VERIFIED, sum(entry.size for entry in files.values()), manifest)
         self.newest_committed = step
         self._apply_retention()
         return (Result.COMMITTED, step, manifest)
+
+    def _landed(self, step: int, files: dict[str, FileEntry]) -> dict | None:
+        """After a commit that raised, a direct look at ``step``'s manifest, which may have landed though the answer to
+        its write was lost: the manifest if it is this commit's. Otherwise the step counts as abandoned; unless the
+        look failed as well, when it is left unsettled, which retention never deletes (the next run's scan settles
+        it): a committed step must not go on the word of a failed request."""
+        try:
+            landed = verify_step(self.storage, step, full=False)
+        except Exception:
+            self._steps[step] = StepInfo(step, UNSETTLED)
+            return None
+        ours = {name: {"size": entry.size, "sha256": entry.sha256} for name, entry in files.items()}
+        return landed.manifest if landed.ok and landed.manifest["files"] == ours else None
 
     def _apply_retention(self) -> None:
         """Delete what the retention rules let go; a step that cannot be deleted now is kept and tried again later."""

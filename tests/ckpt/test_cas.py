@@ -4,12 +4,8 @@ S3-compatible servers do), and a protocol without conditional writes; ``storage.
 
 from __future__ import annotations
 
-import http.client
-import http.server
 import subprocess
-import threading
 from collections.abc import Iterator
-from urllib.parse import urlsplit
 
 import pytest
 
@@ -18,60 +14,17 @@ from ftrain.ckpt.lease import Lease
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
 
-from helpers import REPO, child_env, create_bucket, train_command
-
-IGNORED = ("if-match", "if-none-match")
+from helpers import REPO, S3Proxy, child_env, create_bucket, train_command
 
 
 @pytest.fixture
 def careless_s3(s3_server) -> Iterator[dict]:
     """An S3 endpoint that ignores conditional writes: moto behind a proxy that drops their headers."""
-    upstream = urlsplit(s3_server["endpoint_url"])
-
-    class Forward(http.server.BaseHTTPRequestHandler):
-        protocol_version = "HTTP/1.1"
-
-        def handle_one_request(self) -> None:
-            self.raw_requestline = self.rfile.readline(65537)
-            if not self.raw_requestline or not self.parse_request():
-                self.close_connection = True
-                return
-            body = self._body()
-            headers = {k: v for k, v in self.headers.items() if k.lower() not in (*IGNORED, "transfer-encoding")}
-            headers["Content-Length"] = str(len(body))
-            connection = http.client.HTTPConnection(upstream.hostname, upstream.port, timeout=30)
-            connection.request(self.command, self.path, body=body, headers=headers)
-            response = connection.getresponse()
-            data = response.read()
-            self.send_response_only(response.status, response.reason)
-            for name, value in response.getheaders():
-                if name.lower() not in ("transfer-encoding", "connection", "content-length"):
-                    self.send_header(name, value)
-            self.send_header("Content-Length", str(len(data)))
-            self.end_headers()
-            if self.command != "HEAD":
-                self.wfile.write(data)
-            connection.close()
-
-        def _body(self) -> bytes:
-            if self.headers.get("Transfer-Encoding", "").lower() == "chunked":
-                chunks = []
-                while size := int(self.rfile.readline().split(b";")[0], 16):
-                    chunks.append(self.rfile.read(size))
-                    self.rfile.readline()
-                self.rfile.readline()
-                return b"".join(chunks)
-            return self.rfile.read(int(self.headers.get("Content-Length") or 0))
-
-        def log_message(self, *args: object) -> None:
-            pass
-
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Forward)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
+    proxy = S3Proxy(s3_server["endpoint_url"], ignored=("If-Match", "If-None-Match"))
     try:
-        yield {**s3_server, "endpoint_url": f"http://127.0.0.1:{server.server_address[1]}"}
+        yield {**s3_server, "endpoint_url": proxy.endpoint_url}
     finally:
-        server.shutdown()
+        proxy.close()
 
 
 def s3_storage(server: dict) -> Storage:
@@ -112,7 +65,7 @@ def test_the_cli_refuses_it_in_one_line_and_plain_writes_accepts_it(careless_s3,
 
 def test_a_protocol_without_conditional_writes_is_refused_unless_accepted(tmp_path):
     storage = Storage.open("http://127.0.0.1:9/run")  # fsspec's HTTP filesystem: no conditional writes
-    with pytest.raises(UserError, match=r"offers no conditional writes that ftrain uses: .* plain_writes=true"):
+    with pytest.raises(UserError, match=r"offers no conditional writes that ftrain uses: .*\.plain_writes=true"):
         cas.require_atomic(storage)
     cas.require_atomic(storage, plain_writes=True)  # accepted: nothing is asked of it here
     cas.require_atomic(Storage.open(str(tmp_path / "run")))  # local: flock and an atomic rename

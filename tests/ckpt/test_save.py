@@ -7,23 +7,26 @@ import os
 import re
 import signal
 import subprocess
+import threading
 import uuid
 
 import pytest
 import torch
 
 from ftrain import procfs
-from ftrain.ckpt.format import VERIFIED, decode, encode, learned_state, state_digest, verify_step
-from ftrain.ckpt.save import snapshot
+from ftrain.ckpt.format import MANIFEST, VERIFIED, decode, encode, learned_state, state_digest, step_dir, verify_step
+from ftrain.ckpt.save import Result, StepWriter, snapshot
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
-from ftrain.config import load_config
+from ftrain.config import CheckpointConfig, load_config
+from ftrain.dist.group import RankInfo
 from ftrain.heartbeat import ENV_DIR
 from ftrain.train.trainer import train
 
 from helpers import (
     REPO,
     SMOKE,
+    S3Proxy,
     assert_same,
     child_env,
     final_manifest,
@@ -159,3 +162,38 @@ def test_when_rank_0_cannot_write_a_manifest_every_rank_hears_so_and_training_go
     assert trap < retried.pop() in manifests(storage)
     assert final_manifest(storage)["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
     assert "not committed" not in reference.stdout
+
+
+def test_a_commit_whose_answer_was_lost_counts_when_its_manifest_landed_and_is_never_deleted_unseen(s3_url):
+    """The manifest's PUT is done by S3 but its answer never arrives (a reset connection, every try): a direct look
+    finds the manifest, and the step is committed. When the storage stops answering right after that PUT, the look
+    fails too: the step is left unsettled, and retention (keep_last=1) does not delete it at the next commit."""
+    url, options = s3_url
+    outage = threading.Event()
+
+    def lose(method: str, path: str) -> bool:
+        if outage.is_set():
+            return True
+        manifest = method == "PUT" and path.split("?")[0].endswith(f"/{step_dir(3)}/{MANIFEST}")
+        if manifest:
+            outage.set()  # this PUT is done; from now on no answer comes back
+        return manifest or (method == "PUT" and path.split("?")[0].endswith(f"/{step_dir(2)}/{MANIFEST}"))
+
+    proxy = S3Proxy(options["endpoint_url"], lose=lose)
+    try:
+        storage = Storage.open(url, {**options, "endpoint_url": proxy.endpoint_url}, retries=1)
+        writer = StepWriter(storage, CheckpointConfig(keep_last=1), RankInfo(0, 1, 0), None, print)
+
+        def save(step: int):
+            state = {"common.pt": {"ftrain": {}, "actor_state_dict": {"weights": torch.full((4,), float(step))}}}
+            return writer.save(step, state, {"iteration": step}, False)
+
+        assert save(1).result is Result.COMMITTED
+        assert save(2).result is Result.COMMITTED  # every answer to its manifest's PUT lost; the look finds it
+        assert save(3).result is Result.FAILED and outage.is_set()
+        outage.clear()
+        assert save(4).result is Result.COMMITTED  # retention: keep the last one, delete 1 and 2, but not 3 unseen
+    finally:
+        proxy.close()
+    direct = Storage.open(url, options)
+    assert {info.step: info.status for info in scan(direct)} == {4: VERIFIED, 3: VERIFIED}
