@@ -17,6 +17,13 @@ def stat_fields(pid: int) -> list[str]:
         return []
 
 
+def state(pid: int) -> str:
+    """The kernel's state letter for ``pid`` (R running, S sleeping, D in the kernel, T stopped, Z a zombie), or
+    ``gone``."""
+    fields = stat_fields(pid)
+    return fields[0] if fields else "gone"
+
+
 def start_time(pid: int) -> str | None:
     """When process ``pid`` started (clock ticks after boot), None if it is gone: with the pid, it names one process
     for good (a pid the kernel hands out again has another start time)."""

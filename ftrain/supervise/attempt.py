@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 from ftrain import errorfile, procfs
-from ftrain.heartbeat import ENV_DIR, NODE_ENV, STOP_FILE, TOKEN_ENV
+from ftrain.heartbeat import ENV_DIR, NODE_ENV, STOP_FILE, TOKEN_ENV, read_heartbeats
 from ftrain.lifeline import SUPERVISOR_ENV, supervisor_env
 from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.options import SupervisorOptions, Workers, parse_workers
@@ -37,6 +37,8 @@ from ftrain.supervise.plan import Plan
 from ftrain.warm import LISTENER_ENV, POOL_ENV, address
 
 POLL = 0.1
+UNDEAD_LINE = 30.0
+"""Seconds between two lines about a process that outlives its SIGKILL."""
 TORCHRUN = "ftrain.dist.torchrun"
 """torchrun, in a process of its own (the module imports torch: the supervisor only names it)."""
 WARM = "ftrain.warm"
@@ -178,10 +180,22 @@ class Attempt:
     """One torchrun launch and every process it started; its stderr goes to ``log_dir``, and so does torchrun's
     account of the workers that failed."""
 
-    def __init__(self, plan: Plan, command: list[str], env: dict[str, str], token: str, log_dir: Path) -> None:
+    def __init__(
+        self,
+        plan: Plan,
+        command: list[str],
+        env: dict[str, str],
+        token: str,
+        log_dir: Path,
+        say=print,
+        stopping=lambda: False,
+    ) -> None:
+        """``say``, ``stopping``: see ``kill``."""
         self.plan = plan
+        self.say, self.stopping = say, stopping
         self.token = token
         self.log_dir = log_dir
+        self.heartbeat_dir = env.get(ENV_DIR)
         with (log_dir / OUTPUT).open("ab") as output:
             self.proc = subprocess.Popen(command, env=env, stderr=output, start_new_session=True)
         self.failures: dict[int, WorkerFailure] = {}
@@ -220,14 +234,33 @@ class Attempt:
         self.kill()
 
     def kill(self) -> None:
-        for _ in range(100):
-            pids = processes_with(self.token)
-            if not pids and self.proc.poll() is not None:
-                break
+        """SIGKILL every process of the attempt until none is left, so that the next attempt never runs beside one
+        of them (a rank 0 that would commit over the shards the next one's start clears). Found by the token in
+        their environment, and the workers also by their heartbeats: a warm worker's environment is its pool's. One
+        that outlives its SIGKILL (asleep in the kernel, e.g. on a hung network filesystem) is waited for, with a
+        line through ``self.say`` every ``UNDEAD_LINE`` seconds; past the first, not if ``self.stopping()`` (the
+        supervisor ends)."""
+        started = told = time.monotonic()
+        while (pids := self.processes()) or self.proc.poll() is None:
             for pid in pids:
                 kill(pid, signal.SIGKILL)
+            if pids and time.monotonic() - told >= UNDEAD_LINE:
+                told, states = time.monotonic(), ", ".join(f"{pid} ({procfs.state(pid)})" for pid in pids)
+                self.say(
+                    f"attempt {self.plan.attempt}: process {states} still alive {told - started:.0f} s after SIGKILL; "
+                    "the next attempt waits for it"
+                )
+            if self.stopping() and time.monotonic() - started >= UNDEAD_LINE:
+                break  # the supervisor ends: no next attempt to keep from it
             time.sleep(POLL)
         self._read_failures()
+
+    def processes(self) -> list[int]:
+        """The live processes of the attempt (see ``kill``); a heartbeat's pid counts while it is still a worker's
+        (its short name, ``ftrain-rRofW-...``: the pid may have been handed out again) and not a zombie."""
+        workers = [beat.pid for beat in read_heartbeats(self.heartbeat_dir).values()] if self.heartbeat_dir else []
+        mine = [pid for pid in workers if procfs.read(pid, "comm").startswith(b"ftrain-r") and procfs.state(pid) != "Z"]
+        return sorted({*processes_with(self.token), *mine} - {os.getpid()})
 
     def _read_failures(self) -> None:
         try:

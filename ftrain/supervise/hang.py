@@ -78,7 +78,7 @@ class HangWatch:
             not working or any(now - self.changed[rank][1] <= self.limit(rank, b) for rank, b in working.items())
         ):
             return None
-        states = {r: process_state(b.pid) for r, b in sorted(beats.items())}
+        states = {r: procfs.state(b.pid) for r, b in sorted(beats.items())}
         # the others wait for it in a collective and may have been silent longer: name a stopped rank if any
         silent_longest = min(working, key=lambda rank: self.changed[rank][1])
         named = next((r for r, state in states.items() if state in ("T", "t", "D") and r in working), silent_longest)
@@ -96,7 +96,7 @@ class HangWatch:
         if self.timeout is not None:
             return None
         silent = [rank for rank, beat in working.items() if now - self.changed[rank][1] > HANG_FLOOR]
-        return next((rank for rank in silent if process_state(working[rank].pid) in ("T", "t")), None)
+        return next((rank for rank in silent if procfs.state(working[rank].pid) in ("T", "t")), None)
 
     def _observe(self, rank: int, beat: Heartbeat, now: float) -> None:
         """A new heartbeat ends the rank's previous phase: time it (past start-up and the first iteration)."""
@@ -143,9 +143,3 @@ class Hang:
             return f"not every rank got past start-up within {self.limit:g} s (--startup-grace)"
         where = f"phase {self.phase}" + (" of the first iteration" if self.first else "")
         return f"rank {self.rank} silent for {self.seconds} s in {where} (limit {self.limit} s)"
-
-
-def process_state(pid: int) -> str:
-    """The kernel's state letter for ``pid`` (R running, S sleeping, T stopped, ...), or ``gone``."""
-    fields = procfs.stat_fields(pid)
-    return fields[0] if fields else "gone"

@@ -40,6 +40,7 @@ import sys
 import time
 from pathlib import Path
 
+from ftrain import procfs
 from ftrain.ckpt.lease import storage_lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config, StorageConfig
@@ -49,7 +50,7 @@ from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, Launcher, attempt_env, kill, new_log_dir, signal_name
 from ftrain.supervise.claim import claim_log_dir
 from ftrain.supervise.events import EventLog
-from ftrain.supervise.hang import QUIET_PHASES, HangWatch, process_state
+from ftrain.supervise.hang import QUIET_PHASES, HangWatch
 from ftrain.supervise.ledger import Ledger
 from ftrain.supervise.link import connect, rendezvous, worker_env
 from ftrain.supervise.options import (
@@ -228,7 +229,8 @@ class Supervisor:
         message = f"attempt {plan.attempt}: launching torchrun"
         self.events("start", message, attempt=plan.attempt, command=logged, logs=str(logs))
         self.hangs.restart(time.monotonic())
-        return Attempt(plan, command, env | warm, token, logs)
+        undead = lambda line: self.events("undead", line, attempt=plan.attempt)  # noqa: E731
+        return Attempt(plan, command, env | warm, token, logs, undead, lambda: bool(self.signals))
 
     def _watch(self, attempt: Attempt) -> Outcome:
         preempt_deadline = None
@@ -273,7 +275,7 @@ class Supervisor:
         """A worker that died mid-training dooms the others (no collective can complete): SIGKILL them now rather
         than wait for them to fail on the broken group and for torchrun to notice (1-2 s measured here); torchrun
         still reports every exit code (the dead rank's own: a warm worker's stand-in is left to report it)."""
-        dead = [r for r, b in beats.items() if b.phase not in QUIET_PHASES and process_state(b.pid) in ("gone", "Z")]
+        dead = [r for r, b in beats.items() if b.phase not in QUIET_PHASES and procfs.state(b.pid) in ("gone", "Z")]
         if dead:
             latest = read_heartbeats(self.heartbeat_dir)  # a rank may have finished since we looked
             dead = [rank for rank in dead if latest.get(rank, beats[rank]).phase not in QUIET_PHASES]

@@ -5,17 +5,22 @@ whose first iteration takes twice the floor (not a hang) and whose worker, stopp
 from __future__ import annotations
 
 import csv
+import dataclasses
+import json
 import os
 import signal
 import subprocess
 import sys
 import time
+import uuid
 
 import pytest
 
+from ftrain import procfs
 from ftrain.heartbeat import Heartbeat, Phase, read_stop_reason, write_stop_reason
-from ftrain.supervise.attempt import attempt_env
-from ftrain.supervise.hang import HANG_FACTOR, HANG_FLOOR, HangWatch, process_state
+from ftrain.supervise.attempt import Attempt, attempt_env
+from ftrain.supervise.hang import HANG_FACTOR, HANG_FLOOR, HangWatch
+from ftrain.supervise.plan import Plan
 
 from helpers import REPO, SMOKE, TESTS, child_env, events, finish, launch, training, wait_for
 
@@ -75,7 +80,7 @@ def test_a_stopped_process_is_hung_after_the_floor_even_in_its_first_iteration()
     child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
     try:
         os.kill(child.pid, signal.SIGSTOP)
-        wait_for(lambda: process_state(child.pid) == "T", "the child stopped")
+        wait_for(lambda: procfs.state(child.pid) == "T", "the child stopped")
         watch = HangWatch(timeout=None, startup_grace=GRACE, ranks=2)
         watch.restart(now=0)
         stopped = Heartbeat(1, child.pid, 0, Phase.ROLLOUT, None, None, 2, 0.0)
@@ -190,3 +195,26 @@ def test_the_reason_for_a_stop_is_read_by_the_workers_and_gone_at_the_next_attem
     (beats / "rank-0.json").write_text("{}")
     attempt_env(beats, "token", 1.0, 0, {})  # the next attempt's workers were not stopped
     assert read_stop_reason(beats) is None and not list(beats.iterdir())
+
+
+def test_an_ended_attempt_is_killed_to_the_last_process_its_warm_workers_found_by_their_heartbeats(tmp_path) -> None:
+    """A warm worker's environment is its pool's, without the attempt's token: the supervisor finds it by its
+    heartbeat and waits until it is gone. A heartbeat's pid handed out again to another program is left alone."""
+    beats, token = tmp_path / "heartbeat", f"attempt-{uuid.uuid4().hex}"
+    env = {**os.environ, **attempt_env(beats, token, 1.0, 0, {})}
+    named = "from ftrain.proctitle import name_process; name_process('rank 0/2 worker'); import time; time.sleep(600)"
+    warm = launch([sys.executable, "-c", named], cwd=REPO, env=child_env())  # no token: as a fork of the pool
+    stranger = launch(["sleep", "600"])
+    wait_for(lambda: procfs.read(warm.pid, "comm").startswith(b"ftrain-r0of2"), "the worker named itself")
+    for rank, pid in enumerate([warm.pid, stranger.pid]):
+        beat = Heartbeat(rank, pid, 3, Phase.ROLLOUT, None, None, 1, 0.0)
+        (beats / f"rank-{rank}.json").write_text(json.dumps(dataclasses.asdict(beat)))
+    plan = Plan(token="t", attempt=0, port=None)
+    attempt = Attempt(plan, [sys.executable, "-c", "import time; time.sleep(600)"], env, token, tmp_path)
+    try:
+        assert sorted(attempt.processes()) == sorted([attempt.proc.pid, warm.pid])
+        attempt.kill()
+    finally:
+        attempt.proc.kill()  # a no-op once killed
+    assert warm.wait(timeout=10) == -signal.SIGKILL and attempt.proc.wait(timeout=10) == -signal.SIGKILL
+    assert stranger.poll() is None, "a process that is no worker of the attempt"
