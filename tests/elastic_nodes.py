@@ -117,5 +117,6 @@ def assert_fenced_history(storage: Path) -> list[tuple[int, int]]:
     history = [(step, manifest["generation"][1]) for step, manifest in steps]
     assert [generation for _, generation in history] == sorted(generation for _, generation in history), history
     (run,) = {manifest["generation"][0] for _, manifest in steps}
-    assert json.loads((storage / "FENCE.json").read_text()) == {"run": run, "generation": history[-1][1]}, history
+    fence = json.loads((storage / "FENCE.json").read_text())
+    assert (fence["run"], fence["generation"]) == (run, history[-1][1]), (fence, history)
     return history

@@ -2,13 +2,19 @@
 a commit of a run that lost the storage's lease to another run (``LeaseToken``, see ``lease.py``).
 
 On several nodes ``ftrain supervise`` numbers its attempts across the nodes (a node that fails or leaves moves every
-node to the next one) and hands the run and that number to the workers as ``FTRAIN_GENERATION``. A node cut off from
-the others (partitioned, or paused and resumed) still runs its old attempt: a save it had in flight must not commit
-after the others went on without it. ``<storage>/FENCE.json`` holds the newest generation that committed: rank 0
-reads it before it writes a manifest (one small read per commit), refuses to commit below it, and raises it, by a
-compare-and-swap (``cas.py``), at its generation's first commit; every manifest records its ``generation``. What is
-left is the time between that read and the manifest's write (one request): a node stopped exactly there commits once
-when it goes on (a state of the run from before the others went on, which their newer steps then pass).
+node to the next one) and hands the workers their generation as ``FTRAIN_GENERATION``: the plan's token, the
+token's epoch and the attempt. A node cut off from the others (partitioned, or paused and resumed) still runs its old
+attempt: a save it had in flight must not commit after the others went on without it. ``<storage>/FENCE.json`` holds
+the newest (epoch, attempt) that committed: rank 0 reads it before it writes a manifest (one small read per commit),
+refuses to commit below it, and raises it, by a compare-and-swap (``cas.py``), at its generation's first commit;
+every manifest records its ``generation`` and ``epoch``. What is left is the time between that read and the
+manifest's write (one request): a node stopped exactly there commits once when it goes on (a state of the run from
+before the others went on, which their newer steps then pass).
+
+Epochs order the tokens. A plan's token is new whenever node 0's supervisor starts again (c10d), or a run starts
+anew on etcd, while nodes of the old token may still run; so the first supervisor to launch an attempt of a token
+takes the next epoch in ``FENCE.json`` (``epoch_of``: every node of the token reads the same one there), and raises
+the fence to it at once: from then on nothing of an older token commits, whatever its attempt number.
 """
 
 from __future__ import annotations
@@ -22,8 +28,13 @@ from ftrain.ckpt.lease import RUN_ID_ENV, LeaseLost, lost_message, read_record
 from ftrain.ckpt.storage import Storage
 
 GENERATION_ENV = "FTRAIN_GENERATION"
-"""``RUN:N``: the run (its supervisors' token: a run started again is another one) and its attempt number."""
+"""``RUN:EPOCH:N``: the run (its supervisors' token: a run started again is another one), the token's epoch
+(``epoch_of``) and its attempt number."""
 FENCE = "FENCE.json"
+EPOCHS_KEPT = 32
+"""Tokens whose epochs ``FENCE.json`` remembers, the newest."""
+_epochs: dict[tuple[str, str], int] = {}
+"""This process's epochs by (storage, token): a supervisor asks the storage once per token."""
 
 
 class Fenced(Exception):
@@ -31,40 +42,67 @@ class Fenced(Exception):
 
 
 class Fence:
-    """Rank 0's guard of the commits of generation ``generation`` of run ``run`` to ``storage``."""
+    """Rank 0's guard of the commits of attempt ``generation`` of run ``run`` (its token), whose epoch is ``epoch``,
+    to ``storage``."""
 
-    def __init__(self, storage: Storage, run: str, generation: int) -> None:
+    def __init__(self, storage: Storage, run: str, epoch: int, generation: int) -> None:
         self.storage = storage
         self.run = run
+        self.epoch = epoch
         self.generation = generation
 
     @classmethod
     def from_env(cls, storage: Storage) -> Fence | None:
         """The fence of this process's generation; None where the launcher numbers none (one node: nothing to
         fence)."""
-        run, _, generation = os.environ.get(GENERATION_ENV, "").rpartition(":")
-        return cls(storage, run, int(generation)) if run and generation.isdigit() else None
+        run, epoch, generation = [*os.environ.get(GENERATION_ENV, "").split(":"), "", ""][:3]
+        numbers = epoch.isdigit() and generation.isdigit()
+        return cls(storage, run, int(epoch), int(generation)) if run and numbers else None
 
     def check(self) -> None:
-        """Before a commit: Fenced if a newer generation of this run has committed; else make sure FENCE.json names
-        this one (another run's record is replaced: the lease lets one run at a time write the storage)."""
+        """Before a commit: Fenced if a newer (epoch, attempt) has committed, or the fence was raised to a newer
+        token's epoch; else make sure FENCE.json names this generation."""
         while True:
             current = cas.read(self.storage, FENCE)
             record = _parse(current[0]) if current is not None else {}
-            newest = record.get("generation", -1) if record.get("run") == self.run else -1
-            if newest > self.generation:
+            newest, ours = (record.get("epoch", 0), record.get("generation", -1)), (self.epoch, self.generation)
+            if newest > ours or (newest == ours and record.get("run") != self.run):
                 raise Fenced(
-                    f"generation {self.generation} of the run is fenced off: generation {newest} has committed since "
-                    "(this node was cut off from the others), so it commits nothing more"
+                    f"generation {self.generation} (epoch {self.epoch}) of the run is fenced off: generation "
+                    f"{newest[1]} of epoch {newest[0]} is newer (this node was cut off from the others), so it commits "
+                    "nothing more"
                 )
-            if newest == self.generation:
+            if newest == ours:
                 return
-            ours = json.dumps({"run": self.run, "generation": self.generation}).encode()
+            ours = json.dumps({**record, "run": self.run, "epoch": self.epoch, "generation": self.generation})
             try:
-                cas.write(self.storage, FENCE, ours, current[1] if current is not None else None)
+                cas.write(self.storage, FENCE, ours.encode(), current[1] if current is not None else None)
                 return
             except cas.Conflict:
                 continue
+
+
+def epoch_of(storage: Storage, run: str) -> int:
+    """The epoch of token ``run``: the one ``FENCE.json`` records for it, else the next one, which it then records,
+    raising the fence to it (see the module doc). Asked once per process and token."""
+    if (storage.url, run) in _epochs:
+        return _epochs[storage.url, run]
+    while True:
+        current = cas.read(storage, FENCE)
+        record = _parse(current[0]) if current is not None else {}
+        epochs = record.get("epochs") if isinstance(record.get("epochs"), dict) else {}
+        if isinstance(epochs.get(run), int):
+            break
+        epoch = max([record.get("epoch", 0), *epochs.values()]) + 1
+        epochs = dict(list(epochs.items())[-(EPOCHS_KEPT - 1) :]) | {run: epoch}
+        raised = {"run": run, "epoch": epoch, "generation": -1, "epochs": epochs}
+        try:
+            cas.write(storage, FENCE, json.dumps(raised).encode(), current[1] if current is not None else None)
+            break
+        except cas.Conflict:
+            continue
+    _epochs[storage.url, run] = epochs[run]
+    return epochs[run]
 
 
 class LeaseToken:
@@ -96,4 +134,5 @@ def _parse(data: bytes) -> dict:
         record = json.loads(data)
     except ValueError:
         return {}
-    return record if isinstance(record, dict) and isinstance(record.get("generation"), int) else {}
+    valid = isinstance(record, dict) and all(isinstance(record.get(key, 0), int) for key in ("generation", "epoch"))
+    return record if valid else {}

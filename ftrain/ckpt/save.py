@@ -268,7 +268,7 @@ class StepWriter:
                     fields["lease_generation"] = self.lease.generation
                 if self.fence is not None:
                     self.fence.check()
-                    fields["generation"] = [self.fence.run, self.fence.generation]
+                    fields["generation"], fields["epoch"] = [self.fence.run, self.fence.generation], self.fence.epoch
                 manifest = commit(storage, step, files, meta | fields, check_present=not self._listed)
                 self._listed = True
             except (LeaseLost, Fenced) as exc:  # a newer holder of the storage, or generation of the run, committed

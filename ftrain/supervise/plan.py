@@ -12,7 +12,9 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ftrain.ckpt.fence import GENERATION_ENV
+from ftrain.ckpt.fence import GENERATION_ENV, epoch_of
+from ftrain.ckpt.storage import Storage
+from ftrain.config import StorageConfig
 from ftrain.supervise.options import Nodes, SupervisorOptions
 
 KEEP_ALIVE_INTERVAL = 1
@@ -56,10 +58,14 @@ def apply(plan: Plan, request: dict, port: Callable[[], int | None]) -> Plan:
     return plan
 
 
-def generation_env(plan: Plan, nnodes: int) -> dict[str, str]:
+def generation_env(plan: Plan, nnodes: int, storage: StorageConfig) -> dict[str, str]:
     """The workers' generation on several nodes (``ftrain.ckpt.fence``: a node cut off from the others commits
-    nothing once they have committed in a later attempt); none on one node."""
-    return {GENERATION_ENV: f"{plan.token}:{plan.attempt}"} if nnodes > 1 else {}
+    nothing once they have committed in a later attempt, or a newer token has its epoch); none on one node. Asks the
+    ``storage`` for the token's epoch, once per token."""
+    if nnodes == 1:
+        return {}
+    epoch = epoch_of(Storage.open(storage.url, storage.options), plan.token)
+    return {GENERATION_ENV: f"{plan.token}:{epoch}:{plan.attempt}"}
 
 
 def elastic_rendezvous(

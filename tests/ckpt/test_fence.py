@@ -8,7 +8,8 @@ import json
 import pytest
 import torch
 
-from ftrain.ckpt.fence import FENCE, GENERATION_ENV, Fence, Fenced
+from ftrain.ckpt import fence
+from ftrain.ckpt.fence import FENCE, GENERATION_ENV, Fence, Fenced, epoch_of
 from ftrain.ckpt.save import Result, StepWriter
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
@@ -33,30 +34,49 @@ def save(storage: Storage, step: int, monkeypatch, generation: str, lines: list[
 
 def test_an_older_generation_commits_nothing_once_a_newer_one_has(storage, monkeypatch):
     lines: list[str] = []
-    assert save(storage, 10, monkeypatch, "run-a:1", lines).result is Result.COMMITTED
-    assert save(storage, 20, monkeypatch, "run-a:2", lines).result is Result.COMMITTED  # the others went on
-    late = save(storage, 15, monkeypatch, "run-a:1", lines)  # the node that was cut off
-    assert late.result is Result.FENCED and "fenced off: generation 2 has committed" in late.detail  # the rank stops
+    epoch = epoch_of(storage, "run-a")
+    assert save(storage, 10, monkeypatch, f"run-a:{epoch}:1", lines).result is Result.COMMITTED
+    assert save(storage, 20, monkeypatch, f"run-a:{epoch}:2", lines).result is Result.COMMITTED  # the others went on
+    late = save(storage, 15, monkeypatch, f"run-a:{epoch}:1", lines)  # the node that was cut off
+    assert late.result is Result.FENCED and "fenced off: generation 2 of epoch 1 is newer" in late.detail
     assert any(line.startswith("checkpoint step 15 refused") for line in lines)
-    assert [(info.step, info.manifest["generation"]) for info in scan(storage) if info.manifest] == [
-        (20, ["run-a", 2]),
-        (10, ["run-a", 1]),
-    ]
-    assert save(storage, 30, monkeypatch, "run-a:2", lines).result is Result.COMMITTED  # the same generation goes on
+    manifests = [info.manifest for info in scan(storage) if info.manifest]
+    committed = [(manifest["step"], manifest["generation"], manifest["epoch"]) for manifest in manifests]
+    assert committed == [(20, ["run-a", 2], 1), (10, ["run-a", 1], 1)]
+    assert save(storage, 30, monkeypatch, f"run-a:{epoch}:2", lines).result is Result.COMMITTED  # it goes on
 
 
-def test_a_new_run_is_not_fenced_by_the_record_of_an_earlier_one(storage, monkeypatch):
-    assert save(storage, 10, monkeypatch, "run-a:7", []).result is Result.COMMITTED
-    assert save(storage, 20, monkeypatch, "run-b:0", []).result is Result.COMMITTED  # generation 0 < 7, another run
-    Fence(storage, "run-b", 1).check()
-    with pytest.raises(Fenced, match="generation 1 has committed"):
-        Fence(storage, "run-b", 0).check()
+def test_a_newer_token_fences_off_every_attempt_of_an_older_one_as_soon_as_it_has_its_epoch(storage, monkeypatch):
+    """Node 0's supervisor started again mints a new token, whose first attempt is 0: the nodes still running the
+    old token's attempt 7 commit nothing more once the new token has taken its epoch, even before it commits."""
+    old = epoch_of(storage, "token-1")
+    assert save(storage, 10, monkeypatch, f"token-1:{old}:7", []).result is Result.COMMITTED
+    new = epoch_of(storage, "token-2")
+    assert (old, new) == (1, 2) and epoch_of(storage, "token-1") == 1  # an epoch is the token's for good
+    late = save(storage, 20, monkeypatch, f"token-1:{old}:8", [])
+    assert late.result is Result.FENCED and "generation -1 of epoch 2 is newer" in late.detail
+    assert save(storage, 20, monkeypatch, f"token-2:{new}:0", []).result is Result.COMMITTED
+    with pytest.raises(Fenced, match="generation 0 of epoch 2 is newer"):
+        Fence(storage, "token-1", old, 9).check()
+    record = json.loads(storage.read(FENCE))
+    assert (record["run"], record["epoch"], record["generation"], record["epochs"]) == (
+        "token-2",
+        2,
+        0,
+        {"token-1": 1, "token-2": 2},
+    )
+
+
+def test_every_node_of_a_token_gets_the_same_epoch_from_the_storage(storage):
+    assert epoch_of(storage, "token-a") == 1
+    fence._epochs.clear()  # another node: a process of its own
+    assert epoch_of(storage, "token-a") == 1 and epoch_of(storage, "token-b") == 2
 
 
 def test_an_unreadable_fence_record_counts_as_none_and_is_written_over(storage):
     storage.write_replace(FENCE, b"{not json")
-    Fence(storage, "run-a", 3).check()
-    assert json.loads(storage.read(FENCE)) == {"run": "run-a", "generation": 3}
+    Fence(storage, "run-a", 1, 3).check()
+    assert json.loads(storage.read(FENCE)) == {"run": "run-a", "epoch": 1, "generation": 3}
 
 
 def test_without_a_generation_nothing_is_fenced_or_written(tmp_path, monkeypatch):

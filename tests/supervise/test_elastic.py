@@ -106,7 +106,8 @@ def test_on_etcd_losing_the_node_of_rank_0_the_others_go_on_at_world_2_and_finis
     assert [world for _, world in manifest["world_sizes"]] == [3, 2], manifest["world_sizes"]
     run, generation = manifest["generation"]  # fencing: the attempt after the loss committed, and FENCE.json says so
     fence = json.loads((storage / "FENCE.json").read_text())
-    assert generation >= 1 and fence == {"run": run, "generation": generation}
+    assert generation >= 1 and (fence["run"], fence["generation"]) == (run, generation)
+    assert fence["epoch"] == manifest["epoch"] >= 1
     for node in survivors:
         (shrink,) = node_events(storage, "resize", node)
         assert (shrink["old_world"], shrink["new_world"], shrink["why"]) == (3, 2, f"node {lost} lost"), shrink
@@ -206,7 +207,7 @@ def test_on_etcd_a_node_paused_mid_commit_across_a_shrink_commits_nothing_when_r
     assert [finish(proc, timeout=180) for proc in nodes] == [0, 0, 0]
 
     console = Path(f"{storage}.node{index}.log").read_text()
-    refused = re.search(r"checkpoint step (\d+) refused: generation 0 of the run is fenced off", console)
+    refused = re.search(r"checkpoint step (\d+) refused: generation 0 \(epoch \d+\) of the run is fenced off", console)
     assert refused, console
     history = assert_fenced_history(storage)
     print(f"paused node {paused}: refused step {refused[1]}; committed (step, generation): {history}")

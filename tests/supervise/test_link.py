@@ -8,6 +8,7 @@ import re
 import pytest
 
 from ftrain.ckpt.fence import GENERATION_ENV
+from ftrain.config import StorageConfig
 from ftrain.errors import UserError
 from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.link import rendezvous, worker_env
@@ -18,24 +19,25 @@ ETCD = {"rdzv_backend": "etcd-v2", "rdzv_endpoint": "127.0.0.1:2379", "rdzv_id":
 
 
 @pytest.mark.parametrize("backend", [ETCD, {"rdzv_endpoint": "127.0.0.1:29400"}])
-def test_local_addr_goes_to_torchrun_and_its_interface_to_gloo(monkeypatch, backend) -> None:
+def test_local_addr_goes_to_torchrun_and_its_interface_to_gloo(monkeypatch, backend, tmp_path) -> None:
     monkeypatch.delenv("GLOO_SOCKET_IFNAME", raising=False)
     monkeypatch.setenv(SECRET_ENV, "a-secret-of-sixteen-or-more")
     options = SupervisorOptions(nnodes="2:3", local_addr="127.0.0.1", **backend)
     nodes, plan = parse_nodes(options), Plan("token", 1, 29401)
     assert nodes.interface == "lo"
     assert rendezvous(plan, nodes, options)[-1] == "--local-addr=127.0.0.1"
-    assert worker_env(plan, nodes) == {GENERATION_ENV: "token:1", "GLOO_SOCKET_IFNAME": "lo"}
+    storage = StorageConfig(str(tmp_path / "run"))
+    assert worker_env(plan, nodes, storage) == {GENERATION_ENV: "token:1:1", "GLOO_SOCKET_IFNAME": "lo"}  # epoch 1
     monkeypatch.setenv("GLOO_SOCKET_IFNAME", "eth7")  # the user's choice wins
-    assert worker_env(plan, nodes)["GLOO_SOCKET_IFNAME"] == "eth7"
+    assert worker_env(plan, nodes, storage)["GLOO_SOCKET_IFNAME"] == "eth7"
 
 
-def test_without_local_addr_the_hostname_decides_as_before(monkeypatch) -> None:
+def test_without_local_addr_the_hostname_decides_as_before(monkeypatch, tmp_path) -> None:
     monkeypatch.delenv("GLOO_SOCKET_IFNAME", raising=False)
     options = SupervisorOptions(nnodes="2:3", **ETCD)
     nodes, plan = parse_nodes(options), Plan("token", 0, None)
     assert not any(argument.startswith("--local-addr") for argument in rendezvous(plan, nodes, options))
-    assert worker_env(plan, nodes) == {GENERATION_ENV: "token:0"}
+    assert worker_env(plan, nodes, StorageConfig(str(tmp_path / "run"))) == {GENERATION_ENV: "token:1:0"}
 
 
 def test_an_address_of_no_interface_here_is_refused() -> None:
