@@ -184,6 +184,7 @@ def test_bad_input_is_one_line_exit_2_and_nothing_started_or_made_under_supervis
             assert result.returncode != 0 and re.search(r"exitcode\s*:\s*2", result.stderr), where
             refusals = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
             assert len(refusals) == 1 and message in refusals[0], where
+            assert not (tmp_path / f"torchrun-{case}").exists(), where  # each rank makes the env before anything
 
 
 def test_a_student_distils_from_a_teacher_of_ones_own_robot_and_resumes_exactly(work, tmp_path) -> None:
