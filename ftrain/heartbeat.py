@@ -22,6 +22,7 @@ worker without a save. So that the workers' last line still names what the user 
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import json
 import os
@@ -42,12 +43,14 @@ STOP_FILE = "stop"
 
 
 def write_stop_reason(directory: str | os.PathLike, received: int) -> None:
-    """Before the supervisor SIGTERMs the workers of ``directory``: that it ``received`` this signal."""
+    """Before the supervisor SIGTERMs the workers of ``directory``: that it ``received`` this signal. Never raises: a
+    full disk costs the workers' line its reason, not the stop."""
     name = signal.Signals(received).name
     reason = f"{name} to the supervisor" + (" (Ctrl-C), passed on as SIGTERM" if name == "SIGINT" else "")
     tmp = Path(directory) / f"{STOP_FILE}.tmp"
-    tmp.write_text(reason)
-    os.replace(tmp, Path(directory) / STOP_FILE)
+    with contextlib.suppress(OSError):
+        tmp.write_text(reason)
+        os.replace(tmp, Path(directory) / STOP_FILE)
 
 
 def read_stop_reason(directory: str | os.PathLike | None) -> str | None:

@@ -40,7 +40,7 @@ TESTS = REPO / "tests"
 SMOKE = str(REPO / "configs" / "smoke.yaml")
 NOT_LEARNED = ("steps_per_s", "collect_time", "learn_time", "iteration_time", "resumed_from", "config_change", "time/")
 """The only columns of metrics.csv (or their prefixes) allowed to differ between identical runs: wall-clock times, the
-phases' too, and where a resumed run started."""
+phases' too, where a resumed run started and what a config change changed there."""
 
 
 def train_command(storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE) -> list[str]:

@@ -26,9 +26,11 @@ from collections.abc import Iterator
 import fsspec.asyn
 
 from ftrain.ckpt.storage import Storage
-from ftrain.errors import UserError
+from ftrain.errors import StorageError, UserError
 
 _CONFLICTS = ("PreconditionFailed", "ConditionalRequestConflict")
+_UNSUPPORTED = ("NotImplemented", "501")
+"""S3-compatible servers' answers to a conditional header they do not implement."""
 """S3's answers to a condition that did not hold (412), or to a conditional write racing another one (409)."""
 
 
@@ -55,16 +57,21 @@ def require_atomic(storage: Storage, plain_writes: bool = False) -> None:
     if not storage.is_s3:
         raise UserError(f"storage {storage.url} offers no conditional writes that ftrain uses: {RISK}")
     name = f"{PROBE}-{secrets.token_hex(4)}"
-    write(storage, name, b"0", None)
     try:
+        write(storage, name, b"0", None)
         for condition, version in (("If-None-Match: *", None), ("If-Match with another ETag", '"0"')):
             try:
                 write(storage, name, b"1", version)
             except Conflict:
                 continue
             raise UserError(f"storage {storage.url} ignores conditional writes ({condition} was not refused): {RISK}")
+    except StorageError as error:
+        if not any(code in str(error) for code in _UNSUPPORTED):
+            raise
+        raise UserError(f"storage {storage.url} does not take conditional writes ({error}): {RISK}") from None
     finally:
-        storage.delete(name)
+        with contextlib.suppress(StorageError):  # a probe object left behind harms nothing
+            storage.delete(name)
     _checked.add(storage.url)
 
 

@@ -21,11 +21,13 @@ from __future__ import annotations
 
 import json
 import os
+import time
 
 from ftrain.ckpt import cas
 from ftrain.ckpt.lease import GENERATION_ENV as LEASE_GENERATION_ENV
 from ftrain.ckpt.lease import RUN_ID_ENV, LeaseLost, lost_message, read_record
 from ftrain.ckpt.storage import Storage
+from ftrain.redact import display_url
 
 GENERATION_ENV = "FTRAIN_GENERATION"
 """``RUN:EPOCH:N``: the run (its supervisors' token: a run started again is another one), the token's epoch
@@ -33,6 +35,8 @@ GENERATION_ENV = "FTRAIN_GENERATION"
 FENCE = "FENCE.json"
 EPOCHS_KEPT = 32
 """Tokens whose epochs ``FENCE.json`` remembers, the newest."""
+EPOCH_WAIT = 120.0
+"""Seconds a node that does not number a token waits for its maker to have numbered it (see ``epoch_of``)."""
 _epochs: dict[tuple[str, str], int] = {}
 """This process's epochs by (storage, token): a supervisor asks the storage once per token."""
 
@@ -82,17 +86,27 @@ class Fence:
                 continue
 
 
-def epoch_of(storage: Storage, run: str) -> int:
-    """The epoch of token ``run``: the one ``FENCE.json`` records for it, else the next one, which it then records,
-    raising the fence to it (see the module doc). Asked once per process and token."""
+def epoch_of(storage: Storage, run: str, allocate: bool = True, wait: float = EPOCH_WAIT) -> int:
+    """The epoch of token ``run``: the one ``FENCE.json`` records for it; else, if ``allocate`` (the token's maker:
+    node 0's supervisor with c10d; any node on etcd, whose plan is read fresh before every launch), the next one,
+    which it records, raising the fence to it (see the module doc). Others wait up to ``wait`` seconds for the maker
+    to record it, then take 0, below every recorded epoch: a token never given one commits nothing past another's.
+    A token only its maker numbers cannot take an epoch after a newer token (its maker, gone, is what made the newer
+    one start). Asked once per process and token."""
     if (storage.url, run) in _epochs:
         return _epochs[storage.url, run]
+    deadline = time.monotonic() + wait
     while True:
         current = cas.read(storage, FENCE)
         record = _parse(current[0]) if current is not None else {}
         epochs = record.get("epochs") if isinstance(record.get("epochs"), dict) else {}
         if isinstance(epochs.get(run), int):
             break
+        if not allocate:
+            if time.monotonic() > deadline:
+                return 0
+            time.sleep(0.5)
+            continue
         epoch = max([record.get("epoch", 0), *epochs.values()]) + 1
         epochs = dict(list(epochs.items())[-(EPOCHS_KEPT - 1) :]) | {run: epoch}
         raised = {"run": run, "epoch": epoch, "generation": -1, "epochs": epochs}
@@ -103,6 +117,11 @@ def epoch_of(storage: Storage, run: str) -> int:
             continue
     _epochs[storage.url, run] = epochs[run]
     return epochs[run]
+
+
+def cached_epoch(storage_url: str, run: str) -> int | None:
+    """The epoch of token ``run`` this process already knows for the storage at ``storage_url`` (None: not asked)."""
+    return _epochs.get((display_url(storage_url), run))
 
 
 class LeaseToken:

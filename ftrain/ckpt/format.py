@@ -38,6 +38,13 @@ VERIFIED, INCOMPLETE, CORRUPT, QUARANTINE = "verified", "incomplete", "corrupt",
 UNSETTLED = "unsettled"
 """A writer's own step whose commit failed and whose manifest it could not look at: never deleted by its retention."""
 
+
+def is_timing(metric: str) -> bool:
+    """A metric that is wall time (``iteration_time``, ``time/env_ms``...): kept out of manifests and policy lineages,
+    which identical runs must write alike."""
+    return metric.endswith("_time") or metric.startswith("time/")
+
+
 STEP_DIR = re.compile(r"^step-(\d+)$")
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
 _RESERVED = {"format_version", "step", "files"}

@@ -25,7 +25,7 @@ import time
 from collections.abc import Callable
 
 from ftrain.ckpt import resume
-from ftrain.ckpt.format import COMMON, STATE_FORMAT, shard_name
+from ftrain.ckpt.format import COMMON, STATE_FORMAT, is_timing, shard_name
 from ftrain.ckpt.lease import LeaseLost
 from ftrain.ckpt.resume import Checkpointable, CheckpointError
 from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, Target, snapshot
@@ -246,7 +246,7 @@ class Checkpointer:
             "metrics": {  # JSON has no NaN: a metric not measured yet is null
                 key: value if math.isfinite(value) else None
                 for key, value in trainer.metrics.items()
-                if not key.endswith("_time")
+                if not is_timing(key)
             },
         }
 

@@ -262,6 +262,7 @@ class StepWriter:
         files = {name: FileEntry(*entry) for report in reports for name, entry in report["entries"].items()}
         fields = {key: value for report in reports for key, value in report["fields"].items()}  # from common.pt
         if not errors:
+            writing = False
             try:
                 if self.lease is not None:
                     self.lease.check()
@@ -269,6 +270,7 @@ class StepWriter:
                 if self.fence is not None:
                     self.fence.check()
                     fields["generation"], fields["epoch"] = [self.fence.run, self.fence.generation], self.fence.epoch
+                writing = True
                 manifest = commit(storage, step, files, meta | fields, check_present=not self._listed)
                 self._listed = True
             except (LeaseLost, Fenced) as exc:  # a newer holder of the storage, or generation of the run, committed
@@ -277,7 +279,7 @@ class StepWriter:
                 return (Result.LEASE_LOST if isinstance(exc, LeaseLost) else Result.FENCED, step, str(exc))
             except Exception as exc:
                 errors = [f"commit: {exc}"]
-                if (manifest := self._landed(step, files)) is not None:
+                if writing and (manifest := self._landed(storage, step, files)) is not None:
                     errors = []  # its answer was lost, not the manifest
         if errors:
             if self._steps.get(step, StepInfo(step, INCOMPLETE)).status != UNSETTLED:
@@ -288,13 +290,13 @@ class StepWriter:
         self._apply_retention()
         return (Result.COMMITTED, step, manifest)
 
-    def _landed(self, step: int, files: dict[str, FileEntry]) -> dict | None:
+    def _landed(self, storage: Storage, step: int, files: dict[str, FileEntry]) -> dict | None:
         """After a commit that raised, a direct look at ``step``'s manifest, which may have landed though the answer to
         its write was lost: the manifest if it is this commit's. Otherwise the step counts as abandoned; unless the
         look failed as well, when it is left unsettled, which retention never deletes (the next run's scan settles
         it): a committed step must not go on the word of a failed request."""
         try:
-            landed = verify_step(self.storage, step, full=False)
+            landed = verify_step(storage, step, full=False)
         except Exception:
             self._steps[step] = StepInfo(step, UNSETTLED)
             return None

@@ -17,15 +17,16 @@ from ftrain.config import EnvConfig
 from ftrain.errors import UserError
 
 TIMEOUT = 120.0
-"""Seconds the check may take; past them (a module that hangs on import) the workers meet the env as before."""
+"""Seconds the check may take; past them (a module that hangs on import) the workers meet the env as before, as they
+do an env whose ``kwargs`` JSON cannot carry to the child (YAML dates, say)."""
 
 
 def check_in_child(env: EnvConfig) -> None:
     """UserError with the child's line if ``env`` cannot be trained; anything else is left to the workers."""
-    command = [sys.executable, "-m", "ftrain.policy.robot", json.dumps(dataclasses.asdict(env))]
     try:
+        command = [sys.executable, "-m", "ftrain.policy.robot", json.dumps(dataclasses.asdict(env))]
         done = subprocess.run(command, capture_output=True, text=True, timeout=TIMEOUT)
-    except subprocess.TimeoutExpired:
+    except (TypeError, subprocess.TimeoutExpired):  # env.kwargs that JSON cannot carry, or a module that hangs
         return
     if done.returncode == 2 and done.stderr.strip():
         raise UserError(done.stderr.strip().splitlines()[-1])

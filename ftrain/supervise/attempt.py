@@ -302,5 +302,5 @@ class Attempt:
 
 
 def kill(pid: int, sig: int) -> None:
-    with contextlib.suppress(ProcessLookupError):
+    with contextlib.suppress(ProcessLookupError, PermissionError):  # gone, or (its pid handed out again) not ours
         os.kill(pid, sig)

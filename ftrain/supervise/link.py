@@ -40,10 +40,12 @@ def rendezvous(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> list[str
     return [*rendezvous_args(plan, nodes, options), *local]
 
 
-def worker_env(plan: Plan, nodes: Nodes, storage: StorageConfig) -> dict[str, str]:
+def worker_env(plan: Plan, nodes: Nodes, storage: StorageConfig, coordinating: bool) -> dict[str, str]:
     """What the workers of ``plan``'s attempt add to their environment on several nodes: their generation
-    (``fence.py``; its epoch from the ``storage``) and, with ``--local-addr``, ``GLOO_SOCKET_IFNAME``, the interface
-    that holds it: else gloo binds to what the hostname resolves to and gives the other ranks that address (127.0.0.1
-    where the hostname maps to it: they dial their own loopback). A ``GLOO_SOCKET_IFNAME`` of the user's wins."""
+    (``fence.py``; its epoch from the ``storage``, given by node 0's coordinator on c10d, ``coordinating``) and, with
+    ``--local-addr``, ``GLOO_SOCKET_IFNAME``, the interface that holds it: else gloo binds to what the hostname
+    resolves to and gives the other ranks that address (127.0.0.1 where the hostname maps to it: they dial their own
+    loopback). A ``GLOO_SOCKET_IFNAME`` of the user's wins."""
     gloo = {"GLOO_SOCKET_IFNAME": os.environ.get("GLOO_SOCKET_IFNAME", nodes.interface)} if nodes.interface else {}
-    return {**generation_env(plan, nodes.count, storage), **gloo}
+    numbers = coordinating or nodes.backend is Backend.ETCD
+    return {**generation_env(plan, nodes.count, storage, numbers), **gloo}

@@ -12,7 +12,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ftrain.ckpt.fence import GENERATION_ENV, epoch_of
+from ftrain.ckpt.fence import GENERATION_ENV, cached_epoch, epoch_of
 from ftrain.ckpt.storage import Storage
 from ftrain.config import StorageConfig
 from ftrain.supervise.options import Nodes, SupervisorOptions
@@ -58,13 +58,16 @@ def apply(plan: Plan, request: dict, port: Callable[[], int | None]) -> Plan:
     return plan
 
 
-def generation_env(plan: Plan, nnodes: int, storage: StorageConfig) -> dict[str, str]:
+def generation_env(plan: Plan, nnodes: int, storage: StorageConfig, numbers: bool) -> dict[str, str]:
     """The workers' generation on several nodes (``ftrain.ckpt.fence``: a node cut off from the others commits
-    nothing once they have committed in a later attempt, or a newer token has its epoch); none on one node. Asks the
-    ``storage`` for the token's epoch, once per token."""
+    nothing once they have committed in a later attempt, or a newer token has its epoch); none on one node. The
+    token's epoch comes from the ``storage``, once per token; ``numbers``: this node gives a token without one its
+    epoch (see ``fence.epoch_of``)."""
     if nnodes == 1:
         return {}
-    epoch = epoch_of(Storage.open(storage.url, storage.options), plan.token)
+    epoch = cached_epoch(storage.url, plan.token)
+    if epoch is None:
+        epoch = epoch_of(Storage.open(storage.url, storage.options, check_bucket=False), plan.token, numbers)
     return {GENERATION_ENV: f"{plan.token}:{epoch}:{plan.attempt}"}
 
 

@@ -221,8 +221,8 @@ class Supervisor:
         token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
         train_args, hidden = hide_credentials(self.train_args)
         env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.node, hidden)
-        storage = self.storage_wait.storage
-        env |= {STORAGE_WAIT_ENV: str(self.storage_wait.limit), **worker_env(plan, self.nodes, storage)}
+        storage, coordinating = self.storage_wait.storage, self.coordinator is not None
+        env |= {STORAGE_WAIT_ENV: str(self.storage_wait.limit), **worker_env(plan, self.nodes, storage, coordinating)}
         logs = new_log_dir(self.attempt_logs, plan)
         arguments = rendezvous(plan, self.nodes, self.options)
         command, warm = self.launcher.command(arguments, train_args, logs)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -250,13 +251,15 @@ def run_side_by_side(
             cmd = [sys.executable, *(launcher if count > 1 else ["-m", "ftrain"]), "train", *args]
             environment = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
             with out.with_suffix(".log").open("w") as log:  # not a pipe: a full one would stall a run, and the barrier
-                runs.append((subprocess.Popen(cmd, env=environment, stdout=log, stderr=subprocess.STDOUT), out))
+                streams = {"stdout": log, "stderr": subprocess.STDOUT}
+                process = subprocess.Popen(cmd, env=environment, start_new_session=True, **streams)
+                runs.append((process, out))
         while (codes := [process.poll() for process, _ in runs]).count(None) and not any(codes):
             time.sleep(0.2)  # all running, or all done well
         failed = [(process, out) for process, out in runs if process.returncode]
-        for process, _ in runs:  # one failed: the others would wait for it at the barrier
+        for process, _ in runs:  # one failed: the others (torchrun and its workers) would wait for it at the barrier
             if process.poll() is None:
-                process.kill()
+                os.killpg(process.pid, signal.SIGKILL)
                 process.wait()
         for process, out in failed:
             output = out.with_suffix(".log").read_text()[-4000:]

@@ -211,39 +211,38 @@ class CsvHook(Hook):
         self.config_change: str | None = None
 
     def on_start(self, trainer: Trainer) -> None:
-        if not trainer.info.is_main:
-            return
-        path = Path(trainer.config.log_dir) / METRICS_CSV
         self.resumed_from = trainer.iteration or None
         self.config_change = trainer.checkpointer.config_change
-        if not (path.exists() and path.stat().st_size):
-            return
-        with path.open(newline="") as existing:
-            reader = csv.DictReader(existing)
-            fields = list(reader.fieldnames or [])
-            fields += [name for name in CSV_ONLY if name not in fields]  # a file of an older version gains them
-            kept = [row for row in reader if int(row["iteration"]) <= trainer.iteration]
-        tmp = path.with_suffix(".csv.tmp")
-        with tmp.open("w", newline="") as file:
-            writer = csv.DictWriter(file, fields)
-            writer.writeheader()
-            writer.writerows(kept)
-        os.replace(tmp, path)
-        self.file = path.open("a", newline="")
-        self.writer = csv.DictWriter(self.file, fields, extrasaction="ignore")
 
     def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
         if not trainer.info.is_main:
             return
         if self.writer is None:
-            self.file = (Path(trainer.config.log_dir) / METRICS_CSV).open("w", newline="")
-            fields = ["iteration", *metrics, *CSV_ONLY[1:]]
-            self.writer = csv.DictWriter(self.file, fields, extrasaction="ignore")
-            self.writer.writeheader()
+            self._open(Path(trainer.config.log_dir) / METRICS_CSV, trainer.iteration - 1, metrics)
         resume = {"resumed_from": self.resumed_from or "", "config_change": self.config_change or ""}
         self.writer.writerow({"iteration": trainer.iteration, **metrics, **resume})
         self.resumed_from = self.config_change = None
         self.file.flush()
+
+    def _open(self, path: Path, kept: int, metrics: dict[str, float]) -> None:
+        """Open ``path`` to append: rows past iteration ``kept`` go (a resumed run redoes them), and a file of an
+        older version gains the columns it lacks."""
+        fields: list[str] = []
+        rows: list[dict] = []
+        if path.exists() and path.stat().st_size:
+            with path.open(newline="") as existing:
+                reader = csv.DictReader(existing)
+                fields = list(reader.fieldnames or [])
+                rows = [row for row in reader if int(row["iteration"]) <= kept]
+        fields += [name for name in ["iteration", *metrics, *CSV_ONLY[1:]] if name not in fields]
+        tmp = path.with_suffix(".csv.tmp")
+        with tmp.open("w", newline="") as file:
+            writer = csv.DictWriter(file, fields)
+            writer.writeheader()
+            writer.writerows(rows)
+        os.replace(tmp, path)
+        self.file = path.open("a", newline="")
+        self.writer = csv.DictWriter(self.file, fields, extrasaction="ignore")
 
     def on_end(self, trainer: Trainer) -> None:
         if self.file is not None:

@@ -27,9 +27,10 @@ def test_local_addr_goes_to_torchrun_and_its_interface_to_gloo(monkeypatch, back
     assert nodes.interface == "lo"
     assert rendezvous(plan, nodes, options)[-1] == "--local-addr=127.0.0.1"
     storage = StorageConfig(str(tmp_path / "run"))
-    assert worker_env(plan, nodes, storage) == {GENERATION_ENV: "token:1:1", "GLOO_SOCKET_IFNAME": "lo"}  # epoch 1
+    expected = {GENERATION_ENV: "token:1:1", "GLOO_SOCKET_IFNAME": "lo"}  # the token's epoch 1, attempt 1
+    assert worker_env(plan, nodes, storage, True) == expected
     monkeypatch.setenv("GLOO_SOCKET_IFNAME", "eth7")  # the user's choice wins
-    assert worker_env(plan, nodes, storage)["GLOO_SOCKET_IFNAME"] == "eth7"
+    assert worker_env(plan, nodes, storage, True)["GLOO_SOCKET_IFNAME"] == "eth7"
 
 
 def test_without_local_addr_the_hostname_decides_as_before(monkeypatch, tmp_path) -> None:
@@ -37,7 +38,7 @@ def test_without_local_addr_the_hostname_decides_as_before(monkeypatch, tmp_path
     options = SupervisorOptions(nnodes="2:3", **ETCD)
     nodes, plan = parse_nodes(options), Plan("token", 0, None)
     assert not any(argument.startswith("--local-addr") for argument in rendezvous(plan, nodes, options))
-    assert worker_env(plan, nodes, StorageConfig(str(tmp_path / "run"))) == {GENERATION_ENV: "token:1:0"}
+    assert worker_env(plan, nodes, StorageConfig(str(tmp_path / "run")), False) == {GENERATION_ENV: "token:1:0"}  # etcd
 
 
 def test_an_address_of_no_interface_here_is_refused() -> None:

@@ -182,7 +182,7 @@ def test_a_worker_without_a_tracker_never_runs_wandb_and_leaves_nothing_in_tmp(t
     left = "sum('wandb' in name for name in os.listdir(os.environ['TMPDIR']))"
     probe = (
         f"import os, sys, ftrain.train.trainer; print('wandb.sdk' in sys.modules, {left});"
-        f"import wandb; wandb.Settings; print('wandb.sdk' in sys.modules, {left});"
+        f"import wandb.sdk.wandb_run; wandb.init; print('wandb.sdk' in sys.modules, {left});"  # a submodule first
         "os._exit(0)"  # as a forked worker ends
     )
     env = {**child_env(), "TMPDIR": str(tmp_path)}

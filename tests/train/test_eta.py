@@ -3,11 +3,12 @@ saves the console says (a quiet console: milestones, and how long ago in the pro
 
 from __future__ import annotations
 
+import csv
 from types import SimpleNamespace
 
 import pytest
 
-from ftrain.train.hooks import ConsoleHook
+from ftrain.train.hooks import ConsoleHook, CsvHook
 
 
 class Clock:
@@ -84,3 +85,28 @@ def test_the_progress_line_says_how_long_ago_the_newest_save_was(capsys) -> None
     clock.now += 14
     hook.after_iteration(trainer, metrics)
     assert " | saved 0m14s ago | ETA " in capsys.readouterr().out.splitlines()[-1]
+
+
+def test_a_metrics_file_of_an_older_version_gains_the_new_columns_and_loses_the_rows_to_redo(tmp_path) -> None:
+    """A run resumed at step 2 from a metrics.csv written before the phase times and config changes existed."""
+    (tmp_path / "metrics.csv").write_text("iteration,mean_return\n1,1.0\n2,2.0\n3,3.0\n")
+    trainer = SimpleNamespace(
+        info=SimpleNamespace(is_main=True),
+        config=SimpleNamespace(log_dir=str(tmp_path)),
+        checkpointer=SimpleNamespace(config_change="algorithm.gamma 0.99 -> 0.98"),
+        iteration=2,
+    )
+    hook = CsvHook()
+    hook.on_start(trainer)
+    trainer.iteration = 3
+    hook.after_iteration(trainer, {"mean_return": 3.5, "time/env_ms": 7.0})
+    hook.on_end(trainer)
+    with (tmp_path / "metrics.csv").open(newline="") as file:
+        rows = list(csv.DictReader(file))
+    assert list(rows[0]) == ["iteration", "mean_return", "time/env_ms", "resumed_from", "config_change"]
+    assert [(row["iteration"], row["time/env_ms"], row["resumed_from"]) for row in rows] == [
+        ("1", "", ""),
+        ("2", "", ""),
+        ("3", "7.0", "2"),
+    ]
+    assert rows[2]["config_change"] == "algorithm.gamma 0.99 -> 0.98"
