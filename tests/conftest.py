@@ -7,6 +7,8 @@ from collections.abc import Callable
 
 import pytest
 
+from ftrain.ckpt.lease import GENERATION_ENV as LEASE_GENERATION_ENV
+from ftrain.ckpt.lease import RUN_ID_ENV
 from ftrain.tools import etcd_server as etcd_tools
 from ftrain.tools.outage import S3Server, free_port, start_moto, stop
 
@@ -158,6 +160,15 @@ def etcd_tls_server(tmp_path):
 def _skip_without_etcd() -> None:
     if shutil.which("etcd") is None:
         pytest.skip(etcd_tools.MISSING)
+
+
+@pytest.fixture(autouse=True)
+def own_run_names(monkeypatch):
+    """A lease held in this process (``Lease.hold``) names the run in its environment, which every process a test
+    starts later inherits, and would join that run: each test's names go with it."""
+    for name in (RUN_ID_ENV, LEASE_GENERATION_ENV):
+        monkeypatch.setenv(name, "")
+        monkeypatch.delenv(name)
 
 
 @pytest.fixture(autouse=True)

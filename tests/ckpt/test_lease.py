@@ -50,15 +50,6 @@ HOLDER = textwrap.dedent(
 )
 
 
-@pytest.fixture(autouse=True)
-def own_environment(monkeypatch):
-    """``hold`` names the run in this process's environment, which the test processes started later inherit: each
-    test's names go with it."""
-    for name in (RUN_ID_ENV, GENERATION_ENV):
-        monkeypatch.setenv(name, "")
-        monkeypatch.delenv(name)
-
-
 @pytest.fixture(params=["local", "s3"])
 def storage(request, tmp_path) -> Storage:
     if request.param == "local":
