@@ -27,7 +27,6 @@ from ftrain.ckpt import cas
 from ftrain.ckpt.lease import GENERATION_ENV as LEASE_GENERATION_ENV
 from ftrain.ckpt.lease import RUN_ID_ENV, LeaseLost, lost_message, read_record
 from ftrain.ckpt.storage import Storage
-from ftrain.redact import display_url
 
 GENERATION_ENV = "FTRAIN_GENERATION"
 """``RUN:EPOCH:N``: the run (its supervisors' token: a run started again is another one), the token's epoch
@@ -37,8 +36,6 @@ EPOCHS_KEPT = 32
 """Tokens whose epochs ``FENCE.json`` remembers, the newest."""
 EPOCH_WAIT = 120.0
 """Seconds a node that does not number a token waits for its maker to have numbered it (see ``epoch_of``)."""
-_epochs: dict[tuple[str, str], int] = {}
-"""This process's epochs by (storage, token): a supervisor asks the storage once per token."""
 
 
 class Fenced(Exception):
@@ -92,9 +89,7 @@ def epoch_of(storage: Storage, run: str, allocate: bool = True, wait: float = EP
     which it records, raising the fence to it (see the module doc). Others wait up to ``wait`` seconds for the maker
     to record it, then take 0, below every recorded epoch: a token never given one commits nothing past another's.
     A token only its maker numbers cannot take an epoch after a newer token (its maker, gone, is what made the newer
-    one start). Asked once per process and token."""
-    if (storage.url, run) in _epochs:
-        return _epochs[storage.url, run]
+    one start)."""
     deadline = time.monotonic() + wait
     while True:
         current = cas.read(storage, FENCE)
@@ -115,13 +110,7 @@ def epoch_of(storage: Storage, run: str, allocate: bool = True, wait: float = EP
             break
         except cas.Conflict:
             continue
-    _epochs[storage.url, run] = epochs[run]
     return epochs[run]
-
-
-def cached_epoch(storage_url: str, run: str) -> int | None:
-    """The epoch of token ``run`` this process already knows for the storage at ``storage_url`` (None: not asked)."""
-    return _epochs.get((display_url(storage_url), run))
 
 
 class LeaseToken:

@@ -12,7 +12,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ftrain.ckpt.fence import GENERATION_ENV, cached_epoch, epoch_of
+from ftrain.ckpt.fence import GENERATION_ENV, epoch_of
 from ftrain.ckpt.storage import Storage
 from ftrain.config import StorageConfig
 from ftrain.supervise.options import Nodes, SupervisorOptions
@@ -58,6 +58,10 @@ def apply(plan: Plan, request: dict, port: Callable[[], int | None]) -> Plan:
     return plan
 
 
+_EPOCHS: dict[str, int] = {}
+"""This supervisor's epochs by token (it runs on one storage)."""
+
+
 def generation_env(plan: Plan, nnodes: int, storage: StorageConfig, numbers: bool) -> dict[str, str]:
     """The workers' generation on several nodes (``ftrain.ckpt.fence``: a node cut off from the others commits
     nothing once they have committed in a later attempt, or a newer token has its epoch); none on one node. The
@@ -65,10 +69,10 @@ def generation_env(plan: Plan, nnodes: int, storage: StorageConfig, numbers: boo
     epoch (see ``fence.epoch_of``)."""
     if nnodes == 1:
         return {}
-    epoch = cached_epoch(storage.url, plan.token)
-    if epoch is None:
-        epoch = epoch_of(Storage.open(storage.url, storage.options, check_bucket=False), plan.token, numbers)
-    return {GENERATION_ENV: f"{plan.token}:{epoch}:{plan.attempt}"}
+    if plan.token not in _EPOCHS:  # a token's epoch never changes: the storage is asked once per token
+        opened = Storage.open(storage.url, storage.options, check_bucket=False)
+        _EPOCHS[plan.token] = epoch_of(opened, plan.token, numbers)
+    return {GENERATION_ENV: f"{plan.token}:{_EPOCHS[plan.token]}:{plan.attempt}"}
 
 
 def elastic_rendezvous(
