@@ -282,7 +282,8 @@ class StepWriter:
                 if writing and (manifest := self._landed(storage, step, files)) is not None:
                     errors = []  # its answer was lost, not the manifest
         if errors:
-            self._steps.setdefault(step, StepInfo(step, INCOMPLETE))  # abandoned: retention deletes it
+            if self._steps.get(step, StepInfo(step, INCOMPLETE)).status != UNSETTLED:
+                self._steps[step] = StepInfo(step, INCOMPLETE)  # abandoned: retention deletes it
             return (Result.FAILED, step, "; ".join(errors))
         self._steps[step] = StepInfo(step, VERIFIED, sum(entry.size for entry in files.values()), manifest)
         self.newest_committed = step
