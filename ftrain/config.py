@@ -16,11 +16,12 @@ from pathlib import Path
 import yaml
 
 from ftrain.errors import UserError
-from ftrain.redact import display_url, redact_options
+from ftrain.redact import Url, display_url, redact_options
 from ftrain.values import build, parse_amount, parse_value, set_dotted, storage_option_overrides
 
 POLICY_FORMATS = ("torchscript", "onnx")
 """The file formats a policy is exported and snapshotted in."""
+NO_URL, AUTO = Url(""), Url("auto")  # defaults of the URL keys: immutable, so shared
 
 
 @dataclass
@@ -110,7 +111,7 @@ class CheckpointConfig:
 
 @dataclass
 class StorageConfig:
-    url: str = ""
+    url: Url = NO_URL
     """Local path or fsspec URL; default ``runs/<name>``."""
     options: dict = field(default_factory=dict)
     """fsspec storage options (for s3: ``endpoint_url``, ``key``, ``secret``...)."""
@@ -143,7 +144,7 @@ class WandbConfig(Switched):
 class MlflowConfig(Switched):
     """MLflow, on when any key is set (``pip install 'ftrain[mlflow]'``)."""
 
-    tracking_uri: str = ""
+    tracking_uri: Url = NO_URL
     """An MLflow server (``http://host:5000``) or store (``sqlite:///mlflow.db``); empty: ``MLFLOW_TRACKING_URI`` or
     MLflow's default."""
     experiment: str = ""
@@ -196,7 +197,7 @@ class Config:
     """Total iterations of the run: a resumed run stops where an uninterrupted one would."""
     num_steps_per_env: int = 24
     torch_threads: int = 1
-    resume: str = "auto"
+    resume: Url = AUTO
     """``auto`` (newest verified checkpoint, else fresh), ``never``, or the URL of one checkpoint step."""
     allow_config_change: bool = False
     """Resume even though the checkpoint's training-relevant config differs (its state wins)."""
@@ -204,7 +205,7 @@ class Config:
     """Local directory for logs, metrics, heartbeats; default: the storage path if local, else ``runs/<name>``."""
     dist_timeout: float = 60.0
     """Seconds a collective may wait for a peer before failing."""
-    teacher: str = ""
+    teacher: Url = NO_URL
     """Distillation: URL of the teacher's checkpoint (a step or a run's storage)."""
     env: EnvConfig = field(default_factory=EnvConfig)
     policy: PolicyConfig = field(default_factory=PolicyConfig)
@@ -298,7 +299,7 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
     if not config.name:
         config.name = Path(path).stem if path else "run"
     if not config.storage.url:
-        config.storage.url = f"runs/{config.name}"
+        config.storage.url = Url(f"runs/{config.name}")
     if not config.log_dir:
         config.log_dir = default_log_dir(config.storage.url, config.name)
     validate(config)
@@ -318,11 +319,10 @@ def config_from_dict(data: dict) -> Config:
 def default_log_dir(storage_url: str, name: str) -> str:
     """Logs go next to the checkpoints when storage is local, else to ``runs/<name>/<the storage>`` on this machine
     (``s3://bkt/exp1`` -> ``runs/exp/s3/bkt/exp1``): two runs of one config on two storages keep their logs apart."""
-    if "://" not in storage_url:
-        return storage_url
-    if storage_url.startswith("file://"):
-        return storage_url[len("file://") :]
-    protocol, _, where = display_url(storage_url).partition("://")
+    shown = display_url(storage_url).removeprefix("file://")
+    if "://" not in shown:
+        return shown
+    protocol, _, where = shown.partition("://")
     parts = [part for part in where.split("/") if part not in ("", ".", "..")]
     return "/".join(["runs", name, protocol, *parts])
 

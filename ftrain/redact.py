@@ -22,8 +22,34 @@ ARGUMENTS_ENV = "FTRAIN_TRAIN_ARGUMENTS"
 """Where the supervisor passes ``ftrain train`` arguments that carry credentials (see ``hide_credentials``)."""
 
 
+class Url(str):
+    """A URL that may carry credentials (``s3://key:secret@bucket/prefix``), as the config holds it: its text form
+    (``str``, ``repr``, f-strings, ``%s``, logging) is the URL without them, so that no message or record can print a
+    secret by formatting it. ``reveal()`` is the form with credentials, for the one place that needs it: opening the
+    storage (fsspec, MLflow). It stays a ``str`` for everything that compares or parses it; a string built from it by
+    ``+`` or slicing is a plain ``str``, so code that builds text from it formats it instead."""
+
+    def __new__(cls, url: str = "") -> Url:
+        return super().__new__(cls, str.__str__(url))  # str(url) of a Url would drop its credentials
+
+    def __str__(self) -> str:
+        return display_url(self)
+
+    def __repr__(self) -> str:
+        return repr(display_url(self))
+
+    def __format__(self, spec: str) -> str:
+        return format(display_url(self), spec)
+
+    def reveal(self) -> str:
+        """The URL with its credentials, as given."""
+        return str.__str__(self)
+
+
 def display_url(url: str) -> str:
-    """``url`` without the credentials a URL may carry (``s3://key:secret@bucket/...`` -> ``s3://bucket/...``)."""
+    """``url`` without the credentials a URL may carry (``s3://key:secret@bucket/...`` -> ``s3://bucket/...``), as a
+    plain ``str``."""
+    url = str.__str__(url)
     parts = urlsplit(url) if "://" in url else None
     if parts is None or "@" not in parts.netloc:
         return url

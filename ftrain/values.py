@@ -18,6 +18,7 @@ from typing import Any
 import yaml
 
 from ftrain.errors import UserError
+from ftrain.redact import Url
 
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(s|m|h)\s*$")
 _UNITS = {"s": 1.0, "m": 60.0, "h": 3600.0}
@@ -119,12 +120,12 @@ def convert(kind: Any, value: Any, key: str) -> Any:
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise UserError(f"{key}={value!r} must be a number")
         return float(value)
-    if kind is str:
+    if kind in (str, Url):
         if value is None:
-            return ""
+            value = ""
         if not isinstance(value, (str, int, float)) or isinstance(value, bool):
             raise UserError(f"{key}={value!r} must be a string")
-        return str(value)
+        return kind(value if isinstance(value, str) else str(value))
     return value
 
 

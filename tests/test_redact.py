@@ -1,6 +1,19 @@
 """The one redaction module: URLs, storage options and command lines without credentials."""
 
-from ftrain.redact import HIDDEN, display_url, hide_credentials, redact_command, redact_options, reveal_credentials
+import json
+import logging
+import pickle
+
+from ftrain.config import load_config
+from ftrain.redact import (
+    HIDDEN,
+    Url,
+    display_url,
+    hide_credentials,
+    redact_command,
+    redact_options,
+    reveal_credentials,
+)
 
 
 def test_urls_and_options_lose_their_credentials() -> None:
@@ -13,6 +26,26 @@ def test_urls_and_options_lose_their_credentials() -> None:
         "secret": HIDDEN,
         "config_kwargs": {},
     }
+
+
+def test_a_config_url_formats_without_its_credentials_and_reveals_them_only_when_asked(caplog) -> None:
+    config = load_config(
+        None,
+        ["teacher=s3://AK:SK@bucket/teacher", "log.mlflow.tracking_uri=http://user:PW@127.0.0.1:5000"],
+        storage="s3://AK:SK@bucket/run",
+    )
+    urls = [config.storage.url, config.teacher, config.log.mlflow.tracking_uri]
+    assert all(isinstance(url, Url) for url in urls)
+    with caplog.at_level(logging.INFO):
+        logging.getLogger("test").info("storage %s, teacher %r", config.storage.url, config.teacher)
+    shown = [repr(config), caplog.text]
+    shown += [text for url in urls for text in (f"{url}", f"{url!r}", f"{url:>40}", str(url), repr(url))]
+    assert not any("SK" in text or "PW" in text for text in shown), shown
+    assert f"{config.storage.url}" == "s3://bucket/run" and type(str(config.storage.url)) is str
+    assert config.storage.url.reveal() == "s3://AK:SK@bucket/run" == config.storage.url  # compares as given
+    assert Url(config.storage.url).reveal() == "s3://AK:SK@bucket/run"
+    assert pickle.loads(pickle.dumps(config.teacher)).reveal() == "s3://AK:SK@bucket/teacher"  # to a sender process
+    assert "SK" not in json.dumps(config.public_dict())
 
 
 def test_command_lines_lose_their_credentials_and_keep_the_rest() -> None:

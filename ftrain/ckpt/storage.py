@@ -36,7 +36,7 @@ from fsspec.implementations.local import LocalFileSystem
 
 from ftrain.ckpt import localfs
 from ftrain.errors import StorageError, StorageUnavailable, UserError
-from ftrain.redact import SECRET_OPTIONS, display_url
+from ftrain.redact import SECRET_OPTIONS, Url, display_url
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +106,7 @@ class Storage:
             raise UserError("storage URL is empty: pass a local path or an fsspec URL such as s3://bucket/prefix")
         if retries < 0:
             raise UserError(f"checkpoint.retries={retries} must be 0 or more")
-        options = dict(options or {})
+        url, options = Url(url).reveal(), dict(options or {})  # the one place the credentials are read
         secrets = _secret_values(options) + _url_secrets(url) + [os.environ.get(name, "") for name in _SECRET_ENV]
         protocol = url.split("://", 1)[0] if "://" in url else "file"
         shown = display_url(url)

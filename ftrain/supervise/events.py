@@ -19,6 +19,8 @@ import sys
 import time
 from pathlib import Path
 
+from ftrain.redact import Url
+
 
 class EventLog:
     """Appends one JSON line per decision; decisions with a message are also printed."""
@@ -29,7 +31,8 @@ class EventLog:
         self.node = node
 
     def __call__(self, event: str, message: str = "", **fields) -> None:
-        record = {"time": round(time.time(), 3), "event": event, **fields}
+        shown = {name: str(value) if isinstance(value, Url) else value for name, value in fields.items()}
+        record = {"time": round(time.time(), 3), "event": event, **shown}  # json writes a Url's credentials
         if self.node is not None:
             record["node"] = self.node
         self.path.parent.mkdir(parents=True, exist_ok=True)

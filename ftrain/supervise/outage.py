@@ -18,7 +18,7 @@ from collections.abc import Callable
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable, WaitLines, backoff
 from ftrain.config import StorageConfig
 from ftrain.errors import EXIT_USAGE, UserError
-from ftrain.redact import display_url
+from ftrain.redact import Url
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.options import EXIT_STORAGE_WAIT
 from ftrain.supervise.outcome import Outcome
@@ -65,7 +65,7 @@ class StorageWait:
         """Probe until the storage answers (None), or the ending of the run: it did not within the limit, or what it
         answers no waiting fixes (a bucket gone, access denied). ``why``: what found it unreachable (None: nothing
         yet, this is a first look)."""
-        url = display_url(self.storage.url)  # for people and records; the probe gets the real one
+        url = self.storage.url  # a Url: printed and recorded without its credentials
         started, since, tries, lines = time.monotonic(), time.strftime("%H:%M:%S"), 0, WaitLines()
         if why is not None:
             self._waiting(url, why, lines)
@@ -100,7 +100,7 @@ class StorageWait:
             self.sleep(delay)
             tries += 1
 
-    def _waiting(self, url: str, why: str, lines: WaitLines) -> None:
+    def _waiting(self, url: Url, why: str, lines: WaitLines) -> None:
         """The wait's first line (the next comes ``WAIT_LINES`` seconds later): a storage never reached may be a
         wrong URL or endpoint."""
         if self.reached:

@@ -33,7 +33,7 @@ class MlflowRun:
         from mlflow.entities import Param
         from mlflow.tracking import MlflowClient
 
-        self.client = client = MlflowClient(self.config.tracking_uri or None)
+        self.client = client = MlflowClient(self.config.tracking_uri.reveal() or None)
         name = self.config.experiment or self.info.name
         experiment = client.get_experiment_by_name(name)
         experiment_id = experiment.experiment_id if experiment else client.create_experiment(name)
