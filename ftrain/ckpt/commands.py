@@ -26,7 +26,7 @@ from ftrain.ckpt.format import (
     verify_step,
 )
 from ftrain.ckpt.retention import Kept, delete_step, kept, retention_plan
-from ftrain.ckpt.steps import ASIDE, scan, select_resume, set_aside_steps
+from ftrain.ckpt.steps import ASIDE, abandoned, scan, select_resume, set_aside_steps
 from ftrain.ckpt.steps import unquarantine as unquarantine_step
 from ftrain.ckpt.storage import Storage
 from ftrain.config import CheckpointConfig
@@ -148,7 +148,11 @@ def prune(
     infos = scan(storage, full=True)  # digests too: a bit-rotted step must not pass for the newest good one
     doomed = set(retention_plan(infos, keep_last, keep_best, best_metric, keep_every, pinned, drop_bad))
     for info in infos:
-        if info.step in doomed:
+        if info.step in doomed and info.status == INCOMPLETE and not abandoned(storage, info, time.time()):
+            written = _age(storage.modified(step_dir(info.step)))
+            print(f"keeping step {info.step} (incomplete, last written {written}: maybe a save in flight)")
+            doomed.discard(info.step)
+        elif info.step in doomed:
             why = {VERIFIED: "verified, outside retention", INCOMPLETE: "abandoned, never committed"}.get(
                 info.status, info.status
             )

@@ -105,9 +105,11 @@ def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print)
     """Prepare a run starting from ``step`` (0 for a fresh start) to save the following steps again.
 
     Every save needs a fresh directory. Incomplete steps newer than ``step`` were abandoned by the run that died
-    (never committed): they are deleted. Corrupt and quarantined ones are set aside (:func:`set_aside`), never
-    deleted. A verified newer step means the storage holds another history: UserError, nothing touched. Call it on
-    rank 0 before the first save, when no other process writes to this storage.
+    (never committed: ``scan`` looks at the manifest itself): they are deleted, however young, since the attempt that
+    wrote them is dead on this node (``Attempt.kill`` waits for it) and fenced off on others. Corrupt and
+    quarantined ones are set aside (:func:`set_aside`), never deleted. A verified newer step means the storage holds
+    another history: UserError, nothing touched. Call it on rank 0 before the first save, when no other process
+    writes to this storage.
     """
     newer = [info for info in scan(storage) if info.step > step]
     verified = [info.step for info in newer if info.status == VERIFIED]
@@ -123,6 +125,19 @@ def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print)
         else:
             where = set_aside(storage, info)
             log(f"checkpoint step {info.step} ({info.status}) moved to {where}: the run saves that step again")
+
+
+ABANDONED_AFTER = 600.0
+"""Seconds since a step without a manifest was last written before ``ftrain ckpt prune`` takes it for abandoned:
+a younger one may be a save in flight, of a run on another host."""
+
+
+def abandoned(storage: Storage, info: StepInfo, now: float) -> bool:
+    """Whether an incomplete step (no manifest, looked at directly: see ``format.verify_listed``) may be deleted by
+    a cleanup that does not know who writes to the storage: nothing written for ``ABANDONED_AFTER`` seconds (the
+    storage's times against ``now``, this machine's)."""
+    written = storage.modified(step_dir(info.step))
+    return info.status == INCOMPLETE and (written is None or now - written >= ABANDONED_AFTER)
 
 
 def set_aside(storage: Storage, info: StepInfo) -> str:

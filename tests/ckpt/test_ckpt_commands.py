@@ -5,12 +5,13 @@ import shlex
 import signal
 import subprocess
 import sys
+import time
 
 import pytest
 
 from ftrain.ckpt import commands as ckpt_commands
 from ftrain.ckpt.format import read_manifest, write_file
-from ftrain.ckpt.steps import scan
+from ftrain.ckpt.steps import ABANDONED_AFTER, scan
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
 
@@ -108,6 +109,21 @@ def test_prune(run, capsys):
 
     assert ckpt_commands.prune(run, keep_last=1, drop_bad=True) == 0
     assert [info.step for info in scan(Storage.open(run))] == [40, 30]
+
+
+def test_prune_keeps_an_incomplete_step_written_lately_and_deletes_it_once_abandoned(run, capsys):
+    """An incomplete step older than the newest verified one is an abandoned save, unless it was written lately:
+    then it may be a save in flight of a run on another host, and ``prune`` leaves it until it is old."""
+    storage = Storage.open(run)
+    write_file(storage, 15, "common.pt", b"half a save")
+    assert ckpt_commands.prune(run, keep_last=5) == 0
+    assert "keeping step 15 (incomplete, last written 0 s ago: maybe a save in flight)" in capsys.readouterr().out
+    assert 15 in [info.step for info in scan(storage)]
+    old = time.time() - ABANDONED_AFTER - 1
+    os.utime(f"{run}/checkpoints/step-000000015/common.pt", (old, old))
+    assert ckpt_commands.prune(run, keep_last=5) == 0
+    assert "deleting step 15 (abandoned, never committed)" in capsys.readouterr().out
+    assert 15 not in [info.step for info in scan(storage)]
 
 
 def test_bad_input_is_a_user_error(run, tmp_path):
