@@ -1,7 +1,10 @@
 """Fixtures only: storage backends (a real S3 API server on 127.0.0.1), an etcd server, and clean-up. Helpers live in
 helpers.py."""
 
+import os
+import resource
 import shutil
+import time
 import uuid
 from collections.abc import Callable
 
@@ -62,6 +65,28 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
         servers = SERVERS.intersection(getattr(item, "fixturenames", ()))
         if servers or on_s3 or any(item.get_closest_marker(lane) for lane in LANES_OF_THEIR_OWN):
             item.add_marker(pytest.mark.slow)
+
+
+CPU_LOG = os.environ.get("FTRAIN_TEST_CPU_LOG")
+"""A file that gets a line per test: CPU seconds (the test's process and every process it waited for, torchrun's
+workers included), wall seconds, test id. The suite is CPU-bound on two cores: ``--durations`` shows what waits, this
+what to cut."""
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
+    if not CPU_LOG:
+        yield
+        return
+    usage = lambda: sum(  # noqa: E731
+        getattr(resource.getrusage(who), field)
+        for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+        for field in ("ru_utime", "ru_stime")
+    )
+    cpu, wall = usage(), time.monotonic()
+    yield
+    with open(CPU_LOG, "a") as log:
+        log.write(f"{usage() - cpu:.1f} {time.monotonic() - wall:.1f} {item.nodeid}\n")
 
 
 # --- Storage backends: a real S3 API server (moto) on 127.0.0.1, plus local, file:// and memory:// URLs ---
