@@ -71,6 +71,10 @@ class Phase(enum.StrEnum):
     SNAPSHOT = "snapshot"
     """Rank 0 exports a policy snapshot (an ONNX export takes seconds)."""
     CHECKPOINT = "checkpoint"
+    CLOSING = "closing"
+    """The end of an attempt (the last iteration, or a stop): its save held until committed, the writer closed, the
+    hooks' ``on_end`` (trackers flushing). Once per attempt, so it is timed as a phase not seen yet: a slow close is
+    no hang, as a save of several seconds after saves of 0.1 s must not be."""
     DONE = "done"
     PREEMPTED = "preempted"
 

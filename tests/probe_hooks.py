@@ -105,6 +105,16 @@ class SlowFirstIterationHook(Hook):
         self.first = False
 
 
+class SlowEndHook(Hook):
+    """Sleeps ``seconds`` in ``on_end``: the end of a run as slow as a tracker that flushes over a slow network."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+
+    def on_end(self, trainer) -> None:
+        time.sleep(self.seconds)
+
+
 class HoldCommitHook(Hook):
     """Rank 0 of a run's first attempt (generation ``RUN:0``) holds its ``commit``-th commit where the shards are
     written and gathered and the fence is not yet read: it writes its pid to ``marker`` and waits until ``release``

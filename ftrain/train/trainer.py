@@ -219,7 +219,7 @@ class Trainer:
             self._iterate()
             stop, last = self._votes.stop is not None, self.iteration == self.config.iterations
             if stop or last or self._votes.save:
-                self.heartbeat.beat("checkpoint", self.iteration)
+                self.heartbeat.beat("closing" if stop or last else "checkpoint", self.iteration)
                 hold = stop or last or self._votes.hold
                 self.checkpointer.save(self, wait=stop, hold=hold, store=self._votes.store)
                 self.heartbeat.committed_step = self.checkpointer.committed_step

@@ -159,11 +159,17 @@ def test_a_fixed_timeout_holds_for_every_phase_after_start_up():
 def test_a_slow_first_iteration_is_not_a_hang_and_a_stopped_worker_is_caught_in_seconds(tmp_path):
     """In one real supervised run: the first iteration of a fresh start sleeps ``FIRST`` s (both ranks), twice the
     floor any later phase gets; later a worker is stopped in the middle of 0.05 s phases and is called hung at the
-    floor (asserted within the floor + ``FIRST``: a margin for a machine 3x slower)."""
+    floor (asserted within the floor + ``FIRST``: a margin for a machine 3x slower); the run's end (its last save,
+    the hooks' ``on_end``: trackers flushing) takes ``FIRST`` s too, after saves of a fraction of a second, and is
+    no hang either."""
     run = tmp_path / "run"
     command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", "--backoff-initial", "0.2"]
     command += [SMOKE, "--storage", str(run), "iterations=60", "log.console=false"]
-    command += [f"hooks=[{{target: 'probe_hooks:SlowFirstIterationHook', kwargs: {{seconds: {FIRST}}}}}]"]
+    slow = [
+        f"{{target: 'probe_hooks:{hook}', kwargs: {{seconds: {FIRST}}}}}"
+        for hook in ("SlowFirstIterationHook", "SlowEndHook")
+    ]
+    command += [f"hooks=[{', '.join(slow)}]"]
     output = (tmp_path / "supervise.log").open("wb")
     env = child_env({"PYTHONPATH": str(TESTS)})
     supervisor = launch(command, cwd=REPO, env=env, stdout=output, stderr=subprocess.STDOUT)
