@@ -206,7 +206,7 @@ def test_an_elastic_job_trains_on_when_a_node_dies(slurm, rendezvous, request, t
     slurm.kill_node(victim)
     if victim == job["BatchHost"]:
         slurm.wait(lambda: any(e["event"] == "summary" for e in events(storage)), "the survivor's summary", 180)
-        job = slurm.wait(lambda: (j := slurm.job(job_id))["NodeList"] == survivor and j, "the job shrunk", 60)
+        job = slurm.wait(lambda: (j := slurm.job(job_id))["NodeList"] == survivor and j, "the job shrunk", 180)
         assert job["JobState"] == "RUNNING", job  # n1 DOWN and out of the job, which lives on without its script
     else:
         job = finished(slurm, job_id, storage)
