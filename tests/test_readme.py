@@ -7,9 +7,9 @@ tests in ``tests/cluster`` and ``tests/track`` run their equivalents.
 
 Two things differ from a reader's run, so that the block takes minutes instead of hours:
 
-- training lines (``ftrain train``, ``ftrain supervise``, under torchrun or not) get ``SMOKE_SIZED`` appended:
-  configs/smoke.yaml's work per iteration. Run lengths, checkpoint intervals and retention stay as written, so the
-  steps the block names are the steps a reader's run keeps;
+- training lines (``ftrain train``, ``ftrain supervise``, under torchrun or not) get ``SMOKE_SIZED`` appended: a
+  quarter of configs/smoke.yaml's work per iteration. Run lengths, checkpoint intervals and retention stay as
+  written, so the steps the block names are the steps a reader's run keeps;
 - the benchmarks (``ftrain bench``, ``python launch/bench_*.py``) only show their ``--help``.
 
 ``PYTHONPATH`` points at this checkout, so the virtualenv's ``ftrain`` and ``python`` run the code under test (a no-op
@@ -30,15 +30,15 @@ import pytest
 from helpers import REPO, child_env
 
 SMOKE_SIZED = (
-    "env.num_envs=4",
+    "env.num_envs=2",
     "env.kwargs={max_episode_steps: 50}",
-    "num_steps_per_env=16",
+    "num_steps_per_env=8",
     "policy.hidden_dims=[16,16]",
-    "algorithm.num_learning_epochs=2",
-    "algorithm.num_mini_batches=2",
+    "algorithm.num_learning_epochs=1",
+    "algorithm.num_mini_batches=1",
     "log.tensorboard=false",
 )
-"""The sizes of configs/smoke.yaml, as overrides that come after the line's own and so win."""
+"""Overrides that come after the line's own and so win: 16 steps per rank and iteration, one update of one batch."""
 OUTPUT_OPTIONS = ("-o", "--video")
 
 
