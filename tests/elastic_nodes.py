@@ -61,12 +61,14 @@ def wait_resizes(storage: Path, nodes: list[int], count: int, timeout: float = 1
 
 
 def training_world(storage: Path, world: int, node: int = 0) -> bool:
-    """Whether a world of ``world`` ranks trains on ``node`` and has committed a checkpoint."""
+    """Whether a world of ``world`` ranks trains on ``node`` and has committed a checkpoint (that world: a step of a
+    smaller world that formed first does not count, or a node lost next may be lost before the supervisors know the
+    world they resize from)."""
     beats = (storage / "heartbeat" / f"node-{node}").glob("rank-*.json")
     training = any(
         f'"world": {world}' in path.read_text() and '"phase": "rollout"' in path.read_text() for path in beats
     )
-    return training and bool(manifests(storage))
+    return training and any(manifest["world_size"] == world for manifest in manifests(storage).values())
 
 
 def rank_zero(storage: Path, world: int) -> tuple[int, int] | None:

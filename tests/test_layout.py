@@ -36,7 +36,7 @@ LAYERS = {
     "ckpt": {"dist", "config", "values", "errors", "heartbeat", "lifeline", "redact"},
     "dist": {"errors", "lifeline", "proctitle"},
     "config": {"values", "errors", "redact"},
-    "values": {"errors"},
+    "values": {"errors", "redact"},
     "heartbeat": set(),
     "warm": {"lifeline", "proctitle"},
     "lifeline": {"procfs", "heartbeat"},

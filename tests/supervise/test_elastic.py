@@ -98,7 +98,7 @@ def test_on_etcd_losing_the_node_of_rank_0_the_others_go_on_at_world_2_and_finis
     killed_at = time.time()
     kill_tree(victim)  # the machine of rank 0 gone: its supervisor, torchrun and worker at once
     survivors = sorted({0, 1, 2} - {lost})
-    wait_resizes(storage, survivors, 1, timeout=60)
+    wait_resizes(storage, survivors, 1)
     assert [finish(proc, timeout=120) for proc in nodes if proc is not victim] == [0, 0]
 
     manifest = final_manifest(storage)
@@ -165,7 +165,7 @@ def test_on_c10d_a_nodes_preemption_leaves_the_others_training_and_node_0s_stops
     wait_for(lambda: training_world(storage, 3), "a world of 3 ranks training", timeout=180, interval=0.2)
     nodes[2].send_signal(signal.SIGTERM)
     assert finish(nodes[2], timeout=60) == EXIT_PREEMPTED
-    wait_resizes(storage, [0, 1], 1, timeout=60)
+    wait_resizes(storage, [0, 1], 1)
     shrunk = lambda: final_manifest(storage)["world_size"] == 2  # noqa: E731
     wait_for(shrunk, "a commit of the world of 2", timeout=60, interval=0.2)
     (_, three), (saved, two) = final_manifest(storage)["world_sizes"]
