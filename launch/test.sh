@@ -11,6 +11,8 @@
 # Further arguments go to pytest (a later `-m` or `-n` wins over the lane's). The SLURM lane (tests/cluster) runs a private
 # SLURM cluster and skips with the reason where slurm-wlm and munge are missing or not root; the cluster lane needs
 # etcd and, for tests/cluster/test_netns.py, network namespaces (root).
+# FTRAIN_TEST_CPU_LOG=FILE appends each test's CPU and wall seconds to FILE (tests/conftest.py): the suite is
+# CPU-bound, so that, not --durations, shows what to cut.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
