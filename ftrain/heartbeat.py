@@ -73,8 +73,8 @@ class Phase(enum.StrEnum):
     CHECKPOINT = "checkpoint"
     CLOSING = "closing"
     """The end of an attempt (the last iteration, or a stop): its save held until committed, the writer closed, the
-    hooks' ``on_end`` (trackers flushing). Once per attempt, so it is timed as a phase not seen yet: a slow close is
-    no hang, as a save of several seconds after saves of 0.1 s must not be."""
+    hooks' ``on_end`` (trackers flushing). Limited by the start-up grace alone (``hang.UNTIMED_PHASES``): a slow close
+    on rank 0 is no hang, after saves of 0.1 s or beside a peer that closed at once."""
     DONE = "done"
     PREEMPTED = "preempted"
 

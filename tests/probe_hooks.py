@@ -105,14 +105,34 @@ class SlowFirstIterationHook(Hook):
         self.first = False
 
 
+class LingerHook(Hook):
+    """Sleeps ``seconds`` at the end of every rollout and update from iteration ``start`` on: phases long enough that a
+    test which polls the heartbeats to kill a run inside one cannot miss it, however short a smoke run's phases are."""
+
+    def __init__(self, seconds: float, start: int) -> None:
+        self.seconds, self.start = seconds, start
+
+    def after_rollout(self, trainer) -> None:
+        self._linger(trainer)
+
+    def after_update(self, trainer, losses: dict[str, float]) -> None:
+        self._linger(trainer)
+
+    def _linger(self, trainer) -> None:
+        if trainer.iteration >= self.start:
+            time.sleep(self.seconds)
+
+
 class SlowEndHook(Hook):
-    """Sleeps ``seconds`` in ``on_end``: the end of a run as slow as a tracker that flushes over a slow network."""
+    """Sleeps ``seconds`` in rank 0's ``on_end``: the end of a run as slow as a tracker (rank 0's alone) that flushes
+    over a slow network, while the other ranks close at once."""
 
     def __init__(self, seconds: float) -> None:
         self.seconds = seconds
 
     def on_end(self, trainer) -> None:
-        time.sleep(self.seconds)
+        if trainer.info.is_main:
+            time.sleep(self.seconds)
 
 
 class HoldCommitHook(Hook):

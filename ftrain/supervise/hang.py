@@ -30,6 +30,9 @@ HANG_FLOOR = 5.0
 HANG_FACTOR = 10.0
 QUIET_PHASES = (Phase.DONE, Phase.PREEMPTED)
 """Phases after which a rank only exits: never a hang."""
+UNTIMED_PHASES = (Phase.CLOSING,)
+"""Phases limited by the start-up grace only: once per attempt, and rank 0's differs from its peers' (it alone commits
+the last save and flushes the trackers), so no earlier close, and no peer's quick one, says how long this one takes."""
 
 
 class HangWatch:
@@ -56,7 +59,7 @@ class HangWatch:
         if self.timeout is not None:
             return self.timeout
         longest = self.longest.get(beat.phase)
-        if longest is None or self._first_iteration(rank, beat):
+        if longest is None or beat.phase in UNTIMED_PHASES or self._first_iteration(rank, beat):
             return self.startup_grace
         return max(HANG_FLOOR, HANG_FACTOR * longest)
 

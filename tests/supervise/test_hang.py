@@ -136,6 +136,20 @@ def test_each_phase_has_its_own_limit_and_an_unseen_one_the_grace():
     assert both(watch, 40, Phase.EVALUATE, 8, now + HANG_FACTOR * 20 + 1).limit == HANG_FACTOR * 20
 
 
+def test_rank_0_closing_slowly_beside_a_peer_that_closed_at_once_has_the_grace():
+    """The end of an attempt: rank 1 closes in 0.01 s and says so in its heartbeat; rank 0 flushes its trackers for
+    40 s. A close is once per attempt and rank 0's alone does that work: no peer's close limits it."""
+    watch = HangWatch(timeout=None, startup_grace=GRACE, ranks=2)
+    watch.restart(now=0)
+    both(watch, 1, Phase.START, 0, now=0)
+    now = steady(watch, 1, range(0, 4))
+    closing = {0: beat(0, 30, Phase.CLOSING, 4), 1: beat(1, 31, Phase.DONE, 4, {"closing": 0.01})}
+    assert watch.check(closing, now) is None
+    assert watch.longest[Phase.CLOSING] == 0.01
+    assert watch.check(closing, now + 40) is None
+    assert watch.check(closing, now + GRACE + 1).limit == GRACE
+
+
 def test_a_rank_that_beats_keeps_the_group_alive():
     """Rank 0 holds a save (beating every 0.5 s) while rank 1 waits for it in a collective, silent: slow work."""
     watch = HangWatch(timeout=None, startup_grace=GRACE, ranks=2)

@@ -77,10 +77,13 @@ def test_own_robot_trains_supervised_resumes_bit_for_bit_after_sigkill_plays_and
     assert set(expected["robot"]["mjcf"]) == {"robot.xml", "parts/arm.xml", "meshes/block.obj"}
     assert (reference / "policies" / "step-000000008" / "MANIFEST.json").exists()
 
-    # the same run killed twice (mid-rollout, mid-update) and resumed, under plain torchrun
+    # the same run killed twice (mid-rollout, mid-update) and resumed, under plain torchrun; a smoke run's phases
+    # last milliseconds, which a look every 50 ms missed under load: LingerHook makes them last a second (run-only)
     run, heartbeats = tmp_path / "run", tmp_path / "heartbeats"
     for phase, iteration in (("rollout", 3), ("update", 5)):
-        proc = start_train(run, *MEMORY_ARM, ranks=2, env={ENV_DIR: str(heartbeats)}, cwd=work)
+        linger = f"hooks=[{{target: 'probe_hooks:LingerHook', kwargs: {{seconds: 1, start: {iteration}}}}}]"
+        env = {ENV_DIR: str(heartbeats), "PYTHONPATH": str(TESTS)}
+        proc = start_train(run, *MEMORY_ARM, linger, ranks=2, env=env, cwd=work)
         try:
             wait_for(functools.partial(_in_phase, heartbeats, phase, iteration), f"{phase} at iteration {iteration}")
         finally:
