@@ -187,6 +187,23 @@ def training(heartbeat_dir: str | Path, iteration: int, ranks: Iterable[int] = (
     return wait_for(ready, f"ranks {ranks} at iteration {iteration} in {heartbeat_dir}")
 
 
+class Hold:
+    """A run that holds after an iteration until the test lets it go on (``probe_hooks.HoldHook``): ``override`` is
+    the config override that loads the hook (the run's ``PYTHONPATH`` must name ``TESTS``), ``held`` waits until rank
+    0 holds, ``release`` lets every rank go on."""
+
+    def __init__(self, directory: Path, iteration: int) -> None:
+        self.marker, self.released = directory / "held", directory / "release"
+        kwargs = f"{{marker: '{self.marker}', release: '{self.released}', iteration: {iteration}}}"
+        self.override = f"hooks=[{{target: 'probe_hooks:HoldHook', kwargs: {kwargs}}}]"
+
+    def held(self) -> None:
+        wait_for(self.marker.exists, "the run holding")
+
+    def release(self) -> None:
+        self.released.touch()
+
+
 def manifests(storage: str | Path) -> dict[int, dict]:
     """Every committed step's manifest in a local storage, by step."""
     found = {}

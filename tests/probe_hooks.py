@@ -10,6 +10,7 @@ from pathlib import Path
 
 from ftrain.ckpt.fence import GENERATION_ENV, Fence
 from ftrain.dist import group
+from ftrain.heartbeat import Phase
 from ftrain.train.hooks import Hook
 
 
@@ -133,6 +134,24 @@ class SlowEndHook(Hook):
     def on_end(self, trainer) -> None:
         if trainer.info.is_main:
             time.sleep(self.seconds)
+
+
+class HoldHook(Hook):
+    """Every rank holds after iteration ``iteration`` until the file ``release`` exists; rank 0 first writes its pid
+    to ``marker``. A test acts at a known point of a live run (a trap set, intruders refused) however slow the
+    machine, and the run spends no CPU meanwhile. The ranks beat while they hold: slow work to a supervisor."""
+
+    def __init__(self, marker: str, release: str, iteration: int) -> None:
+        self.marker, self.release, self.iteration = Path(marker), Path(release), iteration
+
+    def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        if trainer.iteration != self.iteration:
+            return
+        if trainer.info.is_main:
+            self.marker.write_text(str(os.getpid()))
+        while not self.release.exists():
+            trainer.heartbeat.beat(Phase.UPDATE)
+            time.sleep(0.2)
 
 
 class HoldCommitHook(Hook):

@@ -26,13 +26,14 @@ from ftrain.train.trainer import train
 from helpers import (
     REPO,
     SMOKE,
+    TESTS,
+    Hold,
     S3Proxy,
     assert_same,
     child_env,
     final_manifest,
     finish,
     manifests,
-    run_train,
     start_train,
     train_command,
     wait_for,
@@ -137,19 +138,22 @@ def test_a_memory_run_saves_and_its_steps_verify(tmp_path, async_save: bool) -> 
 
 
 @pytest.mark.slow
-def test_when_rank_0_cannot_write_a_manifest_every_rank_hears_so_and_training_goes_on_to_the_same_end(tmp_path):
-    """Rank 0's manifest write of step TRAP fails (a directory stands where the manifest goes, placed once training
-    runs, since a fresh start clears steps it does not know): every rank says the step was not committed, then that
-    the next one was, and the run ends where an uninterrupted one does, bit for bit."""
-    trap, overrides = 150, ("iterations=200", "checkpoint.interval=2", "checkpoint.keep_last=200")
-    reference = run_train(tmp_path / "reference", *overrides, ranks=2)
+def test_when_rank_0_cannot_write_a_manifest_every_rank_hears_so_and_training_goes_on_to_the_same_end(
+    tmp_path, reference_state
+):
+    """Rank 0's manifest write of step TRAP fails (a directory stands where the manifest goes, placed while the run
+    holds after its first commit, since a fresh start clears steps it does not know): every rank says the step was not
+    committed, then that the next one was, and the run ends where an uninterrupted one does, bit for bit."""
+    trap, hold = 4, Hold(tmp_path, 3)
     storage = tmp_path / "run"
-    command = train_command(storage, *overrides, ranks=2)
-    env = child_env({ENV_DIR: str(tmp_path / "heartbeat")})
+    command = train_command(storage, "iterations=8", "checkpoint.keep_last=8", hold.override, ranks=2)
+    env = child_env({ENV_DIR: str(tmp_path / "heartbeat"), "PYTHONPATH": str(TESTS)})
     proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    wait_for(lambda: manifests(storage), "a first commit")
+    hold.held()
+    wait_for(lambda: 2 in manifests(storage), "step 2 committed")
     blocker = storage / "checkpoints" / f"step-{trap:09d}" / "MANIFEST.json"
     blocker.mkdir(parents=True)
+    hold.release()
     output, _ = proc.communicate(timeout=300)
     assert proc.returncode == 0, output[-3000:]
     assert blocker.is_dir() and not list(blocker.iterdir())
@@ -160,8 +164,7 @@ def test_when_rank_0_cannot_write_a_manifest_every_rank_hears_so_and_training_go
     retried = {int(step) for step in re.findall(r"rank \d: checkpoint step (\d+) committed: saves work again", output)}
     assert len(retried) == 1 and output.count("saves work again") == 2, "both ranks name the same step"
     assert trap < retried.pop() in manifests(storage)
-    assert final_manifest(storage)["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
-    assert "not committed" not in reference.stdout
+    assert final_manifest(storage)["state_sha256"] == reference_state(8)
 
 
 def test_a_commit_whose_answer_was_lost_counts_when_its_manifest_landed_and_is_never_deleted_unseen(s3_url):

@@ -28,6 +28,8 @@ from ftrain.supervise.auth import SECRET_ENV
 from helpers import (
     REPO,
     SMOKE,
+    TESTS,
+    Hold,
     child_env,
     create_bucket,
     events,
@@ -45,8 +47,9 @@ from helpers import (
 
 pytestmark = pytest.mark.slow
 
-OVERRIDES = ("iterations=300", "checkpoint.interval=50", "log.console=false")
-"""Long enough for the intruders to start and be refused while the first run trains (~10 s here)."""
+OVERRIDES = ("iterations=8", "log.console=false")
+HOLD_ENV = {"PYTHONPATH": str(TESTS)}
+"""What a first run that holds (``Hold``) needs: the intruders start and are refused while it holds."""
 
 
 def supervise_command(storage: str | Path, *overrides: str) -> list[str]:
@@ -72,7 +75,7 @@ def refused(proc: subprocess.Popen, holders: list[int]) -> tuple[str, str]:
 @pytest.fixture
 def reference(reference_state) -> str:
     """The state of the same 2-rank run, alone on its storage."""
-    return reference_state(300)
+    return reference_state(8)
 
 
 def released(storage: Storage | Path) -> bool:
@@ -82,19 +85,20 @@ def released(storage: Storage | Path) -> bool:
 
 
 def test_a_second_run_beside_a_supervised_one_is_refused_and_the_first_ends_as_alone(tmp_path, reference):
-    storage = tmp_path / "run"
-    first = launch(supervise_command(storage), cwd=REPO, env=child_env())
-    training(storage / "heartbeat", 2)
+    storage, hold = tmp_path / "run", Hold(tmp_path, 4)
+    first = launch(supervise_command(storage, hold.override), cwd=REPO, env=child_env(HOLD_ENV))
+    hold.held()
     supervise = intrude(supervise_command(storage))
     plain = intrude(train_command(storage, *OVERRIDES))
     assert supervise.wait(timeout=120) == EXIT_STORAGE_HELD
     assert plain.wait(timeout=120) == EXIT_STORAGE_HELD
-    assert first.poll() is None, "the first run ended before the intruders were refused: make it longer"
+    assert first.poll() is None
     line, output = refused(supervise, [first.pid])
     assert line.startswith("ftrain supervise: error: storage ") and output == line + "\n"  # nothing else
     line, output = refused(plain, [first.pid])
     assert line.startswith("ftrain: error: storage ") and output == line + "\n"
 
+    hold.release()
     assert finish(first) == 0
     assert final_manifest(storage)["state_sha256"] == reference
     names = [event["event"] for event in events(storage)]
@@ -106,21 +110,24 @@ def test_a_second_torchrun_beside_a_torchrun_run_is_refused_and_the_first_ends_a
     tmp_path, reference, s3_url, s3_env
 ):
     url, _ = s3_url
-    env = {**s3_env, "FTRAIN_HEARTBEAT_DIR": str(tmp_path / "heartbeat")}
+    hold = Hold(tmp_path, 4)
     log_dir = f"log_dir={tmp_path / 'logs'}"
-    first = launch(train_command(url, *OVERRIDES, log_dir, ranks=2), cwd=REPO, env=child_env(env))
-    training(tmp_path / "heartbeat", 2)
+    first = launch(
+        train_command(url, *OVERRIDES, log_dir, hold.override, ranks=2), cwd=REPO, env=child_env({**s3_env, **HOLD_ENV})
+    )
+    hold.held()
     holders = procfs.descendants(first.pid)
     second = intrude(train_command(url, *OVERRIDES, log_dir, ranks=2), env=s3_env)
     supervise = intrude(supervise_command(url, log_dir), env=s3_env)
     assert supervise.wait(timeout=120) == EXIT_STORAGE_HELD
     assert second.wait(timeout=120) != 0  # torchrun exits 1 when a worker fails, whatever its code
-    assert first.poll() is None, "the first run ended before the intruders were refused: make it longer"
+    assert first.poll() is None
     refused(supervise, holders)
     line, output = refused(second, holders)
     assert line.startswith("ftrain: error: storage ")
     assert re.search(rf"exitcode\s*:\s*{EXIT_STORAGE_HELD}\b", output)  # torchrun's report: the ranks exited 8
 
+    hold.release()
     assert finish(first) == 0
     storage = Storage.open(*s3_url)
     step = max(storage.list_dirs("checkpoints"))
