@@ -3,6 +3,9 @@ start fresh from (seed, rank, step), and the result depends on (checkpoint, new 
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from pathlib import Path
+
 import pytest
 
 from helpers import final_manifest, manifests, run_train
@@ -18,13 +21,28 @@ def two_rank_step(tmp_path_factory) -> str:
     return str(storage / "checkpoints" / "step-000000004")
 
 
+@pytest.fixture(scope="module")
+def resumed(tmp_path_factory, two_rank_step: str) -> Callable[[str, int], tuple[Path, str]]:
+    """``resumed(name, ranks)``: the storage and output of a run to step 8 from ``two_rank_step`` at ``ranks``, run
+    once per name in this module (the tests share the runs: each is a torchrun start of up to 3 workers)."""
+    runs: dict[str, tuple[Path, str]] = {}
+
+    def run(name: str, ranks: int) -> tuple[Path, str]:
+        if name not in runs:
+            storage = tmp_path_factory.mktemp(name) / "run"
+            result = run_train(storage, "iterations=8", f"resume={two_rank_step}", ranks=ranks)
+            runs[name] = storage, result.stdout
+        return runs[name]
+
+    return run
+
+
 @pytest.mark.parametrize("ranks", [1, 3])
-def test_a_resize_is_a_function_of_checkpoint_and_world_size(tmp_path, two_rank_step: str, ranks: int) -> None:
+def test_a_resize_is_a_function_of_checkpoint_and_world_size(resumed, ranks: int) -> None:
     digests, logs = [], []
     for attempt in ("a", "b"):
-        storage = tmp_path / attempt
-        result = run_train(storage, "iterations=8", f"resume={two_rank_step}", ranks=ranks)
-        logs.append(result.stdout)
+        storage, output = resumed(f"{ranks}-ranks-{attempt}", ranks)
+        logs.append(output)
         manifest = final_manifest(storage)
         assert (manifest["step"], manifest["world_size"]) == (8, ranks)
         assert manifest["world_sizes"] == [[0, 2], [4, ranks]]
@@ -38,11 +56,11 @@ def test_a_resize_is_a_function_of_checkpoint_and_world_size(tmp_path, two_rank_
         assert "the shards of rank 1 are dropped" in logs[0]
 
 
-def test_growing_changes_training_and_the_same_size_continues_bit_for_bit(tmp_path, two_rank_step: str) -> None:
-    same = run_train(tmp_path / "same", "iterations=8", f"resume={two_rank_step}", ranks=2)
-    assert "resized" not in same.stdout
-    grown = tmp_path / "grown"
-    run_train(grown, "iterations=8", f"resume={two_rank_step}", ranks=3)
-    assert final_manifest(tmp_path / "same")["world_sizes"] == [[0, 2]]
-    assert final_manifest(tmp_path / "same")["state_sha256"] != final_manifest(grown)["state_sha256"]
+def test_growing_changes_training_and_the_same_size_continues_bit_for_bit(resumed, reference_state) -> None:
+    same, output = resumed("2-ranks", 2)
+    assert "resized" not in output
+    assert final_manifest(same)["state_sha256"] == reference_state(8)  # as if never stopped at step 4
+    grown, _ = resumed("3-ranks-a", 3)
+    assert final_manifest(same)["world_sizes"] == [[0, 2]]
+    assert final_manifest(same)["state_sha256"] != final_manifest(grown)["state_sha256"]
     assert sorted(manifests(grown)) == [6, 8]
