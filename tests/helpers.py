@@ -51,6 +51,13 @@ def train_command(storage: str | Path, *overrides: str, ranks: int = 1, config: 
     return [*launcher, "train", config, "--storage", str(storage), "log.console=false", *overrides]
 
 
+def supervise_command(storage: str | Path, *overrides: str, ranks: int = 2, config: str = SMOKE) -> list[str]:
+    """``ftrain supervise`` of ``ranks`` workers: the main job, and the cheaper multi-rank run, as its workers fork
+    from one process that imported torch and MuJoCo once (half the CPU of plain torchrun's cold workers at 2 ranks)."""
+    launcher = [sys.executable, "-m", "ftrain", "supervise", f"--nproc-per-node={ranks}"]
+    return [*launcher, config, "--storage", str(storage), "log.console=false", *overrides]
+
+
 def child_env(extra: dict | None = None) -> dict:
     """A test subprocess's environment: one OpenMP thread, and this repository first on ``PYTHONPATH`` (a script run
     by its path, or a process started elsewhere, would import whichever ftrain is installed, maybe another checkout's);
@@ -67,10 +74,13 @@ def run_train(
     config: str = SMOKE,
     env: dict | None = None,
     cwd: str | Path = REPO,
+    supervised: bool = False,
 ) -> subprocess.CompletedProcess:
-    """Run training to completion; fail the test with its output if it does not exit 0."""
+    """Run training to completion (under plain torchrun, or ``supervised``); fail the test with its output if it does
+    not exit 0."""
+    command = supervise_command if supervised else train_command
     result = subprocess.run(
-        train_command(storage, *overrides, ranks=ranks, config=config),
+        command(storage, *overrides, ranks=ranks, config=config),
         cwd=cwd,
         env=child_env(env),
         capture_output=True,

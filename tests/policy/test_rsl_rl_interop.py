@@ -24,7 +24,7 @@ from helpers import final_manifest, run_train
 @pytest.mark.parametrize("ranks", [1, 2])
 def test_rsl_rl_loads_the_newest_common_pt_and_acts_like_ftrain(tmp_path, ranks: int) -> None:
     storage = tmp_path / "run"
-    run_train(storage, "iterations=4", ranks=ranks)
+    run_train(storage, "iterations=4", ranks=ranks, supervised=ranks > 1)
     manifest = final_manifest(storage)
     path = storage / "checkpoints" / f"step-{manifest['step']:09d}" / COMMON
     plain = torch.load(path, weights_only=True)

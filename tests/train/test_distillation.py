@@ -28,7 +28,9 @@ def test_student_learns_from_teacher_and_resumes_exactly(tmp_path) -> None:
     teacher_manifest = final_manifest(teacher)
 
     straight = tmp_path / "straight"
-    result = run_train(straight, f"teacher={teacher}", "iterations=12", *SMALL, ranks=2, config=DISTILL)
+    result = run_train(
+        straight, f"teacher={teacher}", "iterations=12", *SMALL, ranks=2, config=DISTILL, supervised=True
+    )
     source = teacher / "checkpoints" / "step-000000012"
     assert f"teacher: {source} (step 12, state_sha256 {teacher_manifest['state_sha256'][:16]})" in result.stdout
     behavior = {it: float(row["loss/behavior"]) for it, row in metrics_by_iteration(straight).items()}
@@ -42,8 +44,8 @@ def test_student_learns_from_teacher_and_resumes_exactly(tmp_path) -> None:
     assert manifest["teacher"]["step"] == 12
 
     resumed = tmp_path / "resumed"
-    run_train(resumed, f"teacher={teacher}", "iterations=8", *SMALL, ranks=2, config=DISTILL)
-    result = run_train(resumed, f"teacher={teacher}", "iterations=12", *SMALL, ranks=2, config=DISTILL)
+    run_train(resumed, f"teacher={teacher}", "iterations=8", *SMALL, ranks=2, config=DISTILL, supervised=True)
+    result = run_train(resumed, f"teacher={teacher}", "iterations=12", *SMALL, ranks=2, config=DISTILL, supervised=True)
     assert "resumed from step 8" in result.stdout
     assert final_manifest(resumed)["state_sha256"] == manifest["state_sha256"]
 

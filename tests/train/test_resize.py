@@ -17,7 +17,7 @@ pytestmark = pytest.mark.slow
 def two_rank_step(tmp_path_factory) -> str:
     """Step 4 of a 2-rank run, as a checkpoint URL."""
     storage = tmp_path_factory.mktemp("resize") / "run"
-    run_train(storage, "iterations=4", ranks=2)
+    run_train(storage, "iterations=4", ranks=2, supervised=True)
     return str(storage / "checkpoints" / "step-000000004")
 
 
@@ -30,7 +30,7 @@ def resumed(tmp_path_factory, two_rank_step: str) -> Callable[[str, int], tuple[
     def run(name: str, ranks: int) -> tuple[Path, str]:
         if name not in runs:
             storage = tmp_path_factory.mktemp(name) / "run"
-            result = run_train(storage, "iterations=8", f"resume={two_rank_step}", ranks=ranks)
+            result = run_train(storage, "iterations=8", f"resume={two_rank_step}", ranks=ranks, supervised=True)
             runs[name] = storage, result.stdout
         return runs[name]
 

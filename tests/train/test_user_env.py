@@ -198,12 +198,12 @@ def test_a_student_distils_from_a_teacher_of_ones_own_robot_and_resumes_exactly(
     distill += ["policy.hidden_dims=[32,32]", "algorithm.gradient_length=16", "checkpoint.interval=2"]
     config = str(REPO / "configs" / "distill_halfcheetah.yaml")
     straight = tmp_path / "straight"
-    result = run_train(straight, *distill, "iterations=6", ranks=2, config=config, cwd=work)
+    result = run_train(straight, *distill, "iterations=6", ranks=2, config=config, cwd=work, supervised=True)
     assert "teacher: " in result.stdout and "(step 8," in result.stdout
     manifest = final_manifest(straight)
     assert manifest["teacher"]["digest"] == final_manifest(teacher)["state_sha256"]
     assert manifest["robot"]["env_class"] == "userbot.envs:MemoryArm"
     resumed = tmp_path / "resumed"
-    run_train(resumed, *distill, "iterations=4", ranks=2, config=config, cwd=work)
-    run_train(resumed, *distill, "iterations=6", ranks=2, config=config, cwd=work)
+    run_train(resumed, *distill, "iterations=4", ranks=2, config=config, cwd=work, supervised=True)
+    run_train(resumed, *distill, "iterations=6", ranks=2, config=config, cwd=work, supervised=True)
     assert final_manifest(resumed)["state_sha256"] == manifest["state_sha256"]
