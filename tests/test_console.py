@@ -53,7 +53,7 @@ def test_plain_torchrun_says_bad_input_once_from_rank_0(tmp_path) -> None:
 
 def test_supervised_bad_input_is_one_line_once_and_not_restarted(tmp_path) -> None:
     storage = tmp_path / "run"
-    run_train(storage, "iterations=2", ranks=2)
+    run_train(storage, "iterations=2", ranks=2, supervised=True)
     proc, console = supervise(storage, "env.num_envs=3")
     assert finish(proc) == 2
     text = console.read_text()
