@@ -7,6 +7,7 @@ import shutil
 import time
 import uuid
 from collections.abc import Callable
+from pathlib import Path
 
 import pytest
 
@@ -147,20 +148,27 @@ def storage_url(request, tmp_path, monkeypatch):
 
 
 @pytest.fixture(scope="session")
-def reference_state(tmp_path_factory) -> Callable[[int], str]:
-    """``state_sha256(iterations)``: the final state of an uninterrupted 2-rank run of configs/smoke.yaml (torchrun,
-    cold workers) of that many iterations, trained once per test run. Faults, supervision, SLURM, warm workers, the
-    storage and the checkpoint schedule change nothing that is trained, so every fault test compares with it."""
-    states: dict[int, str] = {}
+def reference_run(tmp_path_factory) -> Callable[[int], Path]:
+    """``reference_run(iterations)``: the storage (and log directory) of an uninterrupted 2-rank run of
+    configs/smoke.yaml (torchrun, cold workers) of that many iterations, trained once per test run; read it, never
+    write to it. Faults, supervision, SLURM, warm workers, hooks, the storage and the checkpoint schedule change
+    nothing that is trained, so every such run compares with it."""
+    runs: dict[int, Path] = {}
 
-    def state(iterations: int) -> str:
-        if iterations not in states:
+    def run(iterations: int) -> Path:
+        if iterations not in runs:
             storage = tmp_path_factory.mktemp(f"reference-{iterations}") / "run"
             run_train(storage, f"iterations={iterations}", ranks=2)
-            states[iterations] = final_manifest(storage)["state_sha256"]
-        return states[iterations]
+            runs[iterations] = storage
+        return runs[iterations]
 
-    return state
+    return run
+
+
+@pytest.fixture(scope="session")
+def reference_state(reference_run) -> Callable[[int], str]:
+    """``reference_state(iterations)``: the final ``state_sha256`` of ``reference_run(iterations)``."""
+    return lambda iterations: final_manifest(reference_run(iterations))["state_sha256"]
 
 
 @pytest.fixture

@@ -35,11 +35,12 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory) -> Path:
-    """The smoke run (8 iterations, a checkpoint every 2, 2 ranks) with evaluation and snapshots, and without."""
+def runs(tmp_path_factory, reference_run) -> Path:
+    """The smoke run (8 iterations, a checkpoint every 2, 2 ranks) with evaluation and snapshots (supervised), and
+    without (the shared reference run)."""
     root = tmp_path_factory.mktemp("runs")
-    run_train(root / "eval", *EVAL, *SNAPSHOTS, ranks=RANKS)
-    run_train(root / "plain", ranks=RANKS)
+    run_train(root / "eval", *EVAL, *SNAPSHOTS, ranks=RANKS, supervised=True)
+    (root / "plain").symlink_to(reference_run(8))
     return root
 
 
@@ -123,7 +124,7 @@ def test_a_resumed_run_redoes_the_snapshots_past_its_checkpoint(runs, tmp_path) 
     shutil.copytree(runs / "eval", run)
     before = lineage(run, 8)
     shutil.rmtree(run / "checkpoints" / "step-000000008")
-    result = run_train(run, *EVAL, *SNAPSHOTS, "iterations=10", ranks=RANKS)
+    result = run_train(run, *EVAL, *SNAPSHOTS, "iterations=10", ranks=RANKS, supervised=True)
     assert "deleting policy snapshot step 8 (verified)" in result.stdout
     assert sorted(p.name for p in (run / "policies").iterdir()) == ["step-000000008", "step-000000010"]
     redone = lineage(run, 8)

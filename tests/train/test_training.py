@@ -19,7 +19,7 @@ def hook(target: str, path) -> str:
 
 
 @pytest.mark.slow
-def test_ranks_agree_after_every_iteration_and_the_seed_decides(tmp_path) -> None:
+def test_ranks_agree_after_every_iteration_and_the_seed_decides(tmp_path, reference_run) -> None:
     agreement = tmp_path / "agreement.jsonl"
     run_train(tmp_path / "a", hook("RankAgreementHook", agreement), ranks=2, env=PROBES, supervised=True)
     lines = [json.loads(line) for line in agreement.read_text().splitlines()]
@@ -29,12 +29,11 @@ def test_ranks_agree_after_every_iteration_and_the_seed_decides(tmp_path) -> Non
         assert line["digests"][0] == line["digests"][1], f"ranks diverged at iteration {line['iteration']}"
     assert len({line["digests"][0] for line in lines}) == 8, "the learned state must change every iteration"
 
-    run_train(tmp_path / "b", ranks=2, supervised=True)
     run_train(tmp_path / "c", "seed=2", ranks=2, supervised=True)
-    same, other = final_manifest(tmp_path / "b"), final_manifest(tmp_path / "c")
+    same, other = final_manifest(reference_run(8)), final_manifest(tmp_path / "c")
     assert final_manifest(tmp_path / "a")["state_sha256"] == same["state_sha256"]
     assert other["state_sha256"] != same["state_sha256"]
-    assert metrics_by_iteration(tmp_path / "a") == metrics_by_iteration(tmp_path / "b")
+    assert metrics_by_iteration(tmp_path / "a") == metrics_by_iteration(reference_run(8))
 
 
 @pytest.mark.slow
