@@ -25,6 +25,7 @@ from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD
 from ftrain.supervise.auth import SECRET_ENV
 
+import helpers
 from helpers import (
     REPO,
     SMOKE,
@@ -53,8 +54,7 @@ HOLD_ENV = {"PYTHONPATH": str(TESTS)}
 
 
 def supervise_command(storage: str | Path, *overrides: str) -> list[str]:
-    command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node=2", SMOKE, "--storage", str(storage)]
-    return [*command, *OVERRIDES, *overrides]
+    return helpers.supervise_command(storage, *OVERRIDES, *overrides)
 
 
 def intrude(command: list[str], env: dict | None = None) -> subprocess.Popen:
@@ -190,23 +190,24 @@ def test_two_runs_of_one_config_from_one_directory_keep_their_logs_apart(tmp_pat
     """exp1 and exp2 from one checkout: two storages, so two log directories (``runs/<name>/s3/<bucket>/<prefix>``),
     each with one run's events, metrics and heartbeats; neither stops, prunes or restarts anything of the other. A
     supervisor told to log into a directory in use is refused with one line and touches nothing."""
-    bucket = create_bucket(s3_server)
+    bucket, hold = create_bucket(s3_server), Hold(tmp_path, 3)  # both runs hold until the third is refused
 
-    def command(prefix: str) -> list[str]:
+    def command(prefix: str, *overrides: str) -> list[str]:
         supervise = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node=1", SMOKE]
-        return [*supervise, "--storage", f"s3://{bucket}/{prefix}", "iterations=40", "log.console=false"]
+        return [*supervise, "--storage", f"s3://{bucket}/{prefix}", "iterations=40", "log.console=false", *overrides]
 
-    env = child_env(s3_env)
-    runs = {prefix: launch(command(prefix), cwd=tmp_path, env=env) for prefix in ("exp1", "exp2")}
+    env = child_env({**s3_env, **HOLD_ENV})
+    runs = {prefix: launch(command(prefix, hold.override), cwd=tmp_path, env=env) for prefix in ("exp1", "exp2")}
     logs = {prefix: tmp_path / "runs" / "smoke" / "s3" / bucket / prefix for prefix in runs}
     for prefix in runs:
         training(logs[prefix] / "heartbeat", 2, ranks=[0])
     shared = Path("runs/smoke/s3", bucket, "exp1")  # a third storage, told to log where exp1 logs
-    third = [*command("exp3"), f"log_dir={shared}"]
+    third = command("exp3", f"log_dir={shared}")
     again = subprocess.run(third, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert again.returncode == 2, again.stderr
     assert f"log directory {shared} is in use by another run (supervisor pid " in again.stderr, again.stderr
     assert len(again.stderr.strip().splitlines()) == 1, again.stderr
+    hold.release()
     assert [finish(proc, timeout=180) for proc in runs.values()] == [0, 0]
     for prefix, log_dir in logs.items():
         recorded = events(log_dir)

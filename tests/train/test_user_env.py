@@ -20,7 +20,6 @@ from ftrain.heartbeat import ENV_DIR, read_heartbeats
 
 from helpers import (
     REPO,
-    SMOKE,
     TESTS,
     child_env,
     final_manifest,
@@ -28,6 +27,7 @@ from helpers import (
     metrics_by_iteration,
     run_train,
     start_train,
+    supervise_command,
     train_command,
     wait_for,
 )
@@ -47,11 +47,6 @@ def work(tmp_path) -> Path:
     """The user's directory: their module ``userbot`` (and a broken one), outside the repository."""
     shutil.copytree(TESTS / "user_robot", tmp_path / "work")
     return tmp_path / "work"
-
-
-def supervise_command(storage: Path, *overrides: str, ranks: int = 2) -> list[str]:
-    launcher = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", str(ranks), "--backoff-initial", "0.2"]
-    return [*launcher, SMOKE, "--storage", str(storage), "log.console=false", *overrides]
 
 
 def ftrain(work: Path, *args: str) -> subprocess.CompletedProcess:
