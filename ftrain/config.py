@@ -16,7 +16,7 @@ from pathlib import Path
 import yaml
 
 from ftrain.errors import UserError
-from ftrain.redact import Url, display_url, redact_options
+from ftrain.redact import Url, display_url, display_urls, redact_options
 from ftrain.values import build, parse_amount, parse_value, set_dotted, storage_option_overrides
 
 POLICY_FORMATS = ("torchscript", "onnx")
@@ -223,12 +223,8 @@ class Config:
 
     def public_dict(self) -> dict:
         """``to_dict`` without credentials: what may be logged, saved in checkpoints or shipped in a policy."""
-        data = self.to_dict()
-        data["storage"]["url"] = display_url(self.storage.url)
+        data = display_urls(self.to_dict())
         data["storage"]["options"] = redact_options(self.storage.options)
-        data["teacher"] = display_url(self.teacher)
-        data["resume"] = display_url(self.resume)
-        data["log"]["mlflow"]["tracking_uri"] = display_url(self.log.mlflow.tracking_uri)
         return data
 
     def training_hash(self, robot: dict | None = None) -> str:

@@ -56,6 +56,16 @@ def display_url(url: str) -> str:
     return urlunsplit(parts._replace(netloc=parts.netloc.rpartition("@")[2]))
 
 
+def display_urls(data: object) -> object:
+    """``data`` (dicts and lists, as ``dataclasses.asdict`` makes them) with every ``Url`` in it as its text form: a
+    plain ``str``, which ``json`` and ``yaml`` write as it reads (a ``str`` subclass they would write raw)."""
+    if isinstance(data, dict):
+        return {key: display_urls(value) for key, value in data.items()}
+    if isinstance(data, list | tuple):
+        return type(data)(display_urls(item) for item in data)
+    return display_url(data) if isinstance(data, Url) else data
+
+
 def redact_options(options: dict) -> dict:
     """A copy of fsspec ``options`` with credential values hidden and URLs stripped of user information."""
     return {

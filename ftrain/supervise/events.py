@@ -19,7 +19,7 @@ import sys
 import time
 from pathlib import Path
 
-from ftrain.redact import Url
+from ftrain.redact import display_urls
 
 
 class EventLog:
@@ -31,8 +31,7 @@ class EventLog:
         self.node = node
 
     def __call__(self, event: str, message: str = "", **fields) -> None:
-        shown = {name: str(value) if isinstance(value, Url) else value for name, value in fields.items()}
-        record = {"time": round(time.time(), 3), "event": event, **shown}  # json writes a Url's credentials
+        record = {"time": round(time.time(), 3), "event": event, **display_urls(fields)}  # json writes a Url raw
         if self.node is not None:
             record["node"] = self.node
         self.path.parent.mkdir(parents=True, exist_ok=True)
