@@ -203,7 +203,7 @@ def test_a_resize_continues_the_tracker_run_and_a_run_forked_into_another_storag
     run, fork, track = tmp_path / "run", tmp_path / "fork", f"log.mlflow.tracking_uri={uri}"
     step = str(run / "checkpoints" / "step-000000004")
     MlflowClient(uri).search_experiments()  # the store's tables made once, before the runs (see the test above)
-    run_train(run, "iterations=4", track, ranks=2, env=OFFLINE, cwd=tmp_path)  # MLflow's artifacts: ./mlruns
+    run_train(run, "iterations=4", track, ranks=2, env=OFFLINE, cwd=tmp_path, supervised=True)  # artifacts: ./mlruns
     own_dir = {**OFFLINE, "WANDB_DIR": str(tmp_path / "mine")}  # another storage: a new run; W&B's files in WANDB_DIR
     run_train(fork, "iterations=5", track, "log.wandb.mode=offline", f"resume={step}", env=own_dir, cwd=tmp_path)
     assert wandb_history(tmp_path / "mine")[0] and not (fork / "wandb").exists()
