@@ -193,8 +193,7 @@ def test_two_runs_of_one_config_from_one_directory_keep_their_logs_apart(tmp_pat
     bucket, hold = create_bucket(s3_server), Hold(tmp_path, 3)  # both runs hold until the third is refused
 
     def command(prefix: str, *overrides: str) -> list[str]:
-        supervise = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node=1", SMOKE]
-        return [*supervise, "--storage", f"s3://{bucket}/{prefix}", "iterations=40", "log.console=false", *overrides]
+        return helpers.supervise_command(f"s3://{bucket}/{prefix}", "iterations=40", *overrides, ranks=1)
 
     env = child_env({**s3_env, **HOLD_ENV})
     runs = {prefix: launch(command(prefix, hold.override), cwd=tmp_path, env=env) for prefix in ("exp1", "exp2")}
