@@ -29,9 +29,9 @@ from ftrain.ckpt.storage import Storage
 from ftrain.errors import StorageError, UserError
 
 _CONFLICTS = ("PreconditionFailed", "ConditionalRequestConflict")
+"""S3's answers to a condition that did not hold (412), or to a conditional write racing another one (409)."""
 _UNSUPPORTED = ("NotImplemented", "501")
 """S3-compatible servers' answers to a conditional header they do not implement."""
-"""S3's answers to a condition that did not hold (412), or to a conditional write racing another one (409)."""
 
 
 PROBE = "CAS_PROBE"
