@@ -10,6 +10,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from filelock import FileLock
 
 from ftrain.ckpt.lease import GENERATION_ENV as LEASE_GENERATION_ENV
 from ftrain.ckpt.lease import RUN_ID_ENV
@@ -150,17 +151,22 @@ def storage_url(request, tmp_path, monkeypatch):
 @pytest.fixture(scope="session")
 def reference_run(tmp_path_factory) -> Callable[[int], Path]:
     """``reference_run(iterations)``: the storage (and log directory) of an uninterrupted 2-rank run of
-    configs/smoke.yaml (torchrun, cold workers) of that many iterations, trained once per test run; read it, never
-    write to it. Faults, supervision, SLURM, warm workers, hooks, the storage and the checkpoint schedule change
-    nothing that is trained, so every such run compares with it."""
-    runs: dict[int, Path] = {}
+    configs/smoke.yaml (torchrun, cold workers) of that many iterations, trained once per test run, whatever the
+    number of xdist workers (the first to ask trains it under a lock in their shared temporary directory, the others
+    wait and read it); read it, never write to it. Faults, supervision, SLURM, warm workers, hooks, the storage and
+    the checkpoint schedule change nothing that is trained, so every such run compares with it."""
+    shared = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        shared = shared.parent  # each worker's basetemp is a directory of the run's
 
     def run(iterations: int) -> Path:
-        if iterations not in runs:
-            storage = tmp_path_factory.mktemp(f"reference-{iterations}") / "run"
-            run_train(storage, f"iterations={iterations}", ranks=2)
-            runs[iterations] = storage
-        return runs[iterations]
+        root = shared / f"reference-{iterations}"
+        with FileLock(f"{root}.lock"):
+            if not (root / "done").exists():
+                shutil.rmtree(root, ignore_errors=True)  # a worker that failed halfway
+                run_train(root / "run", f"iterations={iterations}", ranks=2)
+                (root / "done").touch()
+        return root / "run"
 
     return run
 

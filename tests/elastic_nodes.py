@@ -13,10 +13,10 @@ from ftrain import procfs
 from ftrain.heartbeat import read_heartbeats
 from ftrain.supervise.auth import SECRET_ENV
 
-from helpers import REPO, SMOKE, TESTS, child_env, events, launch, manifests, wait_for
+from helpers import REPO, SMOKE, TESTS, child_env, events, launch, manifests, probe_hook, wait_for
 
 INTERVAL = 5
-PACING = "{target: 'probe_hooks:PacingHook', kwargs: {seconds: 0.15}}"
+PACING = probe_hook("PacingHook", seconds=0.15)
 """Iterations of at least 0.15 s: a run that lasts while nodes come and go, however fast the machine."""
 
 
@@ -53,9 +53,15 @@ def node_events(storage: Path, name: str, node: int) -> list[dict]:
     return [event for event in events(storage) if event["event"] == name and event.get("node") == node]
 
 
+def resizes(storage: Path, node: int) -> list[dict]:
+    """A node's resize events from its first shrink on (a late start's grows dropped, see ``worlds``)."""
+    found = node_events(storage, "resize", node)
+    return found[next((n for n, event in enumerate(found) if event["new_world"] < event["old_world"]), len(found)) :]
+
+
 def wait_resizes(storage: Path, nodes: list[int], count: int, timeout: float = 180) -> None:
     def done() -> bool:
-        return all(len(node_events(storage, "resize", node)) >= count for node in nodes)
+        return all(len(resizes(storage, node)) >= count for node in nodes)
 
     wait_for(done, f"{count} resize events on nodes {nodes}", timeout=timeout, interval=0.2)
 
@@ -100,6 +106,14 @@ def three_etcd_nodes(
     wait_for(trains, "a world of 3 ranks training", timeout=120, interval=0.2)
     node, worker = wait_for(lambda: rank_zero(storage, 3), "rank 0's node")
     return nodes, node, next(index for index, proc in enumerate(nodes) if worker in procfs.descendants(proc.pid))
+
+
+def worlds(manifest: dict) -> list[int]:
+    """A run's world sizes (``manifest["world_sizes"]``) from the world that first shrank on. Under load a node may
+    start after the others began at the minimum, so that the run grows to its full world first: a late start, not
+    what these tests do to it (the same for ``resizes``)."""
+    sizes = [world for _, world in manifest["world_sizes"]]
+    return sizes[next((n for n in range(len(sizes) - 1) if sizes[n + 1] < sizes[n]), len(sizes) - 1) :]
 
 
 def verify_cli(storage: Path) -> int:

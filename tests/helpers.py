@@ -21,6 +21,7 @@ import uuid
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 from urllib.parse import urlsplit
 
 import boto3
@@ -197,6 +198,18 @@ def training(heartbeat_dir: str | Path, iteration: int, ranks: Iterable[int] = (
     return wait_for(ready, f"ranks {ranks} at iteration {iteration} in {heartbeat_dir}")
 
 
+def probe_hook(name: str, **kwargs: Any) -> str:
+    """The config entry that loads ``probe_hooks.<name>(**kwargs)`` into a run (JSON, which YAML reads; paths as
+    text). The run's ``PYTHONPATH`` must name ``TESTS``."""
+    kwargs = {key: str(value) if isinstance(value, Path) else value for key, value in kwargs.items()}
+    return json.dumps({"target": f"probe_hooks:{name}", "kwargs": kwargs})
+
+
+def hooks_override(*hooks: str) -> str:
+    """The override that makes these ``probe_hook`` entries a run's hooks."""
+    return f"hooks=[{', '.join(hooks)}]"
+
+
 class Hold:
     """A run that holds after an iteration until the test lets it go on (``probe_hooks.HoldHook``): ``override`` is
     the config override that loads the hook (the run's ``PYTHONPATH`` must name ``TESTS``), ``held`` waits until rank
@@ -204,8 +217,9 @@ class Hold:
 
     def __init__(self, directory: Path, iteration: int) -> None:
         self.marker, self.released = directory / "held", directory / "release"
-        kwargs = f"{{marker: '{self.marker}', release: '{self.released}', iteration: {iteration}}}"
-        self.override = f"hooks=[{{target: 'probe_hooks:HoldHook', kwargs: {kwargs}}}]"
+        self.override = hooks_override(
+            probe_hook("HoldHook", marker=self.marker, release=self.released, iteration=iteration)
+        )
 
     def held(self) -> None:
         wait_for(self.marker.exists, "the run holding")

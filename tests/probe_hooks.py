@@ -5,10 +5,11 @@ from __future__ import annotations
 import itertools
 import json
 import os
+import threading
 import time
 from pathlib import Path
 
-from ftrain.ckpt.fence import GENERATION_ENV, Fence
+from ftrain.ckpt.fence import Fence
 from ftrain.dist import group
 from ftrain.heartbeat import Phase
 from ftrain.train.hooks import Hook
@@ -155,23 +156,33 @@ class HoldHook(Hook):
 
 
 class HoldCommitHook(Hook):
-    """Rank 0 of a run's first attempt (generation ``RUN:0``) holds its ``commit``-th commit where the shards are
-    written and gathered and the fence is not yet read: it writes its pid to ``marker`` and waits until ``release``
-    exists. A test pauses the node there and resumes it after the others went on: a commit in flight, exactly."""
+    """Rank 0 of a world of ``world`` ranks holds its ``commit``-th commit where the shards are written and gathered
+    and the fence is not yet read (on the checkpoint writer's thread), and its training loop holds too, beating (slow
+    work to its supervisor, no hang): it writes its pid to ``marker`` and waits until ``release`` exists. A test then
+    pauses the node or cuts its link, and lets it go on once the others went on: a commit in flight, exactly."""
 
-    def __init__(self, marker: str, release: str, commit: int) -> None:
-        self.marker, self.release, self.commit = Path(marker), Path(release), commit
+    def __init__(self, marker: str, release: str, commit: int, world: int) -> None:
+        self.marker, self.release, self.commit, self.world = Path(marker), Path(release), commit, world
+        self.holding = threading.Event()
 
     def on_start(self, trainer) -> None:
-        if not trainer.info.is_main or not os.environ.get(GENERATION_ENV, "").endswith(":0"):
+        if not trainer.info.is_main or trainer.info.world_size != self.world:
             return
         check, calls = Fence.check, itertools.count(1)
 
         def held(fence: Fence) -> None:
-            if next(calls) == self.commit:
-                self.marker.write_text(str(os.getpid()))
+            if next(calls) == self.commit and not self.release.exists():
+                self.holding.set()
                 while not self.release.exists():
                     time.sleep(0.05)
             check(fence)
 
         Fence.check = held
+
+    def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        if not self.holding.is_set() or self.release.exists():
+            return
+        self.marker.write_text(str(os.getpid()))
+        while not self.release.exists():
+            trainer.heartbeat.beat(Phase.UPDATE)
+            time.sleep(0.2)

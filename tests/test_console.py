@@ -12,7 +12,20 @@ from pathlib import Path
 
 import pytest
 
-from helpers import REPO, SMOKE, TESTS, child_env, events, finish, launch, run_train, train_command, training
+from helpers import (
+    REPO,
+    SMOKE,
+    TESTS,
+    child_env,
+    events,
+    finish,
+    hooks_override,
+    launch,
+    probe_hook,
+    run_train,
+    train_command,
+    training,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -73,8 +86,7 @@ def test_supervised_bad_input_is_one_line_once_and_not_restarted(tmp_path) -> No
 def test_supervised_crashes_are_one_cause_line_each(tmp_path) -> None:
     """A worker raising (rank 1, after iteration 3) and a worker killed (rank 0, later): two restarts, two lines."""
     storage = tmp_path / "run"
-    kwargs = f"{{path: '{tmp_path / 'crashed'}', rank: 1, iteration: 3}}"
-    crash = f"hooks=[{{target: 'probe_hooks:CrashingHook', kwargs: {kwargs}}}]"
+    crash = hooks_override(probe_hook("CrashingHook", path=tmp_path / "crashed", rank=1, iteration=3))
     proc, console = supervise(storage, "iterations=12", "log.console=true", crash)
     victim = training(storage / "heartbeat", 6, [0])[0]
     os.kill(victim.pid, signal.SIGKILL)

@@ -6,8 +6,10 @@ machines share one hostname, which resolves to 127.0.0.1, as in many containers.
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -15,16 +17,18 @@ from ftrain import procfs
 
 from elastic_nodes import (
     KEEP_ALL,
+    PACING,
     assert_fenced_history,
     etcd,
-    node_events,
     rank_zero,
+    resizes,
     start_node,
     three_etcd_nodes,
     verify_cli,
     wait_resizes,
+    worlds,
 )
-from helpers import final_manifest, finish, manifests, wait_for
+from helpers import final_manifest, finish, manifests, probe_hook, wait_for
 from netns import DEVICE, Bed
 
 pytestmark = pytest.mark.cluster
@@ -64,9 +68,9 @@ def test_node_0s_machine_loses_every_process_and_the_others_finish_at_world_2(tm
 
     manifest = final_manifest(storage)
     assert manifest["step"] == iterations and manifest["world_size"] == 2
-    assert [world for _, world in manifest["world_sizes"]] == [3, 2], manifest["world_sizes"]
+    assert worlds(manifest) == [3, 2], manifest["world_sizes"]
     for node in sorted({0, 1, 2} - {lost}):
-        (shrink,) = node_events(storage, "resize", node)
+        (shrink,) = resizes(storage, node)
         assert shrink["why"] == f"node {lost} lost", shrink
     assert_fenced_history(storage)
     assert verify_cli(storage) == 0
@@ -75,30 +79,41 @@ def test_node_0s_machine_loses_every_process_and_the_others_finish_at_world_2(tm
 def test_a_node_cut_off_past_the_timeouts_is_left_behind_fenced_and_rejoins_when_the_link_is_back(
     tmp_path, network
 ) -> None:
-    """A partition: the link of the node whose worker is rank 0 (the one that commits) goes down. The two others
-    shrink to world 2 and commit at a newer generation; the link comes back, the node rejoins (world 3 again), and no
-    commit of its old generation lands after theirs."""
+    """A partition: the node whose worker is rank 0 (the one that commits) holds its third commit with the shards
+    gathered and the fence not yet read (``HoldCommitHook``), and its link goes down. The two others shrink to world
+    2 and commit at a newer generation; then the held commit goes on, still cut off, and the fence itself refuses it
+    (its line says so: no failed gather stopped it first). The link comes back, the node rejoins (world 3 again),
+    and no commit of its old generation lands after theirs."""
     bed, endpoint = network
-    storage, iterations = tmp_path / "run", 150
-    nodes, cut, index = three_etcd_nodes(storage, endpoint, iterations, KEEP_ALL, hosts=hosts(bed))
+    storage, iterations, marker, release = tmp_path / "run", 150, tmp_path / "held", tmp_path / "release"
+    hold = probe_hook("HoldCommitHook", marker=marker, release=release, commit=3, world=3)
+    nodes, cut, index = three_etcd_nodes(
+        storage, endpoint, iterations, KEEP_ALL, hooks=(PACING, hold), hosts=hosts(bed)
+    )
+    worker = int(wait_for(lambda: marker.exists() and marker.read_text(), "rank 0 holding its commit", timeout=60))
+    assert worker in procfs.descendants(nodes[index].pid)
     bed.link(index, up=False)
     others = sorted({0, 1, 2} - {cut})
     wait_resizes(storage, others, 1, timeout=90)
     newer = lambda: json.loads((storage / "FENCE.json").read_text())["generation"] > 0  # noqa: E731
     wait_for(newer, "a commit of the world of 2", timeout=60, interval=0.2)
+    release.touch()
+    console = Path(f"{storage}.node{index}.log")
+    fenced = r"checkpoint step (\d+) refused: generation 0 \(epoch \d+\) of the run is fenced off"
+    refused = wait_for(lambda: re.search(fenced, console.read_text()), "the fence refusing the held commit")
     bed.link(index, up=True)
     wait_resizes(storage, others, 2, timeout=120)
     assert [finish(proc, timeout=180) for proc in nodes] == [0, 0, 0]
 
     manifest = final_manifest(storage)
     assert manifest["step"] == iterations and manifest["world_size"] == 3
-    assert [world for _, world in manifest["world_sizes"]] == [3, 2, 3], manifest["world_sizes"]
+    assert worlds(manifest) == [3, 2, 3], manifest["world_sizes"]
     for node in others:
-        shrink, grow = node_events(storage, "resize", node)
+        shrink, grow = resizes(storage, node)
         assert (shrink["new_world"], grow["new_world"]) == (2, 3), (shrink, grow)
     history = assert_fenced_history(storage)
-    print(f"committed (step, generation): {history}")
-    assert history[0][1] == 0 and history[-1][1] > 0, history
+    print(f"cut node {cut}: refused step {refused[1]}; committed (step, generation): {history}")
+    assert history[0][1] == 0 and all(generation > 0 for step, generation in history if step >= int(refused[1]))
     assert verify_cli(storage) == 0
 
 

@@ -15,7 +15,7 @@ import pytest
 from ftrain import procfs
 from ftrain.heartbeat import Heartbeat, read_heartbeats
 
-from helpers import REPO, SMOKE, TESTS, child_env, events, final_manifest, wait_for
+from helpers import REPO, SMOKE, TESTS, child_env, events, final_manifest, hooks_override, probe_hook, wait_for
 from slurm_cluster import SlurmCluster
 
 pytestmark = [
@@ -34,7 +34,7 @@ OVERRIDES = (f"iterations={ITERATIONS}", f"checkpoint.interval={INTERVAL}", "dis
 
 def pace(seconds: float) -> str:
     """Iterations of at least ``seconds``: a run that lasts while SLURM stops and moves it (state is unchanged)."""
-    return f"hooks=[{{target: 'probe_hooks:PacingHook', kwargs: {{seconds: {seconds}}}}}]"
+    return hooks_override(probe_hook("PacingHook", seconds=seconds))
 
 
 @pytest.fixture

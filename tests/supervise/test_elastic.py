@@ -30,11 +30,13 @@ from elastic_nodes import (
     assert_fenced_history,
     etcd,
     node_events,
+    resizes,
     start_node,
     three_etcd_nodes,
     training_world,
     verify_cli,
     wait_resizes,
+    worlds,
 )
 from helpers import (
     child_env,
@@ -45,6 +47,7 @@ from helpers import (
     kill_tree,
     launch,
     manifests,
+    probe_hook,
     wait_for,
 )
 
@@ -70,10 +73,9 @@ def test_three_nodes_shrink_to_two_when_one_is_lost_and_grow_back_when_it_return
 
     manifest = final_manifest(storage)
     assert manifest["step"] == iterations and manifest["world_size"] == 3
-    worlds = [world for _, world in manifest["world_sizes"]]
-    assert worlds == [3, 2, 3], manifest["world_sizes"]
+    assert worlds(manifest) == [3, 2, 3], manifest["world_sizes"]
     for node in (0, 1):
-        shrink, grow = node_events(storage, "resize", node)
+        shrink, grow = resizes(storage, node)
         assert (shrink["old_world"], shrink["new_world"], shrink["new_nodes"]) == (3, 2, [0, 1]), shrink
         assert shrink["why"] == "node 2 lost" and shrink["lost"] <= INTERVAL, shrink
         assert (grow["old_world"], grow["new_world"], grow["new_nodes"]) == (2, 3, [0, 1, 2]), grow
@@ -103,13 +105,13 @@ def test_on_etcd_losing_the_node_of_rank_0_the_others_go_on_at_world_2_and_finis
 
     manifest = final_manifest(storage)
     assert manifest["step"] == iterations and manifest["world_size"] == 2
-    assert [world for _, world in manifest["world_sizes"]] == [3, 2], manifest["world_sizes"]
+    assert worlds(manifest) == [3, 2], manifest["world_sizes"]
     run, generation = manifest["generation"]  # fencing: the attempt after the loss committed, and FENCE.json says so
     fence = json.loads((storage / "FENCE.json").read_text())
     assert generation >= 1 and (fence["run"], fence["generation"]) == (run, generation)
     assert fence["epoch"] == manifest["epoch"] >= 1
     for node in survivors:
-        (shrink,) = node_events(storage, "resize", node)
+        (shrink,) = resizes(storage, node)
         assert (shrink["old_world"], shrink["new_world"], shrink["why"]) == (3, 2, f"node {lost} lost"), shrink
         assert shrink["lost"] <= INTERVAL, shrink
         recovered = shrink["time"] - killed_at  # the kill to the first iteration of the smaller world on this node
@@ -150,7 +152,7 @@ def assert_left_alone(storage: Path, leaving: int, index: int, saved: int) -> No
     assert f"preempted: the workers saved (newest step {saved})" in console, console
     for node in sorted({0, 1, 2} - {leaving}):
         (regroup,) = node_events(storage, "regroup", node)
-        (shrink,) = node_events(storage, "resize", node)
+        (shrink,) = resizes(storage, node)
         assert regroup["left"] == leaving and shrink["why"] == f"node {leaving} left (preempted)", shrink
         assert (shrink["new_world"], shrink["step"], shrink["lost"]) == (2, saved, 0), shrink
         print(f"node {node}: world 2 trains {shrink['downtime']} s after the workers saved")
@@ -190,7 +192,7 @@ def test_on_etcd_a_node_paused_mid_commit_across_a_shrink_commits_nothing_when_r
     shards written and the commit not yet made (``HoldCommitHook``); the other two shrink to world 2 and commit at a
     newer generation. Resumed (SIGCONT), rank 0 goes on with that commit: the fence refuses it, and says so."""
     storage, iterations, marker, release = tmp_path / "run", 60, tmp_path / "held", tmp_path / "release"
-    hold = f"{{target: 'probe_hooks:HoldCommitHook', kwargs: {{marker: '{marker}', release: '{release}', commit: 3}}}}"
+    hold = probe_hook("HoldCommitHook", marker=marker, release=release, commit=3, world=3)
     nodes, paused, index = three_etcd_nodes(storage, etcd_server, iterations, KEEP_ALL, hooks=(PACING, hold))
     worker = int(wait_for(lambda: marker.exists() and marker.read_text(), "rank 0 holding its commit", timeout=60))
     tree = [nodes[index].pid, *procfs.descendants(nodes[index].pid)]
@@ -284,9 +286,9 @@ def test_eight_nodes_lose_three_at_once_continue_with_five_and_take_them_back(tm
     assert [finish(node, timeout=600) for node in nodes] == [0] * 8
     manifest = final_manifest(storage)
     assert manifest["step"] == iterations and manifest["world_size"] == 8
-    worlds = [world for _, world in manifest["world_sizes"]]
-    assert worlds[:2] == [8, 5] and worlds[-1] == 8, manifest["world_sizes"]  # the three may rejoin one by one
-    shrink, *grows = node_events(storage, "resize", 0)
+    sizes = worlds(manifest)
+    assert sizes[:2] == [8, 5] and sizes[-1] == 8, manifest["world_sizes"]  # the three may rejoin one by one
+    shrink, *grows = resizes(storage, 0)
     assert (shrink["old_world"], shrink["new_world"], shrink["why"]) == (8, 5, "node 5, 6, 7 lost"), shrink
     assert grows and grows[-1]["new_world"] == 8 and all(grow["lost"] == 0 for grow in grows), grows
 

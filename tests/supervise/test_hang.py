@@ -22,7 +22,19 @@ from ftrain.supervise.attempt import Attempt, attempt_env
 from ftrain.supervise.hang import HANG_FACTOR, HANG_FLOOR, HangWatch
 from ftrain.supervise.plan import Plan
 
-from helpers import REPO, SMOKE, TESTS, child_env, events, finish, launch, training, wait_for
+from helpers import (
+    REPO,
+    SMOKE,
+    TESTS,
+    child_env,
+    events,
+    finish,
+    hooks_override,
+    launch,
+    probe_hook,
+    training,
+    wait_for,
+)
 
 GRACE = 60.0
 FIRST = 2 * HANG_FLOOR
@@ -179,11 +191,9 @@ def test_a_slow_first_iteration_is_not_a_hang_and_a_stopped_worker_is_caught_in_
     run = tmp_path / "run"
     command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", "--backoff-initial", "0.2"]
     command += [SMOKE, "--storage", str(run), "iterations=60", "log.console=false"]
-    slow = [
-        f"{{target: 'probe_hooks:{hook}', kwargs: {{seconds: {FIRST}}}}}"
-        for hook in ("SlowFirstIterationHook", "SlowEndHook")
+    command += [
+        hooks_override(*(probe_hook(hook, seconds=FIRST) for hook in ("SlowFirstIterationHook", "SlowEndHook")))
     ]
-    command += [f"hooks=[{', '.join(slow)}]"]
     output = (tmp_path / "supervise.log").open("wb")
     env = child_env({"PYTHONPATH": str(TESTS)})
     supervisor = launch(command, cwd=REPO, env=env, stdout=output, stderr=subprocess.STDOUT)

@@ -30,9 +30,11 @@ from helpers import (
     events,
     final_manifest,
     flip_byte,
+    hooks_override,
     kill_tree,
     manifests,
     metrics_by_iteration,
+    probe_hook,
     run_train,
     start_train,
     train_command,
@@ -343,7 +345,7 @@ def test_a_failed_final_save_holds_and_a_stop_ends_the_hold_as_an_error_not_succ
 
 
 def test_state_that_would_not_load_back_is_refused_at_the_first_save(tmp_path) -> None:
-    hook = f"hooks=[{{target: 'probe_hooks:NumpyStateHook', kwargs: {{path: '{tmp_path}'}}}}]"
+    hook = hooks_override(probe_hook("NumpyStateHook", path=tmp_path))
     env = child_env({"PYTHONPATH": str(TESTS)})
     result = subprocess.run(train_command(tmp_path / "run", hook), cwd=REPO, env=env, capture_output=True, text=True)
     assert result.returncode == 1
@@ -356,7 +358,7 @@ def test_a_step_that_verifies_but_does_not_fit_the_code_is_an_error_and_stays_un
     """A user's hook whose load_state_dict raises (or a changed model, an rsl-rl upgrade): one line, exit 2, the
     step neither quarantined nor set aside; under the supervisor, no restart either."""
     storage = tmp_path / "run"
-    hook = "hooks=[{target: 'probe_hooks:FailingLoadHook', kwargs: {}}]"
+    hook = hooks_override(probe_hook("FailingLoadHook"))
     env = {"PYTHONPATH": str(TESTS)}
     run_train(storage, "iterations=4", hook, env=env)
     before = manifests(storage)

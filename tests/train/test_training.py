@@ -9,13 +9,13 @@ import pytest
 
 from ftrain.train.phases import PHASES
 
-from helpers import TESTS, final_manifest, metrics_by_iteration, run_train
+from helpers import TESTS, final_manifest, hooks_override, metrics_by_iteration, probe_hook, run_train
 
 PROBES = {"PYTHONPATH": str(TESTS)}
 
 
 def hook(target: str, path) -> str:
-    return f"hooks=[{{target: 'probe_hooks:{target}', kwargs: {{path: '{path}'}}}}]"
+    return hooks_override(probe_hook(target, path=path))
 
 
 @pytest.mark.slow

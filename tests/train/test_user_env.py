@@ -23,8 +23,10 @@ from helpers import (
     TESTS,
     child_env,
     final_manifest,
+    hooks_override,
     kill_tree,
     metrics_by_iteration,
+    probe_hook,
     run_train,
     start_train,
     supervise_command,
@@ -76,7 +78,7 @@ def test_own_robot_trains_supervised_resumes_bit_for_bit_after_sigkill_plays_and
     # last milliseconds, which a look every 50 ms missed under load: LingerHook makes them last a second (run-only)
     run, heartbeats = tmp_path / "run", tmp_path / "heartbeats"
     for phase, iteration in (("rollout", 3), ("update", 5)):
-        linger = f"hooks=[{{target: 'probe_hooks:LingerHook', kwargs: {{seconds: 1, start: {iteration}}}}}]"
+        linger = hooks_override(probe_hook("LingerHook", seconds=1, start=iteration))
         env = {ENV_DIR: str(heartbeats), "PYTHONPATH": str(TESTS)}
         proc = start_train(run, *MEMORY_ARM, linger, ranks=2, env=env, cwd=work)
         try:
