@@ -1,12 +1,14 @@
 """Fixtures only: storage backends (a real S3 API server on 127.0.0.1), an etcd server, and clean-up. Helpers live in
 helpers.py."""
 
+import contextlib
+import fcntl
 import os
 import resource
 import shutil
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -73,22 +75,50 @@ CPU_LOG = os.environ.get("FTRAIN_TEST_CPU_LOG")
 """A file that gets a line per test: CPU seconds (the test's process and every process it waited for, torchrun's
 workers included), wall seconds, test id. The suite is CPU-bound on two cores: ``--durations`` shows what waits, this
 what to cut."""
+CPU_SLOTS = int(os.environ.get("FTRAIN_TEST_CPU_SLOTS") or os.cpu_count() or 1)
+"""How many tests run at once across the xdist workers, one per core: more would only slow each other down (CPU time
+itself grows, as ranks spin waiting for a peer that is not scheduled). The SLURM lane's tests take no slot: they wait
+for slurmctld (its checks every 30 s) nearly all the time, so launch/test.sh starts one worker more than the slots,
+and that lane runs beside the others instead of in the place of one."""
 
 
-@pytest.hookimpl(hookwrapper=True)
+@pytest.hookimpl(hookwrapper=True, tryfirst=True)  # outermost: the wait for a slot is not the test's (its timeout)
 def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
-    if not CPU_LOG:
+    with cpu_slot(item):
+        usage = lambda: sum(  # noqa: E731
+            getattr(resource.getrusage(who), field)
+            for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+            for field in ("ru_utime", "ru_stime")
+        )
+        cpu, wall = usage(), time.monotonic()
+        yield
+        if CPU_LOG:
+            with open(CPU_LOG, "a") as log:
+                log.write(f"{usage() - cpu:.1f} {time.monotonic() - wall:.1f} {item.nodeid}\n")
+
+
+@contextlib.contextmanager
+def cpu_slot(item: pytest.Item) -> Iterator[None]:
+    """Hold one of ``CPU_SLOTS`` slots (an exclusive ``flock`` of a file in the xdist workers' shared temporary
+    directory) while the test runs; none is needed by a SLURM test or where the workers are no more than the slots."""
+    if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) <= CPU_SLOTS or item.get_closest_marker("slurm"):
         yield
         return
-    usage = lambda: sum(  # noqa: E731
-        getattr(resource.getrusage(who), field)
-        for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
-        for field in ("ru_utime", "ru_stime")
-    )
-    cpu, wall = usage(), time.monotonic()
-    yield
-    with open(CPU_LOG, "a") as log:
-        log.write(f"{usage() - cpu:.1f} {time.monotonic() - wall:.1f} {item.nodeid}\n")
+    shared = Path(item.config.option.basetemp).parent  # xdist gives each worker a directory of the run's
+    while True:
+        for slot in range(CPU_SLOTS):
+            fd = os.open(shared / f"cpu-slot-{slot}", os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                continue
+            try:
+                yield
+            finally:
+                os.close(fd)
+            return
+        time.sleep(0.2)
 
 
 # --- Storage backends: a real S3 API server (moto) on 127.0.0.1, plus local, file:// and memory:// URLs ---
