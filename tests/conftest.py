@@ -73,13 +73,13 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
 
 CPU_LOG = os.environ.get("FTRAIN_TEST_CPU_LOG")
 """A file that gets a line per test: CPU seconds (the test's process and every process it waited for, torchrun's
-workers included), wall seconds, test id. The suite is CPU-bound on two cores: ``--durations`` shows what waits, this
-what to cut."""
+workers included), wall seconds, test id, xdist worker, start (Unix time). The suite is CPU-bound on two cores:
+``--durations`` shows what waits, this what to cut."""
 CPU_SLOTS = int(os.environ.get("FTRAIN_TEST_CPU_SLOTS") or os.cpu_count() or 1)
-"""How many tests run at once across the xdist workers, one per core: more would only slow each other down (CPU time
-itself grows, as ranks spin waiting for a peer that is not scheduled). The SLURM lane's tests take no slot: they wait
-for slurmctld (its checks every 30 s) nearly all the time, so launch/test.sh starts one worker more than the slots,
-and that lane runs beside the others instead of in the place of one."""
+"""How many tests run at once across the xdist workers, one per core: more only slow each other down (measured: three
+files at once on two cores took 34.6 min against 30.5, with 24% more CPU time). The SLURM lane's tests take no slot:
+they wait for slurmctld (its checks every 30 s) nearly all the time, so launch/test.sh starts one worker more than
+the slots, and that lane runs beside the others instead of in the place of one."""
 
 
 @pytest.hookimpl(hookwrapper=True, tryfirst=True)  # outermost: the wait for a slot is not the test's (its timeout)
@@ -90,35 +90,53 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
             for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
             for field in ("ru_utime", "ru_stime")
         )
-        cpu, wall = usage(), time.monotonic()
+        cpu, wall, start = usage(), time.monotonic(), time.time()
         yield
         if CPU_LOG:
+            worker = os.environ.get("PYTEST_XDIST_WORKER", "-")
             with open(CPU_LOG, "a") as log:
-                log.write(f"{usage() - cpu:.1f} {time.monotonic() - wall:.1f} {item.nodeid}\n")
+                log.write(f"{usage() - cpu:.1f} {time.monotonic() - wall:.1f} {item.nodeid} {worker} {start:.0f}\n")
 
 
 @contextlib.contextmanager
 def cpu_slot(item: pytest.Item) -> Iterator[None]:
     """Hold one of ``CPU_SLOTS`` slots (an exclusive ``flock`` of a file in the xdist workers' shared temporary
-    directory) while the test runs; none is needed by a SLURM test or where the workers are no more than the slots."""
+    directory) while the test runs; none is needed by a SLURM test or where the workers are no more than the slots.
+    Waiters queue (a worker looks for a free slot only while it holds the queue's lock), so that a worker that has
+    just freed a slot cannot take it again at once, test after test, while another waits."""
     if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) <= CPU_SLOTS or item.get_closest_marker("slurm"):
         yield
         return
     shared = Path(item.config.option.basetemp).parent  # xdist gives each worker a directory of the run's
-    while True:
-        for slot in range(CPU_SLOTS):
-            fd = os.open(shared / f"cpu-slot-{slot}", os.O_RDWR | os.O_CREAT, 0o644)
-            try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
-                os.close(fd)
-                continue
-            try:
-                yield
-            finally:
-                os.close(fd)
-            return
-        time.sleep(0.2)
+    slots = [shared / f"cpu-slot-{n}" for n in range(CPU_SLOTS)]
+    with _flock(shared / "cpu-queue"):
+        while (slot := next((fd for fd in map(_try_flock, slots) if fd is not None), None)) is None:
+            time.sleep(0.05)
+    try:
+        yield
+    finally:
+        os.close(slot)
+
+
+def _try_flock(path: Path) -> int | None:
+    """An open descriptor holding an exclusive ``flock`` of ``path``, None if another process holds one."""
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        return None
+    return fd
+
+
+@contextlib.contextmanager
+def _flock(path: Path) -> Iterator[None]:
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)
 
 
 # --- Storage backends: a real S3 API server (moto) on 127.0.0.1, plus local, file:// and memory:// URLs ---
