@@ -335,20 +335,22 @@ def test_clean_run_finishes_with_exit_0(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("rank", [0, 1])
-def test_worker_sigkill_restarts_from_newest_checkpoint(tmp_path, rank):
+def test_worker_sigkill_restarts_from_newest_checkpoint(tmp_path):
+    """Rank 0 killed at iteration 6 or later, then, in the next attempt, rank 1 at iteration 10 or later (checkpoints
+    every 4 iterations): each restart goes on from the newest step."""
     proc = start_supervisor(tmp_path)
     run = tmp_path / "run"
-    victim = training(run / "heartbeat", 6, [rank])[rank]
-    os.kill(victim.pid, signal.SIGKILL)
+    for rank, iteration in ((0, 6), (1, 10)):
+        victim = training(run / "heartbeat", iteration, [rank])[rank]
+        os.kill(victim.pid, signal.SIGKILL)
     assert finish(proc) == options.EXIT_DONE
     assert_finished(run)
     log = events(run)
-    failure = next(event for event in log if event["event"] == "exit")
-    assert failure["cause"] == f"rank {rank} killed by SIGKILL"
-    recovered = next(event for event in log if event["event"] == "recovered")
-    assert recovered["step"] == 4 and recovered["lost"] >= 2
-    assert log[-1]["restarts"] == 1 and log[-1]["iterations_lost"] == recovered["lost"]
+    causes = [event["cause"] for event in log if event["event"] == "exit"]
+    assert causes == ["rank 0 killed by SIGKILL", "rank 1 killed by SIGKILL", "exit code 0"], causes
+    recovered = [event for event in log if event["event"] == "recovered"]
+    assert [event["step"] for event in recovered] == [4, 8] and all(event["lost"] >= 2 for event in recovered)
+    assert log[-1]["restarts"] == 2 and log[-1]["iterations_lost"] == sum(event["lost"] for event in recovered)
 
 
 @pytest.mark.slow
@@ -390,22 +392,23 @@ def test_stopped_worker_is_a_hang(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("stop", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
-def test_a_stop_signal_saves_and_the_same_command_continues(tmp_path, stop, code):
-    """SIGTERM (a scheduler) exits 143, SIGINT (Ctrl-C) 130: the shell's 128 + signal."""
-    proc = start_supervisor(tmp_path)
-    run = tmp_path / "run"
-    training(run / "heartbeat", 5, [0])
-    proc.send_signal(stop)
-    assert finish(proc) == code
-    preempted = [event for event in events(run) if event["event"] == "exit"][-1]
-    assert preempted["phases"] == ["preempted"]
-    saved = final_manifest(run)["step"]
-    assert 5 <= saved < ITERATIONS
+def test_a_stop_signal_saves_and_the_same_command_continues(tmp_path):
+    """SIGTERM (a scheduler) exits 143, SIGINT (Ctrl-C) 130: the shell's 128 + signal. Each time the same command
+    goes on from the step saved on the stop."""
+    run, saved = tmp_path / "run", 0
+    for stop, code in ((signal.SIGTERM, 143), (signal.SIGINT, 130)):
+        proc = start_supervisor(tmp_path)
+        training(run / "heartbeat", saved + 4, [0])
+        proc.send_signal(stop)
+        assert finish(proc) == code
+        preempted = [event for event in events(run) if event["event"] == "exit"][-1]
+        assert preempted["phases"] == ["preempted"]
+        saved, before = final_manifest(run)["step"], saved
+        assert before + 4 <= saved < ITERATIONS
     assert finish(start_supervisor(tmp_path)) == options.EXIT_DONE
     assert_finished(run)
-    resumed = [event for event in events(run) if event["event"] == "resumed"]
-    assert resumed[-1]["step"] == saved  # nothing lost: the rerun starts where the preempted run stopped
+    resumed = [event["step"] for event in events(run) if event["event"] == "resumed"]
+    assert resumed[1:] == [before, saved]  # nothing lost: each rerun starts where the stopped run saved
 
 
 @pytest.mark.slow
