@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import itertools
 import json
 import os
 import threading
@@ -156,22 +155,24 @@ class HoldHook(Hook):
 
 
 class HoldCommitHook(Hook):
-    """Rank 0 of a world of ``world`` ranks holds its ``commit``-th commit where the shards are written and gathered
-    and the fence is not yet read (on the checkpoint writer's thread), and its training loop holds too, beating (slow
-    work to its supervisor, no hang): it writes its pid to ``marker`` and waits until ``release`` exists. A test then
-    pauses the node or cuts its link, and lets it go on once the others went on: a commit in flight, exactly."""
+    """Once the file ``arm`` exists, rank 0 of a world of ``world`` ranks holds its next commit where the shards are
+    written and gathered and the fence is not yet read (on the checkpoint writer's thread), and its training loop
+    holds too, beating (slow work to its supervisor, no hang): it writes its pid to ``marker`` and waits until
+    ``release`` exists. The test arms it once the run is where it wants it, then pauses the node or cuts its link at
+    once (the other ranks, waiting for rank 0, are called hung after 5 s), and lets it go on once the others went on:
+    a commit in flight, exactly."""
 
-    def __init__(self, marker: str, release: str, commit: int, world: int) -> None:
-        self.marker, self.release, self.commit, self.world = Path(marker), Path(release), commit, world
+    def __init__(self, arm: str, marker: str, release: str, world: int) -> None:
+        self.arm, self.marker, self.release, self.world = Path(arm), Path(marker), Path(release), world
         self.holding = threading.Event()
 
     def on_start(self, trainer) -> None:
         if not trainer.info.is_main or trainer.info.world_size != self.world:
             return
-        check, calls = Fence.check, itertools.count(1)
+        check = Fence.check
 
         def held(fence: Fence) -> None:
-            if next(calls) == self.commit and not self.release.exists():
+            if self.arm.exists() and not self.release.exists():
                 self.holding.set()
                 while not self.release.exists():
                     time.sleep(0.05)

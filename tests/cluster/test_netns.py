@@ -79,17 +79,19 @@ def test_node_0s_machine_loses_every_process_and_the_others_finish_at_world_2(tm
 def test_a_node_cut_off_past_the_timeouts_is_left_behind_fenced_and_rejoins_when_the_link_is_back(
     tmp_path, network
 ) -> None:
-    """A partition: the node whose worker is rank 0 (the one that commits) holds its third commit with the shards
+    """A partition: the node whose worker is rank 0 (the one that commits) holds a commit (once armed) with the shards
     gathered and the fence not yet read (``HoldCommitHook``), and its link goes down. The two others shrink to world
     2 and commit at a newer generation; then the held commit goes on, still cut off, and the fence itself refuses it
     (its line says so: no failed gather stopped it first). The link comes back, the node rejoins (world 3 again),
     and no commit of its old generation lands after theirs."""
     bed, endpoint = network
     storage, iterations, marker, release = tmp_path / "run", 150, tmp_path / "held", tmp_path / "release"
-    hold = probe_hook("HoldCommitHook", marker=marker, release=release, commit=3, world=3)
+    arm = tmp_path / "arm"
+    hold = probe_hook("HoldCommitHook", arm=arm, marker=marker, release=release, world=3)
     nodes, cut, index = three_etcd_nodes(
         storage, endpoint, iterations, KEEP_ALL, hooks=(PACING, hold), hosts=hosts(bed)
     )
+    arm.touch()
     worker = int(wait_for(lambda: marker.exists() and marker.read_text(), "rank 0 holding its commit", timeout=60))
     assert worker in procfs.descendants(nodes[index].pid)
     bed.link(index, up=False)

@@ -188,12 +188,15 @@ def test_on_c10d_a_nodes_preemption_leaves_the_others_training_and_node_0s_stops
 
 @pytest.mark.cluster
 def test_on_etcd_a_node_paused_mid_commit_across_a_shrink_commits_nothing_when_resumed(tmp_path, etcd_server) -> None:
-    """Fencing: the node of rank 0 is paused (SIGSTOP on its supervisor, torchrun and worker) with its third save's
-    shards written and the commit not yet made (``HoldCommitHook``); the other two shrink to world 2 and commit at a
-    newer generation. Resumed (SIGCONT), rank 0 goes on with that commit: the fence refuses it, and says so."""
+    """Fencing: the node of rank 0 is paused (SIGSTOP on its supervisor, torchrun and worker) with a save's shards
+    written and the commit not yet made (``HoldCommitHook``, armed once the run trains at world 3); the other two
+    shrink to world 2 and commit at a newer generation. Resumed (SIGCONT), rank 0 goes on with that commit: the fence
+    refuses it, and says so."""
     storage, iterations, marker, release = tmp_path / "run", 60, tmp_path / "held", tmp_path / "release"
-    hold = probe_hook("HoldCommitHook", marker=marker, release=release, commit=3, world=3)
+    arm = tmp_path / "arm"
+    hold = probe_hook("HoldCommitHook", arm=arm, marker=marker, release=release, world=3)
     nodes, paused, index = three_etcd_nodes(storage, etcd_server, iterations, KEEP_ALL, hooks=(PACING, hold))
+    arm.touch()
     worker = int(wait_for(lambda: marker.exists() and marker.read_text(), "rank 0 holding its commit", timeout=60))
     tree = [nodes[index].pid, *procfs.descendants(nodes[index].pid)]
     assert worker in tree
