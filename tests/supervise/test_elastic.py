@@ -275,7 +275,8 @@ def test_eight_nodes_lose_three_at_once_continue_with_five_and_take_them_back(tm
     """A scale simulation for correctness, 8 nodes x 1 rank of the smoke config on this machine (opt-in: 2 minutes;
     the same path, a lost node and its return, runs at 3 nodes in every run)."""
     storage, endpoint, iterations = tmp_path / "run", f"127.0.0.1:{free_port()}", 200
-    extra = {"rejoin_timeout": "5", "startup_grace": "600"}
+    # 8 cold supervisors and their pools start at once on two cores: the first rendezvous may take minutes
+    extra = {"rejoin_timeout": "5", "startup_grace": "600", "rdzv_timeout": "300"}
     nodes = [
         start_node(storage, node, "4:8", c10d(node, endpoint), f"iterations={iterations}", **extra) for node in range(8)
     ]
