@@ -4,6 +4,7 @@ network namespaces): each a real ``ftrain supervise`` with one rank, and what th
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from collections.abc import Sequence
@@ -114,6 +115,29 @@ def worlds(manifest: dict) -> list[int]:
     what these tests do to it (the same for ``resizes``)."""
     sizes = [world for _, world in manifest["world_sizes"]]
     return sizes[next((n for n in range(len(sizes) - 1) if sizes[n + 1] < sizes[n]), len(sizes) - 1) :]
+
+
+class CommitHold:
+    """``probe_hooks.HoldCommitHook`` for a test of three nodes: ``hook`` goes into their hooks; ``held()`` arms it
+    once the run trains at world 3 and returns the pid of the rank 0 that holds its next commit (the test must then
+    pause or cut that node at once); ``release()`` lets the commit go on; ``refused(console)`` is the fence's line
+    refusing it (a match: the step), None while there is none."""
+
+    FENCED = re.compile(r"checkpoint step (\d+) refused: generation 0 \(epoch \d+\) of the run is fenced off")
+
+    def __init__(self, directory: Path) -> None:
+        self.arm, self.marker, self.released = directory / "arm", directory / "held", directory / "release"
+        self.hook = probe_hook("HoldCommitHook", arm=self.arm, marker=self.marker, release=self.released, world=3)
+
+    def held(self) -> int:
+        self.arm.touch()
+        return int(wait_for(lambda: self.marker.exists() and self.marker.read_text(), "rank 0 holding its commit"))
+
+    def release(self) -> None:
+        self.released.touch()
+
+    def refused(self, console: Path) -> re.Match | None:
+        return self.FENCED.search(console.read_text())
 
 
 def verify_cli(storage: Path) -> int:

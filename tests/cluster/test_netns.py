@@ -6,7 +6,6 @@ machines share one hostname, which resolves to 127.0.0.1, as in many containers.
 from __future__ import annotations
 
 import json
-import re
 import subprocess
 import sys
 from pathlib import Path
@@ -18,6 +17,7 @@ from ftrain import procfs
 from elastic_nodes import (
     KEEP_ALL,
     PACING,
+    CommitHold,
     assert_fenced_history,
     etcd,
     rank_zero,
@@ -28,7 +28,7 @@ from elastic_nodes import (
     wait_resizes,
     worlds,
 )
-from helpers import final_manifest, finish, manifests, probe_hook, wait_for
+from helpers import final_manifest, finish, manifests, wait_for
 from netns import DEVICE, Bed
 
 pytestmark = pytest.mark.cluster
@@ -85,24 +85,19 @@ def test_a_node_cut_off_past_the_timeouts_is_left_behind_fenced_and_rejoins_when
     (its line says so: no failed gather stopped it first). The link comes back, the node rejoins (world 3 again),
     and no commit of its old generation lands after theirs."""
     bed, endpoint = network
-    storage, iterations, marker, release = tmp_path / "run", 150, tmp_path / "held", tmp_path / "release"
-    arm = tmp_path / "arm"
-    hold = probe_hook("HoldCommitHook", arm=arm, marker=marker, release=release, world=3)
+    storage, iterations, hold = tmp_path / "run", 150, CommitHold(tmp_path)
     nodes, cut, index = three_etcd_nodes(
-        storage, endpoint, iterations, KEEP_ALL, hooks=(PACING, hold), hosts=hosts(bed)
+        storage, endpoint, iterations, KEEP_ALL, hooks=(PACING, hold.hook), hosts=hosts(bed)
     )
-    arm.touch()
-    worker = int(wait_for(lambda: marker.exists() and marker.read_text(), "rank 0 holding its commit", timeout=60))
-    assert worker in procfs.descendants(nodes[index].pid)
+    assert hold.held() in procfs.descendants(nodes[index].pid)
     bed.link(index, up=False)
     others = sorted({0, 1, 2} - {cut})
     wait_resizes(storage, others, 1, timeout=90)
     newer = lambda: json.loads((storage / "FENCE.json").read_text())["generation"] > 0  # noqa: E731
     wait_for(newer, "a commit of the world of 2", timeout=60, interval=0.2)
-    release.touch()
+    hold.release()
     console = Path(f"{storage}.node{index}.log")
-    fenced = r"checkpoint step (\d+) refused: generation 0 \(epoch \d+\) of the run is fenced off"
-    refused = wait_for(lambda: re.search(fenced, console.read_text()), "the fence refusing the held commit")
+    refused = wait_for(lambda: hold.refused(console), "the fence refusing the held commit")
     bed.link(index, up=True)
     wait_resizes(storage, others, 2, timeout=120)
     assert [finish(proc, timeout=180) for proc in nodes] == [0, 0, 0]

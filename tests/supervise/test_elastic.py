@@ -27,6 +27,7 @@ from elastic_nodes import (
     INTERVAL,
     KEEP_ALL,
     PACING,
+    CommitHold,
     assert_fenced_history,
     etcd,
     node_events,
@@ -47,7 +48,6 @@ from helpers import (
     kill_tree,
     launch,
     manifests,
-    probe_hook,
     wait_for,
 )
 
@@ -192,12 +192,9 @@ def test_on_etcd_a_node_paused_mid_commit_across_a_shrink_commits_nothing_when_r
     written and the commit not yet made (``HoldCommitHook``, armed once the run trains at world 3); the other two
     shrink to world 2 and commit at a newer generation. Resumed (SIGCONT), rank 0 goes on with that commit: the fence
     refuses it, and says so."""
-    storage, iterations, marker, release = tmp_path / "run", 60, tmp_path / "held", tmp_path / "release"
-    arm = tmp_path / "arm"
-    hold = probe_hook("HoldCommitHook", arm=arm, marker=marker, release=release, world=3)
-    nodes, paused, index = three_etcd_nodes(storage, etcd_server, iterations, KEEP_ALL, hooks=(PACING, hold))
-    arm.touch()
-    worker = int(wait_for(lambda: marker.exists() and marker.read_text(), "rank 0 holding its commit", timeout=60))
+    storage, iterations, hold = tmp_path / "run", 60, CommitHold(tmp_path)
+    nodes, paused, index = three_etcd_nodes(storage, etcd_server, iterations, KEEP_ALL, hooks=(PACING, hold.hook))
+    worker = hold.held()
     tree = [nodes[index].pid, *procfs.descendants(nodes[index].pid)]
     assert worker in tree
     for pid in tree:
@@ -206,14 +203,14 @@ def test_on_etcd_a_node_paused_mid_commit_across_a_shrink_commits_nothing_when_r
     wait_resizes(storage, others, 1, timeout=90)
     newer = lambda: json.loads((storage / "FENCE.json").read_text())["generation"] > 0  # noqa: E731
     wait_for(newer, "a commit of the world of 2", timeout=60, interval=0.2)
-    release.touch()
+    hold.release()
     for pid in tree:
         os.kill(pid, signal.SIGCONT)
     assert [finish(proc, timeout=180) for proc in nodes] == [0, 0, 0]
 
-    console = Path(f"{storage}.node{index}.log").read_text()
-    refused = re.search(r"checkpoint step (\d+) refused: generation 0 \(epoch \d+\) of the run is fenced off", console)
-    assert refused, console
+    console = Path(f"{storage}.node{index}.log")
+    refused = hold.refused(console)
+    assert refused, console.read_text()
     history = assert_fenced_history(storage)
     print(f"paused node {paused}: refused step {refused[1]}; committed (step, generation): {history}")
     assert history[0][1] == 0 and all(generation > 0 for step, generation in history if step >= int(refused[1]))
