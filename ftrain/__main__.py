@@ -1,8 +1,10 @@
 """``python -m ftrain`` and ``torchrun -m ftrain``: a worker of a supervisor with a warm pool runs there (see
-``ftrain/warm``)."""
+``ftrain/warm``). Every command ends without the interpreter's teardown (``ftrain/process.py``), as a fork of the pool
+does."""
 
 import sys
 
+from ftrain.process import exit_fast
 from ftrain.proctitle import name_process, rank_role
 from ftrain.warm import handover
 
@@ -13,4 +15,4 @@ if code is None:
     from ftrain.cli import main
 
     code = main()
-sys.exit(code)
+exit_fast(code)

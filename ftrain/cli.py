@@ -18,6 +18,7 @@ import typing
 from ftrain import errorfile
 from ftrain.errors import EXIT_FAILED, EXIT_STORAGE_DOWN, EXIT_USAGE, StorageError, StorageUnavailable, UserError
 from ftrain.lifeline import watch_supervisor
+from ftrain.process import imports
 from ftrain.proctitle import name_process, rank_role
 from ftrain.redact import reveal_credentials
 
@@ -283,8 +284,9 @@ def _dispatch(args: argparse.Namespace) -> int:
         config = _run_config(args)
         name_process(rank_role("worker"), config.name)
         watch_supervisor()
-        from ftrain.policy.robot import make_env
-        from ftrain.train.trainer import train
+        with imports():
+            from ftrain.policy.robot import make_env
+            from ftrain.train.trainer import train
 
         make_env(config.env).close()  # the user's module, id, model and spaces: refused here, before any rendezvous
 
@@ -332,15 +334,17 @@ def _dispatch(args: argparse.Namespace) -> int:
             options=options,
         )
     if args.command == "play":
-        from ftrain.policy.load import load_policy
-        from ftrain.policy.play import play
+        with imports():
+            from ftrain.policy.load import load_policy
+            from ftrain.policy.play import play
 
         policy = load_policy(args.url, options, log=_stderr)
         play(policy, args.episodes, deterministic=not args.stochastic, video=args.video, seed=args.seed)
         return 0
     if args.command == "export":
-        from ftrain.policy.export import export
-        from ftrain.policy.load import load_policy
+        with imports():
+            from ftrain.policy.export import export
+            from ftrain.policy.load import load_policy
 
         export(load_policy(args.url, options, log=_stderr), args.format, args.output)
         return 0

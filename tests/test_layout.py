@@ -12,7 +12,7 @@ from helpers import REPO
 
 PACKAGE = REPO / "ftrain"
 LAYERS = {
-    "__main__": {"cli", "warm", "proctitle"},
+    "__main__": {"cli", "warm", "proctitle", "process"},
     "cli": {
         "supervise",
         "train",
@@ -27,6 +27,7 @@ LAYERS = {
         "lifeline",
         "redact",
         "proctitle",
+        "process",
     },
     "tools": {"train", "ckpt", "config", "errors", "progress"},
     "supervise": {"ckpt", "config", "errors", "errorfile", "heartbeat", "redact", "procfs", "lifeline", "warm"},
@@ -38,7 +39,7 @@ LAYERS = {
     "config": {"values", "errors", "redact"},
     "values": {"errors", "redact"},
     "heartbeat": set(),
-    "warm": {"lifeline", "proctitle"},
+    "warm": {"lifeline", "proctitle", "process"},
     "lifeline": {"procfs", "heartbeat"},
     "procfs": set(),
     "errorfile": set(),
@@ -46,6 +47,7 @@ LAYERS = {
     "progress": set(),
     "errors": set(),
     "proctitle": set(),
+    "process": set(),
 }
 """What each package (or top-level module) of ftrain may import from the others."""
 LAZY_IMPORTS_ALLOWED = {"ftrain.cli", "ftrain.tools.bench"}

@@ -23,7 +23,7 @@ The supervisor binds the socket (in Linux's abstract namespace: no file to leave
 and hands it over; a name someone else holds already means cold starts, with a line. A stand-in talks only to its
 supervisor's socket (``SO_PEERCRED``), the pool only to processes of its user that know the secret of ``POOL_ENV``.
 
-May import: lifeline, proctitle, and by name in the pool (``__main__.py``) the entries it forks: cli, dist.
+May import: lifeline, proctitle, process, and by name in the pool (``__main__.py``) the entries it forks: cli, dist.
 """
 
 from __future__ import annotations

@@ -68,10 +68,12 @@ def expected_state(iterations: int) -> str:
 def fake_worker(argv: list[str]) -> int:
     import datetime
 
-    import torch
-    import torch.distributed as dist
-
     from ftrain.config import load_config
+    from ftrain.process import imports
+
+    with imports():  # as ftrain's own cold workers import torch
+        import torch
+        import torch.distributed as dist
 
     _, config_path, _, storage_url, *overrides = argv
     config = load_config(config_path, overrides, storage_url)
