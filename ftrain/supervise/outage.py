@@ -15,6 +15,7 @@ import sys
 import time
 from collections.abc import Callable
 
+from ftrain.ckpt.format import MANIFEST, step_dir
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable, WaitLines, backoff
 from ftrain.config import StorageConfig
 from ftrain.errors import EXIT_USAGE, UserError
@@ -99,6 +100,15 @@ class StorageWait:
                 )
             self.sleep(delay)
             tries += 1
+
+    def holds(self, step: int) -> bool:
+        """Whether the storage holds ``step`` committed (its manifest is there); False also where it does not answer."""
+        try:
+            return Storage.open(self.storage.url, self.storage.options, retries=0).exists(
+                f"{step_dir(step)}/{MANIFEST}"
+            )
+        except (StorageError, UserError):
+            return False
 
     def _waiting(self, url: Url, why: str, lines: WaitLines) -> None:
         """The wait's first line (the next comes ``WAIT_LINES`` seconds later): a storage never reached may be a

@@ -52,6 +52,16 @@ ENDINGS = {"usage": "bad input", "done": "training finished"}
 """How the summary names an ending whose event name is not plain words."""
 
 
+def finished(step: int | None, how: str = "") -> Outcome:
+    """Training finished at ``step`` (``how``: seen how, if not from this node's own workers)."""
+    return Outcome("done", EXIT_DONE, f"training finished (step {step}{'; ' + how if how else ''})")
+
+
+def peer_ended(code: int) -> Outcome:
+    """The run ended on another node, with exit ``code``."""
+    return Outcome("peer_ended", code, f"another node ended the run with exit code {code}")
+
+
 def in_words(event: str) -> str:
     """The name of an ending (an event) for a person: ``usage`` is "bad input", ``crash_loop`` "crash loop"."""
     return ENDINGS.get(event, event.replace("_", " "))
@@ -98,7 +108,7 @@ def classify(
     if orphans:
         return Outcome("failed", None, cause)
     if code == 0:
-        return Outcome("done", EXIT_DONE, f"training finished (step {committed})")
+        return finished(committed)
     if code in STOPPED and phases and phases <= {"preempted", "done"}:  # the workers were signalled, saved, exited
         if superseded:
             return Outcome("failed", None, "stopped by another node (it failed, or restarted for a node that joined)")

@@ -43,7 +43,7 @@ from pathlib import Path
 from ftrain import procfs
 from ftrain.ckpt.lease import storage_lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
-from ftrain.config import Config, StorageConfig
+from ftrain.config import Config
 from ftrain.errors import STOPPED, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.redact import hide_credentials, redact_command
@@ -63,7 +63,7 @@ from ftrain.supervise.options import (
     parse_nodes,
 )
 from ftrain.supervise.outage import StorageWait
-from ftrain.supervise.outcome import Outcome, classify
+from ftrain.supervise.outcome import Outcome, classify, finished, peer_ended
 from ftrain.supervise.plan import Plan, plan_key
 from ftrain.supervise.restarts import RestartPolicy
 
@@ -83,7 +83,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     hang_timeout = parse_hang_timeout(options.hang_timeout)
     nodes = parse_nodes(options)
     try:
-        supervisor = Supervisor(options, nodes, Path(config.log_dir), hang_timeout, train_args, config.storage)
+        supervisor = Supervisor(options, nodes, Path(config.log_dir), hang_timeout, train_args, config)
     except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
         print(f"ftrain supervise: error: {error}", file=sys.stderr)
         return EXIT_PEER_LOST
@@ -121,7 +121,7 @@ class Supervisor:
         log_dir: Path,
         hang_timeout: float | None,
         train_args: list[str],
-        storage: StorageConfig,
+        config: Config,
     ) -> None:
         self.options = options
         self.nodes = nodes
@@ -138,7 +138,8 @@ class Supervisor:
         self.signals: list[int] = []
         self.policy = RestartPolicy(options)
         self.ledger = Ledger(options.nproc_per_node, self.events)
-        self.storage_wait = StorageWait(storage, options.storage_wait, self.events, self._sleep)
+        self.storage_wait = StorageWait(config.storage, options.storage_wait, self.events, self._sleep)
+        self.last_step = config.iterations
         self.launcher = Launcher(options, log_dir / f"warm-pool{'-' + node_dir if node_dir else ''}.log")
 
     def on_signal(self, number: int, frame: object) -> None:
@@ -194,7 +195,7 @@ class Supervisor:
             raise _Stop(Outcome("preempted", code, "stopped by a signal while no workers ran; rerun to continue"))
 
     def _next_plan(self, previous: Plan | None) -> Plan:
-        """The next attempt to run (on several nodes: wait until node 0 has moved on from ``previous``)."""
+        """The next attempt to run (on several nodes: once node 0 has moved on from ``previous``, or ended the run)."""
         deadline = time.monotonic() + self.options.rdzv_timeout
         waiting = False
         while True:
@@ -203,14 +204,14 @@ class Supervisor:
                 plan = self.link.ask("plan")
             except OSError as error:
                 plan = None
+                if (not waiting or time.monotonic() > deadline) and self.storage_wait.holds(self.last_step):
+                    raise _Stop(finished(self.last_step, "ended while this node was away")) from None
                 if not waiting:
                     waiting = True
-                    timeout = self.options.rdzv_timeout
-                    message = f"waiting up to {timeout:g} s for {self.link.peer} ({error})"
+                    message = f"waiting up to {self.options.rdzv_timeout:g} s for {self.link.peer} ({error})"
                     print(f"ftrain supervise: {message}", file=sys.stderr, flush=True)
             if plan is not None and plan.final is not None:
-                ended = f"another node ended the run with exit code {plan.final}"
-                raise _Stop(Outcome("peer_ended", plan.final, ended))
+                raise _Stop(peer_ended(plan.final))
             if plan is not None and (previous is None or plan_key(plan) != plan_key(previous)):
                 return plan
             if time.monotonic() > deadline:
@@ -296,7 +297,7 @@ class Supervisor:
         if plan.final is not None:
             attempt.stop(self.options.stop_grace)
             self._log_exit(attempt, "stopped: another node ended the run")
-            return Outcome("peer_ended", plan.final, f"another node ended the run with exit code {plan.final}")
+            return peer_ended(plan.final)
         if plan_key(plan) == plan_key(attempt.plan):
             return None
         if plan.left is not None:
@@ -384,14 +385,13 @@ class Supervisor:
 
     def end(self, ending: Outcome) -> int:
         """The run ends: record it, tell the other nodes, sum up; the exit code."""
-        event, code, message = ending.event, ending.code, ending.message
-        self.events(event, message, code=code)
-        if self.nnodes > 1 and not (event == "preempted" and self._leaves_alone()):
-            self._tell("finish", code=code)
+        self.events(ending.event, ending.message, code=ending.code)
+        if self.nnodes > 1 and not (ending.event == "preempted" and self._leaves_alone()):
+            self._tell("finish", code=ending.code)
             if self.coordinator is not None:
                 self.coordinator.wait_informed(self.nnodes, LINGER)
-        self.ledger.summarize(event, code, self.policy.restarts)
-        return code
+        self.ledger.summarize(ending.event, ending.code, self.policy.restarts)
+        return ending.code
 
     def _leaves_alone(self) -> bool:
         """Whether this node's preemption leaves the others training from the workers' save: an elastic run with MIN

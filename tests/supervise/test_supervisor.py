@@ -159,15 +159,17 @@ def start_supervisor(
     return launch([*command, *([f"iterations={iterations}"] if iterations else [])], cwd=REPO, env=env)
 
 
-def start_nodes(tmp_path: Path, *options: str, iterations: int = 0, port: int = 0) -> list[subprocess.Popen]:
-    """Two nodes of the stand-in on this machine, node 0 coordinating on 127.0.0.1:``port`` (default: a free one)
-    with ``SECRET``."""
+def start_nodes(
+    tmp_path: Path, *options: str, iterations: int = 0, port: int = 0, ranks: tuple[int, ...] = (0, 1)
+) -> list[subprocess.Popen]:
+    """Two nodes of the stand-in on this machine (``ranks``: only these), node 0 coordinating on
+    127.0.0.1:``port`` (default: a free one) with ``SECRET``."""
     endpoint = ["--nnodes", "2", "--rdzv-endpoint", f"127.0.0.1:{port or free_port()}"]
     return [
         start_supervisor(
             tmp_path, *endpoint, "--node-rank", str(node), *options, env={SECRET_ENV: SECRET}, iterations=iterations
         )
-        for node in (0, 1)
+        for node in ranks
     ]
 
 
@@ -445,8 +447,11 @@ def test_worker_bad_input_is_not_restarted(tmp_path, capfd):
 
 
 @pytest.mark.slow
-def test_two_nodes_both_restart_after_one_node_loses_a_worker(tmp_path):
-    nodes = start_nodes(tmp_path)
+def test_two_nodes_both_restart_after_one_node_loses_a_worker_and_a_node_back_after_the_end_ends_finished(
+    tmp_path, capfd
+):
+    port = free_port()
+    nodes = start_nodes(tmp_path, port=port)
     run = tmp_path / "run"
     # 2 processes per node: node 1 runs global ranks 2 and 3
     victim = training(run / "heartbeat" / "node-1", 6, [3])[3]
@@ -460,6 +465,16 @@ def test_two_nodes_both_restart_after_one_node_loses_a_worker(tmp_path):
         assert any(event["event"] == "recovered" for event in mine)
         assert mine[-1]["restarts"] == 1
     assert any(event["event"] == "exit" and event["cause"] == "rank 3 killed by SIGKILL" for event in log)
+
+    # node 1 again, after the end (a requeued task, a node that was away): node 0 is gone for good, but the storage
+    # holds the last step, so it ends finished at once instead of waiting --rdzv-timeout (600 s) and exiting 5
+    before, _ = len(events(run)), capfd.readouterr()
+    (late,) = start_nodes(tmp_path, port=port, ranks=(1,))
+    assert finish(late, timeout=120) == options.EXIT_DONE
+    said = capfd.readouterr().err
+    assert f"training finished (step {ITERATIONS}; ended while this node was away)" in said, said
+    assert [(event["event"], event["node"]) for event in events(run)[before:]] == [("done", 1), ("summary", 1)]
+    assert_finished(run)
 
 
 @pytest.mark.slow
