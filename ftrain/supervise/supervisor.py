@@ -83,7 +83,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     hang_timeout = parse_hang_timeout(options.hang_timeout)
     nodes = parse_nodes(options)
     try:
-        supervisor = Supervisor(options, nodes, Path(config.log_dir), hang_timeout, train_args, config)
+        supervisor = Supervisor(options, nodes, hang_timeout, train_args, config)
     except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
         print(f"ftrain supervise: error: {error}", file=sys.stderr)
         return EXIT_PEER_LOST
@@ -118,7 +118,6 @@ class Supervisor:
         self,
         options: SupervisorOptions,
         nodes: Nodes,
-        log_dir: Path,
         hang_timeout: float | None,
         train_args: list[str],
         config: Config,
@@ -127,6 +126,7 @@ class Supervisor:
         self.nodes = nodes
         self.nnodes = nodes.count
         self.train_args = train_args
+        log_dir = Path(config.log_dir)
         self.events = EventLog(log_dir / "events.jsonl", None)
         self.link, self.coordinator = connect(nodes, options, self.events)
         self.node = self.link.node
