@@ -14,8 +14,11 @@ import yaml
 
 SECRET_OPTIONS = frozenset(
     {"key", "secret", "token", "password", "aws_access_key_id", "aws_secret_access_key", "aws_session_token"}
+    | {"account_key", "connection_string", "sas_token", "credential", "client_secret"}
 )
-"""fsspec/s3fs storage options that hold credentials."""
+"""fsspec storage options that hold credentials: s3fs's, then adlfs's (Azure)."""
+CONTAINER_AT_ACCOUNT = frozenset({"abfs", "abfss", "az", "wasb", "wasbs"})
+"""Azure's URL schemes, where ``container@account...`` names a container, not a user: no credential."""
 
 HIDDEN = "***"
 ARGUMENTS_ENV = "FTRAIN_TRAIN_ARGUMENTS"
@@ -52,6 +55,8 @@ def display_url(url: str) -> str:
     url = str.__str__(url)
     parts = urlsplit(url) if "://" in url else None
     if parts is None or "@" not in parts.netloc:
+        return url
+    if parts.scheme in CONTAINER_AT_ACCOUNT and ":" not in parts.netloc.rpartition("@")[0]:
         return url
     return urlunsplit(parts._replace(netloc=parts.netloc.rpartition("@")[2]))
 

@@ -3,7 +3,8 @@
 #   - Debian's Mesa EGL libraries for headless MuJoCo rendering, etcd-server, and SLURM and munge for the SLURM tests
 #     (when run as root and missing; the SLURM tests start daemons of their own, with their own configuration);
 #   - a virtualenv in .venv with the CPU build of torch 2.13.0 installed FIRST (a bare torch requirement would
-#     pull a multi-GB CUDA build), then ftrain itself with its test, export, render, etcd and bench extras.
+#     pull a multi-GB CUDA build), then ftrain itself with its test, export, render, etcd and bench extras;
+#   - for the tests, Azurite (the Azure Blob emulator, from npm) in .venv/azurite.
 # torch comes from PyTorch's CPU wheel index when it answers (TORCH_INDEX_URL overrides it), else from the default
 # package index (which, on a machine without that index, may serve the CUDA build). A stamp in .venv, keyed by
 # pyproject.toml and the torch version, skips the pip steps when nothing changed: a second run starts in seconds.
@@ -39,6 +40,18 @@ python=${PYTHON:-python3}
 if [[ ! -x .venv/bin/python ]]; then
   say "creating .venv with $("$python" --version)..."
   "$python" -m venv .venv
+fi
+
+# Azurite, the Azure Blob emulator that the abfs:// tests run against (they skip without it), for the tests only: in
+# the virtualenv (no root needed, and gone with it), where tests/helpers.py looks first. Never fatal.
+if [[ ${FTRAIN_TEST_DEPS:-0} == 1 && ! -x .venv/azurite/node_modules/.bin/azurite-blob ]]; then
+  if command -v npm >/dev/null; then
+    say "installing Azurite 3 (npm) into .venv/azurite..."
+    npm install --prefix .venv/azurite --no-audit --no-fund --loglevel=error azurite@3 >/dev/null ||
+      say "warning: Azurite not installed (npm install failed); the Azure Blob tests skip" >&2
+  else
+    say "warning: npm is missing; install node and npm for the Azure Blob tests (they skip without Azurite)" >&2
+  fi
 fi
 
 stamp=".venv/.ftrain-setup-$( (cat pyproject.toml; echo "torch $TORCH_VERSION") | sha256sum | cut -c1-16)"

@@ -20,22 +20,27 @@ from ftrain.tools import etcd_server as etcd_tools
 from ftrain.tools.outage import S3Server, free_port, start_moto, stop
 
 from helpers import (
+    AZURITE_MISSING,
     BACKENDS,
     S3_KEY,
     S3_REGION,
     S3_SECRET,
     S3Outage,
+    azurite_blob,
     create_bucket,
     final_manifest,
     make_certificates,
     run_train,
+    start_azurite,
     stop_launched,
 )
 
 # --- Lanes: the fast lane (-m "not slow") has no servers and no multi-process runs ---
 
-SERVERS = frozenset({"s3_server", "s3_url", "s3_env", "s3_outage", "etcd_server", "etcd_tls_server", "slurm"})
-"""Fixtures that start a server (moto's S3, etcd, a private SLURM cluster): a test that uses one is slow."""
+SERVERS = frozenset(
+    {"s3_server", "s3_url", "s3_env", "s3_outage", "azurite_server", "etcd_server", "etcd_tls_server", "slurm"}
+)
+"""Fixtures that start a server (moto's S3, Azurite, etcd, a private SLURM cluster): a test that uses one is slow."""
 LANES_OF_THEIR_OWN = ("cluster", "slurm", "scale")
 
 
@@ -181,6 +186,21 @@ def s3_outage(tmp_path):
         yield S3Outage(server, f"s3://{create_bucket(info)}/run")
     finally:
         server.stop()
+
+
+@pytest.fixture(scope="session")
+def azurite_server(tmp_path_factory):
+    """Azurite's real Azure Blob service in a subprocess, on a free port, with an account and key of its own
+    (helpers.start_azurite); yields ``{"connection_string", "key", "port"}``. Skips without Azurite or adlfs."""
+    pytest.importorskip("adlfs", reason="adlfs is not installed (pip install -e '.[azure]')")
+    command = azurite_blob()
+    if command is None:
+        pytest.skip(AZURITE_MISSING)
+    proc, server = start_azurite(command, free_port(), tmp_path_factory.mktemp("azurite"))
+    try:
+        yield server
+    finally:
+        stop(proc)
 
 
 @pytest.fixture(params=BACKENDS)

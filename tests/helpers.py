@@ -1,8 +1,9 @@
 """The tests' one module of shared helpers: paths, real training processes (plain, under torchrun or supervised),
-the S3 API server, checkpoint steps to damage, and bitwise state comparison."""
+the S3 API server and the Azure Blob emulator, checkpoint steps to damage, and bitwise state comparison."""
 
 from __future__ import annotations
 
+import base64
 import contextlib
 import csv
 import ctypes.util
@@ -10,6 +11,7 @@ import http.client
 import http.server
 import json
 import os
+import shutil
 import signal
 import socket
 import struct
@@ -364,6 +366,60 @@ class S3Proxy:
     def close(self) -> None:
         self.server.shutdown()
         self.server.server_close()
+
+
+# --- The Azure Blob emulator (Azurite) on 127.0.0.1 ---
+
+AZURITE_ACCOUNT = "ftrain"
+AZURITE_MISSING = "Azurite is not installed: launch/setup.sh installs it with npm when FTRAIN_TEST_DEPS=1 (needs node)"
+
+
+def azurite_blob() -> str | None:
+    """Azurite's blob service command: where launch/setup.sh installs it (``.venv/azurite``), else on the PATH; None
+    where it is not installed, or there is no node to run it."""
+    local = Path(sys.prefix) / "azurite" / "node_modules" / ".bin" / "azurite-blob"
+    command = str(local) if local.exists() else shutil.which("azurite-blob")
+    return command if command and shutil.which("node") else None
+
+
+def start_azurite(command: str, port: int, location: Path) -> tuple[subprocess.Popen, dict]:
+    """Azurite's blob service on 127.0.0.1:``port``, its data and log in ``location``, with one account of a random
+    key; returns once it accepts connections, with ``{"connection_string", "key", "port"}``. Strict, as Azure is (no
+    ``--loose``); any API version taken (the SDK may be newer than the emulator)."""
+    key = base64.b64encode(os.urandom(32)).decode()
+    log = open(location / "azurite.log", "ab")  # noqa: SIM115 - the server writes to it for its whole life
+    options = ["--blobHost", "127.0.0.1", "--blobPort", str(port), "--location", str(location)]
+    proc = subprocess.Popen(
+        [command, *options, "--skipApiVersionCheck", "--disableTelemetry"],
+        stdout=log,
+        stderr=log,
+        env={**os.environ, "AZURITE_ACCOUNTS": f"{AZURITE_ACCOUNT}:{key}"},
+    )
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"Azurite exited with {proc.returncode}: see {location / 'azurite.log'}")
+        with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), timeout=0.5):
+            return proc, {"connection_string": azurite_connection(port, key), "key": key, "port": port}
+        time.sleep(0.05)
+    proc.kill()
+    raise RuntimeError(f"Azurite did not listen on port {port} within 60 s: see {location / 'azurite.log'}")
+
+
+def azurite_connection(port: int, key: str) -> str:
+    """The connection string of Azurite's account on 127.0.0.1:``port`` (adlfs's ``connection_string`` option)."""
+    endpoint = f"http://127.0.0.1:{port}/{AZURITE_ACCOUNT}"
+    return f"DefaultEndpointsProtocol=http;AccountName={AZURITE_ACCOUNT};AccountKey={key};BlobEndpoint={endpoint};"
+
+
+def create_container(server: dict) -> str:
+    """A fresh container on ``server`` (``azurite_server``)."""
+    from azure.storage.blob import BlobServiceClient  # adlfs's dependency: imported by the Azure tests only
+
+    container = f"ftrain-{uuid.uuid4().hex[:12]}"
+    with BlobServiceClient.from_connection_string(server["connection_string"]) as client:
+        client.create_container(container)
+    return container
 
 
 # --- Checkpoint steps to inspect and damage ---

@@ -21,6 +21,13 @@ from ftrain.redact import (
 def test_urls_and_options_lose_their_credentials() -> None:
     assert display_url("s3://KEY:SECRET@bucket/run") == "s3://bucket/run"
     assert display_url("runs/hc") == "runs/hc"
+    assert display_url("abfs://box@account.dfs.core.windows.net/run") == "abfs://box@account.dfs.core.windows.net/run"
+    assert display_url("abfs://box:KEY@account/run") == "abfs://account/run"
+    assert redact_options({"account_name": "acct", "account_key": "KEY", "connection_string": "AccountKey=KEY"}) == {
+        "account_name": "acct",
+        "account_key": HIDDEN,
+        "connection_string": HIDDEN,
+    }
     options = {"endpoint_url": "http://u:p@127.0.0.1:9000", "key": "KEY", "secret": "SECRET", "config_kwargs": {}}
     assert redact_options(options) == {
         "endpoint_url": "http://127.0.0.1:9000",

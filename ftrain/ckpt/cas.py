@@ -1,17 +1,19 @@
 """Compare-and-swap of one small object of a storage: read it with its version, write or delete it only if that
 version is still the current one (``Conflict`` if another process changed it since).
 
-S3: the version is the ETag; a write is one PUT with ``If-Match: <ETag>`` (``If-None-Match: *`` to create), a
-delete a DELETE with ``If-Match``: the server decides, atomically. Local: the version is a digest of the bytes; the
-read-check-write runs under an exclusive ``flock`` of a side file ``<object>.lock`` (released by the kernel if the
-process dies), and the new object is put in place by an atomic rename of a fsynced temporary file. Other protocols
-(``memory://``: one process): a plain check, then the write.
+S3 and Azure Blob storage (``abfs://``, ``az://``): the version is the ETag; a write is one PUT with
+``If-Match: <ETag>`` (``If-None-Match: *`` to create), a delete a DELETE with ``If-Match``: the server decides,
+atomically. On Azure the requests go through the blob client adlfs holds, as they go through s3fs's on S3, and are
+sent once each (the Azure SDK's own retries off), so that the retry loop is ``Storage``'s alone, as on S3. Local:
+the version is a digest of the bytes; the read-check-write runs under an exclusive ``flock`` of a side file
+``<object>.lock`` (released by the kernel if the process dies), and the new object is put in place by an atomic
+rename of a fsynced temporary file. Other protocols (``memory://``: one process): a plain check, then the write.
 
 The lease, the fence and every manifest's exclusive create rest on this, so a run checks its storage before it
-takes the lease (``require_atomic``): an S3 server that ignores the conditions (some S3-compatible ones do) would
-turn them into silent overwrites, and is found by a probe, once per process: a create of an object that exists and
-a write with a wrong ETag, each of which must be refused. A storage of another protocol (``gcs://``, ``abfs://``...)
-gets no conditional write here; both are refused in one line, unless ``storage.plain_writes=true`` accepts the risk.
+takes the lease (``require_atomic``): a server that ignores the conditions (some S3-compatible ones do) would turn
+them into silent overwrites, and is found by a probe, once per process: a create of an object that exists and a
+write with a wrong ETag, each of which must be refused. A storage of another protocol (``gcs://``...) gets no
+conditional write here; both are refused in one line, unless ``storage.plain_writes=true`` accepts the risk.
 """
 
 from __future__ import annotations
@@ -22,24 +24,37 @@ import hashlib
 import os
 import secrets
 from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any
 
 import fsspec.asyn
 
-from ftrain.ckpt.storage import Storage
+from ftrain.ckpt.storage import S3_TIMEOUTS, Storage
 from ftrain.errors import StorageError, UserError
+
+if TYPE_CHECKING:
+    from azure.storage.blob.aio import BlobClient
 
 _CONFLICTS = ("PreconditionFailed", "ConditionalRequestConflict")
 """S3's answers to a condition that did not hold (412), or to a conditional write racing another one (409)."""
-_UNSUPPORTED = ("NotImplemented", "501")
-"""S3-compatible servers' answers to a conditional header they do not implement."""
+_AZURE_CONFLICTS = ("ConditionNotMet", "BlobAlreadyExists", "BlobNotFound")
+"""Azure's answers to a condition that did not hold (412; 409 to a create of a blob that exists), and to one on a blob
+that is gone (a missing container is no conflict: it fails as any storage error does)."""
+_UNSUPPORTED = ("NotImplemented", "501", "ConditionHeadersNotSupported")
+"""S3-compatible servers' (and Azure's) answers to a conditional header they do not implement."""
+_AZURE_ONCE = {
+    "retry_total": 0,
+    "connection_timeout": S3_TIMEOUTS["connect_timeout"],
+    "read_timeout": S3_TIMEOUTS["read_timeout"],
+}
+"""Each Azure request sent once, and given up on within seconds, as on S3: ``Storage._call`` does the retrying."""
 
 
 PROBE = "CAS_PROBE"
 """The name of the probe's object (with a random suffix), deleted right after."""
 RISK = (
-    "two runs or nodes could overwrite each other's lease, fence and manifests; use a local or shared path, or an S3 "
-    "service that honours If-Match and If-None-Match (AWS S3, MinIO, Ceph), or pass storage.plain_writes=true to "
-    "accept the risk"
+    "two runs or nodes could overwrite each other's lease, fence and manifests; use a local or shared path, Azure Blob "
+    "storage, or an S3 service that honours If-Match and If-None-Match (AWS S3, MinIO, Ceph), or pass "
+    "storage.plain_writes=true to accept the risk"
 )
 _checked: set[str] = set()
 """The storages this process found atomic."""
@@ -54,7 +69,7 @@ def require_atomic(storage: Storage, plain_writes: bool = False) -> None:
     one that is not."""
     if plain_writes or storage.is_local or storage.fs.protocol == "memory" or storage.url in _checked:
         return
-    if not storage.is_s3:
+    if not _server_decides(storage):
         raise UserError(f"storage {storage.url} offers no conditional writes that ftrain uses: {RISK}")
     name = f"{PROBE}-{secrets.token_hex(4)}"
     try:
@@ -77,21 +92,15 @@ def require_atomic(storage: Storage, plain_writes: bool = False) -> None:
 
 def read(storage: Storage, rel: str) -> tuple[bytes, str] | None:
     """The object's bytes and version, None if there is none."""
-    if not storage.is_s3:
+    if not _server_decides(storage):
         try:
             data = storage.read(rel)
         except FileNotFoundError:
             return None
         return data, hashlib.sha256(data).hexdigest()
-    bucket, key = _s3_key(storage, rel)
-
-    async def get() -> tuple[bytes, str]:  # one GET: the bytes and the ETag of the same version
-        response = await storage.fs._call_s3("get_object", Bucket=bucket, Key=key)
-        async with response["Body"] as body:
-            return await body.read(), response["ETag"]
-
+    get = _s3_get if storage.is_s3 else _azure_get
     try:
-        return storage._call("read", rel, fsspec.asyn.sync, storage.fs.loop, get)
+        return storage._call("read", rel, fsspec.asyn.sync, storage.fs.loop, get, storage, rel)
     except FileNotFoundError:
         return None
 
@@ -99,9 +108,13 @@ def read(storage: Storage, rel: str) -> tuple[bytes, str] | None:
 def write(storage: Storage, rel: str, data: bytes, version: str | None) -> None:
     """Put ``data`` if the object's version is still ``version`` (None: if there is no object); Conflict if not."""
     if storage.is_s3:
-        bucket, key = _s3_key(storage, rel)
+        bucket, key = _bucket_key(storage, rel)
         condition = {"IfMatch": version} if version else {"IfNoneMatch": "*"}
         _s3_conditional(storage, rel, "put_object", Bucket=bucket, Key=key, Body=data, **condition)
+        return
+    if storage.is_azure:
+        metadata = {"is_directory": "false"}  # as adlfs marks its files: its isfile() reads the mark
+        _azure_conditional(storage, rel, "upload_blob", data, overwrite=True, metadata=metadata, **_azure_if(version))
         return
     with _locked(storage, rel):
         current = read(storage, rel)
@@ -116,8 +129,11 @@ def write(storage: Storage, rel: str, data: bytes, version: str | None) -> None:
 def delete(storage: Storage, rel: str, version: str) -> None:
     """Delete the object if its version is still ``version``; Conflict if not (or if it is gone)."""
     if storage.is_s3:
-        bucket, key = _s3_key(storage, rel)
+        bucket, key = _bucket_key(storage, rel)
         _s3_conditional(storage, rel, "delete_object", Bucket=bucket, Key=key, IfMatch=version)
+        return
+    if storage.is_azure:
+        _azure_conditional(storage, rel, "delete_blob", **_azure_if(version))
         return
     with _locked(storage, rel):
         current = read(storage, rel)
@@ -141,6 +157,63 @@ def _s3_conditional(storage: Storage, rel: str, operation: str, **kwargs) -> Non
             raise
 
     storage._call(operation.partition("_")[0], rel, call)
+
+
+def _server_decides(storage: Storage) -> bool:
+    """Whether the server itself takes conditional writes (S3, Azure): no lock of ours, no read before a write."""
+    return storage.is_s3 or storage.is_azure
+
+
+async def _s3_get(storage: Storage, rel: str) -> tuple[bytes, str]:
+    """One GET: the bytes and the ETag of the same version."""
+    bucket, key = _bucket_key(storage, rel)
+    response = await storage.fs._call_s3("get_object", Bucket=bucket, Key=key)
+    async with response["Body"] as body:
+        return await body.read(), response["ETag"]
+
+
+async def _azure_get(storage: Storage, rel: str) -> tuple[bytes, str]:
+    """One GET: the bytes and the ETag of the same version (FileNotFoundError if there is no such blob)."""
+    from azure.core.exceptions import ResourceNotFoundError
+
+    async with _blob(storage, rel) as blob:
+        try:
+            download = await blob.download_blob(**_AZURE_ONCE)
+        except ResourceNotFoundError:
+            raise FileNotFoundError(rel) from None
+        return await download.readall(), download.properties.etag
+
+
+def _azure_conditional(storage: Storage, rel: str, operation: str, *args: Any, **kwargs: Any) -> None:
+    """One conditional request to the blob ``rel`` (the blob client's ``operation``), retried like any storage call
+    while the failure is transient; Conflict where Azure refused its condition."""
+    from azure.core.exceptions import HttpResponseError
+
+    async def call() -> None:
+        async with _blob(storage, rel) as blob:
+            try:
+                await getattr(blob, operation)(*args, **kwargs, **_AZURE_ONCE)
+            except HttpResponseError as error:
+                if error.error_code in _AZURE_CONFLICTS:
+                    raise Conflict from None
+                raise
+
+    storage._call(operation.partition("_")[0], rel, fsspec.asyn.sync, storage.fs.loop, call)
+
+
+def _azure_if(version: str | None) -> dict[str, Any]:
+    """The Azure SDK's arguments for ``If-Match: version`` (``If-None-Match: *`` where ``version`` is None)."""
+    from azure.core import MatchConditions
+
+    if version is None:
+        return {"match_condition": MatchConditions.IfMissing}
+    return {"etag": version, "match_condition": MatchConditions.IfNotModified}
+
+
+def _blob(storage: Storage, rel: str) -> BlobClient:
+    """The client of blob ``rel``, from the service client adlfs holds (its credentials and connection pool)."""
+    container, blob = _bucket_key(storage, rel)
+    return storage.fs.service_client.get_blob_client(container, blob)
 
 
 @contextlib.contextmanager
@@ -176,6 +249,7 @@ def _local_path(storage: Storage, rel: str) -> str:
     return f"{storage.root}/{rel}"
 
 
-def _s3_key(storage: Storage, rel: str) -> tuple[str, str]:
+def _bucket_key(storage: Storage, rel: str) -> tuple[str, str]:
+    """The bucket (on Azure, the container) and the key of the object ``rel``."""
     bucket, _, prefix = storage.root.partition("/")
     return bucket, f"{prefix}/{rel}" if prefix else rel

@@ -28,10 +28,11 @@ from ftrain.ckpt import resume
 from ftrain.ckpt.format import COMMON, STATE_FORMAT, is_timing, shard_name
 from ftrain.ckpt.lease import LeaseLost
 from ftrain.ckpt.resume import Checkpointable, CheckpointError
+from ftrain.ckpt.retry import WaitLines, backoff
 from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, Target, snapshot
 from ftrain.ckpt.schedule import DEFAULT_STORAGE_WAIT, STORAGE_WAIT_ENV, SaveSchedule
 from ftrain.ckpt.spool import Spool
-from ftrain.ckpt.storage import Storage, StorageUnavailable, WaitLines, backoff
+from ftrain.ckpt.storage import Storage, StorageUnavailable
 from ftrain.config import Config
 from ftrain.dist import group
 from ftrain.errors import UserError

@@ -1,4 +1,5 @@
-"""Checkpoint storage: an fsspec URL (local path, ``file://``, ``s3://``, ``memory://``...), one-object operations.
+"""Checkpoint storage: an fsspec URL (local path, ``file://``, ``s3://``, ``abfs://``, ``memory://``...), one-object
+operations.
 
 Nothing is ever renamed (a rename on S3 is a copy + delete, not atomic): a commit is one object written with
 exclusive create; a local file is written under a temporary name and linked to its own (a link fails if the name
@@ -6,7 +7,8 @@ exists), so it is complete whenever it is visible, as an S3 object is.
 
 Transient errors (connection refused or reset, timeouts, DNS, 5xx, throttling) are retried here with bounded
 exponential backoff and jitter; the layers below (s3fs, botocore) are told not to retry, and to give up on a silent
-server within seconds, so that the bound is ours alone. A storage that stays unreachable raises
+server within seconds, so that the bound is ours alone (on Azure, adlfs gets the same timeouts; the Azure SDK's own
+retries are turned off per request where ftrain calls it directly, in ``cas``). A storage that stays unreachable raises
 :class:`StorageUnavailable`: an infrastructure fault that waiting fixes, never bad input (a missing bucket, denied
 access or a malformed URL are :class:`~ftrain.errors.UserError`). Credentials never appear in a message, repr or
 log line: every text that leaves this module is scrubbed.
@@ -20,9 +22,7 @@ import copy
 import datetime
 import errno
 import logging
-import math
 import os
-import random
 import re
 import time
 from collections.abc import Callable, Iterable
@@ -30,11 +30,11 @@ from typing import Any, TypeVar
 from urllib.parse import unquote, urlsplit
 
 import fsspec
-from botocore.exceptions import BotoCoreError, HTTPClientError, NoCredentialsError
-from botocore.exceptions import ConnectionError as BotoConnectionError
+from botocore.exceptions import BotoCoreError, NoCredentialsError
 from fsspec.implementations.local import LocalFileSystem
 
 from ftrain.ckpt import localfs
+from ftrain.ckpt.retry import DEFAULT_BASE_DELAY, DEFAULT_RETRIES, MAX_DELAY, azure_errors, backoff, is_transient
 from ftrain.errors import StorageError, StorageUnavailable, UserError
 from ftrain.redact import SECRET_OPTIONS, Url, display_url
 
@@ -42,38 +42,26 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-DEFAULT_RETRIES = 4
-DEFAULT_BASE_DELAY = 0.2
-MAX_DELAY = 5.0
 S3_TIMEOUTS = {"connect_timeout": 5, "read_timeout": 15}
-"""botocore's defaults are 60 s each: a paused server would hold one request for minutes, longer than the ranks'
-collectives wait for each other. Large objects go up in parts, each its own request."""
-_JITTER = random.Random()
-"""Jitter of the retry delays: a generator of its own, so that retrying never moves the random streams of training;
-reseeded in every forked child (warm workers are forks of one pool: they would back off in step)."""
-os.register_at_fork(after_in_child=_JITTER.seed)
-
-_SECRET_ENV = ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN")
-_THROTTLING = {"SlowDown", "Throttling", "ThrottlingException", "RequestLimitExceeded", "TooManyRequestsException"}
-_MOUNT_FAILURES = {errno.EIO, errno.ESTALE, errno.ENOTCONN, errno.EHOSTDOWN, errno.ENOLINK}
+"""botocore's defaults are 60 s each (the Azure SDK's 300 s; Azure storages get the same as S3's): a paused server
+would hold one request for minutes, longer than the ranks' collectives wait for each other. Large objects go up in
+parts, each its own request."""
+_SECRET_ENV = (
+    "AWS_ACCESS_KEY_ID",
+    "AWS_SECRET_ACCESS_KEY",
+    "AWS_SESSION_TOKEN",
+    "AZURE_STORAGE_ACCOUNT_KEY",
+    "AZURE_STORAGE_CONNECTION_STRING",
+    "AZURE_STORAGE_SAS_TOKEN",
+    "AZURE_STORAGE_CLIENT_SECRET",
+)
+"""Credentials that s3fs and adlfs read from the environment."""
 S3_PROTOCOLS = frozenset({"s3", "s3a"})
 """s3fs's protocols. Its class is imported (by fsspec) only for a storage that names one: importing s3fs takes a
 second, in every ``ftrain ckpt`` command and every worker of a run on a local directory."""
+AZURE_PROTOCOLS = frozenset({"abfs", "abfss", "az"})
+"""adlfs's protocols: Azure Blob storage (and Data Lake Gen2, which is Blob storage underneath)."""
 _PROTOCOL = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*$")
-
-
-def is_transient(exc: BaseException) -> bool:
-    """Worth retrying: the connection failed or timed out, the server was busy (5xx, 429, throttling), or a mounted
-    filesystem failed as a hung NFS or FUSE mount does (EIO, ESTALE, ENOTCONN): an outage, waited out like S3's."""
-    if isinstance(exc, (ConnectionError, TimeoutError, asyncio.TimeoutError, BotoConnectionError, HTTPClientError)):
-        return True
-    if isinstance(exc, OSError) and exc.errno in _MOUNT_FAILURES:
-        return True
-    response = getattr(exc.__cause__, "response", None) or getattr(exc, "response", None)
-    if not isinstance(response, dict):
-        return False
-    status = response.get("ResponseMetadata", {}).get("HTTPStatusCode", 0)
-    return status >= 500 or status == 429 or response.get("Error", {}).get("Code") in _THROTTLING
 
 
 class Storage:
@@ -122,6 +110,8 @@ class Storage:
             raise UserError(f"storage URL {shown!r} needs a package that is not installed: {exc}") from None
         if protocol in S3_PROTOCOLS:
             url = _s3_options(url, options)
+        if protocol in AZURE_PROTOCOLS:
+            _azure_options(options)
         try:
             fs, root = fsspec.core.url_to_fs(url, **options)
         except Exception as exc:
@@ -148,8 +138,16 @@ class Storage:
 
     @property
     def is_s3(self) -> bool:
-        protocols = (self.fs.protocol,) if isinstance(self.fs.protocol, str) else self.fs.protocol
-        return not S3_PROTOCOLS.isdisjoint(protocols)
+        return not S3_PROTOCOLS.isdisjoint(self._protocols)
+
+    @property
+    def is_azure(self) -> bool:
+        """Azure Blob storage through adlfs, whose ``fs.service_client`` (azure.storage.blob.aio) ``cas`` uses."""
+        return not AZURE_PROTOCOLS.isdisjoint(self._protocols)
+
+    @property
+    def _protocols(self) -> tuple[str, ...]:
+        return (self.fs.protocol,) if isinstance(self.fs.protocol, str) else tuple(self.fs.protocol)
 
     def write_exclusive(self, rel: str, data: bytes) -> None:
         """Create ``rel`` holding ``data``; FileExistsError if it exists with other content.
@@ -263,7 +261,9 @@ class Storage:
             raise FileExistsError(errno.EEXIST, "already exists", self.where(rel)) from None
         except (PermissionError, NoCredentialsError) as exc:
             raise self._access_error(exc) from None
-        except (OSError, BotoCoreError, asyncio.TimeoutError) as exc:
+        except (OSError, BotoCoreError, asyncio.TimeoutError, *azure_errors("AzureError")) as exc:
+            if getattr(exc, "status_code", None) in (401, 403):  # Azure's answer to a wrong key or a missing role
+                raise self._access_error(exc) from None
             if is_transient(exc):
                 raise StorageUnavailable(
                     f"{what} {self.where(rel)} failed after {self.retries + 1} attempts: {self._scrub(exc)}"
@@ -324,32 +324,6 @@ class Storage:
         return _scrub(exc, self._secrets)
 
 
-WAIT_LINES = 30.0
-"""Seconds between two console lines about a wait for the storage (the first and the end of a wait are always told):
-where the tries come every few seconds, a line each would flood the log of a long outage."""
-
-
-class WaitLines:
-    """When the next line about a wait for the storage is due: the first at once, then every ``WAIT_LINES`` s."""
-
-    def __init__(self) -> None:
-        self._told = -math.inf
-
-    def due(self, always: bool = False) -> bool:
-        """Whether to print a line now (``always``: yes, and the next one is ``WAIT_LINES`` seconds from now)."""
-        now = time.monotonic()
-        if not always and now - self._told < WAIT_LINES:
-            return False
-        self._told = now
-        return True
-
-
-def backoff(base: float, attempt: int, longest: float) -> float:
-    """Seconds before retry ``attempt + 1``: ``base * 2**attempt``, at most ``longest``, with +-25% jitter so that
-    many ranks or nodes do not knock at a recovering server at the same instant."""
-    return min(base * 2**attempt, longest) * _JITTER.uniform(0.75, 1.25)
-
-
 def _scrub(exc: BaseException, secrets: list[str]) -> str:
     """One line naming the exception, with every secret blanked out."""
     text = " ".join(f"{type(exc).__name__}: {exc}".split())
@@ -372,7 +346,8 @@ def _secret_values(options: dict) -> list[str]:
 
 
 def _url_secrets(url: str) -> list[str]:
-    userinfo = urlsplit(url).netloc.rpartition("@")[0] if "://" in url else ""
+    """The credentials of ``url``: what ``display_url`` takes out (an Azure ``container@account`` names none)."""
+    userinfo = urlsplit(url).netloc.rpartition("@")[0] if display_url(url) != url else ""
     return [userinfo, *(unquote(part) for part in userinfo.split(":"))] if userinfo else []
 
 
@@ -397,3 +372,12 @@ def _s3_options(url: str, options: dict) -> str:
     config.setdefault("retries", {"total_max_attempts": 1})
     options["config_kwargs"] = config
     return url
+
+
+def _azure_options(options: dict) -> None:
+    """Make adlfs list afresh (another node may have written since) on a file system of this storage's own, and give
+    up on a silent server within seconds, as on S3."""
+    options.setdefault("use_listings_cache", False)
+    options.setdefault("skip_instance_cache", True)
+    options.setdefault("connection_timeout", S3_TIMEOUTS["connect_timeout"])
+    options.setdefault("read_timeout", S3_TIMEOUTS["read_timeout"])

@@ -16,7 +16,8 @@ import time
 from collections.abc import Callable
 
 from ftrain.ckpt.format import MANIFEST, step_dir
-from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable, WaitLines, backoff
+from ftrain.ckpt.retry import WaitLines, backoff
+from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import StorageConfig
 from ftrain.errors import EXIT_USAGE, UserError
 from ftrain.redact import Url

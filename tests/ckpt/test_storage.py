@@ -9,7 +9,8 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable, backoff
+from ftrain.ckpt.retry import backoff
+from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.errors import UserError
 from ftrain.redact import display_url
 

@@ -1,0 +1,87 @@
+"""The retry policy of every storage request: what counts as transient, and how long to wait before the next try.
+
+A transient failure (connection refused or reset, timeouts, DNS, 5xx, throttling, a hung mount) is an outage that
+waiting fixes; anything else fails at once. Waits double from a base up to a cap, with jitter from a generator of
+this module's own, reseeded in every forked process, so that many ranks or nodes (warm workers are forks of one pool)
+never knock at a recovering server in step. ``Storage`` retries each request a few times with this policy; the held
+save (``manager``) and the supervisor's wait for a storage down at start (``supervise/outage.py``) use the same
+``backoff`` over their longer deadlines, with a console line every ``WAIT_LINES`` seconds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import math
+import os
+import random
+import sys
+import time
+
+from botocore.exceptions import ConnectionError as BotoConnectionError
+from botocore.exceptions import HTTPClientError
+
+DEFAULT_RETRIES = 4
+DEFAULT_BASE_DELAY = 0.2
+MAX_DELAY = 5.0
+_JITTER = random.Random()
+"""Jitter of the retry delays: a generator of its own, so that retrying never moves the random streams of training;
+reseeded in every forked child (warm workers are forks of one pool: they would back off in step)."""
+os.register_at_fork(after_in_child=_JITTER.seed)
+
+_THROTTLING = {"SlowDown", "Throttling", "ThrottlingException", "RequestLimitExceeded", "TooManyRequestsException"}
+_MOUNT_FAILURES = {errno.EIO, errno.ESTALE, errno.ENOTCONN, errno.EHOSTDOWN, errno.ENOLINK}
+
+
+def is_transient(exc: BaseException) -> bool:
+    """Worth retrying: the connection failed or timed out, the server was busy (5xx, 429, throttling; S3's or Azure's
+    answer), or a mounted filesystem failed as a hung NFS or FUSE mount does (EIO, ESTALE, ENOTCONN): an outage,
+    waited out like S3's."""
+    if isinstance(exc, (ConnectionError, TimeoutError, asyncio.TimeoutError, BotoConnectionError, HTTPClientError)):
+        return True
+    if isinstance(exc, OSError) and exc.errno in _MOUNT_FAILURES:
+        return True
+    if isinstance(exc, azure_errors("ServiceRequestError", "ServiceResponseError")):  # no answer, or none in time
+        return True
+    if isinstance(exc, azure_errors("HttpResponseError")):
+        status = exc.status_code or 0
+        return status >= 500 or status == 429
+    response = getattr(exc.__cause__, "response", None) or getattr(exc, "response", None)
+    if not isinstance(response, dict):
+        return False
+    status = response.get("ResponseMetadata", {}).get("HTTPStatusCode", 0)
+    return status >= 500 or status == 429 or response.get("Error", {}).get("Code") in _THROTTLING
+
+
+def backoff(base: float, attempt: int, longest: float) -> float:
+    """Seconds before retry ``attempt + 1``: ``base * 2**attempt``, at most ``longest``, with +-25% jitter so that
+    many ranks or nodes do not knock at a recovering server at the same instant."""
+    return min(base * 2**attempt, longest) * _JITTER.uniform(0.75, 1.25)
+
+
+WAIT_LINES = 30.0
+"""Seconds between two console lines about a wait for the storage (the first and the end of a wait are always told):
+where the tries come every few seconds, a line each would flood the log of a long outage."""
+
+
+class WaitLines:
+    """When the next line about a wait for the storage is due: the first at once, then every ``WAIT_LINES`` s."""
+
+    def __init__(self) -> None:
+        self._told = -math.inf
+
+    def due(self, always: bool = False) -> bool:
+        """Whether to print a line now (``always``: yes, and the next one is ``WAIT_LINES`` seconds from now)."""
+        now = time.monotonic()
+        if not always and now - self._told < WAIT_LINES:
+            return False
+        self._told = now
+        return True
+
+
+def azure_errors(*names: str) -> tuple[type[Exception], ...]:
+    """azure-core's exception classes ``names``, none where azure-core is not loaded: only a process that loaded it
+    (adlfs does, for an Azure storage) can meet an Azure error, and importing it would cost every other process a
+    tenth of a second."""
+    module = sys.modules.get("azure.core.exceptions")
+    return tuple(getattr(module, name) for name in names) if module else ()
