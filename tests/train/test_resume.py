@@ -196,11 +196,12 @@ def test_failed_saves_are_logged_training_goes_on_and_holds_past_the_unsaved_bou
     storage = tmp_path / "run"
     (storage / "checkpoints").mkdir(parents=True)
     (storage / "checkpoints" / "step-000000004").write_text("a file where the step directory should go")
-    result = run_train(storage, "checkpoint.keep_last=10")
+    result = run_train(storage, "checkpoint.keep_last=10", "iterations=12")
     assert "checkpoint step 4 not committed, earlier steps intact" in result.stdout
     retried = int(re.search(r"checkpoint step (\d+) committed: saves work again", result.stdout)[1])
     assert retried in (5, 6), "the newest state is retried as soon as the failed save has settled"
-    assert sorted(manifests(storage)) == sorted({2, retried, 6, 8}), "then the interval goes on"
+    # then the interval goes on; step 6 is skipped where the retry's save is still in flight then (a loaded machine)
+    assert {2, retried, 8, 10, 12} <= set(manifests(storage)) <= {2, retried, 6, 8, 10, 12}
 
     blocked = tmp_path / "blocked"
     blocked.mkdir()
