@@ -12,6 +12,8 @@
 # Further arguments go to pytest (a later `-m` or `-n` wins over the lane's). The SLURM lane (tests/cluster) runs a private
 # SLURM cluster and skips with the reason where slurm-wlm and munge are missing or not root; the cluster lane needs
 # etcd and, for tests/cluster/test_netns.py, network namespaces (root).
+# Before the tests it prints how fast the machine is today (launch/machine_speed.py: the CPU seconds of one cold smoke
+# run), since these machines differ 2-3x from day to day: compare suites by minutes per smoke CPU-second.
 # FTRAIN_TEST_CPU_LOG=FILE appends each test's CPU and wall seconds to FILE (tests/conftest.py): the suite is
 # CPU-bound, so that, not --durations, shows what to cut.
 set -euo pipefail
@@ -32,5 +34,6 @@ esac
 FTRAIN_TEST_DEPS=1 bash launch/setup.sh
 .venv/bin/ruff check ftrain tests launch examples
 .venv/bin/ruff format --check ftrain tests launch examples
+.venv/bin/python launch/machine_speed.py
 workers=(-n "${FTRAIN_TEST_WORKERS:-$(($(nproc) + 1))}" --dist loadfile --no-loadscope-reorder)  # LONGEST_FIRST's order
 exec .venv/bin/python -m pytest -p no:cacheprovider --durations=15 "${workers[@]}" "${select[@]}" "$@"
