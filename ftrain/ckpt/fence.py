@@ -130,10 +130,11 @@ class LeaseToken:
         return cls(storage, run_id, int(generation)) if run_id and generation.isdigit() else None
 
     def check(self) -> None:
-        """LeaseLost if another run has taken the lease since this run's generation."""
+        """LeaseLost if a newer generation holds the lease: another run, or this run id again after this one's
+        processes were all gone (a requeued job, while a process of the old one still runs)."""
         current = read_record(self.storage)
-        if current is not None and current[0].run_id != self.run_id and current[0].generation > self.generation:
-            raise LeaseLost(lost_message(self.storage, current[0], self.generation))
+        if current is not None and current[0].generation > self.generation:
+            raise LeaseLost(lost_message(self.storage, current[0], self.run_id, self.generation))
 
 
 def _parse(data: bytes) -> dict:

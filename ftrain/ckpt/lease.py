@@ -12,7 +12,9 @@ Every change is a compare-and-swap of the record read (``cas.py``: conditional r
 atomic replace locally), so of two processes that race, one wins and the other reads again.
 
 The generation is the run's fencing token. It only grows: a release keeps the record (with no holders), so the next
-run takes generation + 1. A run that finds a newer generation of another run in the record (its lease expired while
+holder takes generation + 1, be it another run or the same run id once none of its processes lives (a requeued job,
+the same command again): the processes of one generation are those that overlapped. A run that finds a newer
+generation in the record (its lease expired while
 it was paused, or cut off, and another run took the storage) has lost the storage for good: it never takes it back,
 and rank 0 reads the record right before every manifest it writes (``fence.LeaseToken``: one small read per commit) and
 commits nothing once another run's generation is there; the workers then exit 8. What is left is the time between
@@ -194,20 +196,26 @@ class Lease:
         """Why the storage is lost to another run, once it is (for good)."""
 
     def acquire(self) -> str | None:
-        """Take the lease (or join this run's); LeaseHeld if another run holds it, LeaseLost if another run took it
-        after this one held it. A line saying so if this took over another run's live lease, else None."""
+        """Take the lease, or join this run's while another of its processes holds it (the nodes of one run share a
+        generation); LeaseHeld if another run holds it, LeaseLost if a newer generation took it after this process
+        held it. A line saying so if this took over another run's live lease, else None.
+
+        A run id may outlive its processes (a batch job's id kept across a requeue, the same command run again), so
+        a process that finds none of its run alive takes the next generation, as another run would: whatever the old
+        ones still have in flight is then refused at commit (``fence.LeaseToken``)."""
         while True:
             now = time.time()
             current = read_record(self.storage)
             record, version = current if current is not None else (None, None)
-            if record is not None and record.run_id != self.run_id and self.generation is not None:
-                raise LeaseLost(lost_message(self.storage, record, self.generation))
+            if record is not None and self.generation is not None and record.generation != self.generation:
+                raise LeaseLost(lost_message(self.storage, record, self.run_id, self.generation))
             if record is not None and record.run_id != self.run_id and record.live(now):
                 raise LeaseHeld(self._held_message(record, now))
             ours = record is not None and record.run_id == self.run_id
-            keep = tuple(e for e in record.live(now) if e.process != self.process) if ours else ()
-            generation = record.generation if ours else (record.generation + 1 if record else 1)
-            new = Record(self.run_id, generation, self.ttl, (*keep, Entry(self.process, now)))
+            others = tuple(e for e in record.live(now) if e.process != self.process) if ours else ()
+            joins = ours and (self.generation is not None or bool(others))
+            generation = record.generation if joins else (record.generation + 1 if record else 1)
+            new = Record(self.run_id, generation, self.ttl, (*(others if joins else ()), Entry(self.process, now)))
             try:
                 cas.write(self.storage, LEASE, new.encode(), version)
             except cas.Conflict:
@@ -322,7 +330,12 @@ class Lease:
         return f"took over the lease of {self.storage.url} from run {record.run_id}: {holders or 'no holder'}"
 
 
-def lost_message(storage: Storage, record: Record, generation: int) -> str:
+def lost_message(storage: Storage, record: Record, run_id: str, generation: int) -> str:
+    if record.run_id == run_id:  # started again while this process still ran (requeued, paused, cut off)
+        return (
+            f"the lease of {storage.url} was taken by a newer start of run {run_id} (generation {record.generation}; "
+            f"this one's is {generation}): this process lost the storage and commits nothing more"
+        )
     return (
         f"the lease of {storage.url} was taken by run {record.run_id} (generation {record.generation}; this run's is "
         f"{generation}): this run lost the storage and commits nothing more"

@@ -197,6 +197,23 @@ def test_a_lease_taken_by_another_run_is_lost_for_good_and_said_once(storage):
     assert lease.renew() is None and record(storage).run_id == "intruder"  # never taken back: two writers
 
 
+def test_a_run_id_started_again_when_none_of_its_processes_lives_fences_off_the_old_ones(storage):
+    """A batch job keeps its run id across a requeue: the requeued job is a new holder, and what the old one still
+    has running (a node paused past the expiry, as another host sees it) commits nothing more."""
+    storage.write_replace(LEASE, foreign("job-42", time.time(), generation=4).encode())
+    old = Lease(storage, "job-42", print)
+    assert old.acquire() is None and record(storage).generation == 4  # a node of the live run joins it
+    storage.write_replace(LEASE, foreign("job-42", time.time() - 61, generation=4).encode())  # all expired
+    requeued = Lease(storage, "job-42", print)
+    assert requeued.acquire() is None
+    assert (record(storage).generation, [e.process.pid for e in record(storage).entries]) == (5, [os.getpid()])
+    lost = old.renew()
+    assert lost is not None and "taken by a newer start of run job-42 (generation 5; this one's is 4)" in lost, lost
+    with pytest.raises(LeaseLost, match="newer start of run job-42"):
+        LeaseToken(storage, "job-42", 4).check()
+    LeaseToken(storage, "job-42", 5).check()  # the requeued job commits
+
+
 def test_a_commit_of_a_run_whose_lease_another_run_took_is_refused(storage):
     mine = Lease(storage, "mine", print)
     mine.hold()
