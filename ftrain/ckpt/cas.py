@@ -221,14 +221,23 @@ def _locked(storage: Storage, rel: str) -> Iterator[None]:
     if not storage.is_local:
         yield
         return
-    path = _local_path(storage, rel) + ".lock"
+    fd = storage._call("lock", rel, _lock_file, _local_path(storage, rel) + ".lock")  # a failing mount: an outage
+    try:
+        yield
+    finally:
+        os.close(fd)
+
+
+def _lock_file(path: str) -> int:
+    """A descriptor of ``path`` (created, with its directory, where missing) holding an exclusive ``flock`` of it."""
     os.makedirs(os.path.dirname(path), exist_ok=True)
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX)
-        yield
-    finally:
+    except BaseException:
         os.close(fd)
+        raise
+    return fd
 
 
 def _replace_local(path: str, data: bytes) -> None:
