@@ -352,8 +352,9 @@ def _url_secrets(url: str) -> list[str]:
 
 
 def _modified(entry: dict) -> float | None:
-    """An fsspec listing entry's modification time: ``mtime`` locally, ``LastModified`` on S3, ``created`` in memory."""
-    value = entry.get("mtime", entry.get("LastModified", entry.get("created")))
+    """An fsspec listing entry's modification time: ``mtime`` locally, ``LastModified`` on S3, ``last_modified`` on
+    Azure, ``created`` in memory."""
+    value = next((entry[key] for key in ("mtime", "LastModified", "last_modified", "created") if key in entry), None)
     if isinstance(value, datetime.datetime):
         return value.timestamp()
     return float(value) if isinstance(value, (int, float)) else None

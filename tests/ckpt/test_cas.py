@@ -11,6 +11,7 @@ import base64
 import os
 import subprocess
 import threading
+import time
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 
@@ -94,6 +95,8 @@ def test_an_exclusive_create_such_as_a_manifests_is_refused_where_other_bytes_ex
     with pytest.raises(FileExistsError):
         server_storage.write_exclusive("MANIFEST.json", b"second")
     assert server_storage.read("MANIFEST.json") == b"first"
+    written = server_storage.modified("")  # how old a step without a manifest is: retention's age floor reads it
+    assert written is not None and abs(time.time() - written) < 300
 
 
 def test_of_writers_racing_from_one_version_exactly_one_wins(azurite_server):
