@@ -3,7 +3,10 @@ same way."""
 
 from __future__ import annotations
 
+import functools
 import os
+import socket
+from dataclasses import dataclass
 from pathlib import Path
 
 
@@ -69,3 +72,49 @@ def descendants(pid: int) -> list[int]:
             found.append(child)
             todo.append(child)
     return found
+
+
+@dataclass(frozen=True)
+class Process:
+    """A process, as precisely as its host lets another process recognise it."""
+
+    host: str
+    pid: int
+    start: int
+    """Its start time in clock ticks after boot (``/proc/<pid>/stat``): a reused pid has another."""
+    boot: str
+    """The host's boot id: a reboot changes it."""
+    pidns: str
+    """Its pid namespace: pids of another namespace (another container) cannot be looked up here."""
+
+    @classmethod
+    def current(cls) -> Process:
+        host, boot, pidns = _here()
+        pid = os.getpid()
+        return cls(host, pid, int(start_time(pid) or 0), boot, pidns)
+
+    def running(self) -> bool | None:
+        """Seen from here: whether it still runs; None if this host cannot tell (another host, another namespace)."""
+        host, boot, pidns = _here()
+        if self.host != host or not boot:
+            return None
+        if self.boot != boot:
+            return False  # its host has rebooted since
+        if self.pidns != pidns:
+            return None
+        fields = stat_fields(self.pid)
+        return bool(fields) and fields[0] != "Z" and int(fields[19]) == self.start  # a zombie has ended
+
+    def describe(self) -> str:
+        return f"pid {self.pid} on host {self.host}"
+
+
+@functools.cache
+def _here() -> tuple[str, str, str]:
+    """This host's name and boot id, and this process's pid namespace (boot id and namespace "" where /proc does not
+    tell: then no process is ever seen gone, leases only expire)."""
+    try:
+        boot, pidns = Path("/proc/sys/kernel/random/boot_id").read_text().strip(), os.readlink("/proc/self/ns/pid")
+    except OSError:
+        boot = pidns = ""
+    return socket.gethostname(), boot, pidns

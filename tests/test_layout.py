@@ -34,7 +34,7 @@ LAYERS = {
     "train": {"policy", "ckpt", "dist", "config", "errors", "errorfile", "heartbeat", "track", "redact"},
     "track": {"config", "values", "errors", "redact"},
     "policy": {"ckpt", "config", "errors", "progress"},
-    "ckpt": {"dist", "config", "values", "errors", "heartbeat", "lifeline", "redact"},
+    "ckpt": {"dist", "config", "values", "errors", "heartbeat", "lifeline", "procfs", "redact"},
     "dist": {"errors", "lifeline", "proctitle"},
     "config": {"values", "errors", "redact"},
     "values": {"errors", "redact"},

@@ -19,11 +19,14 @@ conditional write here; both are refused in one line, unless ``storage.plain_wri
 from __future__ import annotations
 
 import contextlib
+import datetime
 import fcntl
 import hashlib
 import os
 import secrets
+import time
 from collections.abc import Iterator
+from email.utils import parsedate_to_datetime
 from typing import TYPE_CHECKING, Any
 
 import fsspec.asyn
@@ -105,6 +108,22 @@ def read(storage: Storage, rel: str) -> tuple[bytes, str] | None:
         return None
 
 
+def age(storage: Storage, rel: str) -> float | None:
+    """Seconds since the object ``rel`` was last written, by the storage's own clock: on S3 and Azure the server's
+    ``Date`` against the object's ``Last-Modified`` (one HEAD request), elsewhere the file's time against this
+    machine's clock (the same clock for a local disk). What a lease's expiry is measured in, so that no host's clock
+    is compared with another's. None if there is no such object."""
+    if not _server_decides(storage):
+        written = storage.written_at(rel)
+        return None if written is None else time.time() - written
+    head = _s3_head if storage.is_s3 else _azure_head
+    try:
+        written, now = storage._call("read", rel, fsspec.asyn.sync, storage.fs.loop, head, storage, rel)
+    except FileNotFoundError:
+        return None
+    return (now - written).total_seconds()
+
+
 def write(storage: Storage, rel: str, data: bytes, version: str | None) -> None:
     """Put ``data`` if the object's version is still ``version`` (None: if there is no object); Conflict if not."""
     if storage.is_s3:
@@ -170,6 +189,28 @@ async def _s3_get(storage: Storage, rel: str) -> tuple[bytes, str]:
     response = await storage.fs._call_s3("get_object", Bucket=bucket, Key=key)
     async with response["Body"] as body:
         return await body.read(), response["ETag"]
+
+
+async def _s3_head(storage: Storage, rel: str) -> tuple[datetime.datetime, datetime.datetime]:
+    """One HEAD: when the object was written, and the server's time of the answer."""
+    bucket, key = _bucket_key(storage, rel)
+    response = await storage.fs._call_s3("head_object", Bucket=bucket, Key=key)
+    return response["LastModified"], parsedate_to_datetime(response["ResponseMetadata"]["HTTPHeaders"]["date"])
+
+
+async def _azure_head(storage: Storage, rel: str) -> tuple[datetime.datetime, datetime.datetime]:
+    """One HEAD: when the blob was written, and the server's time of the answer (FileNotFoundError if it is gone)."""
+    from azure.core.exceptions import ResourceNotFoundError
+
+    headers: dict[str, str] = {}
+    async with _blob(storage, rel) as blob:
+        try:
+            properties = await blob.get_blob_properties(
+                raw_response_hook=lambda answer: headers.update(answer.http_response.headers), **_AZURE_ONCE
+            )
+        except ResourceNotFoundError:
+            raise FileNotFoundError(rel) from None
+    return properties.last_modified, parsedate_to_datetime(headers["Date"])
 
 
 async def _azure_get(storage: Storage, rel: str) -> tuple[bytes, str]:

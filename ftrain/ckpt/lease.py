@@ -4,9 +4,11 @@ The record names the run (``run_id``), a ``generation`` (+1 at every new holder 
 ``ttl`` and ``expires_at`` (wall clock, for humans and other hosts), and one entry per process that renews it (host,
 pid, the process's start time, the host's boot id and pid namespace, ``renewed_at``): every node of a run renews its
 own entry, so the lease lives while any node does. A second run is refused while any entry lives; an entry lives
-until ``renewed_at + ttl``, except on its own host, where a process whose pid no longer has the recorded start time
-(``/proc/<pid>/stat``), or a host that has rebooted since, is seen gone at once (so the same command again right
-after a crash never waits for the expiry), and a process seen running there holds it even past the expiry.
+until ``renewed_at + ttl`` (and, as the storage's own clock tells, while the record was written within ``ttl``: no
+host's clock is trusted to agree with another's), except on its own host, where a process whose pid no longer has
+the recorded start time (``/proc/<pid>/stat``), or a host that has rebooted since, is seen gone at once (so the same
+command again right after a crash never waits for the expiry), and a process seen running there holds it even past
+the expiry.
 
 Every change is a compare-and-swap of the record read (``cas.py``: conditional requests on S3, ``flock`` and an
 atomic replace locally), so of two processes that race, one wins and the other reads again.
@@ -27,23 +29,21 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import functools
 import hashlib
 import json
 import os
 import secrets
-import socket
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 from ftrain.ckpt import cas
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import Config
 from ftrain.errors import EXIT_STORAGE_HELD, UserError
 from ftrain.heartbeat import TOKEN_ENV
+from ftrain.procfs import Process
 
 LEASE = "LEASE.json"
 RUN_ID_ENV = "FTRAIN_RUN_ID"
@@ -68,40 +68,6 @@ class LeaseLost(LeaseHeld):
 
 _AGREED = {kind.__name__: kind for kind in (LeaseHeld, UserError, StorageUnavailable, StorageError)}
 """What rank 0's claim may end in, as the other ranks raise it too."""
-
-
-@dataclass(frozen=True)
-class Process:
-    """A process, as precisely as its host lets another process recognise it."""
-
-    host: str
-    pid: int
-    start: int
-    """Its start time in clock ticks after boot (``/proc/<pid>/stat``): a reused pid has another."""
-    boot: str
-    """The host's boot id: a reboot changes it."""
-    pidns: str
-    """Its pid namespace: pids of another namespace (another container) cannot be looked up here."""
-
-    @classmethod
-    def current(cls) -> Process:
-        host, boot, pidns = _here()
-        pid = os.getpid()
-        return cls(host, pid, _start_time(pid) or 0, boot, pidns)
-
-    def running(self) -> bool | None:
-        """Seen from here: whether it still runs; None if this host cannot tell (another host, another namespace)."""
-        host, boot, pidns = _here()
-        if self.host != host or not boot:
-            return None
-        if self.boot != boot:
-            return False  # its host has rebooted since
-        if self.pidns != pidns:
-            return None
-        return _start_time(self.pid) == self.start
-
-    def describe(self) -> str:
-        return f"pid {self.pid} on host {self.host}"
 
 
 @dataclass(frozen=True)
@@ -209,10 +175,11 @@ class Lease:
             record, version = current if current is not None else (None, None)
             if record is not None and self.generation is not None and record.generation != self.generation:
                 raise LeaseLost(lost_message(self.storage, record, self.run_id, self.generation))
-            if record is not None and record.run_id != self.run_id and record.live(now):
-                raise LeaseHeld(self._held_message(record, now))
+            live = self._live(record, now) if record is not None else []
+            if record is not None and record.run_id != self.run_id and live:
+                raise LeaseHeld(self._held_message(record, live))
             ours = record is not None and record.run_id == self.run_id
-            others = tuple(e for e in record.live(now) if e.process != self.process) if ours else ()
+            others = tuple(e for e in live if e.process != self.process) if ours else ()
             joins = ours and (self.generation is not None or bool(others))
             generation = record.generation if joins else (record.generation + 1 if record else 1)
             new = Record(self.run_id, generation, self.ttl, (*(others if joins else ()), Entry(self.process, now)))
@@ -275,8 +242,8 @@ class Lease:
     def check(self) -> None:
         """LeaseHeld if another run, alive, holds the lease (a worker whose supervisor holds it for its run)."""
         current = read_record(self.storage)
-        if current is not None and current[0].run_id != self.run_id and current[0].live(time.time()):
-            raise LeaseHeld(self._held_message(current[0], time.time()))
+        if current is not None and current[0].run_id != self.run_id and (live := self._live(current[0], time.time())):
+            raise LeaseHeld(self._held_message(current[0], live))
 
     def _keep(self) -> None:
         """Renew until stopped. While the storage fails, try 4 times as often; one line when that starts and one when
@@ -311,9 +278,21 @@ class Lease:
             except cas.Conflict:
                 continue
 
-    def _held_message(self, record: Record, now: float) -> str:
-        holder = max(record.live(now), key=lambda e: e.renewed_at)
-        ends = record.expires_at
+    def _live(self, record: Record, now: float) -> list[Entry]:
+        """The entries of ``record`` that hold the lease: ``Record.live``; and where none is by the times the
+        entries carry, those not seen gone on this host, if the storage's own clock says the record was written
+        within its ``ttl`` (``cas.age``, one request). An entry's time is its host's clock: one running behind this
+        host's would make a live lease look expired, and a second run take the storage from the first."""
+        live = record.live(now)
+        unseen = [entry for entry in record.entries if entry.process.running() is not False]
+        if live or not unseen:
+            return live
+        age = cas.age(self.storage, LEASE)
+        return unseen if age is not None and age < record.ttl else []
+
+    def _held_message(self, record: Record, live: list[Entry]) -> str:
+        holder = max(live, key=lambda e: e.renewed_at)
+        ends, now = record.expires_at, time.time()
         end = f"ended at {_when(ends)}, but the process runs" if ends < now else f"ends at {_when(ends)}"
         return (
             f"storage {self.storage.url} is held by another run ({record.run_id}, {holder.process.describe()}): its "
@@ -384,26 +363,6 @@ def read_record(storage: Storage) -> tuple[Record, str] | None:
         raise UserError(
             f"{storage.where(LEASE)} is not a lease ftrain can read: if no run uses this storage, delete that file"
         ) from None
-
-
-def _start_time(pid: int) -> int | None:
-    """The start time of process ``pid`` (ticks after boot), None if there is no such process or it is a zombie."""
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rpartition(")")[2].split()
-    except OSError:
-        return None
-    return None if fields[0] == "Z" else int(fields[19])
-
-
-@functools.cache
-def _here() -> tuple[str, str, str]:
-    """This host's name and boot id, and this process's pid namespace (boot id and namespace "" where /proc does not
-    tell: then no process is ever seen gone, leases only expire)."""
-    try:
-        boot, pidns = Path("/proc/sys/kernel/random/boot_id").read_text().strip(), os.readlink("/proc/self/ns/pid")
-    except OSError:
-        boot = pidns = ""
-    return socket.gethostname(), boot, pidns
 
 
 def _when(epoch: float) -> str:

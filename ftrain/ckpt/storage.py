@@ -208,6 +208,14 @@ class Storage:
         times = [_modified(entry) for entry in self._list(rel).values() if entry["type"] == "file"]
         return max((time for time in times if time is not None), default=None)
 
+    def written_at(self, rel: str) -> float | None:
+        """When the object ``rel`` was last written (epoch seconds, the storage's clock); None if there is none, or
+        the storage does not say."""
+        try:
+            return _modified(self._call("info", rel, self.fs.info, self._path(rel)))
+        except FileNotFoundError:
+            return None
+
     def delete(self, rel: str) -> None:
         """Delete one object if it exists."""
         with contextlib.suppress(FileNotFoundError):

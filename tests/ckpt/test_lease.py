@@ -15,9 +15,10 @@ import pytest
 
 from ftrain.ckpt import cas
 from ftrain.ckpt.fence import LeaseToken
-from ftrain.ckpt.lease import GENERATION_ENV, LEASE, RUN_ID_ENV, Entry, Lease, LeaseHeld, LeaseLost, Process, Record
+from ftrain.ckpt.lease import GENERATION_ENV, LEASE, RUN_ID_ENV, Entry, Lease, LeaseHeld, LeaseLost, Record
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
+from ftrain.procfs import Process
 
 from helpers import child_env, wait_for
 
@@ -132,12 +133,16 @@ def test_of_processes_that_race_for_a_free_lease_exactly_one_wins(storage):
     assert record(storage).run_id == f"run-{outcomes.index('won')}"
 
 
-def test_a_lease_of_another_host_holds_until_it_expires(storage):
+def test_a_lease_of_another_host_holds_until_it_expires_by_the_storages_clock(storage):
     storage.write_replace(LEASE, foreign("far-run", time.time()).encode())
     with pytest.raises(LeaseHeld, match="far-run, pid 4242 on host node-far-away"):
         Lease(storage, "mine", print).acquire()
 
-    storage.write_replace(LEASE, foreign("far-run", time.time() - 61).encode())
+    # that host's clock is 5 minutes behind: its renewal looks expired here, but the storage wrote it just now
+    storage.write_replace(LEASE, foreign("far-run", time.time() - 300, ttl=3.0).encode())
+    with pytest.raises(LeaseHeld, match="far-run, pid 4242 on host node-far-away"):
+        Lease(storage, "mine", print).acquire()
+    time.sleep(4.5)  # no renewal for longer than its ttl, by the storage's clock (whole seconds on S3)
     taken = Lease(storage, "mine", print).acquire()
     assert taken is not None and "from run far-run" in taken and "expired at" in taken
     assert record(storage).run_id == "mine" and record(storage).generation == 5
@@ -203,7 +208,8 @@ def test_a_run_id_started_again_when_none_of_its_processes_lives_fences_off_the_
     storage.write_replace(LEASE, foreign("job-42", time.time(), generation=4).encode())
     old = Lease(storage, "job-42", print)
     assert old.acquire() is None and record(storage).generation == 4  # a node of the live run joins it
-    storage.write_replace(LEASE, foreign("job-42", time.time() - 61, generation=4).encode())  # all expired
+    storage.write_replace(LEASE, foreign("job-42", time.time() - 61, ttl=2.0, generation=4).encode())
+    time.sleep(3.5)  # every process of the job has stopped renewing (by the storage's clock too)
     requeued = Lease(storage, "job-42", print)
     assert requeued.acquire() is None
     assert (record(storage).generation, [e.process.pid for e in record(storage).entries]) == (5, [os.getpid()])

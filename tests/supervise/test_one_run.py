@@ -20,9 +20,10 @@ from pathlib import Path
 import pytest
 
 from ftrain import procfs
-from ftrain.ckpt.lease import LEASE, TTL_ENV, Entry, Process, Record
+from ftrain.ckpt.lease import LEASE, TTL_ENV, Entry, Record
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD
+from ftrain.procfs import Process
 from ftrain.supervise.auth import SECRET_ENV
 
 import helpers
@@ -176,8 +177,9 @@ def test_every_node_of_a_supervised_run_is_admitted_and_holds_the_lease(tmp_path
 def test_a_lease_that_expired_on_another_host_is_taken_over(tmp_path, s3_url, s3_env):
     url, options = s3_url
     foreign = Process("node-far-away", 4242, 123, "another-boot-id", "pid:[1]")
-    expired = Record("far-run", 7, 60.0, (Entry(foreign, time.time() - 120),))
+    expired = Record("far-run", 7, 2.0, (Entry(foreign, time.time() - 120),))
     Storage.open(url, options).write_replace(LEASE, expired.encode())
+    time.sleep(3.5)  # not renewed for longer than its ttl by the storage's clock too (whole seconds on S3)
 
     result = run_train(url, f"log_dir={tmp_path / 'logs'}", env=s3_env)
     assert "took over the lease of" in result.stdout and "from run far-run" in result.stdout
