@@ -6,7 +6,7 @@ is tried again as soon as the failed save has settled, then after waits that dou
 between, saves on the schedule go to the spool alone, so that a crash while the storage is down loses no more than
 usual), an unloadable one (stop). A start that finds the storage down counts as a failed save. A save that must
 commit (the last one of a run, a stop, or one with more unsaved work than ``checkpoint.max_unsaved``) holds training
-until it does: it is retried with backoff (``HOLD_DELAY``), a line every ``WAIT_LINES`` seconds, for up to the
+until it does: it is retried with backoff (``retry.OUTAGE``), a line every ``WAIT_LINES`` seconds, for up to the
 storage wait (``FTRAIN_STORAGE_WAIT``, which ``ftrain supervise`` sets from ``--storage-wait``), then the rank ends
 with ``StorageUnavailable``: nothing committed is lost.
 
@@ -28,7 +28,7 @@ from ftrain.ckpt import resume
 from ftrain.ckpt.format import COMMON, STATE_FORMAT, is_timing, shard_name
 from ftrain.ckpt.lease import LeaseLost
 from ftrain.ckpt.resume import Checkpointable, CheckpointError
-from ftrain.ckpt.retry import WaitLines, backoff
+from ftrain.ckpt.retry import OUTAGE, WaitLines
 from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, Target, snapshot
 from ftrain.ckpt.schedule import DEFAULT_STORAGE_WAIT, STORAGE_WAIT_ENV, SaveSchedule
 from ftrain.ckpt.spool import Spool
@@ -44,10 +44,6 @@ MAX_IN_FLIGHT = 2
 the loop."""
 WAIT_BEAT = 0.5
 """Seconds between two calls of ``while_waiting`` while a rank waits for a save (its heartbeat: not a hang)."""
-HOLD_DELAY = (1.0, 5.0)
-"""Seconds between two tries of a held save: the first, and the longest (doubling, with jitter). Short: every second
-between the storage's return and the next try is lost to the whole run, and a try of a storage that is down costs one
-request per file (``Target.TRY``)."""
 RETRY_DELAY_MAX = 8.0
 """The longest wait between a failed save's end and the next try of the storage while training goes on (the first
 comes as soon as the failed one has settled, then after 1, 2, 4 s...): each try is requests to the storage, which back
@@ -223,7 +219,7 @@ class Checkpointer:
                     f"the storage {self.storage.url} took no checkpoint for {waited:.0f} s ({why}); the newest "
                     f"committed step is {self.committed_step}: run the same command again once it is back"
                 )
-            delay = backoff(HOLD_DELAY[0], tries, HOLD_DELAY[1])
+            delay = OUTAGE.delay(tries)
             iterations, seconds = self.schedule.unsaved(trainer.iteration, time.monotonic())
             if lines.due():
                 self.log(

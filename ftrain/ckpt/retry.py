@@ -1,11 +1,11 @@
 """The retry policy of every storage request: what counts as transient, and how long to wait before the next try.
 
 A transient failure (connection refused or reset, timeouts, DNS, 5xx, throttling, a hung mount) is an outage that
-waiting fixes; anything else fails at once. Waits double from a base up to a cap, with jitter from a generator of
-this module's own, reseeded in every forked process, so that many ranks or nodes (warm workers are forks of one pool)
-never knock at a recovering server in step. ``Storage`` retries each request a few times with this policy; the held
-save (``manager``) and the supervisor's wait for a storage down at start (``supervise/outage.py``) use the same
-``backoff`` over their longer deadlines, with a console line every ``WAIT_LINES`` seconds.
+waiting fixes; anything else fails at once. Waits double from a base up to a cap (``Backoff``), with jitter from a
+generator of this module's own, reseeded in every forked process, so that many ranks or nodes (warm workers are forks
+of one pool) never knock at a recovering server in step. Two schedules: ``REQUEST``, between the few tries of one
+request (``Storage``), and ``OUTAGE``, between the tries of a storage that is down until a deadline (a held save, the
+supervisor's wait for a storage down at start), with a console line every ``WAIT_LINES`` seconds.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ import os
 import random
 import sys
 import time
+from dataclasses import dataclass
 
 from botocore.exceptions import ConnectionError as BotoConnectionError
 from botocore.exceptions import HTTPClientError
@@ -53,10 +54,25 @@ def is_transient(exc: BaseException) -> bool:
     return status >= 500 or status == 429 or response.get("Error", {}).get("Code") in _THROTTLING
 
 
-def backoff(base: float, attempt: int, longest: float) -> float:
-    """Seconds before retry ``attempt + 1``: ``base * 2**attempt``, at most ``longest``, with +-25% jitter so that
+@dataclass(frozen=True)
+class Backoff:
+    """Doubling waits: ``first`` seconds before the first retry, at most ``longest``, each with +-25% jitter so that
     many ranks or nodes do not knock at a recovering server at the same instant."""
-    return min(base * 2**attempt, longest) * _JITTER.uniform(0.75, 1.25)
+
+    first: float
+    longest: float
+
+    def delay(self, attempt: int) -> float:
+        """Seconds before retry ``attempt + 1``."""
+        return min(self.first * 2**attempt, self.longest) * _JITTER.uniform(0.75, 1.25)
+
+
+REQUEST = Backoff(DEFAULT_BASE_DELAY, MAX_DELAY)
+"""Between the tries of one storage request (``Storage``: ``checkpoint.retries`` of them, then it fails)."""
+OUTAGE = Backoff(1.0, 5.0)
+"""Between the tries of a storage that is down, until a deadline: a held save (``manager``), the supervisor's wait
+(``supervise/outage.py``). Short: every second between the storage's return and the next try is lost to the whole
+run, and a try of a storage that is down costs a request per file."""
 
 
 WAIT_LINES = 30.0

@@ -34,7 +34,7 @@ from botocore.exceptions import BotoCoreError, NoCredentialsError
 from fsspec.implementations.local import LocalFileSystem
 
 from ftrain.ckpt import localfs
-from ftrain.ckpt.retry import DEFAULT_BASE_DELAY, DEFAULT_RETRIES, MAX_DELAY, azure_errors, backoff, is_transient
+from ftrain.ckpt.retry import DEFAULT_BASE_DELAY, DEFAULT_RETRIES, MAX_DELAY, Backoff, azure_errors, is_transient
 from ftrain.errors import StorageError, StorageUnavailable, UserError
 from ftrain.redact import SECRET_OPTIONS, Url, display_url
 
@@ -286,7 +286,7 @@ class Storage:
             except Exception as exc:
                 if attempt == self.retries or not is_transient(exc):
                     raise
-                delay = backoff(self.base_delay, attempt, MAX_DELAY)
+                delay = Backoff(self.base_delay, MAX_DELAY).delay(attempt)
                 attempt += 1
                 where, reason = self.where(rel), self._scrub(exc)
                 log.warning("%s %s: %s; retry %d/%d in %.2fs", what, where, reason, attempt, self.retries, delay)

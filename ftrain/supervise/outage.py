@@ -16,7 +16,7 @@ import time
 from collections.abc import Callable
 
 from ftrain.ckpt.format import MANIFEST, step_dir
-from ftrain.ckpt.retry import WaitLines, backoff
+from ftrain.ckpt.retry import OUTAGE, WaitLines
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import StorageConfig
 from ftrain.errors import EXIT_USAGE, UserError
@@ -25,9 +25,6 @@ from ftrain.supervise.events import EventLog
 from ftrain.supervise.options import EXIT_STORAGE_WAIT
 from ftrain.supervise.outcome import Outcome
 
-PROBES = (1.0, 5.0)
-"""Seconds between two probes: the first, and the longest (doubling, with jitter). Short: every second between the
-storage's return and the next probe is lost to the whole run, and a probe is one request."""
 WAITS = (300.0, 3600.0)
 """``--storage-wait``'s default: for a storage that has not answered once since the command started (a wrong URL or
 endpoint is then likelier than an outage, and an hour is long to learn that), and for one that answered and went
@@ -92,7 +89,7 @@ class StorageWait:
                     f"the storage {url} did not answer for {self.limit:g} s ({problem}); nothing committed is lost: "
                     "run the same command again once it is back",
                 )
-            delay = backoff(PROBES[0], tries, PROBES[1])
+            delay = OUTAGE.delay(tries)
             if lines.due():
                 print(
                     f"ftrain supervise: storage {url} unreachable since {since} ({problem}); next try in {delay:.0f} s",

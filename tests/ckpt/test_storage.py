@@ -9,7 +9,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from ftrain.ckpt.retry import backoff
+from ftrain.ckpt.retry import Backoff
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.errors import UserError
 from ftrain.redact import display_url
@@ -295,7 +295,7 @@ def test_forked_processes_back_off_apart() -> None:
     for _ in range(2):
         read, write = os.pipe()
         if (pid := os.fork()) == 0:
-            os.write(write, repr([backoff(1.0, 3, 100.0) for _ in range(4)]).encode())
+            os.write(write, repr([Backoff(1.0, 100.0).delay(3) for _ in range(4)]).encode())
             os._exit(0)
         os.close(write)
         os.waitpid(pid, 0)
