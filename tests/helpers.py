@@ -273,16 +273,20 @@ S3_REGION = "us-east-1"
 BACKENDS = ("local", "file", "memory", "s3")
 
 
-def create_bucket(server: dict) -> str:
-    bucket = f"ftrain-{uuid.uuid4().hex[:12]}"
-    client = boto3.client(
+def s3_client(server: dict):
+    """A boto3 client of ``server`` (``s3_server``), to set up and inspect what a test's S3 storage holds."""
+    return boto3.client(
         "s3",
         endpoint_url=server["endpoint_url"],
         aws_access_key_id=server["key"],
         aws_secret_access_key=server["secret"],
         region_name=server["region"],
     )
-    client.create_bucket(Bucket=bucket)
+
+
+def create_bucket(server: dict) -> str:
+    bucket = f"ftrain-{uuid.uuid4().hex[:12]}"
+    s3_client(server).create_bucket(Bucket=bucket)
     return bucket
 
 

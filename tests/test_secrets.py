@@ -1,6 +1,6 @@
-"""Credentials never reach anything ftrain persists or prints: a supervised run on one and on two nodes, every
-``ftrain ckpt`` action (an error too), ``ftrain play`` and ``ftrain export``, grepped on stdout and stderr of every
-process and in every file they wrote.
+"""Credentials never reach anything ftrain persists or prints: a supervised run on one and on two nodes, a run refused
+by the lease, every ``ftrain ckpt`` action (an error too), ``ftrain play`` and ``ftrain export``, grepped on stdout
+and stderr of every process, in every file they wrote and in every object of the storage.
 
 The S3 credentials travel in the storage URL (``s3://KEY:SECRET@bucket/run``) and in ``storage.options``; the
 two-node run also has its coordinator secret. None of them may show up anywhere, nor on the command line of a
@@ -17,7 +17,9 @@ from pathlib import Path
 import pytest
 
 from ftrain import procfs
-from ftrain.errors import EXIT_PREEMPTED
+from ftrain.ckpt.lease import Lease
+from ftrain.ckpt.storage import Storage
+from ftrain.errors import EXIT_PREEMPTED, EXIT_STORAGE_HELD
 
 from helpers import (
     REPO,
@@ -28,6 +30,7 @@ from helpers import (
     finish,
     free_port,
     launch,
+    s3_client,
     torchrun_pid,
     training,
     wait_for,
@@ -58,13 +61,14 @@ def start_supervise(
         return launch(command, cwd=REPO, env=child_env(env), stdout=output, stderr=subprocess.STDOUT), console
 
 
-def supervise(s3_server: dict, url: str, log_dir: Path, *options: str, env: dict | None = None):
-    """``start_supervise``; returns a function that waits for its exit 0 and gives back everything it printed."""
+def supervise(s3_server: dict, url: str, log_dir: Path, *options: str, env: dict | None = None, expect: int = 0):
+    """``start_supervise``; returns a function that waits for its exit (``expect``) and gives back everything it
+    printed."""
     proc, console = start_supervise(s3_server, url, log_dir, *options, env=env)
 
     def printed() -> str:
         code = finish(proc, timeout=300)
-        assert code == 0, console.read_text()[-3000:]
+        assert code == expect, console.read_text()[-3000:]
         return console.read_text()
 
     return printed
@@ -114,6 +118,17 @@ def test_no_command_persists_or_prints_credentials(tmp_path, s3_server) -> None:
     printed["play"] = command("play", one, "--episodes", "1", env=env)
     printed["export"] = command("export", step, "--format", "torchscript", "-o", str(tmp_path / "p.pt"), env=env)
 
+    # the lease's refusal of a second run while one holds the storage (this process, with the same credentials)
+    holder = Lease(Storage.open(one, {"endpoint_url": s3_server["endpoint_url"]}), "holder", print)
+    holder.acquire()  # alive: this process runs (acquire, not hold: its children would inherit the run)
+    try:
+        printed["supervise refused"] = supervise(
+            s3_server, one, tmp_path / "refused", "--nproc-per-node", "1", expect=EXIT_STORAGE_HELD
+        )()
+    finally:
+        holder.release()
+    assert "is held by another run (holder" in printed["supervise refused"]
+
     assert "step-000000099" in printed["ckpt show missing"]  # the error names the URL, without its credentials
     for what, text in printed.items():
         for secret in secrets:
@@ -124,6 +139,19 @@ def test_no_command_persists_or_prints_credentials(tmp_path, s3_server) -> None:
         data = path.read_bytes()
         for secret in secrets:
             assert secret.encode() not in data, f"a credential leaked into {path.relative_to(tmp_path)}"
+    stored = bucket_objects(s3_server, one) | bucket_objects(s3_server, two)  # manifests, shards, LEASE, FENCE...
+    assert {"run/LEASE.json", "run/FENCE.json"} <= {name.partition("/")[2] for name in stored}, sorted(stored)
+    for name, data in stored.items():
+        for secret in secrets:
+            assert secret.encode() not in data, f"a credential leaked into the storage's {name}"
+
+
+def bucket_objects(s3_server: dict, url: str) -> dict[str, bytes]:
+    """Every object of the bucket of ``url``, by ``bucket/key``."""
+    bucket, client = url.rpartition("@")[2].partition("/")[0], s3_client(s3_server)
+    pages = client.get_paginator("list_objects_v2").paginate(Bucket=bucket)
+    keys = [item["Key"] for page in pages for item in page.get("Contents", [])]
+    return {f"{bucket}/{key}": client.get_object(Bucket=bucket, Key=key)["Body"].read() for key in keys}
 
 
 def test_workers_get_credentials_off_the_command_line(tmp_path, s3_server) -> None:
