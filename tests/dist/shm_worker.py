@@ -1,7 +1,10 @@
-"""Run under torchrun: SharedMemoryAllReduce sums exactly like gloo, then rank 1 dies and rank 0 must notice."""
+"""Run under torchrun at two ranks or more: what SharedMemoryAllReduce sums (against the rank-ordered sum of what every
+rank sent, and against gloo's all_reduce); then the last rank dies, and every other one must notice within the
+reducer's timeout. Each rank writes its report to ``OUT.RANK``."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
@@ -14,20 +17,37 @@ from ftrain.dist import group
 from ftrain.dist.shm_allreduce import PeerLost, SharedMemoryAllReduce
 
 
-def main(out: str) -> None:
+def main(out: str, timeout_s: float) -> None:
     info = group.init(30)
-    reducer = SharedMemoryAllReduce(info, capacity=1000, timeout_s=30)
+    reducer = SharedMemoryAllReduce(info, capacity=1000, timeout_s=timeout_s)
     generator = torch.Generator().manual_seed(info.rank)
-    exact = True
+    exact = like_gloo = close = True
+    digest = hashlib.sha256()
     for size in (1, 17, 1000):
         for _ in range(50):
-            value = torch.randn(size, generator=generator)
-            expected = value.clone()
-            dist.all_reduce(expected)
-            exact &= torch.equal(reducer.all_reduce_(value), expected)
-    report = {"exact": exact, "leftovers": [name for name in os.listdir("/dev/shm") if name.startswith("ftrain-")]}
+            value = torch.randn(size, generator=generator) * 10.0 ** torch.randint(-6, 6, (size,), generator=generator)
+            gathered = [torch.empty_like(value) for _ in range(info.world_size)]
+            dist.all_gather(gathered, value)
+            by_gloo = value.clone()
+            dist.all_reduce(by_gloo)
+            result = reducer.all_reduce_(value)
+            stacked = torch.stack(gathered)
+            exact &= torch.equal(result, stacked.sum(dim=0))  # every rank's slot, summed in rank order
+            like_gloo &= torch.equal(result, by_gloo)
+            # another order of the same sum differs by rounding alone: at most (ranks - 1) ulps of the sum of |x|
+            bound = info.world_size * torch.finfo(torch.float32).eps * stacked.abs().sum(dim=0)
+            close &= bool(((result - by_gloo).abs() <= bound).all())
+            digest.update(result.numpy().tobytes())
+    leftovers = [name for name in os.listdir("/dev/shm") if name.startswith("ftrain-")]
+    report = {
+        "exact": exact,
+        "like_gloo": like_gloo,
+        "close": close,
+        "digest": digest.hexdigest(),
+        "leftovers": leftovers,
+    }
     dist.barrier()
-    if info.rank == 1:
+    if info.rank == info.world_size - 1:
         os._exit(0)  # dies without a word, between two all-reduces
     started = time.monotonic()
     try:
@@ -36,10 +56,10 @@ def main(out: str) -> None:
     except PeerLost as error:
         report["peer_lost"] = str(error)
     report["seconds"] = time.monotonic() - started
-    with open(out, "w") as file:
+    with open(f"{out}.{info.rank}", "w") as file:
         json.dump(report, file)
     os._exit(0)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    main(sys.argv[1], float(sys.argv[2]))
