@@ -40,7 +40,7 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
     """The smoke config's hash as checkpoints recorded it before policy.std_type and reward.* existed: such runs
     still resume."""
     assert load_config(SMOKE).training_hash() == "50aafdccd16c0f69"
-    for override in ("policy.std_type=log", "reward.normalize=true", "reward.clip=5"):
+    for override in ("policy.std_type=log", "reward.normalize=true", "reward.clip=5", "shared_memory_all_reduce=false"):
         assert load_config(SMOKE, [override]).training_hash() != "50aafdccd16c0f69"
 
 

@@ -6,7 +6,8 @@ same synchronous data-parallel PPO and changes only how it communicates:
 
 - the KL rides in the gradient buffer, and every rank applies the adaptive learning-rate rule to the same global
   KL, which is what rank 0 would have broadcast: one collective per minibatch;
-- on one machine that collective goes through shared memory (:mod:`ftrain.dist.shm_allreduce`), not loopback TCP;
+- on one machine that collective goes through shared memory (:mod:`ftrain.dist.shm_allreduce`), not loopback TCP
+  (``shared_memory_all_reduce=false``: gloo);
 - actor and critic normalize the same observations, so their statistics are reduced once, in two collectives.
 
 Its ``act`` computes what rsl-rl's does, on the one observation group ftrain's environments have, without the
@@ -203,7 +204,7 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases 
     storage = RolloutStorage("rl", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
     a = config.algorithm
     reducer = None
-    if same_host(info):
+    if config.shared_memory_all_reduce and same_host(info):
         capacity = sum(p.numel() for model in (actor, critic) for p in model.parameters()) + 1
         reducer = SharedMemoryAllReduce(info, capacity, config.dist_timeout)
     return FusedPPO(

@@ -22,15 +22,17 @@ def two_rank_step(tmp_path_factory) -> str:
 
 
 @pytest.fixture(scope="module")
-def resumed(tmp_path_factory, two_rank_step: str) -> Callable[[str, int], tuple[Path, str]]:
-    """``resumed(name, ranks)``: the storage and output of a run to step 8 from ``two_rank_step`` at ``ranks``, run
-    once per name in this module (the tests share the runs: each is a torchrun start of up to 3 workers)."""
+def resumed(tmp_path_factory, two_rank_step: str) -> Callable[..., tuple[Path, str]]:
+    """``resumed(name, ranks, *overrides)``: the storage and output of a run to step 8 from ``two_rank_step`` at
+    ``ranks``, run once per name in this module (the tests share the runs: each is a torchrun start of up to 3
+    workers)."""
     runs: dict[str, tuple[Path, str]] = {}
 
-    def run(name: str, ranks: int) -> tuple[Path, str]:
+    def run(name: str, ranks: int, *overrides: str) -> tuple[Path, str]:
         if name not in runs:
             storage = tmp_path_factory.mktemp(name) / "run"
-            result = run_train(storage, "iterations=8", f"resume={two_rank_step}", ranks=ranks, supervised=True)
+            resume = f"resume={two_rank_step}"
+            result = run_train(storage, "iterations=8", resume, *overrides, ranks=ranks, supervised=True)
             runs[name] = storage, result.stdout
         return runs[name]
 
@@ -64,3 +66,17 @@ def test_growing_changes_training_and_the_same_size_continues_bit_for_bit(resume
     assert final_manifest(same)["world_sizes"] == [[0, 2]]
     assert final_manifest(same)["state_sha256"] != final_manifest(grown)["state_sha256"]
     assert sorted(manifests(grown)) == [6, 8]
+
+
+def test_gloo_instead_of_shared_memory_trains_the_same_bits_at_two_ranks_and_other_last_bits_at_three(
+    resumed, reference_state
+) -> None:
+    """``shared_memory_all_reduce=false`` sums the gradients with gloo: at two ranks the order of a sum of two cannot
+    matter, so the run is the uninterrupted reference's bit for bit; at three gloo sums in another order than the
+    shared memory's rank order, so the switch shows (and is why it is a config change at resume)."""
+    gloo = "shared_memory_all_reduce=false"
+    assert final_manifest(resumed("2-ranks-gloo", 2, gloo, "allow_config_change=true")[0])["state_sha256"] == (
+        reference_state(8)
+    )
+    three = final_manifest(resumed("3-ranks-a", 3)[0])["state_sha256"]
+    assert final_manifest(resumed("3-ranks-gloo", 3, gloo, "allow_config_change=true")[0])["state_sha256"] != three
