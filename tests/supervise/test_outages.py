@@ -21,10 +21,13 @@ import pytest
 
 from ftrain.ckpt.steps import select_resume
 from ftrain.ckpt.storage import Storage
+from ftrain.heartbeat import read_heartbeats
 
+from failing_mount import failing_mount
 from helpers import (
     REPO,
     TESTS,
+    Hold,
     child_env,
     events,
     finish,
@@ -128,3 +131,42 @@ def test_a_hanging_storage_with_a_worker_killed_inside_the_outage_is_waited_out_
     s3_outage.server.unhang()
     names = [event["event"] for event in assert_finished(proc, s3_outage, logs, reference)]
     assert "storage_wait" in names and "storage_back" in names
+
+
+MOUNT_OUTAGE = 9.0
+MOUNT_ITERATIONS = 8
+
+
+def test_a_failing_mount_is_waited_out(tmp_path, reference_state):
+    """A storage on a FUSE mount of the test's own that answers every operation with EIO for ``MOUNT_OUTAGE`` s, as a
+    hung NFS or FUSE mount does, from iteration 4 of 8 (``Hold``): the saves fail while training goes on, the last one
+    holds; a worker killed meanwhile restarts into the outage (exit 7), which the supervisor waits out. The logs go off
+    the mount (a local storage's log directory is the storage itself)."""
+    logs = tmp_path / "logs"
+    hold = Hold(tmp_path, 4)
+    with failing_mount(tmp_path / "fuse") as mount:
+        command = [sys.executable, "-m", "ftrain", "supervise", *OPTIONS, "configs/smoke.yaml"]
+        overrides = [hold.override, f"iterations={MOUNT_ITERATIONS}", "checkpoint.retries=1", "dist_timeout=20"]
+        output = open(f"{logs}.log", "ab")  # noqa: SIM115 - the child writes to it for its whole life
+        proc = launch(
+            [*command, "--storage", str(mount.path / "run"), *overrides, "log.console=false", f"log_dir={logs}"],
+            cwd=REPO,
+            env=child_env({"PYTHONPATH": str(TESTS)}),
+            stdout=output,
+            stderr=subprocess.STDOUT,
+        )
+        hold.held()
+        mount.fail()
+        began = time.monotonic()
+        hold.release()
+        wait_for(lambda: "training held" in Path(f"{logs}.log").read_text(), "the last save holding")
+        os.kill(read_heartbeats(logs / "heartbeat")[1].pid, signal.SIGKILL)
+        wait_event(logs, "storage_wait")
+        time.sleep(max(0.0, began + MOUNT_OUTAGE - time.monotonic()))
+        mount.recover()
+        assert finish(proc, timeout=300) == 0, Path(f"{logs}.log").read_text()[-3000:]
+        step, manifest = select_resume(Storage.open(str(mount.path / "run")), log=lambda line: None)
+    assert step == MOUNT_ITERATIONS and manifest["state_sha256"] == reference_state(MOUNT_ITERATIONS)
+    names = [event["event"] for event in events(logs)]
+    assert "storage_wait" in names and "storage_back" in names and names[-2:] == ["done", "summary"], names
+    assert "not committed" in Path(f"{logs}.log").read_text()
