@@ -212,8 +212,8 @@ class Lease:
         self._thread.start()
         return taken
 
-    def run(self, body: Callable[[], int], refused: Callable[[str], None]) -> int:
-        """``body()`` while holding the lease (its child processes get ``FTRAIN_RUN_ID``: they are this run), then
+    def run(self, body: Callable[[Lease], int], refused: Callable[[str], None]) -> int:
+        """``body(self)`` while holding the lease (its child processes get ``FTRAIN_RUN_ID``: they are this run), then
         release it; if another run holds it, ``refused`` gets the one-line reason and this returns
         ``EXIT_STORAGE_HELD`` without calling ``body``."""
         try:
@@ -224,7 +224,7 @@ class Lease:
         if taken:
             self.log(taken)
         try:
-            return body()
+            return body(self)
         finally:
             self.release()
 

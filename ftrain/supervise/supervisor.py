@@ -29,6 +29,7 @@ c10d: any but node 0): the others regroup from the save.
 Several nodes: ``link.py`` (c10d: node 0 coordinates, ``coordinator.py``; etcd-v2: etcd, ``etcd_plan.py``).
 Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``. Warm starts: ``attempt.Launcher``.
 A worker that cannot reach the storage exits 7: it is waited for (``outage.py``). One run per log dir: ``claim.py``.
+A lease lost to a newer generation (``Lease.lost``, found by its renewal) stops the workers at once: exit 8.
 """
 
 from __future__ import annotations
@@ -38,13 +39,14 @@ import os
 import signal
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from ftrain import procfs
-from ftrain.ckpt.lease import storage_lease
+from ftrain.ckpt.lease import Lease, storage_lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config
-from ftrain.errors import STOPPED, stop_code
+from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, Launcher, attempt_env, kill, new_log_dir, signal_name
@@ -92,10 +94,10 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     lease = lambda: storage_lease(config, log, nodes.run_key, nodes.lease_endpoint)  # noqa: E731
     refused = lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr)  # noqa: E731
 
-    def claimed() -> int:  # with the storage's lease, the log directory too (claim.py)
+    def claimed(held: Lease) -> int:  # with the storage's lease, the log directory too (claim.py)
         supervisor.storage_wait.reached = True
         with claim_log_dir(Path(config.log_dir), supervisor.events.node):
-            return supervisor.run()
+            return supervisor.run(lambda: held.lost)
 
     try:  # the lease is taken before anything is launched: an unreachable storage is waited out then too
         return supervisor.storage_wait.retrying(lambda: lease().run(claimed, refused), supervisor.end)
@@ -150,12 +152,13 @@ class Supervisor:
             self.coordinator.close()
         self.launcher.close()
 
-    def run(self) -> int:
-        """Attempts until the run ends, which raises ``_Stop``."""
+    def run(self, lease_lost: Callable[[], str | None]) -> int:
+        """Attempts until the run ends, which raises ``_Stop``; ``lease_lost``: why the storage's lease is lost to a
+        newer generation, once it is (``Lease.lost``)."""
         plan = self._next_plan(None)
         while True:
             attempt = self._launch(plan)
-            outcome = self._watch(attempt)
+            outcome = self._watch(attempt, lease_lost)
             if outcome.event == "regroup":
                 plan = self._next_plan(plan)
                 continue
@@ -173,13 +176,9 @@ class Supervisor:
                 raise _Stop(delay)
             self._sleep(delay)
             plan = self._next_plan(plan)
-            self.events(
-                "restart",
-                f"restart {self.policy.restarts} (attempt {plan.attempt}) after {delay:.1f} s back-off",
-                attempt=plan.attempt,
-                restarts=self.policy.restarts,
-                backoff=round(delay, 2),
-            )
+            restarts = self.policy.restarts
+            message = f"restart {restarts} (attempt {plan.attempt}) after {delay:.1f} s back-off"
+            self.events("restart", message, attempt=plan.attempt, restarts=restarts, backoff=round(delay, 2))
 
     def _sleep(self, seconds: float) -> None:
         deadline = time.monotonic() + seconds
@@ -234,7 +233,7 @@ class Supervisor:
         undead = lambda line: self.events("undead", line, attempt=plan.attempt)  # noqa: E731
         return Attempt(plan, command, env | warm, token, logs, undead, lambda: bool(self.signals))
 
-    def _watch(self, attempt: Attempt) -> Outcome:
+    def _watch(self, attempt: Attempt, lease_lost: Callable[[], str | None]) -> Outcome:
         preempt_deadline = None
         next_peer_check = time.monotonic() + PEER_POLL
         while True:
@@ -246,6 +245,10 @@ class Supervisor:
             code = attempt.proc.poll()
             if code is not None:
                 return self._exited(attempt, code)
+            if (lost := lease_lost()) is not None:  # nothing they train from now on could be committed: stop them
+                attempt.kill()
+                self._log_exit(attempt, "stopped: another generation holds the storage")
+                return Outcome("storage_held", EXIT_STORAGE_HELD, f"{lost}; its workers are stopped")
             if not attempt.dead:
                 self._check_workers(attempt, beats)
             if self.signals and preempt_deadline is None:
@@ -303,11 +306,8 @@ class Supervisor:
         if plan.left is not None:
             attempt.stop(self.options.stop_grace)  # the workers save, as they do for the leaving node's stop
             return self._regroup(attempt, plan, f"stopped: node {plan.left} left")
-        self.events(
-            "superseded",
-            f"attempt {attempt.plan.attempt}: another node failed; stopping this node's workers",
-            attempt=attempt.plan.attempt,
-        )
+        message = f"attempt {attempt.plan.attempt}: another node failed; stopping this node's workers"
+        self.events("superseded", message, attempt=attempt.plan.attempt)
         self._failed(attempt, now)
         attempt.stop(self.options.stop_grace)
         self._log_exit(attempt, "stopped: another node failed")

@@ -220,6 +220,33 @@ def test_two_runs_of_one_config_from_one_directory_keep_their_logs_apart(tmp_pat
         assert spooled and spooled[-1] == "step-000000040", (prefix, spooled)
 
 
+def test_a_lease_taken_while_the_workers_train_stops_them_at_once_with_exit_8(tmp_path) -> None:
+    """Another run takes the storage while this one trains (its lease expired while it was cut off, say): the
+    supervisor's next renewal finds the newer generation and stops its workers there, before they commit anything
+    more (they are held after iteration 3: without the supervisor they would wait), and exits 8 with one line."""
+    storage, hold = tmp_path / "run", Hold(tmp_path, 3)
+    console = tmp_path / "console"
+    with console.open("wb") as output:
+        proc = launch(
+            helpers.supervise_command(storage, "iterations=40", hold.override, ranks=1),
+            cwd=REPO,
+            env=child_env({TTL_ENV: "3", **HOLD_ENV}),  # renewed every second
+            stdout=output,
+            stderr=subprocess.STDOUT,
+        )
+    hold.held()
+    committed = sorted(manifests(storage))
+    ours = Record.decode((storage / LEASE).read_bytes())
+    far = Process("node-far-away", 4242, 123, "another-boot-id", "pid:[1]")
+    (storage / LEASE).write_bytes(Record("intruder", ours.generation + 1, 60.0, (Entry(far, time.time()),)).encode())
+    assert finish(proc, timeout=60) == EXIT_STORAGE_HELD
+    said = console.read_text()
+    assert "taken by run intruder (generation 2; this run's is 1)" in said and "its workers are stopped" in said, said
+    assert "Traceback" not in said, said
+    assert sorted(manifests(storage)) == committed  # nothing after the takeover
+    assert [event["event"] for event in events(storage)][-2:] == ["storage_held", "summary"]
+
+
 @pytest.mark.skipif(os.geteuid() != 0 or not shutil.which("unshare"), reason="another host: a UTS namespace (root)")
 def test_a_run_paused_past_its_lease_whose_storage_another_run_took_commits_nothing_more(tmp_path) -> None:
     """Run A (a 4 s lease) is SIGSTOPped; run B, on "another host" (a hostname of its own: A's entry can only
