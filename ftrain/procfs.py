@@ -96,12 +96,8 @@ class Process:
     def running(self) -> bool | None:
         """Seen from here: whether it still runs; None if this host cannot tell (another host, another namespace)."""
         host, boot, pidns = _here()
-        if self.host != host or not boot:
-            return None
-        if self.boot != boot:
-            return False  # its host has rebooted since
-        if self.pidns != pidns:
-            return None
+        if self.host != host or self.boot != boot or not boot or self.pidns != pidns:
+            return None  # another host (a host name says too little: cloned machines share one), or a reboot since
         fields = stat_fields(self.pid)
         return bool(fields) and fields[0] != "Z" and int(fields[19]) == self.start  # a zombie has ended
 

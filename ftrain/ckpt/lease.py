@@ -5,10 +5,10 @@ The record names the run (``run_id``), a ``generation`` (+1 at every new holder 
 pid, the process's start time, the host's boot id and pid namespace, ``renewed_at``): every node of a run renews its
 own entry, so the lease lives while any node does. A second run is refused while any entry lives; an entry lives
 until ``renewed_at + ttl`` (and, as the storage's own clock tells, while the record was written within ``ttl``: no
-host's clock is trusted to agree with another's), except on its own host, where a process whose pid no longer has
-the recorded start time (``/proc/<pid>/stat``), or a host that has rebooted since, is seen gone at once (so the same
-command again right after a crash never waits for the expiry), and a process seen running there holds it even past
-the expiry.
+host's clock is trusted to agree with another's), except on its own host (same name, boot id and pid namespace),
+where a process whose pid no longer has the recorded start time (``/proc/<pid>/stat``) is seen gone at once (so the
+same command again right after a crash never waits for the expiry), and a process seen running there holds it even
+past the expiry. A host that has rebooted since counts as another host: cloned machines may share a host name.
 
 Every change is a compare-and-swap of the record read (``cas.py``: conditional requests on S3, ``flock`` and an
 atomic replace locally), so of two processes that race, one wins and the other reads again.
@@ -168,7 +168,10 @@ class Lease:
 
         A run id may outlive its processes (a batch job's id kept across a requeue, the same command run again), so
         a process that finds none of its run alive takes the next generation, as another run would: whatever the old
-        ones still have in flight is then refused at commit (``fence.LeaseToken``)."""
+        ones still have in flight is then refused at commit (``fence.LeaseToken``). Entries of other hosts that only
+        look expired get a third of the ttl first: nodes cut off from the storage by an outage renew by then, and are
+        joined. (A requeued job whose old processes on other hosts still renew joins them: SLURM kills those.)"""
+        looked = None
         while True:
             now = time.time()
             current = read_record(self.storage)
@@ -181,7 +184,13 @@ class Lease:
             ours = record is not None and record.run_id == self.run_id
             others = tuple(e for e in live if e.process != self.process) if ours else ()
             joins = ours and (self.generation is not None or bool(others))
-            generation = record.generation if joins else (record.generation + 1 if record else 1)
+            if ours and not joins and version != looked and _unseen(record):
+                # its other hosts' entries only look expired: after an outage they renew within a third of the
+                # ttl (``_keep``). Look again then, and join them if they did, rather than fence them off
+                looked = version
+                time.sleep(self.ttl / 3)
+                continue
+            generation = record.generation if joins else (record.generation + 1 if record else self.generation or 1)
             new = Record(self.run_id, generation, self.ttl, (*(others if joins else ()), Entry(self.process, now)))
             try:
                 cas.write(self.storage, LEASE, new.encode(), version)
@@ -268,8 +277,8 @@ class Lease:
         (the next run takes the generation after it)."""
         while True:
             current = read_record(self.storage)
-            if current is None or current[0].run_id != self.run_id:
-                return
+            if current is None or (current[0].run_id, current[0].generation) != (self.run_id, self.generation):
+                return  # not this process's record any more: a newer generation's, which it must not touch
             record, version = current
             keep = tuple(e for e in record.live(time.time()) if e.process != self.process)
             try:
@@ -307,6 +316,11 @@ class Lease:
             for e in record.entries
         )
         return f"took over the lease of {self.storage.url} from run {record.run_id}: {holders or 'no holder'}"
+
+
+def _unseen(record: Record) -> bool:
+    """Whether ``record`` has entries this host cannot tell gone (another host's, another pid namespace's)."""
+    return any(entry.process.running() is None for entry in record.entries)
 
 
 def lost_message(storage: Storage, record: Record, run_id: str, generation: int) -> str:

@@ -3,12 +3,14 @@ at once from a dead process of this host, after the expiry from another host, sh
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 
 import pytest
@@ -210,7 +212,7 @@ def test_a_run_id_started_again_when_none_of_its_processes_lives_fences_off_the_
     assert old.acquire() is None and record(storage).generation == 4  # a node of the live run joins it
     storage.write_replace(LEASE, foreign("job-42", time.time() - 61, ttl=2.0, generation=4).encode())
     time.sleep(3.5)  # every process of the job has stopped renewing (by the storage's clock too)
-    requeued = Lease(storage, "job-42", print)
+    requeued = Lease(storage, "job-42", print, ttl=3.0)  # it looks again after a third of its ttl: still expired
     assert requeued.acquire() is None
     assert (record(storage).generation, [e.process.pid for e in record(storage).entries]) == (5, [os.getpid()])
     lost = old.renew()
@@ -218,6 +220,34 @@ def test_a_run_id_started_again_when_none_of_its_processes_lives_fences_off_the_
     with pytest.raises(LeaseLost, match="newer start of run job-42"):
         LeaseToken(storage, "job-42", 4).check()
     LeaseToken(storage, "job-42", 5).check()  # the requeued job commits
+
+
+def test_a_node_starting_after_an_outage_joins_the_nodes_of_its_run_that_renew_again(storage):
+    """After an outage longer than the ttl every entry of another host looks expired; a node of the same run that
+    starts then looks again after a third of the ttl, finds them renewed, and joins their generation instead of
+    fencing them off."""
+    storage.write_replace(LEASE, foreign("shared-run", time.time() - 61, ttl=3.0, generation=4).encode())
+    time.sleep(3.5)  # expired by the storage's clock too
+
+    def back() -> None:  # the other node, back from the outage, renews within a third of the ttl
+        time.sleep(0.3)
+        storage.write_replace(LEASE, foreign("shared-run", time.time(), ttl=3.0, generation=4).encode())
+
+    renewal = threading.Thread(target=back)
+    renewal.start()
+    lease = Lease(storage, "shared-run", print, ttl=3.0)
+    assert lease.acquire() is None
+    renewal.join()
+    assert (lease.generation, record(storage).generation) == (4, 4)
+    assert sorted(e.process.pid for e in record(storage).entries) == sorted([4242, os.getpid()])
+
+
+def test_only_this_hosts_own_processes_are_seen_gone():
+    here = Process.current()
+    assert here.running() is True
+    assert dataclasses.replace(here, start=here.start + 1).running() is False  # its pid, another process: gone
+    # a host of this name with another boot id: a clone of this machine (or this one rebooted): left to the expiry
+    assert dataclasses.replace(here, boot="another-boot-id").running() is None
 
 
 def test_a_commit_of_a_run_whose_lease_another_run_took_is_refused(storage):
