@@ -24,7 +24,6 @@ import fcntl
 import hashlib
 import os
 import secrets
-import time
 from collections.abc import Iterator
 from email.utils import parsedate_to_datetime
 from typing import TYPE_CHECKING, Any
@@ -44,12 +43,9 @@ _AZURE_CONFLICTS = ("ConditionNotMet", "BlobAlreadyExists", "BlobNotFound")
 that is gone (a missing container is no conflict: it fails as any storage error does)."""
 _UNSUPPORTED = ("NotImplemented", "501", "ConditionHeadersNotSupported")
 """S3-compatible servers' (and Azure's) answers to a conditional header they do not implement."""
-_AZURE_ONCE = {
-    "retry_total": 0,
-    "connection_timeout": S3_TIMEOUTS["connect_timeout"],
-    "read_timeout": S3_TIMEOUTS["read_timeout"],
-}
-"""Each Azure request sent once, and given up on within seconds, as on S3: ``Storage._call`` does the retrying."""
+_AZURE_ONCE = {"connection_timeout": S3_TIMEOUTS["connect_timeout"], "read_timeout": S3_TIMEOUTS["read_timeout"]}
+"""Each Azure request given up on within seconds, as on S3 (and sent once: ``Storage.open`` turns the client's retries
+off): ``Storage._call`` does the retrying."""
 
 
 PROBE = "CAS_PROBE"
@@ -110,18 +106,23 @@ def read(storage: Storage, rel: str) -> tuple[bytes, str] | None:
 
 def age(storage: Storage, rel: str) -> float | None:
     """Seconds since the object ``rel`` was last written, by the storage's own clock: on S3 and Azure the server's
-    ``Date`` against the object's ``Last-Modified`` (one HEAD request), elsewhere the file's time against this
-    machine's clock (the same clock for a local disk). What a lease's expiry is measured in, so that no host's clock
-    is compared with another's. None if there is no such object."""
+    ``Date`` against the object's ``Last-Modified`` (one HEAD request); on a file system the file's time against that
+    of a file written now beside it (``<rel>.clock``), both set by the same clock, the file server's on NFS. What a
+    lease's expiry is measured in, so that no host's clock is compared with another's. None if there is no such
+    object, or the storage does not tell its time."""
     if not _server_decides(storage):
         written = storage.written_at(rel)
-        return None if written is None else time.time() - written
+        if written is None:
+            return None
+        storage.write_replace(f"{rel}.clock", b"")
+        now = storage.written_at(f"{rel}.clock")
+        return None if now is None else now - written
     head = _s3_head if storage.is_s3 else _azure_head
     try:
         written, now = storage._call("read", rel, fsspec.asyn.sync, storage.fs.loop, head, storage, rel)
     except FileNotFoundError:
         return None
-    return (now - written).total_seconds()
+    return None if now is None else (now - written).total_seconds()
 
 
 def write(storage: Storage, rel: str, data: bytes, version: str | None) -> None:
@@ -191,26 +192,34 @@ async def _s3_get(storage: Storage, rel: str) -> tuple[bytes, str]:
         return await body.read(), response["ETag"]
 
 
-async def _s3_head(storage: Storage, rel: str) -> tuple[datetime.datetime, datetime.datetime]:
+async def _s3_head(storage: Storage, rel: str) -> tuple[datetime.datetime, datetime.datetime | None]:
     """One HEAD: when the object was written, and the server's time of the answer."""
     bucket, key = _bucket_key(storage, rel)
     response = await storage.fs._call_s3("head_object", Bucket=bucket, Key=key)
-    return response["LastModified"], parsedate_to_datetime(response["ResponseMetadata"]["HTTPHeaders"]["date"])
+    return response["LastModified"], _server_time(response["ResponseMetadata"]["HTTPHeaders"].get("date"))
 
 
-async def _azure_head(storage: Storage, rel: str) -> tuple[datetime.datetime, datetime.datetime]:
+async def _azure_head(storage: Storage, rel: str) -> tuple[datetime.datetime, datetime.datetime | None]:
     """One HEAD: when the blob was written, and the server's time of the answer (FileNotFoundError if it is gone)."""
     from azure.core.exceptions import ResourceNotFoundError
 
-    headers: dict[str, str] = {}
+    dates: list[str | None] = []
     async with _blob(storage, rel) as blob:
         try:
             properties = await blob.get_blob_properties(
-                raw_response_hook=lambda answer: headers.update(answer.http_response.headers), **_AZURE_ONCE
+                raw_response_hook=lambda answer: dates.append(answer.http_response.headers.get("Date")), **_AZURE_ONCE
             )
         except ResourceNotFoundError:
             raise FileNotFoundError(rel) from None
-    return properties.last_modified, parsedate_to_datetime(headers["Date"])
+    return properties.last_modified, _server_time(dates[-1] if dates else None)
+
+
+def _server_time(date: str | None) -> datetime.datetime | None:
+    """An HTTP answer's ``Date`` header as a time; None where the server sent none (or one that does not parse)."""
+    try:
+        return parsedate_to_datetime(date) if date else None
+    except (TypeError, ValueError):
+        return None
 
 
 async def _azure_get(storage: Storage, rel: str) -> tuple[bytes, str]:
