@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from urllib.parse import urlsplit, urlunsplit
+from urllib.parse import unquote, urlsplit, urlunsplit
 
 import yaml
 
@@ -128,3 +128,30 @@ def reveal_credentials(words: list[str], environ: Mapping[str, str]) -> list[str
     what ``words`` shows, else ``words`` (a variable left over from another command line is ignored)."""
     real = json.loads(environ.get(ARGUMENTS_ENV) or "null")
     return real if isinstance(real, list) and redact_command(real) == words else words
+
+
+def scrub(exc: BaseException, secrets: list[str]) -> str:
+    """One line naming the exception, with every secret blanked out."""
+    text = " ".join(f"{type(exc).__name__}: {exc}".split())
+    for secret in sorted({s for s in secrets if s}, key=len, reverse=True):
+        text = text.replace(secret, HIDDEN)
+    return text
+
+
+def secret_values(options: dict) -> list[str]:
+    """Credential options, and the ``user:password`` part of any URL among the options (e.g. an endpoint)."""
+    values = []
+    for name, value in options.items():
+        if isinstance(value, dict):
+            values += secret_values(value)
+        elif isinstance(value, str) and name in SECRET_OPTIONS:
+            values.append(value)
+        elif isinstance(value, str) and "://" in value:
+            values += url_secrets(value)
+    return values
+
+
+def url_secrets(url: str) -> list[str]:
+    """The credentials of ``url``: what ``display_url`` takes out (an Azure ``container@account`` names none)."""
+    userinfo = urlsplit(url).netloc.rpartition("@")[0] if display_url(url) != url else ""
+    return [userinfo, *(unquote(part) for part in userinfo.split(":"))] if userinfo else []

@@ -23,8 +23,6 @@ from botocore.exceptions import ConnectionError as BotoConnectionError
 from botocore.exceptions import HTTPClientError
 
 DEFAULT_RETRIES = 4
-DEFAULT_BASE_DELAY = 0.2
-MAX_DELAY = 5.0
 _JITTER = random.Random()
 """Jitter of the retry delays: a generator of its own, so that retrying never moves the random streams of training;
 reseeded in every forked child (warm workers are forks of one pool: they would back off in step)."""
@@ -67,7 +65,7 @@ class Backoff:
         return min(self.first * 2**attempt, self.longest) * _JITTER.uniform(0.75, 1.25)
 
 
-REQUEST = Backoff(DEFAULT_BASE_DELAY, MAX_DELAY)
+REQUEST = Backoff(0.2, 5.0)
 """Between the tries of one storage request (``Storage``: ``checkpoint.retries`` of them, then it fails)."""
 OUTAGE = Backoff(1.0, 5.0)
 """Between the tries of a storage that is down, until a deadline: a held save (``manager``), the supervisor's wait

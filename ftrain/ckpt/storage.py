@@ -7,8 +7,8 @@ exists), so it is complete whenever it is visible, as an S3 object is.
 
 Transient errors (connection refused or reset, timeouts, DNS, 5xx, throttling) are retried here with bounded
 exponential backoff and jitter; the layers below (s3fs, botocore) are told not to retry, and to give up on a silent
-server within seconds, so that the bound is ours alone (on Azure, adlfs gets the same timeouts; the Azure SDK's own
-retries are turned off per request where ftrain calls it directly, in ``cas``). A storage that stays unreachable raises
+server within seconds, so that the bound is ours alone (on Azure, adlfs gets the same timeouts, and its client's own
+retries are turned off). A storage that stays unreachable raises
 :class:`StorageUnavailable`: an infrastructure fault that waiting fixes, never bad input (a missing bucket, denied
 access or a malformed URL are :class:`~ftrain.errors.UserError`). Credentials never appear in a message, repr or
 log line: every text that leaves this module is scrubbed.
@@ -34,9 +34,9 @@ from botocore.exceptions import BotoCoreError, NoCredentialsError
 from fsspec.implementations.local import LocalFileSystem
 
 from ftrain.ckpt import localfs
-from ftrain.ckpt.retry import DEFAULT_BASE_DELAY, DEFAULT_RETRIES, MAX_DELAY, Backoff, azure_errors, is_transient
+from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, azure_errors, is_transient
 from ftrain.errors import StorageError, StorageUnavailable, UserError
-from ftrain.redact import SECRET_OPTIONS, Url, display_url
+from ftrain.redact import Url, display_url, scrub, secret_values, url_secrets
 
 log = logging.getLogger(__name__)
 
@@ -54,6 +54,7 @@ _SECRET_ENV = (
     "AZURE_STORAGE_CONNECTION_STRING",
     "AZURE_STORAGE_SAS_TOKEN",
     "AZURE_STORAGE_CLIENT_SECRET",
+    "AZURE_CLIENT_SECRET",
 )
 """Credentials that s3fs and adlfs read from the environment."""
 S3_PROTOCOLS = frozenset({"s3", "s3a"})
@@ -84,18 +85,18 @@ class Storage:
         url: str,
         options: dict | None = None,
         retries: int = DEFAULT_RETRIES,
-        base_delay: float = DEFAULT_BASE_DELAY,
+        base_delay: float = REQUEST.first,
         check_bucket: bool = True,
     ) -> Storage:
         """Open the storage at ``url`` with fsspec ``options``; on S3, ``check_bucket`` that it answers and exists.
         ``retries``: how often a transient error is retried, waiting ``base_delay * 2**n`` seconds (at most
-        ``MAX_DELAY``) before retry ``n + 1``."""
+        ``REQUEST.longest``) before retry ``n + 1``."""
         if not isinstance(url, str) or not url.strip():
             raise UserError("storage URL is empty: pass a local path or an fsspec URL such as s3://bucket/prefix")
         if retries < 0:
             raise UserError(f"checkpoint.retries={retries} must be 0 or more")
         url, options = Url(url).reveal(), dict(options or {})  # the one place the credentials are read
-        secrets = _secret_values(options) + _url_secrets(url) + [os.environ.get(name, "") for name in _SECRET_ENV]
+        secrets = secret_values(options) + url_secrets(url) + [os.environ.get(name, "") for name in _SECRET_ENV]
         protocol = url.split("://", 1)[0] if "://" in url else "file"
         shown = display_url(url)
         if not _PROTOCOL.match(protocol):
@@ -115,10 +116,12 @@ class Storage:
         try:
             fs, root = fsspec.core.url_to_fs(url, **options)
         except Exception as exc:
-            raise UserError(f"cannot open storage {shown!r}: {_scrub(exc, secrets)}") from None
+            raise UserError(f"cannot open storage {shown!r}: {scrub(exc, secrets)}") from None
         storage = cls(fs, root, shown, secrets, retries, base_delay)
         if storage.is_s3:
             fs.retries = 1  # s3fs's own retry loop: one attempt, ours does the retrying
+        if storage.is_azure:
+            _send_once(fs)
         if check_bucket:
             storage.check()
         return storage
@@ -286,7 +289,7 @@ class Storage:
             except Exception as exc:
                 if attempt == self.retries or not is_transient(exc):
                     raise
-                delay = Backoff(self.base_delay, MAX_DELAY).delay(attempt)
+                delay = Backoff(self.base_delay, REQUEST.longest).delay(attempt)
                 attempt += 1
                 where, reason = self.where(rel), self._scrub(exc)
                 log.warning("%s %s: %s; retry %d/%d in %.2fs", what, where, reason, attempt, self.retries, delay)
@@ -329,34 +332,7 @@ class Storage:
         return UserError(f"access denied to {self.url} ({self._scrub(exc)}): check the credentials and permissions")
 
     def _scrub(self, exc: BaseException) -> str:
-        return _scrub(exc, self._secrets)
-
-
-def _scrub(exc: BaseException, secrets: list[str]) -> str:
-    """One line naming the exception, with every secret blanked out."""
-    text = " ".join(f"{type(exc).__name__}: {exc}".split())
-    for secret in sorted({s for s in secrets if s}, key=len, reverse=True):
-        text = text.replace(secret, "***")
-    return text
-
-
-def _secret_values(options: dict) -> list[str]:
-    """Credential options, and the ``user:password`` part of any URL among the options (e.g. an endpoint)."""
-    values = []
-    for name, value in options.items():
-        if isinstance(value, dict):
-            values += _secret_values(value)
-        elif isinstance(value, str) and name in SECRET_OPTIONS:
-            values.append(value)
-        elif isinstance(value, str) and "://" in value:
-            values += _url_secrets(value)
-    return values
-
-
-def _url_secrets(url: str) -> list[str]:
-    """The credentials of ``url``: what ``display_url`` takes out (an Azure ``container@account`` names none)."""
-    userinfo = urlsplit(url).netloc.rpartition("@")[0] if display_url(url) != url else ""
-    return [userinfo, *(unquote(part) for part in userinfo.split(":"))] if userinfo else []
+        return scrub(exc, self._secrets)
 
 
 def _modified(entry: dict) -> float | None:
@@ -384,9 +360,17 @@ def _s3_options(url: str, options: dict) -> str:
 
 
 def _azure_options(options: dict) -> None:
-    """Make adlfs list afresh (another node may have written since) on a file system of this storage's own, and give
-    up on a silent server within seconds, as on S3."""
+    """Make adlfs list afresh (another node may have written since), and give up on a silent server within seconds,
+    as on S3."""
     options.setdefault("use_listings_cache", False)
-    options.setdefault("skip_instance_cache", True)
     options.setdefault("connection_timeout", S3_TIMEOUTS["connect_timeout"])
     options.setdefault("read_timeout", S3_TIMEOUTS["read_timeout"])
+
+
+def _send_once(fs: fsspec.AbstractFileSystem) -> None:
+    """Turn off the retries of adlfs's Azure client (3 per request, 15-24 s apart: a minute and a half before a
+    request to a server that is down fails), so that ours are the only ones, as on S3. adlfs takes no option for it:
+    this sets the counts of the retry policy its client's pipeline runs (azure-storage-blob's ``_config``)."""
+    policy = fs.service_client._config.retry_policy
+    for name in ("total_retries", "connect_retries", "read_retries", "status_retries"):
+        setattr(policy, name, 0)
