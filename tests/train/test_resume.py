@@ -200,8 +200,9 @@ def test_failed_saves_are_logged_training_goes_on_and_holds_past_the_unsaved_bou
     assert "checkpoint step 4 not committed, earlier steps intact" in result.stdout
     retried = int(re.search(r"checkpoint step (\d+) committed: saves work again", result.stdout)[1])
     assert retried in (5, 6), "the newest state is retried as soon as the failed save has settled"
-    # then the interval goes on; step 6 is skipped where the retry's save is still in flight then (a loaded machine)
-    assert {2, retried, 8, 10, 12} <= set(manifests(storage)) <= {2, retried, 6, 8, 10, 12}
+    # then the interval goes on; a step is skipped where the retry's save is still in flight then (a loaded machine)
+    saved = set(manifests(storage))
+    assert {2, retried, 12} <= saved <= {2, retried, 6, 8, 10, 12} and saved & {8, 10}, saved
 
     blocked = tmp_path / "blocked"
     blocked.mkdir()
