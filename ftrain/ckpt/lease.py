@@ -15,12 +15,12 @@ atomic replace locally), so of two processes that race, one wins and the other r
 
 The generation is the run's fencing token. It only grows: a release keeps the record (with no holders), so the next
 holder takes generation + 1, be it another run or the same run id once none of its processes lives (a requeued job,
-the same command again): the processes of one generation are those that overlapped. A run that finds a newer
-generation in the record (its lease expired while
-it was paused, or cut off, and another run took the storage) has lost the storage for good: it never takes it back,
-and rank 0 reads the record right before every manifest it writes (``fence.LeaseToken``: one small read per commit) and
-commits nothing once another run's generation is there; the workers then exit 8. What is left is the time between
-that read and the manifest's write (one request), as for ``fence.py``.
+the same command again): the processes of one generation are those that overlapped. A process that finds a newer
+generation in the record (its lease expired while it was paused, or cut off, and another holder took the storage)
+has lost the storage for good: it never takes it back, rank 0 reads the record right before every manifest it writes
+(``fence.LeaseToken``: one small read per commit) and commits nothing once a newer generation is there, and the
+supervisor, whose renewal finds it too, stops the workers (exit 8). What is left is the time between that read and
+the manifest's write (one request), as for ``fence.py``.
 
 Torch-free: the supervisor holds the lease for its workers; unsupervised, rank 0 of the world does (see ``claim``).
 """
