@@ -24,7 +24,7 @@ import fcntl
 import hashlib
 import os
 import secrets
-from collections.abc import Iterator
+from collections.abc import AsyncIterator, Iterator
 from email.utils import parsedate_to_datetime
 from typing import TYPE_CHECKING, Any
 
@@ -200,17 +200,12 @@ async def _s3_head(storage: Storage, rel: str) -> tuple[datetime.datetime, datet
 
 
 async def _azure_head(storage: Storage, rel: str) -> tuple[datetime.datetime, datetime.datetime | None]:
-    """One HEAD: when the blob was written, and the server's time of the answer (FileNotFoundError if it is gone)."""
-    from azure.core.exceptions import ResourceNotFoundError
-
+    """One HEAD: when the blob was written, and the server's time of the answer."""
     dates: list[str | None] = []
     async with _blob(storage, rel) as blob:
-        try:
-            properties = await blob.get_blob_properties(
-                raw_response_hook=lambda answer: dates.append(answer.http_response.headers.get("Date")), **_AZURE_ONCE
-            )
-        except ResourceNotFoundError:
-            raise FileNotFoundError(rel) from None
+        properties = await blob.get_blob_properties(
+            raw_response_hook=lambda answer: dates.append(answer.http_response.headers.get("Date")), **_AZURE_ONCE
+        )
     return properties.last_modified, _server_time(dates[-1] if dates else None)
 
 
@@ -223,14 +218,9 @@ def _server_time(date: str | None) -> datetime.datetime | None:
 
 
 async def _azure_get(storage: Storage, rel: str) -> tuple[bytes, str]:
-    """One GET: the bytes and the ETag of the same version (FileNotFoundError if there is no such blob)."""
-    from azure.core.exceptions import ResourceNotFoundError
-
+    """One GET: the bytes and the ETag of the same version."""
     async with _blob(storage, rel) as blob:
-        try:
-            download = await blob.download_blob(**_AZURE_ONCE)
-        except ResourceNotFoundError:
-            raise FileNotFoundError(rel) from None
+        download = await blob.download_blob(**_AZURE_ONCE)
         return await download.readall(), download.properties.etag
 
 
@@ -240,7 +230,7 @@ def _azure_conditional(storage: Storage, rel: str, operation: str, *args: Any, *
     from azure.core.exceptions import HttpResponseError
 
     async def call() -> None:
-        async with _blob(storage, rel) as blob:
+        async with _blob_client(storage, rel) as blob:
             try:
                 await getattr(blob, operation)(*args, **kwargs, **_AZURE_ONCE)
             except HttpResponseError as error:
@@ -260,7 +250,19 @@ def _azure_if(version: str | None) -> dict[str, Any]:
     return {"etag": version, "match_condition": MatchConditions.IfNotModified}
 
 
-def _blob(storage: Storage, rel: str) -> BlobClient:
+@contextlib.asynccontextmanager
+async def _blob(storage: Storage, rel: str) -> AsyncIterator[BlobClient]:
+    """The client of blob ``rel`` to read it with: one that is not there is FileNotFoundError, as s3fs says it."""
+    from azure.core.exceptions import ResourceNotFoundError
+
+    async with _blob_client(storage, rel) as client:
+        try:
+            yield client
+        except ResourceNotFoundError:
+            raise FileNotFoundError(rel) from None
+
+
+def _blob_client(storage: Storage, rel: str) -> BlobClient:
     """The client of blob ``rel``, from the service client adlfs holds (its credentials and connection pool)."""
     container, blob = _bucket_key(storage, rel)
     return storage.fs.service_client.get_blob_client(container, blob)

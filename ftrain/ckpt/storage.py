@@ -76,7 +76,7 @@ class Storage:
         self.url = url
         """The URL without credentials: safe to print."""
         self.retries = retries
-        self.base_delay = base_delay
+        self.backoff = Backoff(base_delay, REQUEST.longest)
         self._secrets = secrets
 
     @classmethod
@@ -289,7 +289,7 @@ class Storage:
             except Exception as exc:
                 if attempt == self.retries or not is_transient(exc):
                     raise
-                delay = Backoff(self.base_delay, REQUEST.longest).delay(attempt)
+                delay = self.backoff.delay(attempt)
                 attempt += 1
                 where, reason = self.where(rel), self._scrub(exc)
                 log.warning("%s %s: %s; retry %d/%d in %.2fs", what, where, reason, attempt, self.retries, delay)

@@ -97,6 +97,8 @@ def test_an_exclusive_create_such_as_a_manifests_is_refused_where_other_bytes_ex
     assert server_storage.read("MANIFEST.json") == b"first"
     written = server_storage.modified("")  # how old a step without a manifest is: retention's age floor reads it
     assert written is not None and abs(time.time() - written) < 300
+    assert 0 <= cas.age(server_storage, "MANIFEST.json") < 300  # by the server's clock: what a lease expires by
+    assert cas.age(server_storage, "NOTHING") is None
 
 
 def test_of_writers_racing_from_one_version_exactly_one_wins(azurite_server):
