@@ -7,6 +7,7 @@ Torch-free and fsspec-free: the config module and the supervisor use it too.
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Mapping
 from urllib.parse import unquote, urlsplit, urlunsplit
 
@@ -17,6 +18,9 @@ SECRET_OPTIONS = frozenset(
     | {"account_key", "connection_string", "sas_token", "credential", "client_secret"}
 )
 """fsspec storage options that hold credentials: s3fs's, then adlfs's (Azure)."""
+SECRET_QUERY = re.compile(r"sig|signature|token|credential|secret|password|key|x-amz-", re.IGNORECASE)
+"""Query parameters of a URL whose values are credentials: an Azure SAS token's signature (``sig=``), an S3 presigned
+URL's (``X-Amz-Signature=``, ``X-Amz-Credential=``, ``X-Amz-Security-Token=``), and the like."""
 CONTAINER_AT_ACCOUNT = frozenset({"abfs", "abfss", "az", "wasb", "wasbs"})
 """Azure's URL schemes, where ``container@account...`` names a container, not a user: no credential."""
 
@@ -50,15 +54,21 @@ class Url(str):
 
 
 def display_url(url: str) -> str:
-    """``url`` without the credentials a URL may carry (``s3://key:secret@bucket/...`` -> ``s3://bucket/...``), as a
-    plain ``str``."""
+    """``url`` without the credentials a URL may carry, as a plain ``str``: its user information
+    (``s3://key:secret@bucket/...`` -> ``s3://bucket/...``) and the values of its credential query parameters
+    (``?sv=...&sig=...`` -> ``?sv=...&sig=***``)."""
     url = str.__str__(url)
     parts = urlsplit(url) if "://" in url else None
-    if parts is None or "@" not in parts.netloc:
+    if parts is None or ("@" not in parts.netloc and not parts.query):
         return url
-    if parts.scheme in CONTAINER_AT_ACCOUNT and ":" not in parts.netloc.rpartition("@")[0]:
-        return url
-    return urlunsplit(parts._replace(netloc=parts.netloc.rpartition("@")[2]))
+    user, at, host = parts.netloc.rpartition("@")
+    if at and not (parts.scheme in CONTAINER_AT_ACCOUNT and ":" not in user):
+        parts = parts._replace(netloc=host)
+    if parts.query:
+        fields = (field.partition("=") for field in parts.query.split("&"))
+        hidden = (f"{name}{eq}{HIDDEN if SECRET_QUERY.search(unquote(name)) else value}" for name, eq, value in fields)
+        parts = parts._replace(query="&".join(hidden))
+    return urlunsplit(parts)
 
 
 def display_urls(data: object) -> object:
@@ -152,6 +162,14 @@ def secret_values(options: dict) -> list[str]:
 
 
 def url_secrets(url: str) -> list[str]:
-    """The credentials of ``url``: what ``display_url`` takes out (an Azure ``container@account`` names none)."""
-    userinfo = urlsplit(url).netloc.rpartition("@")[0] if display_url(url) != url else ""
-    return [userinfo, *(unquote(part) for part in userinfo.split(":"))] if userinfo else []
+    """The credentials of ``url``: what ``display_url`` takes out (an Azure ``container@account`` names none), as
+    given and unquoted."""
+    url = str.__str__(url)
+    parts = urlsplit(url) if "://" in url else None
+    if parts is None or display_url(url) == url:
+        return []
+    userinfo = parts.netloc.rpartition("@")[0] if display_url(url).partition("?")[0] != url.partition("?")[0] else ""
+    fields = (field.partition("=") for field in parts.query.split("&") if parts.query)
+    values = [value for name, _, value in fields if value and SECRET_QUERY.search(unquote(name))]
+    found = [*([userinfo, *userinfo.split(":")] if userinfo else []), *values]
+    return [text for secret in found for text in {secret, unquote(secret)}]

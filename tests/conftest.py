@@ -14,8 +14,7 @@ from pathlib import Path
 import pytest
 from filelock import FileLock
 
-from ftrain.ckpt.lease import GENERATION_ENV as LEASE_GENERATION_ENV
-from ftrain.ckpt.lease import RUN_ID_ENV
+from ftrain.identity import ATTEMPT_ENV, GENERATION_ENV, RUN_ID_ENV
 from ftrain.tools import etcd_server as etcd_tools
 from ftrain.tools.outage import S3Server, free_port, start_moto, stop
 
@@ -273,7 +272,7 @@ def _skip_without_etcd() -> None:
 def own_run_names(monkeypatch):
     """A lease held in this process (``Lease.hold``) names the run in its environment, which every process a test
     starts later inherits, and would join that run: each test's names go with it."""
-    for name in (RUN_ID_ENV, LEASE_GENERATION_ENV):
+    for name in (RUN_ID_ENV, GENERATION_ENV, ATTEMPT_ENV):
         monkeypatch.setenv(name, "")
         monkeypatch.delenv(name)
 

@@ -123,7 +123,7 @@ class CommitHold:
     pause or cut that node at once); ``release()`` lets the commit go on; ``refused(console)`` is the fence's line
     refusing it (a match: the step), None while there is none."""
 
-    FENCED = re.compile(r"checkpoint step (\d+) refused: generation 0 \(epoch \d+\) of the run is fenced off")
+    FENCED = re.compile(r"checkpoint step (\d+) refused: attempt 0 of generation \d+ is fenced off")
 
     def __init__(self, directory: Path) -> None:
         self.arm, self.marker, self.released = directory / "arm", directory / "held", directory / "release"
@@ -151,12 +151,12 @@ KEEP_ALL = "checkpoint.keep_last=1000"
 
 
 def assert_fenced_history(storage: Path) -> list[tuple[int, int]]:
-    """Fencing held: the committed steps' generations never go backwards in step order, all of one run, and
-    ``FENCE.json`` names the newest; the ``(step, generation)`` pairs."""
+    """Fencing held: the committed steps' (generation, attempt) never go backwards in step order, all of one run,
+    and ``FENCE.json`` names the newest; the ``(step, attempt)`` pairs."""
     steps = sorted(manifests(storage).items())
-    history = [(step, manifest["generation"][1]) for step, manifest in steps]
-    assert [generation for _, generation in history] == sorted(generation for _, generation in history), history
-    (run,) = {manifest["generation"][0] for _, manifest in steps}
+    keys = [(manifest["generation"], manifest["attempt"]) for _, manifest in steps]
+    assert keys == sorted(keys), keys
+    (run,) = {manifest["run_id"] for _, manifest in steps}
     fence = json.loads((storage / "FENCE.json").read_text())
-    assert (fence["run"], fence["generation"]) == (run, history[-1][1]), (fence, history)
-    return history
+    assert (fence["run_id"], fence["generation"], fence["attempt"]) == (run, *keys[-1]), (fence, keys)
+    return [(step, manifest["attempt"]) for step, manifest in steps]

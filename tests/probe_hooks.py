@@ -171,12 +171,12 @@ class HoldCommitHook(Hook):
             return
         check = Fence.check
 
-        def held(fence: Fence) -> None:
+        def held(fence: Fence) -> dict:
             if self.arm.exists() and not self.release.exists():
                 self.holding.set()
                 while not self.release.exists():
                     time.sleep(0.05)
-            check(fence)
+            return check(fence)
 
         Fence.check = held
 

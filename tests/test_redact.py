@@ -15,6 +15,8 @@ from ftrain.redact import (
     redact_command,
     redact_options,
     reveal_credentials,
+    scrub,
+    url_secrets,
 )
 
 
@@ -35,6 +37,17 @@ def test_urls_and_options_lose_their_credentials() -> None:
         "secret": HIDDEN,
         "config_kwargs": {},
     }
+
+
+def test_credentials_in_a_urls_query_are_hidden_and_known_for_scrubbing() -> None:
+    """An Azure SAS token or an S3 presigned URL pasted as the storage: the signature's values go, the rest stays."""
+    sas = "abfs://box@account.dfs.core.windows.net/run?sv=2022-11-02&se=2026-12-01&sig=AbC%2Bdef%3D"
+    assert display_url(sas) == "abfs://box@account.dfs.core.windows.net/run?sv=2022-11-02&se=2026-12-01&sig=***"
+    assert display_url("s3://b/run?X-Amz-Signature=ff00&versionId=3") == "s3://b/run?X-Amz-Signature=***&versionId=3"
+    assert set(url_secrets(sas)) == {"AbC%2Bdef%3D", "AbC+def="}
+    assert set(url_secrets("s3://KEY:SECRET@b/run?token=T")) == {"KEY:SECRET", "KEY", "SECRET", "T"}
+    assert url_secrets("s3://b/run?versionId=3") == [] and url_secrets("abfs://box@account/run") == []
+    assert "AbC" not in scrub(OSError(f"request to {Url(sas).reveal()} failed"), url_secrets(sas))
 
 
 def test_a_config_url_formats_without_its_credentials_and_reveals_them_only_when_asked(caplog) -> None:

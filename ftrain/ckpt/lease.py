@@ -1,26 +1,26 @@
 """One run per storage: the lease ``<storage>/LEASE.json``, held by a run while it lives.
 
-The record names the run (``run_id``), a ``generation`` (+1 at every new holder run: a lease epoch), the holders'
-``ttl`` and ``expires_at`` (wall clock, for humans and other hosts), and one entry per process that renews it (host,
-pid, the process's start time, the host's boot id and pid namespace, ``renewed_at``): every node of a run renews its
-own entry, so the lease lives while any node does. A second run is refused while any entry lives; an entry lives
-until ``renewed_at + ttl`` (and, as the storage's own clock tells, while the record was written within ``ttl``: no
-host's clock is trusted to agree with another's), except on its own host (same name, boot id and pid namespace),
-where a process whose pid no longer has the recorded start time (``/proc/<pid>/stat``) is seen gone at once (so the
-same command again right after a crash never waits for the expiry), and a process seen running there holds it even
-past the expiry. A host that has rebooted since counts as another host: cloned machines may share a host name.
+The record names the run (``run_id``), its ``generation`` (``ftrain/identity.py``), the holders' ``ttl`` and
+``expires_at`` (wall clock, for humans and other hosts), and one entry per process that renews it (host, pid, the
+process's start time, the host's boot id and pid namespace, ``renewed_at``): every node of a run renews its own entry,
+so the lease lives while any node does. A second run is refused while any entry lives; an entry lives until ``renewed_at
++ ttl`` (and, as the storage's own clock tells, while the record was written within ``ttl``: no host's clock is trusted
+to agree with another's), except on its own host (same name, boot id and pid namespace), where a process whose pid no
+longer has the recorded start time (``/proc/<pid>/stat``) is seen gone at once (so the same command again right after a
+crash never waits for the expiry), and a process seen running there holds it even past the expiry. A host that has
+rebooted since counts as another host: cloned machines may share a host name.
 
 Every change is a compare-and-swap of the record read (``cas.py``: conditional requests on S3, ``flock`` and an
 atomic replace locally), so of two processes that race, one wins and the other reads again.
 
 The generation is the run's fencing token. It only grows: a release keeps the record (with no holders), so the next
 holder takes generation + 1, be it another run or the same run id once none of its processes lives (a requeued job,
-the same command again): the processes of one generation are those that overlapped. A process that finds a newer
-generation in the record (its lease expired while it was paused, or cut off, and another holder took the storage)
-has lost the storage for good: it never takes it back, rank 0 reads the record right before every manifest it writes
-(``fence.LeaseToken``: one small read per commit) and commits nothing once a newer generation is there, and the
-supervisor, whose renewal finds it too, stops the workers (exit 8). What is left is the time between that read and
-the manifest's write (one request), as for ``fence.py``.
+the same command again). On several nodes the maker of a new plan also takes generation + 1 (``advance``), and the
+other nodes follow the plan's (``follows``). A process that finds a newer generation in the record (its lease
+expired while it was paused, or cut off, and another holder took the storage) has lost the storage for good: it
+never takes it back, rank 0 commits nothing more (``fence.py``), and the supervisor, whose renewal finds it too,
+stops the workers (exit 8); one that follows a plan leaves that to the plan (a newer generation of its own run is
+the plan it will follow next).
 
 Torch-free: the supervisor holds the lease for its workers; unsupervised, rank 0 of the world does (see ``claim``).
 """
@@ -29,10 +29,8 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
-import hashlib
 import json
 import os
-import secrets
 import threading
 import time
 from collections.abc import Callable
@@ -43,15 +41,10 @@ from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import Config
 from ftrain.errors import EXIT_STORAGE_HELD, UserError
 from ftrain.heartbeat import TOKEN_ENV
+from ftrain.identity import Identity, run_id
 from ftrain.procfs import Process
 
 LEASE = "LEASE.json"
-RUN_ID_ENV = "FTRAIN_RUN_ID"
-"""A run's identity: set by ``ftrain supervise`` for its workers (or by the user to name a run, e.g. a batch job id
-that survives a requeue); unset, torchrun's ``TORCHELASTIC_RUN_ID`` (its ``--rdzv-id``)."""
-GENERATION_ENV = "FTRAIN_LEASE_GENERATION"
-"""The generation of the lease the run holds, set with ``FTRAIN_RUN_ID`` by its holder: what its commits are checked
-against (``fence.LeaseToken``)."""
 TTL_ENV = "FTRAIN_LEASE_TTL"
 """Seconds a lease lives after its last renewal, where ``TTL`` does not suit (a storage slow to answer)."""
 TTL = 60.0
@@ -64,6 +57,10 @@ class LeaseHeld(Exception):
 
 class LeaseLost(LeaseHeld):
     """Another run took the storage after this one held it (a newer generation): this run must stop writing."""
+
+
+class Advanced(Exception):
+    """The lease is no longer at the generation a process meant to advance from (``Lease.advance``)."""
 
 
 _AGREED = {kind.__name__: kind for kind in (LeaseHeld, UserError, StorageUnavailable, StorageError)}
@@ -124,20 +121,14 @@ def storage_lease(
     secret: bytes | None = None,
     endpoint: tuple[str, int] | None = None,
     retries: int | None = None,
+    follows: bool = False,
 ) -> Lease:
-    """The lease of ``config``'s storage for this run, not taken yet. The run is ``FTRAIN_RUN_ID``; else, with a
-    ``secret``, the nodes whose supervisors share it and the rendezvous ``endpoint`` (a digest of both); else
-    torchrun's run id (``TORCHELASTIC_RUN_ID``, from ``--rdzv-id``); else a new random one. ``retries``: of the
-    storage's requests (default: ``checkpoint.retries``)."""
-    if os.environ.get(RUN_ID_ENV):
-        run_id = os.environ[RUN_ID_ENV]
-    elif secret is not None:
-        run_id = hashlib.sha256(b"ftrain-run:" + secret + repr(endpoint).encode()).hexdigest()[:16]
-    else:
-        run_id = os.environ.get("TORCHELASTIC_RUN_ID") or secrets.token_hex(8)
+    """The lease of ``config``'s storage for this run (``identity.run_id`` of ``secret`` and ``endpoint``), not taken
+    yet. ``retries``: of the storage's requests (default: ``checkpoint.retries``); ``follows``: see ``Lease``."""
     retries = config.checkpoint.retries if retries is None else retries
     storage = Storage.open(config.storage.url, config.storage.options, retries=retries)
-    return Lease(storage, run_id, log, float(os.environ.get(TTL_ENV) or TTL), config.storage.plain_writes)
+    ttl = float(os.environ.get(TTL_ENV) or TTL)
+    return Lease(storage, run_id(secret, endpoint), log, ttl, config.storage.plain_writes, follows)
 
 
 class Lease:
@@ -145,11 +136,20 @@ class Lease:
     from a thread until ``release``. Storage failures while renewing are logged and retried, never raised."""
 
     def __init__(
-        self, storage: Storage, run_id: str, log: Callable[[str], None], ttl: float = TTL, plain_writes: bool = False
+        self,
+        storage: Storage,
+        run_id: str,
+        log: Callable[[str], None],
+        ttl: float = TTL,
+        plain_writes: bool = False,
+        follows: bool = False,
     ) -> None:
-        """``plain_writes``: hold it even on a storage without conditional writes (``cas.require_atomic``)."""
+        """``plain_writes``: hold it even on a storage without conditional writes (``cas.require_atomic``);
+        ``follows``: a supervisor on several nodes, whose workers take their generation from the plan: a newer
+        generation of its own run is a newer plan, which it follows, not a loss."""
         self.storage = storage
         self.plain_writes = plain_writes
+        self.follows = follows
         self.run_id = run_id
         self.log = log
         self.ttl = ttl
@@ -161,14 +161,15 @@ class Lease:
         self.lost: str | None = None
         """Why the storage is lost to another run, once it is (for good)."""
 
-    def acquire(self) -> str | None:
+    def acquire(self, advance: bool = False, expected: int | None = None) -> str | None:
         """Take the lease, or join this run's while another of its processes holds it (the nodes of one run share a
-        generation); LeaseHeld if another run holds it, LeaseLost if a newer generation took it after this process
-        held it. A line saying so if this took over another run's live lease, else None.
+        generation; ``advance``: the maker of a new plan, which takes the next one for them all, only from generation
+        ``expected`` if given, else ``Advanced``); LeaseHeld if another run holds it, LeaseLost if a newer generation
+        took it after this process held it. A line saying so if this took over another run's live lease, else None.
 
         A run id may outlive its processes (a batch job's id kept across a requeue, the same command run again), so
         a process that finds none of its run alive takes the next generation, as another run would: whatever the old
-        ones still have in flight is then refused at commit (``fence.LeaseToken``). Entries of other hosts that only
+        ones still have in flight is then refused at commit (``fence.Fence``). Entries of other hosts that only
         look expired get a third of the ttl first: nodes cut off from the storage by an outage renew by then, and are
         joined. (A requeued job whose old processes on other hosts still renew joins them: SLURM kills those.)"""
         looked = None
@@ -176,8 +177,11 @@ class Lease:
             now = time.time()
             current = read_record(self.storage)
             record, version = current if current is not None else (None, None)
-            if record is not None and self.generation is not None and record.generation != self.generation:
+            newer = record is not None and self.generation is not None and record.generation != self.generation
+            if newer and not (self.follows and record.run_id == self.run_id):
                 raise LeaseLost(lost_message(self.storage, record, self.run_id, self.generation))
+            if advance and expected is not None and (record is None or record.generation != expected):
+                raise Advanced(record.generation if record is not None else 0)
             live = self._live(record, now) if record is not None else []
             if record is not None and record.run_id != self.run_id and live:
                 raise LeaseHeld(self._held_message(record, live))
@@ -190,7 +194,10 @@ class Lease:
                 looked = version
                 time.sleep(self.ttl / 3)
                 continue
-            generation = record.generation if joins else (record.generation + 1 if record else self.generation or 1)
+            if joins and not advance:
+                generation = record.generation
+            else:  # a new holder, or a new plan: the next generation (a deleted record keeps this process's)
+                generation = record.generation + 1 if record else self.generation or 1
             new = Record(self.run_id, generation, self.ttl, (*(others if joins else ()), Entry(self.process, now)))
             try:
                 cas.write(self.storage, LEASE, new.encode(), version)
@@ -200,8 +207,7 @@ class Lease:
             return None if ours or record is None or not record.entries else self._taken_message(record)
 
     def renew(self) -> str | None:
-        """Renew this process's entry; take the lease again if it lapsed and nobody else took it. Once another run
-        has taken it, a line saying so, once: the storage is lost for good (``lost``)."""
+        """Renew this process's entry (``acquire``); once another run took it, a line saying so, once (``lost``)."""
         if self.lost is not None:
             return None
         try:
@@ -210,23 +216,34 @@ class Lease:
             self.lost = str(lost)
             return self.lost
 
-    def hold(self) -> str | None:
-        """``acquire``, then renew every ``ttl / 3`` from a daemon thread; returns what ``acquire`` did. This
-        process's environment names the run and its generation from then on (``RUN_ID_ENV``, ``GENERATION_ENV``):
-        its own commits and its child processes' are checked against them (``fence.LeaseToken``)."""
+    def hold(self, advance: bool = False) -> str | None:
+        """``acquire`` (``advance``: see there), then renew every ``ttl / 3`` from a daemon thread; returns what
+        ``acquire`` did. This process's environment names the run and its generation from then on
+        (``Identity.env``): its own commits and its child processes' are checked against them (``fence.Fence``)."""
         cas.require_atomic(self.storage, self.plain_writes)  # a lease rests on conditional writes
-        taken = self.acquire()
-        os.environ[RUN_ID_ENV], os.environ[GENERATION_ENV] = self.run_id, str(self.generation)
+        taken = self.acquire(advance)
+        os.environ.update(Identity(self.run_id, self.generation).env())
         self._thread = threading.Thread(target=self._keep, name="ftrain-lease", daemon=True)
         self._thread.start()
         return taken
 
-    def run(self, body: Callable[[Lease], int], refused: Callable[[str], None]) -> int:
-        """``body(self)`` while holding the lease (its child processes get ``FTRAIN_RUN_ID``: they are this run), then
-        release it; if another run holds it, ``refused`` gets the one-line reason and this returns
-        ``EXIT_STORAGE_HELD`` without calling ``body``."""
+    def advance(self, expected: int) -> tuple[int, bool]:
+        """Take the next generation after ``expected`` for this run, its live processes kept: this process makes a new
+        plan of it. The lease's generation, and whether this process took it (not if the lease had moved on from
+        ``expected``: another process of the run took the next one first, and makes the plan)."""
         try:
-            taken = self.hold()
+            self.acquire(advance=True, expected=expected)
+        except Advanced as moved:
+            return moved.args[0], False
+        os.environ.update(Identity(self.run_id, self.generation).env())
+        return self.generation, True
+
+    def run(self, body: Callable[[Lease], int], refused: Callable[[str], None], advance: bool = False) -> int:
+        """``body(self)`` while holding the lease (``hold``: its child processes are this run), then release it; if
+        another run holds it, ``refused`` gets the one-line reason and this returns ``EXIT_STORAGE_HELD`` without
+        calling ``body``."""
+        try:
+            taken = self.hold(advance)
         except LeaseHeld as held:
             refused(str(held))
             return EXIT_STORAGE_HELD
@@ -255,8 +272,7 @@ class Lease:
             raise LeaseHeld(self._held_message(current[0], live))
 
     def _keep(self) -> None:
-        """Renew until stopped. While the storage fails, try 4 times as often; one line when that starts and one when
-        it ends (an outage of an hour is two lines, not 720)."""
+        """Renew until stopped; 4 times as often while the storage fails, with one line when that starts and ends."""
         failing_since = None
         while not self._stop.wait(self.ttl / 3 if failing_since is None else self.ttl / 12):
             try:
@@ -277,7 +293,8 @@ class Lease:
         (the next run takes the generation after it)."""
         while True:
             current = read_record(self.storage)
-            if current is None or (current[0].run_id, current[0].generation) != (self.run_id, self.generation):
+            ours = current is not None and current[0].run_id == self.run_id
+            if not ours or (current[0].generation != self.generation and not self.follows):
                 return  # not this process's record any more: a newer generation's, which it must not touch
             record, version = current
             keep = tuple(e for e in record.live(time.time()) if e.process != self.process)

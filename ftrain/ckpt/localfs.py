@@ -8,6 +8,12 @@ import os
 import shutil
 import threading
 
+SHARED_FILE_SYSTEMS = frozenset(
+    {"nfs", "nfs4", "cifs", "smb3", "smbfs", "9p", "afs", "lustre", "gpfs", "beegfs", "ceph", "glusterfs", "fuse"}
+)
+"""File system types whose listings may lack what another host wrote seconds ago (NFS caches lookups and
+attributes), and FUSE, whatever serves it (s3fs, gcsfuse, sshfs...)."""
+
 
 def delete(path: str) -> None:
     """Delete a file, or a directory with everything below it."""
@@ -31,6 +37,18 @@ def delete_files(directory: str, paths: list[str]) -> bool:
             raise
         return False
     return True
+
+
+def shared(path: str) -> bool:
+    """Whether ``path`` lies on a network or FUSE file system: the type of the deepest mount above it."""
+    path, deepest, kind = os.path.realpath(path), "", ""
+    with contextlib.suppress(OSError), open("/proc/self/mounts") as mounts:
+        for line in mounts:
+            fields = line.split()
+            point = fields[1].replace("\\040", " ") if len(fields) > 2 else ""
+            if point and (path == point or path.startswith(point.rstrip("/") + "/")) and len(point) >= len(deepest):
+                deepest, kind = point, fields[2]
+    return kind.partition(".")[0] in SHARED_FILE_SYSTEMS
 
 
 def write(path: str, data: bytes, exclusive: bool) -> None:

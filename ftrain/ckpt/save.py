@@ -25,7 +25,7 @@ from collections.abc import Callable
 import torch
 import torch.distributed as dist
 
-from ftrain.ckpt.fence import Fence, Fenced, LeaseToken
+from ftrain.ckpt.fence import Fence, Fenced
 from ftrain.ckpt.format import (
     COMMON,
     INCOMPLETE,
@@ -62,9 +62,10 @@ class Result(str, enum.Enum):
     UNLOADABLE = "unloadable"
     """Written state that would not load back: training must stop."""
     FENCED = "fenced"
-    """A newer generation of the run has committed (``fence.py``): this rank is cut off and must stop."""
+    """A newer plan or attempt of the run holds the storage or has committed (``fence.py``): this node was cut off
+    from the others and must stop."""
     LEASE_LOST = "lease_lost"
-    """Another run has taken the storage's lease (``lease.py``): this run must stop, with exit 8."""
+    """Another run, or this run started again, has taken the storage's lease (``lease.py``): exit 8."""
     SPOOLED = "spooled"
     """Written to the spool alone, as asked (while the storage is down): the storage has not changed."""
 
@@ -132,7 +133,6 @@ class StepWriter:
         a spooled step records as the storage history it continues."""
         self._spool_failing = False
         self.fence = Fence.from_env(storage) if info.is_main else None
-        self.lease = LeaseToken.from_env(storage) if info.is_main else None
         self.policy = policy
         self.info = info
         self.collectives = collectives
@@ -264,12 +264,8 @@ class StepWriter:
         if not errors:
             writing = False
             try:
-                if self.lease is not None:
-                    self.lease.check()
-                    fields["lease_generation"] = self.lease.generation
                 if self.fence is not None:
-                    self.fence.check()
-                    fields["generation"], fields["epoch"] = [self.fence.run, self.fence.generation], self.fence.epoch
+                    fields |= self.fence.check()
                 writing = True
                 manifest = commit(storage, step, files, meta | fields, check_present=not self._listed)
                 self._listed = True

@@ -23,13 +23,13 @@ from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage, StorageError
 from ftrain.config import Config
 from ftrain.dist import group
-from ftrain.lifeline import SUPERVISOR_ENV
+from ftrain.identity import Identity
 
 KEEP = 3
 """Spooled steps kept: the newest, and two before it (one of them is usually the storage's newest commit, which
 tells that the spool continues the storage's history)."""
 FIELD = "spool"
-"""The manifest field of a spooled step: ``{"storage": URL, "base": step, "supervisor": "pid:start"}``."""
+"""The manifest field of a spooled step: ``{"storage": URL, "base": step, "holder": [run id, generation]}``."""
 
 
 class Spool:
@@ -38,8 +38,10 @@ class Spool:
     def __init__(self, storage: Storage, remote_url: str) -> None:
         self.storage = storage
         self.remote_url = remote_url
-        self.supervisor = os.environ.get(SUPERVISOR_ENV, "")
-        """The supervisor of this process (pid and start time), which holds the storage's lease while it lives."""
+        identity = Identity.from_env()
+        self.holder = [identity.run_id, identity.generation] if identity is not None else None
+        """The holder of the storage's lease that this process writes for (``identity.py``): its run and
+        generation, which no other holder shares."""
 
     @classmethod
     def open(cls, config: Config, remote: Storage, info: group.RankInfo) -> Spool | None:
@@ -66,7 +68,7 @@ class Spool:
         """Rank 0: commit ``step`` to the spool, ``base`` being the storage's newest committed step as far as this
         rank knows; then only the newest ``KEEP`` steps stay."""
         self.storage.delete(f"{step_dir(step)}/{MANIFEST}")
-        record = {"storage": self.remote_url, "base": base, "supervisor": self.supervisor}
+        record = {"storage": self.remote_url, "base": base, "holder": self.holder}
         commit(self.storage, step, files, meta | {FIELD: record})
         for info in scan(self.storage)[KEEP:]:
             delete_step(self.storage, info.step)
@@ -82,8 +84,8 @@ class Spool:
 
         Reachable storage: the spool's newest step must be newer than the storage's, and continue its history: the
         storage's newest step is the one it was spooled on (``base``), or the spool holds that step too, with the
-        same state. Unreachable storage: the spooled step must have been written under this supervisor, which has
-        held the storage's lease since, so no other run can have committed to it.
+        same state. Unreachable storage: the spooled step must have been written for this holder of the storage's
+        lease (the same run and generation), which has held it since, so nothing else can have committed to it.
         """
         spooled = [info for info in scan(self.storage) if info.status == VERIFIED]
         ours = [info for info in spooled if info.manifest.get(FIELD, {}).get("storage") == self.remote_url]
@@ -92,8 +94,8 @@ class Spool:
         newest = ours[0]
         record = newest.manifest[FIELD]
         if not reachable:
-            trusted = bool(self.supervisor) and record["supervisor"] == self.supervisor
-            why = "" if trusted else "it was written under another supervisor"
+            trusted = self.holder is not None and record.get("holder") == self.holder
+            why = "" if trusted else "it was written for another holder of the storage"
         elif remote is not None and remote[0] >= newest.step:
             return None
         else:

@@ -9,6 +9,7 @@ manifest) was abandoned and may be deleted. A step that verifies is never quaran
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Callable
 
 from ftrain.ckpt.format import (
@@ -105,11 +106,13 @@ def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print)
     """Prepare a run starting from ``step`` (0 for a fresh start) to save the following steps again.
 
     Every save needs a fresh directory. Incomplete steps newer than ``step`` were abandoned by the run that died
-    (never committed: ``scan`` looks at the manifest itself): they are deleted, however young, since the attempt that
-    wrote them is dead on this node (``Attempt.kill`` waits for it) and fenced off on others. Corrupt and
-    quarantined ones are set aside (:func:`set_aside`), never deleted. A verified newer step means the storage holds
-    another history: UserError, nothing touched. Call it on rank 0 before the first save, when no other process
-    writes to this storage.
+    (never committed: ``scan`` looks at the manifest itself): they are deleted, since the attempt that wrote them is
+    dead on this node (``Attempt.kill`` waits for it) and fenced off on others. Where a listing may lag
+    (``Storage.lists_late``: NFS), a manifest another host wrote seconds ago may be missing from it and even from a
+    direct look, so only a step untouched for ``ABANDONED_AFTER`` seconds is deleted; a younger one is set aside
+    whole. Corrupt and quarantined ones are set aside (:func:`set_aside`), never deleted. A verified newer step means
+    the storage holds another history: UserError, nothing touched. Call it on rank 0 before the first save, when no
+    other process writes to this storage.
     """
     newer = [info for info in scan(storage) if info.step > step]
     verified = [info.step for info in newer if info.status == VERIFIED]
@@ -119,12 +122,19 @@ def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print)
             "starts from: resume from the newest step or use another storage"
         )
     for info in newer:
-        if info.status == INCOMPLETE:
+        young = info.status == INCOMPLETE and storage.lists_late and not abandoned(storage, info, time.time())
+        if info.status == INCOMPLETE and not young:
             log(f"deleting checkpoint step {info.step} (incomplete): newer than step {step} this run starts from")
             delete_step(storage, info.step)
-        else:
-            where = set_aside(storage, info)
-            log(f"checkpoint step {info.step} ({info.status}) moved to {where}: the run saves that step again")
+            continue
+        status = info.status
+        if young:
+            ago = time.time() - (storage.modified(step_dir(info.step)) or time.time())
+            status = f"incomplete, last written {ago:.0f} s ago"
+            reason = f"{status} on a file system whose listings may lag: set aside, not deleted"
+            quarantine(storage, info.step, reason)
+        where = set_aside(storage, info)
+        log(f"checkpoint step {info.step} ({status}) moved to {where}: the run saves that step again")
 
 
 ABANDONED_AFTER = 600.0

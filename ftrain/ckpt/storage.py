@@ -21,6 +21,7 @@ import contextlib
 import copy
 import datetime
 import errno
+import functools
 import logging
 import os
 import re
@@ -138,6 +139,12 @@ class Storage:
     @property
     def is_local(self) -> bool:
         return isinstance(self.fs, LocalFileSystem)
+
+    @functools.cached_property
+    def lists_late(self) -> bool:
+        """Whether a listing may lack what another host wrote seconds ago: a network or FUSE file system (NFS
+        caches lookups). Object stores list what they hold."""
+        return self.is_local and localfs.shared(self._path(""))
 
     @property
     def is_s3(self) -> bool:

@@ -159,7 +159,7 @@ def new_log_dir(root: Path, plan: Plan) -> Path:
     old = sorted(root.iterdir(), key=lambda path: path.stat().st_mtime)
     for stale in old[: max(0, len(old) - KEPT_LOGS + 1)]:
         shutil.rmtree(stale, ignore_errors=True)
-    path = root / f"attempt-{plan.attempt}-{plan.token}"
+    path = root / f"attempt-{plan.attempt}-g{plan.generation}"
     path.mkdir(exist_ok=True)
     return path
 

@@ -8,7 +8,9 @@ with how many ranks, is torchrun's decision; the coordinator only numbers the at
 answers the other nodes and hosts the rendezvous (as torchrun's c10d endpoint host must).
 
 Node 0 listens on the address of ``--rdzv-endpoint`` only, and answers only requests signed with the run's secret
-(``auth.py``; they also name the run's token, so a request recorded in an earlier run does nothing now). Anything
+(``auth.py``; they also name the plan's generation, so a request recorded in an earlier run does nothing now). It
+makes the plan once it holds the storage's lease, at the next generation (``identity.py``): until then it answers
+that it is starting. Anything
 else (a wrong secret, garbage, a line over ``auth.MAX_MESSAGE`` bytes, a client slower than ``CONNECTION_TIMEOUT``)
 is refused and recorded as a ``refused`` event; one connection is served per thread, so a slow one stalls nobody.
 """
@@ -37,6 +39,8 @@ CONNECTION_TIMEOUT = 5.0
 MAX_LOGGED_REFUSALS = 1000
 """Refused connections recorded in events.jsonl at most (a flood must not fill the disk)."""
 OPS = ("plan", "fail", "leave", "finish")
+STARTING = b"starting\n"
+"""Node 0's answer before it has made the plan (it is taking the storage's lease)."""
 GONE_AFTER = 3.0
 """Seconds without a request after which node 0 no longer waits for a node to learn the outcome."""
 
@@ -54,7 +58,7 @@ class Coordinator:
         self.secret = secret
         self._log = log
         self._lock = threading.Lock()
-        self._plan = Plan(secrets.token_hex(4), 0, self._port())
+        self._plan: Plan | None = None
         self._informed: set[int] = set()
         self._seen: dict[int, float] = {}
         """When each node last asked (nodes of an elastic run may be gone for good)."""
@@ -62,16 +66,24 @@ class Coordinator:
         """Refused connections so far, by reason."""
         self._server: _Server | None = None
 
+    def begin(self, generation: int) -> None:
+        """Make the run's plan at ``generation``, which this node took as the plan's maker (``Lease.hold``)."""
+        with self._lock:
+            self._plan = Plan(generation, 0, self._port())
+
     @property
-    def token(self) -> str:
-        """This run's token: every plan carries it, and every request that changes the plan must name it."""
-        return self._plan.token
+    def generation(self) -> int | None:
+        """The plan's generation (None before ``begin``): every request that changes the plan must name it."""
+        return self._plan.generation if self._plan is not None else None
 
     def _port(self) -> int | None:
         return free_port() if self._multi_node else None
 
-    def handle(self, request: dict) -> dict:
+    def handle(self, request: dict) -> dict | None:
+        """The plan after ``request``; None before ``begin``."""
         with self._lock:
+            if self._plan is None:
+                return None
             self._plan = plan = apply(self._plan, request, self._port)
             if plan.final is not None:
                 self._informed.add(request["node"])
@@ -137,7 +149,8 @@ class _Handler(socketserver.BaseRequestHandler):
             request = unseal(coordinator.secret, REQUEST, read_line(self.request, CONNECTION_TIMEOUT))
             if not _well_formed(request):
                 raise Refused("malformed")
-            reply = seal(coordinator.secret, REPLY, {**coordinator.handle(request), "nonce": request["nonce"]})
+            plan = coordinator.handle(request)
+            reply = seal(coordinator.secret, REPLY, {**plan, "nonce": request["nonce"]}) if plan else STARTING
         except Refused as refused:
             coordinator.refuse(self.client_address, str(refused))
             with contextlib.suppress(OSError):  # unsigned: a hint for a node with the wrong secret, nothing more
@@ -158,7 +171,7 @@ def _well_formed(request: dict) -> bool:
 
 class Link:
     """This node's line to the coordinator: a direct call on node 0, one signed TCP request per question elsewhere.
-    Every request names the run's token (node 0 knows it; the others learn it from the first reply)."""
+    Every request names the plan's generation (node 0 knows it; the others learn it from the first reply)."""
 
     def __init__(
         self, node: int, coordinator: Coordinator | None, address: tuple[str, int] | None, secret: bytes | None
@@ -168,17 +181,21 @@ class Link:
         self.address = address
         self.peer = "node 0 at {}:{}".format(*address) if address else "node 0"
         self.secret = secret
-        self.token = coordinator.token if coordinator is not None else None
+        self.generation: int | None = None
 
     def ask(self, op: str, **fields) -> Plan:
-        """Raises OSError when node 0 cannot be reached or refuses the request."""
-        request = {"op": op, "node": self.node, "token": self.token, **fields}
+        """Raises OSError when node 0 cannot be reached, is starting, or refuses the request."""
+        if self.coordinator is not None:
+            self.generation = self.coordinator.generation
+        request = {"op": op, "node": self.node, "generation": self.generation, **fields}
         if self.coordinator is not None:
             return Plan(**self.coordinator.handle(request))
         nonce = secrets.token_hex(8)
         with socket.create_connection(self.address, timeout=CONNECTION_TIMEOUT) as conn:
             conn.sendall(seal(self.secret, REQUEST, {**request, "nonce": nonce}))
             line = read_line(conn, CONNECTION_TIMEOUT)
+        if line + b"\n" == STARTING:
+            raise ConnectionError(f"{self.peer} is starting")
         if line.startswith(b"refused: "):
             reason = line.removeprefix(b"refused: ").decode(errors="replace")
             raise Refused(f"node 0 refused this node's request ({reason}): {HOW_TO_SET}")
@@ -186,7 +203,7 @@ class Link:
         if reply.pop("nonce", None) != nonce:
             raise Refused("node 0's reply answers another request")
         plan = Plan(**reply)
-        self.token = plan.token
+        self.generation = plan.generation
         return plan
 
 
@@ -203,7 +220,7 @@ def rendezvous_args(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> lis
     A fixed number of nodes meets in a static rendezvous: node R runs global ranks R x nproc and up, every time.
     Elastic (``MIN:MAX``) nodes meet in torchrun's c10d rendezvous (``plan.elastic_rendezvous``).
     """
-    run_id = f"ftrain-{plan.token}-{plan.attempt}"
+    run_id = f"ftrain-g{plan.generation}-{plan.attempt}"
     if not nodes.elastic:
         return [
             f"--nnodes={nodes.count}",

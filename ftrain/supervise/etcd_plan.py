@@ -12,7 +12,9 @@ left), changed by compare-and-swap. The crash-loop count was never shared (each 
 also takes a number from etcd for its logs and events (``node-N``): a node that starts again gets a new one.
 
 Keys, under ``/ftrain/<--rdzv-id>``: ``plan`` (JSON) and ``nodes`` (the next node number). A supervisor that finds
-the plan of an ended run starts a new one (a new token): running the same command again after a stop continues.
+no plan, or the plan of an ended run, makes a new one at the next generation of the storage's lease (``identity.py``):
+running the same command again after a stop continues. Of two nodes that make one at once, the plan of the newer
+generation stands (the other's workers could commit nothing), and the other node follows it.
 """
 
 from __future__ import annotations
@@ -20,7 +22,6 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
-import secrets
 import sys
 import time
 from collections.abc import Callable
@@ -33,6 +34,8 @@ from ftrain.supervise.plan import Plan, apply, elastic_rendezvous
 PREFIX = "/ftrain"
 RETRY = 0.5
 """Seconds between two tries to reach etcd while the supervisor starts."""
+MAKER_WAIT = 30.0
+"""Seconds a node waits for the plan of the node that took the next generation before it (``EtcdLink.begin``)."""
 
 
 def etcd_client(nodes: Nodes) -> Any:
@@ -60,38 +63,63 @@ class EtcdLink:
     """This node's line to the run's plan in etcd: the same questions as ``coordinator.Link``, answered by etcd."""
 
     def __init__(self, nodes: Nodes, timeout: float) -> None:
-        """Takes a node number and, if the plan in etcd is of an ended run, starts a new plan; waits up to
-        ``timeout`` seconds for etcd (``ConnectionError`` then)."""
+        """Takes a node number; waits up to ``timeout`` seconds for etcd (``ConnectionError`` then)."""
         self.client = etcd_client(nodes)  # first: a missing python-etcd is one line
         import etcd
 
         self._etcd = etcd
         self.peer = "etcd at {}:{}".format(*nodes.endpoint)
         self.key = f"{PREFIX}/{nodes.run_id}"
-        deadline = time.monotonic() + timeout
-        for tries in itertools.count():
-            try:
-                self.node = self._update("nodes", lambda count: (count or 0) + 1) - 1
-                self.token = self._update("plan", _fresh).token
-                return
-            except ConnectionError as error:
-                if time.monotonic() > deadline:
-                    raise ConnectionError(f"{self.peer} not reached within {timeout:g} s ({error})") from None
-                if not tries:
-                    message = f"waiting up to {timeout:g} s for {self.peer} ({error})"
-                    print(f"ftrain supervise: {message}", file=sys.stderr, flush=True)
+        self.timeout = timeout
+        self.generation: int | None = None
+        self.node = self._waiting(lambda: self._update("nodes", lambda count: (count or 0) + 1) - 1)
+
+    def begin(self, held: int, advance: Callable[[int], tuple[int, bool]]) -> None:
+        """Join the run's plan, or make one where there is none, its run has ended, or it is older than the
+        generation ``held`` of the storage's lease that this node holds (its nodes are all gone): at the next
+        generation, which ``advance(held)`` takes from the lease, unless another node took it first: then that node
+        makes the plan, which this one waits for (``MAKER_WAIT``, after which it makes one itself). Waits for etcd as
+        ``__init__`` does."""
+        while (current := self._live_plan(held)) is None:
+            held, made = advance(held)
+            if made:
+                self._waiting(lambda generation=held: self._update("plan", _made(generation)))
+                continue
+            deadline = time.monotonic() + MAKER_WAIT  # another node makes the plan at ``held``
+            while time.monotonic() < deadline and self._live_plan(held) is None:
                 time.sleep(RETRY)
+        self.generation = current.generation
+
+    def _live_plan(self, generation: int) -> Plan | None:
+        """The plan in etcd if it is a live one of ``generation`` or newer."""
+        value = self._waiting(lambda: self._update("plan", lambda value: value))
+        plan = Plan(**value) if value is not None else None
+        return plan if plan is not None and plan.final is None and plan.generation >= generation else None
 
     def ask(self, op: str, **fields) -> Plan:
         """The plan after this node's request (``plan``: only read it); ConnectionError when etcd cannot be reached."""
-        request = {"op": op, "token": self.token, **fields}
-        plan = self._update("plan", lambda value: apply(_plan(value), request, lambda: None))
-        self.token = plan.token
+        request = {"op": op, "generation": self.generation, **fields}
+        plan = Plan(**self._update("plan", lambda value: dataclasses.asdict(apply(_plan(value), request, _no_port))))
+        self.generation = plan.generation
         return plan
+
+    def _waiting(self, call: Callable[[], Any]) -> Any:
+        """``call()``, tried again while etcd cannot be reached, up to ``timeout`` seconds (then ConnectionError)."""
+        deadline = time.monotonic() + self.timeout
+        for tries in itertools.count():
+            try:
+                return call()
+            except ConnectionError as error:
+                if time.monotonic() > deadline:
+                    raise ConnectionError(f"{self.peer} not reached within {self.timeout:g} s ({error})") from None
+                if not tries:
+                    message = f"waiting up to {self.timeout:g} s for {self.peer} ({error})"
+                    print(f"ftrain supervise: {message}", file=sys.stderr, flush=True)
+                time.sleep(RETRY)
 
     def _update(self, name: str, change: Callable[[Any], Any]) -> Any:
         """``change`` the JSON value of ``name`` (None when absent) by compare-and-swap, retried until no other node
-        wrote in between; the new value (as ``change`` returned it: a Plan or a number)."""
+        wrote in between; the new value (as ``change`` returned it; None: there is none)."""
         key = f"{self.key}/{name}"
         while True:
             try:
@@ -101,7 +129,9 @@ class EtcdLink:
                 except self._etcd.EtcdKeyNotFound:
                     value, index = None, None
                 new = change(value)
-                encoded = json.dumps(dataclasses.asdict(new) if isinstance(new, Plan) else new)
+                encoded = json.dumps(new)
+                if new is None:
+                    return None
                 if index is None:
                     self.client.write(key, encoded, prevExist=False)
                 elif encoded != current.value:
@@ -114,17 +144,25 @@ class EtcdLink:
 
 
 def _plan(value: dict | None) -> Plan:
-    return Plan(**value) if value is not None else _new_plan()
+    if value is None:  # removed from etcd by hand while the run went on
+        raise ConnectionError("the run's plan is gone from etcd")
+    return Plan(**value)
 
 
-def _new_plan() -> Plan:
-    return Plan(secrets.token_hex(4), 0, None)
+def _made(generation: int) -> Callable[[dict | None], dict]:
+    """The change to the plan in etcd of a node that made one at ``generation``: the newer of the two live ones."""
+
+    def change(value: dict | None) -> dict:
+        plan = Plan(**value) if value is not None else None
+        if plan is None or plan.final is not None or plan.generation < generation:
+            return dataclasses.asdict(Plan(generation, 0, None))
+        return value
+
+    return change
 
 
-def _fresh(value: dict | None) -> Plan:
-    """The plan a starting node joins: the current one, or a new one where there is none or the run has ended."""
-    plan = _plan(value)
-    return plan if plan.final is None else _new_plan()
+def _no_port() -> None:
+    return None  # etcd hosts the rendezvous
 
 
 def etcd_rendezvous_args(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> list[str]:
@@ -132,5 +170,5 @@ def etcd_rendezvous_args(plan: Plan, nodes: Nodes, options: SupervisorOptions) -
     ``--rdzv-conf`` connection settings. The round's rank 0 hosts the workers' store
     (``TORCH_DISABLE_SHARE_RDZV_TCP_STORE=1``, see ``attempt.attempt_env``): a node lost takes no other's store."""
     endpoint = "{}:{}".format(*nodes.endpoint)
-    run_id = f"{nodes.run_id}-{plan.token}-{plan.attempt}"
+    run_id = f"{nodes.run_id}-g{plan.generation}-{plan.attempt}"
     return elastic_rendezvous("etcd-v2", plan, endpoint, run_id, nodes, options, **dict(nodes.conf))

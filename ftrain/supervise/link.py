@@ -6,11 +6,12 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 
-from ftrain.config import StorageConfig
+from ftrain.ckpt.lease import Lease, storage_lease
+from ftrain.config import Config
 from ftrain.supervise.coordinator import Coordinator, Link, rendezvous_args
 from ftrain.supervise.etcd_plan import EtcdLink, etcd_rendezvous_args
 from ftrain.supervise.options import Backend, Nodes, SupervisorOptions
-from ftrain.supervise.plan import Plan, generation_env
+from ftrain.supervise.plan import Plan
 
 
 def connect(
@@ -28,6 +29,29 @@ def connect(
     return Link(options.node_rank, coordinator, nodes.endpoint, nodes.secret), coordinator
 
 
+def makes_plan(nodes: Nodes, options: SupervisorOptions) -> bool:
+    """Whether this node makes the run's plan whenever it starts, at the next generation of the storage's lease:
+    node 0 of several on c10d (on etcd, whichever node finds no current plan: ``EtcdLink.begin``; one node alone
+    takes a new generation only as a new holder)."""
+    return nodes.count > 1 and nodes.backend is not Backend.ETCD and options.node_rank == 0
+
+
+def node_lease(config: Config, nodes: Nodes, options: SupervisorOptions, log: Callable[[str], None]) -> Lease:
+    """The storage's lease for this node's supervisor, not taken yet: on several nodes, all but the plan's maker
+    follow the plan's generation (``Lease``)."""
+    follows = nodes.count > 1 and not makes_plan(nodes, options)
+    return storage_lease(config, log, nodes.run_key, nodes.lease_endpoint, follows=follows)
+
+
+def begin(link: Link | EtcdLink, coordinator: Coordinator | None, lease: Lease) -> None:
+    """Once this node holds the storage's ``lease``: the plan made (at the lease's generation, on node 0 or one node
+    alone) or joined (etcd; c10d's other nodes learn it from node 0)."""
+    if coordinator is not None:
+        coordinator.begin(lease.generation)
+    elif isinstance(link, EtcdLink):
+        link.begin(lease.generation, lease.advance)
+
+
 def rendezvous(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> list[str]:
     """torchrun's rendezvous arguments for ``plan``'s attempt: a fresh rendezvous every time. ``--local-addr``: the
     address this node gives the others, where its hostname resolves to none they reach (a host that shares its name
@@ -40,12 +64,11 @@ def rendezvous(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> list[str
     return [*rendezvous_args(plan, nodes, options), *local]
 
 
-def worker_env(plan: Plan, nodes: Nodes, storage: StorageConfig, coordinating: bool) -> dict[str, str]:
-    """What the workers of ``plan``'s attempt add to their environment on several nodes: their generation
-    (``fence.py``; its epoch from the ``storage``, given by node 0's coordinator on c10d, ``coordinating``) and, with
-    ``--local-addr``, ``GLOO_SOCKET_IFNAME``, the interface that holds it: else gloo binds to what the hostname
-    resolves to and gives the other ranks that address (127.0.0.1 where the hostname maps to it: they dial their own
-    loopback). A ``GLOO_SOCKET_IFNAME`` of the user's wins."""
+def worker_env(plan: Plan, nodes: Nodes, run_id: str) -> dict[str, str]:
+    """What the workers of ``plan``'s attempt of run ``run_id`` add to their environment: their identity
+    (``Plan.identity``: what their commits are checked against) and, with ``--local-addr``, ``GLOO_SOCKET_IFNAME``,
+    the interface that holds it: else gloo binds to what the hostname resolves to and gives the other ranks that
+    address (127.0.0.1 where the hostname maps to it: they dial their own loopback). A ``GLOO_SOCKET_IFNAME`` of the
+    user's wins."""
     gloo = {"GLOO_SOCKET_IFNAME": os.environ.get("GLOO_SOCKET_IFNAME", nodes.interface)} if nodes.interface else {}
-    numbers = coordinating or nodes.backend is Backend.ETCD
-    return {**generation_env(plan, nodes.count, storage, numbers), **gloo}
+    return {**plan.identity(run_id, nodes.count).env(), **gloo}

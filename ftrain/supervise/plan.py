@@ -12,9 +12,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from ftrain.ckpt.fence import GENERATION_ENV, epoch_of
-from ftrain.ckpt.storage import Storage
-from ftrain.config import StorageConfig
+from ftrain.identity import Identity
 from ftrain.supervise.options import Nodes, SupervisorOptions
 
 KEEP_ALIVE_INTERVAL = 1
@@ -28,8 +26,9 @@ REGROUP_LAST_CALL = 1
 class Plan:
     """The attempt every node runs now; ``final`` is set once the run has ended."""
 
-    token: str
-    """This run's token: a run started again after its end gets a new one."""
+    generation: int
+    """The generation its maker took from the storage's lease (``identity.py``): a plan made again (node 0's
+    supervisor started again, a run started anew after its end) has a newer one."""
     attempt: int
     port: int | None
     """c10d: the port of node 0's rendezvous for this attempt (etcd-v2: None, etcd hosts the rendezvous)."""
@@ -37,42 +36,33 @@ class Plan:
     left: int | None = None
     """The node whose leaving (its preemption, in an elastic etcd-v2 run) started this attempt; None after a failure."""
 
+    def identity(self, run_id: str, nnodes: int) -> Identity:
+        """Who the workers of this attempt are: on several nodes with the attempt, whose commits are fenced
+        (``fence.py``)."""
+        return Identity(run_id, self.generation, self.attempt if nnodes > 1 else None)
+
+    def token(self, pid: int) -> str:
+        """What marks the processes of this attempt launched by supervisor ``pid`` (``attempt.py``)."""
+        return f"{pid}-g{self.generation}-a{self.attempt}"
+
 
 def plan_key(plan: Plan) -> dict:
     """What identifies an attempt across nodes."""
-    return {"token": plan.token, "attempt": plan.attempt}
+    return {"generation": plan.generation, "attempt": plan.attempt}
 
 
 def apply(plan: Plan, request: dict, port: Callable[[], int | None]) -> Plan:
-    """The plan after a node's ``request``: ``fail`` (``token``, ``attempt``) moves every node to the next attempt
+    """The plan after a node's ``request``: ``fail`` (``generation``, ``attempt``) moves every node to the next attempt
     (only the first report of the current attempt's failure counts) on a new rendezvous ``port()``; so does ``leave``
     (``node`` leaves the run, the others regroup without it); ``finish`` (``code``) ends the run with that exit code,
-    once. Requests of another run's token change nothing."""
-    ours = request.get("token") == plan.token and plan.final is None
+    once. Requests of another generation's plan change nothing."""
+    ours = request.get("generation") == plan.generation and plan.final is None
     if request["op"] in ("fail", "leave") and ours and request.get("attempt") == plan.attempt:
-        return Plan(
-            plan.token, plan.attempt + 1, port(), left=request.get("node") if request["op"] == "leave" else None
-        )
+        left = request.get("node") if request["op"] == "leave" else None
+        return Plan(plan.generation, plan.attempt + 1, port(), left=left)
     if request["op"] == "finish" and ours:
         return dataclasses.replace(plan, final=request["code"])
     return plan
-
-
-_EPOCHS: dict[str, int] = {}
-"""This supervisor's epochs by token (it runs on one storage)."""
-
-
-def generation_env(plan: Plan, nnodes: int, storage: StorageConfig, numbers: bool) -> dict[str, str]:
-    """The workers' generation on several nodes (``ftrain.ckpt.fence``: a node cut off from the others commits
-    nothing once they have committed in a later attempt, or a newer token has its epoch); none on one node. The
-    token's epoch comes from the ``storage``, once per token; ``numbers``: this node gives a token without one its
-    epoch (see ``fence.epoch_of``)."""
-    if nnodes == 1:
-        return {}
-    if plan.token not in _EPOCHS:  # a token's epoch never changes: the storage is asked once per token
-        opened = Storage.open(storage.url, storage.options, check_bucket=False)
-        _EPOCHS[plan.token] = epoch_of(opened, plan.token, numbers)
-    return {GENERATION_ENV: f"{plan.token}:{_EPOCHS[plan.token]}:{plan.attempt}"}
 
 
 def elastic_rendezvous(

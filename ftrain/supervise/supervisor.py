@@ -26,10 +26,9 @@ Preemption. SIGTERM or SIGINT: SIGTERM to the workers, which agree at the next i
 128 + the signal (143; 130 for SIGINT). Elastic, this node leaves alone while MIN nodes remain (etcd-v2: any node;
 c10d: any but node 0): the others regroup from the save.
 
-Several nodes: ``link.py`` (c10d: node 0 coordinates, ``coordinator.py``; etcd-v2: etcd, ``etcd_plan.py``).
-Records: ``events.py``. Exit codes: ``options.py``. The lease: ``ckpt/lease.py``. Warm starts: ``attempt.Launcher``.
-A worker that cannot reach the storage exits 7: it is waited for (``outage.py``). One run per log dir: ``claim.py``.
-A lease lost to a newer generation (``Lease.lost``, found by its renewal) stops the workers at once: exit 8.
+Several nodes: ``link.py``. Records: ``events.py``. Exit codes: ``options.py``. Warm starts: ``attempt.Launcher``. A
+worker that cannot reach the storage exits 7: it is waited for (``outage.py``). One run per log dir: ``claim.py``. A
+lease (``ckpt/lease.py``) lost to a newer generation (``Lease.lost``) stops the workers at once: exit 8.
 """
 
 from __future__ import annotations
@@ -39,11 +38,10 @@ import os
 import signal
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
 from ftrain import procfs
-from ftrain.ckpt.lease import Lease, storage_lease
+from ftrain.ckpt.lease import Lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config
 from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, stop_code
@@ -54,7 +52,7 @@ from ftrain.supervise.claim import claim_log_dir
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.hang import QUIET_PHASES, HangWatch
 from ftrain.supervise.ledger import Ledger
-from ftrain.supervise.link import connect, rendezvous, worker_env
+from ftrain.supervise.link import begin, connect, makes_plan, node_lease, rendezvous, worker_env
 from ftrain.supervise.options import (
     EXIT_DONE,
     EXIT_PEER_LOST,
@@ -91,18 +89,20 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
         return EXIT_PEER_LOST
     previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     log = lambda line: supervisor.events("lease", line, detail=line)  # noqa: E731
-    lease = lambda: storage_lease(config, log, nodes.run_key, nodes.lease_endpoint)  # noqa: E731
     refused = lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr)  # noqa: E731
 
     def claimed(held: Lease) -> int:  # with the storage's lease, the log directory too (claim.py)
         supervisor.storage_wait.reached = True
         with claim_log_dir(Path(config.log_dir), supervisor.events.node):
-            return supervisor.run(lambda: held.lost)
+            return supervisor.run(held)
 
     try:  # the lease is taken before anything is launched: an unreachable storage is waited out then too
-        return supervisor.storage_wait.retrying(lambda: lease().run(claimed, refused), supervisor.end)
+        held = lambda: node_lease(config, nodes, options, log).run(claimed, refused, makes_plan(nodes, options))  # noqa: E731
+        return supervisor.storage_wait.retrying(held, supervisor.end)
     except _Stop as stop:  # a signal or another node ended the run, in the loop or while the storage was waited for
         return supervisor.end(stop.ending)
+    except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout when the plan was joined
+        return supervisor.end(Outcome("peer_lost", EXIT_PEER_LOST, str(error)))
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -126,7 +126,6 @@ class Supervisor:
     ) -> None:
         self.options = options
         self.nodes = nodes
-        self.nnodes = nodes.count
         self.train_args = train_args
         log_dir = Path(config.log_dir)
         self.events = EventLog(log_dir / "events.jsonl", None)
@@ -143,6 +142,7 @@ class Supervisor:
         self.storage_wait = StorageWait(config.storage, options.storage_wait, self.events, self._sleep)
         self.last_step = config.iterations
         self.launcher = Launcher(options, log_dir / f"warm-pool{'-' + node_dir if node_dir else ''}.log")
+        self.lease: Lease | None = None  # the storage's, held for the run (``run``)
 
     def on_signal(self, number: int, frame: object) -> None:
         self.signals.append(number)
@@ -152,13 +152,14 @@ class Supervisor:
             self.coordinator.close()
         self.launcher.close()
 
-    def run(self, lease_lost: Callable[[], str | None]) -> int:
-        """Attempts until the run ends, which raises ``_Stop``; ``lease_lost``: why the storage's lease is lost to a
-        newer generation, once it is (``Lease.lost``)."""
+    def run(self, lease: Lease) -> int:
+        """Attempts, under the storage's ``lease`` (stopped once ``lost``), until the run ends (raises ``_Stop``)."""
+        self.lease = lease
+        begin(self.link, self.coordinator, lease)  # etcd-v2: ConnectionError if etcd does not answer
         plan = self._next_plan(None)
         while True:
             attempt = self._launch(plan)
-            outcome = self._watch(attempt, lease_lost)
+            outcome = self._watch(attempt)
             if outcome.event == "regroup":
                 plan = self._next_plan(plan)
                 continue
@@ -218,11 +219,10 @@ class Supervisor:
             time.sleep(PEER_POLL / 5)
 
     def _launch(self, plan: Plan) -> Attempt:
-        token = f"{os.getpid()}-{plan.token}-{plan.attempt}"
+        token = plan.token(os.getpid())
         train_args, hidden = hide_credentials(self.train_args)
         env = attempt_env(self.heartbeat_dir, token, self.options.stop_grace, self.node, hidden)
-        storage, coordinating = self.storage_wait.storage, self.coordinator is not None
-        env |= {STORAGE_WAIT_ENV: str(self.storage_wait.limit), **worker_env(plan, self.nodes, storage, coordinating)}
+        env |= {STORAGE_WAIT_ENV: str(self.storage_wait.limit), **worker_env(plan, self.nodes, self.lease.run_id)}
         logs = new_log_dir(self.attempt_logs, plan)
         arguments = rendezvous(plan, self.nodes, self.options)
         command, warm = self.launcher.command(arguments, train_args, logs)
@@ -233,7 +233,7 @@ class Supervisor:
         undead = lambda line: self.events("undead", line, attempt=plan.attempt)  # noqa: E731
         return Attempt(plan, command, env | warm, token, logs, undead, lambda: bool(self.signals))
 
-    def _watch(self, attempt: Attempt, lease_lost: Callable[[], str | None]) -> Outcome:
+    def _watch(self, attempt: Attempt) -> Outcome:
         preempt_deadline = None
         next_peer_check = time.monotonic() + PEER_POLL
         while True:
@@ -245,7 +245,7 @@ class Supervisor:
             code = attempt.proc.poll()
             if code is not None:
                 return self._exited(attempt, code)
-            if (lost := lease_lost()) is not None:  # nothing they train from now on could be committed: stop them
+            if (lost := self.lease.lost) is not None:  # nothing they train from now on could be committed: stop them
                 attempt.kill()
                 self._log_exit(attempt, "stopped: another generation holds the storage")
                 return Outcome("storage_held", EXIT_STORAGE_HELD, f"{lost}; its workers are stopped")
@@ -270,7 +270,7 @@ class Supervisor:
                 attempt.kill()
                 self._log_exit(attempt, hang.cause())
                 return Outcome("failed", None, "hang")
-            if self.nnodes > 1 and now >= next_peer_check:
+            if self.nodes.count > 1 and now >= next_peer_check:
                 next_peer_check = now + PEER_POLL
                 outcome = self._check_peers(attempt, now)
                 if outcome is not None:
@@ -320,7 +320,7 @@ class Supervisor:
         self.events("preempt", asking, attempt=attempt.plan.attempt, signal=name)
         if self._leaves_alone():
             self._tell("leave", node=self.node, **plan_key(attempt.plan))
-        elif self.nnodes > 1:
+        elif self.nodes.count > 1:
             self._tell("finish", code=stop_code(self.signals[0]))
         write_stop_reason(self.heartbeat_dir, self.signals[0])
         attempt.terminate()
@@ -329,8 +329,8 @@ class Supervisor:
         now = time.monotonic()
         orphans = attempt.workers()
         if orphans and not self.signals:
-            # torchrun itself died and its workers still train. Tell the other nodes first, so that their workers'
-            # coming save-and-exit reads as a restart there, not as a preemption; then let the orphans save.
+            # torchrun died, its workers train on: tell the other nodes first (their workers' coming save-and-exit
+            # reads as a restart there, not as a preemption), then let the orphans save
             self._failed(attempt, now)
         if orphans:
             attempt.stop(self.options.stop_grace)  # ends with kill() too
@@ -338,7 +338,7 @@ class Supervisor:
             attempt.kill()
         phases = self._phases(attempt)
         cause = attempt.cause(code) if code or orphans else "exit code 0"
-        current = self._tell("plan") if code in STOPPED and self.nnodes > 1 else None  # None: not known
+        current = self._tell("plan") if code in STOPPED and self.nodes.count > 1 else None  # None: not known
         moved = current is not None and plan_key(current) != plan_key(attempt.plan)
         superseded = moved or (self.nodes.elastic and current is not None and current.final is None)  # see classify
         stopped = stop_code(self.signals[0]) if self.signals else None
@@ -386,10 +386,10 @@ class Supervisor:
     def end(self, ending: Outcome) -> int:
         """The run ends: record it, tell the other nodes, sum up; the exit code."""
         self.events(ending.event, ending.message, code=ending.code)
-        if self.nnodes > 1 and not (ending.event == "preempted" and self._leaves_alone()):
+        if self.nodes.count > 1 and not (ending.event == "preempted" and self._leaves_alone()):
             self._tell("finish", code=ending.code)
             if self.coordinator is not None:
-                self.coordinator.wait_informed(self.nnodes, LINGER)
+                self.coordinator.wait_informed(self.nodes.count, LINGER)
         self.ledger.summarize(ending.event, ending.code, self.policy.restarts)
         return ending.code
 

@@ -1,5 +1,7 @@
 import json
+import os
 import pathlib
+import time
 
 import pytest
 import torch
@@ -28,6 +30,7 @@ from ftrain.ckpt.format import (
 )
 from ftrain.ckpt.retention import delete_step, retention_plan
 from ftrain.ckpt.steps import (
+    ABANDONED_AFTER,
     ASIDE,
     clear_newer,
     quarantine,
@@ -40,6 +43,7 @@ from ftrain.ckpt.steps import (
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
 
+from failing_mount import failing_mount
 from helpers import flip_shard_byte, make_step, step_path, truncate_shard
 
 
@@ -336,6 +340,31 @@ def test_clear_newer_deletes_abandoned_steps_and_sets_bad_ones_aside_intact(stor
     with pytest.raises(UserError, match="verified checkpoint step 20"):
         clear_newer(storage, 10)
     assert verify_step(storage, 20).ok
+
+
+def test_on_a_shared_file_system_a_young_incomplete_step_is_set_aside_not_deleted(tmp_path):
+    """On a network or FUSE file system, another host's manifest may reach this host's listings late (NFS caches
+    lookups): an incomplete step newer than the resume step is deleted only once nothing was written to it for
+    ``ABANDONED_AFTER`` seconds; a younger one is set aside whole (``quarantine/``) with the reason. A FUSE mount of
+    the test's own stands for NFS; on a local disk both are deleted (the test above)."""
+    assert not Storage.open(str(tmp_path / "local")).lists_late
+    with failing_mount(tmp_path / "fuse") as mount:
+        storage = Storage.open(str(mount.path / "run"))
+        assert storage.lists_late
+        make_step(storage, 10)
+        write_file(storage, 20, "rank-00000.pt", b"a save in flight, or killed mid-save a moment ago")
+        write_file(storage, 30, "rank-00000.pt", b"killed mid-save long ago")
+        old = time.time() - ABANDONED_AFTER - 60
+        for path in (mount.path.parent / "backing" / "run" / "checkpoints" / "step-000000030").iterdir():
+            os.utime(path, (old, old))
+        lines: list[str] = []
+        clear_newer(storage, 10, log=lines.append)
+        assert [info.step for info in scan(storage)] == [10]
+        assert "checkpoint step 30 (incomplete)" in lines[0] and "deleting" in lines[0], lines
+        assert "checkpoint step 20 (incomplete, last written" in lines[1] and "moved to" in lines[1], lines
+        (aside, reason), *_ = set_aside_steps(storage)
+        assert aside == "step-000000020" and "may lag" in reason
+        assert storage.read(f"{ASIDE}/step-000000020/rank-00000.pt").startswith(b"a save in flight")
 
 
 def test_unquarantine_lifts_only_a_step_that_verifies(storage):

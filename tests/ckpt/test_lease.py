@@ -16,10 +16,11 @@ import time
 import pytest
 
 from ftrain.ckpt import cas
-from ftrain.ckpt.fence import LeaseToken
-from ftrain.ckpt.lease import GENERATION_ENV, LEASE, RUN_ID_ENV, Entry, Lease, LeaseHeld, LeaseLost, Record
+from ftrain.ckpt.fence import Fence
+from ftrain.ckpt.lease import LEASE, Entry, Lease, LeaseHeld, LeaseLost, Record
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
+from ftrain.identity import GENERATION_ENV, RUN_ID_ENV, Identity
 from ftrain.procfs import Process
 
 from helpers import child_env, wait_for
@@ -218,8 +219,35 @@ def test_a_run_id_started_again_when_none_of_its_processes_lives_fences_off_the_
     lost = old.renew()
     assert lost is not None and "taken by a newer start of run job-42 (generation 5; this one's is 4)" in lost, lost
     with pytest.raises(LeaseLost, match="newer start of run job-42"):
-        LeaseToken(storage, "job-42", 4).check()
-    LeaseToken(storage, "job-42", 5).check()  # the requeued job commits
+        Fence(storage, Identity("job-42", 4)).check()
+    assert Fence(storage, Identity("job-42", 5)).check() == {"run_id": "job-42", "generation": 5}  # the requeued job
+
+
+def test_a_new_plan_takes_the_next_generation_and_the_nodes_that_follow_plans_are_not_lost(storage):
+    """Node 0's supervisor started again on c10d (or a run started anew on etcd) makes a new plan: it takes the next
+    generation, keeping the run's live nodes, which follow the plan and renew on. A process alone (one node, node
+    0 itself) that finds the newer generation has lost the storage."""
+
+    def elsewhere(lease: Lease, pid: int) -> Lease:  # a process of another host: seen by its renewals only
+        lease.process = Process("node-far-away", pid, 123, "another-boot-id", "pid:[1]")
+        return lease
+
+    follower = elsewhere(Lease(storage, "shared-run", print, follows=True), 1)
+    alone = elsewhere(Lease(storage, "shared-run", print), 2)
+    assert follower.acquire() is None and alone.acquire() is None and record(storage).generation == 1
+    maker = Lease(storage, "shared-run", print)
+    assert maker.hold(advance=True) is None
+    assert (maker.generation, os.environ[GENERATION_ENV]) == (2, "2")
+    assert sorted(e.process.pid for e in record(storage).entries) == sorted([1, 2, os.getpid()])  # nobody dropped
+    assert follower.renew() is None and follower.lost is None and record(storage).generation == 2
+    assert "newer start of run shared-run (generation 2; this one's is 1)" in alone.renew()
+    assert maker.advance(2) == (3, True) and follower.renew() is None and record(storage).generation == 3
+    assert maker.advance(2) == (3, False)  # another process of the run advanced from 2 first: no generation 4
+    with pytest.raises(LeaseHeld):
+        Lease(storage, "another-run", print).acquire()
+    follower.release()  # a follower drops its entry from the newer generation's record too
+    assert 1 not in [e.process.pid for e in record(storage).entries]
+    maker.release()
 
 
 def test_a_node_starting_after_an_outage_joins_the_nodes_of_its_run_that_renew_again(storage):
@@ -253,8 +281,8 @@ def test_only_this_hosts_own_processes_are_seen_gone():
 def test_a_commit_of_a_run_whose_lease_another_run_took_is_refused(storage):
     mine = Lease(storage, "mine", print)
     mine.hold()
-    token = LeaseToken.from_env(storage)
-    assert (token.run_id, token.generation) == ("mine", 1)
+    token = Fence.from_env(storage)
+    assert token.identity == Identity("mine", 1)
     token.check()  # still ours
     mine.release()
     token.check()  # released, nobody took it: the run's own last commits (the supervisor releases last)

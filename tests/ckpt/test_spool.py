@@ -1,20 +1,21 @@
 """The spool's rule for when a spooled step may stand in for the storage's newest (``ftrain/ckpt/spool.py``), on real
-local storages: only when it continues the storage's history, and while the storage does not answer, only under the
-supervisor that wrote it."""
+local storages: only when it continues the storage's history, and while the storage does not answer, only for the
+holder of the storage's lease that wrote it (its run and generation)."""
 
 from __future__ import annotations
 
 from ftrain.ckpt.format import commit, write_file
 from ftrain.ckpt.spool import KEEP, Spool
 from ftrain.ckpt.storage import Storage
-from ftrain.lifeline import SUPERVISOR_ENV
+from ftrain.identity import GENERATION_ENV, RUN_ID_ENV
 
 REMOTE = "s3://bucket/run"
 
 
-def spool_with(tmp_path, monkeypatch, steps: dict[int, tuple[str, int | None]], supervisor: str = "1:100") -> Spool:
-    """A spool holding ``steps`` (step: (state digest, base)), written under ``supervisor``."""
-    monkeypatch.setenv(SUPERVISOR_ENV, supervisor)
+def spool_with(tmp_path, monkeypatch, steps: dict[int, tuple[str, int | None]], generation: str = "3") -> Spool:
+    """A spool holding ``steps`` (step: (state digest, base)), written for ``generation`` of run ``job``."""
+    monkeypatch.setenv(RUN_ID_ENV, "job")
+    monkeypatch.setenv(GENERATION_ENV, generation)
     spool = Spool(Storage.open(str(tmp_path / "spool")), REMOTE)
     for step, (digest, base) in steps.items():
         entry = spool.write(step, "common.pt", digest.encode())
@@ -56,14 +57,14 @@ def test_a_fresh_run_whose_storage_never_committed_resumes_from_its_spool(tmp_pa
     assert spool_with(tmp_path, monkeypatch, {5: ("a", None)}).newest(None, True, print)[0] == 5
 
 
-def test_while_the_storage_is_down_only_the_supervisor_that_spooled_may_resume(tmp_path, monkeypatch):
-    spool = spool_with(tmp_path, monkeypatch, {30: ("c", 20)}, supervisor="1:100")
+def test_while_the_storage_is_down_only_the_holder_that_spooled_may_resume(tmp_path, monkeypatch):
+    spool = spool_with(tmp_path, monkeypatch, {30: ("c", 20)}, generation="3")
     assert spool.newest(None, False, print)[0] == 30
-    monkeypatch.setenv(SUPERVISOR_ENV, "2:200")  # the same command again: another supervisor
+    monkeypatch.setenv(GENERATION_ENV, "4")  # the same command again: a new holder of the storage
     lines = []
     assert Spool(spool.storage, REMOTE).newest(None, False, lines.append) is None
-    assert "another supervisor" in lines[0]
-    monkeypatch.delenv(SUPERVISOR_ENV)  # unsupervised
+    assert "another holder of the storage" in lines[0]
+    monkeypatch.delenv(GENERATION_ENV)  # no lease held for this process
     assert Spool(spool.storage, REMOTE).newest(None, False, print) is None
 
 

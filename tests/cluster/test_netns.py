@@ -93,7 +93,7 @@ def test_a_node_cut_off_past_the_timeouts_is_left_behind_fenced_and_rejoins_when
     bed.link(index, up=False)
     others = sorted({0, 1, 2} - {cut})
     wait_resizes(storage, others, 1, timeout=90)
-    newer = lambda: json.loads((storage / "FENCE.json").read_text())["generation"] > 0  # noqa: E731
+    newer = lambda: json.loads((storage / "FENCE.json").read_text())["attempt"] > 0  # noqa: E731
     wait_for(newer, "a commit of the world of 2", timeout=60, interval=0.2)
     hold.release()
     console = Path(f"{storage}.node{index}.log")

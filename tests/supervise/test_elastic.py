@@ -106,10 +106,10 @@ def test_on_etcd_losing_the_node_of_rank_0_the_others_go_on_at_world_2_and_finis
     manifest = final_manifest(storage)
     assert manifest["step"] == iterations and manifest["world_size"] == 2
     assert worlds(manifest) == [3, 2], manifest["world_sizes"]
-    run, generation = manifest["generation"]  # fencing: the attempt after the loss committed, and FENCE.json says so
+    attempt = manifest["attempt"]  # fencing: the attempt after the loss committed, and FENCE.json says so
     fence = json.loads((storage / "FENCE.json").read_text())
-    assert generation >= 1 and (fence["run"], fence["generation"]) == (run, generation)
-    assert fence["epoch"] == manifest["epoch"] >= 1
+    assert attempt >= 1 and fence == {key: manifest[key] for key in ("run_id", "generation", "attempt")}
+    assert manifest["generation"] >= 1
     for node in survivors:
         (shrink,) = resizes(storage, node)
         assert (shrink["old_world"], shrink["new_world"], shrink["why"]) == (3, 2, f"node {lost} lost"), shrink
@@ -201,7 +201,7 @@ def test_on_etcd_a_node_paused_mid_commit_across_a_shrink_commits_nothing_when_r
         os.kill(pid, signal.SIGSTOP)
     others = sorted({0, 1, 2} - {paused})
     wait_resizes(storage, others, 1, timeout=90)
-    newer = lambda: json.loads((storage / "FENCE.json").read_text())["generation"] > 0  # noqa: E731
+    newer = lambda: json.loads((storage / "FENCE.json").read_text())["attempt"] > 0  # noqa: E731
     wait_for(newer, "a commit of the world of 2", timeout=60, interval=0.2)
     hold.release()
     for pid in tree:
@@ -297,7 +297,7 @@ def test_eight_nodes_lose_three_at_once_continue_with_five_and_take_them_back(tm
 def torchrun_node(node: int, port: int, log: Path, share_store: bool) -> subprocess.Popen:
     """A bare elastic torchrun node (1:2 nodes, the rendezvous arguments the supervisor gives) of ``elastic_worker``."""
     options = SupervisorOptions(node_rank=node, rejoin_timeout=2, rdzv_timeout=60)
-    arguments = rendezvous_args(Plan("test", 0, port), Nodes(2, 1, ("127.0.0.1", 0)), options)
+    arguments = rendezvous_args(Plan(1, 0, port), Nodes(2, 1, ("127.0.0.1", 0)), options)
     command = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node=1", "--max-restarts=0", *arguments]
     env = child_env({"TORCH_DISABLE_SHARE_RDZV_TCP_STORE": "0" if share_store else "1"})
     output = log.open("ab")

@@ -239,7 +239,7 @@ def test_an_ended_attempt_is_killed_to_the_last_process_its_warm_workers_found_b
     for rank, pid in enumerate([warm.pid, stranger.pid]):
         beat = Heartbeat(rank, pid, 3, Phase.ROLLOUT, None, None, 1, 0.0)
         (beats / f"rank-{rank}.json").write_text(json.dumps(dataclasses.asdict(beat)))
-    plan = Plan(token="t", attempt=0, port=None)
+    plan = Plan(generation=1, attempt=0, port=None)
     attempt = Attempt(plan, [sys.executable, "-c", "import time; time.sleep(600)"], env, token, tmp_path)
     try:
         assert sorted(attempt.processes()) == sorted([attempt.proc.pid, warm.pid])

@@ -4,13 +4,17 @@ interface that holds it (``tests/cluster/test_netns.py`` runs it across machines
 from __future__ import annotations
 
 import re
+import threading
 
 import pytest
 
-from ftrain.ckpt.fence import GENERATION_ENV
-from ftrain.config import StorageConfig
+from ftrain.ckpt.lease import Lease
+from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
+from ftrain.identity import ATTEMPT_ENV, GENERATION_ENV, RUN_ID_ENV
+from ftrain.procfs import Process
 from ftrain.supervise.auth import SECRET_ENV
+from ftrain.supervise.etcd_plan import EtcdLink
 from ftrain.supervise.link import rendezvous, worker_env
 from ftrain.supervise.options import SupervisorOptions, parse_nodes
 from ftrain.supervise.plan import Plan
@@ -23,22 +27,27 @@ def test_local_addr_goes_to_torchrun_and_its_interface_to_gloo(monkeypatch, back
     monkeypatch.delenv("GLOO_SOCKET_IFNAME", raising=False)
     monkeypatch.setenv(SECRET_ENV, "a-secret-of-sixteen-or-more")
     options = SupervisorOptions(nnodes="2:3", local_addr="127.0.0.1", **backend)
-    nodes, plan = parse_nodes(options), Plan("token", 1, 29401)
+    nodes, plan = parse_nodes(options), Plan(3, 1, 29401)
     assert nodes.interface == "lo"
     assert rendezvous(plan, nodes, options)[-1] == "--local-addr=127.0.0.1"
-    storage = StorageConfig(str(tmp_path / "run"))
-    expected = {GENERATION_ENV: "token:1:1", "GLOO_SOCKET_IFNAME": "lo"}  # the token's epoch 1, attempt 1
-    assert worker_env(plan, nodes, storage, True) == expected
+    expected = {RUN_ID_ENV: "run-a", GENERATION_ENV: "3", ATTEMPT_ENV: "1", "GLOO_SOCKET_IFNAME": "lo"}
+    assert worker_env(plan, nodes, "run-a") == expected
     monkeypatch.setenv("GLOO_SOCKET_IFNAME", "eth7")  # the user's choice wins
-    assert worker_env(plan, nodes, storage, True)["GLOO_SOCKET_IFNAME"] == "eth7"
+    assert worker_env(plan, nodes, "run-a")["GLOO_SOCKET_IFNAME"] == "eth7"
 
 
 def test_without_local_addr_the_hostname_decides_as_before(monkeypatch, tmp_path) -> None:
     monkeypatch.delenv("GLOO_SOCKET_IFNAME", raising=False)
     options = SupervisorOptions(nnodes="2:3", **ETCD)
-    nodes, plan = parse_nodes(options), Plan("token", 0, None)
+    nodes, plan = parse_nodes(options), Plan(1, 0, None)
     assert not any(argument.startswith("--local-addr") for argument in rendezvous(plan, nodes, options))
-    assert worker_env(plan, nodes, StorageConfig(str(tmp_path / "run")), False) == {GENERATION_ENV: "token:1:0"}  # etcd
+    assert worker_env(plan, nodes, "run-a") == {RUN_ID_ENV: "run-a", GENERATION_ENV: "1", ATTEMPT_ENV: "0"}  # etcd
+
+
+def test_one_node_alone_hands_its_workers_no_attempt(tmp_path) -> None:
+    """One node runs one attempt at a time: its workers' commits are checked against the lease only."""
+    nodes = parse_nodes(SupervisorOptions())
+    assert worker_env(Plan(2, 5, None), nodes, "run-a") == {RUN_ID_ENV: "run-a", GENERATION_ENV: "2"}
 
 
 def test_an_address_of_no_interface_here_is_refused() -> None:
@@ -53,6 +62,34 @@ def test_a_regroup_after_a_node_left_waits_no_rejoin_timeout(monkeypatch, backen
     refuses 0), but after a node left on its own (``Plan.left``) nobody is missing: 1 s."""
     monkeypatch.setenv(SECRET_ENV, "a-secret-of-sixteen-or-more")
     options = SupervisorOptions(nnodes="2:3", rejoin_timeout=rejoin, **backend)
-    arguments = rendezvous(Plan("token", 1, 29401, left=left), parse_nodes(options), options)
+    arguments = rendezvous(Plan(1, 1, 29401, left=left), parse_nodes(options), options)
     (conf,) = [argument for argument in arguments if argument.startswith("--rdzv-conf=")]
     assert f"last_call_timeout={last_call}," in conf, conf
+
+
+@pytest.mark.cluster
+def test_on_etcd_nodes_starting_at_once_make_one_plan_at_one_new_generation(tmp_path, etcd_server) -> None:
+    """Three nodes of a run start at once on etcd and find no plan: one of them takes the next generation of the
+    storage's lease and makes the plan at it, the others follow it (no plan is made twice, which would stop the first
+    one's workers). The same command after the run's end makes a new plan at the next generation."""
+    storage = Storage.open(str(tmp_path / "run"))
+    options = SupervisorOptions(nnodes="3", rdzv_backend="etcd-v2", rdzv_endpoint=etcd_server, rdzv_id="job")
+    nodes = parse_nodes(options)
+    leases = [Lease(storage, "job", print, follows=True) for _ in range(3)]
+    for number, lease in enumerate(leases):  # three hosts: each renews its own entry
+        lease.process = Process(f"host-{number}", 100 + number, 1, "boot", "pid:[1]")
+        lease.acquire()
+    links = [EtcdLink(nodes, timeout=10) for _ in leases]
+    starts = [
+        threading.Thread(target=link.begin, args=(1, lease.advance)) for link, lease in zip(links, leases, strict=True)
+    ]
+    for start in starts:
+        start.start()
+    for start in starts:
+        start.join(timeout=60)
+    assert [link.generation for link in links] == [2, 2, 2]
+    assert links[0].ask("plan") == Plan(2, 0, None)
+    links[0].ask("finish", code=0)
+    again = EtcdLink(nodes, timeout=10)
+    again.begin(2, leases[0].advance)
+    assert again.ask("plan") == Plan(3, 0, None)

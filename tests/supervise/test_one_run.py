@@ -271,7 +271,7 @@ def test_a_run_paused_past_its_lease_whose_storage_another_run_took_commits_noth
     try:
         time.sleep(5)  # past A's lease, which only expiry ends from another host
         newest = final_manifest(storage)["step"]
-        assert {manifest["lease_generation"] for manifest in manifests(storage).values()} == {1}
+        assert {manifest["generation"] for manifest in manifests(storage).values()} == {1}
         elsewhere = ["unshare", "--uts", "sh", "-c", 'hostname elsewhere && exec "$@"', "sh"]
         second = subprocess.run(
             [*elsewhere, *command, f"iterations={newest + 10}", "checkpoint.interval=2", f"log_dir={tmp_path / 'b'}"],
@@ -293,8 +293,8 @@ def test_a_run_paused_past_its_lease_whose_storage_another_run_took_commits_noth
     assert "taken by run" in said and "(generation 2; this run's is 1): this run lost the storage" in said, said
 
     ending = final_manifest(storage)
-    assert ending["step"] == newest + 10 and ending["lease_generation"] == 2
-    after = {step: manifest["lease_generation"] for step, manifest in manifests(storage).items() if step > newest}
+    assert ending["step"] == newest + 10 and ending["generation"] == 2
+    after = {step: manifest["generation"] for step, manifest in manifests(storage).items() if step > newest}
     assert after and set(after.values()) == {2}, after  # every step past the takeover is B's
     lease = Record.decode((storage / LEASE).read_bytes())
     assert (lease.generation, lease.entries) == (2, ())  # B's, released; A did not take it back

@@ -193,6 +193,7 @@ def node0(tmp_path):
     """A coordinator of two nodes serving on 127.0.0.1, recording into ``tmp_path/events.jsonl``."""
     coordinator = Coordinator(multi_node=True, secret=KEY, log=EventLog(tmp_path / "events.jsonl", 0))
     server = coordinator.serve("127.0.0.1", 0)
+    coordinator.begin(7)  # the generation node 0 took from the storage's lease
     try:
         yield coordinator, server.server_address
     finally:
@@ -221,15 +222,30 @@ def test_coordinator_moves_every_node_to_one_new_attempt(node0):
     remote = Link(1, None, address, KEY)
     local = Link(0, coordinator, None, KEY)
     first = remote.ask("plan")
-    assert first == local.ask("plan") and first.attempt == 0 and first.port
-    key = {"token": first.token, "attempt": 0}
+    assert first == local.ask("plan") and (first.generation, first.attempt) == (7, 0) and first.port
+    key = {"generation": 7, "attempt": 0}
     second = remote.ask("fail", **key)
     assert local.ask("fail", **key) == second  # a second report of the same failure changes nothing
     assert second.attempt == 1 and second.port != first.port
-    assert remote.ask("finish", code=3, token="a token of another run").final is None  # replayed from elsewhere
+    assert remote.ask("finish", code=3, generation=6).final is None  # an older plan's request, replayed
     assert remote.ask("finish", code=3).final == 3
     coordinator.wait_informed(2, timeout=0)
     assert local.ask("finish", code=0).final == 3  # the first ending wins
+
+
+def test_node_0_answers_that_it_is_starting_until_it_holds_the_lease_and_made_the_plan(tmp_path):
+    coordinator = Coordinator(multi_node=True, secret=KEY, log=EventLog(tmp_path / "events.jsonl", 0))
+    server = coordinator.serve("127.0.0.1", 0)
+    try:
+        remote = Link(1, None, server.server_address, KEY)
+        with pytest.raises(ConnectionError, match=r"node 0 at 127\.0\.0\.1:[0-9]+ is starting"):
+            remote.ask("plan")
+        coordinator.begin(3)
+        assert (remote.ask("plan").generation, remote.generation) == (3, 3)
+        assert not refusals(tmp_path)  # a node asking early is no stranger
+    finally:
+        server.shutdown()
+        server.server_close()
 
 
 def test_node_0_listens_on_the_endpoint_address_only(node0):
