@@ -320,7 +320,7 @@ def config_from_dict(data: dict) -> Config:
 def default_log_dir(storage_url: str, name: str) -> str:
     """Logs go next to the checkpoints when storage is local, else to ``runs/<name>/<the storage>`` on this machine
     (``s3://bkt/exp1`` -> ``runs/exp/s3/bkt/exp1``): two runs of one config on two storages keep their logs apart."""
-    shown = display_url(storage_url).removeprefix("file://")
+    shown = display_url(storage_url).removeprefix("file://").partition("?")[0]  # a SAS token's query rotates
     if "://" not in shown:
         return shown
     protocol, _, where = shown.partition("://")

@@ -52,9 +52,9 @@ class Identity:
     attempt: int | None = None
 
     def env(self) -> dict[str, str]:
-        """The environment that hands this identity to child processes."""
-        env = {RUN_ID_ENV: self.run_id, GENERATION_ENV: str(self.generation)}
-        return env | ({ATTEMPT_ENV: str(self.attempt)} if self.attempt is not None else {})
+        """The environment that hands this identity to child processes (an empty attempt: none)."""
+        attempt = str(self.attempt) if self.attempt is not None else ""
+        return {RUN_ID_ENV: self.run_id, GENERATION_ENV: str(self.generation), ATTEMPT_ENV: attempt}
 
     @classmethod
     def from_env(cls) -> Identity | None:

@@ -7,7 +7,6 @@ Torch-free and fsspec-free: the config module and the supervisor use it too.
 from __future__ import annotations
 
 import json
-import re
 from collections.abc import Mapping
 from urllib.parse import unquote, urlsplit, urlunsplit
 
@@ -18,9 +17,12 @@ SECRET_OPTIONS = frozenset(
     | {"account_key", "connection_string", "sas_token", "credential", "client_secret"}
 )
 """fsspec storage options that hold credentials: s3fs's, then adlfs's (Azure)."""
-SECRET_QUERY = re.compile(r"sig|signature|token|credential|secret|password|key|x-amz-", re.IGNORECASE)
-"""Query parameters of a URL whose values are credentials: an Azure SAS token's signature (``sig=``), an S3 presigned
-URL's (``X-Amz-Signature=``, ``X-Amz-Credential=``, ``X-Amz-Security-Token=``), and the like."""
+SECRET_QUERY = frozenset(
+    {"sig", "signature", "x-amz-signature", "x-amz-credential", "x-amz-security-token", "x-goog-signature"}
+    | {"x-goog-credential", "token", "access_token", "sas_token", "password", "secret", "key", "code"}
+)
+"""Query parameters of a URL whose values are credentials (compared in lower case): an Azure SAS token's signature
+(``sig=``), an S3 or GCS presigned URL's (``X-Amz-Signature=``...), and the like."""
 CONTAINER_AT_ACCOUNT = frozenset({"abfs", "abfss", "az", "wasb", "wasbs"})
 """Azure's URL schemes, where ``container@account...`` names a container, not a user: no credential."""
 
@@ -66,7 +68,7 @@ def display_url(url: str) -> str:
         parts = parts._replace(netloc=host)
     if parts.query:
         fields = (field.partition("=") for field in parts.query.split("&"))
-        hidden = (f"{name}{eq}{HIDDEN if SECRET_QUERY.search(unquote(name)) else value}" for name, eq, value in fields)
+        hidden = (f"{name}{eq}{HIDDEN if _secret_query(name) else value}" for name, eq, value in fields)
         parts = parts._replace(query="&".join(hidden))
     return urlunsplit(parts)
 
@@ -161,6 +163,10 @@ def secret_values(options: dict) -> list[str]:
     return values
 
 
+def _secret_query(name: str) -> bool:
+    return unquote(name).lower() in SECRET_QUERY
+
+
 def url_secrets(url: str) -> list[str]:
     """The credentials of ``url``: what ``display_url`` takes out (an Azure ``container@account`` names none), as
     given and unquoted."""
@@ -170,6 +176,6 @@ def url_secrets(url: str) -> list[str]:
         return []
     userinfo = parts.netloc.rpartition("@")[0] if display_url(url).partition("?")[0] != url.partition("?")[0] else ""
     fields = (field.partition("=") for field in parts.query.split("&") if parts.query)
-    values = [value for name, _, value in fields if value and SECRET_QUERY.search(unquote(name))]
+    values = [value for name, _, value in fields if value and _secret_query(name)]
     found = [*([userinfo, *userinfo.split(":")] if userinfo else []), *values]
     return [text for secret in found for text in {secret, unquote(secret)}]

@@ -29,6 +29,7 @@ import argparse
 import json
 import math
 import os
+import signal
 import statistics
 import subprocess
 import sys
@@ -122,27 +123,41 @@ def evaluate(act, env_config: EnvConfig, seed: int = EVAL_SEED) -> float:
             env.close()
 
 
-def run_ftrain(name: str, seed: int, steps: int, overrides: list[str], work: Path) -> Run:
+def run_ftrain(
+    name: str, seed: int, steps: int, overrides: list[str], work: Path, ranks: int = RANKS, stop_at: float = math.inf
+) -> Run:
+    """``configs/<name>.yaml`` for ``steps`` environment steps at ``ranks`` ranks, or until an evaluation returns
+    ``stop_at`` or more (then stopped by SIGTERM, and the final policy not evaluated again)."""
     config_path = REPO / "configs" / f"{name}.yaml"
     config = load_config(str(config_path), overrides)
-    per_iteration = RANKS * config.env.num_envs * config.num_steps_per_env
+    per_iteration = ranks * config.env.num_envs * config.num_steps_per_env
     iterations = math.ceil(steps / per_iteration)
-    storage, curve = work / f"{name}-seed{seed}", work / f"{name}-seed{seed}.jsonl"
+    storage, curve = work / f"{name}-{ranks}-seed{seed}", work / f"{name}-{ranks}-seed{seed}.jsonl"
     run = Run(steps=iterations * per_iteration, load=(load_average(), math.nan))
     launched = time.time()
     hook = f"hooks=[{{target: 'bench_learning:CurveHook', kwargs: {{path: '{curve}', launched: {launched}}}}}]"
-    launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={RANKS}"]
+    launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={ranks}"]
     command = [*launcher, "-m", "ftrain", "train", str(config_path), "--storage", str(storage)]
     command += [f"iterations={iterations}", f"seed={seed}", "log.console=false", "log.tensorboard=false", hook]
-    done = subprocess.run([*command, *overrides], cwd=REPO, env=WORKERS, capture_output=True, text=True)
+    log = (work / f"{storage.name}.log").open("w+")
+    proc = subprocess.Popen([*command, *overrides], cwd=REPO, env=WORKERS, stdout=log, stderr=subprocess.STDOUT)
+    reached = False
+    while proc.poll() is None:
+        time.sleep(1)
+        points = curve.read_text().splitlines() if curve.exists() else []
+        if not reached and any(json.loads(point)[2] >= stop_at for point in points):
+            reached = True
+            proc.send_signal(signal.SIGTERM)  # torchrun passes it on: the workers save and exit
     wall, run.load = time.time() - launched, (run.load[0], load_average())
-    if done.returncode:
-        raise RuntimeError(f"ftrain failed on {name} seed {seed}:\n{done.stderr[-3000:]}")
+    if proc.returncode and not reached:
+        log.seek(0)
+        raise RuntimeError(f"ftrain failed on {name} seed {seed}:\n{log.read()[-3000:]}")
     run.curve = [tuple(json.loads(line)) for line in curve.read_text().splitlines()] if curve.exists() else []
     run.eval_seconds = run.curve[-1][3] if run.curve else 0.0
     run.seconds = wall - run.eval_seconds
-    policy = load_policy(str(storage))
-    run.final_return = evaluate(policy.act, policy.config.env, policy.config.eval.seed)
+    if not reached:
+        policy = load_policy(str(storage))
+        run.final_return = evaluate(policy.act, policy.config.env, policy.config.eval.seed)
     return run
 
 

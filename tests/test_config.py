@@ -26,6 +26,8 @@ def test_storage_decides_log_dir() -> None:
     secret = load_config(SMOKE, [], storage="s3://AKIA1:S3CR3T@bucket/exp1/").log_dir
     assert secret == "runs/smoke/s3/bucket/exp1"  # two storages, two directories; no credential in a path
     assert load_config(SMOKE, [], storage="file:///tmp/x").log_dir == "/tmp/x"
+    sas = "abfs://box@acct.dfs.core.windows.net/x?sv=1&se=2026-12-01&sig=S"  # a SAS token rotates: not in the path
+    assert load_config(SMOKE, [], storage=sas).log_dir == "runs/smoke/abfs/box@acct.dfs.core.windows.net/x"
     assert load_config(SMOKE, ["log_dir=elsewhere"], storage="s3://b/x").log_dir == "elsewhere"
 
 

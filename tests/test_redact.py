@@ -43,7 +43,9 @@ def test_credentials_in_a_urls_query_are_hidden_and_known_for_scrubbing() -> Non
     """An Azure SAS token or an S3 presigned URL pasted as the storage: the signature's values go, the rest stays."""
     sas = "abfs://box@account.dfs.core.windows.net/run?sv=2022-11-02&se=2026-12-01&sig=AbC%2Bdef%3D"
     assert display_url(sas) == "abfs://box@account.dfs.core.windows.net/run?sv=2022-11-02&se=2026-12-01&sig=***"
-    assert display_url("s3://b/run?X-Amz-Signature=ff00&versionId=3") == "s3://b/run?X-Amz-Signature=***&versionId=3"
+    presigned = "s3://b/run?X-Amz-Algorithm=AWS4-HMAC-SHA256&X-Amz-Expires=3600&X-Amz-Signature=ff00&versionId=3"
+    assert display_url(presigned) == presigned.replace("ff00", "***")  # the signature, not its algorithm or expiry
+    assert url_secrets(presigned) == ["ff00"]
     assert set(url_secrets(sas)) == {"AbC%2Bdef%3D", "AbC+def="}
     assert set(url_secrets("s3://KEY:SECRET@b/run?token=T")) == {"KEY:SECRET", "KEY", "SECRET", "T"}
     assert url_secrets("s3://b/run?versionId=3") == [] and url_secrets("abfs://box@account/run") == []

@@ -22,11 +22,9 @@ from __future__ import annotations
 import json
 
 from ftrain.ckpt import cas
-from ftrain.ckpt.lease import LeaseLost, lost_message, read_record
+from ftrain.ckpt.lease import FENCE, LeaseLost, lost_message, read_record
 from ftrain.ckpt.storage import Storage
 from ftrain.identity import Identity
-
-FENCE = "FENCE.json"
 
 
 class Fenced(Exception):
@@ -53,7 +51,7 @@ class Fence:
         names this attempt. The fields the manifest records."""
         ours = self.identity
         current = read_record(self.storage)
-        if current is not None and current[0].generation > ours.generation:
+        if current is not None and (current[0].generation > ours.generation or current[0].run_id != ours.run_id):
             message = lost_message(self.storage, current[0], ours.run_id, ours.generation)
             raise (
                 Fenced(message) if current[0].run_id == ours.run_id and ours.attempt is not None else LeaseLost(message)

@@ -22,7 +22,7 @@ never takes it back, rank 0 commits nothing more (``fence.py``), and the supervi
 stops the workers (exit 8); one that follows a plan leaves that to the plan (a newer generation of its own run is
 the plan it will follow next).
 
-Torch-free: the supervisor holds the lease for its workers; unsupervised, rank 0 of the world does (see ``claim``).
+Torch-free: the supervisor holds the lease for its workers; unsupervised, rank 0 of the world does (``claim.py``).
 """
 
 from __future__ import annotations
@@ -37,14 +37,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from ftrain.ckpt import cas
-from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
-from ftrain.config import Config
+from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD, UserError
-from ftrain.heartbeat import TOKEN_ENV
-from ftrain.identity import Identity, run_id
+from ftrain.identity import Identity
 from ftrain.procfs import Process
 
 LEASE = "LEASE.json"
+FENCE = "FENCE.json"
+"""The newest (generation, attempt) that committed (``fence.py``): where a lease record that was deleted starts."""
 TTL_ENV = "FTRAIN_LEASE_TTL"
 """Seconds a lease lives after its last renewal, where ``TTL`` does not suit (a storage slow to answer)."""
 TTL = 60.0
@@ -61,10 +61,6 @@ class LeaseLost(LeaseHeld):
 
 class Advanced(Exception):
     """The lease is no longer at the generation a process meant to advance from (``Lease.advance``)."""
-
-
-_AGREED = {kind.__name__: kind for kind in (LeaseHeld, UserError, StorageUnavailable, StorageError)}
-"""What rank 0's claim may end in, as the other ranks raise it too."""
 
 
 @dataclass(frozen=True)
@@ -115,22 +111,6 @@ class Record:
         return cls(body["run_id"], body["generation"], body["ttl"], entries)
 
 
-def storage_lease(
-    config: Config,
-    log: Callable[[str], None],
-    secret: bytes | None = None,
-    endpoint: tuple[str, int] | None = None,
-    retries: int | None = None,
-    follows: bool = False,
-) -> Lease:
-    """The lease of ``config``'s storage for this run (``identity.run_id`` of ``secret`` and ``endpoint``), not taken
-    yet. ``retries``: of the storage's requests (default: ``checkpoint.retries``); ``follows``: see ``Lease``."""
-    retries = config.checkpoint.retries if retries is None else retries
-    storage = Storage.open(config.storage.url, config.storage.options, retries=retries)
-    ttl = float(os.environ.get(TTL_ENV) or TTL)
-    return Lease(storage, run_id(secret, endpoint), log, ttl, config.storage.plain_writes, follows)
-
-
 class Lease:
     """The lease of ``storage`` for run ``run_id``, held by this process: ``hold`` takes it and keeps renewing it
     from a thread until ``release``. Storage failures while renewing are logged and retried, never raised."""
@@ -156,8 +136,11 @@ class Lease:
         self.process = Process.current()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._environ: dict[str, str | None] = {}
         self.generation: int | None = None
         """The generation this run holds, once taken."""
+        self.took = False
+        """Whether this process took its generation (a new holder, the maker of a plan), rather than join it."""
         self.lost: str | None = None
         """Why the storage is lost to another run, once it is (for good)."""
 
@@ -196,13 +179,17 @@ class Lease:
                 continue
             if joins and not advance:
                 generation = record.generation
-            else:  # a new holder, or a new plan: the next generation (a deleted record keeps this process's)
-                generation = record.generation + 1 if record else self.generation or 1
+            elif record is not None:  # a new holder, or a new plan: the next generation
+                generation = record.generation + 1
+            else:  # none, or deleted: this process's generation, else the one after the newest committed
+                generation = self.generation or _fenced_generation(self.storage) + 1
             new = Record(self.run_id, generation, self.ttl, (*(others if joins else ()), Entry(self.process, now)))
             try:
                 cas.write(self.storage, LEASE, new.encode(), version)
             except cas.Conflict:
                 continue
+            if self.generation is None or advance:
+                self.took = advance or not joins
             self.generation = generation
             return None if ours or record is None or not record.entries else self._taken_message(record)
 
@@ -222,10 +209,16 @@ class Lease:
         (``Identity.env``): its own commits and its child processes' are checked against them (``fence.Fence``)."""
         cas.require_atomic(self.storage, self.plain_writes)  # a lease rests on conditional writes
         taken = self.acquire(advance)
+        self._environ = {name: os.environ.get(name) for name in Identity(self.run_id, 0).env()}  # for ``release``
         os.environ.update(Identity(self.run_id, self.generation).env())
         self._thread = threading.Thread(target=self._keep, name="ftrain-lease", daemon=True)
         self._thread.start()
         return taken
+
+    def current(self) -> int:
+        """The generation the lease has now (one read; 0: none)."""
+        current = read_record(self.storage)
+        return current[0].generation if current is not None else 0
 
     def advance(self, expected: int) -> tuple[int, bool]:
         """Take the next generation after ``expected`` for this run, its live processes kept: this process makes a new
@@ -240,8 +233,8 @@ class Lease:
 
     def run(self, body: Callable[[Lease], int], refused: Callable[[str], None], advance: bool = False) -> int:
         """``body(self)`` while holding the lease (``hold``: its child processes are this run), then release it; if
-        another run holds it, ``refused`` gets the one-line reason and this returns ``EXIT_STORAGE_HELD`` without
-        calling ``body``."""
+        another run holds it (or takes it before ``body`` is done with the lease: ``advance``), ``refused`` gets the
+        one-line reason and this returns ``EXIT_STORAGE_HELD``."""
         try:
             taken = self.hold(advance)
         except LeaseHeld as held:
@@ -251,6 +244,9 @@ class Lease:
             self.log(taken)
         try:
             return body(self)
+        except LeaseHeld as held:
+            refused(str(held))
+            return EXIT_STORAGE_HELD
         finally:
             self.release()
 
@@ -258,6 +254,11 @@ class Lease:
         """Stop renewing and drop this process's entry (the whole object with the run's last entry), so the same
         command again starts at once. A failure is logged: the lease then lapses after its ``ttl``."""
         self._stop.set()
+        for name, value in self._environ.items():  # as before ``hold``: a later run in this process is another one
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
         if self._thread is not None:
             self._thread.join(timeout=self.ttl / 3)  # a renewal stuck in a hanging request: its write is a CAS too
         try:
@@ -335,6 +336,16 @@ class Lease:
         return f"took over the lease of {self.storage.url} from run {record.run_id}: {holders or 'no holder'}"
 
 
+def _fenced_generation(storage: Storage) -> int:
+    """The generation of the newest commit that ``FENCE.json`` records (0: none)."""
+    current = cas.read(storage, FENCE)
+    try:
+        generation = json.loads(current[0]).get("generation") if current is not None else 0
+    except (ValueError, AttributeError):
+        return 0
+    return generation if type(generation) is int else 0
+
+
 def _unseen(record: Record) -> bool:
     """Whether ``record`` has entries this host cannot tell gone (another host's, another pid namespace's)."""
     return any(entry.process.running() is None for entry in record.entries)
@@ -350,38 +361,6 @@ def lost_message(storage: Storage, record: Record, run_id: str, generation: int)
         f"the lease of {storage.url} was taken by run {record.run_id} (generation {record.generation}; this run's is "
         f"{generation}): this run lost the storage and commits nothing more"
     )
-
-
-def claim(config: Config, is_main: bool, agree: Callable[[list | None], list | None], log: Callable[[str], None]):
-    """Every rank of a world calls this at the start. Rank 0 (``is_main``) holds the lease for the run, or, started
-    by ``ftrain supervise`` (which holds it), checks that no other run holds it; ``agree`` (a broadcast from rank 0)
-    tells every rank how that went, so that every rank raises alike (LeaseHeld if refused) and none waits for a rank 0
-    that failed. Returns the lease to ``release`` at the end (None: not held here)."""
-    lease, outcome, failure = None, None, None
-    if is_main:
-        try:
-            if os.environ.get(TOKEN_ENV):
-                _check_for_supervisor(config, log)
-            elif taken := (lease := storage_lease(config, log)).hold():
-                log(taken)
-        except Exception as error:
-            lease, failure = None, error
-            outcome = [type(error).__name__ if type(error).__name__ in _AGREED else "StorageError", str(error)]
-    outcome = agree(outcome)
-    if failure is not None:
-        raise failure
-    if outcome:
-        raise _AGREED[outcome[0]](outcome[1])
-    return lease
-
-
-def _check_for_supervisor(config: Config, log: Callable[[str], None]) -> None:
-    """A supervised worker's check that no other run holds the storage, in one try. The supervisor holds the lease:
-    a storage that does not answer now is not checked (the run may go on from its spool, see ``ftrain.ckpt.spool``)."""
-    try:
-        storage_lease(config, log, retries=0).check()
-    except StorageUnavailable as error:
-        log(f"the lease was not checked, the storage does not answer ({error}); the supervisor holds it")
 
 
 def read_record(storage: Storage) -> tuple[Record, str] | None:

@@ -1,7 +1,7 @@
 """One torchrun launch and every process it started: finding, signalling and blaming them.
 
-Every attempt has a directory of its own, ``<log_dir>/torchrun/[node-R/]attempt-N-TOKEN`` (the newest
-``KEPT_LOGS`` stay), which torchrun gets as ``--log-dir``, so the workers' error files land there (see
+Every attempt has a directory of its own, ``<log_dir>/torchrun/[node-R/]attempt-N-gG`` (attempt N of generation G) (the
+newest ``KEPT_LOGS`` stay), which torchrun gets as ``--log-dir``, so the workers' error files land there (see
 ``ftrain/errorfile.py``). ``stderr.log`` there holds everything torchrun and the workers write to stderr: none of it
 reaches the console. torchrun runs as ``ftrain.dist.torchrun``, which writes torchrun's own account of the failed
 workers (exit code and recorded error of each) to ``failures.json`` instead of a traceback and a text report.

@@ -189,7 +189,9 @@ class Link:
             self.generation = self.coordinator.generation
         request = {"op": op, "node": self.node, "generation": self.generation, **fields}
         if self.coordinator is not None:
-            return Plan(**self.coordinator.handle(request))
+            if (plan := self.coordinator.handle(request)) is None:
+                raise ConnectionError(f"{self.peer} is starting")
+            return Plan(**plan)
         nonce = secrets.token_hex(8)
         with socket.create_connection(self.address, timeout=CONNECTION_TIMEOUT) as conn:
             conn.sendall(seal(self.secret, REQUEST, {**request, "nonce": nonce}))

@@ -22,11 +22,13 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import json
+import secrets
 import sys
 import time
 from collections.abc import Callable
 from typing import Any
 
+from ftrain.ckpt.lease import Lease
 from ftrain.errors import UserError
 from ftrain.supervise.options import Nodes, SupervisorOptions
 from ftrain.supervise.plan import Plan, apply, elastic_rendezvous
@@ -74,27 +76,35 @@ class EtcdLink:
         self.generation: int | None = None
         self.node = self._waiting(lambda: self._update("nodes", lambda count: (count or 0) + 1) - 1)
 
-    def begin(self, held: int, advance: Callable[[int], tuple[int, bool]]) -> None:
-        """Join the run's plan, or make one where there is none, its run has ended, or it is older than the
-        generation ``held`` of the storage's lease that this node holds (its nodes are all gone): at the next
-        generation, which ``advance(held)`` takes from the lease, unless another node took it first: then that node
-        makes the plan, which this one waits for (``MAKER_WAIT``, after which it makes one itself). Waits for etcd as
+    def begin(self, lease: Lease) -> None:
+        """Join the run's plan at the generation of the storage's ``lease`` that this node holds, or make it.
+
+        A node that took that generation (a new holder: no process of it but this run's new ones) makes the plan at
+        it where there is none at it yet. A node that joined it (other processes of the run hold it) waits
+        ``MAKER_WAIT`` for the plan of the node that took it; where none comes (only old processes of the run hold
+        it: a plan of theirs, ended or not, must not be joined), it takes the next generation (``Lease.advance``)
+        and makes the plan at that, unless another node advanced first, whose plan it then waits for. A plan newer
+        than the lease's generation is another storage's (the same ``--rdzv-id``): it is replaced. Waits for etcd as
         ``__init__`` does."""
-        while (current := self._live_plan(held)) is None:
-            held, made = advance(held)
+        held, made = lease.generation, lease.took
+        while (current := self._plan_at(held, lease)) is None:
             if made:
-                self._waiting(lambda generation=held: self._update("plan", _made(generation)))
+                self._waiting(lambda generation=held: self._update("plan", _made(generation, lease.current())))
+                made = False
                 continue
             deadline = time.monotonic() + MAKER_WAIT  # another node makes the plan at ``held``
-            while time.monotonic() < deadline and self._live_plan(held) is None:
+            while time.monotonic() < deadline and self._plan_at(held, lease) is None:
                 time.sleep(RETRY)
+            if self._plan_at(held, lease) is None:
+                held, made = lease.advance(held)
         self.generation = current.generation
 
-    def _live_plan(self, generation: int) -> Plan | None:
-        """The plan in etcd if it is a live one of ``generation`` or newer."""
-        value = self._waiting(lambda: self._update("plan", lambda value: value))
-        plan = Plan(**value) if value is not None else None
-        return plan if plan is not None and plan.final is None and plan.generation >= generation else None
+    def _plan_at(self, generation: int, lease: Lease) -> Plan | None:
+        """The plan in etcd if it is a live one of ``generation`` or newer, but not newer than the ``lease``'s."""
+        plan = _parsed(self._waiting(lambda: self._update("plan", lambda value: value)))
+        if plan is None or plan.final is not None or plan.generation < generation:
+            return None
+        return plan if plan.generation == generation or plan.generation <= lease.current() else None
 
     def ask(self, op: str, **fields) -> Plan:
         """The plan after this node's request (``plan``: only read it); ConnectionError when etcd cannot be reached."""
@@ -144,21 +154,30 @@ class EtcdLink:
 
 
 def _plan(value: dict | None) -> Plan:
-    if value is None:  # removed from etcd by hand while the run went on
+    if (plan := _parsed(value)) is None:  # removed from etcd by hand while the run went on
         raise ConnectionError("the run's plan is gone from etcd")
-    return Plan(**value)
+    return plan
 
 
-def _made(generation: int) -> Callable[[dict | None], dict]:
-    """The change to the plan in etcd of a node that made one at ``generation``: the newer of the two live ones."""
+def _made(generation: int, newest: int) -> Callable[[dict | None], dict]:
+    """The change to the plan in etcd of a node that made one at ``generation``: its plan, unless a live one of that
+    generation or newer, up to the lease's ``newest``, is there already (another node made it)."""
 
     def change(value: dict | None) -> dict:
-        plan = Plan(**value) if value is not None else None
-        if plan is None or plan.final is not None or plan.generation < generation:
-            return dataclasses.asdict(Plan(generation, 0, None))
+        plan = _parsed(value)
+        if plan is None or plan.final is not None or not generation <= plan.generation <= newest:
+            return dataclasses.asdict(Plan(generation, 0, None, nonce=secrets.token_hex(4)))
         return value
 
     return change
+
+
+def _parsed(value: dict | None) -> Plan | None:
+    """The plan of a record; None where there is none or it is not one (an older ftrain's record)."""
+    try:
+        return Plan(**value) if isinstance(value, dict) else None
+    except TypeError:
+        return None
 
 
 def _no_port() -> None:
@@ -170,5 +189,5 @@ def etcd_rendezvous_args(plan: Plan, nodes: Nodes, options: SupervisorOptions) -
     ``--rdzv-conf`` connection settings. The round's rank 0 hosts the workers' store
     (``TORCH_DISABLE_SHARE_RDZV_TCP_STORE=1``, see ``attempt.attempt_env``): a node lost takes no other's store."""
     endpoint = "{}:{}".format(*nodes.endpoint)
-    run_id = f"{nodes.run_id}-g{plan.generation}-{plan.attempt}"
+    run_id = f"{nodes.run_id}-{plan.nonce}-g{plan.generation}-{plan.attempt}"  # torch keeps closed ones for 2 h
     return elastic_rendezvous("etcd-v2", plan, endpoint, run_id, nodes, options, **dict(nodes.conf))

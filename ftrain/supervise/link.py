@@ -6,7 +6,8 @@ from __future__ import annotations
 import os
 from collections.abc import Callable
 
-from ftrain.ckpt.lease import Lease, storage_lease
+from ftrain.ckpt.claim import storage_lease
+from ftrain.ckpt.lease import Lease
 from ftrain.config import Config
 from ftrain.supervise.coordinator import Coordinator, Link, rendezvous_args
 from ftrain.supervise.etcd_plan import EtcdLink, etcd_rendezvous_args
@@ -49,7 +50,7 @@ def begin(link: Link | EtcdLink, coordinator: Coordinator | None, lease: Lease) 
     if coordinator is not None:
         coordinator.begin(lease.generation)
     elif isinstance(link, EtcdLink):
-        link.begin(lease.generation, lease.advance)
+        link.begin(lease)
 
 
 def rendezvous(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> list[str]:

@@ -35,6 +35,9 @@ class Plan:
     final: int | None = None
     left: int | None = None
     """The node whose leaving (its preemption, in an elastic etcd-v2 run) started this attempt; None after a failure."""
+    nonce: str = ""
+    """etcd: random, made with the plan, for torch's rendezvous ids (torch keeps a closed one for 2 hours; generations
+    start over on another storage under the same ``--rdzv-id``)."""
 
     def identity(self, run_id: str, nnodes: int) -> Identity:
         """Who the workers of this attempt are: on several nodes with the attempt, whose commits are fenced
@@ -59,7 +62,7 @@ def apply(plan: Plan, request: dict, port: Callable[[], int | None]) -> Plan:
     ours = request.get("generation") == plan.generation and plan.final is None
     if request["op"] in ("fail", "leave") and ours and request.get("attempt") == plan.attempt:
         left = request.get("node") if request["op"] == "leave" else None
-        return Plan(plan.generation, plan.attempt + 1, port(), left=left)
+        return Plan(plan.generation, plan.attempt + 1, port(), left=left, nonce=plan.nonce)
     if request["op"] == "finish" and ours:
         return dataclasses.replace(plan, final=request["code"])
     return plan

@@ -6,19 +6,18 @@ and a rendezvous nothing has used before (``link.rendezvous``): torchrun's own r
 restarted workers read stale gloo peer addresses; a new torchrun cannot. Credentials reach the workers in their
 environment, never on a command line; no process outlives the supervisor (``attempt.py``).
 
-Detect. Crash: torchrun exits non-zero, or is killed (its workers, each in a session of its own, are then
-orphans: the supervisor finds every process of an attempt by the ``FTRAIN_ATTEMPT_TOKEN`` in its environment).
-Who failed and why comes from torchrun's account of its workers (exit codes, and the one-line error each recorded in
-its error file: see ``attempt.py``); a worker exiting 2 refused its input, which no restart fixes. The cause is one
-line on the console and in ``events.jsonl``; torchrun's and the workers' stderr go to the attempt's log directory.
-Hang: every working rank has stayed in the phase its heartbeat names longer than that phase's limit (``auto``:
-max(5 s, 10 x the longest time seen in that phase), ``--startup-grace`` for start-up, the first iteration after it
-and a phase not seen yet; see ``hang.py``), or one fixed ``--hang-timeout``.
+Detect. Crash: torchrun exits non-zero, or is killed (its workers, each in a session of its own, are then orphans: the
+supervisor finds every process of an attempt by the ``FTRAIN_ATTEMPT_TOKEN`` in its environment). Who failed and why
+comes from torchrun's account of its workers (exit codes, and the one-line error each recorded in its error file: see
+``attempt.py``); a worker exiting 2 refused its input, which no restart fixes. The cause is one line on the console and
+in ``events.jsonl``; torchrun's and the workers' stderr go to the attempt's log directory. Hang: every working rank has
+stayed in the phase its heartbeat names longer than that phase's limit (``auto``: max(5 s, 10 x the longest time in that
+phase), ``--startup-grace`` for start-up, the first iteration after it and a phase not seen yet), or ``--hang-timeout``.
 
-Recover. A worker that died mid-training dooms the others: they get SIGKILL at once. Orphans of a killed
-torchrun get SIGTERM (they agree, save, exit), then SIGKILL after ``--stop-grace``. A hung group gets SIGKILL at
-once (its collectives cannot agree on a save; commits are crash-safe). Then back off (not after an attempt that
-completed iterations; ``--backoff-initial`` after one that completed none, doubled for each further one, at most
+Recover. A worker that died mid-training dooms the others: they get SIGKILL at once. Orphans of a killed torchrun get
+SIGTERM (they agree, save, exit), then SIGKILL after ``--stop-grace``. A hung group gets SIGKILL at once (its
+collectives cannot agree on a save; commits are crash-safe). Then back off (none after an attempt that completed
+iterations; ``--backoff-initial`` after one that completed none, doubled for each further one, at most
 ``--backoff-max``) and launch again; the workers resume from the newest verified checkpoint themselves.
 
 Preemption. SIGTERM or SIGINT: SIGTERM to the workers, which agree at the next iteration boundary, save and exit 143
@@ -101,8 +100,6 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
         return supervisor.storage_wait.retrying(held, supervisor.end)
     except _Stop as stop:  # a signal or another node ended the run, in the loop or while the storage was waited for
         return supervisor.end(stop.ending)
-    except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout when the plan was joined
-        return supervisor.end(Outcome("peer_lost", EXIT_PEER_LOST, str(error)))
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
@@ -155,7 +152,10 @@ class Supervisor:
     def run(self, lease: Lease) -> int:
         """Attempts, under the storage's ``lease`` (stopped once ``lost``), until the run ends (raises ``_Stop``)."""
         self.lease = lease
-        begin(self.link, self.coordinator, lease)  # etcd-v2: ConnectionError if etcd does not answer
+        try:
+            begin(self.link, self.coordinator, lease)
+        except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
+            raise _Stop(Outcome("peer_lost", EXIT_PEER_LOST, str(error))) from None
         plan = self._next_plan(None)
         while True:
             attempt = self._launch(plan)

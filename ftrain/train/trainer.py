@@ -19,8 +19,9 @@ import torch
 import yaml
 
 from ftrain import errorfile
+from ftrain.ckpt.claim import claim
 from ftrain.ckpt.format import learned_state, state_digest
-from ftrain.ckpt.lease import LeaseHeld, claim
+from ftrain.ckpt.lease import LeaseHeld
 from ftrain.ckpt.manager import Checkpointer
 from ftrain.ckpt.resume import CheckpointError
 from ftrain.ckpt.storage import StorageUnavailable

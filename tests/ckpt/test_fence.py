@@ -84,6 +84,19 @@ def test_one_node_alone_is_checked_against_the_lease_only(storage, monkeypatch):
     assert lost.result is Result.LEASE_LOST and "taken by run run-b (generation 2; this run's is 1)" in lost.detail
 
 
+def test_a_lease_record_deleted_by_hand_starts_again_after_the_newest_generation_that_committed(storage, monkeypatch):
+    """``LEASE.json`` is the one file a user is told to delete (when it cannot be read): the next holder's generation
+    then comes after the newest that committed (``FENCE.json``), so its commits are not fenced off; and a commit of
+    a run whose id is not the lease's is refused whatever its generation (another run holds the storage)."""
+    assert save(storage, 10, monkeypatch, Identity("run-a", 7, 2), []).result is Result.COMMITTED
+    lease = Lease(storage, "run-a", print)
+    lease.acquire()
+    assert lease.generation == 8
+    assert save(storage, 20, monkeypatch, Identity("run-a", 8, 0), []).result is Result.COMMITTED
+    stranger = save(storage, 30, monkeypatch, Identity("run-b", 9, 0), [])
+    assert stranger.result is Result.LEASE_LOST and "taken by run run-a" in stranger.detail
+
+
 def test_an_unreadable_fence_record_counts_as_none_and_is_written_over(storage):
     storage.write_replace(FENCE, b"{not json")
     assert Fence(storage, Identity("run-a", 1, 3)).check() == {"run_id": "run-a", "generation": 1, "attempt": 3}

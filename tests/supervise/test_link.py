@@ -3,12 +3,13 @@ interface that holds it (``tests/cluster/test_netns.py`` runs it across machines
 
 from __future__ import annotations
 
+import json
 import re
 import threading
 
 import pytest
 
-from ftrain.ckpt.lease import Lease
+from ftrain.ckpt.lease import LEASE, Lease, Record
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
 from ftrain.identity import ATTEMPT_ENV, GENERATION_ENV, RUN_ID_ENV
@@ -47,7 +48,7 @@ def test_without_local_addr_the_hostname_decides_as_before(monkeypatch, tmp_path
 def test_one_node_alone_hands_its_workers_no_attempt(tmp_path) -> None:
     """One node runs one attempt at a time: its workers' commits are checked against the lease only."""
     nodes = parse_nodes(SupervisorOptions())
-    assert worker_env(Plan(2, 5, None), nodes, "run-a") == {RUN_ID_ENV: "run-a", GENERATION_ENV: "2"}
+    assert worker_env(Plan(2, 5, None), nodes, "run-a") == {RUN_ID_ENV: "run-a", GENERATION_ENV: "2", ATTEMPT_ENV: ""}
 
 
 def test_an_address_of_no_interface_here_is_refused() -> None:
@@ -69,27 +70,41 @@ def test_a_regroup_after_a_node_left_waits_no_rejoin_timeout(monkeypatch, backen
 
 @pytest.mark.cluster
 def test_on_etcd_nodes_starting_at_once_make_one_plan_at_one_new_generation(tmp_path, etcd_server) -> None:
-    """Three nodes of a run start at once on etcd and find no plan: one of them takes the next generation of the
-    storage's lease and makes the plan at it, the others follow it (no plan is made twice, which would stop the first
-    one's workers). The same command after the run's end makes a new plan at the next generation."""
+    """Three nodes of a run start at once on etcd and find no plan: the one that took the next generation of the
+    storage's lease makes the plan at it, the others, which joined it, follow it (no plan is made twice, which would
+    stop the first one's workers). The same command after the run's end makes a new plan at the next generation."""
     storage = Storage.open(str(tmp_path / "run"))
     options = SupervisorOptions(nnodes="3", rdzv_backend="etcd-v2", rdzv_endpoint=etcd_server, rdzv_id="job")
     nodes = parse_nodes(options)
-    leases = [Lease(storage, "job", print, follows=True) for _ in range(3)]
-    for number, lease in enumerate(leases):  # three hosts: each renews its own entry
-        lease.process = Process(f"host-{number}", 100 + number, 1, "boot", "pid:[1]")
-        lease.acquire()
-    links = [EtcdLink(nodes, timeout=10) for _ in leases]
-    starts = [
-        threading.Thread(target=link.begin, args=(1, lease.advance)) for link, lease in zip(links, leases, strict=True)
-    ]
-    for start in starts:
-        start.start()
-    for start in starts:
-        start.join(timeout=60)
-    assert [link.generation for link in links] == [2, 2, 2]
-    assert links[0].ask("plan") == Plan(2, 0, None)
+    storage.write_replace(LEASE, Record("job", 4, 60.0, ()).encode())  # the run's last start ended at generation 4
+    old = {"token": "an older ftrain's", "attempt": 3, "port": None, "final": None, "left": None}
+    EtcdLink(nodes, timeout=10).client.write("/ftrain/job/plan", json.dumps(old))  # not a plan this ftrain reads
+
+    def leases() -> list[Lease]:  # the nodes of a start of the run, on three hosts: each renews its own entry
+        started = [Lease(storage, "job", print, follows=True) for _ in range(3)]
+        for number, lease in enumerate(started):
+            lease.process = Process(f"host-{number}", 100 + number, 1, "boot", "pid:[1]")
+            lease.acquire()
+        return started
+
+    def begin(started: list[Lease]) -> list[EtcdLink]:
+        links = [EtcdLink(nodes, timeout=10) for _ in started]
+        pairs = zip(links, started, strict=True)
+        threads = [threading.Thread(target=link.begin, args=(lease,)) for link, lease in pairs]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(timeout=60)
+        return links
+
+    first = leases()
+    assert [lease.took for lease in first] == [True, False, False]  # one new holder; the others joined it
+    links = begin(first)
+    assert [link.generation for link in links] == [5, 5, 5]
+    plan = links[0].ask("plan")
+    assert (plan.generation, plan.attempt, plan.final) == (5, 0, None) and plan.nonce
     links[0].ask("finish", code=0)
-    again = EtcdLink(nodes, timeout=10)
-    again.begin(2, leases[0].advance)
-    assert again.ask("plan") == Plan(3, 0, None)
+    for lease in first:
+        lease.release()
+    again = begin(leases())  # the same command after the run's end: the next generation, another rendezvous id
+    assert [link.generation for link in again] == [6, 6, 6] and again[0].ask("plan").nonce != plan.nonce

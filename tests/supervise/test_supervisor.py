@@ -240,6 +240,8 @@ def test_node_0_answers_that_it_is_starting_until_it_holds_the_lease_and_made_th
         remote = Link(1, None, server.server_address, KEY)
         with pytest.raises(ConnectionError, match=r"node 0 at 127\.0\.0\.1:[0-9]+ is starting"):
             remote.ask("plan")
+        with pytest.raises(ConnectionError, match="node 0 is starting"):  # node 0's own link (a signal ends it now)
+            Link(0, coordinator, None, KEY).ask("finish", code=143)
         coordinator.begin(3)
         assert (remote.ask("plan").generation, remote.generation) == (3, 3)
         assert not refusals(tmp_path)  # a node asking early is no stranger

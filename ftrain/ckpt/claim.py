@@ -1,0 +1,65 @@
+"""Who holds a run's storage lease (``lease.py``): ``ftrain supervise`` for its workers, else rank 0 of the world
+(``claim``), which every rank calls at the start. Torch-free."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+
+from ftrain.ckpt.lease import TTL, TTL_ENV, Lease, LeaseHeld
+from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
+from ftrain.config import Config
+from ftrain.errors import UserError
+from ftrain.heartbeat import TOKEN_ENV
+from ftrain.identity import run_id
+
+_AGREED = {kind.__name__: kind for kind in (LeaseHeld, UserError, StorageUnavailable, StorageError)}
+"""What rank 0's claim may end in, as the other ranks raise it too."""
+
+
+def storage_lease(
+    config: Config,
+    log: Callable[[str], None],
+    secret: bytes | None = None,
+    endpoint: tuple[str, int] | None = None,
+    retries: int | None = None,
+    follows: bool = False,
+) -> Lease:
+    """The lease of ``config``'s storage for this run (``identity.run_id`` of ``secret`` and ``endpoint``), not taken
+    yet. ``retries``: of the storage's requests (default: ``checkpoint.retries``); ``follows``: see ``Lease``."""
+    retries = config.checkpoint.retries if retries is None else retries
+    storage = Storage.open(config.storage.url, config.storage.options, retries=retries)
+    ttl = float(os.environ.get(TTL_ENV) or TTL)
+    return Lease(storage, run_id(secret, endpoint), log, ttl, config.storage.plain_writes, follows)
+
+
+def claim(config: Config, is_main: bool, agree: Callable[[list | None], list | None], log: Callable[[str], None]):
+    """Every rank of a world calls this at the start. Rank 0 (``is_main``) holds the lease for the run, or, started
+    by ``ftrain supervise`` (which holds it), checks that no other run holds it; ``agree`` (a broadcast from rank 0)
+    tells every rank how that went, so that every rank raises alike (LeaseHeld if refused) and none waits for a rank 0
+    that failed. Returns the lease to ``release`` at the end (None: not held here)."""
+    lease, outcome, failure = None, None, None
+    if is_main:
+        try:
+            if os.environ.get(TOKEN_ENV):
+                _check_for_supervisor(config, log)
+            elif taken := (lease := storage_lease(config, log)).hold():
+                log(taken)
+        except Exception as error:
+            lease, failure = None, error
+            outcome = [type(error).__name__ if type(error).__name__ in _AGREED else "StorageError", str(error)]
+    outcome = agree(outcome)
+    if failure is not None:
+        raise failure
+    if outcome:
+        raise _AGREED[outcome[0]](outcome[1])
+    return lease
+
+
+def _check_for_supervisor(config: Config, log: Callable[[str], None]) -> None:
+    """A supervised worker's check that no other run holds the storage, in one try. The supervisor holds the lease:
+    a storage that does not answer now is not checked (the run may go on from its spool, see ``ftrain.ckpt.spool``)."""
+    try:
+        storage_lease(config, log, retries=0).check()
+    except StorageUnavailable as error:
+        log(f"the lease was not checked, the storage does not answer ({error}); the supervisor holds it")
