@@ -132,7 +132,8 @@ def run_ftrain(
     config = load_config(str(config_path), overrides)
     per_iteration = ranks * config.env.num_envs * config.num_steps_per_env
     iterations = math.ceil(steps / per_iteration)
-    storage, curve = work / f"{name}-{ranks}-seed{seed}", work / f"{name}-{ranks}-seed{seed}.jsonl"
+    tag = f"{name}-{ranks}x{config.env.num_envs}-seed{seed}"  # each case a storage and a curve of its own
+    storage, curve = work / tag, work / f"{tag}.jsonl"
     run = Run(steps=iterations * per_iteration, load=(load_average(), math.nan))
     launched = time.time()
     hook = f"hooks=[{{target: 'bench_learning:CurveHook', kwargs: {{path: '{curve}', launched: {launched}}}}}]"
