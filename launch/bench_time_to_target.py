@@ -62,6 +62,16 @@ def allowed_speedup(first: tuple[int, int], case: tuple[int, int], iterations: i
     return case[0] * min(run["median_steps_per_s"] for run in beside) / alone
 
 
+def rate(run: Run, target: float) -> float:
+    """Environment steps per second from a run's first evaluation to the first at or above ``target`` (start-up and
+    evaluation left out)."""
+    first = run.curve[0] if run.curve else None
+    hit = next((point for point in run.curve if point[2] >= target), None)
+    if first is None or hit is None or hit is first:
+        return math.nan
+    return (hit[0] - first[0]) / (hit[1] - first[1])
+
+
 def plot(runs: dict[str, list[Run]], target: float, path: Path) -> None:
     import matplotlib
 
@@ -118,20 +128,20 @@ def main() -> int:
     print("what the machine allows (throughput runs, the same cores, right after):", flush=True)
     allowed = {name: allowed_speedup(first, case, args.iterations) for name, case in cases.items()}
     allowed = {name: value / allowed[names[0]] for name, value in allowed.items()}
-    split = {name for name, (ranks, envs) in cases.items() if ranks * envs == first[0] * first[1]}
     print(f"\n| ranks x envs | time to {args.target:,.0f}: median (range) | seeds | steps to it: median ", end="")
-    print(f"| speed-up vs {names[0]} | steps/s at best (ceiling) | fraction of it |\n" + "| --- " * 7 + "|")
+    print(f"| speed-up vs {names[0]} | steps/s at best (ceiling) | steps/s reached: median (range) |")
+    print("| --- " * 7 + "|")
     times = {name: [run.time_to(args.target) for run in seeds] for name, seeds in runs.items()}
-    base = statistics.median(times[names[0]])
+    rates = {name: [rate(run, args.target) for run in seeds] for name, seeds in runs.items()}
     for name, seeds in runs.items():
         reached = [time for time in times[name] if math.isfinite(time)]
         steps = [next((p[0] for p in run.curve if p[2] >= args.target), math.nan) for run in seeds]
         middle, spread = statistics.median(times[name]), f"{min(times[name]):,.0f} to {max(times[name]):,.0f}"
-        fraction = f"{base / middle / allowed[name]:.2f}" if name in split else "- (another batch)"
-        best = f"{allowed[name]:.2f} | {fraction}"
+        speed, speeds = statistics.median(rates[name]), f"{min(rates[name]):,.0f} to {max(rates[name]):,.0f}"
         print(
             f"| {name} | {middle:,.0f} s ({spread}) | {len(reached)}/{len(seeds)} reached "
-            f"| {statistics.median(steps):,.0f} | {base / middle:.2f} | {best} |"
+            f"| {statistics.median(steps):,.0f} | {statistics.median(times[names[0]]) / middle:.2f} "
+            f"| {allowed[name]:.2f} | {speed / statistics.median(rates[names[0]]):.2f}: {speed:,.0f} ({speeds}) |"
         )
     plot(runs, args.target, args.out / "halfcheetah.png")
     results = {name: [asdict(run) for run in seeds] for name, seeds in runs.items()}
