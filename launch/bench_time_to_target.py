@@ -20,11 +20,12 @@ above the target; its time is wall clock from launching torchrun, start-up inclu
 evaluates (``bench_learning.CurveHook``). A run that does not reach it by ``--steps`` steps counts as not reached.
 Seeds go round the cases, so a drift of the machine hits every case alike.
 
-What the machine allows a split batch: the steps/s of the first case, against N x that of the slowest of N
-independent 1-rank runs of the case's environments per rank started side by side
-(``ftrain.tools.bench.run_side_by_side``, median iterations): the speed-up N ranks could give at best on these
-cores. Writes a plot of return against environment steps and wall time (a colour per case, a line per seed) and
-``results.json`` to ``--out``.
+What the machine allows each case: N x the steps/s of the slowest of N independent 1-rank runs of the case's
+environments per rank started side by side (``ftrain.tools.bench.run_side_by_side``, median iterations), against the
+first case's alone: the speed-up in steps/s N ranks could give at best on these cores (for a split batch, whose learning
+per environment step is the first case's, it bounds the speed-up of the time to the target too). Beside it, the steps/s
+each case reached (from a run's first evaluation to the one at the target: start-up left out). Writes a plot of return
+against environment steps and wall time (a colour per case, a line per seed) and ``results.json`` to ``--out``.
 """
 
 from __future__ import annotations
