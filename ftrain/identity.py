@@ -30,6 +30,7 @@ GENERATION_ENV = "FTRAIN_GENERATION"
 """The generation this process's commits are checked against, set by whoever holds the lease for it."""
 ATTEMPT_ENV = "FTRAIN_ATTEMPT"
 """The attempt within the generation; set on several nodes, where attempts of one generation may overlap."""
+ENV_NAMES = (RUN_ID_ENV, GENERATION_ENV, ATTEMPT_ENV)
 
 
 def run_id(secret: bytes | None = None, endpoint: tuple[str, int] | None = None) -> str:

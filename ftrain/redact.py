@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping
-from urllib.parse import unquote, urlsplit, urlunsplit
+from urllib.parse import SplitResult, unquote, urlsplit, urlunsplit
 
 import yaml
 
@@ -60,17 +60,23 @@ def display_url(url: str) -> str:
     (``s3://key:secret@bucket/...`` -> ``s3://bucket/...``) and the values of its credential query parameters
     (``?sv=...&sig=...`` -> ``?sv=...&sig=***``)."""
     url = str.__str__(url)
-    parts = urlsplit(url) if "://" in url else None
-    if parts is None or ("@" not in parts.netloc and not parts.query):
+    parts, user, fields = _split(url)
+    if not user and not any(_secret_query(name) for name, _, _ in fields):
         return url
-    user, at, host = parts.netloc.rpartition("@")
-    if at and not (parts.scheme in CONTAINER_AT_ACCOUNT and ":" not in user):
-        parts = parts._replace(netloc=host)
-    if parts.query:
-        fields = (field.partition("=") for field in parts.query.split("&"))
-        hidden = (f"{name}{eq}{HIDDEN if _secret_query(name) else value}" for name, eq, value in fields)
-        parts = parts._replace(query="&".join(hidden))
-    return urlunsplit(parts)
+    netloc = parts.netloc.rpartition("@")[2] if user else parts.netloc
+    query = "&".join(f"{name}{eq}{HIDDEN if _secret_query(name) else value}" for name, eq, value in fields)
+    return urlunsplit(parts._replace(netloc=netloc, query=query))
+
+
+def _split(url: str) -> tuple[SplitResult | None, str, list[tuple[str, str, str]]]:
+    """``url`` split (None: not a URL), its user information if that is a credential (an Azure ``container@account``
+    is none), and its query's fields as ``(name, "=", value)``."""
+    if "://" not in url:
+        return None, "", []
+    parts = urlsplit(url)
+    user, at, _ = parts.netloc.rpartition("@")
+    credential = user if at and not (parts.scheme in CONTAINER_AT_ACCOUNT and ":" not in user) else ""
+    return parts, credential, [field.partition("=") for field in parts.query.split("&")] if parts.query else []
 
 
 def display_urls(data: object) -> object:
@@ -170,12 +176,7 @@ def _secret_query(name: str) -> bool:
 def url_secrets(url: str) -> list[str]:
     """The credentials of ``url``: what ``display_url`` takes out (an Azure ``container@account`` names none), as
     given and unquoted."""
-    url = str.__str__(url)
-    parts = urlsplit(url) if "://" in url else None
-    if parts is None or display_url(url) == url:
-        return []
-    userinfo = parts.netloc.rpartition("@")[0] if display_url(url).partition("?")[0] != url.partition("?")[0] else ""
-    fields = (field.partition("=") for field in parts.query.split("&") if parts.query)
+    _, user, fields = _split(str.__str__(url))
     values = [value for name, _, value in fields if value and _secret_query(name)]
-    found = [*([userinfo, *userinfo.split(":")] if userinfo else []), *values]
+    found = [*([user, *user.split(":")] if user else []), *values]
     return [text for secret in found for text in {secret, unquote(secret)}]

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 from filelock import FileLock
 
-from ftrain.identity import ATTEMPT_ENV, GENERATION_ENV, RUN_ID_ENV
+from ftrain.identity import ENV_NAMES
 from ftrain.tools import etcd_server as etcd_tools
 from ftrain.tools.outage import S3Server, free_port, start_moto, stop
 
@@ -272,7 +272,7 @@ def _skip_without_etcd() -> None:
 def own_run_names(monkeypatch):
     """A lease held in this process (``Lease.hold``) names the run in its environment, which every process a test
     starts later inherits, and would join that run: each test's names go with it."""
-    for name in (RUN_ID_ENV, GENERATION_ENV, ATTEMPT_ENV):
+    for name in ENV_NAMES:
         monkeypatch.setenv(name, "")
         monkeypatch.delenv(name)
 

@@ -22,7 +22,7 @@ from __future__ import annotations
 import json
 
 from ftrain.ckpt import cas
-from ftrain.ckpt.lease import FENCE, LeaseLost, lost_message, read_record
+from ftrain.ckpt.lease import FENCE, LeaseLost, lost_message, read_fence, read_record
 from ftrain.ckpt.storage import Storage
 from ftrain.identity import Identity
 
@@ -61,7 +61,7 @@ class Fence:
             return fields
         while True:
             current = cas.read(self.storage, FENCE)
-            record = _parse(current[0]) if current is not None else {}
+            record = read_fence(current)
             newest = (record.get("generation", 0), record.get("attempt", -1))
             if newest > (ours.generation, ours.attempt):
                 raise Fenced(
@@ -77,14 +77,3 @@ class Fence:
                 return fields | {"attempt": ours.attempt}
             except cas.Conflict:
                 continue
-
-
-def _parse(data: bytes) -> dict:
-    """A fence record; an unreadable one (a hand edit, a truncated file, an older ftrain's) counts as none, and is
-    written over."""
-    try:
-        record = json.loads(data)
-    except ValueError:
-        return {}
-    valid = isinstance(record, dict) and all(type(record.get(key)) is int for key in ("generation", "attempt"))
-    return record if valid else {}

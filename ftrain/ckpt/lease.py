@@ -39,7 +39,7 @@ from dataclasses import dataclass
 from ftrain.ckpt import cas
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD, UserError
-from ftrain.identity import Identity
+from ftrain.identity import ENV_NAMES, Identity
 from ftrain.procfs import Process
 
 LEASE = "LEASE.json"
@@ -182,7 +182,7 @@ class Lease:
             elif record is not None:  # a new holder, or a new plan: the next generation
                 generation = record.generation + 1
             else:  # none, or deleted: this process's generation, else the one after the newest committed
-                generation = self.generation or _fenced_generation(self.storage) + 1
+                generation = self.generation or read_fence(cas.read(self.storage, FENCE)).get("generation", 0) + 1
             new = Record(self.run_id, generation, self.ttl, (*(others if joins else ()), Entry(self.process, now)))
             try:
                 cas.write(self.storage, LEASE, new.encode(), version)
@@ -209,8 +209,8 @@ class Lease:
         (``Identity.env``): its own commits and its child processes' are checked against them (``fence.Fence``)."""
         cas.require_atomic(self.storage, self.plain_writes)  # a lease rests on conditional writes
         taken = self.acquire(advance)
-        self._environ = {name: os.environ.get(name) for name in Identity(self.run_id, 0).env()}  # for ``release``
-        os.environ.update(Identity(self.run_id, self.generation).env())
+        self._environ = {name: os.environ.get(name) for name in ENV_NAMES}  # as ``release`` leaves it
+        self._name_environ()
         self._thread = threading.Thread(target=self._keep, name="ftrain-lease", daemon=True)
         self._thread.start()
         return taken
@@ -228,8 +228,13 @@ class Lease:
             self.acquire(advance=True, expected=expected)
         except Advanced as moved:
             return moved.args[0], False
-        os.environ.update(Identity(self.run_id, self.generation).env())
+        self._name_environ()
         return self.generation, True
+
+    def _name_environ(self) -> None:
+        """This process's environment names the run and the generation it holds: its commits and its child
+        processes' are checked against them (``fence.Fence``)."""
+        os.environ.update(Identity(self.run_id, self.generation).env())
 
     def run(self, body: Callable[[Lease], int], refused: Callable[[str], None], advance: bool = False) -> int:
         """``body(self)`` while holding the lease (``hold``: its child processes are this run), then release it; if
@@ -336,14 +341,15 @@ class Lease:
         return f"took over the lease of {self.storage.url} from run {record.run_id}: {holders or 'no holder'}"
 
 
-def _fenced_generation(storage: Storage) -> int:
-    """The generation of the newest commit that ``FENCE.json`` records (0: none)."""
-    current = cas.read(storage, FENCE)
+def read_fence(current: tuple[bytes, str] | None) -> dict:
+    """The fence record ``FENCE.json`` (``fence.py``) read as ``cas.read`` gives it; none, or an unreadable one (a hand
+    edit, a truncated file, an older ftrain's), is ``{}``, and is written over."""
     try:
-        generation = json.loads(current[0]).get("generation") if current is not None else 0
-    except (ValueError, AttributeError):
-        return 0
-    return generation if type(generation) is int else 0
+        record = json.loads(current[0]) if current is not None else {}
+    except ValueError:
+        return {}
+    valid = isinstance(record, dict) and all(type(record.get(key)) is int for key in ("generation", "attempt"))
+    return record if valid else {}
 
 
 def _unseen(record: Record) -> bool:
