@@ -209,6 +209,10 @@ class Config:
     """Sum the gradients of ranks on one machine through shared memory (``ftrain.dist.shm_allreduce``: ~0.03 ms where
     gloo's loopback TCP takes 0.3-1.5 ms); false: gloo for every collective. gloo's bits at two ranks; at three or
     more the same sum in another order, so the last bits of what is trained differ."""
+    split_update: bool = True
+    """At two ranks, split PPO's update by model: rank 0 learns the actor and rank 1 the critic, each on the whole
+    batch (gathered once per iteration), and they exchange the models once per iteration instead of meeting at every
+    minibatch (``ftrain.train.ppo``); false: data-parallel, every rank learns both on its share of the batch."""
     teacher: Url = NO_URL
     """Distillation: URL of the teacher's checkpoint (a step or a run's storage)."""
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -265,6 +269,7 @@ KEYS_ADDED_LATER = (
     "algorithm.reshuffle_each_epoch",
     "reward",
     "shared_memory_all_reduce",
+    "split_update",
 )
 """Training keys newer than the first checkpoints: hashed only when not at their defaults, so older runs resume."""
 

@@ -82,6 +82,16 @@ class SharedMemoryAllReduce:
 
     def all_reduce_(self, tensor: torch.Tensor) -> torch.Tensor:
         """In place: ``tensor`` (float32, contiguous, at most ``capacity`` elements) becomes the sum over ranks."""
+        torch.sum(self._share(tensor), dim=0, out=tensor.view(-1))
+        return tensor
+
+    def all_gather(self, tensor: torch.Tensor) -> torch.Tensor:
+        """Every rank's ``tensor`` (float32, the same size on every rank), stacked in rank order: ``[world, n]``."""
+        return self._share(tensor).clone()
+
+    def _share(self, tensor: torch.Tensor) -> torch.Tensor:
+        """Publish ``tensor`` in this rank's slot and wait for every peer's: the round's slots, ``[world, n]``, valid
+        until this rank's next round but one."""
         n = tensor.numel()
         slots = self._slots[self._round % 2, :, :n]
         self._round += 1
@@ -92,8 +102,7 @@ class SharedMemoryAllReduce:
         except BrokenPipeError:
             raise PeerLost("a peer rank exited during an all-reduce") from None
         self._await(self.world - 1)
-        torch.sum(slots, dim=0, out=tensor.view(-1))
-        return tensor
+        return slots
 
     def _await(self, count: int) -> None:
         while count:

@@ -16,6 +16,7 @@ TensorDict round trips; Adam runs as one fused kernel.
 
 from __future__ import annotations
 
+import enum
 from collections.abc import Iterator
 
 import torch
@@ -35,6 +36,13 @@ from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.phases import Phases
 
 
+class Role(enum.Enum):
+    """What a rank learns in a split update: one of the two models, on the whole batch (its value is the rank)."""
+
+    ACTOR = 0
+    CRITIC = 1
+
+
 class FusedPPO(PPO):
     """rsl-rl PPO (MLP policies) with one all-reduce per minibatch, over shared memory where ranks share a host."""
 
@@ -44,10 +52,13 @@ class FusedPPO(PPO):
         reducer: SharedMemoryAllReduce | None = None,
         reshuffle_each_epoch: bool = False,
         phases: Phases | None = None,
+        role: Role | None = None,
         **kwargs,
     ) -> None:
         super().__init__(*args, **kwargs)
         self.reducer = reducer
+        self.role = role
+        """The model this rank learns in a split update (two ranks); None: data-parallel, or alone."""
         self.phases = phases or Phases()
         self.reshuffle_each_epoch = reshuffle_each_epoch
         self._actor_params = list(self.actor.parameters())
@@ -73,68 +84,120 @@ class FusedPPO(PPO):
         sums = {"value": 0.0, "surrogate": 0.0, "entropy": 0.0}
         params = self._actor_params + self._critic_params
         actor, critic = self._raw_actor, self._raw_critic
-        for batch in self._mini_batches():
+        learns_actor, learns_critic = self.role is not Role.CRITIC, self.role is not Role.ACTOR
+        adaptive = self.desired_kl is not None and self.schedule == "adaptive"
+        fields, orders = self._gathered_rollout() if self.role is not None else self._local_rollout()
+        sends = []  # split update, adaptive schedule: the actor's KL of each minibatch, on its way to the critic
+        for batch in self._mini_batches(fields, orders):
             if self.normalize_advantage_per_mini_batch:
                 with torch.no_grad():
                     batch.advantages = (batch.advantages - batch.advantages.mean()) / (batch.advantages.std() + 1e-8)
-            distribution = actor.distribution
-            distribution.update(actor.mlp(actor.obs_normalizer(batch.observations)))
-            actions_log_prob = distribution.log_prob(batch.actions)
-            values = critic.mlp(critic.obs_normalizer(batch.observations))
-            entropy = distribution.entropy
-            adaptive = self.desired_kl is not None and self.schedule == "adaptive"
-            if adaptive:
-                with torch.inference_mode():
-                    kl_mean = torch.mean(distribution.kl_divergence(batch.old_distribution_params, distribution.params))
-
-            ratio = torch.exp(actions_log_prob - torch.squeeze(batch.old_actions_log_prob))
-            advantages = torch.squeeze(batch.advantages)
-            surrogate = -advantages * ratio
-            surrogate_clipped = -advantages * torch.clamp(ratio, 1.0 - self.clip_param, 1.0 + self.clip_param)
-            surrogate_loss = torch.max(surrogate, surrogate_clipped).mean()
-            if self.use_clipped_value_loss:
-                value_clipped = batch.values + (values - batch.values).clamp(-self.clip_param, self.clip_param)
-                value_loss = torch.max((values - batch.returns).pow(2), (value_clipped - batch.returns).pow(2)).mean()
+            if learns_actor:
+                distribution = actor.distribution
+                distribution.update(actor.mlp(actor.obs_normalizer(batch.observations)))
+                actions_log_prob = distribution.log_prob(batch.actions)
+                entropy = distribution.entropy
+                if adaptive:
+                    with torch.inference_mode():
+                        kl_mean = torch.mean(
+                            distribution.kl_divergence(batch.old_distribution_params, distribution.params)
+                        )
+                    if self.role is Role.ACTOR:  # the critic's learning rate follows it too
+                        sends.append(dist.isend(kl_mean.view(1).clone(), dst=Role.CRITIC.value))
+                ratio = torch.exp(actions_log_prob - torch.squeeze(batch.old_actions_log_prob))
+                advantages = torch.squeeze(batch.advantages)
+                surrogate = -advantages * ratio
+                surrogate_clipped = -advantages * torch.clamp(ratio, 1.0 - self.clip_param, 1.0 + self.clip_param)
+                surrogate_loss = torch.max(surrogate, surrogate_clipped).mean()
+            if learns_critic:
+                values = critic.mlp(critic.obs_normalizer(batch.observations))
+                if self.use_clipped_value_loss:
+                    value_clipped = batch.values + (values - batch.values).clamp(-self.clip_param, self.clip_param)
+                    value_loss = torch.max(
+                        (values - batch.returns).pow(2), (value_clipped - batch.returns).pow(2)
+                    ).mean()
+                else:
+                    value_loss = (batch.returns - values).pow(2).mean()
+            if self.role is None:
+                loss = surrogate_loss + self.value_loss_coef * value_loss - self.entropy_coef * entropy.mean()
+            elif learns_actor:  # the same gradients of the actor's weights as from the whole loss, bit for bit
+                loss = surrogate_loss - self.entropy_coef * entropy.mean()
             else:
-                value_loss = (batch.returns - values).pow(2).mean()
-            loss = surrogate_loss + self.value_loss_coef * value_loss - self.entropy_coef * entropy.mean()
+                loss = self.value_loss_coef * value_loss
 
             self.optimizer.zero_grad()
             loss.backward()
-            if self.is_multi_gpu:
+            if self.is_multi_gpu and self.role is None:
                 kl_mean = self._all_reduce_mean(params, kl_mean if adaptive else None)
+            elif adaptive and self.role is Role.CRITIC:
+                kl_mean = self._receive_kl()
             if adaptive:
                 self._adapt_learning_rate(kl_mean)
-            nn.utils.clip_grad_norm_(self._actor_params, self.max_grad_norm)
-            nn.utils.clip_grad_norm_(self._critic_params, self.max_grad_norm)
-            self.optimizer.step()
+            if learns_actor:
+                nn.utils.clip_grad_norm_(self._actor_params, self.max_grad_norm)
+            if learns_critic:
+                nn.utils.clip_grad_norm_(self._critic_params, self.max_grad_norm)
+            self.optimizer.step()  # Adam steps only the weights that have gradients: this rank's model
 
-            sums["value"] += value_loss.item()
-            sums["surrogate"] += surrogate_loss.item()
-            sums["entropy"] += entropy.mean().item()
+            if learns_critic:
+                sums["value"] += value_loss.item()
+            if learns_actor:
+                sums["surrogate"] += surrogate_loss.item()
+                sums["entropy"] += entropy.mean().item()
 
-        self._update_normalizers(self.storage.observations[OBS_GROUP].flatten(0, 1))
+        if self.role is not None:
+            for send in sends:
+                send.wait()
+            sums = self._exchange_models(sums)
+        self._update_normalizers(fields[0])
         self.storage.clear()
         num_updates = self.num_learning_epochs * self.num_mini_batches
         return {key: value / num_updates for key, value in sums.items()}
 
-    def _mini_batches(self) -> Iterator[RolloutStorage.Batch]:
-        """rsl-rl's ``mini_batch_generator`` with the one observation group as a plain tensor (no TensorDict indexing
-        per minibatch). rsl-rl draws one permutation for all epochs, so every epoch visits the same minibatches in the
-        same order; with ``reshuffle_each_epoch`` each epoch draws its own, as SB3 and most PPOs do."""
+    def _local_rollout(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """This rank's rollout, flat (the one observation group as a plain tensor, no TensorDict indexing per
+        minibatch), and the sample order of each epoch."""
         storage = self.storage
-        size = storage.num_envs * storage.num_transitions_per_env // self.num_mini_batches
-        count = size * self.num_mini_batches
         fields = (storage.observations[OBS_GROUP], storage.actions, storage.values, storage.advantages)
         fields += (storage.returns, storage.actions_log_prob, *storage.distribution_params)
-        flat = [field.flatten(0, 1) for field in fields]
-        indices = torch.randperm(count)
+        return [field.flatten(0, 1) for field in fields], self._sample_orders(storage.num_envs)
+
+    def _gathered_rollout(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+        """Split update: every rank's rollout, environments in rank order (one global batch, as one rank with all
+        the environments would hold it), in the sample order rank 0 drew. One all-gather per iteration."""
+        storage = self.storage
+        fields = (storage.observations[OBS_GROUP], storage.actions, storage.values, storage.advantages)
+        fields += (storage.returns, storage.actions_log_prob, *storage.distribution_params)
+        orders = self._sample_orders(storage.num_envs * self.gpu_world_size)
+        mine = torch.cat([field.reshape(-1) for field in fields] + [order.float() for order in orders])
+        with self.phases("sync_update"):
+            every = self._all_gather(mine)
+        sizes = [field.numel() for field in fields] + [order.numel() for order in orders]
+        per_rank = [torch.split(row, sizes) for row in every]
+        gathered = [  # [steps, envs, d] of each rank -> [steps, envs of all ranks, d] -> [steps x all envs, d]
+            torch.cat([parts[i].view(field.shape) for parts in per_rank], dim=1).flatten(0, 1)
+            for i, field in enumerate(fields)
+        ]
+        return gathered, [order.long() for order in per_rank[0][len(fields) :]]
+
+    def _sample_orders(self, num_envs: int) -> list[torch.Tensor]:
+        """The sample order of each epoch, drawn up front (nothing else draws during the update): rsl-rl draws one
+        permutation for all epochs, so every epoch visits the same minibatches in the same order; with
+        ``reshuffle_each_epoch`` each epoch draws its own, as SB3 and most PPOs do."""
+        count = num_envs * self.storage.num_transitions_per_env
+        return [torch.randperm(count) for _ in range(self.num_learning_epochs if self.reshuffle_each_epoch else 1)]
+
+    def _mini_batches(
+        self, fields: list[torch.Tensor], orders: list[torch.Tensor]
+    ) -> Iterator[RolloutStorage.Batch]:
+        """rsl-rl's ``mini_batch_generator`` over ``fields`` in the given sample order of each epoch."""
+        count = fields[0].shape[0]
+        size = count // self.num_mini_batches
         for epoch in range(self.num_learning_epochs):
-            if epoch and self.reshuffle_each_epoch:
-                indices = torch.randperm(count)
-            for start in range(0, count, size):
+            indices = orders[min(epoch, len(orders) - 1)]
+            for start in range(0, size * self.num_mini_batches, size):
                 obs, actions, values, advantages, returns, log_prob, *old = (
-                    f[indices[start : start + size]] for f in flat
+                    f[indices[start : start + size]] for f in fields
                 )
                 yield RolloutStorage.Batch(obs, actions, values, advantages, returns, log_prob, tuple(old))
 
@@ -156,6 +219,55 @@ class FusedPPO(PPO):
             dist.all_reduce(tensor)
             return tensor
 
+    def _receive_kl(self) -> torch.Tensor:
+        """Split update, adaptive schedule: the KL of this minibatch, from the actor's rank (which is ahead: it
+        learns the larger model, and sends without waiting)."""
+        kl_mean = torch.empty(1)
+        with self.phases("sync_update"):
+            dist.recv(kl_mean, src=Role.ACTOR.value)
+        return kl_mean[0]
+
+    def _all_gather(self, tensor: torch.Tensor) -> torch.Tensor:
+        """Every rank's ``tensor`` in rank order, ``[world, n]``."""
+        with self.phases("sync_update"):
+            if self.reducer is not None and tensor.numel() <= self.reducer.capacity:
+                return self.reducer.all_gather(tensor)
+            every = [torch.empty_like(tensor) for _ in range(self.gpu_world_size)]
+            dist.all_gather(every, tensor)
+            return torch.stack(every)
+
+    def _exchange_models(self, sums: dict[str, float]) -> dict[str, float]:
+        """Split update: each rank sends the model it learned (weights, Adam's moments and step counts) with its
+        losses, and takes the other's, so both end the update with the same state, as after a data-parallel one."""
+        models = {Role.ACTOR: self._actor_params, Role.CRITIC: self._critic_params}
+        size = max(sum(3 * p.numel() + 1 for p in params) for params in models.values()) + len(sums)
+        mine = torch.cat([torch.tensor(list(sums.values()))] + [self._adam_record(p) for p in models[self.role]])
+        every = self._all_gather(torch.cat([mine, mine.new_zeros(size - mine.numel())]))
+        for role, params in models.items():
+            if role is not self.role:
+                self._load_adam_records(params, every[role.value, len(sums) :])
+        actor, critic = (dict(zip(sums, every[role.value, : len(sums)].tolist(), strict=True)) for role in Role)
+        return {"value": critic["value"], "surrogate": actor["surrogate"], "entropy": actor["entropy"]}
+
+    def _adam_record(self, param: nn.Parameter) -> torch.Tensor:
+        state = self.optimizer.state[param]
+        parts = (param.detach(), state["exp_avg"], state["exp_avg_sq"], state["step"])
+        return torch.cat([part.reshape(-1) for part in parts])
+
+    def _load_adam_records(self, params: list[nn.Parameter], records: torch.Tensor) -> None:
+        """Weights and Adam state of ``params`` from their owner's records (Adam's own state layout, created here
+        on the first exchange as Adam would create it on a first step)."""
+        offset = 0
+        with torch.no_grad():
+            for param in params:
+                state = self.optimizer.state[param]
+                if not state:
+                    state.update(step=torch.zeros((), dtype=torch.float32), exp_avg=torch.zeros_like(param))
+                    state["exp_avg_sq"] = torch.zeros_like(param)
+                for target in (param, state["exp_avg"], state["exp_avg_sq"], state["step"]):
+                    target.view(-1).copy_(records[offset : offset + target.numel()])
+                    offset += target.numel()
+
     def _update_normalizers(self, obs: torch.Tensor) -> None:
         """rsl-rl's ``EmpiricalNormalization.update`` for actor and critic at once, from global batch moments.
 
@@ -171,13 +283,15 @@ class FusedPPO(PPO):
             for normalizer in normalizers:
                 normalizer.update(obs)
             return
-        local_count = obs.shape[0]
-        local_mean = obs.mean(dim=0, keepdim=True)
-        local_var = obs.var(dim=0, unbiased=False, keepdim=True)
-        sums = self._sum_over_ranks(torch.cat([(local_mean * local_count).view(-1), torch.tensor([local_count * 1.0])]))
-        count = round(sums[-1].item())
-        mean = (sums[:-1] / count).view(1, -1)
-        var = self._sum_over_ranks(local_count * (local_var + (local_mean - mean).square())) / count
+        count = obs.shape[0]
+        mean = obs.mean(dim=0, keepdim=True)
+        var = obs.var(dim=0, unbiased=False, keepdim=True)
+        if self.role is None:  # data-parallel: this rank's share of the batch; a split update holds all of it
+            sums = self._sum_over_ranks(torch.cat([(mean * count).view(-1), torch.tensor([count * 1.0])]))
+            local_count, local_mean, local_var = count, mean, var
+            count = round(sums[-1].item())
+            mean = (sums[:-1] / count).view(1, -1)
+            var = self._sum_over_ranks(local_count * (local_var + (local_mean - mean).square())) / count
         count_x = torch.tensor(count, dtype=torch.long)
         for normalizer in normalizers:
             normalizer.count += count_x
@@ -203,9 +317,16 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases 
     critic = build_model(config, obs, "critic", 1)
     storage = RolloutStorage("rl", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
     a = config.algorithm
+    split = splits_update(config, info)
     reducer = None
     if config.shared_memory_all_reduce and same_host(info):
-        capacity = sum(p.numel() for model in (actor, critic) for p in model.parameters()) + 1
+        sizes = [p.numel() for model in (actor, critic) for p in model.parameters()]
+        capacity = sum(sizes) + 1
+        if split:  # the exchange of models (weights, Adam's moments and steps, losses); the rollout and its orders
+            samples = env.num_envs * config.num_steps_per_env
+            draws = a.num_learning_epochs if a.reshuffle_each_epoch else 1
+            rollout = samples * (env.num_obs + 3 * env.num_actions + 4 + 2 * draws)
+            capacity = max(capacity, 3 * sum(sizes) + len(sizes) + 3, rollout)
         reducer = SharedMemoryAllReduce(info, capacity, config.dist_timeout)
     return FusedPPO(
         actor,
@@ -228,7 +349,15 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases 
         reducer=reducer,
         reshuffle_each_epoch=a.reshuffle_each_epoch,
         phases=phases,
+        role=Role(info.rank) if split else None,
     )
+
+
+def splits_update(config: Config, info: RankInfo) -> bool:
+    """Whether two ranks split the update by model (``split_update``): rank 0 learns the actor, rank 1 the critic,
+    each on the whole batch, with no meeting per minibatch (with the adaptive schedule the actor sends the critic
+    each minibatch's KL, without waiting for it)."""
+    return config.split_update and info.world_size == 2
 
 
 def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Distillation:

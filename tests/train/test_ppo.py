@@ -12,7 +12,7 @@ import torch
 from ftrain.config import load_config
 from ftrain.dist.group import RankInfo
 from ftrain.train.envs import MujocoVecEnv
-from ftrain.train.ppo import build_ppo
+from ftrain.train.ppo import build_ppo, load_learned_state
 
 from helpers import REPO, SMOKE, child_env
 
@@ -74,10 +74,57 @@ def test_minibatches_cover_the_rollout_every_epoch_in_one_or_fresh_orders(reshuf
             obs, rewards, dones, extras = env.step(alg.act(obs))
             alg.process_env_step(obs, rewards, dones, extras)
         alg.compute_returns(obs)
-    batches = [batch.observations for batch in alg._mini_batches()]
+    batches = [batch.observations for batch in alg._mini_batches(*alg._local_rollout())]
     per_epoch = len(batches) // 3
     epochs = [torch.cat(batches[i * per_epoch : (i + 1) * per_epoch]) for i in range(3)]
     everything = alg.storage.observations["policy"].flatten(0, 1)
     for epoch in epochs:
         assert torch.equal(epoch.sort(dim=0).values, everything.sort(dim=0).values)
     assert torch.equal(epochs[0], epochs[1]) == torch.equal(epochs[1], epochs[2]) == (not reshuffle)
+
+
+@pytest.mark.slow  # two worker processes under torchrun
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["algorithm.schedule=fixed"],
+        ["algorithm.schedule=adaptive"],
+        ["algorithm.schedule=fixed", "algorithm.reshuffle_each_epoch=true", "shared_memory_all_reduce=false"],
+    ],
+    ids=["shm", "adaptive", "gloo"],
+)
+def test_split_update_is_one_ranks_update_of_the_whole_batch(tmp_path, overrides: list[str]) -> None:
+    """At two ranks rank 0 learns the actor and rank 1 the critic: both must end with the state that one rank holding
+    every environment reaches from the same start, on the same batch in the same order, bit for bit."""
+    out = tmp_path / "split.pt"
+    worker = str(REPO / "tests" / "train" / "split_worker.py")
+    launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node=2"]
+    subprocess.run([*launcher, worker, str(out), *overrides], cwd=REPO, env=child_env(), check=True, timeout=300)
+    saved = torch.load(out, weights_only=True)
+    ends = [torch.load(f"{out}.{rank}", weights_only=True) for rank in (0, 1)]
+    config = load_config(SMOKE, [*overrides, "env.num_envs=8"])  # the smoke config's 4 environments, of both ranks
+    alone = build_ppo(config, MujocoVecEnv(config.env.id, 8, seed=0, kwargs=config.env.kwargs), RankInfo(0, 1, 0))
+    load_learned_state(alone, saved["start"]["models"], saved["start"]["learning_rate"])
+    fields, orders = saved["start"]["batch"]
+    assert fields[0].shape[0] == 8 * config.num_steps_per_env and len(orders) == (2 if len(overrides) > 1 else 1)
+    alone._local_rollout = lambda: (fields, orders)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as the ranks ran: another thread count sums a product in another order
+    try:
+        losses = alone.update()
+    finally:
+        torch.set_num_threads(threads)
+    expected = alone.save()
+    for end in ends:
+        for key in ("actor_state_dict", "critic_state_dict"):
+            for name, tensor in expected[key].items():
+                assert torch.equal(end["models"][key][name], tensor), (key, name)
+        theirs = end["models"]["optimizer_state_dict"]["state"]
+        assert sorted(theirs) == sorted(expected["optimizer_state_dict"]["state"])
+        for index, state in expected["optimizer_state_dict"]["state"].items():
+            assert all(torch.equal(theirs[index][key], value) for key, value in state.items()), index
+        assert end["losses"] == pytest.approx(losses, rel=1e-6)
+        assert end["learning_rate"] == alone.learning_rate
+    if "algorithm.schedule=adaptive" in overrides:  # the rate moved with the KL of the minibatches
+        assert alone.learning_rate != saved["start"]["learning_rate"]
+    assert saved["end"]["losses"]["value"] > 0 and saved["end"]["losses"]["entropy"] != 0

@@ -1,0 +1,45 @@
+"""Run under torchrun at two ranks: one rollout and one split update (rank 0 learns the actor, rank 1 the critic).
+Rank 0 saves, to OUT, what the update started from (models, optimizer, the gathered batch and its sample orders) and
+what it ended with; every rank saves its end state to OUT.RANK, so the test can replay the update on one rank."""
+
+from __future__ import annotations
+
+import copy
+import sys
+
+import torch
+
+from ftrain.config import load_config
+from ftrain.dist import group
+from ftrain.train.envs import MujocoVecEnv
+from ftrain.train.ppo import build_ppo
+
+
+def main(out: str, *overrides: str) -> None:
+    info = group.init(30)
+    torch.set_num_threads(1)
+    config = load_config("configs/smoke.yaml", list(overrides))
+    group.seed_all(config.seed)
+    env = MujocoVecEnv(config.env.id, config.env.num_envs, group.rank_seed(config.seed, info.rank), config.env.kwargs)
+    alg = build_ppo(config, env, info)
+    assert alg.role is not None, "two ranks split the update by default"
+    alg.train_mode()
+    obs = env.get_observations()
+    with torch.inference_mode():
+        for _ in range(config.num_steps_per_env):
+            obs, rewards, dones, extras = env.step(alg.act(obs))
+            alg.process_env_step(obs, rewards, dones, extras)
+        alg.compute_returns(obs)
+    start = {"models": copy.deepcopy(alg.save()), "learning_rate": alg.learning_rate}
+    gather = alg._gathered_rollout
+    alg._gathered_rollout = lambda: start.setdefault("batch", gather())
+    losses = alg.update()
+    end = {"models": alg.save(), "losses": losses, "learning_rate": alg.learning_rate}
+    if info.is_main:
+        torch.save({"start": start, "end": end}, out)
+    torch.save(end, f"{out}.{info.rank}")
+    group.shutdown()
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])
