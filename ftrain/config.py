@@ -206,13 +206,10 @@ class Config:
     dist_timeout: float = 60.0
     """Seconds a collective may wait for a peer before failing."""
     shared_memory_all_reduce: bool = True
-    """Sum the gradients of ranks on one machine through shared memory (``ftrain.dist.shm_allreduce``: ~0.03 ms where
-    gloo's loopback TCP takes 0.3-1.5 ms); false: gloo for every collective. gloo's bits at two ranks; at three or
-    more the same sum in another order, so the last bits of what is trained differ."""
+    """Ranks on one machine meet through shared memory (``ftrain.dist.shm_allreduce``), not gloo's loopback TCP."""
     split_update: bool = True
-    """At two ranks, split PPO's update by model: rank 0 learns the actor and rank 1 the critic, each on the whole
-    batch (gathered once per iteration), and they exchange the models once per iteration instead of meeting at every
-    minibatch (``ftrain.train.ppo``); false: data-parallel, every rank learns both on its share of the batch."""
+    """At two ranks rank 0 learns the actor and rank 1 the critic, each on the whole batch (``ftrain.train.ppo``);
+    false: data-parallel, every rank learns both models on its share."""
     teacher: Url = NO_URL
     """Distillation: URL of the teacher's checkpoint (a step or a run's storage)."""
     env: EnvConfig = field(default_factory=EnvConfig)
@@ -262,15 +259,8 @@ def training_part(data: dict) -> dict:
     return data
 
 
-KEYS_ADDED_LATER = (
-    "policy.std_type",
-    "policy.obs_clip",
-    "algorithm.schedule_iterations",
-    "algorithm.reshuffle_each_epoch",
-    "reward",
-    "shared_memory_all_reduce",
-    "split_update",
-)
+KEYS_ADDED_LATER = ("policy.std_type", "policy.obs_clip", "algorithm.schedule_iterations")
+KEYS_ADDED_LATER += ("algorithm.reshuffle_each_epoch", "reward", "shared_memory_all_reduce", "split_update")
 """Training keys newer than the first checkpoints: hashed only when not at their defaults, so older runs resume."""
 
 

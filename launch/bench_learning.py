@@ -26,6 +26,7 @@ against wall time) and ``results.json`` with every curve and the machine's load 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import math
 import os
@@ -132,7 +133,8 @@ def run_ftrain(
     config = load_config(str(config_path), overrides)
     per_iteration = ranks * config.env.num_envs * config.num_steps_per_env
     iterations = math.ceil(steps / per_iteration)
-    tag = f"{name}-{ranks}x{config.env.num_envs}-seed{seed}"  # each case a storage and a curve of its own
+    digest = hashlib.sha256(" ".join(overrides).encode()).hexdigest()[:8]
+    tag = f"{name}-{ranks}x{config.env.num_envs}-{digest}-seed{seed}"  # each case a storage and a curve of its own
     storage, curve = work / tag, work / f"{tag}.jsonl"
     run = Run(steps=iterations * per_iteration, load=(load_average(), math.nan))
     launched = time.time()

@@ -13,7 +13,11 @@ sits between two ceiling measurements, and is taken as a fraction of their mean;
 It also prints where an iteration's time goes at N ranks (``ftrain.train.phases``: mean over ranks and timed
 iterations, in ms), rsl-rl's and stable-baselines3's 1-process steps/s in the same run (``--peers``), and the cores.
 
-    .venv/bin/python launch/bench_scale.py [--ranks 1 2] [--rounds 3] [--iterations 60] [--peers]
+    .venv/bin/python launch/bench_scale.py [--ranks 1 2] [--rounds 3] [--iterations 60] [--peers] [--set KEY=VALUE]
+
+At two ranks ftrain splits the update by model (``split_update``): each rank then learns one model on both ranks'
+samples instead of both models on its own, which is less work per rank than a 1-rank run's, so the fraction can pass
+1; ``--set split_update=false`` measures the data-parallel update against the same ceiling.
 """
 
 from __future__ import annotations
@@ -37,6 +41,8 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=3, help=rounds)
     parser.add_argument("--iterations", type=int, default=60, help="timed iterations per run, after 3 of warm-up")
     parser.add_argument("--peers", action="store_true", help="also measure rsl-rl and SB3, 1 process each")
+    setting = "config overrides for ftrain's N-rank runs only, e.g. split_update=false (the ceilings stay)"
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help=setting)
     args = parser.parse_args()
     overrides = tuple(SETTINGS["fixed"]().overrides())
     print(f"cores: {cores} usable of {os.cpu_count()}; work per rank: {SETTINGS['fixed']()}", flush=True)
@@ -45,7 +51,7 @@ def main() -> int:
     for ranks in args.ranks:
         ceilings, speeds, phases = [ceiling(args.iterations, ranks, overrides)], [], []
         for _ in range(args.rounds):  # ceiling, ftrain, ceiling, ...: each ftrain run between two ceilings
-            ours = run_side_by_side(args.iterations, [ranks], overrides=overrides)[0]
+            ours = run_side_by_side(args.iterations, [ranks], overrides=(*overrides, *args.set))[0]
             ceilings.append(ceiling(args.iterations, ranks, overrides))
             speeds.append(ours["median_steps_per_s"])
             phases.append(ours["phases_ms"])

@@ -1,31 +1,32 @@
 """Strong scaling: the same learning, sooner. HalfCheetah-v5 trained to an evaluation return of ``--target`` in each
 case of ``--cases`` (ranks x environments per rank), against what the machine allows.
 
-    .venv/bin/python launch/bench_time_to_target.py [--cases 1x32 2x16 2x32] [--seeds 1 2 3] [--target 5000]
+    .venv/bin/python launch/bench_time_to_target.py [--cases 1x32 2x16 2x16:dp] [--seeds 1 2 3] [--target 5000]
 
 The shipped ``configs/halfcheetah.yaml`` is tuned at 2 ranks x 16 environments: 512 environment steps per iteration,
-10 epochs of 4 minibatches. Two ways to use N ranks:
+10 epochs of 4 minibatches. The cases (default: ``1x32 2x16 2x16:dp``) keep that global batch, so the learning per
+environment step is the same, and only the time it takes can differ:
 
-- Split one global batch (``1x32``, ``2x16``: 512 steps per iteration either way): every minibatch update averages
-  the gradients of the same 128 samples over the ranks, and the learning-rate schedule is the same, so the curves
-  against environment steps agree; but every rank still makes all 40 updates of each iteration, each a meeting of
-  the ranks, and their cost hardly shrinks with the samples. The ceiling below says how much sooner this can be.
-- A larger global batch (``2x32``: 1,024 steps per iteration): each rank does the work of one rank alone, the
-  iterations to a number of environment steps halve, and so do the updates (and meetings) per environment step.
-  Whether the returns hold at equal environment steps is what the run shows. The learning-rate schedule is scaled to
-  end at the same number of environment steps (``algorithm.schedule_iterations``).
+- ``2x16``: two ranks split the update (``split_update``, the default at two ranks): rank 0 learns the actor and
+  rank 1 the critic, each on the whole batch; they meet to gather the rollout and to exchange the models, not at
+  every minibatch. The update is one rank's update of that batch, bit for bit.
+- ``2x16:dp``: data-parallel (``split_update=false``): every rank makes all 40 minibatch updates of both models on
+  its half of each minibatch (their cost hardly shrinks with the samples), and every one is a meeting of the ranks.
+- Other cases (e.g. ``2x32``, a doubled batch) change the learning; their learning-rate schedule is scaled to end at
+  the same number of environment steps (``algorithm.schedule_iterations``).
 
 Each run stops at its first periodic evaluation (10 deterministic episodes, every ``eval.every`` iterations) at or
 above the target; its time is wall clock from launching torchrun, start-up included, with the clock paused while it
 evaluates (``bench_learning.CurveHook``). A run that does not reach it by ``--steps`` steps counts as not reached.
 Seeds go round the cases, so a drift of the machine hits every case alike.
 
-What the machine allows each case: N x the steps/s of the slowest of N independent 1-rank runs of the case's
-environments per rank started side by side (``ftrain.tools.bench.run_side_by_side``, median iterations), against the
-first case's alone: the speed-up in steps/s N ranks could give at best on these cores (for a split batch, whose learning
-per environment step is the first case's, it bounds the speed-up of the time to the target too). Beside it, the steps/s
-each case reached (from a run's first evaluation to the one at the target: start-up left out). Writes a plot of return
-against environment steps and wall time (a colour per case, a line per seed) and ``results.json`` to ``--out``.
+What the machine allows each case: N x the steps/s of the slowest of N independent 1-rank runs started side by side
+(``ftrain.tools.bench.run_side_by_side``, median iterations), each doing what one rank of the case does alone (its
+environments; for a split update, the whole job of both ranks' environments, which the two ranks share), against the
+first case's alone. For a case with the first case's learning per environment step, it bounds the speed-up of the time
+to the target too. Beside it, the steps/s each case reached (from a run's first evaluation to the one at the target:
+start-up left out). Writes a plot of return against environment steps and wall time (a colour per case, a line per
+seed) and ``results.json`` to ``--out``.
 """
 
 from __future__ import annotations
@@ -38,6 +39,7 @@ import sys
 import tempfile
 from dataclasses import asdict
 from pathlib import Path
+from typing import NamedTuple
 
 import bench_learning
 from bench_learning import Run, run_ftrain
@@ -48,19 +50,43 @@ from ftrain.tools.bench import run_side_by_side
 COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
 
 
-def parse_case(case: str) -> tuple[int, int]:
-    ranks, _, envs = case.partition("x")
-    if not (ranks.isdigit() and envs.isdigit() and int(ranks) and int(envs)):
-        raise argparse.ArgumentTypeError(f"{case!r} is not RANKSxENVS, e.g. 2x16")
-    return int(ranks), int(envs)
+class Case(NamedTuple):
+    """``RANKSxENVS`` (environments per rank), ``:dp`` for a data-parallel update where two ranks would split it."""
+
+    ranks: int
+    envs: int
+    data_parallel: bool
+
+    @property
+    def split(self) -> bool:
+        return self.ranks == 2 and not self.data_parallel
+
+    def __str__(self) -> str:
+        return f"{self.ranks}x{self.envs}{':dp' if self.data_parallel else ''}"
 
 
-def allowed_speedup(first: tuple[int, int], case: tuple[int, int], iterations: int) -> float:
-    """N x the steps/s of the slowest of N side-by-side 1-rank runs of ``case``'s environments per rank, over the
-    steps/s of the ``first`` case (one rank stepping all of its environments)."""
-    alone = run_side_by_side(iterations, [1], overrides=(f"env.num_envs={first[1]}",))[0]["median_steps_per_s"]
-    beside = run_side_by_side(iterations, [1] * case[0], overrides=(f"env.num_envs={case[1]}",))
-    return case[0] * min(run["median_steps_per_s"] for run in beside) / alone
+def parse_case(case: str) -> Case:
+    shape, _, mode = case.partition(":")
+    ranks, _, envs = shape.partition("x")
+    if not (ranks.isdigit() and envs.isdigit() and int(ranks) and int(envs)) or mode not in ("", "dp"):
+        raise argparse.ArgumentTypeError(f"{case!r} is not RANKSxENVS or RANKSxENVS:dp, e.g. 2x16")
+    return Case(int(ranks), int(envs), mode == "dp")
+
+
+def allowed_speedup(first: Case, case: Case, iterations: int) -> float:
+    """The steps/s the machine gives ``case`` at best, over the ``first`` case's alone: N x the steps/s of the
+    slowest of N side-by-side 1-rank runs of what each rank would do alone. A split update shares one job of all
+    the environments between its two ranks, so its bound is two such whole jobs side by side."""
+    alone = run_side_by_side(iterations, [1], overrides=(f"env.num_envs={first.envs}",))[0]["median_steps_per_s"]
+    envs = case.envs * case.ranks if case.split else case.envs
+    beside = run_side_by_side(iterations, [1] * case.ranks, overrides=(f"env.num_envs={envs}",))
+    per_rank = min(run["median_steps_per_s"] for run in beside)
+    return case.ranks * per_rank / alone
+
+
+def describe(case: Case) -> str:
+    update = ", split update" if case.split else ", data-parallel" if case.ranks > 1 else ""
+    return f"{case.ranks} rank{'s' if case.ranks > 1 else ''} x {case.envs} envs{update}"
 
 
 def rate(run: Run, target: float) -> float:
@@ -84,8 +110,7 @@ def plot(runs: dict[str, list[Run]], target: float, path: Path) -> None:
         for color, (case, seeds) in zip(COLORS, runs.items(), strict=False):
             for index, run in enumerate(seeds):
                 points = [(point[column], point[2]) for point in run.curve]
-                ranks, envs = parse_case(case)
-                name = f"{ranks} rank{'s' if ranks > 1 else ''} x {envs} envs" if index == 0 else None
+                name = describe(parse_case(case)) if index == 0 else None
                 ax.plot(*zip(*points, strict=True), "-", color=color, linewidth=1, label=name)
         ax.axhline(target, color="gray", linestyle="--", linewidth=1, label=f"target {target:,.0f}")
         ax.set_xlabel(label)
@@ -101,7 +126,8 @@ def plot(runs: dict[str, list[Run]], target: float, path: Path) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cases", type=parse_case, nargs="+", default=[(1, 32), (2, 16), (2, 32)])
+    cases = [parse_case(case) for case in ("1x32", "2x16", "2x16:dp")]
+    parser.add_argument("--cases", type=parse_case, nargs="+", default=cases)
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--target", type=float, default=5000.0)
     parser.add_argument("--steps", type=float, default=3e6, help="environment steps at most per run")
@@ -110,14 +136,15 @@ def main() -> int:
     args = parser.parse_args()
     config = load_config(str(bench_learning.REPO / "configs" / "halfcheetah.yaml"))
     tuned = 2 * config.env.num_envs  # the config's global batch, in environments: tuned at 2 ranks
-    names = [f"{ranks}x{envs}" for ranks, envs in args.cases]
+    names = [str(case) for case in args.cases]
     runs: dict[str, list[Run]] = {name: [] for name in names}
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
-            for name, (ranks, envs) in zip(names, args.cases, strict=True):
-                schedule = round(config.algorithm.schedule_iterations * tuned / (ranks * envs))
-                overrides = [f"env.num_envs={envs}", f"algorithm.schedule_iterations={schedule}"]
-                run = run_ftrain("halfcheetah", seed, int(args.steps), overrides, Path(tmp), ranks, args.target)
+            for name, case in zip(names, args.cases, strict=True):
+                schedule = round(config.algorithm.schedule_iterations * tuned / (case.ranks * case.envs))
+                overrides = [f"env.num_envs={case.envs}", f"algorithm.schedule_iterations={schedule}"]
+                overrides += ["split_update=false"] if case.data_parallel else []
+                run = run_ftrain("halfcheetah", seed, int(args.steps), overrides, Path(tmp), case.ranks, args.target)
                 runs[name].append(run)
                 where = next((point[0] for point in run.curve if point[2] >= args.target), math.nan)
                 print(

@@ -8,7 +8,13 @@ same synchronous data-parallel PPO and changes only how it communicates:
   KL, which is what rank 0 would have broadcast: one collective per minibatch;
 - on one machine that collective goes through shared memory (:mod:`ftrain.dist.shm_allreduce`), not loopback TCP
   (``shared_memory_all_reduce=false``: gloo);
-- actor and critic normalize the same observations, so their statistics are reduced once, in two collectives.
+- actor and critic normalize the same observations, so their statistics are reduced once, in two collectives;
+- at two ranks the update is split by model instead (``split_update``): the ranks gather the rollout into one global
+  batch, rank 0 learns the actor and rank 1 the critic on all of it, with Adam stepping only the weights that have
+  gradients, and they exchange weights, Adam's state and losses once at the end. That is one rank's update of the
+  global batch bit for bit (the actor's gradients from its share of the loss are those from the whole loss), with
+  two meetings per iteration instead of one per minibatch, and each rank learning one model instead of both; the
+  adaptive schedule's KL goes from actor to critic at every minibatch without the actor waiting.
 
 Its ``act`` computes what rsl-rl's does, on the one observation group ftrain's environments have, without the
 TensorDict round trips; Adam runs as one fused kernel.
@@ -29,9 +35,8 @@ from torch import nn
 from ftrain.config import Config
 from ftrain.dist.group import RankInfo
 from ftrain.dist.shm_allreduce import SharedMemoryAllReduce, same_host
-from ftrain.errors import UserError
-from ftrain.policy.load import load_policy
 from ftrain.policy.model import OBS_GROUP, build_actor, build_model
+from ftrain.train.distillation import build_distillation
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.phases import Phases
 
@@ -88,8 +93,8 @@ class FusedPPO(PPO):
         adaptive = self.desired_kl is not None and self.schedule == "adaptive"
         fields, orders = self._gathered_rollout() if self.role is not None else self._local_rollout()
         sends = []  # split update, adaptive schedule: the actor's KL of each minibatch, on its way to the critic
-        for batch in self._mini_batches(fields, orders):
-            if self.normalize_advantage_per_mini_batch:
+        for batch in self._mini_batches(fields, orders, self._fields_used(adaptive)):
+            if self.normalize_advantage_per_mini_batch and learns_actor:
                 with torch.no_grad():
                     batch.advantages = (batch.advantages - batch.advantages.mean()) / (batch.advantages.std() + 1e-8)
             if learns_actor:
@@ -188,18 +193,27 @@ class FusedPPO(PPO):
         return [torch.randperm(count) for _ in range(self.num_learning_epochs if self.reshuffle_each_epoch else 1)]
 
     def _mini_batches(
-        self, fields: list[torch.Tensor], orders: list[torch.Tensor]
+        self, fields: list[torch.Tensor], orders: list[torch.Tensor], used: frozenset[int] | None = None
     ) -> Iterator[RolloutStorage.Batch]:
-        """rsl-rl's ``mini_batch_generator`` over ``fields`` in the given sample order of each epoch."""
+        """rsl-rl's ``mini_batch_generator`` over ``fields`` in the given sample order of each epoch; the fields
+        not ``used`` (by index; default: all) are None."""
         count = fields[0].shape[0]
         size = count // self.num_mini_batches
         for epoch in range(self.num_learning_epochs):
             indices = orders[min(epoch, len(orders) - 1)]
             for start in range(0, size * self.num_mini_batches, size):
+                rows = indices[start : start + size]
                 obs, actions, values, advantages, returns, log_prob, *old = (
-                    f[indices[start : start + size]] for f in fields
+                    f[rows] if used is None or index in used else None for index, f in enumerate(fields)
                 )
                 yield RolloutStorage.Batch(obs, actions, values, advantages, returns, log_prob, tuple(old))
+
+    def _fields_used(self, adaptive: bool) -> frozenset[int] | None:
+        """The rollout fields (by index in :meth:`_local_rollout`'s order) this rank's share of a split update reads:
+        the actor's loss (and the KL, for the adaptive schedule), or the critic's."""
+        if self.role is Role.ACTOR:
+            return frozenset({0, 1, 3, 5, *((6, 7) if adaptive else ())})
+        return frozenset({0, 2, 4}) if self.role is Role.CRITIC else None
 
     def _all_reduce_mean(self, params: list[nn.Parameter], kl_mean: torch.Tensor | None) -> torch.Tensor | None:
         """Average every gradient (and the KL, riding in the same buffer) over all ranks, in place."""
@@ -358,47 +372,6 @@ def splits_update(config: Config, info: RankInfo) -> bool:
     each on the whole batch, with no meeting per minibatch (with the adaptive schedule the actor sends the critic
     each minibatch's KL, without waiting for it)."""
     return config.split_update and info.world_size == 2
-
-
-def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Distillation:
-    """rsl-rl's Distillation: a student like a PPO actor learns to imitate the teacher loaded from
-    ``config.teacher`` (any ftrain checkpoint URL, verified by its manifest; architecture from its own config)."""
-    teacher = load_policy(config.teacher, config.storage.options)
-    _check_teacher_fits(config, env, teacher)
-    obs = env.get_observations()
-    student = build_actor(config, obs, env.num_actions, obs_set="student")
-    storage = RolloutStorage("distillation", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
-    a = config.algorithm
-    alg = Distillation(
-        student,
-        teacher.actor,
-        storage,
-        num_learning_epochs=a.num_learning_epochs,
-        gradient_length=a.gradient_length,
-        learning_rate=a.learning_rate,
-        max_grad_norm=a.max_grad_norm,
-        loss_type=a.loss_type,
-        multi_gpu_cfg=info.rsl_rl_cfg(),
-    )
-    alg.teacher_loaded = True
-    alg.teacher_identity = {"source": teacher.source, "step": teacher.step, "digest": teacher.digest}
-    return alg
-
-
-def _check_teacher_fits(config: Config, env: MujocoVecEnv, teacher) -> None:
-    if teacher.exported is not None:
-        raise UserError(
-            f"teacher {teacher.source} is an exported {teacher.exported} file: pass the checkpoint or policy "
-            "snapshot it came from (distillation needs the actor's weights)"
-        )
-    teacher_obs = teacher.actor.obs_dim
-    teacher_actions = teacher.actor.distribution.output_dim if teacher.actor.distribution else None
-    if teacher.config.env.id != config.env.id or teacher_obs != env.num_obs or teacher_actions != env.num_actions:
-        raise UserError(
-            f"teacher {teacher.source} was trained on {teacher.config.env.id} (observations {teacher_obs}, actions "
-            f"{teacher_actions}) but the student trains on {config.env.id} (observations {env.num_obs}, actions "
-            f"{env.num_actions}): pick a teacher trained on {config.env.id}"
-        )
 
 
 def build_algorithm(

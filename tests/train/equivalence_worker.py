@@ -34,7 +34,8 @@ def rollout_and_update(alg, env: MujocoVecEnv, steps: int) -> tuple[list[torch.T
 def main(out: str) -> None:
     info = group.init(30)
     torch.set_num_threads(1)
-    config = load_config("configs/smoke.yaml", ["env.num_envs=8", "algorithm.num_mini_batches=4"])
+    # data-parallel, as rsl-rl is (two ranks would split the update: tests/train/split_worker.py)
+    config = load_config("configs/smoke.yaml", ["env.num_envs=8", "algorithm.num_mini_batches=4", "split_update=false"])
     seed = group.rank_seed(config.seed, info.rank)
     group.seed_all(config.seed)
     env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs)

@@ -1,0 +1,54 @@
+"""rsl-rl's Distillation built from an ftrain config: a student learns to imitate a trained teacher."""
+
+from __future__ import annotations
+
+from rsl_rl.algorithms import Distillation
+from rsl_rl.storage import RolloutStorage
+
+from ftrain.config import Config
+from ftrain.dist.group import RankInfo
+from ftrain.errors import UserError
+from ftrain.policy.load import load_policy
+from ftrain.policy.model import build_actor
+from ftrain.train.envs import MujocoVecEnv
+
+
+def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Distillation:
+    """rsl-rl's Distillation: a student like a PPO actor learns to imitate the teacher loaded from
+    ``config.teacher`` (any ftrain checkpoint URL, verified by its manifest; architecture from its own config)."""
+    teacher = load_policy(config.teacher, config.storage.options)
+    _check_teacher_fits(config, env, teacher)
+    obs = env.get_observations()
+    student = build_actor(config, obs, env.num_actions, obs_set="student")
+    storage = RolloutStorage("distillation", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
+    a = config.algorithm
+    alg = Distillation(
+        student,
+        teacher.actor,
+        storage,
+        num_learning_epochs=a.num_learning_epochs,
+        gradient_length=a.gradient_length,
+        learning_rate=a.learning_rate,
+        max_grad_norm=a.max_grad_norm,
+        loss_type=a.loss_type,
+        multi_gpu_cfg=info.rsl_rl_cfg(),
+    )
+    alg.teacher_loaded = True
+    alg.teacher_identity = {"source": teacher.source, "step": teacher.step, "digest": teacher.digest}
+    return alg
+
+
+def _check_teacher_fits(config: Config, env: MujocoVecEnv, teacher) -> None:
+    if teacher.exported is not None:
+        raise UserError(
+            f"teacher {teacher.source} is an exported {teacher.exported} file: pass the checkpoint or policy "
+            "snapshot it came from (distillation needs the actor's weights)"
+        )
+    teacher_obs = teacher.actor.obs_dim
+    teacher_actions = teacher.actor.distribution.output_dim if teacher.actor.distribution else None
+    if teacher.config.env.id != config.env.id or teacher_obs != env.num_obs or teacher_actions != env.num_actions:
+        raise UserError(
+            f"teacher {teacher.source} was trained on {teacher.config.env.id} (observations {teacher_obs}, actions "
+            f"{teacher_actions}) but the student trains on {config.env.id} (observations {env.num_obs}, actions "
+            f"{env.num_actions}): pick a teacher trained on {config.env.id}"
+        )
