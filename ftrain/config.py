@@ -208,8 +208,8 @@ class Config:
     shared_memory_all_reduce: bool = True
     """Ranks on one machine meet through shared memory (``ftrain.dist.shm_allreduce``), not gloo's loopback TCP."""
     split_update: bool = True
-    """At two ranks rank 0 learns the actor and rank 1 the critic, each on the whole batch (``ftrain.train.ppo``);
-    false: data-parallel, every rank learns both models on its share."""
+    """At an even number of ranks the first half learns the actor and the second the critic, on the whole batch
+    (``ftrain.train.split``); false: data-parallel, every rank learns both models on its share."""
     teacher: Url = NO_URL
     """Distillation: URL of the teacher's checkpoint (a step or a run's storage)."""
     env: EnvConfig = field(default_factory=EnvConfig)

@@ -102,17 +102,17 @@ def all_reduce_sum(values: list[float], info: RankInfo) -> list[float]:
     return tensor.tolist()
 
 
-def broadcast_object(value: object, info: RankInfo, group: dist.ProcessGroup | None = None) -> object:
-    """Rank 0's JSON-able ``value`` on every rank."""
+def broadcast_object(value: object, info: RankInfo, group: dist.ProcessGroup | None = None, src: int = 0) -> object:
+    """Rank ``src``'s JSON-able ``value`` on every rank (of ``group``, which ``src`` is in)."""
     if not info.distributed:
         return value
     size = torch.zeros(1, dtype=torch.int64)
-    data = _encode(value) if info.is_main else torch.empty(0, dtype=torch.uint8)
+    data = _encode(value) if info.rank == src else torch.empty(0, dtype=torch.uint8)
     size[0] = data.numel()
-    dist.broadcast(size, src=0, group=group)
-    if not info.is_main:
+    dist.broadcast(size, src=src, group=group)
+    if info.rank != src:
         data = torch.empty(int(size[0]), dtype=torch.uint8)
-    dist.broadcast(data, src=0, group=group)
+    dist.broadcast(data, src=src, group=group)
     return _decode(data)
 
 

@@ -38,17 +38,26 @@ def same_host(info: RankInfo) -> bool:
 
 
 class SharedMemoryAllReduce:
-    """Sum (or average) float32 buffers of up to ``capacity`` elements over all ranks of one machine.
+    """Sum (or average) float32 buffers of up to ``capacity`` elements over all ranks of one machine, or over the
+    ``ranks`` of ``group`` (global ranks, all on one machine).
 
-    Construct it on every rank at the same point (it uses the default process group once, to agree on names).
+    Construct it on every rank (of the group) at the same point: it uses the group once, to agree on names.
     """
 
-    def __init__(self, info: RankInfo, capacity: int, timeout_s: float) -> None:
-        self.rank, self.world = info.rank, info.world_size
+    def __init__(
+        self,
+        info: RankInfo,
+        capacity: int,
+        timeout_s: float,
+        group: dist.ProcessGroup | None = None,
+        ranks: list[int] | None = None,
+    ) -> None:
+        ranks = list(range(info.world_size)) if ranks is None else ranks
+        self.rank, self.world = ranks.index(info.rank), len(ranks)
         self.capacity = capacity
         self.timeout_ms = int(timeout_s * 1000)
-        prefix = os.path.join(_shared_dir(), f"ftrain-{uuid.uuid4().hex}") if info.is_main else None
-        prefix = broadcast_object(prefix, info)
+        prefix = os.path.join(_shared_dir(), f"ftrain-{uuid.uuid4().hex}") if self.rank == 0 else None
+        prefix = broadcast_object(prefix, info, group, src=ranks[0])
         segment, pipes = f"{prefix}.shm", [f"{prefix}-{rank}.fifo" for rank in range(self.world)]
         size = 2 * self.world * capacity * 4
         try:
@@ -58,7 +67,7 @@ class SharedMemoryAllReduce:
                 os.close(fd)
                 for pipe in pipes:
                     os.mkfifo(pipe, 0o600)
-            dist.barrier()
+            dist.barrier(group=group)
             fd = os.open(segment, os.O_RDWR)
             self._map = mmap.mmap(fd, size)
             os.close(fd)
@@ -66,11 +75,11 @@ class SharedMemoryAllReduce:
             # the reading end first, non-blocking, so opening never waits; then every peer's writing end, also
             # non-blocking: a peer that died in between makes the open fail (ENXIO) instead of waiting forever
             self._inbox = os.open(pipes[self.rank], os.O_RDONLY | os.O_NONBLOCK)
-            dist.barrier()
+            dist.barrier(group=group)
             self._peers = [
                 os.open(pipes[rank], os.O_WRONLY | os.O_NONBLOCK) for rank in range(self.world) if rank != self.rank
             ]
-            dist.barrier()
+            dist.barrier(group=group)
         finally:  # once every rank has opened them (or failed), the names go: nothing is left behind
             if self.rank == 0:
                 for path in (segment, *pipes):

@@ -9,12 +9,13 @@ same synchronous data-parallel PPO and changes only how it communicates:
 - on one machine that collective goes through shared memory (:mod:`ftrain.dist.shm_allreduce`), not loopback TCP
   (``shared_memory_all_reduce=false``: gloo);
 - actor and critic normalize the same observations, so their statistics are reduced once, in two collectives;
-- at two ranks the update is split by model instead (``split_update``): the ranks gather the rollout into one global
-  batch, rank 0 learns the actor and rank 1 the critic on all of it, with Adam stepping only the weights that have
-  gradients, and they exchange weights, Adam's state and losses once at the end. That is one rank's update of the
-  global batch bit for bit (the actor's gradients from its share of the loss are those from the whole loss), with
-  two meetings per iteration instead of one per minibatch, and each rank learning one model instead of both; the
-  adaptive schedule's KL goes from actor to critic at every minibatch without the actor waiting.
+- at an even number of ranks the update is split by model instead (``split_update``, ``ftrain.train.split``): the
+  ranks gather the rollout into one global batch, the first half learns the actor and the second half the critic on
+  all of it (data-parallel within a half), with Adam stepping only the weights that have gradients, and each half's
+  first rank sends its model, Adam's state for it and the losses to all at the end. At two ranks that is one rank's
+  update of the global batch bit for bit (the actor's gradients from its share of the loss are those from the whole
+  loss), with 4 meetings per iteration instead of 44, and each rank learning one model instead of both; the adaptive
+  schedule's KL goes from actor to critic at every minibatch without the actor waiting.
 
 Its ``act`` computes what rsl-rl's does, on the one observation group ftrain's environments have, without the
 TensorDict round trips; Adam runs as one fused kernel.
@@ -22,7 +23,6 @@ TensorDict round trips; Adam runs as one fused kernel.
 
 from __future__ import annotations
 
-import enum
 from collections.abc import Iterator
 
 import torch
@@ -39,13 +39,7 @@ from ftrain.policy.model import OBS_GROUP, build_actor, build_model
 from ftrain.train.distillation import build_distillation
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.phases import Phases
-
-
-class Role(enum.Enum):
-    """What a rank learns in a split update: one of the two models, on the whole batch (its value is the rank)."""
-
-    ACTOR = 0
-    CRITIC = 1
+from ftrain.train.split import Role, Team, adam_record, build_team, load_adam_record, record_size
 
 
 class FusedPPO(PPO):
@@ -57,13 +51,14 @@ class FusedPPO(PPO):
         reducer: SharedMemoryAllReduce | None = None,
         reshuffle_each_epoch: bool = False,
         phases: Phases | None = None,
-        role: Role | None = None,
+        team: Team | None = None,
         **kwargs,
     ) -> None:
         super().__init__(*args, **kwargs)
         self.reducer = reducer
-        self.role = role
-        """The model this rank learns in a split update (two ranks); None: data-parallel, or alone."""
+        self.team = team
+        """This rank's team in a split update (``ftrain.train.split``); None: data-parallel, or alone."""
+        self.role = team.role if team is not None else None
         self.phases = phases or Phases()
         self.reshuffle_each_epoch = reshuffle_each_epoch
         self._actor_params = list(self.actor.parameters())
@@ -93,7 +88,7 @@ class FusedPPO(PPO):
         adaptive = self.desired_kl is not None and self.schedule == "adaptive"
         fields, orders = self._gathered_rollout() if self.role is not None else self._local_rollout()
         sends = []  # split update, adaptive schedule: the actor's KL of each minibatch, on its way to the critic
-        for batch in self._mini_batches(fields, orders, self._fields_used(adaptive)):
+        for batch in self._mini_batches(fields, orders, self._fields_used(adaptive), self.team):
             if self.normalize_advantage_per_mini_batch and learns_actor:
                 with torch.no_grad():
                     batch.advantages = (batch.advantages - batch.advantages.mean()) / (batch.advantages.std() + 1e-8)
@@ -107,8 +102,6 @@ class FusedPPO(PPO):
                         kl_mean = torch.mean(
                             distribution.kl_divergence(batch.old_distribution_params, distribution.params)
                         )
-                    if self.role is Role.ACTOR:  # the critic's learning rate follows it too
-                        sends.append(dist.isend(kl_mean.view(1).clone(), dst=Role.CRITIC.value))
                 ratio = torch.exp(actions_log_prob - torch.squeeze(batch.old_actions_log_prob))
                 advantages = torch.squeeze(batch.advantages)
                 surrogate = -advantages * ratio
@@ -134,6 +127,13 @@ class FusedPPO(PPO):
             loss.backward()
             if self.is_multi_gpu and self.role is None:
                 kl_mean = self._all_reduce_mean(params, kl_mean if adaptive else None)
+            elif self.team is not None and self.team.size > 1:  # the team's mean gradient (and the actor's KL)
+                own = self._actor_params if learns_actor else self._critic_params
+                reduced = self._all_reduce_mean(own, kl_mean if adaptive and learns_actor else None, self.team)
+                if adaptive and learns_actor:
+                    kl_mean = reduced
+            if adaptive and self.role is Role.ACTOR:  # the critic's learning rate follows the actor's KL
+                sends.append(dist.isend(kl_mean.view(1).clone(), dst=self.team.partner))
             elif adaptive and self.role is Role.CRITIC:
                 kl_mean = self._receive_kl()
             if adaptive:
@@ -193,16 +193,22 @@ class FusedPPO(PPO):
         return [torch.randperm(count) for _ in range(self.num_learning_epochs if self.reshuffle_each_epoch else 1)]
 
     def _mini_batches(
-        self, fields: list[torch.Tensor], orders: list[torch.Tensor], used: frozenset[int] | None = None
+        self,
+        fields: list[torch.Tensor],
+        orders: list[torch.Tensor],
+        used: frozenset[int] | None = None,
+        team: Team | None = None,
     ) -> Iterator[RolloutStorage.Batch]:
         """rsl-rl's ``mini_batch_generator`` over ``fields`` in the given sample order of each epoch; the fields
-        not ``used`` (by index; default: all) are None."""
+        not ``used`` (by index; default: all) are None; a member of a ``team`` gets its share of each minibatch."""
         count = fields[0].shape[0]
         size = count // self.num_mini_batches
         for epoch in range(self.num_learning_epochs):
             indices = orders[min(epoch, len(orders) - 1)]
             for start in range(0, size * self.num_mini_batches, size):
                 rows = indices[start : start + size]
+                if team is not None and team.size > 1:
+                    rows = rows.tensor_split(team.size)[team.index]
                 obs, actions, values, advantages, returns, log_prob, *old = (
                     f[rows] if used is None or index in used else None for index, f in enumerate(fields)
                 )
@@ -215,30 +221,35 @@ class FusedPPO(PPO):
             return frozenset({0, 1, 3, 5, *((6, 7) if adaptive else ())})
         return frozenset({0, 2, 4}) if self.role is Role.CRITIC else None
 
-    def _all_reduce_mean(self, params: list[nn.Parameter], kl_mean: torch.Tensor | None) -> torch.Tensor | None:
-        """Average every gradient (and the KL, riding in the same buffer) over all ranks, in place."""
+    def _all_reduce_mean(
+        self, params: list[nn.Parameter], kl_mean: torch.Tensor | None, team: Team | None = None
+    ) -> torch.Tensor | None:
+        """Average every gradient (and the KL, riding in the same buffer) over all ranks, or over ``team``, in place."""
         grads = [p.grad.view(-1) for p in params if p.grad is not None]
         extra = [kl_mean.view(1).to(grads[0].dtype)] if kl_mean is not None else []
-        packed = self._sum_over_ranks(torch.cat(grads + extra)).div_(self.gpu_world_size)
+        ranks = team.size if team is not None else self.gpu_world_size
+        packed = self._sum_over_ranks(torch.cat(grads + extra), team).div_(ranks)
         offset = 0
         for grad in grads:
             grad.copy_(packed[offset : offset + grad.numel()])
             offset += grad.numel()
         return packed[offset] if kl_mean is not None else None
 
-    def _sum_over_ranks(self, tensor: torch.Tensor) -> torch.Tensor:
+    def _sum_over_ranks(self, tensor: torch.Tensor, team: Team | None = None) -> torch.Tensor:
+        """In place, over all ranks or over ``team``: through shared memory where it has some, else gloo."""
+        reducer, group = (team.reducer, team.group) if team is not None else (self.reducer, None)
         with self.phases("sync_update"):
-            if self.reducer is not None:
-                return self.reducer.all_reduce_(tensor)
-            dist.all_reduce(tensor)
+            if reducer is not None:
+                return reducer.all_reduce_(tensor)
+            dist.all_reduce(tensor, group=group)
             return tensor
 
     def _receive_kl(self) -> torch.Tensor:
-        """Split update, adaptive schedule: the KL of this minibatch, from the actor's rank (which is ahead: it
-        learns the larger model, and sends without waiting)."""
+        """Split update, adaptive schedule: the KL of this minibatch, from the actor's rank at this rank's place in
+        the teams (which is ahead: it learns the larger model, and sends without waiting)."""
         kl_mean = torch.empty(1)
         with self.phases("sync_update"):
-            dist.recv(kl_mean, src=Role.ACTOR.value)
+            dist.recv(kl_mean, src=self.team.partner)
         return kl_mean[0]
 
     def _all_gather(self, tensor: torch.Tensor) -> torch.Tensor:
@@ -251,36 +262,25 @@ class FusedPPO(PPO):
             return torch.stack(every)
 
     def _exchange_models(self, sums: dict[str, float]) -> dict[str, float]:
-        """Split update: each rank sends the model it learned (weights, Adam's moments and step counts) with its
-        losses, and takes the other's, so both end the update with the same state, as after a data-parallel one."""
-        models = {Role.ACTOR: self._actor_params, Role.CRITIC: self._critic_params}
-        size = max(sum(3 * p.numel() + 1 for p in params) for params in models.values()) + len(sums)
-        mine = torch.cat([torch.tensor(list(sums.values()))] + [self._adam_record(p) for p in models[self.role]])
-        every = self._all_gather(torch.cat([mine, mine.new_zeros(size - mine.numel())]))
-        for role, params in models.items():
-            if role is not self.role:
-                self._load_adam_records(params, every[role.value, len(sums) :])
-        actor, critic = (dict(zip(sums, every[role.value, : len(sums)].tolist(), strict=True)) for role in Role)
+        """Split update: each team's first rank sends the model the team learned (weights, Adam's moments and step
+        counts) with the team's losses to every rank, so all end the update with the same state, as after a
+        data-parallel one."""
+        team = self.team
+        mine = torch.tensor(list(sums.values()))
+        if team.size > 1:  # the mean over the members' shares
+            mine = self._sum_over_ranks(mine, team) / team.size
+        losses = {}
+        with self.phases("sync_update"):
+            for role, params in ((Role.ACTOR, self._actor_params), (Role.CRITIC, self._critic_params)):
+                ours = role is team.role
+                record = torch.cat([mine, adam_record(self.optimizer, params)]) if ours else None
+                record = record if ours else torch.empty(len(sums) + record_size(params))
+                dist.broadcast(record, src=(team.ranks if ours else team.other)[0])
+                if not ours:
+                    load_adam_record(self.optimizer, params, record[len(sums) :])
+                losses[role] = dict(zip(sums, record[: len(sums)].tolist(), strict=True))
+        actor, critic = losses[Role.ACTOR], losses[Role.CRITIC]
         return {"value": critic["value"], "surrogate": actor["surrogate"], "entropy": actor["entropy"]}
-
-    def _adam_record(self, param: nn.Parameter) -> torch.Tensor:
-        state = self.optimizer.state[param]
-        parts = (param.detach(), state["exp_avg"], state["exp_avg_sq"], state["step"])
-        return torch.cat([part.reshape(-1) for part in parts])
-
-    def _load_adam_records(self, params: list[nn.Parameter], records: torch.Tensor) -> None:
-        """Weights and Adam state of ``params`` from their owner's records (Adam's own state layout, created here
-        on the first exchange as Adam would create it on a first step)."""
-        offset = 0
-        with torch.no_grad():
-            for param in params:
-                state = self.optimizer.state[param]
-                if not state:
-                    state.update(step=torch.zeros((), dtype=torch.float32), exp_avg=torch.zeros_like(param))
-                    state["exp_avg_sq"] = torch.zeros_like(param)
-                for target in (param, state["exp_avg"], state["exp_avg_sq"], state["step"]):
-                    target.view(-1).copy_(records[offset : offset + target.numel()])
-                    offset += target.numel()
 
     def _update_normalizers(self, obs: torch.Tensor) -> None:
         """rsl-rl's ``EmpiricalNormalization.update`` for actor and critic at once, from global batch moments.
@@ -331,16 +331,15 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases 
     critic = build_model(config, obs, "critic", 1)
     storage = RolloutStorage("rl", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
     a = config.algorithm
-    split = splits_update(config, info)
+    sizes = [[p.numel() for p in model.parameters()] for model in (actor, critic)]
+    team = build_team(config, info, max(map(sum, sizes)) + 1)
     reducer = None
     if config.shared_memory_all_reduce and same_host(info):
-        sizes = [p.numel() for model in (actor, critic) for p in model.parameters()]
-        capacity = sum(sizes) + 1
-        if split:  # the exchange of models (weights, Adam's moments and steps, losses); the rollout and its orders
+        capacity = sum(map(sum, sizes)) + 1
+        if team is not None:  # gathers the rollout and its sample orders instead
             samples = env.num_envs * config.num_steps_per_env
             draws = a.num_learning_epochs if a.reshuffle_each_epoch else 1
-            rollout = samples * (env.num_obs + 3 * env.num_actions + 4 + 2 * draws)
-            capacity = max(capacity, 3 * sum(sizes) + len(sizes) + 3, rollout)
+            capacity = samples * (env.num_obs + 3 * env.num_actions + 4 + 2 * draws)
         reducer = SharedMemoryAllReduce(info, capacity, config.dist_timeout)
     return FusedPPO(
         actor,
@@ -363,15 +362,8 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases 
         reducer=reducer,
         reshuffle_each_epoch=a.reshuffle_each_epoch,
         phases=phases,
-        role=Role(info.rank) if split else None,
+        team=team,
     )
-
-
-def splits_update(config: Config, info: RankInfo) -> bool:
-    """Whether two ranks split the update by model (``split_update``): rank 0 learns the actor, rank 1 the critic,
-    each on the whole batch, with no meeting per minibatch (with the adaptive schedule the actor sends the critic
-    each minibatch's KL, without waiting for it)."""
-    return config.split_update and info.world_size == 2
 
 
 def build_algorithm(

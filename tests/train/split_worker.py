@@ -22,7 +22,7 @@ def main(out: str, *overrides: str) -> None:
     group.seed_all(config.seed)
     env = MujocoVecEnv(config.env.id, config.env.num_envs, group.rank_seed(config.seed, info.rank), config.env.kwargs)
     alg = build_ppo(config, env, info)
-    assert alg.role is not None, "two ranks split the update by default"
+    assert alg.team is not None, "an even number of ranks splits the update by default"
     alg.train_mode()
     obs = env.get_observations()
     with torch.inference_mode():
