@@ -98,13 +98,21 @@ class SharedMemoryAllReduce:
         """Every rank's ``tensor`` (float32, the same size on every rank), stacked in rank order: ``[world, n]``."""
         return self._share(tensor).clone()
 
-    def _share(self, tensor: torch.Tensor) -> torch.Tensor:
-        """Publish ``tensor`` in this rank's slot and wait for every peer's: the round's slots, ``[world, n]``, valid
-        until this rank's next round but one."""
+    def broadcast_(self, tensor: torch.Tensor, src: int) -> torch.Tensor:
+        """In place: ``tensor`` becomes rank ``src``'s (its index among this reducer's ranks)."""
+        slots = self._share(tensor, publish=self.rank == src)
+        if self.rank != src:
+            tensor.view(-1).copy_(slots[src])
+        return tensor
+
+    def _share(self, tensor: torch.Tensor, publish: bool = True) -> torch.Tensor:
+        """Publish ``tensor`` in this rank's slot (unless not ``publish``) and wait for every peer's: the round's
+        slots, ``[world, n]``, valid until this rank's next round but one."""
         n = tensor.numel()
         slots = self._slots[self._round % 2, :, :n]
         self._round += 1
-        slots[self.rank].copy_(tensor.view(-1))
+        if publish:
+            slots[self.rank].copy_(tensor.view(-1))
         try:
             for peer in self._peers:
                 os.write(peer, b"\x01")

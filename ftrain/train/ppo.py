@@ -261,6 +261,13 @@ class FusedPPO(PPO):
             dist.all_gather(every, tensor)
             return torch.stack(every)
 
+    def _broadcast(self, tensor: torch.Tensor, src: int) -> None:
+        """Rank ``src``'s ``tensor`` on every rank, in place: through shared memory where it fits, else gloo."""
+        if self.reducer is not None and tensor.numel() <= self.reducer.capacity:
+            self.reducer.broadcast_(tensor, src)
+        else:
+            dist.broadcast(tensor, src=src)
+
     def _exchange_models(self, sums: dict[str, float]) -> dict[str, float]:
         """Split update: each team's first rank sends the model the team learned (weights, Adam's moments and step
         counts) with the team's losses to every rank, so all end the update with the same state, as after a
@@ -275,7 +282,7 @@ class FusedPPO(PPO):
                 ours = role is team.role
                 record = torch.cat([mine, adam_record(self.optimizer, params)]) if ours else None
                 record = record if ours else torch.empty(len(sums) + record_size(params))
-                dist.broadcast(record, src=(team.ranks if ours else team.other)[0])
+                self._broadcast(record, (team.ranks if ours else team.other)[0])
                 if not ours:
                     load_adam_record(self.optimizer, params, record[len(sums) :])
                 losses[role] = dict(zip(sums, record[: len(sums)].tolist(), strict=True))
@@ -336,10 +343,12 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases 
     reducer = None
     if config.shared_memory_all_reduce and same_host(info):
         capacity = sum(map(sum, sizes)) + 1
-        if team is not None:  # gathers the rollout and its sample orders instead
+        if team is not None:  # gathers the rollout and its sample orders instead; at two ranks, sends the models too
             samples = env.num_envs * config.num_steps_per_env
             draws = a.num_learning_epochs if a.reshuffle_each_epoch else 1
             capacity = samples * (env.num_obs + 3 * env.num_actions + 4 + 2 * draws)
+            if info.world_size == 2:  # (a slot per rank: with more, a model's slots would fill /dev/shm)
+                capacity = max(capacity, 3 + max(record_size(list(model.parameters())) for model in (actor, critic)))
         reducer = SharedMemoryAllReduce(info, capacity, config.dist_timeout)
     return FusedPPO(
         actor,

@@ -21,10 +21,10 @@ def main(out: str, timeout_s: float) -> None:
     info = group.init(30)
     reducer = SharedMemoryAllReduce(info, capacity=1000, timeout_s=timeout_s)
     generator = torch.Generator().manual_seed(info.rank)
-    exact = like_gloo = close = True
+    exact = like_gloo = close = copies = True
     digest = hashlib.sha256()
     for size in (1, 17, 1000):
-        for _ in range(50):
+        for round_ in range(50):
             value = torch.randn(size, generator=generator) * 10.0 ** torch.randint(-6, 6, (size,), generator=generator)
             gathered = [torch.empty_like(value) for _ in range(info.world_size)]
             dist.all_gather(gathered, value)
@@ -33,6 +33,9 @@ def main(out: str, timeout_s: float) -> None:
             result = reducer.all_reduce_(value)
             stacked = torch.stack(gathered)
             exact &= torch.equal(result, stacked.sum(dim=0))  # every rank's slot, summed in rank order
+            copies &= torch.equal(reducer.all_gather(gathered[info.rank]), torch.stack(gathered))
+            src = int(torch.randint(info.world_size, (1,), generator=torch.Generator().manual_seed(size + round_)))
+            copies &= torch.equal(reducer.broadcast_(gathered[info.rank].clone(), src), gathered[src])
             like_gloo &= torch.equal(result, by_gloo)
             # another order of the same sum differs by rounding alone: at most (ranks - 1) ulps of the sum of |x|
             bound = info.world_size * torch.finfo(torch.float32).eps * stacked.abs().sum(dim=0)
@@ -41,6 +44,7 @@ def main(out: str, timeout_s: float) -> None:
     leftovers = [name for name in os.listdir("/dev/shm") if name.startswith("ftrain-")]
     report = {
         "exact": exact,
+        "copies": copies,
         "like_gloo": like_gloo,
         "close": close,
         "digest": digest.hexdigest(),

@@ -41,6 +41,7 @@ def test_shared_memory_all_reduce_is_exact_leaves_nothing_and_a_dead_peer_ends_t
     assert len({report["digest"] for report in reports.values()}) == 1, "every rank must get the same bits"
     for rank, report in reports.items():
         assert report["exact"], f"rank {rank}: the shared-memory sum must be the rank-ordered sum, bit for bit"
+        assert report["copies"], f"rank {rank}: all_gather and broadcast_ must hand on every bit, as gloo's do"
         assert report["close"], f"rank {rank}: the shared-memory sum must equal gloo's to rounding"
         assert report["like_gloo"] or ranks > 2, f"rank {rank}: gloo's bits at two ranks"
         assert report["leftovers"] == [], "segment and pipes must be unlinked once every rank has opened them"
