@@ -82,40 +82,15 @@ class FusedPPO(PPO):
 
     def update(self) -> dict[str, float]:
         sums = {"value": 0.0, "surrogate": 0.0, "entropy": 0.0}
-        params = self._actor_params + self._critic_params
-        actor, critic = self._raw_actor, self._raw_critic
         learns_actor, learns_critic = self.role is not Role.CRITIC, self.role is not Role.ACTOR
         adaptive = self.desired_kl is not None and self.schedule == "adaptive"
         fields, orders = self._gathered_rollout() if self.role is not None else self._local_rollout()
         sends = []  # split update, adaptive schedule: the actor's KL of each minibatch, on its way to the critic
         for batch in self._mini_batches(fields, orders, self._fields_used(adaptive), self.team):
-            if self.normalize_advantage_per_mini_batch and learns_actor:
-                with torch.no_grad():
-                    batch.advantages = (batch.advantages - batch.advantages.mean()) / (batch.advantages.std() + 1e-8)
             if learns_actor:
-                distribution = actor.distribution
-                distribution.update(actor.mlp(actor.obs_normalizer(batch.observations)))
-                actions_log_prob = distribution.log_prob(batch.actions)
-                entropy = distribution.entropy
-                if adaptive:
-                    with torch.inference_mode():
-                        kl_mean = torch.mean(
-                            distribution.kl_divergence(batch.old_distribution_params, distribution.params)
-                        )
-                ratio = torch.exp(actions_log_prob - torch.squeeze(batch.old_actions_log_prob))
-                advantages = torch.squeeze(batch.advantages)
-                surrogate = -advantages * ratio
-                surrogate_clipped = -advantages * torch.clamp(ratio, 1.0 - self.clip_param, 1.0 + self.clip_param)
-                surrogate_loss = torch.max(surrogate, surrogate_clipped).mean()
+                surrogate_loss, entropy, kl_mean = self._actor_terms(batch, adaptive)
             if learns_critic:
-                values = critic.mlp(critic.obs_normalizer(batch.observations))
-                if self.use_clipped_value_loss:
-                    value_clipped = batch.values + (values - batch.values).clamp(-self.clip_param, self.clip_param)
-                    value_loss = torch.max(
-                        (values - batch.returns).pow(2), (value_clipped - batch.returns).pow(2)
-                    ).mean()
-                else:
-                    value_loss = (batch.returns - values).pow(2).mean()
+                value_loss = self._value_loss(batch)
             if self.role is None:
                 loss = surrogate_loss + self.value_loss_coef * value_loss - self.entropy_coef * entropy.mean()
             elif learns_actor:  # the same gradients of the actor's weights as from the whole loss, bit for bit
@@ -125,17 +100,7 @@ class FusedPPO(PPO):
 
             self.optimizer.zero_grad()
             loss.backward()
-            if self.is_multi_gpu and self.role is None:
-                kl_mean = self._all_reduce_mean(params, kl_mean if adaptive else None)
-            elif self.team is not None and self.team.size > 1:  # the team's mean gradient (and the actor's KL)
-                own = self._actor_params if learns_actor else self._critic_params
-                reduced = self._all_reduce_mean(own, kl_mean if adaptive and learns_actor else None, self.team)
-                if adaptive and learns_actor:
-                    kl_mean = reduced
-            if adaptive and self.role is Role.ACTOR:  # the critic's learning rate follows the actor's KL
-                sends.append(dist.isend(kl_mean.view(1).clone(), dst=self.team.partner))
-            elif adaptive and self.role is Role.CRITIC:
-                kl_mean = self._receive_kl()
+            kl_mean = self._synchronise(kl_mean if adaptive and learns_actor else None, sends)
             if adaptive:
                 self._adapt_learning_rate(kl_mean)
             if learns_actor:
@@ -158,6 +123,48 @@ class FusedPPO(PPO):
         self.storage.clear()
         num_updates = self.num_learning_epochs * self.num_mini_batches
         return {key: value / num_updates for key, value in sums.items()}
+
+    def _actor_terms(self, batch: RolloutStorage.Batch, adaptive: bool) -> tuple[torch.Tensor, ...]:
+        """The clipped surrogate loss, the entropy and (adaptive schedule) the KL of a minibatch."""
+        if self.normalize_advantage_per_mini_batch:
+            with torch.no_grad():
+                batch.advantages = (batch.advantages - batch.advantages.mean()) / (batch.advantages.std() + 1e-8)
+        actor = self._raw_actor
+        distribution = actor.distribution
+        distribution.update(actor.mlp(actor.obs_normalizer(batch.observations)))
+        actions_log_prob = distribution.log_prob(batch.actions)
+        kl_mean = None
+        if adaptive:
+            with torch.inference_mode():
+                kl_mean = torch.mean(distribution.kl_divergence(batch.old_distribution_params, distribution.params))
+        ratio = torch.exp(actions_log_prob - torch.squeeze(batch.old_actions_log_prob))
+        advantages = torch.squeeze(batch.advantages)
+        surrogate = -advantages * ratio
+        surrogate_clipped = -advantages * torch.clamp(ratio, 1.0 - self.clip_param, 1.0 + self.clip_param)
+        return torch.max(surrogate, surrogate_clipped).mean(), distribution.entropy, kl_mean
+
+    def _value_loss(self, batch: RolloutStorage.Batch) -> torch.Tensor:
+        critic = self._raw_critic
+        values = critic.mlp(critic.obs_normalizer(batch.observations))
+        if self.use_clipped_value_loss:
+            value_clipped = batch.values + (values - batch.values).clamp(-self.clip_param, self.clip_param)
+            return torch.max((values - batch.returns).pow(2), (value_clipped - batch.returns).pow(2)).mean()
+        return (batch.returns - values).pow(2).mean()
+
+    def _synchronise(self, kl_mean: torch.Tensor | None, sends: list) -> torch.Tensor | None:
+        """After a backward pass: gradients averaged over the ranks that share a model, and the KL the learning rate
+        follows (``kl_mean``: this rank's actor's, adaptive schedule; a critic's rank receives its partner's)."""
+        if self.is_multi_gpu and self.role is None:
+            return self._all_reduce_mean(self._actor_params + self._critic_params, kl_mean)
+        if self.team is not None and self.team.size > 1:
+            own = self._actor_params if self.role is Role.ACTOR else self._critic_params
+            reduced = self._all_reduce_mean(own, kl_mean, self.team)
+            kl_mean = reduced if kl_mean is not None else None
+        if kl_mean is not None and self.role is Role.ACTOR:  # the critic's learning rate follows the actor's KL
+            sends.append(dist.isend(kl_mean.view(1).clone(), dst=self.team.partner))
+        elif self.role is Role.CRITIC and self.desired_kl is not None and self.schedule == "adaptive":
+            kl_mean = self._receive_kl()
+        return kl_mean
 
     def _local_rollout(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """This rank's rollout, flat (the one observation group as a plain tensor, no TensorDict indexing per
