@@ -14,7 +14,7 @@ same synchronous data-parallel PPO and changes only how it communicates:
   all of it (data-parallel within a half), with Adam stepping only the weights that have gradients, and each half's
   first rank sends its model, Adam's state for it and the losses to all at the end. At two ranks that is one rank's
   update of the global batch bit for bit (the actor's gradients from its share of the loss are those from the whole
-  loss), with 4 meetings per iteration instead of 44, and each rank learning one model instead of both; the adaptive
+  loss), with 5 meetings per iteration instead of 44, and each rank learning one model instead of both; the adaptive
   schedule's KL goes from actor to critic at every minibatch without the actor waiting.
 
 Its ``act`` computes what rsl-rl's does, on the one observation group ftrain's environments have, without the
