@@ -58,7 +58,6 @@ class FusedPPO(PPO):
         self.reducer = reducer
         self.team = team
         """This rank's team in a split update (``ftrain.train.split``); None: data-parallel, or alone."""
-        self.role = team.role if team is not None else None
         self.phases = phases or Phases()
         self.reshuffle_each_epoch = reshuffle_each_epoch
         self._actor_params = list(self.actor.parameters())
@@ -80,15 +79,24 @@ class FusedPPO(PPO):
         transition.observations = obs
         return actions
 
+    @property
+    def role(self) -> Role | None:
+        """The model this rank learns in a split update; None: both."""
+        return self.team.role if self.team is not None else None
+
+    @property
+    def adaptive(self) -> bool:
+        """rsl-rl's adaptive schedule: the learning rate follows every minibatch's KL."""
+        return self.desired_kl is not None and self.schedule == "adaptive"
+
     def update(self) -> dict[str, float]:
         sums = {"value": 0.0, "surrogate": 0.0, "entropy": 0.0}
         learns_actor, learns_critic = self.role is not Role.CRITIC, self.role is not Role.ACTOR
-        adaptive = self.desired_kl is not None and self.schedule == "adaptive"
         fields, orders = self._gathered_rollout() if self.role is not None else self._local_rollout()
         sends = []  # split update, adaptive schedule: the actor's KL of each minibatch, on its way to the critic
-        for batch in self._mini_batches(fields, orders, self._fields_used(adaptive), self.team):
+        for batch in self._mini_batches(fields, orders):
             if learns_actor:
-                surrogate_loss, entropy, kl_mean = self._actor_terms(batch, adaptive)
+                surrogate_loss, entropy, kl_mean = self._actor_terms(batch)
             if learns_critic:
                 value_loss = self._value_loss(batch)
             if self.role is None:
@@ -100,8 +108,8 @@ class FusedPPO(PPO):
 
             self.optimizer.zero_grad()
             loss.backward()
-            kl_mean = self._synchronise(kl_mean if adaptive and learns_actor else None, sends)
-            if adaptive:
+            kl_mean = self._synchronise(kl_mean if learns_actor else None, sends)
+            if self.adaptive:
                 self._adapt_learning_rate(kl_mean)
             if learns_actor:
                 nn.utils.clip_grad_norm_(self._actor_params, self.max_grad_norm)
@@ -124,7 +132,7 @@ class FusedPPO(PPO):
         num_updates = self.num_learning_epochs * self.num_mini_batches
         return {key: value / num_updates for key, value in sums.items()}
 
-    def _actor_terms(self, batch: RolloutStorage.Batch, adaptive: bool) -> tuple[torch.Tensor, ...]:
+    def _actor_terms(self, batch: RolloutStorage.Batch) -> tuple[torch.Tensor, ...]:
         """The clipped surrogate loss, the entropy and (adaptive schedule) the KL of a minibatch."""
         if self.normalize_advantage_per_mini_batch:
             with torch.no_grad():
@@ -134,7 +142,7 @@ class FusedPPO(PPO):
         distribution.update(actor.mlp(actor.obs_normalizer(batch.observations)))
         actions_log_prob = distribution.log_prob(batch.actions)
         kl_mean = None
-        if adaptive:
+        if self.adaptive:
             with torch.inference_mode():
                 kl_mean = torch.mean(distribution.kl_divergence(batch.old_distribution_params, distribution.params))
         ratio = torch.exp(actions_log_prob - torch.squeeze(batch.old_actions_log_prob))
@@ -161,29 +169,32 @@ class FusedPPO(PPO):
             reduced = self._all_reduce_mean(own, kl_mean, self.team)
             kl_mean = reduced if kl_mean is not None else None
         if kl_mean is not None and self.role is Role.ACTOR:  # the critic's learning rate follows the actor's KL
-            sends.append(dist.isend(kl_mean.view(1).clone(), dst=self.team.partner))
-        elif self.role is Role.CRITIC and self.desired_kl is not None and self.schedule == "adaptive":
-            kl_mean = self._receive_kl()
+            sends.append(self.team.send_kl(kl_mean))
+        elif self.role is Role.CRITIC and self.adaptive:
+            with self.phases("sync_update"):
+                kl_mean = self.team.receive_kl()
         return kl_mean
 
     def _local_rollout(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """This rank's rollout, flat (the one observation group as a plain tensor, no TensorDict indexing per
         minibatch), and the sample order of each epoch."""
+        fields = self._rollout_fields()
+        return [field.flatten(0, 1) for field in fields], self._sample_orders(self.storage.num_envs)
+
+    def _rollout_fields(self) -> list[torch.Tensor]:
+        """What the update reads of the storage, ``[steps, envs, d]`` each, in the order ``_mini_batches`` yields."""
         storage = self.storage
-        fields = (storage.observations[OBS_GROUP], storage.actions, storage.values, storage.advantages)
-        fields += (storage.returns, storage.actions_log_prob, *storage.distribution_params)
-        return [field.flatten(0, 1) for field in fields], self._sample_orders(storage.num_envs)
+        fields = [storage.observations[OBS_GROUP], storage.actions, storage.values, storage.advantages]
+        return [*fields, storage.returns, storage.actions_log_prob, *storage.distribution_params]
 
     def _gathered_rollout(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
         """Split update: every rank's rollout, environments in rank order (one global batch, as one rank with all
         the environments would hold it), in the sample order rank 0 drew. One all-gather per iteration."""
-        storage = self.storage
-        fields = (storage.observations[OBS_GROUP], storage.actions, storage.values, storage.advantages)
-        fields += (storage.returns, storage.actions_log_prob, *storage.distribution_params)
-        orders = self._sample_orders(storage.num_envs * self.gpu_world_size)
-        mine = torch.cat([field.reshape(-1) for field in fields] + [order.float() for order in orders])
-        with self.phases("sync_update"):
-            every = self._all_gather(mine)
+        fields = self._rollout_fields()
+        orders = self._sample_orders(self.storage.num_envs * self.gpu_world_size)  # every rank draws, alike
+        every = self._all_gather(
+            torch.cat([field.reshape(-1) for field in fields] + [order.float() for order in orders])
+        )
         sizes = [field.numel() for field in fields] + [order.numel() for order in orders]
         per_rank = [torch.split(row, sizes) for row in every]
         gathered = [  # [steps, envs, d] of each rank -> [steps, envs of all ranks, d] -> [steps x all envs, d]
@@ -199,15 +210,10 @@ class FusedPPO(PPO):
         count = num_envs * self.storage.num_transitions_per_env
         return [torch.randperm(count) for _ in range(self.num_learning_epochs if self.reshuffle_each_epoch else 1)]
 
-    def _mini_batches(
-        self,
-        fields: list[torch.Tensor],
-        orders: list[torch.Tensor],
-        used: frozenset[int] | None = None,
-        team: Team | None = None,
-    ) -> Iterator[RolloutStorage.Batch]:
-        """rsl-rl's ``mini_batch_generator`` over ``fields`` in the given sample order of each epoch; the fields
-        not ``used`` (by index; default: all) are None; a member of a ``team`` gets its share of each minibatch."""
+    def _mini_batches(self, fields: list[torch.Tensor], orders: list[torch.Tensor]) -> Iterator[RolloutStorage.Batch]:
+        """rsl-rl's ``mini_batch_generator`` over ``fields`` in the given sample order of each epoch; in a split
+        update, the fields this rank's model does not read are None, and a team member gets its share of each."""
+        used, team = self._fields_used(), self.team
         count = fields[0].shape[0]
         size = count // self.num_mini_batches
         for epoch in range(self.num_learning_epochs):
@@ -221,11 +227,11 @@ class FusedPPO(PPO):
                 )
                 yield RolloutStorage.Batch(obs, actions, values, advantages, returns, log_prob, tuple(old))
 
-    def _fields_used(self, adaptive: bool) -> frozenset[int] | None:
-        """The rollout fields (by index in :meth:`_local_rollout`'s order) this rank's share of a split update reads:
-        the actor's loss (and the KL, for the adaptive schedule), or the critic's."""
+    def _fields_used(self) -> frozenset[int] | None:
+        """The rollout fields (by index in :meth:`_rollout_fields`'s order) this rank's share of a split update reads:
+        the actor's loss (and the KL, for the adaptive schedule), or the critic's; None: all."""
         if self.role is Role.ACTOR:
-            return frozenset({0, 1, 3, 5, *((6, 7) if adaptive else ())})
+            return frozenset({0, 1, 3, 5, *((6, 7) if self.adaptive else ())})
         return frozenset({0, 2, 4}) if self.role is Role.CRITIC else None
 
     def _all_reduce_mean(
@@ -250,14 +256,6 @@ class FusedPPO(PPO):
                 return reducer.all_reduce_(tensor)
             dist.all_reduce(tensor, group=group)
             return tensor
-
-    def _receive_kl(self) -> torch.Tensor:
-        """Split update, adaptive schedule: the KL of this minibatch, from the actor's rank at this rank's place in
-        the teams (which is ahead: it learns the larger model, and sends without waiting)."""
-        kl_mean = torch.empty(1)
-        with self.phases("sync_update"):
-            dist.recv(kl_mean, src=self.team.partner)
-        return kl_mean[0]
 
     def _all_gather(self, tensor: torch.Tensor) -> torch.Tensor:
         """Every rank's ``tensor`` in rank order, ``[world, n]``."""
@@ -287,8 +285,10 @@ class FusedPPO(PPO):
         with self.phases("sync_update"):
             for role, params in ((Role.ACTOR, self._actor_params), (Role.CRITIC, self._critic_params)):
                 ours = role is team.role
-                record = torch.cat([mine, adam_record(self.optimizer, params)]) if ours else None
-                record = record if ours else torch.empty(len(sums) + record_size(params))
+                if ours:
+                    record = torch.cat([mine, adam_record(self.optimizer, params)])
+                else:
+                    record = torch.empty(len(sums) + record_size(params))
                 self._broadcast(record, (team.ranks if ours else team.other)[0])
                 if not ours:
                     load_adam_record(self.optimizer, params, record[len(sums) :])

@@ -58,6 +58,16 @@ class Team:
         """The rank at this rank's place in the other team (the adaptive schedule's KL goes actor to critic)."""
         return self.other[self.index]
 
+    def send_kl(self, kl_mean: torch.Tensor) -> dist.Work:
+        """An actor's rank: a minibatch's KL to its partner, without waiting (``wait()`` the result before the end)."""
+        return dist.isend(kl_mean.view(1).clone(), dst=self.partner)
+
+    def receive_kl(self) -> torch.Tensor:
+        """A critic's rank: the minibatch's KL from its partner (which is ahead: it learns the larger model)."""
+        kl_mean = torch.empty(1)
+        dist.recv(kl_mean, src=self.partner)
+        return kl_mean[0]
+
 
 def splits_update(config: Config, info: RankInfo) -> bool:
     """Whether the ranks split the update into two teams (``split_update``, an even number of ranks)."""

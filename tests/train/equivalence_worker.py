@@ -17,7 +17,8 @@ from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.ppo import build_ppo
 
 
-def rollout_and_update(alg, env: MujocoVecEnv, steps: int) -> tuple[list[torch.Tensor], dict]:
+def rollout(alg, env: MujocoVecEnv, steps: int) -> list[torch.Tensor]:
+    """``steps`` environment steps into ``alg``'s storage, then the returns; the actions taken."""
     alg.train_mode()
     actions = []
     obs = env.get_observations()
@@ -28,7 +29,11 @@ def rollout_and_update(alg, env: MujocoVecEnv, steps: int) -> tuple[list[torch.T
             obs, rewards, dones, extras = env.step(action)
             alg.process_env_step(obs, rewards, dones, extras)
         alg.compute_returns(obs)
-    return actions, alg.update()
+    return actions
+
+
+def rollout_and_update(alg, env: MujocoVecEnv, steps: int) -> tuple[list[torch.Tensor], dict]:
+    return rollout(alg, env, steps), alg.update()
 
 
 def main(out: str) -> None:

@@ -8,6 +8,7 @@ import copy
 import sys
 
 import torch
+from equivalence_worker import rollout
 
 from ftrain.config import load_config
 from ftrain.dist import group
@@ -23,13 +24,7 @@ def main(out: str, *overrides: str) -> None:
     env = MujocoVecEnv(config.env.id, config.env.num_envs, group.rank_seed(config.seed, info.rank), config.env.kwargs)
     alg = build_ppo(config, env, info)
     assert alg.team is not None, "an even number of ranks splits the update by default"
-    alg.train_mode()
-    obs = env.get_observations()
-    with torch.inference_mode():
-        for _ in range(config.num_steps_per_env):
-            obs, rewards, dones, extras = env.step(alg.act(obs))
-            alg.process_env_step(obs, rewards, dones, extras)
-        alg.compute_returns(obs)
+    rollout(alg, env, config.num_steps_per_env)
     start = {"models": copy.deepcopy(alg.save()), "learning_rate": alg.learning_rate}
     gather = alg._gathered_rollout
     alg._gathered_rollout = lambda: start.setdefault("batch", gather())

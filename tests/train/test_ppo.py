@@ -8,6 +8,7 @@ import sys
 
 import pytest
 import torch
+from equivalence_worker import rollout
 
 from ftrain.config import load_config
 from ftrain.dist.group import RankInfo
@@ -68,12 +69,7 @@ def test_minibatches_cover_the_rollout_every_epoch_in_one_or_fresh_orders(reshuf
     config = load_config(SMOKE, overrides)
     env = MujocoVecEnv(config.env.id, config.env.num_envs, seed=0, kwargs=config.env.kwargs)
     alg = build_ppo(config, env, RankInfo(0, 1, 0))
-    obs = env.get_observations()
-    with torch.inference_mode():
-        for _ in range(config.num_steps_per_env):
-            obs, rewards, dones, extras = env.step(alg.act(obs))
-            alg.process_env_step(obs, rewards, dones, extras)
-        alg.compute_returns(obs)
+    rollout(alg, env, config.num_steps_per_env)
     batches = [batch.observations for batch in alg._mini_batches(*alg._local_rollout())]
     per_epoch = len(batches) // 3
     epochs = [torch.cat(batches[i * per_epoch : (i + 1) * per_epoch]) for i in range(3)]
