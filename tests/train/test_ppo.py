@@ -13,6 +13,7 @@ from equivalence_worker import rollout
 from ftrain.config import load_config
 from ftrain.dist.group import RankInfo
 from ftrain.train.envs import MujocoVecEnv
+from ftrain.train.minibatch import mini_batches
 from ftrain.train.ppo import build_ppo, load_learned_state
 
 from helpers import REPO, SMOKE, child_env
@@ -70,10 +71,10 @@ def test_minibatches_cover_the_rollout_every_epoch_in_one_or_fresh_orders(reshuf
     env = MujocoVecEnv(config.env.id, config.env.num_envs, seed=0, kwargs=config.env.kwargs)
     alg = build_ppo(config, env, RankInfo(0, 1, 0))
     rollout(alg, env, config.num_steps_per_env)
-    batches = [batch.observations for batch in alg._mini_batches(*alg._local_rollout())]
+    batches = [batch.actor_obs for batch in mini_batches(alg, *alg._local_rollout())]
     per_epoch = len(batches) // 3
     epochs = [torch.cat(batches[i * per_epoch : (i + 1) * per_epoch]) for i in range(3)]
-    everything = alg.storage.observations["policy"].flatten(0, 1)
+    everything = alg.actor.obs_normalizer(alg.storage.observations["policy"].flatten(0, 1))
     for epoch in epochs:
         assert torch.equal(epoch.sort(dim=0).values, everything.sort(dim=0).values)
     assert torch.equal(epochs[0], epochs[1]) == torch.equal(epochs[1], epochs[2]) == (not reshuffle)
