@@ -20,16 +20,27 @@ import torch
 
 from ftrain.config import Config
 from ftrain.dist import group
+from ftrain.dist.shm_allreduce import SharedMemoryAllReduce
 
 EPSILON = 1e-8
 """Added to the variance before the square root (SB3's default)."""
 
 
 class RewardNormalizer:
-    def __init__(self, num_envs: int, num_steps: int, gamma: float, clip: float, info: group.RankInfo) -> None:
+    def __init__(
+        self,
+        num_envs: int,
+        num_steps: int,
+        gamma: float,
+        clip: float,
+        info: group.RankInfo,
+        reducer: SharedMemoryAllReduce | None = None,
+    ) -> None:
         self.gamma = gamma
         self.clip = clip
         self.info = info
+        self.reducer = reducer
+        """The ranks' shared memory for the update's all-reduce (``group.all_reduce_sum``), if they have one."""
         self.returns = torch.zeros(num_envs, dtype=torch.float64)
         """Each environment's discounted return since its episode began."""
         self.count = 0.0
@@ -56,7 +67,7 @@ class RewardNormalizer:
         seen = self._seen[: self._steps]
         self._steps = 0
         count, total, squares = group.all_reduce_sum(
-            [seen.numel(), seen.sum().item(), seen.square().sum().item()], self.info
+            [seen.numel(), seen.sum().item(), seen.square().sum().item()], self.info, self.reducer
         )
         if not count:
             return
@@ -79,10 +90,12 @@ class RewardNormalizer:
         self.returns.copy_(returns)
 
 
-def build_reward_normalizer(config: Config, info: group.RankInfo) -> RewardNormalizer | None:
+def build_reward_normalizer(
+    config: Config, info: group.RankInfo, reducer: SharedMemoryAllReduce | None = None
+) -> RewardNormalizer | None:
     """The normalizer ``config.reward`` asks for, if any."""
     if not config.reward.normalize:
         return None
     return RewardNormalizer(
-        config.env.num_envs, config.num_steps_per_env, config.algorithm.gamma, config.reward.clip, info
+        config.env.num_envs, config.num_steps_per_env, config.algorithm.gamma, config.reward.clip, info, reducer
     )

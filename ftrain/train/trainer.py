@@ -101,7 +101,9 @@ class Trainer:
             self.log(notice)
         self.phases = Phases()
         self.alg = build_algorithm(config, self.env, info, self.phases)
-        self.reward_norm = build_reward_normalizer(config, info)
+        self.reducer = getattr(self.alg, "reducer", None)
+        """The ranks' shared memory, where they share a machine: the iteration's small all-reduces go through it."""
+        self.reward_norm = build_reward_normalizer(config, info, self.reducer)
         self.lr_schedule = build_lr_schedule(config.algorithm)
         if notice := horizon_notice(config.algorithm, config.iterations):
             self.log(notice)
@@ -289,7 +291,9 @@ class Trainer:
         phases = self.phases.take()
         with self.phases("sync_metrics"):
             total_returns, total_lengths, count, total_steps, *summed = group.all_reduce_sum(
-                [returns, lengths, len(self.episodes), steps, *map(float, votes), *phases.values()], self.info
+                [returns, lengths, len(self.episodes), steps, *map(float, votes), *phases.values()],
+                self.info,
+                self.reducer,
             )
         terms, ints, save, store, hold = (vote > 0 for vote in summed[: len(votes)])
         per_rank = (total / self.info.world_size for total in summed[len(votes) :])

@@ -41,6 +41,16 @@ def main(out: str, timeout_s: float) -> None:
             bound = info.world_size * torch.finfo(torch.float32).eps * stacked.abs().sum(dim=0)
             close &= bool(((result - by_gloo).abs() <= bound).all())
             digest.update(result.numpy().tobytes())
+            # the iteration's small float64 sums (counts, votes, metrics, reward statistics) through the same memory
+            values = (torch.randn(size, dtype=torch.float64, generator=generator) * 1e9).tolist()
+            small = torch.tensor(group.all_reduce_sum(values, info, reducer), dtype=torch.float64)
+            every = [torch.empty(size, dtype=torch.float64) for _ in range(info.world_size)]
+            dist.all_gather(every, torch.tensor(values, dtype=torch.float64))
+            small_by_gloo = torch.tensor(group.all_reduce_sum(values, info), dtype=torch.float64)
+            if 2 * size <= reducer.capacity:  # (a larger one goes through gloo)
+                exact &= torch.equal(small, torch.stack(every).sum(dim=0))
+                like_gloo &= torch.equal(small, small_by_gloo)
+            digest.update(small.numpy().tobytes())
     leftovers = [name for name in os.listdir("/dev/shm") if name.startswith("ftrain-")]
     report = {
         "exact": exact,
