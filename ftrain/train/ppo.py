@@ -21,7 +21,7 @@ Its ``act`` computes what rsl-rl's does, on the one observation group ftrain's e
 TensorDict round trips; Adam runs as one fused kernel. The update computes rsl-rl's losses to rounding with fewer
 operations: what a minibatch reads of the rollout is made once per update (``ftrain.train.minibatch``), and the
 actor's loss is one autograd node (``ftrain.train.surrogate``), which brought the actor's minibatch step, the one a
-split update waits for, from about 1.35x the critic's to about 1.15x.
+split update waits for, from 1.32x the critic's to 1.18x (per rank, in training: docs/speed.md).
 """
 
 from __future__ import annotations
