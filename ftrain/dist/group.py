@@ -99,8 +99,9 @@ def set_rng_state(state: dict) -> None:
 
 def all_reduce_sum(values: list[float], info: RankInfo, reducer: SharedMemoryAllReduce | None = None) -> list[float]:
     """Sum a few numbers over all ranks in one collective (float64, so counts stay exact). With ``reducer`` (ranks on
-    one machine), through its shared memory: each rank's float64 bits gathered, summed in rank order, in tens of
-    microseconds where gloo's loopback round trip took 1-2 ms on a busy 2-core machine; at two ranks the same sum."""
+    one machine), through its shared memory: each rank's float64 bits gathered and summed over the ranks (the same
+    order on every rank), in tens of microseconds where gloo's loopback round trip took 1-2 ms on a busy 2-core machine;
+    at two ranks gloo's sum bit for bit."""
     if not info.distributed:
         return list(values)
     tensor = torch.tensor(values, dtype=torch.float64)

@@ -219,6 +219,29 @@ def run_ftrain(
     return run_side_by_side(iterations, [ranks], storage, overrides, env)[0]
 
 
+def throughput_args(
+    iterations: int, out: Path, storage: str, log_dir: Path, overrides: tuple[str, ...] = (), hook: str = ""
+) -> list[str]:
+    """``ftrain train``'s arguments for a throughput run of the HalfCheetah config, no checkpoint or evaluation in the
+    timed window: :class:`ThroughputHook` writes its JSON report to ``out`` (``hook``: more of its keyword arguments,
+    YAML)."""
+    kwargs = f"path: '{out}'" + (f", {hook}" if hook else "")
+    return [
+        str(CONFIG),
+        "--storage",
+        storage,
+        f"iterations={WARMUP + iterations}",
+        f"checkpoint.interval={10**6}",
+        f"log_dir={log_dir}",
+        "log.console=false",
+        "log.tensorboard=false",
+        "log.csv=false",
+        "eval.every=0",
+        f"hooks=[{{target: 'ftrain.tools.bench:ThroughputHook', kwargs: {{{kwargs}}}}}]",
+        *overrides,
+    ]
+
+
 def run_side_by_side(
     iterations: int,
     ranks: list[int],
@@ -232,21 +255,9 @@ def run_side_by_side(
         runs = []
         for index, count in enumerate(ranks):
             out = Path(tmp) / f"throughput-{index}.json"
-            kwargs = f"path: '{out}', barrier: '{Path(tmp) / 'barrier'}', parties: {len(ranks)}"
-            args = [
-                str(CONFIG),
-                "--storage",
-                storage or str(Path(tmp) / f"run-{index}"),
-                f"iterations={WARMUP + iterations}",
-                f"checkpoint.interval={10**6}",
-                f"log_dir={Path(tmp) / f'logs-{index}'}",
-                "log.console=false",
-                "log.tensorboard=false",
-                "log.csv=false",
-                "eval.every=0",
-                f"hooks=[{{target: 'ftrain.tools.bench:ThroughputHook', kwargs: {{{kwargs}}}}}]",
-                *overrides,
-            ]
+            run, logs = storage or str(Path(tmp) / f"run-{index}"), Path(tmp) / f"logs-{index}"
+            barrier = f"barrier: '{Path(tmp) / 'barrier'}', parties: {len(ranks)}"
+            args = throughput_args(iterations, out, run, logs, overrides, barrier)
             launcher = ["-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={count}", "-m", "ftrain"]
             cmd = [sys.executable, *(launcher if count > 1 else ["-m", "ftrain"]), "train", *args]
             environment = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}

@@ -54,7 +54,7 @@ class EvalHook(Hook):
         if count:
             actor = trainer.alg.get_policy()
             episodes = rollout(self.envs, lambda obs: actor_actions(actor, obs), count, self.config.seed + first)
-        (total,) = group.all_reduce_sum([sum(episode.ret for episode in episodes)], trainer.info)
+        (total,) = group.all_reduce_sum([sum(episode.ret for episode in episodes)], trainer.info, trainer.reducer)
         metrics["eval_return"] = total / self.config.episodes
         metrics["eval_time"] = time.perf_counter() - started
 

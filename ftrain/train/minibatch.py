@@ -30,14 +30,19 @@ class MiniBatch(NamedTuple):
     critic_obs: torch.Tensor | None
     """The observations through the critic's normalizer."""
     actions: torch.Tensor | None
+    """The actions taken."""
     values: torch.Tensor | None
+    """The critic's values when they were taken (for the clipped value loss)."""
     advantages: torch.Tensor | None
     """``[B]``, normalised over the minibatch where ``normalize_advantage_per_mini_batch``."""
     returns: torch.Tensor | None
+    """The critic's targets."""
     old_log_prob: torch.Tensor | None
     """``[B]``: the actions' log-probability when they were taken."""
     old_mean: torch.Tensor | None
+    """The action distribution when they were taken (the adaptive schedule's KL): its mean,"""
     old_std: torch.Tensor | None
+    """and its standard deviation."""
 
 
 def rollout_fields(storage: RolloutStorage) -> list[torch.Tensor]:
@@ -51,9 +56,12 @@ def mini_batches(alg: FusedPPO, fields: list[torch.Tensor], orders: list[torch.T
     """rsl-rl's ``mini_batch_generator`` over ``fields`` (:func:`rollout_fields`, flat) in the sample order of each
     epoch (``orders``: one for all epochs, or one each), for the model ``alg``'s rank learns; in a split update, a team
     member gets its share of each minibatch."""
-    per_order = [[_mini_batch(alg, fields, rows) for rows in _epoch_rows(alg, order)] for order in orders]
+    current, batches = None, []
     for epoch in range(alg.num_learning_epochs):
-        yield from per_order[min(epoch, len(orders) - 1)]
+        order = min(epoch, len(orders) - 1)
+        if order != current:  # (an order of each epoch's own: its minibatches are made for it, and dropped after it)
+            current, batches = order, [_mini_batch(alg, fields, rows) for rows in _epoch_rows(alg, orders[order])]
+        yield from batches
 
 
 def _epoch_rows(alg: FusedPPO, order: torch.Tensor) -> Iterator[torch.Tensor]:

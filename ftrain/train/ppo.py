@@ -42,7 +42,7 @@ from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.minibatch import MiniBatch, mini_batches, rollout_fields
 from ftrain.train.phases import Phases
 from ftrain.train.split import Role, Team, adam_record, build_team, load_adam_record, record_size
-from ftrain.train.surrogate import clipped_surrogate, gaussian_log_std
+from ftrain.train.surrogate import clipped_surrogate, gaussian_log_std, gaussian_std
 
 
 class FusedPPO(PPO):
@@ -135,7 +135,7 @@ class FusedPPO(PPO):
         num_updates = self.num_learning_epochs * self.num_mini_batches
         return {key: value / num_updates for key, value in sums.items()}
 
-    def _actor_terms(self, batch: MiniBatch) -> tuple[torch.Tensor, ...]:
+    def _actor_terms(self, batch: MiniBatch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """The actor's loss of a minibatch, its clipped surrogate and entropy terms, and (adaptive schedule) its KL."""
         actor = self._raw_actor
         mean = actor.mlp(batch.actor_obs)
@@ -146,7 +146,7 @@ class FusedPPO(PPO):
         kl_mean = None
         if self.adaptive:
             with torch.inference_mode():
-                new = (mean, log_std.exp().expand_as(mean))
+                new = (mean, gaussian_std(actor.distribution).expand_as(mean))
                 kl_mean = torch.mean(actor.distribution.kl_divergence((batch.old_mean, batch.old_std), new))
         return loss, surrogate, entropy, kl_mean
 

@@ -15,12 +15,15 @@ per-step collective; the first iteration, before any statistics, leaves rewards 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 
 from ftrain.config import Config
 from ftrain.dist import group
-from ftrain.dist.shm_allreduce import SharedMemoryAllReduce
+
+if TYPE_CHECKING:
+    from ftrain.dist.shm_allreduce import SharedMemoryAllReduce
 
 EPSILON = 1e-8
 """Added to the variance before the square root (SB3's default)."""
@@ -40,7 +43,7 @@ class RewardNormalizer:
         self.clip = clip
         self.info = info
         self.reducer = reducer
-        """The ranks' shared memory for the update's all-reduce (``group.all_reduce_sum``), if they have one."""
+        """The ranks' shared memory, if they have one: the statistics' all-reduce goes through it."""
         self.returns = torch.zeros(num_envs, dtype=torch.float64)
         """Each environment's discounted return since its episode began."""
         self.count = 0.0

@@ -15,9 +15,27 @@ from __future__ import annotations
 import math
 
 import torch
+from rsl_rl.models import MLPModel
 from rsl_rl.modules.distribution import GaussianDistribution
 
 LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
+
+
+def action_std(policy: MLPModel) -> float:
+    """The mean standard deviation of ``policy``'s actions as it is now: from the parameter of rsl-rl's Gaussian
+    distribution (the update no longer passes its batches through the distribution), else the last batch's."""
+    distribution = policy.distribution
+    if type(distribution) is GaussianDistribution:
+        return gaussian_std(distribution).mean().item()
+    return policy.output_std.mean().item()
+
+
+def gaussian_std(distribution: GaussianDistribution) -> torch.Tensor:
+    """The standard deviation rsl-rl's distribution samples with, per action dimension, from its parameter as it is now
+    (``distribution.std`` is the one of the last batch the distribution saw)."""
+    if distribution.std_type == "log":
+        return gaussian_log_std(distribution).exp()
+    return distribution.std_param.clamp(*distribution.std_range)
 
 
 def gaussian_log_std(distribution: GaussianDistribution) -> torch.Tensor:
@@ -40,7 +58,9 @@ class _ClippedSurrogate(torch.autograd.Function):
         unclipped = advantages * ratio
         clipped = ratio.clamp_(1.0 - clip, 1.0 + clip).mul_(advantages)
         # d(surrogate)/d(log_prob) per sample: the ratio carries the gradient where the unclipped term is the smaller
-        # one (inside the clipping range both are equal, and autograd's min sends half through each: all of it)
+        # one. Inside the clipping range both terms are equal, and autograd's max of rsl-rl's negated terms sends half
+        # through each, all of it reaching the ratio; two terms that round equal outside it (a ratio an ulp past the
+        # range) give the ratio all of it here and half under autograd: a difference of rounding's size
         through = unclipped <= clipped
         surrogate = torch.minimum(unclipped, clipped).mean().neg_()
         slope = unclipped.mul_(through).div_(-mean.shape[0])

@@ -38,6 +38,7 @@ from ftrain.train.phases import Phases
 from ftrain.train.ppo import build_algorithm, load_learned_state
 from ftrain.train.reward_norm import build_reward_normalizer
 from ftrain.train.snapshot_hook import PolicySnapshotHook
+from ftrain.train.surrogate import action_std
 from ftrain.train.tracking import TrackingHook
 
 EXIT_CHECKPOINT = 1
@@ -308,7 +309,7 @@ class Trainer:
             "env_steps": float(self.env_steps),
             **{f"loss/{key}": value for key, value in losses.items()},
             "learning_rate": self.alg.learning_rate,
-            "action_std": self.alg.get_policy().output_std.mean().item(),
+            "action_std": action_std(self.alg.get_policy()),
             "steps_per_s": total_steps / iteration_time,
             "collect_time": collect_time,
             "learn_time": learn_time,

@@ -8,7 +8,12 @@ import pytest
 import torch
 from rsl_rl.modules.distribution import GaussianDistribution
 
-from ftrain.train.surrogate import clipped_surrogate, gaussian_log_std
+from ftrain.config import load_config
+from ftrain.policy.model import build_actor
+from ftrain.train.envs import MujocoVecEnv
+from ftrain.train.surrogate import action_std, clipped_surrogate, gaussian_log_std
+
+from helpers import SMOKE
 
 CLIP, ENTROPY_COEF = 0.2, 0.01
 
@@ -52,3 +57,21 @@ def test_loss_and_gradients_are_rsl_rl_s(std_type: str) -> None:
     for name, mine, reference in zip(("mean", "std parameter"), our_grads, their_grads, strict=True):
         assert reference.abs().max() > 0, name
         torch.testing.assert_close(mine, reference, rtol=1e-4, atol=1e-8, msg=f"gradient of the {name}")
+
+
+@pytest.mark.parametrize("std_type", ["log", "scalar"])
+def test_the_logged_action_std_is_the_policy_s_now_not_the_last_batch_s(std_type: str) -> None:
+    """The update no longer passes its minibatches through the distribution, so ``distribution.std`` keeps the last
+    rollout step's: the metric reads the parameter (after the update's last step)."""
+    config = load_config(SMOKE, [f"policy.std_type={std_type}"])
+    env = MujocoVecEnv(config.env.id, config.env.num_envs, seed=0, kwargs=config.env.kwargs)
+    actor = build_actor(config, env.get_observations(), env.num_actions)
+    distribution = actor.distribution
+    distribution.update(torch.zeros(4, env.num_actions))  # a batch seen before the parameter moves
+    param = distribution.log_std_param if std_type == "log" else distribution.std_param
+    with torch.no_grad():  # a learned standard deviation, away from the initial one
+        learned = torch.linspace(0.2, 0.4, env.num_actions)
+        param.copy_(learned.log() if std_type == "log" else learned)
+    expected = (param.exp() if std_type == "log" else param).mean().item()
+    assert action_std(actor) == pytest.approx(expected, rel=1e-6)
+    assert actor.output_std.mean().item() != pytest.approx(expected, rel=1e-3), "the last batch's std is stale"
