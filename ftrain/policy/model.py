@@ -1,10 +1,12 @@
-"""The policy network of a config: rsl-rl's MLP actor, built the same way for training, loading and export."""
+"""The policy network of a config: rsl-rl's MLP actor, built the same way for training, loading and export; its action
+standard deviation read from the parameter."""
 
 from __future__ import annotations
 
 import torch
 from rsl_rl.models import MLPModel
 from rsl_rl.modules import EmpiricalNormalization
+from rsl_rl.modules.distribution import GaussianDistribution
 from tensordict import TensorDict
 
 from ftrain.config import Config
@@ -79,3 +81,28 @@ def actor_actions(actor: MLPModel, obs: torch.Tensor, deterministic: bool = True
     """The rsl-rl actor's actions for a batch of observations: the mean, or a sample (global torch RNG)."""
     with torch.inference_mode():
         return actor(TensorDict({OBS_GROUP: obs}, batch_size=[obs.shape[0]]), stochastic_output=not deterministic)
+
+
+def action_std(policy: MLPModel) -> float:
+    """The mean standard deviation of ``policy``'s actions as it is now: from the parameter of rsl-rl's Gaussian
+    distribution (the update no longer passes its batches through the distribution), else the last batch's."""
+    distribution = policy.distribution
+    if type(distribution) is GaussianDistribution:
+        return gaussian_std(distribution).mean().item()
+    return policy.output_std.mean().item()
+
+
+def gaussian_std(distribution: GaussianDistribution) -> torch.Tensor:
+    """The standard deviation rsl-rl's distribution samples with, per action dimension, from its parameter as it is now
+    (``distribution.std`` is the one of the last batch the distribution saw)."""
+    if distribution.std_type == "log":
+        return gaussian_log_std(distribution).exp()
+    return distribution.std_param.clamp(*distribution.std_range)
+
+
+def gaussian_log_std(distribution: GaussianDistribution) -> torch.Tensor:
+    """The log of the standard deviation rsl-rl's distribution samples with (clamped to its range), in either of its
+    parameterisations; differentiable with respect to the parameter."""
+    if distribution.std_type == "log":
+        return distribution.log_std_param.clamp(*distribution.log_std_range)
+    return distribution.std_param.clamp(*distribution.std_range).log()

@@ -36,13 +36,13 @@ from torch import nn
 from ftrain.config import Config
 from ftrain.dist.group import RankInfo
 from ftrain.dist.shm_allreduce import SharedMemoryAllReduce, same_host
-from ftrain.policy.model import OBS_GROUP, build_actor, build_model
+from ftrain.policy.model import OBS_GROUP, build_actor, build_model, gaussian_log_std, gaussian_std
 from ftrain.train.distillation import build_distillation
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.minibatch import MiniBatch, mini_batches, rollout_fields
 from ftrain.train.phases import Phases
 from ftrain.train.split import Role, Team, adam_record, build_team, load_adam_record, record_size
-from ftrain.train.surrogate import clipped_surrogate, gaussian_log_std, gaussian_std
+from ftrain.train.surrogate import clipped_surrogate
 
 
 class FusedPPO(PPO):

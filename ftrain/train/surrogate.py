@@ -15,35 +15,8 @@ from __future__ import annotations
 import math
 
 import torch
-from rsl_rl.models import MLPModel
-from rsl_rl.modules.distribution import GaussianDistribution
 
 LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
-
-
-def action_std(policy: MLPModel) -> float:
-    """The mean standard deviation of ``policy``'s actions as it is now: from the parameter of rsl-rl's Gaussian
-    distribution (the update no longer passes its batches through the distribution), else the last batch's."""
-    distribution = policy.distribution
-    if type(distribution) is GaussianDistribution:
-        return gaussian_std(distribution).mean().item()
-    return policy.output_std.mean().item()
-
-
-def gaussian_std(distribution: GaussianDistribution) -> torch.Tensor:
-    """The standard deviation rsl-rl's distribution samples with, per action dimension, from its parameter as it is now
-    (``distribution.std`` is the one of the last batch the distribution saw)."""
-    if distribution.std_type == "log":
-        return gaussian_log_std(distribution).exp()
-    return distribution.std_param.clamp(*distribution.std_range)
-
-
-def gaussian_log_std(distribution: GaussianDistribution) -> torch.Tensor:
-    """The log of the standard deviation rsl-rl's distribution samples with (clamped to its range), in either of its
-    parameterisations; differentiable with respect to the parameter."""
-    if distribution.std_type == "log":
-        return distribution.log_std_param.clamp(*distribution.log_std_range)
-    return distribution.std_param.clamp(*distribution.std_range).log()
 
 
 class _ClippedSurrogate(torch.autograd.Function):

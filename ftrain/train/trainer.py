@@ -29,6 +29,7 @@ from ftrain.config import Config
 from ftrain.dist import group
 from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, stop_code
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter, read_stop_reason
+from ftrain.policy.model import action_std
 from ftrain.policy.robot import unsaved_state_notice
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.evaluation import EvalHook
@@ -38,7 +39,6 @@ from ftrain.train.phases import Phases
 from ftrain.train.ppo import build_algorithm, load_learned_state
 from ftrain.train.reward_norm import build_reward_normalizer
 from ftrain.train.snapshot_hook import PolicySnapshotHook
-from ftrain.train.surrogate import action_std
 from ftrain.train.tracking import TrackingHook
 
 EXIT_CHECKPOINT = 1

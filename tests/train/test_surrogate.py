@@ -9,9 +9,9 @@ import torch
 from rsl_rl.modules.distribution import GaussianDistribution
 
 from ftrain.config import load_config
-from ftrain.policy.model import build_actor
+from ftrain.policy.model import action_std, build_actor, gaussian_log_std
 from ftrain.train.envs import MujocoVecEnv
-from ftrain.train.surrogate import action_std, clipped_surrogate, gaussian_log_std
+from ftrain.train.surrogate import clipped_surrogate
 
 from helpers import SMOKE
 
