@@ -17,7 +17,7 @@ import torch
 import torch.distributed as dist
 
 if TYPE_CHECKING:
-    from ftrain.dist.shm_allreduce import SharedMemoryAllReduce
+    from ftrain.dist.host_first import Collectives
 
 
 @dataclass(frozen=True)
@@ -97,11 +97,14 @@ def set_rng_state(state: dict) -> None:
     random.setstate((version, tuple(internal.tolist()), gauss))
 
 
-def all_reduce_sum(values: list[float], info: RankInfo, reducer: SharedMemoryAllReduce | None = None) -> list[float]:
-    """Sum a few numbers over all ranks in one collective (float64, so counts stay exact). With ``reducer`` (ranks on
-    one machine), through its shared memory: each rank's float64 bits gathered and summed over the ranks (the same
-    order on every rank), in tens of microseconds where gloo's loopback round trip took 1-2 ms on a busy 2-core machine;
-    at two ranks gloo's sum bit for bit."""
+def all_reduce_sum(
+    values: list[float], info: RankInfo, reducer: Collectives | None = None
+) -> list[float]:
+    """Sum a few numbers over all ranks in one collective (float64, so counts stay exact). With ``reducer`` (ranks
+    that share memory: one host's, or host first across hosts), each rank's float64 bits gathered through it and
+    summed over the ranks in rank order, the same bits on every rank and on any layout of ranks on hosts; on one host
+    in tens of microseconds where gloo's loopback round trip took 1-2 ms on a busy 2-core machine. At two ranks gloo's
+    sum bit for bit."""
     if not info.distributed:
         return list(values)
     tensor = torch.tensor(values, dtype=torch.float64)

@@ -32,11 +32,6 @@ class PeerLost(RuntimeError):
     """A peer died or stopped answering in the middle of an all-reduce."""
 
 
-def same_host(info: RankInfo) -> bool:
-    """Whether all ranks run on this machine (torchrun's LOCAL_WORLD_SIZE covers the whole world)."""
-    return info.distributed and int(os.environ.get("LOCAL_WORLD_SIZE", "0")) == info.world_size
-
-
 class SharedMemoryAllReduce:
     """Sum (or average) float32 buffers of up to ``capacity`` elements over all ranks of one machine, or over the
     ``ranks`` of ``group`` (global ranks, all on one machine).
@@ -98,11 +93,20 @@ class SharedMemoryAllReduce:
         """Every rank's ``tensor`` (float32, the same size on every rank), stacked in rank order: ``[world, n]``."""
         return self._share(tensor).clone()
 
+    @property
+    def broadcast_capacity(self) -> int:
+        """The most elements :meth:`broadcast_` carries: one sender fills the round's slots of every rank."""
+        return self.world * self.capacity
+
     def broadcast_(self, tensor: torch.Tensor, src: int) -> torch.Tensor:
-        """In place: ``tensor`` becomes rank ``src``'s (its index among this reducer's ranks)."""
-        slots = self._share(tensor, publish=self.rank == src)
+        """In place: ``tensor`` (float32, contiguous, at most ``broadcast_capacity`` elements) becomes rank ``src``'s
+        (its index among this reducer's ranks)."""
+        area = self._slots[self._round % 2].view(-1)[: tensor.numel()]
+        if self.rank == src:
+            area.copy_(tensor.view(-1))
+        self._share(tensor, publish=False)
         if self.rank != src:
-            tensor.view(-1).copy_(slots[src])
+            tensor.view(-1).copy_(area)
         return tensor
 
     def _share(self, tensor: torch.Tensor, publish: bool = True) -> torch.Tensor:

@@ -6,8 +6,8 @@ same synchronous data-parallel PPO and changes only how it communicates:
 
 - the KL rides in the gradient buffer, and every rank applies the adaptive learning-rate rule to the same global
   KL, which is what rank 0 would have broadcast: one collective per minibatch;
-- on one machine that collective goes through shared memory (:mod:`ftrain.dist.shm_allreduce`), not loopback TCP
-  (``shared_memory_all_reduce=false``: gloo);
+- on one machine that collective goes through shared memory (:mod:`ftrain.dist.shm_allreduce`), not loopback TCP,
+  and across machines host first (:mod:`ftrain.dist.host_first`) (``shared_memory_all_reduce=false``: gloo);
 - actor and critic normalize the same observations, so their statistics are reduced once, in two collectives;
 - at an even number of ranks the update is split by model instead (``split_update``, ``ftrain.train.split``): the
   ranks gather the rollout into one global batch, the first half learns the actor and the second half the critic on
@@ -35,7 +35,7 @@ from torch import nn
 
 from ftrain.config import Config
 from ftrain.dist.group import RankInfo
-from ftrain.dist.shm_allreduce import SharedMemoryAllReduce, same_host
+from ftrain.dist.host_first import Collectives, build_collectives, hosts_of_ranks
 from ftrain.policy.model import OBS_GROUP, build_actor, build_model, gaussian_log_std, gaussian_std
 from ftrain.train.distillation import build_distillation
 from ftrain.train.envs import MujocoVecEnv
@@ -51,7 +51,7 @@ class FusedPPO(PPO):
     def __init__(
         self,
         *args,
-        reducer: SharedMemoryAllReduce | None = None,
+        reducer: Collectives | None = None,
         reshuffle_each_epoch: bool = False,
         phases: Phases | None = None,
         team: Team | None = None,
@@ -236,7 +236,7 @@ class FusedPPO(PPO):
 
     def _broadcast(self, tensor: torch.Tensor, src: int) -> None:
         """Rank ``src``'s ``tensor`` on every rank, in place: through shared memory where it fits, else gloo."""
-        if self.reducer is not None and tensor.numel() <= self.reducer.capacity:
+        if self.reducer is not None and tensor.numel() <= self.reducer.broadcast_capacity:
             self.reducer.broadcast_(tensor, src)
         else:
             dist.broadcast(tensor, src=src)
@@ -314,17 +314,15 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases 
     storage = RolloutStorage("rl", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
     a = config.algorithm
     sizes = [[p.numel() for p in model.parameters()] for model in (actor, critic)]
-    team = build_team(config, info, max(map(sum, sizes)) + 1)
-    reducer = None
-    if config.shared_memory_all_reduce and same_host(info):
-        capacity = sum(map(sum, sizes)) + 1
-        if team is not None:  # gathers the rollout and its sample orders instead; at two ranks, sends the models too
-            samples = env.num_envs * config.num_steps_per_env
-            draws = a.num_learning_epochs if a.reshuffle_each_epoch else 1
-            capacity = samples * (env.num_obs + 3 * env.num_actions + 4 + 2 * draws)
-            if info.world_size == 2:  # (a slot per rank: with more, a model's slots would fill /dev/shm)
-                capacity = max(capacity, 3 + max(record_size(list(model.parameters())) for model in (actor, critic)))
-        reducer = SharedMemoryAllReduce(info, capacity, config.dist_timeout)
+    hosts = hosts_of_ranks(info) if config.shared_memory_all_reduce and info.distributed else None
+    team = build_team(config, info, max(map(sum, sizes)) + 1, hosts)
+    capacity = sum(map(sum, sizes)) + 1  # data-parallel: the gradients of both models and the KL
+    if team is not None:  # gathers the rollout and its sample orders instead, and broadcasts the models
+        samples = env.num_envs * config.num_steps_per_env
+        draws = a.num_learning_epochs if a.reshuffle_each_epoch else 1
+        record = 3 + max(record_size(list(model.parameters())) for model in (actor, critic))
+        capacity = max(samples * (env.num_obs + 3 * env.num_actions + 4 + 2 * draws), -(-record // info.world_size))
+    reducer = build_collectives(info, capacity, config.dist_timeout, hosts)
     return FusedPPO(
         actor,
         critic,

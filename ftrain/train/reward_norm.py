@@ -23,7 +23,7 @@ from ftrain.config import Config
 from ftrain.dist import group
 
 if TYPE_CHECKING:
-    from ftrain.dist.shm_allreduce import SharedMemoryAllReduce
+    from ftrain.dist.host_first import Collectives
 
 EPSILON = 1e-8
 """Added to the variance before the square root (SB3's default)."""
@@ -37,7 +37,7 @@ class RewardNormalizer:
         gamma: float,
         clip: float,
         info: group.RankInfo,
-        reducer: SharedMemoryAllReduce | None = None,
+        reducer: Collectives | None = None,
     ) -> None:
         self.gamma = gamma
         self.clip = clip
@@ -94,7 +94,7 @@ class RewardNormalizer:
 
 
 def build_reward_normalizer(
-    config: Config, info: group.RankInfo, reducer: SharedMemoryAllReduce | None = None
+    config: Config, info: group.RankInfo, reducer: Collectives | None = None
 ) -> RewardNormalizer | None:
     """The normalizer ``config.reward`` asks for, if any."""
     if not config.reward.normalize:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import datetime
 import enum
-import os
 from dataclasses import dataclass
 
 import torch
@@ -19,7 +18,7 @@ import torch.distributed as dist
 from torch import nn
 
 from ftrain.config import Config
-from ftrain.dist.group import RankInfo, all_gather_object
+from ftrain.dist.group import RankInfo
 from ftrain.dist.shm_allreduce import SharedMemoryAllReduce
 
 
@@ -74,9 +73,10 @@ def splits_update(config: Config, info: RankInfo) -> bool:
     return config.split_update and info.world_size >= 2 and info.world_size % 2 == 0
 
 
-def build_team(config: Config, info: RankInfo, capacity: int) -> Team | None:
+def build_team(config: Config, info: RankInfo, capacity: int, hosts: list[str] | None) -> Team | None:
     """This rank's team (every rank calls it at the same point), or None where the update is not split.
-    ``capacity``: the floats of one model's gradients, for the team's shared memory."""
+    ``capacity``: the floats of one model's gradients, for the team's shared memory, where its ranks share a host
+    (``hosts``: every rank's, None where ranks do not share memory)."""
     if not splits_update(config, info):
         return None
     half = info.world_size // 2
@@ -84,9 +84,8 @@ def build_team(config: Config, info: RankInfo, capacity: int) -> Team | None:
     timeout = datetime.timedelta(seconds=config.dist_timeout)
     groups = [dist.new_group(ranks, timeout=timeout, backend="gloo") for ranks in teams] if half > 1 else [None] * 2
     number = 0 if info.rank < half else 1
-    nodes = all_gather_object(os.environ.get("GROUP_RANK", "0"), info)  # torchrun's node of every rank
     reducer = None
-    if half > 1 and config.shared_memory_all_reduce and len({nodes[rank] for rank in teams[number]}) == 1:
+    if half > 1 and hosts is not None and len({hosts[rank] for rank in teams[number]}) == 1:
         reducer = SharedMemoryAllReduce(info, capacity, config.dist_timeout, groups[number], teams[number])
     return Team(Role(number), teams[number], teams[1 - number], info.rank, groups[number], reducer)
 
