@@ -13,7 +13,9 @@ environment step is the same, and only the time it takes can differ:
 - ``2x16:dp``: data-parallel (``split_update=false``): every rank makes all 40 minibatch updates of both models on
   its half of each minibatch (their cost hardly shrinks with the samples), and every one is a meeting of the ranks.
 - Other cases (e.g. ``2x32``, a doubled batch) change the learning; their learning-rate schedule is scaled to end at
-  the same number of environment steps (``algorithm.schedule_iterations``).
+  the same number of environment steps (``algorithm.schedule_iterations``). ``2x32/8``: a doubled batch in 8
+  minibatches, so that a minibatch holds as many samples as the config's, and each sample makes as many gradient
+  steps: the large-batch way to use more ranks, each rank doing a whole 1-rank job's rollout.
 
 Each run stops at its first periodic evaluation (10 deterministic episodes, every ``eval.every`` iterations) at or
 above the target; its time is wall clock from launching torchrun, start-up included, with the clock paused while it
@@ -51,35 +53,46 @@ COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
 
 
 class Case(NamedTuple):
-    """``RANKSxENVS`` (environments per rank), ``:dp`` for a data-parallel update where two ranks would split it."""
+    """``RANKSxENVS`` (environments per rank), ``/MINIBATCHES`` for another number of minibatches than the config's,
+    ``:dp`` for a data-parallel update where two ranks would split it."""
 
     ranks: int
     envs: int
     data_parallel: bool
+    mini_batches: int | None = None
 
     @property
     def split(self) -> bool:
         return self.ranks == 2 and not self.data_parallel
 
+    def overrides(self, envs: int | None = None) -> list[str]:
+        """What one run of the case changes of the config (``envs``: per rank, if not the case's)."""
+        overrides = [f"env.num_envs={envs or self.envs}"]
+        overrides += [f"algorithm.num_mini_batches={self.mini_batches}"] if self.mini_batches else []
+        return overrides + (["split_update=false"] if self.data_parallel else [])
+
     def __str__(self) -> str:
-        return f"{self.ranks}x{self.envs}{':dp' if self.data_parallel else ''}"
+        mini_batches = f"/{self.mini_batches}" if self.mini_batches else ""
+        return f"{self.ranks}x{self.envs}{mini_batches}{':dp' if self.data_parallel else ''}"
 
 
 def parse_case(case: str) -> Case:
     shape, _, mode = case.partition(":")
+    shape, _, mini_batches = shape.partition("/")
     ranks, _, envs = shape.partition("x")
-    if not (ranks.isdigit() and envs.isdigit() and int(ranks) and int(envs)) or mode not in ("", "dp"):
-        raise argparse.ArgumentTypeError(f"{case!r} is not RANKSxENVS or RANKSxENVS:dp, e.g. 2x16")
-    return Case(int(ranks), int(envs), mode == "dp")
+    numbers = (ranks, envs, *([mini_batches] if mini_batches else []))
+    if not all(number.isdigit() and int(number) for number in numbers) or mode not in ("", "dp"):
+        raise argparse.ArgumentTypeError(f"{case!r} is not RANKSxENVS[/MINIBATCHES][:dp], e.g. 2x16 or 2x32/8")
+    return Case(int(ranks), int(envs), mode == "dp", int(mini_batches) if mini_batches else None)
 
 
 def allowed_speedup(first: Case, case: Case, iterations: int) -> float:
     """The steps/s the machine gives ``case`` at best, over the ``first`` case's alone: N x the steps/s of the
     slowest of N side-by-side 1-rank runs of what each rank would do alone. A split update shares one job of all
     the environments between its two ranks, so its bound is two such whole jobs side by side."""
-    alone = run_side_by_side(iterations, [1], overrides=(f"env.num_envs={first.envs}",))[0]["median_steps_per_s"]
+    alone = run_side_by_side(iterations, [1], overrides=tuple(first.overrides()))[0]["median_steps_per_s"]
     envs = case.envs * case.ranks if case.split else case.envs
-    beside = run_side_by_side(iterations, [1] * case.ranks, overrides=(f"env.num_envs={envs}",))
+    beside = run_side_by_side(iterations, [1] * case.ranks, overrides=tuple(case.overrides(envs)))
     per_rank = min(run["median_steps_per_s"] for run in beside)
     return case.ranks * per_rank / alone
 
@@ -142,8 +155,7 @@ def main() -> int:
         for seed in args.seeds:
             for name, case in zip(names, args.cases, strict=True):
                 schedule = round(config.algorithm.schedule_iterations * tuned / (case.ranks * case.envs))
-                overrides = [f"env.num_envs={case.envs}", f"algorithm.schedule_iterations={schedule}"]
-                overrides += ["split_update=false"] if case.data_parallel else []
+                overrides = [*case.overrides(), f"algorithm.schedule_iterations={schedule}"]
                 run = run_ftrain("halfcheetah", seed, int(args.steps), overrides, Path(tmp), case.ranks, args.target)
                 runs[name].append(run)
                 where = next((point[0] for point in run.curve if point[2] >= args.target), math.nan)

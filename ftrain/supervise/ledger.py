@@ -59,7 +59,10 @@ class Ledger:
                 attempt.committed = max(beat.committed_step, attempt.committed or 0)
         if self.paused is None and any(beat.phase == Phase.PREEMPTED for beat in beats.values()):
             self.paused = Failure(now, attempt.completed)  # saved on request: torchrun regroups, or the attempt ends
+        # a rank that is done or saved on request may be left over from an older world; but where every rank is,
+        # the attempt ended before a poll saw it train (a short resumed run), and its beats are all there is to go by
         worlds = {beat.world for beat in beats.values() if beat.phase not in QUIET_PHASES}
+        worlds = worlds or {beat.world for beat in beats.values()}
         regrouped = attempt.world is not None and len(worlds) == 1 and worlds != {attempt.world}
         if regrouped:
             attempt.seen = attempt.progressed = False
