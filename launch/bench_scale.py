@@ -47,7 +47,7 @@ def main() -> int:
     overrides = tuple(SETTINGS["fixed"]().overrides())
     print(f"cores: {cores} usable of {os.cpu_count()}; work per rank: {SETTINGS['fixed']()}", flush=True)
     header = f"{'N':>3} {'ceiling':>9} {'ftrain':>9} {'fraction':>9}  " + " ".join(f"{name:>8}" for name in PHASES)
-    rows = []
+    rows, slowest_rows = [], []
     for ranks in args.ranks:
         ceilings, speeds, phases = [ceiling(args.iterations, ranks, overrides)], [], []
         for _ in range(args.rounds):  # ceiling, ftrain, ceiling, ...: each ftrain run between two ceilings
@@ -62,8 +62,12 @@ def main() -> int:
         row = f"{ranks:>3} {statistics.median(ceilings):>9,.0f} {statistics.median(speeds):>9,.0f} "
         row += f"{statistics.median(fractions):>9.2f}  " + " ".join(f"{phase_ms[name]:>8.1f}" for name in PHASES)
         rows.append(row)
+        slowest = {name: statistics.median(round_[f"{name}_max"] for round_ in phases) for name in PHASES}
+        slowest_rows.append(f"{ranks:>3} {'':>29}  " + " ".join(f"{slowest[name]:>8.1f}" for name in PHASES))
     print(f"\nsteps/s (median of {args.rounds} rounds); phases in ms per iteration, mean over ranks\n{header}")
     print("\n".join(rows))
+    print("the same phases, the slowest rank's (where a rank that waits and one that computes part)")
+    print("\n".join(slowest_rows))
     if args.peers:
         for name in ("rsl_rl", "sb3"):
             code = "import torch; torch.set_num_threads(1); from ftrain.tools.bench import CASES, SETTINGS; "

@@ -97,21 +97,24 @@ def set_rng_state(state: dict) -> None:
     random.setstate((version, tuple(internal.tolist()), gauss))
 
 
-def all_reduce_sum(
-    values: list[float], info: RankInfo, reducer: Collectives | None = None
-) -> list[float]:
-    """Sum a few numbers over all ranks in one collective (float64, so counts stay exact). With ``reducer`` (ranks
-    that share memory: one host's, or host first across hosts), each rank's float64 bits gathered through it and
-    summed over the ranks in rank order, the same bits on every rank and on any layout of ranks on hosts; on one host
-    in tens of microseconds where gloo's loopback round trip took 1-2 ms on a busy 2-core machine. At two ranks gloo's
-    sum bit for bit."""
-    if not info.distributed:
-        return list(values)
+def all_gather_values(values: list[float], info: RankInfo, reducer: Collectives | None = None) -> torch.Tensor:
+    """Every rank's few numbers, ``[world, n]`` float64 in rank order (counts stay exact), in one collective: through
+    ``reducer`` (ranks that share memory: one host's, or host first across hosts) where it has room, as float32
+    bits, in tens of microseconds where gloo's loopback round trip took 1-2 ms on a busy 2-core machine; else gloo."""
     tensor = torch.tensor(values, dtype=torch.float64)
+    if not info.distributed:
+        return tensor.view(1, -1)
     if reducer is not None and 2 * tensor.numel() <= reducer.capacity:
-        return reducer.all_gather(tensor.view(torch.float32)).view(torch.float64).sum(dim=0).tolist()
-    dist.all_reduce(tensor)
-    return tensor.tolist()
+        return reducer.all_gather(tensor.view(torch.float32)).view(torch.float64)
+    every = [torch.empty_like(tensor) for _ in range(info.world_size)]
+    dist.all_gather(every, tensor)
+    return torch.stack(every)
+
+
+def all_reduce_sum(values: list[float], info: RankInfo, reducer: Collectives | None = None) -> list[float]:
+    """Sum a few numbers over all ranks (float64): every rank's gathered and summed in rank order, the same bits on
+    every rank, whatever the ranks' layout on hosts and the way they meet (at two ranks gloo's own all-reduce's)."""
+    return all_gather_values(values, info, reducer).sum(dim=0).tolist()
 
 
 def broadcast_object(value: object, info: RankInfo, group: dist.ProcessGroup | None = None, src: int = 0) -> object:

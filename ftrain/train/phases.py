@@ -3,9 +3,10 @@
 A rank is always in exactly one phase: entering one pauses the phase it was in (the update's compute pauses while
 its all-reduce runs), and whatever runs outside every named phase counts as ``other`` (hooks, heartbeats, the
 checkpoint, the learning-rate schedule). So the phases of a row add up to the wall time since the row before. The
-trainer sums each phase over the ranks in the iteration's metrics all-reduce, which it already makes, and
-``metrics.csv`` gets the mean over ranks in milliseconds, ``time/<phase>_ms``. That all-reduce itself, and what
-follows it (the save, if any), count in the next row.
+trainer gathers every rank's phases in the iteration's metrics collective, which it already makes, and
+``metrics.csv`` gets, in milliseconds, the mean over ranks, ``time/<phase>_ms``, and the slowest rank's,
+``time/<phase>_max_ms`` (where the ranks' work differs, as in a split update, the mean hides which one paces the
+others). That collective itself, and what follows it (the save, if any), count in the next row.
 
 A rank that waits inside a collective is paced by a slower peer: a large ``sync`` time next to a compute time that
 the slowest rank needs beside it is the sign of imbalance, not of a slow network.

@@ -282,8 +282,8 @@ class Trainer:
                 self.alg.compute_returns(obs)
 
     def _record_metrics(self, losses: dict[str, float], collect_time: float, learn_time: float) -> None:
-        """Global metrics: the episode window, the step count and the phases' times are summed over ranks in one
-        collective, and so are the votes (see ``Votes``)."""
+        """Global metrics: the episode window, the step count, the votes (see ``Votes``) and the phases' times of every
+        rank are gathered in one collective and summed; of the phases, the mean over ranks and the slowest rank's."""
         returns = sum(ret for ret, _ in self.episodes)
         lengths = sum(length for _, length in self.episodes)
         steps = self.env.num_envs * self.config.num_steps_per_env
@@ -291,14 +291,17 @@ class Trainer:
         votes = (*stops, *self.checkpointer.votes(self.iteration))
         phases = self.phases.take()
         with self.phases("sync_metrics"):
-            total_returns, total_lengths, count, total_steps, *summed = group.all_reduce_sum(
+            every = group.all_gather_values(
                 [returns, lengths, len(self.episodes), steps, *map(float, votes), *phases.values()],
                 self.info,
                 self.reducer,
             )
+        total_returns, total_lengths, count, total_steps, *summed = every.sum(dim=0).tolist()
         terms, ints, save, store, hold = (vote > 0 for vote in summed[: len(votes)])
-        per_rank = (total / self.info.world_size for total in summed[len(votes) :])
-        phase_ms = {f"time/{name}_ms": 1000 * seconds for name, seconds in zip(phases, per_rank, strict=True)}
+        mean = (total / self.info.world_size for total in summed[len(votes) :])
+        slowest = every[:, -len(phases) :].max(dim=0).values.tolist()
+        phase_ms = {f"time/{name}_ms": 1000 * seconds for name, seconds in zip(phases, mean, strict=True)}
+        phase_ms |= {f"time/{name}_max_ms": 1000 * seconds for name, seconds in zip(phases, slowest, strict=True)}
         self._votes = Votes(signal.SIGTERM if terms else signal.SIGINT if ints else None, save, store, hold)
         self.env_steps += int(total_steps)
         previous = self.metrics

@@ -46,10 +46,11 @@ def main(out: str, timeout_s: float) -> None:
             small = torch.tensor(group.all_reduce_sum(values, info, reducer), dtype=torch.float64)
             every = [torch.empty(size, dtype=torch.float64) for _ in range(info.world_size)]
             dist.all_gather(every, torch.tensor(values, dtype=torch.float64))
-            small_by_gloo = torch.tensor(group.all_reduce_sum(values, info), dtype=torch.float64)
-            if 2 * size <= reducer.capacity:  # (a larger one goes through gloo)
-                exact &= torch.equal(small, torch.stack(every).sum(dim=0))
-                like_gloo &= torch.equal(small, small_by_gloo)
+            small_by_gloo = torch.tensor(values, dtype=torch.float64)
+            dist.all_reduce(small_by_gloo)
+            exact &= torch.equal(small, torch.stack(every).sum(dim=0))  # (a larger one is gathered through gloo)
+            exact &= torch.equal(small, torch.tensor(group.all_reduce_sum(values, info), dtype=torch.float64))
+            like_gloo &= torch.equal(small, small_by_gloo)
             digest.update(small.numpy().tobytes())
     wide = torch.arange(reducer.broadcast_capacity, dtype=torch.float32)  # one sender fills every rank's slots
     copies &= torch.equal(reducer.broadcast_(wide + info.rank, info.world_size - 1), wide + info.world_size - 1)

@@ -104,6 +104,9 @@ def test_it_learns_inverted_pendulum_with_two_ranks(tmp_path, additions: list[st
         rows = list(csv.DictReader(file))
     for row in rows[1:]:  # where each iteration's time went (mean over the 2 ranks): it adds up to the iteration's
         phases = {name: float(row[f"time/{name}_ms"]) for name in PHASES}
+        slowest = {name: float(row[f"time/{name}_max_ms"]) for name in PHASES}
+        # the slowest rank's: at least the mean, and what it leaves the other rank is a time too
+        assert all(phases[name] <= slowest[name] <= 2 * phases[name] + 1e-6 for name in PHASES), row
         assert min(phases.values()) >= 0 and sum(phases.values()) >= 0.8 * 1000 * float(row["iteration_time"]), row
         assert phases["env"] > 0 and phases["update"] > 0 and phases["sync_update"] > 0 and phases["sync_metrics"] > 0
     assert all(float(row["time/sync_rewards_ms"]) > 0 for row in rows) == bool(additions)  # reward normalisation
