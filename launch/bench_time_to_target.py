@@ -144,6 +144,8 @@ def main() -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--target", type=float, default=5000.0)
     parser.add_argument("--steps", type=float, default=3e6, help="environment steps at most per run")
+    horizon = "environment steps at which the learning rate reaches zero (default: the config's, 1M)"
+    parser.add_argument("--schedule-steps", type=float, default=None, help=horizon)
     parser.add_argument("--iterations", type=int, default=30, help="timed iterations of each throughput run")
     parser.add_argument("--out", type=Path, default=bench_learning.REPO / "runs" / "bench_time_to_target")
     args = parser.parse_args()
@@ -154,7 +156,8 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
             for name, case in zip(names, args.cases, strict=True):
-                schedule = round(config.algorithm.schedule_iterations * tuned / (case.ranks * case.envs))
+                steps = args.schedule_steps or config.algorithm.schedule_iterations * tuned * config.num_steps_per_env
+                schedule = round(steps / (case.ranks * case.envs * config.num_steps_per_env))
                 overrides = [*case.overrides(), f"algorithm.schedule_iterations={schedule}"]
                 run = run_ftrain("halfcheetah", seed, int(args.steps), overrides, Path(tmp), case.ranks, args.target)
                 runs[name].append(run)
