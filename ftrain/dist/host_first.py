@@ -72,7 +72,7 @@ class HostFirst:
         here = self.members[self._host]
         self._leads = here[0] == info.rank
         # the local broadcast of a gather's result carries every rank's share: world x capacity over this host's slots
-        local_capacity = max(capacity, math.ceil(self.broadcast_capacity / len(here)))
+        local_capacity = math.ceil(self.broadcast_capacity / len(here))
         self._local = (
             SharedMemoryAllReduce(info, local_capacity, timeout_s, local_groups[self._host], here)
             if len(here) > 1
