@@ -26,6 +26,8 @@ def main(out: str, timeout_s: float) -> None:
     report = {"hosts": hosts, "kind": type(collectives).__name__}
     for name, ours in (("torchrun", collectives), ("interleaved", interleaved)):
         report[name] = check(ours, info)
+    os.environ["GROUP_RANK"] = str(info.rank)  # a node rank per rank, against torchrun's count of ranks per node
+    report["disagreeing_hosts"] = hosts_of_ranks(info)
     dist.barrier()
     if info.rank == info.world_size - 1:
         os._exit(0)  # dies without a word, between two collectives

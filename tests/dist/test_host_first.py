@@ -56,6 +56,7 @@ def test_host_first_collectives_hand_on_every_bit_and_a_dead_peer_ends_the_other
         assert len({report[layout]["digest"] for report in reports.values()}) == 1, f"{layout}: the same bits on all"
     for rank, report in reports.items():
         assert report["kind"] == "HostFirst" and len(set(report["hosts"])) == len(per_node), report["hosts"]
+        assert report["disagreeing_hosts"] is None, "hosts that disagree with torchrun's count: no memory shared"
         for layout in ("torchrun", "interleaved"):
             checks = report[layout]
             assert checks["gathers"] and checks["broadcasts"], f"rank {rank}, {layout}: every bit handed on"
