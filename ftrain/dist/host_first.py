@@ -41,10 +41,9 @@ def hosts_of_ranks(info: RankInfo) -> list[str] | None:
     with torchrun's count of the ranks on this host (then no host is trusted to share memory). Every rank calls it
     at the same point."""
     host = os.environ.get("GROUP_RANK") or socket.gethostname()
-    hosts = all_gather_object(host, info)
-    local_world = int(os.environ.get("LOCAL_WORLD_SIZE", "0"))
-    counts_agree = all_gather_object(hosts.count(host) == local_world, info)
-    return hosts if all(counts_agree) else None
+    every = all_gather_object([host, int(os.environ.get("LOCAL_WORLD_SIZE", "0"))], info)
+    hosts = [host for host, _ in every]
+    return hosts if all(hosts.count(host) == local_world for host, local_world in every) else None
 
 
 class HostFirst:
@@ -69,13 +68,14 @@ class HostFirst:
         ]
         self._leaders = dist.new_group([ranks[0] for ranks in self.members], timeout=timeout, backend="gloo")
         self._host = names.index(hosts[info.rank])
-        here = self.members[self._host]
-        self._leads = here[0] == info.rank
+        self._here = self.members[self._host]
+        self._leads = self._here[0] == info.rank
+        self._widest = max(map(len, self.members))
         # the local broadcast of a gather's result carries every rank's share: world x capacity over this host's slots
-        local_capacity = math.ceil(self.broadcast_capacity / len(here))
+        local_capacity = math.ceil(self.broadcast_capacity / len(self._here))
         self._local = (
-            SharedMemoryAllReduce(info, local_capacity, timeout_s, local_groups[self._host], here)
-            if len(here) > 1
+            SharedMemoryAllReduce(info, local_capacity, timeout_s, local_groups[self._host], self._here)
+            if len(self._here) > 1
             else None
         )
         self._order = torch.tensor([rank for ranks in self.members for rank in ranks]).argsort()
@@ -85,15 +85,15 @@ class HostFirst:
         """Every rank's ``tensor`` (the same size on every rank), stacked in rank order: ``[world, n]``."""
         n = tensor.numel()
         mine = self._local.all_gather(tensor) if self._local is not None else tensor.view(1, -1)
-        every = torch.empty(self.world_size, n)
         if self._leads:
-            widest = max(map(len, self.members))
-            block = torch.zeros(widest, n)  # the hosts' blocks padded to one size, as gloo's all_gather needs
+            block = torch.zeros(self._widest, n)  # the hosts' blocks padded to one size, as gloo's all_gather needs
             block[: len(mine)] = mine
             blocks = [torch.empty_like(block) for _ in self.members]
             dist.all_gather(blocks, block, group=self._leaders)
             every = torch.cat([block[: len(ranks)] for block, ranks in zip(blocks, self.members, strict=True)])
             every = every[self._order]
+        else:
+            every = torch.empty(self.world_size, n)  # filled by this host's first rank
         if self._local is not None:
             self._local.broadcast_(every, 0)
         return every
@@ -101,9 +101,8 @@ class HostFirst:
     def broadcast_(self, tensor: torch.Tensor, src: int) -> torch.Tensor:
         """In place: ``tensor`` becomes global rank ``src``'s."""
         source = next(index for index, ranks in enumerate(self.members) if src in ranks)
-        here = self.members[self._host]
         if self._host == source and self._local is not None:  # to this host's first rank, and the others here
-            self._local.broadcast_(tensor, here.index(src))
+            self._local.broadcast_(tensor, self._here.index(src))
         if self._leads:
             dist.broadcast(tensor, src=self.members[source][0], group=self._leaders)
         if self._host != source and self._local is not None:

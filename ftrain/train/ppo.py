@@ -26,6 +26,8 @@ split update waits for, from 1.32x the critic's to 1.18x (per rank, in training:
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.distributed as dist
 from rsl_rl.algorithms import PPO, Distillation
@@ -321,7 +323,8 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases 
         samples = env.num_envs * config.num_steps_per_env
         draws = a.num_learning_epochs if a.reshuffle_each_epoch else 1
         record = 3 + max(record_size(list(model.parameters())) for model in (actor, critic))
-        capacity = max(samples * (env.num_obs + 3 * env.num_actions + 4 + 2 * draws), -(-record // info.world_size))
+        rollout = samples * (env.num_obs + 3 * env.num_actions + 4 + 2 * draws)
+        capacity = max(rollout, math.ceil(record / info.world_size))  # a broadcast carries world x capacity
     reducer = build_collectives(info, capacity, config.dist_timeout, hosts)
     return FusedPPO(
         actor,
