@@ -18,6 +18,14 @@ iterations, in ms), rsl-rl's and stable-baselines3's 1-process steps/s in the sa
 At two ranks ftrain splits the update by model (``split_update``): each rank then learns one model on both ranks'
 samples instead of both models on its own, which is less work per rank than a 1-rank run's, so the fraction can pass
 1; ``--set split_update=false`` measures the data-parallel update against the same ceiling.
+
+``--strong ENVS...`` measures strong scaling instead, on ``configs/<--config>.yaml`` (the shipped halfcheetah by
+default): a global batch of ENVS environments (x its 16 steps), one whole job, shared by N ranks (ENVS/N each, the
+same learning), against N x the slowest of N whole 1-rank jobs side by side (what N cores could give that job at
+best), for each N of ``--ranks`` above 1 that divides ENVS. The phases are the N-rank run's, and the first row of each
+batch those of one whole job alone.
+
+    .venv/bin/python launch/bench_scale.py --strong 32 64 128 256 --ranks 2
 """
 
 from __future__ import annotations
@@ -27,8 +35,9 @@ import os
 import statistics
 import subprocess
 import sys
+from pathlib import Path
 
-from ftrain.tools.bench import SETTINGS, run_side_by_side
+from ftrain.tools.bench import CONFIG, SETTINGS, run_side_by_side
 from ftrain.train.phases import PHASES
 
 
@@ -43,31 +52,32 @@ def main() -> int:
     parser.add_argument("--peers", action="store_true", help="also measure rsl-rl and SB3, 1 process each")
     setting = "config overrides for ftrain's N-rank runs only, e.g. split_update=false (the ceilings stay)"
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help=setting)
+    strong = "strong scaling of the shipped config at these global batches, in environments (see above)"
+    parser.add_argument("--strong", type=int, nargs="+", default=[], metavar="ENVS", help=strong)
+    parser.add_argument("--config", default="halfcheetah", help="--strong: the config of configs/, by name")
     args = parser.parse_args()
+    args.config = CONFIG.with_name(f"{args.config}.yaml")
+    if args.strong:
+        print(f"cores: {cores} usable of {os.cpu_count()}; strong scaling of {args.config.name}", flush=True)
+        for envs in args.strong:
+            alone = run_side_by_side(args.iterations, [1], overrides=(f"env.num_envs={envs}",), config=args.config)[0]
+            rows = [_row("alone", None, alone["median_steps_per_s"], None, alone["phases_ms"])]
+            slowest = []
+            for ranks in (n for n in args.ranks if n > 1 and envs % n == 0):
+                whole, share = (f"env.num_envs={envs}",), (f"env.num_envs={envs // ranks}", *args.set)
+                row, slow = _measure(args, ranks, whole, share, f"{ranks}x{envs // ranks}")
+                rows.append(row)
+                slowest.append(slow)
+            _print_table(f"global batch {envs} envs x 16 steps: N ranks x envs each", args.rounds, rows, slowest)
+        return 0
     overrides = tuple(SETTINGS["fixed"]().overrides())
     print(f"cores: {cores} usable of {os.cpu_count()}; work per rank: {SETTINGS['fixed']()}", flush=True)
-    header = f"{'N':>3} {'ceiling':>9} {'ftrain':>9} {'fraction':>9}  " + " ".join(f"{name:>8}" for name in PHASES)
     rows, slowest_rows = [], []
     for ranks in args.ranks:
-        ceilings, speeds, phases = [ceiling(args.iterations, ranks, overrides)], [], []
-        for _ in range(args.rounds):  # ceiling, ftrain, ceiling, ...: each ftrain run between two ceilings
-            ours = run_side_by_side(args.iterations, [ranks], overrides=(*overrides, *args.set))[0]
-            ceilings.append(ceiling(args.iterations, ranks, overrides))
-            speeds.append(ours["median_steps_per_s"])
-            phases.append(ours["phases_ms"])
-            line = f"  N={ranks}: ftrain {speeds[-1]:,.0f} steps/s between ceilings {ceilings[-2]:,.0f} and "
-            print(f"{line}{ceilings[-1]:,.0f}", flush=True)
-        fractions = [speed / statistics.mean(ceilings[k : k + 2]) for k, speed in enumerate(speeds)]
-        phase_ms = {name: statistics.median(round_[name] for round_ in phases) for name in PHASES}
-        row = f"{ranks:>3} {statistics.median(ceilings):>9,.0f} {statistics.median(speeds):>9,.0f} "
-        row += f"{statistics.median(fractions):>9.2f}  " + " ".join(f"{phase_ms[name]:>8.1f}" for name in PHASES)
+        row, slow = _measure(args, ranks, overrides, (*overrides, *args.set), str(ranks))
         rows.append(row)
-        slowest = {name: statistics.median(round_[f"{name}_max"] for round_ in phases) for name in PHASES}
-        slowest_rows.append(f"{ranks:>3} {'':>29}  " + " ".join(f"{slowest[name]:>8.1f}" for name in PHASES))
-    print(f"\nsteps/s (median of {args.rounds} rounds); phases in ms per iteration, mean over ranks\n{header}")
-    print("\n".join(rows))
-    print("the same phases, the slowest rank's (where a rank that waits and one that computes part)")
-    print("\n".join(slowest_rows))
+        slowest_rows.append(slow)
+    _print_table("weak scaling", args.rounds, rows, slowest_rows)
     if args.peers:
         for name in ("rsl_rl", "sb3"):
             code = "import torch; torch.set_num_threads(1); from ftrain.tools.bench import CASES, SETTINGS; "
@@ -78,9 +88,45 @@ def main() -> int:
     return 0
 
 
-def ceiling(iterations: int, ranks: int, overrides: tuple[str, ...]) -> float:
+def _measure(
+    args: argparse.Namespace, ranks: int, whole: tuple[str, ...], share: tuple[str, ...], label: str
+) -> tuple[str, str]:
+    """ftrain at ``ranks`` ranks (each run with ``share``), each run between two ceilings of ``ranks`` side-by-side
+    1-rank runs of ``whole``: its row (median steps/s, fraction, mean phases) and its slowest rank's phases."""
+    ceilings, speeds, phases = [ceiling(args.iterations, ranks, whole, args.config)], [], []
+    for _ in range(args.rounds):  # ceiling, ftrain, ceiling, ...: each ftrain run between two ceilings
+        ours = run_side_by_side(args.iterations, [ranks], overrides=share, config=args.config)[0]
+        ceilings.append(ceiling(args.iterations, ranks, whole, args.config))
+        speeds.append(ours["median_steps_per_s"])
+        phases.append(ours["phases_ms"])
+        line = f"  {label}: ftrain {speeds[-1]:,.0f} steps/s between ceilings {ceilings[-2]:,.0f} and "
+        print(f"{line}{ceilings[-1]:,.0f}", flush=True)
+    fractions = [speed / statistics.mean(ceilings[k : k + 2]) for k, speed in enumerate(speeds)]
+    mean = {name: statistics.median(round_[name] for round_ in phases) for name in PHASES}
+    slowest = {name: statistics.median(round_[f"{name}_max"] for round_ in phases) for name in PHASES}
+    row = _row(label, statistics.median(ceilings), statistics.median(speeds), statistics.median(fractions), mean)
+    return row, f"{label:>5} {'':>29}  " + " ".join(f"{slowest[name]:>8.1f}" for name in PHASES)
+
+
+def _row(label: str, ceiling_: float | None, speed: float, fraction: float | None, phases: dict[str, float]) -> str:
+    """A table row; ``ceiling_`` and ``fraction`` None: a run alone, measured against nothing."""
+    ceiling_text = "" if ceiling_ is None else f"{ceiling_:,.0f}"
+    fraction_text = "" if fraction is None else f"{fraction:.2f}"
+    numbers = f"{label:>5} {ceiling_text:>9} {speed:>9,.0f} {fraction_text:>9}  "
+    return numbers + " ".join(f"{phases[name]:>8.1f}" for name in PHASES)
+
+
+def _print_table(title: str, rounds: int, rows: list[str], slowest: list[str]) -> None:
+    header = f"{'N':>5} {'ceiling':>9} {'ftrain':>9} {'fraction':>9}  " + " ".join(f"{name:>8}" for name in PHASES)
+    print(f"\n{title}: steps/s (median of {rounds} rounds); phases in ms per iteration, mean over ranks\n{header}")
+    print("\n".join(rows))
+    print("the same phases, the slowest rank's (where a rank that waits and one that computes part)")
+    print("\n".join(slowest), flush=True)
+
+
+def ceiling(iterations: int, ranks: int, overrides: tuple[str, ...], config: Path = CONFIG) -> float:
     """N x the steps/s of the slowest of N independent 1-rank runs side by side: what N lockstep ranks could reach."""
-    alone = run_side_by_side(iterations, [1] * ranks, overrides=overrides)
+    alone = run_side_by_side(iterations, [1] * ranks, overrides=overrides, config=config)
     return ranks * min(run["median_steps_per_s"] for run in alone)
 
 

@@ -220,14 +220,20 @@ def run_ftrain(
 
 
 def throughput_args(
-    iterations: int, out: Path, storage: str, log_dir: Path, overrides: tuple[str, ...] = (), hook: str = ""
+    iterations: int,
+    out: Path,
+    storage: str,
+    log_dir: Path,
+    overrides: tuple[str, ...] = (),
+    hook: str = "",
+    config: Path = CONFIG,
 ) -> list[str]:
-    """``ftrain train``'s arguments for a throughput run of the HalfCheetah config, no checkpoint or evaluation in the
-    timed window: :class:`ThroughputHook` writes its JSON report to ``out`` (``hook``: more of its keyword arguments,
-    YAML)."""
+    """``ftrain train``'s arguments for a throughput run of ``config`` (the HalfCheetah config), no checkpoint or
+    evaluation in the timed window: :class:`ThroughputHook` writes its JSON report to ``out`` (``hook``: more of its
+    keyword arguments, YAML)."""
     kwargs = f"path: '{out}'" + (f", {hook}" if hook else "")
     return [
-        str(CONFIG),
+        str(config),
         "--storage",
         storage,
         f"iterations={WARMUP + iterations}",
@@ -248,16 +254,18 @@ def run_side_by_side(
     storage: str | None = None,
     overrides: tuple[str, ...] = (),
     env: dict | None = None,
+    config: Path = CONFIG,
 ) -> list[dict]:
-    """One ``ftrain train`` run per entry of ``ranks`` (its rank count), all started at once, whose timed iterations
-    begin together (:class:`ThroughputHook`'s barrier); their JSON reports. ``storage``: the one run's, if only one."""
+    """One ``ftrain train`` run of ``config`` per entry of ``ranks`` (its rank count), all started at once, whose timed
+    iterations begin together (:class:`ThroughputHook`'s barrier); their JSON reports. ``storage``: the one run's, if
+    only one."""
     with tempfile.TemporaryDirectory() as tmp:
         runs = []
         for index, count in enumerate(ranks):
             out = Path(tmp) / f"throughput-{index}.json"
             run, logs = storage or str(Path(tmp) / f"run-{index}"), Path(tmp) / f"logs-{index}"
             barrier = f"barrier: '{Path(tmp) / 'barrier'}', parties: {len(ranks)}"
-            args = throughput_args(iterations, out, run, logs, overrides, barrier)
+            args = throughput_args(iterations, out, run, logs, overrides, barrier, config)
             launcher = ["-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={count}", "-m", "ftrain"]
             cmd = [sys.executable, *(launcher if count > 1 else ["-m", "ftrain"]), "train", *args]
             environment = {**os.environ, "OMP_NUM_THREADS": "1", **(env or {})}
