@@ -86,15 +86,17 @@ def parse_case(case: str) -> Case:
     return Case(int(ranks), int(envs), mode == "dp", int(mini_batches) if mini_batches else None)
 
 
-def allowed_speedup(first: Case, case: Case, iterations: int) -> float:
+def allowed_speedup(first: Case, case: Case, iterations: int, config: Path, extra: tuple[str, ...] = ()) -> float:
     """The steps/s the machine gives ``case`` at best, over the ``first`` case's alone: N x the steps/s of the
     slowest of N side-by-side 1-rank runs of what each rank would do alone. A split update shares one job of all
-    the environments between its two ranks, so its bound is two such whole jobs side by side."""
-    alone = run_side_by_side(iterations, [1], overrides=tuple(first.overrides()))[0]["median_steps_per_s"]
+    the environments between its two ranks, so its bound is two such whole jobs side by side. ``extra``: overrides
+    of every run (no evaluation in a throughput run, whatever they say)."""
+    extra = (*extra, "eval.every=0")
+    alone = run_side_by_side(iterations, [1], overrides=(*first.overrides(), *extra), config=config)[0]
     envs = case.envs * case.ranks if case.split else case.envs
-    beside = run_side_by_side(iterations, [1] * case.ranks, overrides=tuple(case.overrides(envs)))
+    beside = run_side_by_side(iterations, [1] * case.ranks, overrides=(*case.overrides(envs), *extra), config=config)
     per_rank = min(run["median_steps_per_s"] for run in beside)
-    return case.ranks * per_rank / alone
+    return case.ranks * per_rank / alone["median_steps_per_s"]
 
 
 def describe(case: Case) -> str:
@@ -148,8 +150,12 @@ def main() -> int:
     parser.add_argument("--schedule-steps", type=float, default=None, help=horizon)
     parser.add_argument("--iterations", type=int, default=30, help="timed iterations of each throughput run")
     parser.add_argument("--out", type=Path, default=bench_learning.REPO / "runs" / "bench_time_to_target")
+    parser.add_argument("--config", default="halfcheetah", help="the config of configs/, by name")
+    every = "config overrides of every run of every case, e.g. algorithm.learning_rate=3e-4 eval.every=10"
+    parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help=every)
     args = parser.parse_args()
-    config = load_config(str(bench_learning.REPO / "configs" / "halfcheetah.yaml"))
+    config_path = bench_learning.REPO / "configs" / f"{args.config}.yaml"
+    config = load_config(str(config_path))
     tuned = 2 * config.env.num_envs  # the config's global batch, in environments: tuned at 2 ranks
     names = [str(case) for case in args.cases]
     runs: dict[str, list[Run]] = {name: [] for name in names}
@@ -158,8 +164,8 @@ def main() -> int:
             for name, case in zip(names, args.cases, strict=True):
                 steps = args.schedule_steps or config.algorithm.schedule_iterations * tuned * config.num_steps_per_env
                 schedule = round(steps / (case.ranks * case.envs * config.num_steps_per_env))
-                overrides = [*case.overrides(), f"algorithm.schedule_iterations={schedule}"]
-                run = run_ftrain("halfcheetah", seed, int(args.steps), overrides, Path(tmp), case.ranks, args.target)
+                overrides = [*case.overrides(), f"algorithm.schedule_iterations={schedule}", *args.set]
+                run = run_ftrain(args.config, seed, int(args.steps), overrides, Path(tmp), case.ranks, args.target)
                 runs[name].append(run)
                 where = next((point[0] for point in run.curve if point[2] >= args.target), math.nan)
                 print(
@@ -169,7 +175,8 @@ def main() -> int:
                 )
     first, cases = args.cases[0], dict(zip(names, args.cases, strict=True))
     print("what the machine allows (throughput runs, the same cores, right after):", flush=True)
-    allowed = {name: allowed_speedup(first, case, args.iterations) for name, case in cases.items()}
+    extra = tuple(args.set)
+    allowed = {name: allowed_speedup(first, case, args.iterations, config_path, extra) for name, case in cases.items()}
     allowed = {name: value / allowed[names[0]] for name, value in allowed.items()}
     print(f"\n| ranks x envs | time to {args.target:,.0f}: median (range) | seeds | steps to it: median ", end="")
     print(f"| speed-up vs {names[0]} | steps/s at best (ceiling) | steps/s reached: median (range) |")
@@ -186,7 +193,7 @@ def main() -> int:
             f"| {statistics.median(steps):,.0f} | {statistics.median(times[names[0]]) / middle:.2f} "
             f"| {allowed[name]:.2f} | {speed / statistics.median(rates[names[0]]):.2f}: {speed:,.0f} ({speeds}) |"
         )
-    plot(runs, args.target, args.out / "halfcheetah.png")
+    plot(runs, args.target, args.out / f"{args.config}.png")
     results = {name: [asdict(run) for run in seeds] for name, seeds in runs.items()}
     settings = vars(args) | {"out": str(args.out), "cases": names}
     (args.out / "results.json").write_text(json.dumps({"args": settings, "runs": results}))
