@@ -7,6 +7,7 @@ import pytest
 
 from ftrain.config import load_config
 from ftrain.errors import UserError
+from ftrain.train.lr_schedule import horizon_notice
 
 from helpers import REPO, SMOKE
 
@@ -104,3 +105,9 @@ def test_a_yaml_error_names_the_file_the_line_the_column_and_the_problem(tmp_pat
         f"config file {str(config)!r} is not valid YAML at line 3, column 5 (expected ',' or ']', but got ':'): "
         "fix the syntax"
     )
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "configs").glob("*.yaml")), ids=lambda path: path.stem)
+def test_every_shipped_config_loads_and_anneals_over_its_own_run(path) -> None:
+    config = load_config(str(path))
+    assert horizon_notice(config.algorithm, config.iterations) is None  # no config warns about itself
