@@ -1,4 +1,4 @@
-"""Weak scaling against what the machine can give: ftrain at N ranks beside N independent 1-rank runs.
+"""Scaling against what the machine can give: ftrain at N ranks beside N independent 1-rank runs (weak; --strong).
 
 A lockstep run is paced by its slowest rank, and virtual cores are not whole cores, so the ceiling for N ranks is
 measured, not assumed: N independent 1-rank runs started side by side (their timed iterations start together), and
@@ -37,6 +37,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from ftrain.config import load_config
 from ftrain.tools.bench import CONFIG, SETTINGS, run_side_by_side
 from ftrain.train.phases import PHASES
 
@@ -50,31 +51,27 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=3, help=rounds)
     parser.add_argument("--iterations", type=int, default=60, help="timed iterations per run, after 3 of warm-up")
     parser.add_argument("--peers", action="store_true", help="also measure rsl-rl and SB3, 1 process each")
-    setting = "config overrides for ftrain's N-rank runs only, e.g. split_update=false (the ceilings stay)"
+    setting = "config overrides for ftrain's N-rank runs only, e.g. split_update=false (the ceilings stay, so one that"
+    setting += " changes the work per step compares two different jobs)"
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help=setting)
-    strong = "strong scaling of the shipped config at these global batches, in environments (see above)"
+    strong = "strong scaling instead: a global batch of ENVS environments shared by N ranks, against N whole jobs"
     parser.add_argument("--strong", type=int, nargs="+", default=[], metavar="ENVS", help=strong)
-    parser.add_argument("--config", default="halfcheetah", help="--strong: the config of configs/, by name")
+    parser.add_argument("--config", help="with --strong: the config of configs/, by name (default: halfcheetah)")
     args = parser.parse_args()
-    args.config = CONFIG.with_name(f"{args.config}.yaml")
     if args.strong:
-        print(f"cores: {cores} usable of {os.cpu_count()}; strong scaling of {args.config.name}", flush=True)
-        for envs in args.strong:
-            alone = run_side_by_side(args.iterations, [1], overrides=(f"env.num_envs={envs}",), config=args.config)[0]
-            rows = [_row("alone", None, alone["median_steps_per_s"], None, alone["phases_ms"])]
-            slowest = []
-            for ranks in (n for n in args.ranks if n > 1 and envs % n == 0):
-                whole, share = (f"env.num_envs={envs}",), (f"env.num_envs={envs // ranks}", *args.set)
-                row, slow = _measure(args, ranks, whole, share, f"{ranks}x{envs // ranks}")
-                rows.append(row)
-                slowest.append(slow)
-            _print_table(f"global batch {envs} envs x 16 steps: N ranks x envs each", args.rounds, rows, slowest)
-        return 0
+        config = CONFIG.with_name(f"{args.config or CONFIG.stem}.yaml")
+        if not config.exists():
+            parser.error(f"--config {args.config}: no configs/{config.name}")
+        if args.peers:
+            parser.error("--peers measures the weak-scaling setting: run it without --strong")
+        return _strong(args, config, cores)
+    if args.config:
+        parser.error("--config goes with --strong (weak scaling measures ftrain bench's fixed setting)")
     overrides = tuple(SETTINGS["fixed"]().overrides())
     print(f"cores: {cores} usable of {os.cpu_count()}; work per rank: {SETTINGS['fixed']()}", flush=True)
     rows, slowest_rows = [], []
     for ranks in args.ranks:
-        row, slow = _measure(args, ranks, overrides, (*overrides, *args.set), str(ranks))
+        row, slow = _measure(args, CONFIG, ranks, overrides, (*overrides, *args.set), f"N={ranks}")
         rows.append(row)
         slowest_rows.append(slow)
     _print_table("weak scaling", args.rounds, rows, slowest_rows)
@@ -88,15 +85,37 @@ def main() -> int:
     return 0
 
 
+def _strong(args: argparse.Namespace, config: Path, cores: int) -> int:
+    """``--strong``: for each global batch, one whole job alone, then each N of ``--ranks`` that divides it."""
+    steps = load_config(str(config)).num_steps_per_env
+    print(f"cores: {cores} usable of {os.cpu_count()}; strong scaling of configs/{config.name}", flush=True)
+    for envs in args.strong:
+        whole = (f"env.num_envs={envs}",)
+        alone = run_side_by_side(args.iterations, [1], overrides=whole, config=config)[0]
+        rows = [_row("alone", None, alone["median_steps_per_s"], None, alone["phases_ms"])]
+        slowest = []
+        for ranks in (n for n in args.ranks if n > 1):
+            if envs % ranks:
+                print(f"  {ranks} ranks left out: they do not share {envs} environments evenly", flush=True)
+                continue
+            share = (f"env.num_envs={envs // ranks}", *args.set)
+            row, slow = _measure(args, config, ranks, whole, share, f"{ranks}x{envs // ranks}")
+            rows.append(row)
+            slowest.append(slow)
+        _print_table(f"global batch {envs} envs x {steps} steps: N ranks x envs each", args.rounds, rows, slowest)
+    return 0
+
+
 def _measure(
-    args: argparse.Namespace, ranks: int, whole: tuple[str, ...], share: tuple[str, ...], label: str
+    args: argparse.Namespace, config: Path, ranks: int, whole: tuple[str, ...], share: tuple[str, ...], label: str
 ) -> tuple[str, str]:
     """ftrain at ``ranks`` ranks (each run with ``share``), each run between two ceilings of ``ranks`` side-by-side
-    1-rank runs of ``whole``: its row (median steps/s, fraction, mean phases) and its slowest rank's phases."""
-    ceilings, speeds, phases = [ceiling(args.iterations, ranks, whole, args.config)], [], []
+    1-rank runs of ``whole``, all of ``config``: its row (median steps/s, fraction, mean phases) and its slowest
+    rank's phases."""
+    ceilings, speeds, phases = [ceiling(args.iterations, ranks, whole, config)], [], []
     for _ in range(args.rounds):  # ceiling, ftrain, ceiling, ...: each ftrain run between two ceilings
-        ours = run_side_by_side(args.iterations, [ranks], overrides=share, config=args.config)[0]
-        ceilings.append(ceiling(args.iterations, ranks, whole, args.config))
+        ours = run_side_by_side(args.iterations, [ranks], overrides=share, config=config)[0]
+        ceilings.append(ceiling(args.iterations, ranks, whole, config))
         speeds.append(ours["median_steps_per_s"])
         phases.append(ours["phases_ms"])
         line = f"  {label}: ftrain {speeds[-1]:,.0f} steps/s between ceilings {ceilings[-2]:,.0f} and "
@@ -117,6 +136,7 @@ def _row(label: str, ceiling_: float | None, speed: float, fraction: float | Non
 
 
 def _print_table(title: str, rounds: int, rows: list[str], slowest: list[str]) -> None:
+    """The rows under a header of the phases, then each N's slowest rank's phases."""
     header = f"{'N':>5} {'ceiling':>9} {'ftrain':>9} {'fraction':>9}  " + " ".join(f"{name:>8}" for name in PHASES)
     print(f"\n{title}: steps/s (median of {rounds} rounds); phases in ms per iteration, mean over ranks\n{header}")
     print("\n".join(rows))
@@ -124,7 +144,7 @@ def _print_table(title: str, rounds: int, rows: list[str], slowest: list[str]) -
     print("\n".join(slowest), flush=True)
 
 
-def ceiling(iterations: int, ranks: int, overrides: tuple[str, ...], config: Path = CONFIG) -> float:
+def ceiling(iterations: int, ranks: int, overrides: tuple[str, ...], config: Path) -> float:
     """N x the steps/s of the slowest of N independent 1-rank runs side by side: what N lockstep ranks could reach."""
     alone = run_side_by_side(iterations, [1] * ranks, overrides=overrides, config=config)
     return ranks * min(run["median_steps_per_s"] for run in alone)

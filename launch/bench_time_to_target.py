@@ -2,10 +2,12 @@
 case of ``--cases`` (ranks x environments per rank), against what the machine allows.
 
     .venv/bin/python launch/bench_time_to_target.py [--cases 1x32 2x16 2x16:dp] [--seeds 1 2 3] [--target 5000]
+        [--config halfcheetah] [--set KEY=VALUE ...]
 
 The shipped ``configs/halfcheetah.yaml`` is tuned at 2 ranks x 16 environments: 512 environment steps per iteration,
-10 epochs of 4 minibatches. The cases (default: ``1x32 2x16 2x16:dp``) keep that global batch, so the learning per
-environment step is the same, and only the time it takes can differ:
+10 epochs of 4 minibatches. The cases (default: the config's global batch at 1 rank, and at 2 ranks split and
+data-parallel: ``1x32 2x16 2x16:dp``) keep that global batch, so the learning per environment step is the same, and
+only the time it takes can differ:
 
 - ``2x16``: two ranks split the update (``split_update``, the default at two ranks): rank 0 learns the actor and
   rank 1 the critic, each on the whole batch; they meet to gather the rollout and to exchange the models, not at
@@ -50,6 +52,17 @@ from ftrain.config import load_config
 from ftrain.tools.bench import run_side_by_side
 
 COLORS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple")
+OWN_KEYS = (
+    "iterations",
+    "seed",
+    "hooks",
+    "log",
+    "checkpoint.",
+    "env.num_envs",
+    "algorithm.num_mini_batches",
+    "algorithm.schedule_iterations",
+)
+"""What ``--set`` may not override: the benchmark's own settings of a case, a seed and a timed run."""
 
 
 class Case(NamedTuple):
@@ -86,15 +99,16 @@ def parse_case(case: str) -> Case:
     return Case(int(ranks), int(envs), mode == "dp", int(mini_batches) if mini_batches else None)
 
 
-def allowed_speedup(first: Case, case: Case, iterations: int, config: Path, extra: tuple[str, ...] = ()) -> float:
+def allowed_speedup(first: Case, case: Case, iterations: int, config: Path, extra: tuple[str, ...]) -> float:
     """The steps/s the machine gives ``case`` at best, over the ``first`` case's alone: N x the steps/s of the
     slowest of N side-by-side 1-rank runs of what each rank would do alone. A split update shares one job of all
     the environments between its two ranks, so its bound is two such whole jobs side by side. ``extra``: overrides
     of every run (no evaluation in a throughput run, whatever they say)."""
-    extra = (*extra, "eval.every=0")
-    alone = run_side_by_side(iterations, [1], overrides=(*first.overrides(), *extra), config=config)[0]
+    throughput = (*extra, "eval.every=0")
+    alone = run_side_by_side(iterations, [1], overrides=(*first.overrides(), *throughput), config=config)[0]
     envs = case.envs * case.ranks if case.split else case.envs
-    beside = run_side_by_side(iterations, [1] * case.ranks, overrides=(*case.overrides(envs), *extra), config=config)
+    overrides = (*case.overrides(envs), *throughput)
+    beside = run_side_by_side(iterations, [1] * case.ranks, overrides=overrides, config=config)
     per_rank = min(run["median_steps_per_s"] for run in beside)
     return case.ranks * per_rank / alone["median_steps_per_s"]
 
@@ -114,7 +128,7 @@ def rate(run: Run, target: float) -> float:
     return (hit[0] - first[0]) / (hit[1] - first[1])
 
 
-def plot(runs: dict[str, list[Run]], target: float, path: Path) -> None:
+def plot(runs: dict[str, list[Run]], target: float, env_id: str, path: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -132,7 +146,7 @@ def plot(runs: dict[str, list[Run]], target: float, path: Path) -> None:
         ax.set_ylabel("deterministic return (10 episodes)")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize="small")
-    figure.suptitle("HalfCheetah-v5 to an evaluation return of 5,000: ranks x environments per rank")
+    figure.suptitle(f"{env_id} to an evaluation return of {target:,.0f}: ranks x environments per rank")
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=72)
@@ -141,12 +155,12 @@ def plot(runs: dict[str, list[Run]], target: float, path: Path) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    cases = [parse_case(case) for case in ("1x32", "2x16", "2x16:dp")]
-    parser.add_argument("--cases", type=parse_case, nargs="+", default=cases)
+    shapes = "RANKSxENVS[/MINIBATCHES][:dp] (default: the config's batch at 1 rank, 2 split, 2 data-parallel)"
+    parser.add_argument("--cases", type=parse_case, nargs="+", default=None, help=shapes)
     parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
     parser.add_argument("--target", type=float, default=5000.0)
     parser.add_argument("--steps", type=float, default=3e6, help="environment steps at most per run")
-    horizon = "environment steps at which the learning rate reaches zero (default: the config's, 1M)"
+    horizon = "environment steps at which the learning rate reaches zero (default: the config's own horizon)"
     parser.add_argument("--schedule-steps", type=float, default=None, help=horizon)
     parser.add_argument("--iterations", type=int, default=30, help="timed iterations of each throughput run")
     parser.add_argument("--out", type=Path, default=bench_learning.REPO / "runs" / "bench_time_to_target")
@@ -155,8 +169,14 @@ def main() -> int:
     parser.add_argument("--set", nargs="*", default=[], metavar="KEY=VALUE", help=every)
     args = parser.parse_args()
     config_path = bench_learning.REPO / "configs" / f"{args.config}.yaml"
+    if not config_path.exists():
+        parser.error(f"--config {args.config}: no {config_path.relative_to(bench_learning.REPO)}")
+    for item in args.set:
+        if item.partition("=")[0].startswith(OWN_KEYS):
+            parser.error(f"--set {item}: the benchmark sets {item.partition('=')[0]} itself (cases, seeds, runs)")
     config = load_config(str(config_path))
     tuned = 2 * config.env.num_envs  # the config's global batch, in environments: tuned at 2 ranks
+    args.cases = args.cases or [Case(1, tuned, False), Case(2, tuned // 2, False), Case(2, tuned // 2, True)]
     names = [str(case) for case in args.cases]
     runs: dict[str, list[Run]] = {name: [] for name in names}
     with tempfile.TemporaryDirectory() as tmp:
@@ -193,7 +213,7 @@ def main() -> int:
             f"| {statistics.median(steps):,.0f} | {statistics.median(times[names[0]]) / middle:.2f} "
             f"| {allowed[name]:.2f} | {speed / statistics.median(rates[names[0]]):.2f}: {speed:,.0f} ({speeds}) |"
         )
-    plot(runs, args.target, args.out / f"{args.config}.png")
+    plot(runs, args.target, config.env.id, args.out / f"{args.config}.png")
     results = {name: [asdict(run) for run in seeds] for name, seeds in runs.items()}
     settings = vars(args) | {"out": str(args.out), "cases": names}
     (args.out / "results.json").write_text(json.dumps({"args": settings, "runs": results}))

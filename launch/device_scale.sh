@@ -14,9 +14,10 @@
 #     rsl-rl-lib==5.5.1 tensordict==0.15.3 pyvers==0.2.3 glfw==2.11.0 PyOpenGL==3.1.10 Farama-Notifications==0.0.6 \
 #     setproctitle==1.3.8 GitPython gitdb smmap
 # (27 MB; tensordict 0.15 wants torch>=2.11, which that image has). Then the device's run, with carry [".whl"] and a
-# timeout of 540 s: `bash launch/device_scale.sh`, then `MODE=strong bash launch/device_scale.sh`. MODE, ENVS,
-# CONFIG, RANKS, ROUNDS and ITERATIONS override the defaults below; on this 2-core machine
-# `RANKS="1 2" bash launch/device_scale.sh` tries the same path (without .whl/ it uses the venv).
+# timeout of 540 s: `bash launch/device_scale.sh`; then, if the machine's 15 minutes leave 5, with a timeout of 300 s,
+# `MODE=strong bash launch/device_scale.sh`. MODE (weak or strong), ENVS, SCALE_CONFIG, RANKS, ROUNDS and ITERATIONS
+# override the defaults below; on this 2-core machine `RANKS="1 2" bash launch/device_scale.sh` tries the same path
+# (without .whl/ it uses the venv).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python=python3
@@ -29,12 +30,18 @@ fi
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=1
 out="${OUT:-runs/device_scale}"
 mkdir -p "$out"
-"$python" -c 'import torch, mujoco; print("torch", torch.__version__, "mujoco", mujoco.__version__)' | tee "$out/versions.txt"
+"$python" -c 'import torch, mujoco; print("torch", torch.__version__, "mujoco", mujoco.__version__)' \
+  | tee "$out/versions.txt"
 # shellcheck disable=SC2086 # RANKS and ENVS are lists
-if [ "${MODE:-weak}" = strong ]; then
-  "$python" launch/bench_scale.py --strong ${ENVS:-256} --config "${CONFIG:-halfcheetah_large}" --ranks ${RANKS:-2 4 8 16} \
-    --rounds "${ROUNDS:-1}" --iterations "${ITERATIONS:-20}" 2>&1 | tee "$out/bench_scale_strong.txt"
-else
-  "$python" launch/bench_scale.py --ranks ${RANKS:-1 2 4 8 16} --rounds "${ROUNDS:-1}" --iterations "${ITERATIONS:-30}" \
-    2>&1 | tee "$out/bench_scale.txt"
-fi
+case "${MODE:-weak}" in
+  weak)
+    "$python" launch/bench_scale.py --ranks ${RANKS:-1 2 4 8 16} --rounds "${ROUNDS:-1}" \
+      --iterations "${ITERATIONS:-30}" 2>&1 | tee "$out/bench_scale.txt" ;;
+  strong)
+    "$python" launch/bench_scale.py --strong ${ENVS:-256} --config "${SCALE_CONFIG:-halfcheetah_large}" \
+      --ranks ${RANKS:-2 4 8 16} --rounds "${ROUNDS:-1}" --iterations "${ITERATIONS:-20}" 2>&1 \
+      | tee "$out/bench_scale_strong.txt" ;;
+  *)
+    echo "device_scale.sh: MODE=${MODE} is neither weak nor strong" >&2
+    exit 2 ;;
+esac

@@ -108,6 +108,6 @@ def test_a_yaml_error_names_the_file_the_line_the_column_and_the_problem(tmp_pat
 
 
 @pytest.mark.parametrize("path", sorted((REPO / "configs").glob("*.yaml")), ids=lambda path: path.stem)
-def test_every_shipped_config_loads_and_anneals_over_its_own_run(path) -> None:
+def test_every_shipped_config_loads_and_none_warns_about_its_learning_rate_horizon(path) -> None:
     config = load_config(str(path))
     assert horizon_notice(config.algorithm, config.iterations) is None  # no config warns about itself

@@ -228,9 +228,9 @@ def throughput_args(
     hook: str = "",
     config: Path = CONFIG,
 ) -> list[str]:
-    """``ftrain train``'s arguments for a throughput run of ``config`` (the HalfCheetah config), no checkpoint or
-    evaluation in the timed window: :class:`ThroughputHook` writes its JSON report to ``out`` (``hook``: more of its
-    keyword arguments, YAML)."""
+    """``ftrain train``'s arguments for a throughput run of ``config`` (default: the shipped HalfCheetah one), no
+    checkpoint or evaluation in the timed window: :class:`ThroughputHook` writes its JSON report to ``out`` (``hook``:
+    more of its keyword arguments, YAML)."""
     kwargs = f"path: '{out}'" + (f", {hook}" if hook else "")
     return [
         str(config),
