@@ -27,10 +27,10 @@ Seeds go round the cases, so a drift of the machine hits every case alike.
 What the machine allows each case: N x the steps/s of the slowest of N independent 1-rank runs started side by side
 (``ftrain.tools.bench.run_side_by_side``, median iterations), each doing what one rank of the case does alone (its
 environments; for a split update, the whole job of both ranks' environments, which the two ranks share), against the
-first case's alone. For a case with the first case's learning per environment step, it bounds the speed-up of the time
-to the target too. Beside it, the steps/s each case reached (from a run's first evaluation to the one at the target:
-start-up left out). Writes a plot of return against environment steps and wall time (a colour per case, a line per
-seed) and ``results.json`` to ``--out``.
+first case's (a 1-rank case's: one run alone). For a case with the first case's learning per environment step, it bounds
+the speed-up of the time to the target too. Beside it, the steps/s each case reached (from a run's first evaluation to
+the one at the target: start-up left out). Writes a plot of return against environment steps and wall time (a colour per
+case, a line per seed) and ``results.json`` to ``--out``.
 """
 
 from __future__ import annotations
@@ -99,18 +99,15 @@ def parse_case(case: str) -> Case:
     return Case(int(ranks), int(envs), mode == "dp", int(mini_batches) if mini_batches else None)
 
 
-def allowed_speedup(first: Case, case: Case, iterations: int, config: Path, extra: tuple[str, ...]) -> float:
-    """The steps/s the machine gives ``case`` at best, over the ``first`` case's alone: N x the steps/s of the
-    slowest of N side-by-side 1-rank runs of what each rank would do alone. A split update shares one job of all
-    the environments between its two ranks, so its bound is two such whole jobs side by side. ``extra``: overrides
-    of every run (no evaluation in a throughput run, whatever they say)."""
-    throughput = (*extra, "eval.every=0")
-    alone = run_side_by_side(iterations, [1], overrides=(*first.overrides(), *throughput), config=config)[0]
+def best_speed(case: Case, iterations: int, config: Path, extra: tuple[str, ...]) -> float:
+    """The steps/s the machine gives ``case`` at best: N x the steps/s of the slowest of N side-by-side 1-rank runs
+    of what each rank would do alone (one run alone for a 1-rank case). A split update shares one job of all the
+    environments between its two ranks, so its bound is two such whole jobs side by side. ``extra``: overrides of
+    every run (no evaluation in a throughput run, whatever they say)."""
     envs = case.envs * case.ranks if case.split else case.envs
-    overrides = (*case.overrides(envs), *throughput)
+    overrides = (*case.overrides(envs), *extra, "eval.every=0")
     beside = run_side_by_side(iterations, [1] * case.ranks, overrides=overrides, config=config)
-    per_rank = min(run["median_steps_per_s"] for run in beside)
-    return case.ranks * per_rank / alone["median_steps_per_s"]
+    return case.ranks * min(run["median_steps_per_s"] for run in beside)
 
 
 def describe(case: Case) -> str:
@@ -176,14 +173,14 @@ def main() -> int:
             parser.error(f"--set {item}: the benchmark sets {item.partition('=')[0]} itself (cases, seeds, runs)")
     config = load_config(str(config_path))
     tuned = 2 * config.env.num_envs  # the config's global batch, in environments: tuned at 2 ranks
-    args.cases = args.cases or [Case(1, tuned, False), Case(2, tuned // 2, False), Case(2, tuned // 2, True)]
-    names = [str(case) for case in args.cases]
+    cases = args.cases or [Case(1, tuned, False), Case(2, tuned // 2, False), Case(2, tuned // 2, True)]
+    names = [str(case) for case in cases]
+    horizon = args.schedule_steps or config.algorithm.schedule_iterations * tuned * config.num_steps_per_env
     runs: dict[str, list[Run]] = {name: [] for name in names}
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
-            for name, case in zip(names, args.cases, strict=True):
-                steps = args.schedule_steps or config.algorithm.schedule_iterations * tuned * config.num_steps_per_env
-                schedule = round(steps / (case.ranks * case.envs * config.num_steps_per_env))
+            for name, case in zip(names, cases, strict=True):
+                schedule = round(horizon / (case.ranks * case.envs * config.num_steps_per_env))
                 overrides = [*case.overrides(), f"algorithm.schedule_iterations={schedule}", *args.set]
                 run = run_ftrain(args.config, seed, int(args.steps), overrides, Path(tmp), case.ranks, args.target)
                 runs[name].append(run)
@@ -193,11 +190,9 @@ def main() -> int:
                     f"(+{run.eval_seconds:,.0f} s evaluating), load {run.load}",
                     flush=True,
                 )
-    first, cases = args.cases[0], dict(zip(names, args.cases, strict=True))
     print("what the machine allows (throughput runs, the same cores, right after):", flush=True)
-    extra = tuple(args.set)
-    allowed = {name: allowed_speedup(first, case, args.iterations, config_path, extra) for name, case in cases.items()}
-    allowed = {name: value / allowed[names[0]] for name, value in allowed.items()}
+    best = [best_speed(case, args.iterations, config_path, tuple(args.set)) for case in cases]
+    allowed = {name: speed / best[0] for name, speed in zip(names, best, strict=True)}
     print(f"\n| ranks x envs | time to {args.target:,.0f}: median (range) | seeds | steps to it: median ", end="")
     print(f"| speed-up vs {names[0]} | steps/s at best (ceiling) | steps/s reached: median (range) |")
     print("| --- " * 7 + "|")
