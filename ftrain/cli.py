@@ -171,6 +171,15 @@ def build_parser() -> argparse.ArgumentParser:
     prune.add_argument(
         "--drop-bad", action="store_true", help="also delete corrupt, quarantined and set-aside steps (the only way)"
     )
+    prune.add_argument(
+        "--keep-line",
+        type=int,
+        metavar="STEP",
+        help="instead: keep STEP's line of descent and set every verified step off it aside (a forked storage)",
+    )
+    prune.add_argument(
+        "--force", action="store_true", help="prune even while a run holds the storage (it refuses by default)"
+    )
     unquarantine = ckpt_commands.add_parser(
         "unquarantine", help="lift the quarantine of one step if it verifies (exit 1 if it does not)"
     )
@@ -322,6 +331,8 @@ def _dispatch(args: argparse.Namespace) -> int:
             return ckpt_commands.show(args.url, options, as_json=args.json)
         if args.ckpt_command == "unquarantine":
             return ckpt_commands.unquarantine(args.url, options)
+        if args.keep_line is not None:
+            return ckpt_commands.keep_line(args.url, args.keep_line, options, force=args.force)
         return ckpt_commands.prune(
             args.url,
             keep_last=args.keep_last,
@@ -332,6 +343,7 @@ def _dispatch(args: argparse.Namespace) -> int:
             dry_run=args.dry_run,
             drop_bad=args.drop_bad,
             options=options,
+            force=args.force,
         )
     if args.command == "play":
         with imports():

@@ -1,6 +1,7 @@
 """What names a run: a run id, a generation and an attempt. Everything else that names a run derives from these.
 
-- The **run id** is chosen once and kept across restarts and requeues (``run_id``).
+- The **run id** is chosen once and kept across restarts and requeues (``run_id``). An id that torchrun gives every
+  run (``none`` without ``--rdzv-id``) is never taken: two plain ``torchrun`` runs must not pass for one.
 - The **generation** numbers the holders of the run's storage. It only grows, and the storage's lease
   (``ckpt/lease.py``) hands it out: +1 for another run, for the same run id once none of its processes lives (a
   requeued job, the same command again), and for every new plan of a run on several nodes (node 0's supervisor
@@ -23,6 +24,8 @@ import os
 import secrets
 from dataclasses import dataclass
 
+SHARED_IDS = frozenset({"", "none"})
+"""``TORCHELASTIC_RUN_ID``s that name no run: torchrun's default ``--rdzv-id`` is ``none`` for every run."""
 RUN_ID_ENV = "FTRAIN_RUN_ID"
 """The run id: set by ``ftrain supervise`` for its workers, or by the user to name a run (e.g. a batch job id that
 survives a requeue)."""
@@ -36,12 +39,14 @@ ENV_NAMES = (RUN_ID_ENV, GENERATION_ENV, ATTEMPT_ENV)
 def run_id(secret: bytes | None = None, endpoint: tuple[str, int] | None = None) -> str:
     """``FTRAIN_RUN_ID``; else, with the ``secret`` that the supervisors of several nodes share, a digest of it and
     node 0's rendezvous ``endpoint`` (every node computes the same); else torchrun's run id
-    (``TORCHELASTIC_RUN_ID``, from ``--rdzv-id``); else a new random one."""
+    (``TORCHELASTIC_RUN_ID``, from ``--rdzv-id``) unless it is one every run shares (``SHARED_IDS``); else a new
+    random one (an unsupervised run: its rank 0 draws it, the other ranks get it from there, ``ckpt/claim.py``)."""
     if os.environ.get(RUN_ID_ENV):
         return os.environ[RUN_ID_ENV]
     if secret is not None:
         return hashlib.sha256(b"ftrain-run:" + secret + repr(endpoint).encode()).hexdigest()[:16]
-    return os.environ.get("TORCHELASTIC_RUN_ID") or secrets.token_hex(8)
+    torchrun = os.environ.get("TORCHELASTIC_RUN_ID", "")
+    return torchrun if torchrun.strip().lower() not in SHARED_IDS else secrets.token_hex(8)
 
 
 @dataclass(frozen=True)

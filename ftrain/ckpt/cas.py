@@ -136,7 +136,7 @@ def write(storage: Storage, rel: str, data: bytes, version: str | None) -> None:
         metadata = {"is_directory": "false"}  # as adlfs marks its files: its isfile() reads the mark
         _azure_conditional(storage, rel, "upload_blob", data, overwrite=True, metadata=metadata, **_azure_if(version))
         return
-    with _locked(storage, rel):
+    with locked(storage, rel):
         current = read(storage, rel)
         if (current[1] if current else None) != version:
             raise Conflict
@@ -155,7 +155,7 @@ def delete(storage: Storage, rel: str, version: str) -> None:
     if storage.is_azure:
         _azure_conditional(storage, rel, "delete_blob", **_azure_if(version))
         return
-    with _locked(storage, rel):
+    with locked(storage, rel):
         current = read(storage, rel)
         if current is None or current[1] != version:
             raise Conflict
@@ -269,7 +269,9 @@ def _blob_client(storage: Storage, rel: str) -> BlobClient:
 
 
 @contextlib.contextmanager
-def _locked(storage: Storage, rel: str) -> Iterator[None]:
+def locked(storage: Storage, rel: str) -> Iterator[None]:
+    """On a file system, an exclusive ``flock`` of ``<rel>.lock`` meanwhile (what every compare-and-swap of ``rel``
+    takes); elsewhere nothing: the server decides each request alone."""
     if not storage.is_local:
         yield
         return

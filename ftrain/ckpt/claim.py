@@ -1,5 +1,7 @@
 """Who holds a run's storage lease (``lease.py``): ``ftrain supervise`` for its workers, else rank 0 of the world
-(``claim``), which every rank calls at the start. Torch-free."""
+(``claim``), which every rank calls at the start. Rank 0 draws the run's id (``identity.run_id``) and takes the lease;
+every other rank receives the identity it holds, so that every rank's writes are checked against it
+(``fence.Fence``). Torch-free."""
 
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import Config
 from ftrain.errors import UserError
 from ftrain.heartbeat import TOKEN_ENV
-from ftrain.identity import run_id
+from ftrain.identity import ENV_NAMES, Identity, run_id
 
 _AGREED = {kind.__name__: kind for kind in (LeaseHeld, UserError, StorageUnavailable, StorageError)}
 """What rank 0's claim may end in, as the other ranks raise it too."""
@@ -33,27 +35,56 @@ def storage_lease(
     return Lease(storage, run_id(secret, endpoint), log, ttl, config.storage.plain_writes, follows)
 
 
-def claim(config: Config, is_main: bool, agree: Callable[[list | None], list | None], log: Callable[[str], None]):
+class Claim:
+    """What ``claim`` leaves a rank: the lease where this rank holds it, and the identity it gave this process."""
+
+    def __init__(self, lease: Lease | None, environ: dict[str, str | None]) -> None:
+        self.lease = lease
+        self._environ = environ
+
+    @property
+    def lost(self) -> str | None:
+        """Why the storage is lost to another run, once the lease's renewal found it (rank 0 of an unsupervised run)."""
+        return self.lease.lost if self.lease is not None else None
+
+    def release(self) -> None:
+        """Release the lease (rank 0), and leave the environment as it was before ``claim``."""
+        if self.lease is not None:
+            self.lease.release()
+        for name, value in self._environ.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def claim(
+    config: Config, is_main: bool, agree: Callable[[list | None], list | None], log: Callable[[str], None]
+) -> Claim:
     """Every rank of a world calls this at the start. Rank 0 (``is_main``) holds the lease for the run, or, started
     by ``ftrain supervise`` (which holds it), checks that no other run holds it; ``agree`` (a broadcast from rank 0)
     tells every rank how that went, so that every rank raises alike (LeaseHeld if refused) and none waits for a rank 0
-    that failed. Returns the lease to ``release`` at the end (None: not held here)."""
+    that failed, and hands every rank the identity rank 0 holds (``Identity.env``)."""
     lease, outcome, failure = None, None, None
+    environ = {name: os.environ.get(name) for name in ENV_NAMES}
     if is_main:
         try:
             if os.environ.get(TOKEN_ENV):
                 _check_for_supervisor(config, log)
             elif taken := (lease := storage_lease(config, log)).hold():
                 log(taken)
+            identity = Identity.from_env()
+            outcome = [None, identity.env() if identity is not None else {}]
         except Exception as error:
             lease, failure = None, error
             outcome = [type(error).__name__ if type(error).__name__ in _AGREED else "StorageError", str(error)]
     outcome = agree(outcome)
     if failure is not None:
         raise failure
-    if outcome:
+    if outcome[0] is not None:
         raise _AGREED[outcome[0]](outcome[1])
-    return lease
+    os.environ.update(outcome[1])
+    return Claim(lease, environ)
 
 
 def _check_for_supervisor(config: Config, log: Callable[[str], None]) -> None:

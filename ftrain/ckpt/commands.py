@@ -2,17 +2,20 @@
 exit code.
 
 A URL is a run's storage root (the directory holding ``checkpoints/``) or one step directory
-(``<root>/checkpoints/step-000000120``). Bad input raises UserError.
+(``<root>/checkpoints/step-000000120``). Bad input raises UserError. The commands that write (``prune``,
+``unquarantine``) hold the storage's lease while they do (``holding``): refused while a run holds it.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import secrets
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
+from ftrain.ckpt.fence import guarded
 from ftrain.ckpt.format import (
     CHECKPOINTS,
     INCOMPLETE,
@@ -25,8 +28,19 @@ from ftrain.ckpt.format import (
     step_dir,
     verify_step,
 )
+from ftrain.ckpt.lease import Lease
+from ftrain.ckpt.lineage import history
 from ftrain.ckpt.retention import Kept, delete_step, kept, retention_plan
-from ftrain.ckpt.steps import ASIDE, abandoned, scan, select_resume, set_aside_steps
+from ftrain.ckpt.steps import (
+    ASIDE,
+    abandoned,
+    quarantine,
+    scan,
+    select_resume,
+    set_aside,
+    set_aside_steps,
+    superseded_reason,
+)
 from ftrain.ckpt.steps import unquarantine as unquarantine_step
 from ftrain.ckpt.storage import Storage
 from ftrain.config import CheckpointConfig
@@ -63,7 +77,8 @@ def ls(url: str, options: dict | None = None) -> int:
 def verify(url: str, options: dict | None = None) -> int:
     """Verify every committed step (or the one step) with full digests: 1 if any does not verify, naming each
     failure, else 0. A step without a manifest was never committed (a save cut short): it is told with its age,
-    and fails nothing (``resume`` skips it, retention deletes it)."""
+    and fails nothing (``resume`` skips it, retention deletes it). A run's storage must also hold one history
+    (``lineage.py``): superseded steps are named, a fork is named and fails (1)."""
     storage, step = _open(url, options)
     infos = [info for info in scan(storage) if step is None or info.step == step]
     committed = [info.step for info in infos if info.status != INCOMPLETE]
@@ -78,10 +93,19 @@ def verify(url: str, options: dict | None = None) -> int:
         for problem in result.problems:
             print(f"  {step_dir(info.step)}/{problem}")
         failed += not result.ok
+    past = history(infos) if step is None else None
+    if past is not None:
+        for info in infos:
+            if info.step in past.superseded:
+                print(f"step {info.step}: {superseded_reason(info, past)}")
+        if past.forks:
+            print(f"FORKED: {past.fork_message(storage.url)}")
+        else:
+            print(f"one history: {len(past.line)} steps on one line of descent, {len(past.superseded)} superseded")
     incomplete = len(infos) - len(committed)
     never = f"; {incomplete} incomplete (never committed)" if incomplete else ""
     print(f"{len(committed) - failed} of {len(committed)} committed steps verified{never}")
-    return 1 if failed else 0
+    return 1 if failed or (past is not None and past.forks) else 0
 
 
 def show(url: str, options: dict | None = None, as_json: bool = False) -> int:
@@ -137,14 +161,64 @@ def prune(
     dry_run: bool = False,
     options: dict | None = None,
     drop_bad: bool = False,
+    force: bool = False,
 ) -> int:
-    """Apply the retention rules of ``checkpoint.retention_plan`` to a run's storage (``dry_run``: only print)."""
+    """Apply the retention rules of ``checkpoint.retention_plan`` to a run's storage (``dry_run``: only print), as the
+    holder of its lease (``holding``; ``force``: without it)."""
     for name, value in {"keep-last": keep_last, "keep-best": keep_best, "keep-every": keep_every}.items():
         if value < 0:
             raise UserError(f"--{name}={value} must be 0 or more")
     storage, step = _open(url, options)
     if step is not None:
         raise UserError(f"prune works on a run's storage, not one step: pass {storage.url}")
+    rules = (keep_last, keep_best, best_metric, keep_every, pinned, drop_bad)
+    if dry_run:
+        return _prune(storage, *rules, dry_run=True)
+    return holding(storage, "prune", force, lambda held: _prune(held, *rules, dry_run=False))
+
+
+def keep_line(url: str, step: int, options: dict | None = None, force: bool = False) -> int:
+    """Keep the line of descent that ends at ``step`` (``lineage.py``): every verified step off it is set aside under
+    ``quarantine/`` (nothing is deleted), so that the storage holds one history again."""
+    storage, _ = _open(url, options)
+
+    def body(held: Storage) -> int:
+        infos = scan(held)
+        past = history(infos, head=step)
+        for info in infos:
+            if info.step in past.off_line():
+                quarantine(held, info.step, f"off the line kept by ftrain ckpt prune --keep-line {step}")
+                print(f"step {info.step}: set aside to {set_aside(held, info)}")
+        print(f"kept the line of step {step}: {len(past.line)} steps; {len(past.off_line())} set aside")
+        return 0
+
+    return holding(storage, "prune --keep-line", force, body)
+
+
+def holding(storage: Storage, command: str, force: bool, body: Callable[[Storage], int]) -> int:
+    """``body`` of the storage, with this command holding the storage's lease (``lease.py``) meanwhile: no run starts
+    while it deletes, and each of its writes is checked (``fence.guarded``). Refused in one line, with
+    ``EXIT_STORAGE_HELD``, while another process holds it; ``force``: without the lease."""
+    if force:
+        return body(storage)
+
+    def refused(line: str) -> None:
+        print(f"ftrain: error: ckpt {command} refused: {line} (or pass --force to {command} anyway)", file=sys.stderr)
+
+    lease = Lease(storage, f"ftrain-ckpt-{secrets.token_hex(4)}", lambda line: print(line, file=sys.stderr))
+    return lease.run(lambda held: body(guarded(storage)), refused)
+
+
+def _prune(
+    storage: Storage,
+    keep_last: int,
+    keep_best: int,
+    best_metric: str,
+    keep_every: int,
+    pinned: Iterable[int],
+    drop_bad: bool,
+    dry_run: bool,
+) -> int:
     infos = scan(storage, full=True)  # digests too: a bit-rotted step must not pass for the newest good one
     doomed = set(retention_plan(infos, keep_last, keep_best, best_metric, keep_every, pinned, drop_bad))
     for info in infos:
@@ -171,12 +245,16 @@ def prune(
 
 def unquarantine(url: str, options: dict | None = None) -> int:
     """Lift the quarantine of one step if all its files verify (full digests): 0 if lifted, 1 if it does not
-    verify (the step stays quarantined)."""
+    verify (the step stays quarantined). As the holder of the storage's lease (``holding``)."""
     storage, step = _open(url, options)
     if step is None:
         raise UserError(
             f"unquarantine works on one step: pass {storage.url}/{CHECKPOINTS}/step-<N> (see ftrain ckpt ls)"
         )
+    return holding(storage, "unquarantine", False, lambda held: _unquarantine(held, step))
+
+
+def _unquarantine(storage: Storage, step: int) -> int:
     info = next(info for info in scan(storage) if info.step == step)
     if info.status != QUARANTINE:
         raise UserError(f"{storage.where(step_dir(step))} is {info.status}, not quarantined: nothing to lift")

@@ -1,28 +1,28 @@
-"""Fencing: rank 0's check, right before it writes a manifest, that its identity (``ftrain/identity.py``) may still
-commit to the storage.
+"""Fencing: the holder's check, run before every write and every delete of a run's storage (``guarded``), that
+this process's identity (``ftrain/identity.py``) may still write there.
 
 Two reads, one small request each:
-- ``LEASE.json`` (``lease.py``): a generation newer than this process's holds the storage. Another run's, or this run
-  id's started again (a requeued job, the same command again while a process of the old one still ran), or a newer
-  plan of this run on several nodes (node 0's supervisor started again, a run started anew on etcd), whose maker took
-  the next generation. So nothing of an older generation commits once a newer one exists, even before it commits.
+- ``LEASE.json`` (``lease.py``): a generation newer than this process's holds the storage (another run's, this run id's
+  started again, or a newer plan of this run on several nodes): nothing of an older generation is written or deleted
+  once a newer one exists, even before it writes.
 - ``FENCE.json``, on several nodes only (where the identity has an attempt): the newest (generation, attempt) that
-  committed. A node cut off from the others (partitioned, or paused and resumed) still runs its old attempt: a save
-  it had in flight must not commit after the others went on without it. Rank 0 refuses to commit below the record,
-  and raises it, by a compare-and-swap (``cas.py``), at its attempt's first commit. One node runs one attempt at a
-  time (its supervisor confirms the old one dead before the next starts), so it has nothing to fence.
+  wrote. A node cut off from the others still runs its old attempt; it is refused below the record, which the first
+  write of each attempt raises by a compare-and-swap (``cas.py``).
 
-Every manifest records the ``run_id``, ``generation`` and ``attempt`` that committed it. What is left is the time
-between the reads and the manifest's write (one request): a process stopped exactly there commits once when it goes
-on (a state of the run from before the others went on, which their newer steps then pass).
+On a file system the check and the write run under the lease's own lock (``cas.locked``), so no new holder takes the
+lease in between. On an object store the time between the check and the write (one request) is left: a process
+paused exactly there writes once when it goes on; a commit so made is superseded by the newer generation's history
+(``lineage.py``). Every manifest records the ``run_id``, ``generation`` and ``attempt`` that committed it.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+from collections.abc import Iterator
 
 from ftrain.ckpt import cas
-from ftrain.ckpt.lease import FENCE, LeaseLost, lost_message, read_fence, read_record
+from ftrain.ckpt.lease import FENCE, LEASE, LeaseLost, lost_message, read_fence, read_record
 from ftrain.ckpt.storage import Storage
 from ftrain.identity import Identity
 
@@ -36,8 +36,22 @@ class Fence:
     """The guard of ``identity``'s commits to ``storage``."""
 
     def __init__(self, storage: Storage, identity: Identity) -> None:
-        self.storage = storage
+        self.storage = storage.guarded(None)
         self.identity = identity
+
+    @property
+    def fields(self) -> dict:
+        """What a manifest records of who committed it."""
+        ours = self.identity
+        attempt = {"attempt": ours.attempt} if ours.attempt is not None else {}
+        return {"run_id": ours.run_id, "generation": ours.generation, **attempt}
+
+    @contextlib.contextmanager
+    def holding(self) -> Iterator[None]:
+        """``check``, then the caller's write; on a file system under the lease's lock, released after the write."""
+        with cas.locked(self.storage, LEASE):
+            self.check()
+            yield
 
     @classmethod
     def from_env(cls, storage: Storage) -> Fence | None:
@@ -56,7 +70,7 @@ class Fence:
             raise (
                 Fenced(message) if current[0].run_id == ours.run_id and ours.attempt is not None else LeaseLost(message)
             )
-        fields = {"run_id": ours.run_id, "generation": ours.generation}
+        fields = self.fields
         if ours.attempt is None:
             return fields
         while True:
@@ -70,10 +84,19 @@ class Fence:
                     "nothing more"
                 )
             if newest == (ours.generation, ours.attempt):
-                return fields | {"attempt": ours.attempt}
+                return fields
             raised = json.dumps({"run_id": ours.run_id, "generation": ours.generation, "attempt": ours.attempt})
             try:
                 cas.write(self.storage, FENCE, raised.encode(), current[1] if current is not None else None)
-                return fields | {"attempt": ours.attempt}
+                return fields
             except cas.Conflict:
                 continue
+
+
+def guarded(storage: Storage) -> Storage:
+    """``storage`` with every write and delete checked against this process's identity (``Fence.holding``): as it is
+    where the process has none (no lease was taken for it), or where it is guarded already."""
+    if storage.guard is not None:
+        return storage
+    fence = Fence.from_env(storage)
+    return storage.guarded(fence.holding) if fence is not None else storage

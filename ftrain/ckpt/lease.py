@@ -69,6 +69,8 @@ class Entry:
 
     process: Process
     renewed_at: float
+    since: float = 0.0
+    """When this process took or joined the lease (epoch seconds, its host's clock): the holder's age, for humans."""
 
     def alive(self, ttl: float, now: float) -> bool:
         """Seen running on this host, or (where that cannot be seen) renewed within ``ttl``."""
@@ -97,7 +99,10 @@ class Record:
             "ttl": self.ttl,
             "expires_at": round(self.expires_at, 3),
             "expires": _when(self.expires_at),
-            "holders": [{**dataclasses.asdict(e.process), "renewed_at": round(e.renewed_at, 3)} for e in self.entries],
+            "holders": [
+                {**dataclasses.asdict(e.process), "renewed_at": round(e.renewed_at, 3), "since": round(e.since, 3)}
+                for e in self.entries
+            ],
         }
         return json.dumps(body, indent=1).encode()
 
@@ -105,7 +110,7 @@ class Record:
     def decode(cls, data: bytes) -> Record:
         body = json.loads(data)
         entries = tuple(
-            Entry(Process(h["host"], h["pid"], h["start"], h["boot"], h["pidns"]), h["renewed_at"])
+            Entry(Process(h["host"], h["pid"], h["start"], h["boot"], h["pidns"]), h["renewed_at"], h.get("since", 0.0))
             for h in body["holders"]
         )
         return cls(body["run_id"], body["generation"], body["ttl"], entries)
@@ -183,7 +188,9 @@ class Lease:
                 generation = record.generation + 1
             else:  # none, or deleted: this process's generation, else the one after the newest committed
                 generation = self.generation or read_fence(cas.read(self.storage, FENCE)).get("generation", 0) + 1
-            new = Record(self.run_id, generation, self.ttl, (*(others if joins else ()), Entry(self.process, now)))
+            since = next((e.since for e in record.entries if e.process == self.process), now) if ours else now
+            mine = Entry(self.process, now, since)
+            new = Record(self.run_id, generation, self.ttl, (*(others if joins else ()), mine))
             try:
                 cas.write(self.storage, LEASE, new.encode(), version)
             except cas.Conflict:
@@ -326,9 +333,10 @@ class Lease:
         holder = max(live, key=lambda e: e.renewed_at)
         ends, now = record.expires_at, time.time()
         end = f"ended at {_when(ends)}, but the process runs" if ends < now else f"ends at {_when(ends)}"
+        since = f" since {_when(holder.since)}" if holder.since else ""
         return (
-            f"storage {self.storage.url} is held by another run ({record.run_id}, {holder.process.describe()}): its "
-            f"lease {end} unless renewed; stop that run first, or use another storage"
+            f"storage {self.storage.url} is held by another run ({record.run_id}, {holder.process.describe()}{since}): "
+            f"its lease {end} unless renewed; stop that run first, or use another storage"
         )
 
     def _taken_message(self, record: Record) -> str:

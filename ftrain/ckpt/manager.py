@@ -25,6 +25,7 @@ import time
 from collections.abc import Callable
 
 from ftrain.ckpt import resume
+from ftrain.ckpt.fence import guarded
 from ftrain.ckpt.format import COMMON, STATE_FORMAT, is_timing, shard_name
 from ftrain.ckpt.lease import LeaseLost
 from ftrain.ckpt.resume import Checkpointable, CheckpointError
@@ -73,7 +74,9 @@ class Checkpointer:
         self.robot = robot
         self.info = info
         self.log = log
-        self.storage, self._down = _open_storage(config)
+        storage, self._down = _open_storage(config)
+        self.storage = guarded(storage)
+        """The run's storage, every write and delete checked against the holder's lease (``fence.guarded``)."""
         if info.distributed and self.storage.url.startswith("memory://"):
             raise UserError(
                 f"storage {self.storage.url} lives inside one process, but this run has {info.world_size} ranks: "
@@ -131,6 +134,8 @@ class Checkpointer:
         if resumed.own:
             self.committed_step = self._writer.newest_committed = resumed.committed
             self.schedule.committed = (resumed.committed, time.monotonic())
+        if resumed.step is not None:
+            self._writer.parent = {"step": resumed.step, "state_sha256": resumed.digest}
         self._static_meta["world_sizes"] = resumed.world_sizes
         self.config_change = resumed.config_change
         return resumed.step

@@ -39,6 +39,7 @@ from ftrain.ckpt.format import (
     shard_name,
     step_dir,
 )
+from ftrain.ckpt.lease import LeaseHeld
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.spool import FIELD as SPOOL_FIELD
 from ftrain.ckpt.spool import Spool
@@ -83,6 +84,8 @@ class Resumed:
     """The storage's newest committed step as far as the resume knows: ``step``, unless it came from the spool."""
     config_change: str | None = None
     """What ``allow_config_change`` let change since ``step`` (``ftrain.ckpt.changes``), in words."""
+    digest: str | None = None
+    """The ``state_sha256`` of ``step``: the parent of this run's first commit (``lineage.py``)."""
 
 
 def restore(
@@ -106,6 +109,8 @@ def restore(
         raise CheckpointError(decision["why"])
     if decision["kind"] == "unavailable":
         raise StorageUnavailable(decision["why"])
+    if decision["kind"] == "held":
+        raise LeaseHeld(decision["why"])
     if decision["kind"] == "fresh":
         log(decision["why"])
         return Resumed(None, False, [[0, info.world_size]])
@@ -144,7 +149,7 @@ def restore(
     if manifest["world_size"] != info.world_size:
         log(resize_line(manifest["world_size"], info.world_size, step, config))
         world_sizes = [*world_sizes, [step, info.world_size]]
-    return Resumed(step, url is None, world_sizes, decision["committed"], change)
+    return Resumed(step, url is None, world_sizes, decision["committed"], change, manifest.get("state_sha256"))
 
 
 def resize_line(old: int, new: int, step: int, config: Config) -> str:
@@ -190,12 +195,15 @@ def decide(
     spool: Spool | None = None,
     down: StorageUnavailable | None = None,
 ) -> dict:
-    """On rank 0: ``{"kind": "fresh" | "resume" | "usage" | "storage" | "unavailable", ...}`` (JSON, for the other
-    ranks). A start that does not resume from the spool empties it: it only ever holds the history of this start."""
+    """On rank 0: ``{"kind": "fresh" | "resume" | "usage" | "storage" | "unavailable" | "held", ...}`` (JSON, for the
+    other ranks). A start that does not resume from the spool empties it: it only ever holds the history of this
+    start."""
     try:
         decision = _decide(config, storage, log, robot, spool, down)
     except UserError as error:
         decision = {"kind": "usage", "why": str(error)}
+    except LeaseHeld as error:  # the holder's check refused a clean-up: another run holds the storage now
+        decision = {"kind": "held", "why": str(error)}
     except StorageUnavailable as error:
         decision = {"kind": "unavailable", "why": f"checkpoint storage {storage.url} does not answer: {error}"}
     except (StorageError, OSError) as error:

@@ -25,7 +25,7 @@ from collections.abc import Callable
 import torch
 import torch.distributed as dist
 
-from ftrain.ckpt.fence import Fence, Fenced
+from ftrain.ckpt.fence import Fence, Fenced, guarded
 from ftrain.ckpt.format import (
     COMMON,
     INCOMPLETE,
@@ -125,14 +125,17 @@ class StepWriter:
     ) -> None:
         """``collectives``: the group the ranks agree in (None: the default group); ``spool``: where every step goes
         first (``spool.py``)."""
-        self.storage = storage
+        self.storage = storage = guarded(storage)  # every write and delete: the holder's check
         self._one_attempt = storage.with_retries(0)
         self.spool = spool
         self.newest_committed: int | None = None
         """The newest step committed to the storage as far as this rank knows (rank 0: as soon as it commits), which
         a spooled step records as the storage history it continues."""
         self._spool_failing = False
-        self.fence = Fence.from_env(storage) if info.is_main else None
+        self.fence = Fence.from_env(storage)
+        self.parent: dict | None = None
+        """The state the next commit continues, ``{"step", "state_sha256"}``: this holder's previous commit, or the
+        step it resumed from (``lineage.py``); None for a fresh start."""
         self.policy = policy
         self.info = info
         self.collectives = collectives
@@ -159,7 +162,7 @@ class StepWriter:
     ) -> Outcome:
         """Write this rank's ``files`` (name to state) of ``step`` to the spool if there is one, then to ``target``;
         ``meta`` (rank 0) goes into the manifest."""
-        report = {"entries": {}, "fields": {}, "error": None, "unloadable": False}
+        report = {"entries": {}, "fields": {}, "error": None, "unloadable": False, "fenced": None}
         encoded = {}
         try:
             encoded, report["fields"] = self._encode(files, check_loadable)
@@ -176,6 +179,8 @@ class StepWriter:
         try:
             if report["error"] is None:
                 report["entries"] = self._write(functools.partial(write_file, storage), step, encoded)
+        except (LeaseLost, Fenced) as exc:  # the holder's check refused this rank's write: nothing was written
+            report["error"], report["fenced"] = f"rank {self.info.rank}: {exc}", [type(exc).__name__, str(exc)]
         except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
             report["error"] = f"rank {self.info.rank}: {exc}"
         finally:
@@ -257,17 +262,18 @@ class StepWriter:
         errors = [report["error"] for report in reports if report["error"]]
         if any(report["unloadable"] for report in reports):
             return (Result.UNLOADABLE, step, "; ".join(errors))
+        if fenced := next((report["fenced"] for report in reports if report["fenced"]), None):
+            self.log(f"checkpoint step {step} refused: {fenced[1]}")
+            return (Result.LEASE_LOST if fenced[0] == LeaseLost.__name__ else Result.FENCED, step, fenced[1])
         if self._steps is None:
             self._steps = {info.step: info for info in scan(storage)}  # may fail: save() reports it
         files = {name: FileEntry(*entry) for report in reports for name, entry in report["entries"].items()}
         fields = {key: value for report in reports for key, value in report["fields"].items()}  # from common.pt
         if not errors:
-            writing = False
-            try:
-                if self.fence is not None:
-                    fields |= self.fence.check()
-                writing = True
-                manifest = commit(storage, step, files, meta | fields, check_present=not self._listed)
+            if self.fence is not None:
+                fields |= self.fence.fields
+            try:  # the manifest's write runs the holder's check (``guarded``)
+                manifest = commit(storage, step, files, meta | fields | {"parent": self.parent}, not self._listed)
                 self._listed = True
             except (LeaseLost, Fenced) as exc:  # a newer holder of the storage, or generation of the run, committed
                 self.log(f"checkpoint step {step} refused: {exc}")
@@ -275,7 +281,7 @@ class StepWriter:
                 return (Result.LEASE_LOST if isinstance(exc, LeaseLost) else Result.FENCED, step, str(exc))
             except Exception as exc:
                 errors = [f"commit: {exc}"]
-                if writing and (manifest := self._landed(storage, step, files)) is not None:
+                if (manifest := self._landed(storage, step, files)) is not None:
                     errors = []  # its answer was lost, not the manifest
         if errors:
             if self._steps.get(step, StepInfo(step, INCOMPLETE)).status != UNSETTLED:
@@ -283,6 +289,7 @@ class StepWriter:
             return (Result.FAILED, step, "; ".join(errors))
         self._steps[step] = StepInfo(step, VERIFIED, sum(entry.size for entry in files.values()), manifest)
         self.newest_committed = step
+        self.parent = {"step": step, "state_sha256": manifest.get("state_sha256")}
         self._apply_retention()
         return (Result.COMMITTED, step, manifest)
 

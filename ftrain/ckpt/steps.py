@@ -32,6 +32,7 @@ from ftrain.ckpt.format import (
     verify_listed,
     verify_step,
 )
+from ftrain.ckpt.lineage import History, generation, history
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
@@ -83,10 +84,18 @@ def select_resume(
 ) -> tuple[int, dict] | None:
     """The newest step that fully verifies, with its manifest; None if there is none.
 
-    Each newer step that is skipped is reported through ``log`` with the reason; a committed step that fails
-    verification is quarantined (unless ``quarantine_bad`` is False, e.g. for someone else's read-only run).
+    Only steps on the storage's line of descent count (``lineage.history``): a fork is a UserError, a superseded step
+    is passed over. Each newer step that is skipped is reported through ``log`` with the reason; a committed step that
+    fails verification is quarantined (unless ``quarantine_bad`` is False, e.g. for someone else's read-only run).
     """
-    for info in scan(storage):
+    infos = scan(storage)
+    past = history(infos)
+    if past.forks:
+        raise UserError(past.fork_message(storage.url))
+    for info in infos:
+        if info.step in past.superseded:
+            log(f"skipping checkpoint step {info.step}: {superseded_reason(info, past)}")
+            continue
         status, problems = info.status, info.problems
         if status == VERIFIED:
             result = verify_step(storage, info.step, full=True)
@@ -110,12 +119,15 @@ def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print)
     dead on this node (``Attempt.kill`` waits for it) and fenced off on others. Where a listing may lag
     (``Storage.lists_late``: NFS), a manifest another host wrote seconds ago may be missing from it and even from a
     direct look, so only a step untouched for ``ABANDONED_AFTER`` seconds is deleted; a younger one is set aside
-    whole. Corrupt and quarantined ones are set aside (:func:`set_aside`), never deleted. A verified newer step means
-    the storage holds another history: UserError, nothing touched. Call it on rank 0 before the first save, when no
-    other process writes to this storage.
+    whole. Corrupt, quarantined and superseded ones (``lineage.py``) are set aside (:func:`set_aside`), never deleted.
+    Another verified newer step means the storage holds another history: UserError, nothing touched. Call it on rank 0
+    before the first save, when no other process writes to this storage.
     """
-    newer = [info for info in scan(storage) if info.step > step]
-    verified = [info.step for info in newer if info.status == VERIFIED]
+    infos = scan(storage)
+    past = history(infos)
+    superseded = past.superseded
+    newer = [info for info in infos if info.step > step]
+    verified = [info.step for info in newer if info.status == VERIFIED and info.step not in superseded]
     if verified:
         raise UserError(
             f"{storage.url} already holds verified checkpoint step {verified[0]}, newer than step {step} this run "
@@ -128,6 +140,9 @@ def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print)
             delete_step(storage, info.step)
             continue
         status = info.status
+        if info.step in superseded:
+            status = "superseded"
+            quarantine(storage, info.step, superseded_reason(info, past))
         if young:
             ago = time.time() - (storage.modified(step_dir(info.step)) or time.time())
             status = f"incomplete, last written {ago:.0f} s ago"
@@ -207,3 +222,10 @@ def _manifest_or_none(storage: Storage, step: int) -> dict | None:
         return read_manifest(storage, step)
     except (FileNotFoundError, CorruptCheckpoint):
         return None
+
+
+def superseded_reason(info: StepInfo, past: History) -> str:
+    return (
+        f"superseded: committed by generation {generation(info)} after generation {past.generation} went on from an "
+        "earlier step (a commit that landed after its lease had moved on)"
+    )

@@ -79,6 +79,8 @@ class Storage:
         self.retries = retries
         self.backoff = Backoff(base_delay, REQUEST.longest)
         self._secrets = secrets
+        self.guard: Callable[[], contextlib.AbstractContextManager] | None = None
+        """What every write and delete runs inside (``guarded``): the holder's check (``fence.Fence.holding``)."""
 
     @classmethod
     def open(
@@ -126,6 +128,15 @@ class Storage:
         if check_bucket:
             storage.check()
         return storage
+
+    def guarded(self, guard: Callable[[], contextlib.AbstractContextManager] | None) -> Storage:
+        """The same storage, every write and delete made inside ``guard()`` (None: unguarded)."""
+        other = copy.copy(self)
+        other.guard = guard
+        return other
+
+    def _guarded(self) -> contextlib.AbstractContextManager:
+        return self.guard() if self.guard is not None else contextlib.nullcontext()
 
     def with_retries(self, retries: int) -> Storage:
         """The same storage, with transient errors retried ``retries`` times instead."""
@@ -180,15 +191,17 @@ class Storage:
                 if self.fs.cat_file(path) != data:
                     raise
 
-        self._call("create", rel, create)
+        with self._guarded():
+            self._call("create", rel, create)
 
     def write_replace(self, rel: str, data: bytes) -> None:
         """Create or overwrite ``rel`` (not atomic: for markers and other objects that are not a commit)."""
         path = self._path(rel)
-        if self.is_local:
-            self._call("write", rel, localfs.write, path, data, exclusive=False)
-        else:
-            self._call("write", rel, self.fs.pipe_file, path, data)
+        with self._guarded():
+            if self.is_local:
+                self._call("write", rel, localfs.write, path, data, exclusive=False)
+            else:
+                self._call("write", rel, self.fs.pipe_file, path, data)
 
     def read(self, rel: str) -> bytes:
         return self._call("read", rel, self.fs.cat_file, self._path(rel))
@@ -228,7 +241,7 @@ class Storage:
 
     def delete(self, rel: str) -> None:
         """Delete one object if it exists."""
-        with contextlib.suppress(FileNotFoundError):
+        with self._guarded(), contextlib.suppress(FileNotFoundError):
             self._call("delete", rel, self.fs.rm_file, self._path(rel))
 
     def delete_files(self, rel: str, names: Iterable[str]) -> bool:
@@ -237,16 +250,17 @@ class Storage:
         stay). False if the directory is not gone: something else is left in a local one, or the storage has
         directories of its own (delete the tree then)."""
         paths = [self._path(f"{rel}/{name}") for name in names]
-        if self.is_local:
-            return self._call("delete", rel, localfs.delete_files, self._path(rel), paths)
-        if self.is_s3:  # no directories, and a batch delete takes absent keys
-            self._call("delete", rel, self.fs.rm, paths)
+        if not (self.is_local or self.is_s3):
+            return False
+        with self._guarded():
+            if self.is_local:
+                return self._call("delete", rel, localfs.delete_files, self._path(rel), paths)
+            self._call("delete", rel, self.fs.rm, paths)  # S3: no directories, and a batch delete takes absent keys
             return True
-        return False
 
     def delete_tree(self, rel: str) -> None:
         """Delete ``rel`` and everything below it, if it exists."""
-        with contextlib.suppress(FileNotFoundError):
+        with self._guarded(), contextlib.suppress(FileNotFoundError):
             if self.is_local:  # fsspec would walk the tree first, then delete entry by entry
                 self._call("delete", rel, localfs.delete, self._path(rel))
             else:

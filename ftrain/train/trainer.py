@@ -21,7 +21,7 @@ import yaml
 from ftrain import errorfile
 from ftrain.ckpt.claim import claim
 from ftrain.ckpt.format import learned_state, state_digest
-from ftrain.ckpt.lease import LeaseHeld
+from ftrain.ckpt.lease import LeaseHeld, LeaseLost
 from ftrain.ckpt.manager import Checkpointer
 from ftrain.ckpt.resume import CheckpointError
 from ftrain.ckpt.storage import StorageUnavailable
@@ -90,10 +90,19 @@ class Votes(typing.NamedTuple):
 
 
 class Trainer:
-    def __init__(self, config: Config, info: group.RankInfo, stop: StopRequest | None = None) -> None:
+    def __init__(
+        self,
+        config: Config,
+        info: group.RankInfo,
+        stop: StopRequest | None = None,
+        lease_lost: typing.Callable[[], str | None] = lambda: None,
+    ) -> None:
+        """``lease_lost``: why the storage's lease was lost to another run, once it was (rank 0 without a supervisor,
+        which holds the lease; a supervisor stops its workers itself)."""
         self.config = config
         self.info = info
         self.stop = stop or StopRequest()
+        self.lease_lost = lease_lost
         torch.set_num_threads(config.torch_threads)
         group.seed_all(config.seed)  # identical model initialisation on every rank
         seed = group.rank_seed(config.seed, info.rank)
@@ -288,7 +297,7 @@ class Trainer:
         lengths = sum(length for _, length in self.episodes)
         steps = self.env.num_envs * self.config.num_steps_per_env
         stops = (self.stop.signal == signal.SIGTERM, self.stop.signal == signal.SIGINT)
-        votes = (*stops, *self.checkpointer.votes(self.iteration))
+        votes = (*stops, *self.checkpointer.votes(self.iteration), self.lease_lost() is not None)
         phases = self.phases.take()
         with self.phases("sync_metrics"):
             every = group.all_gather_values(
@@ -297,7 +306,9 @@ class Trainer:
                 self.reducer,
             )
         total_returns, total_lengths, count, total_steps, *summed = every.sum(dim=0).tolist()
-        terms, ints, save, store, hold = (vote > 0 for vote in summed[: len(votes)])
+        terms, ints, save, store, hold, lost = (vote > 0 for vote in summed[: len(votes)])
+        if lost:  # another run took the storage's lease: every rank stops here alike; rank 0 knows why
+            raise LeaseLost(self.lease_lost() or "another run took the storage's lease (rank 0 says which)")
         mean = (total / self.info.world_size for total in summed[len(votes) :])
         slowest = every[:, -len(phases) :].max(dim=0).values.tolist()
         phase_ms = {f"time/{name}_ms": 1000 * seconds for name, seconds in zip(phases, mean, strict=True)}
@@ -353,16 +364,17 @@ def build_hooks(config: Config) -> Hooks:
 def train(config: Config) -> int:
     """Entry point of ``ftrain train`` on every rank: 0 when done, 143 or 130 when stopped by SIGTERM or SIGINT (and
     saved), 1 when checkpoints fail, 7 when the storage does not answer, 8 when another run holds the storage
-    (``ftrain.ckpt.lease``: rank 0 holds it for the run, or its supervisor does)."""
+    (``ftrain.ckpt.lease``: rank 0 holds it for the run, or its supervisor does), or took it from this run (at the
+    next iteration boundary after rank 0's renewal finds it)."""
     stop = StopRequest()
     stop.install()
     info = group.init(config.dist_timeout)
-    trainer = lease = None
+    trainer = claimed = None
     try:
-        lease = claim(config, info.is_main, lambda outcome: group.broadcast_object(outcome, info), _say)
-        trainer = Trainer(config, info, stop)
+        claimed = claim(config, info.is_main, lambda outcome: group.broadcast_object(outcome, info), _say)
+        trainer = Trainer(config, info, stop, lambda: claimed.lost)
         return trainer.run()
-    except LeaseHeld as held:  # another run holds the storage: nothing of it touched
+    except LeaseHeld as held:  # another run holds the storage, or took it: nothing more of it touched
         errorfile.report(str(held))
         return EXIT_STORAGE_HELD
     except CheckpointError as error:
@@ -374,8 +386,8 @@ def train(config: Config) -> int:
     finally:
         if trainer is not None:
             trainer.checkpointer.shutdown()
-        if lease is not None:
-            lease.release()
+        if claimed is not None:
+            claimed.release()
         group.shutdown()
 
 

@@ -70,6 +70,7 @@ def test_verify_a_run_and_single_steps(run, capsys):
     assert "step 30: ok" in out and "step 25: FAILED" in out
     assert "step 40: incomplete (never committed: no manifest; last written " in out
     assert "checkpoints/step-000000025/rank-00001.pt: size mismatch" in out
+    assert out.splitlines()[-2] == "one history: 3 steps on one line of descent, 0 superseded"
     assert out.splitlines()[-1] == "3 of 4 committed steps verified; 1 incomplete (never committed)"
 
     assert ckpt_commands.verify(f"{run}/checkpoints/step-000000020") == 0
