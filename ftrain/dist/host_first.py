@@ -63,8 +63,7 @@ class HostFirst:
         self.world_size = info.world_size
         timeout = datetime.timedelta(seconds=timeout_s)
         local_groups = [
-            dist.new_group(ranks, timeout=timeout, backend="gloo") if len(ranks) > 1 else None
-            for ranks in self.members
+            dist.new_group(ranks, timeout=timeout, backend="gloo") if len(ranks) > 1 else None for ranks in self.members
         ]
         self._leaders = dist.new_group([ranks[0] for ranks in self.members], timeout=timeout, backend="gloo")
         self._host = names.index(hosts[info.rank])

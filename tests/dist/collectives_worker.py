@@ -11,6 +11,7 @@ import torch.distributed as dist
 
 from ftrain.dist import group
 
+
 class Payload:
     """What a pickle-based collective carries, and runs code to rebuild on the receiver."""
 

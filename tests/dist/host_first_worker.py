@@ -74,7 +74,13 @@ def check(collectives: HostFirst, info: group.RankInfo) -> dict:
     wide = torch.arange(collectives.broadcast_capacity, dtype=torch.float32)  # as wide as a broadcast goes
     last = info.world_size - 1
     broadcasts &= torch.equal(collectives.broadcast_(wide + info.rank, last), wide + last)
-    return {"gathers": gathers, "broadcasts": broadcasts, "sums": sums, "reduced": reduced, "digest": digest.hexdigest()}
+    return {
+        "gathers": gathers,
+        "broadcasts": broadcasts,
+        "sums": sums,
+        "reduced": reduced,
+        "digest": digest.hexdigest(),
+    }
 
 
 if __name__ == "__main__":

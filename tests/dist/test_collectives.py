@@ -22,7 +22,10 @@ def test_objects_travel_as_json_and_a_peer_cannot_send_code(tmp_path) -> None:
     subprocess.run([*launcher, str(WORKER), str(out), str(marker)], cwd=REPO, env=child_env(), check=True, timeout=120)
     reports = [json.loads(Path(f"{out}.{rank}").read_text()) for rank in (0, 1)]
     for report in reports:
-        assert report["gathered"] == [{"rank": 0, "files": {"a.pt": [3, "ff"]}}, {"rank": 1, "files": {"a.pt": [3, "ff"]}}]
+        assert report["gathered"] == [
+            {"rank": 0, "files": {"a.pt": [3, "ff"]}},
+            {"rank": 1, "files": {"a.pt": [3, "ff"]}},
+        ]
         assert report["broadcast"] == {"kind": "committed", "step": 4}
         assert "not JSON serializable" in report["refused"]
     assert reports[1]["hostile"] in ("UnicodeDecodeError", "JSONDecodeError")
