@@ -8,9 +8,11 @@ and sums the slots in rank order, so every rank computes the bitwise same result
 rank can write round k+1 while a slower peer still reads round k; it cannot get further ahead, because round
 k+1 needs that peer's byte, which the peer sends only after it has finished reading round k.
 
-The segment and the pipes are unlinked as soon as every rank has opened them: nothing is left behind, even
-after SIGKILL. A peer that dies closes its end of the pipes: with two ranks the survivor sees end-of-file at
-once; otherwise it waits at most ``timeout_s``, like a gloo collective.
+The segment and the pipes are unlinked as soon as every rank has opened them. Their names carry the creating
+process (``ftrain-<pid namespace>-<pid>-<start time>-...``): a creator SIGKILLed before the unlink leaves them behind,
+and the next creator on that host removes every such name whose process is gone (``sweep``). A peer that dies closes
+its end of the pipes: with two ranks the survivor sees end-of-file at once; otherwise it waits at most ``timeout_s``,
+like a gloo collective.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from __future__ import annotations
 import contextlib
 import mmap
 import os
+import re
 import select
 import tempfile
 import uuid
@@ -26,6 +29,7 @@ import torch
 import torch.distributed as dist
 
 from ftrain.dist.group import RankInfo, broadcast_object
+from ftrain.procfs import start_time
 
 
 class PeerLost(RuntimeError):
@@ -51,7 +55,7 @@ class SharedMemoryAllReduce:
         self.rank, self.world = ranks.index(info.rank), len(ranks)
         self.capacity = capacity
         self.timeout_ms = int(timeout_s * 1000)
-        prefix = os.path.join(_shared_dir(), f"ftrain-{uuid.uuid4().hex}") if self.rank == 0 else None
+        prefix = _new_prefix() if self.rank == 0 else None
         prefix = broadcast_object(prefix, info, group, src=ranks[0])
         segment, pipes = f"{prefix}.shm", [f"{prefix}-{rank}.fifo" for rank in range(self.world)]
         size = 2 * self.world * capacity * 4
@@ -136,6 +140,47 @@ class SharedMemoryAllReduce:
             if not got:
                 raise PeerLost("a peer rank exited during an all-reduce")
             count -= len(got)
+
+
+def _owner_tag(pid: int) -> str | None:
+    """``<pid namespace>-<pid>-<start time>``: what names a process for good on this host; None once it is gone."""
+    start = start_time(pid)
+    return None if start is None else f"{_pid_namespace()}-{pid}-{start}"
+
+
+def _new_prefix() -> str:
+    """A fresh name for this process's segment and pipes, after a sweep of those whose creator is gone."""
+    sweep()
+    return os.path.join(_shared_dir(), f"{PREFIX}{_owner_tag(os.getpid())}-{uuid.uuid4().hex[:12]}")
+
+
+def sweep() -> list[str]:
+    """Remove the segments and pipes in this host's shared directory whose creator (of this pid namespace) is gone;
+    the paths removed."""
+    removed = []
+    namespace = _pid_namespace()
+    for entry in os.scandir(_shared_dir()):
+        match = _NAME.match(entry.name)
+        if match is None or match["ns"] != namespace:
+            continue
+        pid = int(match["pid"])
+        if _owner_tag(pid) != f"{namespace}-{pid}-{match['start']}":
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(entry.path)
+                removed.append(entry.path)
+    return removed
+
+
+PREFIX = "ftrain-"
+_NAME = re.compile(rf"^{PREFIX}(?P<ns>\d+)-(?P<pid>\d+)-(?P<start>\d+)-[0-9a-f]+(\.shm|-\d+\.fifo)$")
+
+
+def _pid_namespace() -> str:
+    """This process's pid namespace's number (pids of other namespaces mean nothing here); 0 where /proc hides it."""
+    try:
+        return os.readlink("/proc/self/ns/pid").partition("[")[2].rstrip("]") or "0"
+    except OSError:
+        return "0"
 
 
 def _shared_dir() -> str:
