@@ -298,3 +298,91 @@ def test_a_run_paused_past_its_lease_whose_storage_another_run_took_commits_noth
     assert after and set(after.values()) == {2}, after  # every step past the takeover is B's
     lease = Record.decode((storage / LEASE).read_bytes())
     assert (lease.generation, lease.entries) == (2, ())  # B's, released; A did not take it back
+
+
+def plain_torchrun(storage: Path, port: int, *overrides: str) -> list[str]:
+    """torchrun as most users first type it: no --standalone, no --rdzv-id (torchrun's run id is then ``none`` for
+    every run), a master port of its own."""
+    launcher = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node=2", f"--master-port={port}"]
+    return [*launcher, "-m", "ftrain", "train", SMOKE, "--storage", str(storage), *OVERRIDES, *overrides]
+
+
+def files(storage: Path) -> dict[str, bytes]:
+    return {str(path.relative_to(storage)): path.read_bytes() for path in sorted(storage.rglob("*")) if path.is_file()}
+
+
+def test_a_second_plain_torchrun_on_a_live_runs_storage_is_refused_in_one_line_and_writes_nothing(tmp_path, reference):
+    """Two plain torchrun runs (torchrun's shared run id ``none``) are two runs: the second is refused within seconds,
+    in ftrain's one line naming the holder (host, pid, since when), its ranks exit 8, the storage is byte for byte as
+    before, and the first run ends as it would have alone."""
+    storage, hold = tmp_path / "run", Hold(tmp_path, 4)
+    first = launch(plain_torchrun(storage, free_port(), hold.override), cwd=REPO, env=child_env(HOLD_ENV))
+    hold.held()
+    holders, before = procfs.descendants(first.pid), files(storage)
+    started = time.monotonic()
+    second = intrude(plain_torchrun(storage, free_port()))
+    assert second.wait(timeout=120) != 0
+    assert time.monotonic() - started < 60
+    line, output = refused(second, holders)
+    assert line.startswith("ftrain: error: storage ") and re.search(r" since \d{4}-\d\d-\d\d \d\d:\d\d:\d\d UTC", line)
+    assert re.search(rf"exitcode\s*:\s*{EXIT_STORAGE_HELD}\b", output)  # torchrun's report: the ranks exited 8
+    assert files(storage) == before, "the refused run must write nothing to the storage"
+    assert first.poll() is None
+    hold.release()
+    assert finish(first) == 0
+    assert final_manifest(storage)["state_sha256"] == reference
+    assert {manifest["run_id"] for manifest in manifests(storage).values()} != {"none"}
+
+
+def test_ckpt_prune_on_a_live_runs_storage_is_refused_and_deletes_nothing_unless_forced(tmp_path):
+    storage, hold = tmp_path / "run", Hold(tmp_path, 6)
+    first = launch(
+        train_command(storage, "iterations=8", "checkpoint.keep_last=5", hold.override), env=child_env(HOLD_ENV)
+    )
+    hold.held()
+    before = files(storage)
+    prune = [sys.executable, "-m", "ftrain", "ckpt", "prune", str(storage), "--keep-last", "1"]
+    refusal = subprocess.run(prune, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
+    assert refusal.returncode == EXIT_STORAGE_HELD
+    assert refusal.stdout == "" and len(refusal.stderr.splitlines()) == 1, refusal.stderr
+    assert (
+        refusal.stderr.startswith("ftrain: error: ckpt prune refused: storage ")
+        and f"pid {first.pid} " in refusal.stderr
+    )
+    assert "pass --force to prune anyway" in refusal.stderr
+    assert files(storage) == before
+    forced = subprocess.run([*prune, "--force"], cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
+    assert forced.returncode == 0 and sorted(manifests(storage)) == [4], (
+        forced.stdout + forced.stderr
+    )  # 6 is not saved yet
+    hold.release()
+    assert finish(first) == 0
+    after = subprocess.run(prune, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
+    assert after.returncode == 0 and "kept 1 steps: 8" in after.stdout, after.stderr  # the run gone: it holds it
+
+
+def test_an_unsupervised_run_whose_lease_another_run_took_stops_at_once_with_exit_8(tmp_path) -> None:
+    """No supervisor: rank 0's renewal finds the newer generation and the ranks stop at the next iteration boundary,
+    exit 8 in one line, committing nothing more (its saves would be refused anyway; here none is due)."""
+    storage, hold = tmp_path / "run", Hold(tmp_path, 3)
+    console = tmp_path / "console"
+    with console.open("wb") as output:
+        proc = launch(
+            train_command(storage, "iterations=100000", "checkpoint.interval=2", hold.override, ranks=2),
+            cwd=REPO,
+            env=child_env({TTL_ENV: "3", **HOLD_ENV}),  # renewed every second
+            stdout=output,
+            stderr=subprocess.STDOUT,
+        )
+    hold.held()
+    committed = sorted(manifests(storage))
+    ours = Record.decode((storage / LEASE).read_bytes())
+    far = Process("node-far-away", 4242, 123, "another-boot-id", "pid:[1]")
+    (storage / LEASE).write_bytes(Record("intruder", ours.generation + 1, 60.0, (Entry(far, time.time()),)).encode())
+    hold.release()
+    assert finish(proc, timeout=60) != 0
+    said = console.read_text()
+    lines = re.findall(r"^ftrain: error: the lease of .*$", said, re.MULTILINE)  # ftrain's own (torchrun repeats it)
+    assert len(lines) == 1 and lines[0].endswith("this run lost the storage and commits nothing more"), said
+    assert re.search(rf"exitcode\s*:\s*{EXIT_STORAGE_HELD}\b", said), said
+    assert sorted(manifests(storage)) == committed  # nothing after the takeover

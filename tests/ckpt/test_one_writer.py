@@ -1,0 +1,182 @@
+"""Every write and every delete of a run's storage goes through the holder's check (``fence.guarded``), on a local
+directory and on a real S3 API server: for each kind of write, a holder of an older generation that tries it after
+the lease moved on is refused and nothing is written or deleted, while the current holder's same write goes through.
+Lineage (``lineage.py``): what resume and ``ftrain ckpt verify`` make of forked and superseded histories."""
+
+from __future__ import annotations
+
+import json
+import re
+
+import pytest
+import torch
+
+from ftrain.ckpt import commands, lineage
+from ftrain.ckpt.fence import Fence
+from ftrain.ckpt.format import commit, encode, step_dir, write_file
+from ftrain.ckpt.lease import Lease, LeaseLost
+from ftrain.ckpt.retention import delete_step
+from ftrain.ckpt.save import Result, StepWriter
+from ftrain.ckpt.steps import ASIDE, clear_newer, quarantine, scan, select_resume, set_aside, superseded_reason
+from ftrain.ckpt.storage import Storage
+from ftrain.config import CheckpointConfig
+from ftrain.dist.group import RankInfo
+from ftrain.errors import UserError
+from ftrain.identity import ATTEMPT_ENV, GENERATION_ENV, RUN_ID_ENV, Identity
+from ftrain.policy.snapshots import PoliciesView
+from ftrain.policy.snapshots import prune as prune_snapshots
+
+from helpers import make_step
+
+
+@pytest.fixture(params=["local", "s3"])
+def where(request, tmp_path) -> tuple[str, dict | None]:
+    """The URL and storage options of a fresh run storage."""
+    return (str(tmp_path / "run"), None) if request.param == "local" else request.getfixturevalue("s3_url")
+
+
+@pytest.fixture
+def storage(where) -> Storage:
+    return Storage.open(*where)
+
+
+def everything(storage: Storage) -> dict[str, bytes]:
+    """Every object under the storage but the lease's own files, with its bytes."""
+    root = storage.root
+    paths = storage.fs.find(root)
+    kept = [path for path in paths if not path.rpartition("/")[2].startswith(("LEASE.json", "FENCE.json"))]
+    return {path.removeprefix(root): storage.fs.cat_file(path) for path in kept}
+
+
+@pytest.fixture
+def moved_on(storage):
+    """A storage with history (steps 10 and 20, an abandoned step 30, snapshots 10 and 20) written by run A at
+    generation 1, whose lease run B then took at generation 2: A's and B's guarded views of it."""
+    a = Lease(storage, "run-a", print)
+    a.acquire()
+    for step in (10, 20):
+        make_step(storage, step, world_size=1)
+        snapshots = PoliciesView(storage)
+        commit(snapshots, step, {"actor.pt": write_file(snapshots, step, "actor.pt", b"actor")}, {})
+    write_file(storage, 30, "rank-00000.pt", b"cut short")  # no manifest: abandoned
+    a.release()
+    b = Lease(storage, "run-b", print)
+    b.acquire()
+    assert b.generation == 2
+    stale = storage.guarded(Fence(storage, Identity("run-a", 1)).holding)
+    current = storage.guarded(Fence(storage, Identity("run-b", 2)).holding)
+    return stale, current
+
+
+WRITES = {
+    "retention": lambda s: delete_step(s, 10),
+    "quarantine": lambda s: quarantine(s, 20, "a test"),
+    "start-up clean-up": lambda s: clear_newer(s, 20, print),
+    "set aside": lambda s: set_aside(s, next(info for info in scan(s) if info.step == 10)),
+    "snapshot write": lambda s: write_file(PoliciesView(s), 40, "actor.pt", b"newer actor"),
+    "snapshot prune": lambda s: prune_snapshots(PoliciesView(s), keep_last=1),
+    "snapshot start-up deletion": lambda s: delete_step(PoliciesView(s), 20),
+    "shard": lambda s: write_file(s, 40, "rank-00000.pt", encode({"x": torch.ones(2)})),
+    "manifest": lambda s: commit(s, 30, {}, {}, check_present=False),
+}
+
+
+@pytest.mark.parametrize("kind", list(WRITES))
+def test_a_holder_of_an_older_generation_writes_and_deletes_nothing(moved_on, storage, kind):
+    stale, current = moved_on
+    before = everything(storage)
+    with pytest.raises(LeaseLost, match=re.escape("taken by run run-b (generation 2; this run's is 1)")):
+        WRITES[kind](stale)
+    assert everything(storage) == before, f"{kind}: the stale holder changed the storage"
+    WRITES[kind](current)  # the holder's own write of the same kind goes through: the check is no blanket refusal
+    assert everything(storage) != before, f"{kind}: the current holder's write must land"
+
+
+def test_a_save_of_a_holder_of_an_older_generation_is_refused_before_its_shards(moved_on, storage, monkeypatch):
+    """The real save path (a one-rank world): its shard write is refused, so not even an uncommitted file lands."""
+    before = everything(storage)
+    for name, value in Identity("run-a", 1).env().items():
+        monkeypatch.setenv(name, value)
+    lines: list[str] = []
+    writer = StepWriter(storage, CheckpointConfig(), RankInfo(0, 1, 0), None, lines.append)
+    state = {"ftrain": {}, "actor_state_dict": {"w": torch.ones(3)}}
+    outcome = writer.save(40, {"common.pt": state, "rank-00000.pt": {"rng": torch.ones(2)}}, {"iteration": 40}, False)
+    assert outcome.result is Result.LEASE_LOST and "this run lost the storage" in outcome.detail
+    assert everything(storage) == before
+    assert lines == [f"checkpoint step 40 refused: {outcome.detail}"]
+
+
+def save(storage: Storage, monkeypatch, identity: Identity, step: int, parent: dict | None = None) -> dict:
+    """One real save of a one-rank world of ``identity`` continuing ``parent``: its manifest."""
+    for name in (RUN_ID_ENV, GENERATION_ENV, ATTEMPT_ENV):
+        monkeypatch.delenv(name, raising=False)
+    for name, value in identity.env().items():
+        monkeypatch.setenv(name, value)
+    writer = StepWriter(storage, CheckpointConfig(keep_last=100), RankInfo(0, 1, 0), None, print)
+    writer.parent = parent
+    state = {"ftrain": {}, "actor_state_dict": {"w": torch.full((3,), float(step))}}
+    outcome = writer.save(step, {"common.pt": state, "rank-00000.pt": {}}, {"iteration": step}, False)
+    assert outcome.result is Result.COMMITTED, outcome.detail
+    return outcome.detail
+
+
+def parent_of(manifest: dict) -> dict:
+    return {"step": manifest["step"], "state_sha256": manifest["state_sha256"]}
+
+
+def test_each_commit_names_its_parent_and_the_history_is_one_line(storage, monkeypatch):
+    first = save(storage, monkeypatch, Identity("run-a", 1), 10)
+    second = save(storage, monkeypatch, Identity("run-a", 1), 20, parent_of(first))
+    third = save(storage, monkeypatch, Identity("run-b", 2), 30, parent_of(second))  # the next run resumed at 20
+    assert (first["parent"], second["parent"], third["parent"]) == (None, parent_of(first), parent_of(second))
+    delete_step(storage, 20)  # retention: a parent gone is passed over
+    past = lineage.history(scan(storage))
+    assert (past.line, past.superseded, past.forks) == ([30, 10], [], [])
+    assert select_resume(storage)[0] == 30
+
+
+def test_a_commit_that_landed_after_its_lease_moved_on_is_superseded_and_set_aside(storage, where, monkeypatch, capsys):
+    """Run A committed 20 from 10 after run B (a newer generation) had resumed from 10 (the one-request window of an
+    object store): B's line wins; resume passes over A's step and the start-up clean-up sets it aside."""
+    ten = save(storage, monkeypatch, Identity("run-a", 1), 10)
+    save(storage, monkeypatch, Identity("run-a", 1), 20, parent_of(ten))  # the late commit
+    save(storage, monkeypatch, Identity("run-b", 2), 15, parent_of(ten))
+    past = lineage.history(scan(storage))
+    assert (past.line, past.superseded, past.forks) == ([15, 10], [20], [])
+    lines: list[str] = []
+    assert select_resume(storage, log=lines.append)[0] == 15
+    assert lines == [f"skipping checkpoint step 20: {lineage_reason(storage, 20)}"]
+    assert commands.verify(*where) == 0
+    out = capsys.readouterr().out
+    assert "step 20: superseded: committed by generation 1 after generation 2 went on" in out
+    assert "one history: 2 steps on one line of descent, 1 superseded" in out
+    clear_newer(storage, 15, print)
+    assert [info.step for info in scan(storage)] == [15, 10] and storage.list_dirs(ASIDE) == [step_dir(20)[12:]]
+
+
+def lineage_reason(storage: Storage, step: int) -> str:
+    infos = scan(storage)
+    return superseded_reason(next(i for i in infos if i.step == step), lineage.history(infos))
+
+
+def test_a_fork_of_one_generation_is_refused_until_one_line_is_kept(storage, where, monkeypatch, capsys):
+    """Two processes of one generation wrote one storage as one run (what the shared run id ``none`` did): resume
+    refuses in one line that says how to pick a branch; ``ftrain ckpt prune --keep-line`` sets the other aside."""
+    same = Identity("none", 1)
+    ten = save(storage, monkeypatch, same, 10)
+    twenty = save(storage, monkeypatch, same, 20, parent_of(ten))
+    save(storage, monkeypatch, same, 30, parent_of(twenty))
+    save(storage, monkeypatch, same, 25, parent_of(ten))  # the other process's branch from 10
+    with pytest.raises(UserError) as refused:
+        select_resume(storage)
+    message = str(refused.value)
+    assert "holds two histories of generation 1: steps 30, 20, 10 and steps 25" in message
+    assert f"'ftrain ckpt prune {storage.url} --keep-line STEP'" in message and "\n" not in message
+    assert commands.verify(*where) == 1 and "FORKED: " in capsys.readouterr().out
+    for name in (RUN_ID_ENV, GENERATION_ENV, ATTEMPT_ENV):
+        monkeypatch.delenv(name, raising=False)
+    assert commands.keep_line(where[0], 25, where[1]) == 0
+    assert [info.step for info in scan(storage) if info.manifest] == [25, 10]
+    assert select_resume(storage)[0] == 25
+    aside = json.loads(storage.read(f"{ASIDE}/{step_dir(30)[12:]}/QUARANTINED.json"))
+    assert "off the line kept by ftrain ckpt prune --keep-line 25" in aside["reason"]
