@@ -236,9 +236,7 @@ def test_a_lease_taken_while_the_workers_train_stops_them_at_once_with_exit_8(tm
         )
     hold.held()
     committed = sorted(manifests(storage))
-    ours = Record.decode((storage / LEASE).read_bytes())
-    far = Process("node-far-away", 4242, 123, "another-boot-id", "pid:[1]")
-    (storage / LEASE).write_bytes(Record("intruder", ours.generation + 1, 60.0, (Entry(far, time.time()),)).encode())
+    take_lease_elsewhere(storage)
     assert finish(proc, timeout=60) == EXIT_STORAGE_HELD
     said = console.read_text()
     assert "taken by run intruder (generation 2; this run's is 1)" in said and "its workers are stopped" in said, said
@@ -298,6 +296,14 @@ def test_a_run_paused_past_its_lease_whose_storage_another_run_took_commits_noth
     assert after and set(after.values()) == {2}, after  # every step past the takeover is B's
     lease = Record.decode((storage / LEASE).read_bytes())
     assert (lease.generation, lease.entries) == (2, ())  # B's, released; A did not take it back
+
+
+def take_lease_elsewhere(storage: Path) -> None:
+    """Run "intruder" on another host takes the storage's lease at the next generation (its holder's lease expired
+    while it was cut off, say)."""
+    ours = Record.decode((storage / LEASE).read_bytes())
+    far = Process("node-far-away", 4242, 123, "another-boot-id", "pid:[1]")
+    (storage / LEASE).write_bytes(Record("intruder", ours.generation + 1, 60.0, (Entry(far, time.time()),)).encode())
 
 
 def plain_torchrun(storage: Path, port: int, *overrides: str) -> list[str]:
@@ -376,9 +382,7 @@ def test_an_unsupervised_run_whose_lease_another_run_took_stops_at_once_with_exi
         )
     hold.held()
     committed = sorted(manifests(storage))
-    ours = Record.decode((storage / LEASE).read_bytes())
-    far = Process("node-far-away", 4242, 123, "another-boot-id", "pid:[1]")
-    (storage / LEASE).write_bytes(Record("intruder", ours.generation + 1, 60.0, (Entry(far, time.time()),)).encode())
+    take_lease_elsewhere(storage)
     hold.release()
     assert finish(proc, timeout=60) != 0
     said = console.read_text()
