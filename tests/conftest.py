@@ -52,6 +52,7 @@ LONGEST_FIRST = (
     "cluster/test_netns.py",
     "supervise/test_outages.py",
     "train/test_distillation.py",
+    "ckpt/test_one_history.py",
 )
 """The files that take longest (``--durations``), run first: xdist hands out a file at a time, and a long file taken
 last keeps one worker busy while the other has nothing left to do."""
