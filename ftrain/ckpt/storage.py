@@ -11,7 +11,8 @@ server within seconds, so that the bound is ours alone (on Azure, adlfs gets the
 retries are turned off). A storage that stays unreachable raises
 :class:`StorageUnavailable`: an infrastructure fault that waiting fixes, never bad input (a missing bucket, denied
 access or a malformed URL are :class:`~ftrain.errors.UserError`). Credentials never appear in a message, repr or
-log line: every text that leaves this module is scrubbed.
+log line: every text that leaves this module is scrubbed. A run's storage is guarded (``guarded``): every write and
+delete then runs inside the holder's check (``fence.py``).
 """
 
 from __future__ import annotations
@@ -135,7 +136,9 @@ class Storage:
         other.guard = guard
         return other
 
-    def _guarded(self) -> contextlib.AbstractContextManager:
+    def holding(self) -> contextlib.AbstractContextManager:
+        """What a write runs inside: the guard's check (``guarded``), or nothing; for a write beside the storage that
+        must be the holder's too (the tracker's run record)."""
         return self.guard() if self.guard is not None else contextlib.nullcontext()
 
     def with_retries(self, retries: int) -> Storage:
@@ -191,13 +194,13 @@ class Storage:
                 if self.fs.cat_file(path) != data:
                     raise
 
-        with self._guarded():
+        with self.holding():
             self._call("create", rel, create)
 
     def write_replace(self, rel: str, data: bytes) -> None:
         """Create or overwrite ``rel`` (not atomic: for markers and other objects that are not a commit)."""
         path = self._path(rel)
-        with self._guarded():
+        with self.holding():
             if self.is_local:
                 self._call("write", rel, localfs.write, path, data, exclusive=False)
             else:
@@ -241,7 +244,7 @@ class Storage:
 
     def delete(self, rel: str) -> None:
         """Delete one object if it exists."""
-        with self._guarded(), contextlib.suppress(FileNotFoundError):
+        with self.holding(), contextlib.suppress(FileNotFoundError):
             self._call("delete", rel, self.fs.rm_file, self._path(rel))
 
     def delete_files(self, rel: str, names: Iterable[str]) -> bool:
@@ -252,7 +255,7 @@ class Storage:
         paths = [self._path(f"{rel}/{name}") for name in names]
         if not (self.is_local or self.is_s3):
             return False
-        with self._guarded():
+        with self.holding():
             if self.is_local:
                 return self._call("delete", rel, localfs.delete_files, self._path(rel), paths)
             self._call("delete", rel, self.fs.rm, paths)  # S3: no directories, and a batch delete takes absent keys
@@ -260,7 +263,7 @@ class Storage:
 
     def delete_tree(self, rel: str) -> None:
         """Delete ``rel`` and everything below it, if it exists."""
-        with self._guarded(), contextlib.suppress(FileNotFoundError):
+        with self.holding(), contextlib.suppress(FileNotFoundError):
             if self.is_local:  # fsspec would walk the tree first, then delete entry by entry
                 self._call("delete", rel, localfs.delete, self._path(rel))
             else:
