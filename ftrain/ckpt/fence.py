@@ -9,10 +9,11 @@ Two reads, one small request each:
   wrote. A node cut off from the others still runs its old attempt; it is refused below the record, which the first
   write of each attempt raises by a compare-and-swap (``cas.py``).
 
-On a file system the check and the write run under the lease's own lock (``cas.locked``), so no new holder takes the
-lease in between. On an object store the time between the check and the write (one request) is left: a process
-paused exactly there writes once when it goes on; a commit so made is superseded by the newer generation's history
-(``lineage.py``). Every manifest records the ``run_id``, ``generation`` and ``attempt`` that committed it.
+On a file system the check and a commit (a manifest, a marker, a delete) run under the lease's own lock
+(``cas.locked``), so no new holder takes the lease in between. On an object store the time between the check and the
+write (one request) is left: a process paused exactly there writes once when it goes on; a commit so made is
+superseded by the newer generation's history (``lineage.py``). Every manifest records the ``run_id``, ``generation``
+and ``attempt`` that committed it.
 """
 
 from __future__ import annotations
@@ -47,9 +48,11 @@ class Fence:
         return {"run_id": ours.run_id, "generation": ours.generation, **attempt}
 
     @contextlib.contextmanager
-    def holding(self) -> Iterator[None]:
-        """``check``, then the caller's write; on a file system under the lease's lock, released after the write."""
-        with cas.locked(self.storage, LEASE):
+    def holding(self, commit: bool = True) -> Iterator[None]:
+        """``check``, then the caller's write; a ``commit`` (a manifest, a marker, a delete: one small request) on a
+        file system under the lease's lock, released after it. A file's data is checked, then written without the
+        lock: it commits nothing by itself, and a slow write must not hold the lease's renewals up."""
+        with cas.locked(self.storage, LEASE) if commit else contextlib.nullcontext():
             self.check()
             yield
 

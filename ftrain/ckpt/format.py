@@ -215,7 +215,7 @@ def commit(storage: Storage, step: int, files: dict[str, FileEntry], meta: dict,
     manifest = {"format_version": FORMAT_VERSION, "step": step, "created": now()} | meta
     manifest["files"] = {name: {"size": e.size, "sha256": e.sha256} for name, e in sorted(files.items())}
     data = _manifest_text(manifest).encode()
-    storage.write_exclusive(f"{step_dir(step)}/{MANIFEST}", data)
+    storage.write_exclusive(f"{step_dir(step)}/{MANIFEST}", data, commit=True)
     return manifest
 
 

@@ -80,7 +80,7 @@ class Storage:
         self.retries = retries
         self.backoff = Backoff(base_delay, REQUEST.longest)
         self._secrets = secrets
-        self.guard: Callable[[], contextlib.AbstractContextManager] | None = None
+        self.guard: Callable[[bool], contextlib.AbstractContextManager] | None = None
         """What every write and delete runs inside (``guarded``): the holder's check (``fence.Fence.holding``)."""
 
     @classmethod
@@ -130,16 +130,17 @@ class Storage:
             storage.check()
         return storage
 
-    def guarded(self, guard: Callable[[], contextlib.AbstractContextManager] | None) -> Storage:
-        """The same storage, every write and delete made inside ``guard()`` (None: unguarded)."""
+    def guarded(self, guard: Callable[[bool], contextlib.AbstractContextManager] | None) -> Storage:
+        """The same storage, every write and delete made inside ``guard(commit)`` (None: unguarded); ``commit``: the
+        request commits something (a manifest, a marker, a delete), not a file's data."""
         other = copy.copy(self)
         other.guard = guard
         return other
 
-    def holding(self) -> contextlib.AbstractContextManager:
+    def holding(self, commit: bool = True) -> contextlib.AbstractContextManager:
         """What a write runs inside: the guard's check (``guarded``), or nothing; for a write beside the storage that
         must be the holder's too (the tracker's run record)."""
-        return self.guard() if self.guard is not None else contextlib.nullcontext()
+        return self.guard(commit) if self.guard is not None else contextlib.nullcontext()
 
     def with_retries(self, retries: int) -> Storage:
         """The same storage, with transient errors retried ``retries`` times instead."""
@@ -173,8 +174,9 @@ class Storage:
     def _protocols(self) -> tuple[str, ...]:
         return (self.fs.protocol,) if isinstance(self.fs.protocol, str) else tuple(self.fs.protocol)
 
-    def write_exclusive(self, rel: str, data: bytes) -> None:
-        """Create ``rel`` holding ``data``; FileExistsError if it exists with other content.
+    def write_exclusive(self, rel: str, data: bytes, commit: bool = False) -> None:
+        """Create ``rel`` holding ``data``; FileExistsError if it exists with other content. ``commit``: this object
+        commits something (a manifest), see ``guarded``.
 
         Local: a temporary file linked to its name (complete when visible), fsynced; S3: one PUT with
         ``If-None-Match: *``; memory and other protocols: fsspec's ``mode="create"`` (an exists check, then a write:
@@ -194,7 +196,7 @@ class Storage:
                 if self.fs.cat_file(path) != data:
                     raise
 
-        with self.holding():
+        with self.holding(commit):
             self._call("create", rel, create)
 
     def write_replace(self, rel: str, data: bytes) -> None:

@@ -38,8 +38,8 @@ class PoliciesView:
     def read(self, rel: str) -> bytes:
         return self.storage.read(_policies(rel))
 
-    def write_exclusive(self, rel: str, data: bytes) -> None:
-        self.storage.write_exclusive(_policies(rel), data)
+    def write_exclusive(self, rel: str, data: bytes, commit: bool = False) -> None:
+        self.storage.write_exclusive(_policies(rel), data, commit)
 
     def list_files(self, rel: str) -> dict[str, int]:
         return self.storage.list_files(_policies(rel))
