@@ -175,7 +175,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--keep-line",
         type=int,
         metavar="STEP",
-        help="instead: keep STEP's line of descent and set every verified step off it aside (a forked storage)",
+        help="instead of the retention rules: keep STEP's line of descent and set every verified step off it aside "
+        "(a forked storage)",
     )
     prune.add_argument(
         "--force", action="store_true", help="prune even while a run holds the storage (it refuses by default)"
@@ -332,7 +333,7 @@ def _dispatch(args: argparse.Namespace) -> int:
         if args.ckpt_command == "unquarantine":
             return ckpt_commands.unquarantine(args.url, options)
         if args.keep_line is not None:
-            return ckpt_commands.keep_line(args.url, args.keep_line, options, force=args.force)
+            return ckpt_commands.keep_line(args.url, args.keep_line, options, force=args.force, dry_run=args.dry_run)
         return ckpt_commands.prune(
             args.url,
             keep_last=args.keep_last,

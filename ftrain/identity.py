@@ -64,9 +64,24 @@ class Identity:
 
     @classmethod
     def from_env(cls) -> Identity | None:
-        """This process's identity; None where no lease was taken for it (an unsupervised run's other ranks)."""
+        """This process's identity; None where no lease was taken for it (a process outside any run: a tool, a
+        test)."""
         run, generation = os.environ.get(RUN_ID_ENV), os.environ.get(GENERATION_ENV, "")
         attempt = os.environ.get(ATTEMPT_ENV, "")
         if not run or not generation.isdigit():
             return None
         return cls(run, int(generation), int(attempt) if attempt.isdigit() else None)
+
+
+def saved_environ() -> dict[str, str | None]:
+    """This process's identity variables as they are now, for ``restore_environ``."""
+    return {name: os.environ.get(name) for name in ENV_NAMES}
+
+
+def restore_environ(saved: dict[str, str | None]) -> None:
+    """The identity variables as ``saved_environ`` found them: a later run in this process is another one."""
+    for name, value in saved.items():
+        if value is None:
+            os.environ.pop(name, None)
+        else:
+            os.environ[name] = value

@@ -239,11 +239,14 @@ def check(storage: Storage, watcher: Watcher, reference: str, local: bool, tally
         assert not watcher.late, f"commits after the lease had moved on: {sorted(watcher.late)}"
     superseded = {step_of(path) for path in watcher.late} - set(past.line)
     assert superseded <= set(past.superseded) | set(aside(storage)), (superseded, past)
+    present = {info.step for info in infos if info.manifest}
+    for step, older in zip(sorted(past.line, reverse=True), sorted(past.line, reverse=True)[1:], strict=False):
+        parent = by_step[step].manifest["parent"]  # read here, not through lineage: its parent, or one never kept
+        assert parent["step"] == older or parent["step"] not in present, (step, parent, older)
     now = {path: storage.fs.cat_file(path) for path in manifests(storage)}
-    kept = {**now, **{path: storage.fs.cat_file(path) for path in manifests(storage, "quarantine")}}
+    set_aside = {storage.fs.cat_file(path) for path in manifests(storage, "quarantine")}
     for path, data in watcher.seen.items():
-        where = path if path in now else path.replace("/checkpoints/", "/quarantine/")
-        assert kept.get(where) == data, f"a verified step went, or changed: {path}"
+        assert now.get(path) == data or data in set_aside, f"a verified step went, or changed: {path}"
     newest = by_step[max(past.line)].manifest
     assert newest["state_sha256"] == reference, "the last holder's final state must be the undisturbed run's"
     tally.histories += 1

@@ -13,7 +13,7 @@ from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import Config
 from ftrain.errors import UserError
 from ftrain.heartbeat import TOKEN_ENV
-from ftrain.identity import ENV_NAMES, Identity, run_id
+from ftrain.identity import Identity, restore_environ, run_id, saved_environ
 
 _AGREED = {kind.__name__: kind for kind in (LeaseHeld, UserError, StorageUnavailable, StorageError)}
 """What rank 0's claim may end in, as the other ranks raise it too."""
@@ -51,11 +51,7 @@ class Claim:
         """Release the lease (rank 0), and leave the environment as it was before ``claim``."""
         if self.lease is not None:
             self.lease.release()
-        for name, value in self._environ.items():
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
+        restore_environ(self._environ)
 
 
 def claim(
@@ -66,7 +62,7 @@ def claim(
     tells every rank how that went, so that every rank raises alike (LeaseHeld if refused) and none waits for a rank 0
     that failed, and hands every rank the identity rank 0 holds (``Identity.env``)."""
     lease, outcome, failure = None, None, None
-    environ = {name: os.environ.get(name) for name in ENV_NAMES}
+    environ = saved_environ()
     if is_main:
         try:
             if os.environ.get(TOKEN_ENV):

@@ -3,7 +3,7 @@ exit code.
 
 A URL is a run's storage root (the directory holding ``checkpoints/``) or one step directory
 (``<root>/checkpoints/step-000000120``). Bad input raises UserError. The commands that write (``prune``,
-``unquarantine``) hold the storage's lease while they do (``holding``): refused while a run holds it.
+``unquarantine``) hold the storage's lease while they do (``as_lease_holder``): refused while a run holds it.
 """
 
 from __future__ import annotations
@@ -164,7 +164,7 @@ def prune(
     force: bool = False,
 ) -> int:
     """Apply the retention rules of ``checkpoint.retention_plan`` to a run's storage (``dry_run``: only print), as the
-    holder of its lease (``holding``; ``force``: without it)."""
+    holder of its lease (``as_lease_holder``; ``force``: without it)."""
     for name, value in {"keep-last": keep_last, "keep-best": keep_best, "keep-every": keep_every}.items():
         if value < 0:
             raise UserError(f"--{name}={value} must be 0 or more")
@@ -174,28 +174,33 @@ def prune(
     rules = (keep_last, keep_best, best_metric, keep_every, pinned, drop_bad)
     if dry_run:
         return _prune(storage, *rules, dry_run=True)
-    return holding(storage, "prune", force, lambda held: _prune(held, *rules, dry_run=False))
+    return as_lease_holder(storage, "prune", force, lambda held: _prune(held, *rules, dry_run=False))
 
 
-def keep_line(url: str, step: int, options: dict | None = None, force: bool = False) -> int:
+def keep_line(url: str, step: int, options: dict | None = None, force: bool = False, dry_run: bool = False) -> int:
     """Keep the line of descent that ends at ``step`` (``lineage.py``): every verified step off it is set aside under
-    ``quarantine/`` (nothing is deleted), so that the storage holds one history again."""
+    ``quarantine/`` (nothing is deleted), so that the storage holds one history again (``dry_run``: only print)."""
     storage, _ = _open(url, options)
 
     def body(held: Storage) -> int:
         infos = scan(held)
         past = history(infos, head=step)
         for info in infos:
-            if info.step in past.off_line():
-                quarantine(held, info.step, f"off the line kept by ftrain ckpt prune --keep-line {step}")
-                print(f"step {info.step}: set aside to {set_aside(held, info)}")
-        print(f"kept the line of step {step}: {len(past.line)} steps; {len(past.off_line())} set aside")
+            if info.step not in past.off_line():
+                continue
+            if dry_run:
+                print(f"would set aside step {info.step}")
+                continue
+            quarantine(held, info.step, f"off the line kept by ftrain ckpt prune --keep-line {step}")
+            print(f"step {info.step}: set aside to {set_aside(held, info)}")
+        done = "would set aside" if dry_run else "set aside"
+        print(f"kept the line of step {step}: {len(past.line)} steps; {len(past.off_line())} {done}")
         return 0
 
-    return holding(storage, "prune --keep-line", force, body)
+    return body(storage) if dry_run else as_lease_holder(storage, "prune --keep-line", force, body)
 
 
-def holding(storage: Storage, command: str, force: bool, body: Callable[[Storage], int]) -> int:
+def as_lease_holder(storage: Storage, command: str, force: bool, body: Callable[[Storage], int]) -> int:
     """``body`` of the storage, with this command holding the storage's lease (``lease.py``) meanwhile: no run starts
     while it deletes, and each of its writes is checked (``fence.guarded``). Refused in one line, with
     ``EXIT_STORAGE_HELD``, while another process holds it; ``force``: without the lease."""
@@ -245,13 +250,13 @@ def _prune(
 
 def unquarantine(url: str, options: dict | None = None) -> int:
     """Lift the quarantine of one step if all its files verify (full digests): 0 if lifted, 1 if it does not
-    verify (the step stays quarantined). As the holder of the storage's lease (``holding``)."""
+    verify (the step stays quarantined). As the holder of the storage's lease (``as_lease_holder``)."""
     storage, step = _open(url, options)
     if step is None:
         raise UserError(
             f"unquarantine works on one step: pass {storage.url}/{CHECKPOINTS}/step-<N> (see ftrain ckpt ls)"
         )
-    return holding(storage, "unquarantine", False, lambda held: _unquarantine(held, step))
+    return as_lease_holder(storage, "unquarantine", False, lambda held: _unquarantine(held, step))
 
 
 def _unquarantine(storage: Storage, step: int) -> int:

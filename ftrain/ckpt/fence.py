@@ -1,7 +1,7 @@
 """Fencing: the holder's check, run before every write and every delete of a run's storage (``guarded``), that
 this process's identity (``ftrain/identity.py``) may still write there.
 
-Two reads, one small request each:
+Before each write, one small read, two on several nodes:
 - ``LEASE.json`` (``lease.py``): a generation newer than this process's holds the storage (another run's, this run id's
   started again, or a newer plan of this run on several nodes): nothing of an older generation is written or deleted
   once a newer one exists, even before it writes.
@@ -63,9 +63,9 @@ class Fence:
         return cls(storage, identity) if identity is not None else None
 
     def check(self) -> dict:
-        """Before a commit: LeaseLost if another run, or this run alone, started again holds the storage; Fenced if a
-        newer plan of this run on several nodes does, or a newer attempt has committed; else make sure FENCE.json
-        names this attempt. The fields the manifest records."""
+        """Before a write: LeaseLost if another run, or this run alone, started again holds the storage; Fenced if a
+        newer plan of this run on several nodes does, or a newer attempt has written; else make sure FENCE.json
+        names this attempt. The fields a manifest of this holder records (``fields``)."""
         ours = self.identity
         current = read_record(self.storage)
         if current is not None and (current[0].generation > ours.generation or current[0].run_id != ours.run_id):

@@ -13,14 +13,14 @@ rebooted since counts as another host: cloned machines may share a host name.
 Every change is a compare-and-swap of the record read (``cas.py``: conditional requests on S3, ``flock`` and an
 atomic replace locally), so of two processes that race, one wins and the other reads again.
 
-The generation is the run's fencing token. It only grows: a release keeps the record (with no holders), so the next
-holder takes generation + 1, be it another run or the same run id once none of its processes lives (a requeued job,
-the same command again). On several nodes the maker of a new plan also takes generation + 1 (``advance``), and the
-other nodes follow the plan's (``follows``). A process that finds a newer generation in the record (its lease
-expired while it was paused, or cut off, and another holder took the storage) has lost the storage for good: it
-never takes it back, rank 0 commits nothing more (``fence.py``), and the supervisor, whose renewal finds it too,
-stops the workers (exit 8); one that follows a plan leaves that to the plan (a newer generation of its own run is
-the plan it will follow next).
+The generation is the run's fencing token. It only grows: a release keeps the record (with no holders), and a record
+deleted by hand starts after the newest generation that committed, so the next holder takes generation + 1, be it
+another run or the same run id once none of its processes lives (a requeued job, the same command again). On several
+nodes the maker of a new plan also takes generation + 1 (``advance``), and the other nodes follow the plan's
+(``follows``). A process that finds a newer generation in the record (its lease expired while it was paused, or cut off,
+and another holder took the storage) has lost the storage for good: it never takes it back, none of its processes writes
+there any more (``fence.py``), and the supervisor, whose renewal finds it too, stops the workers (exit 8); one that
+follows a plan leaves that to the plan (a newer generation of its own run is the plan it will follow next).
 
 Torch-free: the supervisor holds the lease for its workers; unsupervised, rank 0 of the world does (``claim.py``).
 """
@@ -37,9 +37,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from ftrain.ckpt import cas
+from ftrain.ckpt.format import CHECKPOINTS, MANIFEST, STEP_DIR
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD, UserError
-from ftrain.identity import ENV_NAMES, Identity
+from ftrain.identity import Identity, restore_environ, saved_environ
 from ftrain.procfs import Process
 
 LEASE = "LEASE.json"
@@ -187,7 +188,7 @@ class Lease:
             elif record is not None:  # a new holder, or a new plan: the next generation
                 generation = record.generation + 1
             else:  # none, or deleted: this process's generation, else the one after the newest committed
-                generation = self.generation or read_fence(cas.read(self.storage, FENCE)).get("generation", 0) + 1
+                generation = self.generation or _newest_committed(self.storage) + 1
             since = next((e.since for e in record.entries if e.process == self.process), now) if ours else now
             mine = Entry(self.process, now, since)
             new = Record(self.run_id, generation, self.ttl, (*(others if joins else ()), mine))
@@ -216,7 +217,7 @@ class Lease:
         (``Identity.env``): its own commits and its child processes' are checked against them (``fence.Fence``)."""
         cas.require_atomic(self.storage, self.plain_writes)  # a lease rests on conditional writes
         taken = self.acquire(advance)
-        self._environ = {name: os.environ.get(name) for name in ENV_NAMES}  # as ``release`` leaves it
+        self._environ = saved_environ()  # as ``release`` leaves it
         self._name_environ()
         self._thread = threading.Thread(target=self._keep, name="ftrain-lease", daemon=True)
         self._thread.start()
@@ -266,11 +267,7 @@ class Lease:
         """Stop renewing and drop this process's entry (the whole object with the run's last entry), so the same
         command again starts at once. A failure is logged: the lease then lapses after its ``ttl``."""
         self._stop.set()
-        for name, value in self._environ.items():  # as before ``hold``: a later run in this process is another one
-            if value is None:
-                os.environ.pop(name, None)
-            else:
-                os.environ[name] = value
+        restore_environ(self._environ)  # as before ``hold``
         if self._thread is not None:
             self._thread.join(timeout=self.ttl / 3)  # a renewal stuck in a hanging request: its write is a CAS too
         try:
@@ -358,6 +355,19 @@ def read_fence(current: tuple[bytes, str] | None) -> dict:
         return {}
     valid = isinstance(record, dict) and all(type(record.get(key)) is int for key in ("generation", "attempt"))
     return record if valid else {}
+
+
+def _newest_committed(storage: Storage) -> int:
+    """The newest generation that committed to ``storage``: the fence's record, and the newest step's manifest (on one
+    node there is no fence record), so that a lease record deleted by hand never starts the generations over."""
+    fenced = read_fence(cas.read(storage, FENCE)).get("generation", 0)
+    steps = sorted((name for name in storage.list_dirs(CHECKPOINTS) if STEP_DIR.match(name)), reverse=True)
+    for name in steps[:3]:  # the newest manifests: a step cut short has none
+        try:
+            return max(fenced, int(json.loads(storage.read(f"{CHECKPOINTS}/{name}/{MANIFEST}")).get("generation") or 0))
+        except (FileNotFoundError, ValueError, TypeError):
+            continue
+    return fenced
 
 
 def _unseen(record: Record) -> bool:

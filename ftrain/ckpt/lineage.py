@@ -2,16 +2,16 @@
 "state_sha256"}`` of the step its holder resumed from or committed before; None for a fresh start), and a storage's
 verified steps must form one line of descent.
 
-The line ends at the head, the newest step of the newest generation (the lease's fencing token, ``identity.py``), and
-runs back through each step's parent; a parent that retention deleted is passed over (the next older step is taken as
-its ancestor). A verified step off the line is:
-- **superseded** if an older generation committed it: a commit that landed after a newer generation had gone on from
-  an earlier step (the one-request window of ``fence.py`` on object stores). The newer generation's line wins: resume
-  never takes it, and the holder's start sets it aside;
-- a **fork** if the head's own generation committed it: two processes wrote one history as one run. Resume refuses the
-  storage until a person keeps one line (``ftrain ckpt prune --keep-line STEP``).
-Manifests from before lineage (no ``parent`` key) are taken to continue the next older step.
-Imports: ``format``, ``errors``.
+The line ends at the head, the newest step of the newest generation (the lease's fencing token, ``identity.py``; on
+several nodes, then of the newest attempt), and runs back through each step's parent; a parent that retention deleted is
+passed over (the next older step is taken as its ancestor). A verified step off the line is:
+- **superseded** if an older generation (or attempt) committed it: a commit that landed after a newer one had gone on
+  from an earlier step (the one-request window of ``fence.py`` on object stores). The newer generation's line wins:
+  resume never takes it, and the holder's start sets it aside;
+- a **fork** if the head's own generation and attempt committed it: two processes wrote one history as one run. Resume
+  refuses the storage until a person keeps one line (``ftrain ckpt prune --keep-line STEP``).
+Manifests from before lineage (no ``parent`` key) are taken to continue the next older step. Imports: ``format``,
+``errors``.
 """
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ class History:
     """Steps of an older generation than the head's, off its line."""
     forks: list[int]
     """Steps of the head's generation off its line."""
-    generation: int = 0
-    """The head's generation."""
+    generation: tuple[int, int] = (0, -1)
+    """The head's generation and attempt (``generation``)."""
 
     def off_line(self) -> list[int]:
         return sorted(self.superseded + self.forks, reverse=True)
@@ -42,15 +42,19 @@ class History:
     def fork_message(self, url: str) -> str:
         """The one line that refuses a forked storage, and says how to keep one line."""
         return (
-            f"{url} holds two histories of generation {self.generation}: steps {_steps(self.line)} and steps "
+            f"{url} holds two histories of generation {self.generation[0]}: steps {_steps(self.line)} and steps "
             f"{_steps(self.forks)} do not descend from each other (two processes wrote it as one run); keep one line "
             f"with 'ftrain ckpt prune {url} --keep-line STEP' (the other's steps are set aside under quarantine/), "
             "then start again"
         )
 
 
-def generation(info: StepInfo) -> int:
-    return int((info.manifest or {}).get("generation") or 0)
+def generation(info: StepInfo) -> tuple[int, int]:
+    """Who committed ``info``, in the order of the fence (``fence.py``): its generation, then (on several nodes) its
+    attempt within it."""
+    manifest = info.manifest or {}
+    attempt = manifest.get("attempt")
+    return int(manifest.get("generation") or 0), int(attempt) if attempt is not None else -1
 
 
 def history(infos: Iterable[StepInfo], head: int | None = None) -> History:

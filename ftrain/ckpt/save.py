@@ -134,8 +134,9 @@ class StepWriter:
         self._spool_failing = False
         self.fence = Fence.from_env(storage)
         self.parent: dict | None = None
-        """The state the next commit continues, ``{"step", "state_sha256"}``: this holder's previous commit, or the
-        step it resumed from (``lineage.py``); None for a fresh start."""
+        """The state the next commit continues, ``{"step", "state_sha256"}``: this holder's previous commit (tried:
+        one whose answer was lost may have landed), or the step it resumed from (``lineage.py``); None for a fresh
+        start."""
         self.policy = policy
         self.info = info
         self.collectives = collectives
@@ -272,15 +273,16 @@ class StepWriter:
         if not errors:
             if self.fence is not None:
                 fields |= self.fence.fields
+            parent, self.parent = self.parent, {"step": step, "state_sha256": fields.get("state_sha256")}
             try:  # the manifest's write runs the holder's check (``guarded``)
-                manifest = commit(storage, step, files, meta | fields | {"parent": self.parent}, not self._listed)
+                manifest = commit(storage, step, files, meta | fields | {"parent": parent}, not self._listed)
                 self._listed = True
             except (LeaseLost, Fenced) as exc:  # a newer holder of the storage, or generation of the run, committed
                 self.log(f"checkpoint step {step} refused: {exc}")
                 self._steps[step] = StepInfo(step, INCOMPLETE)
                 return (Result.LEASE_LOST if isinstance(exc, LeaseLost) else Result.FENCED, step, str(exc))
-            except Exception as exc:
-                errors = [f"commit: {exc}"]
+            except Exception as exc:  # the next commit continues this state all the same: a step that did not land
+                errors = [f"commit: {exc}"]  # is a parent that lineage passes over
                 if (manifest := self._landed(storage, step, files)) is not None:
                     errors = []  # its answer was lost, not the manifest
         if errors:
@@ -289,7 +291,6 @@ class StepWriter:
             return (Result.FAILED, step, "; ".join(errors))
         self._steps[step] = StepInfo(step, VERIFIED, sum(entry.size for entry in files.values()), manifest)
         self.newest_committed = step
-        self.parent = {"step": step, "state_sha256": manifest.get("state_sha256")}
         self._apply_retention()
         return (Result.COMMITTED, step, manifest)
 

@@ -84,17 +84,24 @@ def select_resume(
 ) -> tuple[int, dict] | None:
     """The newest step that fully verifies, with its manifest; None if there is none.
 
-    Only steps on the storage's line of descent count (``lineage.history``): a fork is a UserError, a superseded step
-    is passed over. Each newer step that is skipped is reported through ``log`` with the reason; a committed step that
-    fails verification is quarantined (unless ``quarantine_bad`` is False, e.g. for someone else's read-only run).
+    Only steps on the storage's line of descent count (``lineage.history``): a superseded step is passed over; a fork
+    is a UserError where the storage is this run's own (``quarantine_bad``), else the head's line is read. Each newer
+    step that is skipped is reported through ``log`` with the reason; a committed step that fails verification is
+    quarantined (unless ``quarantine_bad`` is False, e.g. for someone else's read-only run).
     """
     infos = scan(storage)
     past = history(infos)
-    if past.forks:
+    if past.forks and quarantine_bad:  # this run's own storage: it must not go on from one of two histories
         raise UserError(past.fork_message(storage.url))
+    if past.forks:  # someone else's, read only (play, export, a teacher): the head's line, said
+        log(f"{storage.url} holds two histories: reading the newest one's line (steps {past.line[:3]}...)")
+    forks = set(past.forks)
     for info in infos:
         if info.step in past.superseded:
             log(f"skipping checkpoint step {info.step}: {superseded_reason(info, past)}")
+            continue
+        if info.step in forks:
+            log(f"skipping checkpoint step {info.step}: off the newest history's line")
             continue
         status, problems = info.status, info.problems
         if status == VERIFIED:
@@ -119,7 +126,8 @@ def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print)
     dead on this node (``Attempt.kill`` waits for it) and fenced off on others. Where a listing may lag
     (``Storage.lists_late``: NFS), a manifest another host wrote seconds ago may be missing from it and even from a
     direct look, so only a step untouched for ``ABANDONED_AFTER`` seconds is deleted; a younger one is set aside
-    whole. Corrupt, quarantined and superseded ones (``lineage.py``) are set aside (:func:`set_aside`), never deleted.
+    whole. Corrupt, quarantined and superseded ones (``lineage.py``; superseded ones older than ``step`` too) are set
+    aside (:func:`set_aside`), never deleted.
     Another verified newer step means the storage holds another history: UserError, nothing touched. Call it on rank 0
     before the first save, when no other process writes to this storage.
     """
@@ -133,7 +141,8 @@ def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print)
             f"{storage.url} already holds verified checkpoint step {verified[0]}, newer than step {step} this run "
             "starts from: resume from the newest step or use another storage"
         )
-    for info in newer:
+    older = [info for info in infos if info.step <= step and info.step in superseded]  # out of retention's counts too
+    for info in [*newer, *older]:
         young = info.status == INCOMPLETE and storage.lists_late and not abandoned(storage, info, time.time())
         if info.status == INCOMPLETE and not young:
             log(f"deleting checkpoint step {info.step} (incomplete): newer than step {step} this run starts from")
@@ -149,7 +158,8 @@ def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print)
             reason = f"{status} on a file system whose listings may lag: set aside, not deleted"
             quarantine(storage, info.step, reason)
         where = set_aside(storage, info)
-        log(f"checkpoint step {info.step} ({status}) moved to {where}: the run saves that step again")
+        again = ": the run saves that step again" if info.step > step else ""
+        log(f"checkpoint step {info.step} ({status}) moved to {where}{again}")
 
 
 ABANDONED_AFTER = 600.0
@@ -225,7 +235,8 @@ def _manifest_or_none(storage: Storage, step: int) -> dict | None:
 
 
 def superseded_reason(info: StepInfo, past: History) -> str:
+    """Why ``info`` is off ``past``'s line and superseded, in words."""
     return (
-        f"superseded: committed by generation {generation(info)} after generation {past.generation} went on from an "
-        "earlier step (a commit that landed after its lease had moved on)"
+        f"superseded: committed by generation {generation(info)[0]} after generation {past.generation[0]} went on from "
+        "an earlier step (a commit that landed after its lease had moved on)"
     )

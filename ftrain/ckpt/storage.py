@@ -138,8 +138,7 @@ class Storage:
         return other
 
     def holding(self, commit: bool = True) -> contextlib.AbstractContextManager:
-        """What a write runs inside: the guard's check (``guarded``), or nothing; for a write beside the storage that
-        must be the holder's too (the tracker's run record)."""
+        """What a write runs inside: the guard's check (``guarded``), or nothing."""
         return self.guard(commit) if self.guard is not None else contextlib.nullcontext()
 
     def with_retries(self, retries: int) -> Storage:

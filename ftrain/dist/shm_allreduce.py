@@ -165,7 +165,7 @@ def sweep() -> list[str]:
             continue
         pid = int(match["pid"])
         if _owner_tag(pid) != f"{namespace}-{pid}-{match['start']}":
-            with contextlib.suppress(FileNotFoundError):
+            with contextlib.suppress(OSError):  # gone meanwhile, or another user's (a sticky /dev/shm)
                 os.unlink(entry.path)
                 removed.append(entry.path)
     return removed

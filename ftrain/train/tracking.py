@@ -46,8 +46,7 @@ class TrackingHook(Hook):
         config, storage = self.config, self.storage
         continued = config.resume == "auto" and recorded_run(config.log_dir, storage)
         self.run_id = self.run_id or continued or uuid.uuid4().hex[:16]
-        with trainer.checkpointer.storage.holding():  # the holder's alone, as the checkpoints that carry it on
-            record_run(config.log_dir, self.run_id, storage)
+        record_run(config.log_dir, self.run_id, storage)
         run = RunInfo(
             run_id=self.run_id,
             name=config.name,

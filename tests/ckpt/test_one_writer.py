@@ -180,3 +180,20 @@ def test_a_fork_of_one_generation_is_refused_until_one_line_is_kept(storage, whe
     assert select_resume(storage)[0] == 25
     aside = json.loads(storage.read(f"{ASIDE}/{step_dir(30)[12:]}/QUARANTINED.json"))
     assert "off the line kept by ftrain ckpt prune --keep-line 25" in aside["reason"]
+
+
+def test_a_lease_record_deleted_by_hand_starts_after_the_newest_generation_that_committed(storage, monkeypatch):
+    """One node keeps no fence record: the next holder takes its generation from the newest manifest, so its commits
+    are not taken for an older generation's and superseded."""
+    for run in ("run-a", "run-b", "run-c"):
+        lease = Lease(storage, run, print)
+        lease.acquire()
+        lease.release()
+    assert lease.generation == 3
+    save(storage, monkeypatch, Identity("run-c", 3), 10)
+    storage.delete("LEASE.json")
+    after = Lease(storage, "run-d", print)
+    after.acquire()
+    assert after.generation == 4
+    save(storage, monkeypatch, Identity("run-d", 4), 20, {"step": 10, "state_sha256": None})
+    assert lineage.history(scan(storage)).line == [20, 10]

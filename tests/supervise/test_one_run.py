@@ -369,12 +369,13 @@ def test_ckpt_prune_on_a_live_runs_storage_is_refused_and_deletes_nothing_unless
 
 def test_an_unsupervised_run_whose_lease_another_run_took_stops_at_once_with_exit_8(tmp_path) -> None:
     """No supervisor: rank 0's renewal finds the newer generation and the ranks stop at the next iteration boundary,
-    exit 8 in one line, committing nothing more (its saves would be refused anyway; here none is due)."""
+    exit 8 in one line, committing nothing more. No save is due for 1,000 iterations (one would be refused as well):
+    the vote stops them, within seconds."""
     storage, hold = tmp_path / "run", Hold(tmp_path, 3)
     console = tmp_path / "console"
     with console.open("wb") as output:
         proc = launch(
-            train_command(storage, "iterations=100000", "checkpoint.interval=2", hold.override, ranks=2),
+            train_command(storage, "iterations=100000", "checkpoint.interval=1000", hold.override, ranks=2),
             cwd=REPO,
             env=child_env({TTL_ENV: "3", **HOLD_ENV}),  # renewed every second
             stdout=output,
@@ -384,7 +385,9 @@ def test_an_unsupervised_run_whose_lease_another_run_took_stops_at_once_with_exi
     committed = sorted(manifests(storage))
     take_lease_elsewhere(storage)
     hold.release()
+    released = time.monotonic()
     assert finish(proc, timeout=60) != 0
+    assert time.monotonic() - released < 20, "the renewal (every second) and the next iteration's vote stop it"
     said = console.read_text()
     lines = re.findall(r"^ftrain: error: the lease of .*$", said, re.MULTILINE)  # ftrain's own (torchrun repeats it)
     assert len(lines) == 1 and lines[0].endswith("this run lost the storage and commits nothing more"), said
