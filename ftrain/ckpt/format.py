@@ -20,6 +20,7 @@ import time
 from dataclasses import dataclass, field
 
 from ftrain.ckpt.storage import Storage
+from ftrain.errors import StorageError
 
 FORMAT_VERSION = 1
 STATE_FORMAT = 4
@@ -217,6 +218,21 @@ def commit(storage: Storage, step: int, files: dict[str, FileEntry], meta: dict,
     data = _manifest_text(manifest).encode()
     storage.write_exclusive(f"{step_dir(step)}/{MANIFEST}", data, commit=True)
     return manifest
+
+
+def newest_generation(storage: Storage) -> int:
+    """The generation (``ftrain/identity.py``) that committed the newest step whose manifest reads (0: none), where a
+    lease record deleted by hand starts after: on one node no other record of it is kept (``lease.py``)."""
+    try:
+        steps = sorted((name for name in storage.list_dirs(CHECKPOINTS) if STEP_DIR.match(name)), reverse=True)
+    except OSError as error:
+        raise StorageError(f"checkpoint storage {storage.url} failed while reading its newest step: {error}") from None
+    for name in steps[:3]:  # a step cut short has no manifest
+        try:
+            return int(json.loads(storage.read(f"{CHECKPOINTS}/{name}/{MANIFEST}")).get("generation") or 0)
+        except (FileNotFoundError, ValueError, TypeError):
+            continue
+    return 0
 
 
 def read_manifest(storage: Storage, step: int) -> dict:

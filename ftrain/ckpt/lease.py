@@ -37,7 +37,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from ftrain.ckpt import cas
-from ftrain.ckpt.format import CHECKPOINTS, MANIFEST, STEP_DIR
+from ftrain.ckpt.format import newest_generation
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD, UserError
 from ftrain.identity import Identity, restore_environ, saved_environ
@@ -188,7 +188,8 @@ class Lease:
             elif record is not None:  # a new holder, or a new plan: the next generation
                 generation = record.generation + 1
             else:  # none, or deleted: this process's generation, else the one after the newest committed
-                generation = self.generation or _newest_committed(self.storage) + 1
+                fenced = read_fence(cas.read(self.storage, FENCE)).get("generation", 0)
+                generation = self.generation or max(fenced, newest_generation(self.storage)) + 1
             since = next((e.since for e in record.entries if e.process == self.process), now) if ours else now
             mine = Entry(self.process, now, since)
             new = Record(self.run_id, generation, self.ttl, (*(others if joins else ()), mine))
@@ -355,19 +356,6 @@ def read_fence(current: tuple[bytes, str] | None) -> dict:
         return {}
     valid = isinstance(record, dict) and all(type(record.get(key)) is int for key in ("generation", "attempt"))
     return record if valid else {}
-
-
-def _newest_committed(storage: Storage) -> int:
-    """The newest generation that committed to ``storage``: the fence's record, and the newest step's manifest (on one
-    node there is no fence record), so that a lease record deleted by hand never starts the generations over."""
-    fenced = read_fence(cas.read(storage, FENCE)).get("generation", 0)
-    steps = sorted((name for name in storage.list_dirs(CHECKPOINTS) if STEP_DIR.match(name)), reverse=True)
-    for name in steps[:3]:  # the newest manifests: a step cut short has none
-        try:
-            return max(fenced, int(json.loads(storage.read(f"{CHECKPOINTS}/{name}/{MANIFEST}")).get("generation") or 0))
-        except (FileNotFoundError, ValueError, TypeError):
-            continue
-    return fenced
 
 
 def _unseen(record: Record) -> bool:

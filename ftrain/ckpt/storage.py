@@ -8,11 +8,11 @@ exists), so it is complete whenever it is visible, as an S3 object is.
 Transient errors (connection refused or reset, timeouts, DNS, 5xx, throttling) are retried here with bounded
 exponential backoff and jitter; the layers below (s3fs, botocore) are told not to retry, and to give up on a silent
 server within seconds, so that the bound is ours alone (on Azure, adlfs gets the same timeouts, and its client's own
-retries are turned off). A storage that stays unreachable raises
-:class:`StorageUnavailable`: an infrastructure fault that waiting fixes, never bad input (a missing bucket, denied
-access or a malformed URL are :class:`~ftrain.errors.UserError`). Credentials never appear in a message, repr or
-log line: every text that leaves this module is scrubbed. A run's storage is guarded (``guarded``): every write and
-delete then runs inside the holder's check (``fence.py``).
+retries are turned off). A storage that stays unreachable raises :class:`StorageUnavailable`: an infrastructure fault
+that waiting fixes, never bad input (a missing bucket, denied access or a malformed URL are
+:class:`~ftrain.errors.UserError`). Credentials never appear in a message, repr or log line: every text that leaves
+this module is scrubbed. A run's storage is guarded (``guarded``): every write and delete runs inside the holder's
+check (``fence.py``).
 """
 
 from __future__ import annotations
@@ -131,8 +131,7 @@ class Storage:
         return storage
 
     def guarded(self, guard: Callable[[bool], contextlib.AbstractContextManager] | None) -> Storage:
-        """The same storage, every write and delete made inside ``guard(commit)`` (None: unguarded); ``commit``: the
-        request commits something (a manifest, a marker, a delete), not a file's data."""
+        """The same storage, every write and delete inside ``guard(commit)``: ``commit`` unless a file's data."""
         other = copy.copy(self)
         other.guard = guard
         return other
