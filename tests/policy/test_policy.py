@@ -92,6 +92,8 @@ def test_exports_run_without_ftrain_and_match_the_actor(trained, tmp_path, capsy
         assert "torch.onnx" not in printed.out + printed.err  # the exporter's progress lines stay off the console
     graph = onnx.load(files["onnx"]).graph  # made by torch.export's exporter (dynamo=True), which labels its inputs
     assert any(prop.key.startswith("pkg.torch.export") for value in graph.input for prop in value.metadata_props)
+    axes = [value.type.tensor_type.shape.dim[0].dim_param for value in [*graph.input, *graph.output]]
+    assert axes == ["batch"] * len(axes) and len(axes) >= 2, axes
     policy = load_policy(str(trained))
     obs = sample_observations(policy, episodes=2, seed=7)
     np.save(tmp_path / "obs.npy", obs.numpy())
