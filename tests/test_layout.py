@@ -46,7 +46,7 @@ LAYERS = {
     "track": {"config", "values", "errors", "redact"},
     "policy": {"ckpt", "config", "errors", "progress"},
     "ckpt": {"dist", "config", "values", "errors", "heartbeat", "identity", "lifeline", "procfs", "redact"},
-    "dist": {"errors", "lifeline", "proctitle"},
+    "dist": {"errors", "errorfile", "lifeline", "proctitle"},
     "config": {"values", "errors", "redact"},
     "values": {"errors", "redact"},
     "heartbeat": set(),
