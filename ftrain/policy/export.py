@@ -73,8 +73,9 @@ def _torchscript(actor: torch.nn.Module, metadata: str) -> bytes:
 
 
 def _onnx(actor: torch.nn.Module, metadata: str) -> bytes:
-    """ONNX with a dynamic batch axis named ``batch`` in its inputs and outputs, by torch's current exporter (``torch.export``, ``dynamo=True``: the
-    TorchScript-based one is deprecated). It takes 1.5-3 s per export here, against 30 ms for the old one."""
+    """ONNX with a dynamic batch axis named ``batch`` in its inputs and outputs, by torch's current exporter
+    (``torch.export``, ``dynamo=True``: the TorchScript-based one is deprecated). It takes 1.5-3 s per export here,
+    against 30 ms for the old one."""
     import onnx
 
     model = actor.as_onnx(verbose=False).eval()
