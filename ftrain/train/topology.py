@@ -37,7 +37,7 @@ def _update(config: Config, info: group.RankInfo) -> dict:
     if world == 1:
         return {"kind": "one rank"}
     if config.algorithm.class_name == "Distillation":
-        return {"kind": "data-parallel", "why": "distillation (rsl-rl's update)"}
+        return {"kind": "data-parallel", "why": "rsl-rl's distillation"}
     if splits_update(config, info):
         half = world // 2
         return {"kind": "split", "actor": list(range(half)), "critic": list(range(half, world))}
