@@ -266,7 +266,8 @@ KEYS_ADDED_LATER += ("algorithm.reshuffle_each_epoch", "reward", "shared_memory_
 
 
 def load_config(path: str | None, overrides: list[str] = (), storage: str | None = None) -> Config:
-    """Read a YAML config (or the defaults when ``path`` is None), apply overrides, validate."""
+    """Read a YAML config (or the defaults when ``path`` is None), apply overrides, validate. ``iterations=N`` alone
+    (no ``algorithm.schedule_iterations=``) sets a linear schedule's horizon to N (to lengthen a run, set both)."""
     data: dict = {}
     if path is not None:
         file = Path(path)
@@ -293,6 +294,9 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
     if storage is not None:
         set_dotted(data, "storage.url", storage)
     config = build(Config, data, prefix="")
+    keys = {item.partition("=")[0].strip() for item in overrides} & {"iterations", "algorithm.schedule_iterations"}
+    if config.algorithm.schedule == "linear" and keys == {"iterations"}:
+        config.algorithm.schedule_iterations = config.iterations
     if not config.name:
         config.name = Path(path).stem if path else "run"
     if not config.storage.url:

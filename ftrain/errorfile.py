@@ -23,6 +23,8 @@ from pathlib import Path
 ENV = "TORCHELASTIC_ERROR_FILE"
 RECORDED_AT = "ftrain_recorded_at"
 """Our key in ``extraInfo``: when the error was recorded, to the microsecond (torch's ``timestamp`` has seconds)."""
+REPORTED = "ftrain_reported"
+"""Our key in ``extraInfo``: true where the worker explained the failure itself (``report``), in one line."""
 
 
 def report(message: str) -> None:
@@ -31,7 +33,7 @@ def report(message: str) -> None:
     line = f"ftrain: error: {message}"
     if os.environ.get("RANK", "0") == "0":
         print(line, file=sys.stderr, flush=True)
-    _write(message, line)
+    _write(message, line, reported=True)
 
 
 def record_exception(error: BaseException) -> None:
@@ -49,21 +51,30 @@ def message(data: object) -> str | None:
     return " ".join(text.split()) or None
 
 
+def reported(data: object) -> bool:
+    """Whether an error file's JSON holds a failure the worker explained itself (``report``), not a crash."""
+    return _extra_info(data).get(REPORTED) is True
+
+
 def recorded_at(data: object) -> float:
     """When the worker recorded the error in an error file's JSON (epoch seconds; infinity if not known). A rank that
     fails because another one did (a broken connection, a peer gone from shared memory) records its error after the
     failure that caused it: the earliest record names the cause."""
-    info = data.get("message") if isinstance(data, dict) else None
-    info = info.get("extraInfo") if isinstance(info, dict) else None
-    value = info.get(RECORDED_AT) if isinstance(info, dict) else None
+    value = _extra_info(data).get(RECORDED_AT)
     return float(value) if isinstance(value, int | float) else math.inf
 
 
-def _write(summary: str, callstack: str) -> None:
+def _extra_info(data: object) -> dict:
+    info = data.get("message") if isinstance(data, dict) else None
+    info = info.get("extraInfo") if isinstance(info, dict) else None
+    return info if isinstance(info, dict) else {}
+
+
+def _write(summary: str, callstack: str, reported: bool = False) -> None:
     path = os.environ.get(ENV)
     if not path:
         return
     now = time.time()
-    info = {"py_callstack": callstack, "timestamp": str(int(now)), RECORDED_AT: now}
+    info = {"py_callstack": callstack, "timestamp": str(int(now)), RECORDED_AT: now, REPORTED: reported}
     with contextlib.suppress(OSError):
         Path(path).write_text(json.dumps({"message": {"message": summary, "extraInfo": info}}))

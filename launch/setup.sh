@@ -63,16 +63,20 @@ if [[ -f $stamp ]]; then
 fi
 
 pip=(.venv/bin/python -m pip install -q --disable-pip-version-check)
+torch_pip=("${pip[@]}")
+if [ -t 1 ]; then  # torch's download takes minutes: on a terminal pip shows its progress bar (quiet, it shows none)
+  torch_pip=(.venv/bin/python -m pip install --disable-pip-version-check --progress-bar on)
+fi
 say "upgrading pip..."
 "${pip[@]}" --upgrade pip
 if ! .venv/bin/python -c "import torch, sys; sys.exit(torch.__version__.split('+')[0] != '$TORCH_VERSION')" 2>/dev/null; then
   if .venv/bin/python -c "import urllib.request, sys; urllib.request.urlopen(sys.argv[1], timeout=5)" \
     "$TORCH_INDEX_URL/torch/" >/dev/null 2>&1; then
     say "installing torch $TORCH_VERSION (CPU build, from $TORCH_INDEX_URL)..."
-    "${pip[@]}" --index-url "$TORCH_INDEX_URL" "torch==$TORCH_VERSION"
+    "${torch_pip[@]}" --index-url "$TORCH_INDEX_URL" "torch==$TORCH_VERSION"
   else
     say "installing torch $TORCH_VERSION (from the default package index: $TORCH_INDEX_URL does not answer)..."
-    "${pip[@]}" "torch==$TORCH_VERSION"
+    "${torch_pip[@]}" "torch==$TORCH_VERSION"
   fi
 fi
 say "installing ftrain and its test, export, render and bench extras..."

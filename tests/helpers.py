@@ -11,6 +11,7 @@ import http.client
 import http.server
 import json
 import os
+import pty
 import shutil
 import signal
 import socket
@@ -133,6 +134,22 @@ def stop_launched() -> None:
             proc.send_signal(signal.SIGTERM)
             proc.send_signal(signal.SIGTERM)
             proc.wait(timeout=60)
+
+
+def on_a_terminal(command: list[str], cwd: Path, code: int = 0, timeout: float = 120) -> str:
+    """What ``command`` shows on a terminal (its stdout is one), once it has exited with ``code``."""
+    ours, theirs = pty.openpty()
+    proc = subprocess.Popen(
+        command, cwd=cwd, env=child_env({"PYTHONPATH": str(REPO)}), stdout=theirs, stderr=subprocess.PIPE
+    )
+    os.close(theirs)
+    seen = b""
+    with contextlib.suppress(OSError):  # EIO once the command has exited and the terminal's other side is closed
+        while chunk := os.read(ours, 4096):
+            seen += chunk
+    os.close(ours)
+    assert proc.wait(timeout=timeout) == code, proc.stderr.read().decode()
+    return seen.decode()
 
 
 def finish(proc: subprocess.Popen, timeout: float = 180) -> int:

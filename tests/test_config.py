@@ -111,3 +111,17 @@ def test_a_yaml_error_names_the_file_the_line_the_column_and_the_problem(tmp_pat
 def test_every_shipped_config_loads_and_none_warns_about_its_learning_rate_horizon(path) -> None:
     config = load_config(str(path))
     assert horizon_notice(config.algorithm, config.iterations) is None  # no config warns about itself
+
+
+def test_an_iterations_override_scales_a_linear_schedule_to_the_run_and_nothing_else() -> None:
+    config = load_config(str(REPO / "configs" / "halfcheetah.yaml"), ["iterations=300"])
+    assert config.algorithm.schedule_iterations == 300
+    assert horizon_notice(config.algorithm, config.iterations) is None  # the README's command does not warn
+    both = load_config(
+        str(REPO / "configs" / "halfcheetah.yaml"), ["iterations=300", "algorithm.schedule_iterations=500"]
+    )
+    assert both.algorithm.schedule_iterations == 500  # the user's horizon stands, and its line says so
+    assert "rate ends at" in horizon_notice(both.algorithm, both.iterations)
+    adaptive = load_config(SMOKE, ["iterations=3"])  # no linear schedule: what is trained stays the same
+    assert adaptive.algorithm.schedule_iterations == 0
+    assert adaptive.training_hash() == load_config(SMOKE).training_hash()

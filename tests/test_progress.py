@@ -42,3 +42,20 @@ def test_a_file_or_pipe_sees_nothing() -> None:
     progress.show("rendering: 25 frames")
     progress.clear()
     assert stream.getvalue() == ""
+
+
+def test_a_count_shows_an_eta_from_its_pace_redrawn_at_most_every_quarter_second() -> None:
+    times = iter([0.0, 0.1, 1.0, 1.1])
+    ours, theirs = pty.openpty()
+    with os.fdopen(theirs, "w") as terminal:
+        progress = Progress(terminal, clock=lambda: next(times))
+        for done in (0, 1, 2, 4):  # 1 comes 0.1 s after 0: not drawn
+            progress.count("verifying", done, 4, "steps")
+        progress.clear()
+        terminal.flush()
+        lines = ["verifying: 0/4 steps (0%)", "verifying: 2/4 steps (50%), ETA 1s"]
+        lines.append("verifying: 4/4 steps (100%), ETA 0s")  # the end is drawn, however soon
+        expected = "".join(f"\r{line}" for line in lines) + "\r" + " " * len(lines[-1]) + "\r"
+        written = read_terminal(ours, len(expected))
+    os.close(ours)
+    assert written == expected

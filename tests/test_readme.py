@@ -36,10 +36,13 @@ SMOKE_SIZED = (
     "policy.hidden_dims=[16,16]",
     "algorithm.num_learning_epochs=1",
     "algorithm.num_mini_batches=1",
+    "algorithm.gradient_length=8",  # distillation: one truncated back-propagation per rollout of 8 steps
     "log.tensorboard=false",
 )
 """Overrides that come after the line's own and so win: 16 steps per rank and iteration, one update of one batch."""
 OUTPUT_OPTIONS = ("-o", "--video")
+SELF_WARNINGS = re.compile(r"learning rate: .* but iterations=|warning", re.IGNORECASE)
+"""What a line of the docs must not say of itself: a learning-rate horizon that does not fit its run, a warning."""
 
 
 DOCS = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
@@ -153,6 +156,8 @@ def run_as_a_reader(tmp_path: Path, lines: list[str]) -> None:
             timeout=600,
         )
         assert result.returncode == 0, f"README line {line!r}: exit {result.returncode}\n{result.stderr[-3000:]}"
+        said = result.stdout + result.stderr
+        assert not SELF_WARNINGS.search(said), f"README line {line!r} warns about its own settings:\n{said[-3000:]}"
         words = shlex.split(line)
         for option, value in itertools.pairwise(words):
             if option in OUTPUT_OPTIONS:

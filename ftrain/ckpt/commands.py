@@ -45,6 +45,7 @@ from ftrain.ckpt.steps import unquarantine as unquarantine_step
 from ftrain.ckpt.storage import Storage
 from ftrain.config import CheckpointConfig
 from ftrain.errors import UserError
+from ftrain.progress import Progress
 
 WIDTH = 100
 """Columns of ``ls``'s table: it fits a terminal."""
@@ -57,7 +58,10 @@ def ls(url: str, options: dict | None = None) -> int:
     retention keeps as the newest, the best, pinned or milestones (not those it keeps only as among the last few);
     under a step that is not verified, its problems."""
     storage, step = _open(url, options)
+    progress = Progress()
+    progress.show("ckpt ls: reading the steps' manifests...")
     every = scan(storage)
+    progress.clear()
     marks = _marks(every)
     row = "{:>9}  {:<11}  {:>9}  {:<16}  {:>11}  {:>11}  {}"
     print(row.format("step", "status", "size", "created (UTC)", *METRICS, "kept as"))
@@ -80,7 +84,10 @@ def verify(url: str, options: dict | None = None) -> int:
     and fails nothing (``resume`` skips it, retention deletes it). A run's storage must also hold one history
     (``lineage.py``): superseded steps are named, a fork is named and fails (1)."""
     storage, step = _open(url, options)
+    progress = Progress()
+    progress.show("ckpt verify: reading the steps' manifests...")
     infos = [info for info in scan(storage) if step is None or info.step == step]
+    progress.clear()
     committed = [info.step for info in infos if info.status != INCOMPLETE]
     failed = 0
     for info in infos:
@@ -88,7 +95,10 @@ def verify(url: str, options: dict | None = None) -> int:
             age = _age(storage.modified(step_dir(info.step)))
             print(f"step {info.step}: incomplete (never committed: no manifest; last written {age})")
             continue
+        done = committed.index(info.step)
+        progress.count("ckpt verify", done, len(committed), "steps", f" (step {info.step}: {human_size(info.size)})")
         result = verify_step(storage, info.step, full=True)
+        progress.clear()
         print(f"step {info.step}: {'ok' if result.ok else 'FAILED'}")
         for problem in result.problems:
             print(f"  {step_dir(info.step)}/{problem}")

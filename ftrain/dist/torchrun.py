@@ -3,7 +3,11 @@
 This is torchrun itself, in this process, except for how it ends. Stopped by a signal (SIGINT, SIGTERM), it stops the
 workers with it (torchrun's own shutdown: they save) and exits 128 + the signal (130, 143) where torchrun would raise
 and exit 1; when every worker that ended exited 130 or 143 (they were stopped and saved), it exits with that code. So
-a script tells a stop from a failure, which plain ``torchrun`` (exit 1 for both) does not let it.
+a script tells a stop from a failure, which plain ``torchrun`` (exit 1 for both) does not let it. Where a worker
+explained its failure itself (bad input, a storage that does not answer: ``errorfile.report``) and that was the first
+failure, it exits with the worker's code after that one line (printed by rank 0, else here), without torchrun's
+report of the failure or its log lines about it; a crash keeps torchrun's report, with the worker's traceback. This is
+what the docs show for a run without a supervisor; ``ftrun`` is the same command.
 
 ``ftrain supervise`` runs it with ``--failures=FILE``: instead of raising ChildFailedError (a traceback and a text
 report on stderr), it writes torchrun's own account of every failed worker to FILE, as JSON ``{global rank:
@@ -16,6 +20,7 @@ not a failure to restart, a lack of nodes. It ends with its supervisor, however 
 from __future__ import annotations
 
 import json
+import logging
 import os
 import sys
 from pathlib import Path
@@ -25,17 +30,29 @@ from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
 from torch.distributed.elastic.rendezvous.api import RendezvousTimeoutError
 from torch.distributed.run import main as torchrun
 
+from ftrain import errorfile
 from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, STOPPED
 from ftrain.lifeline import die_with_supervisor
 from ftrain.proctitle import name_process
 
 EXIT_WORKERS_FAILED = 1
 FAILURES_OPTION = "--failures="
+QUIETED = {
+    "torch.distributed.run": ("Setting OMP_NUM_THREADS",),  # ftrain sets each worker's threads itself (torch_threads)
+    "torch.distributed.elastic.multiprocessing.api": ("failed (exitcode", "closing signal"),  # the end says it
+    "torch.distributed.elastic.multiprocessing.errors.error_handler": ("no error file defined for parent",),
+}
+"""torchrun's log lines that a run by hand does without: logger, and fragments of the lines."""
 
 
 def main(argv: list[str]) -> int:
     die_with_supervisor()
     return run(argv)
+
+
+def console() -> None:
+    """``ftrun``: this module as a console script."""
+    sys.exit(main(sys.argv[1:]))
 
 
 def run(argv: list[str]) -> int:
@@ -44,16 +61,21 @@ def run(argv: list[str]) -> int:
     name_process("torchrun agent")
     failures_path = argv[0].removeprefix(FAILURES_OPTION) if argv[:1] and argv[0].startswith(FAILURES_OPTION) else None
     arguments = argv[1:] if failures_path is not None else argv
+    if failures_path is None:
+        _quiet_torchrun()
     try:
         torchrun(arguments)
     except ChildFailedError as failed:
         codes = {failure.exitcode for failure in failed.failures.values()}
         stopped = codes.pop() if len(codes) == 1 and codes <= set(STOPPED) else None
         if failures_path is None:
-            if stopped is None:
+            if stopped is not None:
+                print(f"torchrun: the workers saved and exited {stopped} (stopped by a signal)", file=sys.stderr)
+                return stopped
+            explained = _explained(failed)
+            if explained is None:
                 raise  # torchrun's own report of the failure
-            print(f"torchrun: the workers saved and exited {stopped} (stopped by a signal)", file=sys.stderr)
-            return stopped
+            return explained
         failures = {
             rank: {"exitcode": failure.exitcode, "error": _recorded(failure.error_file, failure.error_file_data)}
             for rank, failure in failed.failures.items()
@@ -68,6 +90,29 @@ def run(argv: list[str]) -> int:
         print(f"torchrun: rendezvous timed out: {' '.join(str(error).split())}", file=sys.stderr, flush=True)
         return EXIT_RENDEZVOUS_TIMEOUT
     return 0
+
+
+def _explained(failed: ChildFailedError) -> int | None:
+    """The first failure's exit code where its worker explained it in one line (printed here unless rank 0 printed
+    the same line: only rank 0 prints its own); None where the first failure is a crash or left no account."""
+    recorded = {
+        rank: _recorded(failure.error_file, failure.error_file_data) for rank, failure in failed.failures.items()
+    }
+    first = min(recorded, key=lambda rank: errorfile.recorded_at(recorded[rank]))
+    if not errorfile.reported(recorded[first]):
+        return None
+    line = errorfile.message(recorded[first])
+    said = recorded.get(0)
+    if not (errorfile.reported(said) and errorfile.message(said) == line):
+        print(f"ftrain: error: {line}", file=sys.stderr, flush=True)
+    return failed.failures[first].exitcode
+
+
+def _quiet_torchrun() -> None:
+    for name, fragments in QUIETED.items():
+        logging.getLogger(name).addFilter(
+            lambda record, fragments=fragments: not any(fragment in str(record.msg) for fragment in fragments)
+        )
 
 
 def _recorded(error_file: str, data: dict) -> dict | None:

@@ -19,6 +19,7 @@ from ftrain.errors import UserError
 from ftrain.policy.load import METADATA, Policy, policy_from_file, torchscript_deprecation_ignored
 from ftrain.policy.robot import make_env
 from ftrain.policy.rollout import rollout
+from ftrain.progress import Progress
 
 SUFFIXES = {"torchscript": ".pt", "onnx": ".onnx"}
 TOLERANCE = 1e-5
@@ -73,13 +74,14 @@ def _torchscript(actor: torch.nn.Module, metadata: str) -> bytes:
 
 
 def _onnx(actor: torch.nn.Module, metadata: str) -> bytes:
-    """ONNX with a dynamic batch axis, by torch's current exporter (``torch.export``, ``dynamo=True``: the
-    TorchScript-based one is deprecated). It takes 1.5-3 s per export here, against 30 ms for the old one."""
+    """ONNX with a dynamic batch axis named ``batch`` in its inputs and outputs, by torch's current exporter
+    (``torch.export``, ``dynamo=True``: the TorchScript-based one is deprecated). It takes 1.5-3 s per export here,
+    against 30 ms for the old one."""
     import onnx
 
     model = actor.as_onnx(verbose=False).eval()
     buffer = io.BytesIO()
-    batch = torch.export.Dim.DYNAMIC
+    batch = torch.export.Dim("batch")  # Dim.DYNAMIC would name it as the exporter's symbols go (s77)
     with _exporter_quiet():
         torch.onnx.export(
             model,
@@ -128,8 +130,14 @@ def export(policy: Policy, fmt: str, path: str | Path | None = None) -> Path:
     ``<run>/exports/<run name>-step-<N>.pt``/``.onnx`` (for a run on S3, in its local log directory ``runs/<name>``),
     not in the working directory."""
     check_format(fmt)
-    observations = sample_observations(policy)
-    data = encode(policy, fmt, observations)
+    progress = Progress()
+    progress.show("export: playing the policy's episodes that the export is checked on...")
+    try:
+        observations = sample_observations(policy)
+        progress.show(f"export: writing the {fmt} file, checking its actions on {len(observations):,} observations...")
+        data = encode(policy, fmt, observations)
+    finally:
+        progress.clear()
     run = policy.source.rstrip("/").rsplit("/", 2)[0]  # the source is <run>/checkpoints/step-N or <run>/policies/...
     default = Path(default_log_dir(run, policy.config.name)) / "exports"
     path = Path(path or default / f"{policy.config.name}-step-{policy.step}{SUFFIXES[fmt]}")

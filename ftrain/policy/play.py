@@ -47,22 +47,22 @@ def play(
     torch.manual_seed(seed)
     env = make_env(policy.config.env, render=video is not None)
     writer = None if video is None else _VideoWriter(Path(video), env)
+    progress = _PlayProgress(episodes, env.spec.max_episode_steps if env.spec else None, writer)
+
+    def observed(obs: np.ndarray) -> None:
+        if writer is not None:
+            writer.add_frame(obs)
+        progress.observed()
 
     def finished(index: int, episode: Episode) -> None:
-        if writer is not None:
-            writer.progress.clear()
+        progress.episode_ended()
         print(f"episode {index}: return {episode.ret:.2f}, length {episode.length}", flush=True)
 
     try:
-        results = rollout(
-            env,
-            lambda obs: policy.act(obs, deterministic),
-            episodes,
-            seed,
-            on_observation=None if writer is None else writer.add_frame,
-            on_episode=finished,
-        )
+        act = lambda obs: policy.act(obs, deterministic)  # noqa: E731
+        results = rollout(env, act, episodes, seed, on_observation=observed, on_episode=finished)
     finally:
+        progress.progress.clear()
         env.close()
         if writer is not None:
             writer.close()
@@ -75,6 +75,36 @@ def play(
     return PlayResult(returns, [episode.length for episode in results], frames)
 
 
+class _PlayProgress:
+    """The live line of a play on a terminal: steps (video frames) so far, of at most what the episodes' step limit
+    allows, with an ETA; an episode that ends early brings the end nearer."""
+
+    def __init__(self, episodes: int, limit: int | None, writer: _VideoWriter | None) -> None:
+        self.progress = Progress()
+        self.episodes = episodes
+        self.limit = limit
+        self.label = f"rendering {writer.path.name}" if writer is not None else "playing"
+        self.unit = "frames" if writer is not None else "steps"
+        self.seen = 0
+        """Observations so far: after each reset and each step, as the video's frames."""
+        self.ended = 0
+        self._ended_at = 0
+
+    def observed(self) -> None:
+        self.seen += 1
+        episode = f" (episode {min(self.ended + 1, self.episodes)} of {self.episodes})"
+        if self.limit:
+            total = self._ended_at + (self.episodes - self.ended) * (self.limit + 1)
+            self.progress.count(self.label, self.seen, total, self.unit, episode)
+        elif self.seen % 25 == 0:
+            self.progress.show(f"{self.label}: {self.seen:,} {self.unit}{episode}")
+
+    def episode_ended(self) -> None:
+        self.ended += 1
+        self._ended_at = self.seen
+        self.progress.clear()
+
+
 class _VideoWriter:
     """Renders the environment at every observation and streams the frames to an mp4 (ffmpeg) or a gif."""
 
@@ -83,7 +113,6 @@ class _VideoWriter:
 
         self.env = env
         self.path = path
-        self.progress = Progress()
         self.fps = float(env.metadata.get("render_fps", 30))
         path.parent.mkdir(parents=True, exist_ok=True)
         if path.suffix.lower() == ".gif":
@@ -103,10 +132,7 @@ class _VideoWriter:
             ) from None
         self.writer.append_data(frame)
         self.frames += 1
-        if self.frames % 25 == 0:
-            self.progress.show(f"rendering: {self.frames} frames written to {self.path.name}")
         self.size = frame.shape[:2]
 
     def close(self) -> None:
-        self.progress.clear()
         self.writer.close()

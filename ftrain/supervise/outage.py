@@ -20,6 +20,7 @@ from ftrain.ckpt.retry import OUTAGE, WaitLines
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import StorageConfig
 from ftrain.errors import EXIT_USAGE, UserError
+from ftrain.progress import Progress, duration
 from ftrain.redact import Url
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.options import EXIT_STORAGE_WAIT
@@ -66,6 +67,7 @@ class StorageWait:
         yet, this is a first look)."""
         url = self.storage.url  # a Url: printed and recorded without its credentials
         started, since, tries, lines = time.monotonic(), time.strftime("%H:%M:%S"), 0, WaitLines()
+        progress = Progress(sys.stderr)  # on a terminal, while it sleeps between tries: how long it has waited
         if why is not None:
             self._waiting(url, why, lines)
         while True:
@@ -96,7 +98,12 @@ class StorageWait:
                     file=sys.stderr,
                     flush=True,
                 )
-            self.sleep(delay)
+            limit = duration(self.limit)
+            progress.show(f"ftrain supervise: waiting for storage {url}: {duration(waited)} of at most {limit}...")
+            try:
+                self.sleep(delay)
+            finally:
+                progress.clear()
             tries += 1
 
     def holds(self, step: int) -> bool:

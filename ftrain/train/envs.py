@@ -106,6 +106,10 @@ class MujocoVecEnv(VecEnv):
         extras = {"time_outs": torch.from_numpy(truncated & ~terminated), "episodes": episodes}
         return self.get_observations(), torch.from_numpy(rewards.astype(np.float32)), torch.from_numpy(done), extras
 
+    def running_episodes(self) -> tuple[float, float]:
+        """The mean return and length of this rank's episodes under way (what the console shows until one ends)."""
+        return float(self._returns.mean()), float(self._lengths.mean())
+
     def get_state(self) -> dict:
         """Everything needed to continue bit for bit, as tensors, numbers and lists (weights_only-loadable).
 

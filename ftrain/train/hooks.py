@@ -120,16 +120,24 @@ class ConsoleHook(Hook):
     def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
         if not trainer.info.is_main:
             return
-        if not math.isfinite(metrics["mean_return"]) and not self._said_no_episode:
-            self._said_no_episode = True
-            print("[ftrain] no episode has finished yet: return and len show '-' until one has", flush=True)
+        returned, length = f"{metrics['mean_return']:.2f}", f"{metrics['mean_length']:.0f}"
+        if not math.isfinite(metrics["mean_return"]):
+            if not self._said_no_episode:
+                self._said_no_episode = True
+                print(
+                    "[ftrain] no episode has finished yet: return and len show rank 0's episodes under way (~) until "
+                    "one has",
+                    flush=True,
+                )
+            running = trainer.env.running_episodes()
+            returned, length = f"~{running[0]:.2f}", f"~{running[1]:.0f}"
         total = trainer.config.iterations
         eta = _duration((total - trainer.iteration) * self.seconds_per_iteration(metrics["iteration_time"]))
         losses = " ".join(f"{k.removeprefix('loss/')} {v:.3g}" for k, v in metrics.items() if k.startswith("loss/"))
         evaluated = metrics.get("eval_return", math.nan)
         print(
             f"it {trainer.iteration}/{total} | {metrics['steps_per_s']:,.0f} steps/s"
-            f" | return {_number(metrics['mean_return'], '.2f')} | len {_number(metrics['mean_length'], '.0f')}"
+            f" | return {returned} | len {length}"
             f"{f' | eval {evaluated:.2f}' if math.isfinite(evaluated) else ''}"
             f" | {losses} | lr {metrics['learning_rate']:.2e}"
             f"{f' | saved {_duration(self.clock() - self._saved[1])} ago' if self._saved else ''} | ETA {eta}",
@@ -286,11 +294,6 @@ def load_hook(target: str, kwargs: dict) -> Hook:
     if not isinstance(hook, Hook):
         raise UserError(f"hook {target!r} is not a subclass of ftrain.train.hooks.Hook")
     return hook
-
-
-def _number(value: float, spec: str) -> str:
-    """``value`` formatted, or ``-`` while it is not measured yet (no episode has finished)."""
-    return format(value, spec) if math.isfinite(value) else "-"
 
 
 def _duration(seconds: float) -> str:

@@ -31,6 +31,7 @@ from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, stop_code
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter, read_stop_reason
 from ftrain.policy.model import action_std
 from ftrain.policy.robot import unsaved_state_notice
+from ftrain.train import topology
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.evaluation import EvalHook
 from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
@@ -113,6 +114,7 @@ class Trainer:
         self.alg = build_algorithm(config, self.env, info, self.phases)
         self.reducer = getattr(self.alg, "reducer", None)
         """The ranks' shared memory, where they share a machine: the iteration's small all-reduces go through it."""
+        topology.announce(config, info, self.reducer, self.log)  # what runs where, in one line, and run.json
         self.reward_norm = build_reward_normalizer(config, info, self.reducer)
         self.lr_schedule = build_lr_schedule(config.algorithm)
         if notice := horizon_notice(config.algorithm, config.iterations):

@@ -15,7 +15,7 @@ from ftrain.ckpt.steps import ABANDONED_AFTER, scan
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
 
-from helpers import REPO, flip_shard_byte, make_step, truncate_shard
+from helpers import REPO, flip_shard_byte, make_step, on_a_terminal, truncate_shard
 
 
 def build_tree(storage: Storage) -> None:
@@ -168,3 +168,13 @@ def test_output_into_a_pipe_whose_reader_has_gone_ends_quietly(run):
         gone = subprocess.run(show, cwd=REPO, stdout=output, stderr=subprocess.PIPE, text=True, timeout=60)
     assert gone.returncode == 128 + signal.SIGPIPE
     assert "Traceback" not in gone.stderr and "BrokenPipeError" not in gone.stderr, gone.stderr
+
+
+def test_verify_on_a_terminal_counts_the_steps_it_checks_and_clears_the_line_before_each_result(run, tmp_path) -> None:
+    shown = on_a_terminal([sys.executable, "-m", "ftrain", "ckpt", "verify", run], tmp_path, code=1)
+    counted = re.findall(r"\rckpt verify: (\d)/4 steps \(\d+%\)(?:, ETA \d+s)? \(step (\d+): [\d.]+ KiB\)", shown)
+    assert counted == [("0", "30"), ("1", "25"), ("2", "20"), ("3", "10")], repr(shown)  # committed steps, newest first
+    stays = [line.rsplit("\r", 1)[-1].strip() for line in shown.replace("\r\n", "\n").splitlines()]
+    results = [line.split(":")[0] for line in stays if line.startswith("step ")]
+    assert results == [f"step {step}" for step in (40, 30, 25, 20, 10)]  # each on a line of its own, the count wiped
+    assert stays[-1] == "3 of 4 committed steps verified; 1 incomplete (never committed)"

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -88,7 +89,11 @@ def test_verify_tells_a_save_cut_short_from_a_committed_step_that_does_not_verif
     names it incomplete with its age and passes; a flipped byte in a committed step fails it."""
     storage = tmp_path / "run"
     trained = run_train(storage, "iterations=6", "log.console=true")
-    assert "[ftrain] no episode has finished yet: return and len show '-' until one has" in trained.stdout
+    notice = "[ftrain] no episode has finished yet: return and len show rank 0's episodes under way (~) until one has"
+    assert notice in trained.stdout
+    assert re.search(r"^it 1/6 \| .* \| return ~-?\d+\.\d\d \| len ~\d+ \|", trained.stdout, re.MULTILINE), (
+        trained.stdout
+    )
     assert trained.stdout.count("no episode has finished yet") == 1
     assert f"[ftrain] run saved in {storage}: newest step 6; logs in {storage}" in trained.stdout
     assert f"[ftrain] play it: ftrain play {storage}   export it: ftrain export {storage} --format onnx" in (

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
-import os
-import pty
 import re
 import shutil
 import subprocess
@@ -26,7 +23,7 @@ from ftrain.policy.load import load_policy
 from ftrain.policy.model import ClippedNormalization
 from ftrain.policy.play import play
 
-from helpers import REPO, child_env, final_manifest, flip_byte, needs_egl, run_train
+from helpers import final_manifest, flip_byte, needs_egl, on_a_terminal, run_train
 
 pytestmark = pytest.mark.slow  # every test plays or exports a policy trained first
 
@@ -92,6 +89,8 @@ def test_exports_run_without_ftrain_and_match_the_actor(trained, tmp_path, capsy
         assert "torch.onnx" not in printed.out + printed.err  # the exporter's progress lines stay off the console
     graph = onnx.load(files["onnx"]).graph  # made by torch.export's exporter (dynamo=True), which labels its inputs
     assert any(prop.key.startswith("pkg.torch.export") for value in graph.input for prop in value.metadata_props)
+    axes = [value.type.tensor_type.shape.dim[0].dim_param for value in [*graph.input, *graph.output]]
+    assert axes == ["batch"] * len(axes) and len(axes) >= 2, axes
     policy = load_policy(str(trained))
     obs = sample_observations(policy, episodes=2, seed=7)
     np.save(tmp_path / "obs.npy", obs.numpy())
@@ -146,25 +145,16 @@ def test_play_renders_mp4_and_gif(trained, tmp_path, capsys) -> None:
 
 
 @needs_egl
-def test_play_on_a_terminal_counts_frames_live_and_prints_each_episode_as_it_ends(trained, tmp_path) -> None:
-    ours, theirs = pty.openpty()
+def test_play_on_a_terminal_counts_frames_with_an_eta_and_prints_each_episode_as_it_ends(trained, tmp_path) -> None:
     command = [sys.executable, "-m", "ftrain", "play", str(trained), "--episodes", "2", "--video", "cheetah.gif"]
-    with open(tmp_path / "stderr", "w") as stderr:
-        proc = subprocess.Popen(
-            command, cwd=tmp_path, env=child_env({"PYTHONPATH": str(REPO)}), stdout=theirs, stderr=stderr
-        )
-    os.close(theirs)
-    seen = b""
-    with contextlib.suppress(OSError):  # EIO once play has exited and the terminal's other side is closed
-        while chunk := os.read(ours, 4096):
-            seen += chunk
-    os.close(ours)
-    assert proc.wait(timeout=60) == 0, (tmp_path / "stderr").read_text()
-    out = seen.decode()
-    counter = "\rrendering: 25 frames written to cheetah.gif"  # episode 2's 4th frame: episodes have 21 frames
-    wiped = "\r" + " " * (len(counter) - 1) + "\r"
-    assert f"{counter}{wiped}episode 2: return" in out, repr(out)
-    assert out.index("episode 1: return") < out.index(counter), "episode 1 must show as it ends"
+    out = on_a_terminal(command, tmp_path)
+    # episodes have 21 frames: episode 2's first is frame 22 of at most 42, drawn at once; its last ends the count
+    second = re.search(r"\rrendering cheetah\.gif: 22/42 frames \(52%\)(, ETA \d+s)? \(episode 2 of 2\)", out)
+    last = re.search(r"\r(rendering cheetah\.gif: 42/42 frames \(100%\), ETA 0s \(episode 2 of 2\))", out)
+    assert second and last, repr(out)
+    wiped = "\r" + " " * len(last[1]) + "\r"
+    assert f"{last[0]}{wiped}episode 2: return" in out, repr(out)
+    assert out.index("episode 1: return") < second.start(), "episode 1 must show as it ends"
 
 
 def test_play_takes_the_mean_action_unless_told_to_sample(trained, capsys) -> None:

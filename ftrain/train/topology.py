@@ -1,0 +1,102 @@
+"""What a run will run, said once at its start: its ranks and hosts, how the update is shared between them (split by
+model, or data-parallel and why), how the ranks meet, and the global batch. Rank 0 prints it as one line and writes
+it to ``<log_dir>/run.json``, next to ``config.yaml``."""
+
+from __future__ import annotations
+
+import json
+import socket
+from collections.abc import Callable
+from pathlib import Path
+
+from ftrain.config import Config
+from ftrain.dist import group
+from ftrain.dist.host_first import HostFirst
+from ftrain.train.split import splits_update
+
+RUN_FILE = "run.json"
+
+
+def describe(config: Config, info: group.RankInfo, hosts: list[str], reducer: object | None) -> dict:
+    """The run as data: ``hosts``, every rank's host name in rank order; ``reducer``, the collectives of the ranks'
+    shared memory that the algorithm built (``ftrain.dist.host_first``; None: none)."""
+    world = info.world_size
+    batch = {"ranks": world, "envs": config.env.num_envs, "steps": config.num_steps_per_env}
+    batch["total"] = world * config.env.num_envs * config.num_steps_per_env
+    return {
+        "ranks": world,
+        "hosts": {host: [rank for rank, name in enumerate(hosts) if name == host] for host in dict.fromkeys(hosts)},
+        "update": _update(config, info),
+        "transport": _transport(config, info, reducer),
+        "global_batch": batch,
+    }
+
+
+def _update(config: Config, info: group.RankInfo) -> dict:
+    world = info.world_size
+    if world == 1:
+        return {"kind": "one rank"}
+    if config.algorithm.class_name == "Distillation":
+        return {"kind": "data-parallel", "why": "rsl-rl's distillation"}
+    if splits_update(config, info):
+        half = world // 2
+        return {"kind": "split", "actor": list(range(half)), "critic": list(range(half, world))}
+    why = "split_update=false" if not config.split_update else f"{world} ranks: a split needs an even number"
+    return {"kind": "data-parallel", "why": why}
+
+
+def _transport(config: Config, info: group.RankInfo, reducer: object | None) -> str:
+    if not info.distributed:
+        return "none (one process)"
+    if isinstance(reducer, HostFirst):
+        return "shared memory within hosts, gloo between them"
+    if reducer is not None:
+        return "shared memory (one host)"
+    if not config.shared_memory_all_reduce:
+        return "gloo (shared_memory_all_reduce=false)"
+    if config.algorithm.class_name == "Distillation":
+        return "gloo (rsl-rl's distillation)"
+    return "gloo (the ranks' hosts could not be told apart)"
+
+
+def summary(run: dict) -> str:
+    """``describe``'s run in one line."""
+    hosts = run["hosts"]
+    where = ", ".join(f"{_ranks(ranks)} on {host}" for host, ranks in hosts.items())
+    update = run["update"]
+    if update["kind"] == "split":
+        team = len(update["actor"])
+        within = f", data-parallel within each team of {team}" if team > 1 else ""
+        shared = f"split: actor on {_ranks(update['actor'])}, critic on {_ranks(update['critic'])}{within}"
+    elif update["kind"] == "data-parallel":
+        shared = f"data-parallel ({update['why']})"
+    else:
+        shared = "on one rank"
+    batch = run["global_batch"]
+    ranks = "rank" if run["ranks"] == 1 else "ranks"
+    return (
+        f"{run['ranks']} {ranks} on {len(hosts)} host{'s' if len(hosts) > 1 else ''} ({where}) | update {shared} | "
+        f"transport {run['transport']} | global batch {batch['total']:,} steps ({batch['ranks']} {ranks} x "
+        f"{batch['envs']} envs x {batch['steps']} steps)"
+    )
+
+
+def announce(config: Config, info: group.RankInfo, reducer: object | None, log: Callable[[str], None]) -> dict:
+    """Every rank at the same point (it gathers the hosts' names): rank 0 logs the run's line and writes
+    ``run.json``."""
+    run = describe(config, info, group.all_gather_object(socket.gethostname(), info), reducer)
+    if info.is_main:
+        log(summary(run))
+        log_dir = Path(config.log_dir)
+        log_dir.mkdir(parents=True, exist_ok=True)
+        (log_dir / RUN_FILE).write_text(json.dumps(run, indent=1) + "\n")
+    return run
+
+
+def _ranks(ranks: list[int]) -> str:
+    """``rank 0``, ``ranks 0-3`` (consecutive), else ``ranks 0,2``."""
+    if len(ranks) == 1:
+        return f"rank {ranks[0]}"
+    if ranks == list(range(ranks[0], ranks[-1] + 1)):
+        return f"ranks {ranks[0]}-{ranks[-1]}"
+    return f"ranks {','.join(map(str, ranks))}"

@@ -1,0 +1,59 @@
+"""ftrain's torchrun run by hand: a failure a worker explained is that one line and the worker's code; a crash keeps
+torchrun's report. Real torchrun, real workers."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from ftrain import errorfile
+from ftrain.supervise.attempt import TORCHRUN
+
+from helpers import REPO, SMOKE, TESTS, child_env, hooks_override, probe_hook
+
+TYPO = "ftrain: error: unknown config key iteratons: did you mean iterations?"
+
+
+def ftrun(tmp_path, *overrides: str) -> subprocess.CompletedProcess:
+    command = [sys.executable, "-m", TORCHRUN, "--standalone", "--nproc-per-node=2", "-m", "ftrain", "train", SMOKE]
+    return subprocess.run(
+        [*command, "--storage", str(tmp_path / "run"), "log.console=false", *overrides],
+        cwd=REPO,
+        env=child_env({"PYTHONPATH": str(TESTS)}),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def test_the_error_file_tells_a_failure_the_worker_explained_from_a_crash(tmp_path, monkeypatch) -> None:
+    path = tmp_path / "error.json"
+    monkeypatch.setenv(errorfile.ENV, str(path))
+    monkeypatch.setenv("RANK", "1")  # records without printing
+    errorfile.report("bad input")
+    explained = json.loads(path.read_text())
+    try:
+        raise RuntimeError("a bug")
+    except RuntimeError as error:
+        errorfile.record_exception(error)
+    crashed = json.loads(path.read_text())
+    assert errorfile.reported(explained) and errorfile.message(explained) == "bad input"
+    assert not errorfile.reported(crashed) and not errorfile.reported(None)
+
+
+@pytest.mark.slow
+def test_a_typo_under_ftrains_torchrun_is_one_line_and_exit_2(tmp_path) -> None:
+    result = ftrun(tmp_path, "iteratons=3")
+    assert result.returncode == 2
+    assert (result.stdout + result.stderr).splitlines() == [TYPO]
+
+
+@pytest.mark.slow
+def test_a_crash_under_ftrains_torchrun_keeps_torchruns_report(tmp_path) -> None:
+    crash = hooks_override(probe_hook("CrashingHook", path=tmp_path / "crashed", rank=1, iteration=1))
+    result = ftrun(tmp_path, "iterations=3", crash)
+    assert result.returncode == 1
+    assert "ChildFailedError" in result.stderr and "RuntimeError: probe crash after iteration 1" in result.stderr
