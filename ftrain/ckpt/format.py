@@ -20,7 +20,7 @@ import time
 from dataclasses import dataclass, field
 
 from ftrain.ckpt.storage import Storage
-from ftrain.errors import StorageError
+from ftrain.errors import StorageError, StorageUnavailable
 
 FORMAT_VERSION = 1
 STATE_FORMAT = 4
@@ -225,7 +225,9 @@ def newest_generation(storage: Storage) -> int:
     lease record deleted by hand starts after: on one node no other record of it is kept (``lease.py``)."""
     try:
         steps = sorted((name for name in storage.list_dirs(CHECKPOINTS) if STEP_DIR.match(name)), reverse=True)
-    except OSError as error:
+    except StorageUnavailable:
+        raise
+    except (OSError, StorageError) as error:
         raise StorageError(f"checkpoint storage {storage.url} failed while reading its newest step: {error}") from None
     for name in steps[:3]:  # a step cut short has no manifest
         try:

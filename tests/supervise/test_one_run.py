@@ -24,6 +24,7 @@ from ftrain.ckpt.lease import LEASE, TTL_ENV, Entry, Record
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD
 from ftrain.procfs import Process
+from ftrain.supervise.attempt import TORCHRUN
 from ftrain.supervise.auth import SECRET_ENV
 
 import helpers
@@ -306,11 +307,11 @@ def take_lease_elsewhere(storage: Path) -> None:
     (storage / LEASE).write_bytes(Record("intruder", ours.generation + 1, 60.0, (Entry(far, time.time()),)).encode())
 
 
-def plain_torchrun(storage: Path, port: int, *overrides: str) -> list[str]:
+def plain_torchrun(storage: Path, port: int, *overrides: str, launcher: str = "torch.distributed.run") -> list[str]:
     """torchrun as most users first type it: no --standalone, no --rdzv-id (torchrun's run id is then ``none`` for
-    every run), a master port of its own."""
-    launcher = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node=2", f"--master-port={port}"]
-    return [*launcher, "-m", "ftrain", "train", SMOKE, "--storage", str(storage), *OVERRIDES, *overrides]
+    every run), a master port of its own; ``launcher``: ftrain's torchrun (``ftrun``) instead."""
+    command = [sys.executable, "-m", launcher, "--nproc-per-node=2", f"--master-port={port}"]
+    return [*command, "-m", "ftrain", "train", SMOKE, "--storage", str(storage), *OVERRIDES, *overrides]
 
 
 def files(storage: Path) -> dict[str, bytes]:
@@ -333,6 +334,11 @@ def test_a_second_plain_torchrun_on_a_live_runs_storage_is_refused_in_one_line_a
     assert line.startswith("ftrain: error: storage ") and re.search(r" since \d{4}-\d\d-\d\d \d\d:\d\d:\d\d UTC", line)
     assert re.search(rf"exitcode\s*:\s*{EXIT_STORAGE_HELD}\b", output)  # torchrun's report: the ranks exited 8
     assert files(storage) == before, "the refused run must write nothing to the storage"
+    ftrun = intrude(plain_torchrun(storage, free_port(), launcher=TORCHRUN))  # what README shows: ftrain's one line
+    assert ftrun.wait(timeout=120) == EXIT_STORAGE_HELD
+    line, output = refused(ftrun, holders)
+    assert output == line + "\n" and line.startswith("ftrain: error: storage ")
+    assert files(storage) == before
     assert first.poll() is None
     hold.release()
     assert finish(first) == 0
