@@ -35,7 +35,6 @@ if [[ ${FTRAIN_TEST_DEPS:-0} == 1 ]]; then
   debian_packages "the tests of the etcd-v2 rendezvous" etcd-server || say "warning: etcd-server not installed" >&2
   debian_packages "the private SLURM cluster of tests/cluster" slurm-wlm munge || say "warning: SLURM not installed" >&2
   debian_packages "the failing FUSE mount of tests/failing_mount.py" fuse3 || say "warning: FUSE not installed" >&2
-  debian_packages "the skewed clocks of tests/ckpt/test_one_history.py" faketime || say "warning: faketime not installed" >&2
 fi
 
 python=${PYTHON:-python3}

@@ -1,7 +1,8 @@
 """One history under random faults: a seeded schedule of 2-4 users who run the same ``ftrain train`` command on one
 storage, each from a host of its own (a UTS namespace: another host name, so that only a lease's expiry frees its
-storage), some with a clock off by seconds (libfaketime), while the schedule starts them, SIGKILLs them, SIGSTOPs them
-for longer than the lease's time to live and cuts the storage off; then a last user trains the run to its end.
+storage), some with a wall clock off by seconds (``tests/skewed_clock``), while the schedule starts them, SIGKILLs
+them, SIGSTOPs them for longer than the lease's time to live and cuts the storage off; then a last user trains the run
+to its end.
 
 A watcher reads the storage throughout: each poll reads the lease, then lists the manifests. A manifest of generation
 g that first appears after a poll whose lease read already had a newer generation was written after the lease had
@@ -34,12 +35,14 @@ from ftrain.ckpt.lineage import generation, history
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
 
-from helpers import REPO, SMOKE, child_env
+from helpers import REPO, SMOKE, TESTS, child_env
 
+SKEW_ENV = "FTRAIN_TEST_CLOCK_SKEW"
+"""Seconds a user's wall clock is off (``tests/skewed_clock/sitecustomize.py``)."""
 TTL = 2.0
 """The lease's time to live in these runs (renewed every third of it)."""
 OVERRIDES = ("checkpoint.interval=4", "checkpoint.keep_last=100000", "checkpoint.keep_best=0", "log.console=false")
-SKEWS = (None, None, "-20s", "+3s")
+SKEWS = (0.0, 0.0, -20.0, 3.0)
 """Each user's clock: most right, one 20 s behind (its lease would look expired to the others but for the storage's
 own clock), one a little ahead."""
 STARTUP = 4.0
@@ -75,7 +78,7 @@ class Tally:
 @dataclasses.dataclass
 class User:
     host: str
-    skew: str | None
+    skew: float
     log: Path
     proc: subprocess.Popen | None = None
     started: float = 0.0
@@ -144,12 +147,12 @@ class Schedule:
 
     def command(self, user: User) -> list[str]:
         host = ["unshare", "--uts", "sh", "-c", f'hostname {user.host} && exec "$@"', "sh"]
-        clock = ["faketime", "-f", user.skew] if user.skew else []
         train = [sys.executable, "-m", "ftrain", "train", SMOKE, "--storage", self.url, f"iterations={self.iterations}"]
-        return [*host, *clock, *train, *OVERRIDES, f"log_dir={self.workdir / user.host}"]
+        return [*host, *train, *OVERRIDES, f"log_dir={self.workdir / user.host}"]
 
     def start(self, user: User, tally: Tally) -> None:
-        env = child_env({**self.env, TTL_ENV: str(TTL), "FAKETIME_DONT_FAKE_MONOTONIC": "1"})
+        clock = {"PYTHONPATH": str(TESTS / "skewed_clock"), SKEW_ENV: str(user.skew)}
+        env = child_env({**self.env, TTL_ENV: str(TTL), **clock})
         with user.log.open("ab") as log:
             user.proc = subprocess.Popen(
                 self.command(user), cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
