@@ -227,14 +227,7 @@ def test_a_lease_taken_while_the_workers_train_stops_them_at_once_with_exit_8(tm
     more (they are held after iteration 3: without the supervisor they would wait), and exits 8 with one line."""
     storage, hold = tmp_path / "run", Hold(tmp_path, 3)
     console = tmp_path / "console"
-    with console.open("wb") as output:
-        proc = launch(
-            helpers.supervise_command(storage, "iterations=40", hold.override, ranks=1),
-            cwd=REPO,
-            env=child_env({TTL_ENV: "3", **HOLD_ENV}),  # renewed every second
-            stdout=output,
-            stderr=subprocess.STDOUT,
-        )
+    proc = launch_short_lease(helpers.supervise_command(storage, "iterations=40", hold.override, ranks=1), console)
     hold.held()
     committed = sorted(manifests(storage))
     take_lease_elsewhere(storage)
@@ -297,6 +290,13 @@ def test_a_run_paused_past_its_lease_whose_storage_another_run_took_commits_noth
     assert after and set(after.values()) == {2}, after  # every step past the takeover is B's
     lease = Record.decode((storage / LEASE).read_bytes())
     assert (lease.generation, lease.entries) == (2, ())  # B's, released; A did not take it back
+
+
+def launch_short_lease(command: list[str], console: Path) -> subprocess.Popen:
+    """``command`` with a 3 s lease (renewed every second) and a run that may hold, its output into ``console``."""
+    with console.open("wb") as output:
+        env = child_env({TTL_ENV: "3", **HOLD_ENV})
+        return launch(command, cwd=REPO, env=env, stdout=output, stderr=subprocess.STDOUT)
 
 
 def take_lease_elsewhere(storage: Path) -> None:
@@ -379,14 +379,8 @@ def test_an_unsupervised_run_whose_lease_another_run_took_stops_at_once_with_exi
     the vote stops them, within seconds."""
     storage, hold = tmp_path / "run", Hold(tmp_path, 3)
     console = tmp_path / "console"
-    with console.open("wb") as output:
-        proc = launch(
-            train_command(storage, "iterations=100000", "checkpoint.interval=1000", hold.override, ranks=2),
-            cwd=REPO,
-            env=child_env({TTL_ENV: "3", **HOLD_ENV}),  # renewed every second
-            stdout=output,
-            stderr=subprocess.STDOUT,
-        )
+    command = train_command(storage, "iterations=100000", "checkpoint.interval=1000", hold.override, ranks=2)
+    proc = launch_short_lease(command, console)
     hold.held()
     committed = sorted(manifests(storage))
     take_lease_elsewhere(storage)
