@@ -206,8 +206,8 @@ class Config:
     dist_timeout: float = 60.0
     """Seconds a collective may wait for a peer before failing."""
     shared_memory_all_reduce: bool = True
-    """Ranks on one machine meet through shared memory (``ftrain.dist.shm_allreduce``), not gloo's loopback TCP; across
-    machines host first (``ftrain.dist.host_first``): only each machine's first rank crosses the network."""
+    """Ranks on one machine meet through shared memory (``ftrain.comm.shm_allreduce``), not gloo's loopback TCP; across
+    machines host first (``ftrain.comm.host_first``): only each machine's first rank crosses the network."""
     split_update: bool = True
     """At an even number of ranks the first half learns the actor and the second the critic, on the whole batch
     (``ftrain.train.split``); false: data-parallel, every rank learns both models on its share."""

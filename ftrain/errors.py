@@ -13,7 +13,7 @@ EXIT_STORAGE_DOWN = 7
 """A worker, and ``ftrain supervise`` after ``--storage-wait``: the checkpoint storage did not answer. Not bad input and
 nothing lost: the supervisor waits for the storage and starts again; run the same command again once it is back."""
 EXIT_RENDEZVOUS_TIMEOUT = 6
-"""torchrun (``ftrain.dist.torchrun``) and ``ftrain supervise``: an elastic rendezvous did not gather its minimum of
+"""torchrun (``ftrain.torchrun``) and ``ftrain supervise``: an elastic rendezvous did not gather its minimum of
 nodes in time."""
 EXIT_STORAGE_HELD = 8
 """``ftrain supervise`` and ``ftrain train`` (every rank): another run, alive, holds the storage's lease

@@ -4,7 +4,7 @@ At 4 ranks ftrain splits the update into two teams: ranks 0-1 learn the actor, r
 a node's ranks consecutively, so on two hosts each team is one host, and the update's per-minibatch meetings (each
 team's gradient all-reduce) stay on it, through shared memory. What crosses the hosts is one meeting per phase of
 the iteration: the reward statistics, the rollout's gather, the two models' broadcasts, the metrics, each host first
-(``ftrain.dist.host_first``: one exchange between the hosts' first ranks). This measures
+(``ftrain.comm.host_first``: one exchange between the hosts' first ranks). This measures
 what that costs: the two-host run's steps/s as a fraction of the one-host run's, each two-host run between two
 one-host runs (these machines drift), and the median over ``--rounds``, with each run's phases (ms per iteration,
 mean over ranks).

@@ -10,8 +10,10 @@ work that these machines see). These machines also drift, by 2x within minutes o
 sits between two ceiling measurements, and is taken as a fraction of their mean; the table gives the median over
 ``--rounds`` such fractions.
 
-It also prints where an iteration's time goes at N ranks (``ftrain.train.phases``: mean over ranks and timed
-iterations, in ms), rsl-rl's and stable-baselines3's 1-process steps/s in the same run (``--peers``), and the cores.
+Each run says its transport; a collective that falls back to gloo fails the benchmark (exit 1). It also prints where
+an iteration's time goes at N ranks (``ftrain.train.phases``: mean over ranks and timed iterations, in ms), what rank
+0 puts into collectives per iteration (``sent KB``: it grows with the data, not with the ranks' count squared),
+rsl-rl's and stable-baselines3's 1-process steps/s in the same run (``--peers``), and the cores.
 
     .venv/bin/python launch/bench_scale.py [--ranks 1 2] [--rounds 3] [--iterations 60] [--peers] [--set KEY=VALUE]
 
@@ -82,7 +84,7 @@ def main() -> int:
             done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_one_thread())
             speed = f"{float(done.stdout.split()[-1]):,.0f} steps/s" if done.returncode == 0 else "failed"
             print(f"{name:>7}, 1 process: {speed}")
-    return 0
+    return _fell_back()
 
 
 def _strong(args: argparse.Namespace, config: Path, cores: int) -> int:
@@ -92,7 +94,7 @@ def _strong(args: argparse.Namespace, config: Path, cores: int) -> int:
     for envs in args.strong:
         whole = (f"env.num_envs={envs}",)
         alone = run_side_by_side(args.iterations, [1], overrides=whole, config=config)[0]
-        rows = [_row("alone", None, alone["median_steps_per_s"], None, alone["phases_ms"])]
+        rows = [_row("alone", None, alone["median_steps_per_s"], None, alone["phases_ms"], alone["sent_kb"])]
         slowest = []
         for ranks in (n for n in args.ranks if n > 1):
             if envs % ranks:
@@ -103,7 +105,7 @@ def _strong(args: argparse.Namespace, config: Path, cores: int) -> int:
             rows.append(row)
             slowest.append(slow)
         _print_table(f"global batch {envs} envs x {steps} steps: N ranks x envs each", args.rounds, rows, slowest)
-    return 0
+    return _fell_back()
 
 
 def _measure(
@@ -112,32 +114,39 @@ def _measure(
     """ftrain at ``ranks`` ranks (each run with ``share``), each run between two ceilings of ``ranks`` side-by-side
     1-rank runs of ``whole``, all of ``config``: its row (median steps/s, fraction, mean phases) and its slowest
     rank's phases."""
-    ceilings, speeds, phases = [ceiling(args.iterations, ranks, whole, config)], [], []
+    ceilings, speeds, phases, sent = [ceiling(args.iterations, ranks, whole, config)], [], [], []
     for _ in range(args.rounds):  # ceiling, ftrain, ceiling, ...: each ftrain run between two ceilings
         ours = run_side_by_side(args.iterations, [ranks], overrides=share, config=config)[0]
         ceilings.append(ceiling(args.iterations, ranks, whole, config))
         speeds.append(ours["median_steps_per_s"])
+        if ours["fallbacks"]:
+            FALLBACKS.append(f"{label}: {ours['fallbacks']} collectives fell back to gloo")
         phases.append(ours["phases_ms"])
+        sent.append(ours["sent_kb"])
         line = f"  {label}: ftrain {speeds[-1]:,.0f} steps/s between ceilings {ceilings[-2]:,.0f} and "
-        print(f"{line}{ceilings[-1]:,.0f}", flush=True)
+        print(f"{line}{ceilings[-1]:,.0f} (transport {ours['transport']})", flush=True)
     fractions = [speed / statistics.mean(ceilings[k : k + 2]) for k, speed in enumerate(speeds)]
     mean = {name: statistics.median(round_[name] for round_ in phases) for name in PHASES}
     slowest = {name: statistics.median(round_[f"{name}_max"] for round_ in phases) for name in PHASES}
-    row = _row(label, statistics.median(ceilings), statistics.median(speeds), statistics.median(fractions), mean)
-    return row, f"{label:>5} {'':>29}  " + " ".join(f"{slowest[name]:>8.1f}" for name in PHASES)
+    numbers = statistics.median(ceilings), statistics.median(speeds), statistics.median(fractions)
+    row = _row(label, *numbers, mean, statistics.median(sent))
+    return row, f"{label:>5} {'':>39}  " + " ".join(f"{slowest[name]:>8.1f}" for name in PHASES)
 
 
-def _row(label: str, ceiling_: float | None, speed: float, fraction: float | None, phases: dict[str, float]) -> str:
+def _row(
+    label: str, ceiling_: float | None, speed: float, fraction: float | None, phases: dict[str, float], sent_kb: float
+) -> str:
     """A table row; ``ceiling_`` and ``fraction`` None: a run alone, measured against nothing."""
     ceiling_text = "" if ceiling_ is None else f"{ceiling_:,.0f}"
     fraction_text = "" if fraction is None else f"{fraction:.2f}"
-    numbers = f"{label:>5} {ceiling_text:>9} {speed:>9,.0f} {fraction_text:>9}  "
+    numbers = f"{label:>5} {ceiling_text:>9} {speed:>9,.0f} {fraction_text:>9} {sent_kb:>9,.0f}  "
     return numbers + " ".join(f"{phases[name]:>8.1f}" for name in PHASES)
 
 
 def _print_table(title: str, rounds: int, rows: list[str], slowest: list[str]) -> None:
     """The rows under a header of the phases, then each N's slowest rank's phases."""
-    header = f"{'N':>5} {'ceiling':>9} {'ftrain':>9} {'fraction':>9}  " + " ".join(f"{name:>8}" for name in PHASES)
+    header = f"{'N':>5} {'ceiling':>9} {'ftrain':>9} {'fraction':>9} {'sent KB':>9}  "
+    header += " ".join(f"{name:>8}" for name in PHASES)
     print(f"\n{title}: steps/s (median of {rounds} rounds); phases in ms per iteration, mean over ranks\n{header}")
     print("\n".join(rows))
     print("the same phases, the slowest rank's (where a rank that waits and one that computes part)")
@@ -148,6 +157,17 @@ def ceiling(iterations: int, ranks: int, overrides: tuple[str, ...], config: Pat
     """N x the steps/s of the slowest of N independent 1-rank runs side by side: what N lockstep ranks could reach."""
     alone = run_side_by_side(iterations, [1] * ranks, overrides=overrides, config=config)
     return ranks * min(run["median_steps_per_s"] for run in alone)
+
+
+FALLBACKS: list[str] = []
+"""Runs whose collectives fell back to gloo: the benchmark then fails (a slower transport than the one meant)."""
+
+
+def _fell_back() -> int:
+    """1 (and what fell back, on stderr) where a run's collectives fell back to gloo, else 0."""
+    for line in FALLBACKS:
+        print(f"bench_scale: {line}", file=sys.stderr)
+    return 1 if FALLBACKS else 0
 
 
 def _one_thread() -> dict:

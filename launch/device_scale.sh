@@ -4,7 +4,8 @@
 # ranks (launch/bench_scale.py, one round each, the ceiling measured on both sides of it), with each N's phases, mean
 # and slowest rank; then strong scaling: configs/halfcheetah_large.yaml's global batch (ENVS=256 environments x 16
 # steps) shared by 2, 4, 8 and 16 ranks, against N whole 1-rank jobs side by side. MODE=weak or MODE=strong runs one
-# part alone. Each table goes to $OUT (the device's return folder) or runs/device_scale as it is printed, so a run
+# part alone. Each run prints its transport, and a collective that falls back to gloo fails the script (bench_scale.py
+# exits 1). Each table goes to $OUT (the device's return folder) or runs/device_scale as it is printed, so a run
 # cut short by its timeout still returns what finished.
 #
 # That machine's image has Python 3.12 and torch 2.11 (enough: ftrain needs torch>=2.6), numpy, PyYAML, fsspec and

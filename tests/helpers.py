@@ -170,7 +170,7 @@ def events(log_dir: str | Path) -> list[dict]:
 
 
 def torchrun_pid(supervisor_pid: int) -> int:
-    """The torchrun agent a supervisor launched (waits until there is one): ``ftrain.dist.torchrun``, or with warm
+    """The torchrun agent a supervisor launched (waits until there is one): ``ftrain.torchrun``, or with warm
     workers its stand-in ``ftrain.warm torchrun``, the process the supervisor watches."""
     module = TORCHRUN.rpartition(".")[2].encode()
 

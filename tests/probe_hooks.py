@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from ftrain.ckpt import save
-from ftrain.dist import group
+from ftrain.comm import group
 from ftrain.heartbeat import Phase
 from ftrain.train.hooks import Hook
 

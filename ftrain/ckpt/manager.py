@@ -34,8 +34,8 @@ from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, Targ
 from ftrain.ckpt.schedule import DEFAULT_STORAGE_WAIT, STORAGE_WAIT_ENV, SaveSchedule
 from ftrain.ckpt.spool import Spool
 from ftrain.ckpt.storage import Storage, StorageUnavailable
+from ftrain.comm import group
 from ftrain.config import Config
-from ftrain.dist import group
 from ftrain.errors import UserError
 from ftrain.lifeline import SUPERVISOR_ENV
 from ftrain.values import parse_amount

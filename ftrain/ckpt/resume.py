@@ -45,8 +45,8 @@ from ftrain.ckpt.spool import FIELD as SPOOL_FIELD
 from ftrain.ckpt.spool import Spool
 from ftrain.ckpt.steps import clear_newer, quarantine, resolve_checkpoint_url, scan, select_resume
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
+from ftrain.comm import group
 from ftrain.config import Config
-from ftrain.dist import group
 from ftrain.errors import UserError
 
 

@@ -47,8 +47,8 @@ from ftrain.ckpt.retention import delete_step, retention_plan
 from ftrain.ckpt.spool import Spool
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
+from ftrain.comm import group
 from ftrain.config import CheckpointConfig
-from ftrain.dist import group
 
 UNLOADABLE_HINT = "hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
 

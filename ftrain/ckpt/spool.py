@@ -21,8 +21,8 @@ from ftrain.ckpt.format import MANIFEST, VERIFIED, FileEntry, commit, step_dir, 
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage, StorageError
+from ftrain.comm import group
 from ftrain.config import Config
-from ftrain.dist import group
 from ftrain.identity import Identity
 
 KEEP = 3

@@ -3,7 +3,7 @@
 Every attempt has a directory of its own, ``<log_dir>/torchrun/[node-R/]attempt-N-gG`` (attempt N of generation G) (the
 newest ``KEPT_LOGS`` stay), which torchrun gets as ``--log-dir``, so the workers' error files land there (see
 ``ftrain/errorfile.py``). ``stderr.log`` there holds everything torchrun and the workers write to stderr: none of it
-reaches the console. torchrun runs as ``ftrain.dist.torchrun``, which writes torchrun's own account of the failed
+reaches the console. torchrun runs as ``ftrain.torchrun``, which writes torchrun's own account of the failed
 workers (exit code and recorded error of each) to ``failures.json`` instead of a traceback and a text report.
 
 Train arguments that carry credentials (storage URL, storage options) reach the workers through their environment,
@@ -39,7 +39,7 @@ from ftrain.warm import LISTENER_ENV, POOL_ENV, address
 POLL = 0.1
 UNDEAD_LINE = 30.0
 """Seconds between two lines about a process that outlives its SIGKILL."""
-TORCHRUN = "ftrain.dist.torchrun"
+TORCHRUN = "ftrain.torchrun"
 """torchrun, in a process of its own (the module imports torch: the supervisor only names it)."""
 WARM = "ftrain.warm"
 """The warm pool and torchrun's stand-in (``python -m ftrain.warm serve | torchrun ...``)."""

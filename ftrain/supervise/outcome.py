@@ -91,7 +91,7 @@ def classify(
     superseded: bool,
     committed: int | None,
 ) -> Outcome:
-    """The outcome of an attempt whose torchrun exited with ``code`` (``ftrain.dist.torchrun``: 130 or 143 when every
+    """The outcome of an attempt whose torchrun exited with ``code`` (``ftrain.torchrun``: 130 or 143 when every
     worker that ended exited so, after a stop by SIGINT or SIGTERM that reached the workers but not the supervisor).
 
     ``cause``: what to blame, in words; ``culprit``: the rank to blame and how it ended, if any;

@@ -73,7 +73,7 @@ def elastic_rendezvous(
 ) -> list[str]:
     """torchrun's elastic rendezvous arguments (c10d or etcd-v2) for ``plan``'s attempt: it starts once MIN nodes
     have joined and ``--rejoin-timeout`` has passed or MAX have joined (a node lost for good is thus left behind),
-    gives up after ``--rdzv-timeout`` (``ftrain.dist.torchrun`` then exits ``EXIT_RENDEZVOUS_TIMEOUT``), and, once
+    gives up after ``--rdzv-timeout`` (``ftrain.torchrun`` then exits ``EXIT_RENDEZVOUS_TIMEOUT``), and, once
     training, lets its agents restart their workers with a larger world when a node joins late (the workers save on
     that SIGTERM: the world grows at a checkpoint boundary). A regroup after a node left on its own (``plan.left``,
     its preemption) waits no ``--rejoin-timeout``: every node that is not leaving launches at once, so the wait is

@@ -21,7 +21,7 @@ iterations; ``--backoff-initial`` after one that completed none, doubled for eac
 ``--backoff-max``) and launch again; the workers resume from the newest verified checkpoint themselves.
 
 Preemption. SIGTERM or SIGINT: SIGTERM to the workers, which agree at the next iteration boundary, save and exit 143
-(``ftrain/dist/torchrun.py`` passes it on); SIGKILL after ``--stop-grace``, or at a second signal. No restart: exit
+(``ftrain/torchrun.py`` passes it on); SIGKILL after ``--stop-grace``, or at a second signal. No restart: exit
 128 + the signal (143; 130 for SIGINT). Elastic, this node leaves alone while MIN nodes remain (etcd-v2: any node;
 c10d: any but node 0): the others regroup from the save.
 

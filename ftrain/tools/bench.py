@@ -88,6 +88,8 @@ class ThroughputHook(Hook):
         self.iterations: list[tuple[float, float]] = []
         """(seconds, env steps) of each timed iteration, save included."""
         self.phases: dict[str, list[float]] = {}
+        self.sent_kb: list[float] = []
+        """What rank 0 put into collectives in each timed iteration (``comm_sent_kb``)."""
 
     def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
         if trainer.iteration == self.warmup and self.barrier is not None:
@@ -100,6 +102,7 @@ class ThroughputHook(Hook):
             trainer.checkpointer.last_blocking_s = 0.0
             self.steps_per_s = (now[1] - self.start[1]) / (now[0] - self.start[0])
             self.iterations.append((now[0] - self.last[0], now[1] - self.last[1]))
+            self.sent_kb.append(metrics["comm_sent_kb"])
             for name, value in metrics.items():
                 if name.startswith("time/"):
                     self.phases.setdefault(name.removeprefix("time/").removesuffix("_ms"), []).append(value)
@@ -123,6 +126,9 @@ class ThroughputHook(Hook):
             "blocking_s": saves,
             "torch_save_s": torch_save_s,
             "phases_ms": {name: statistics.mean(values) for name, values in self.phases.items()},
+            "sent_kb": statistics.median(self.sent_kb),
+            "transport": trainer.run_description["transport"],
+            "fallbacks": trainer.comm.fallbacks,
         }
         Path(self.path).write_text(json.dumps(result))
 

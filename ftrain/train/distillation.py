@@ -5,8 +5,8 @@ from __future__ import annotations
 from rsl_rl.algorithms import Distillation
 from rsl_rl.storage import RolloutStorage
 
+from ftrain.comm.group import RankInfo
 from ftrain.config import Config
-from ftrain.dist.group import RankInfo
 from ftrain.errors import UserError
 from ftrain.policy.load import load_policy
 from ftrain.policy.model import build_actor

@@ -13,8 +13,8 @@ from typing import TYPE_CHECKING
 
 import gymnasium as gym
 
+from ftrain.comm import group
 from ftrain.config import EvalConfig
-from ftrain.dist import group
 from ftrain.heartbeat import Phase
 from ftrain.policy.model import actor_actions
 from ftrain.policy.robot import make_env
@@ -54,7 +54,7 @@ class EvalHook(Hook):
         if count:
             actor = trainer.alg.get_policy()
             episodes = rollout(self.envs, lambda obs: actor_actions(actor, obs), count, self.config.seed + first)
-        (total,) = group.all_reduce_sum([sum(episode.ret for episode in episodes)], trainer.info, trainer.reducer)
+        (total,) = trainer.comm.sum_values([sum(episode.ret for episode in episodes)])
         metrics["eval_return"] = total / self.config.episodes
         metrics["eval_time"] = time.perf_counter() - started
 

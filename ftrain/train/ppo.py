@@ -1,70 +1,77 @@
-"""rsl-rl's algorithms built from an ftrain config; PPO with cheaper synchronisation and less per-step overhead.
+"""rsl-rl's PPO built from an ftrain config, as one rank's update of the global batch at any number of ranks.
 
-rsl-rl's own multi-process update issues three collectives per minibatch (gradient all-reduce, KL all-reduce,
-learning-rate broadcast) and three more per observation normalizer per iteration. :class:`FusedPPO` keeps the
-same synchronous data-parallel PPO and changes only how it communicates:
+Owns what the world size must not change: the same rollouts (the action noise of environment ``g`` is row ``g`` of
+a draw from the run's shared generator, the same on every rank; the environments are seeded by global index in the
+trainer) and the same update (minibatches of the global batch in the shared sample order, ``ftrain.train.minibatch``),
+so N ranks x E environments train what 1 rank x N·E trains, to rounding. Two ways to share the update:
 
-- the KL rides in the gradient buffer, and every rank applies the adaptive learning-rate rule to the same global
-  KL, which is what rank 0 would have broadcast: one collective per minibatch;
-- on one machine that collective goes through shared memory (:mod:`ftrain.dist.shm_allreduce`), not loopback TCP,
-  and across machines host first (:mod:`ftrain.dist.host_first`) (``shared_memory_all_reduce=false``: gloo);
-- actor and critic normalize the same observations, so their statistics are reduced once, in two collectives;
-- at an even number of ranks the update is split by model instead (``split_update``, ``ftrain.train.split``): the
-  ranks gather the rollout into one global batch, the first half learns the actor and the second half the critic on
-  all of it (data-parallel within a half), with Adam stepping only the weights that have gradients, and each half's
-  first rank sends its model, Adam's state for it and the losses to all at the end. At two ranks that is one rank's
-  update of the global batch bit for bit (the actor's gradients from its share of the loss are those from the whole
-  loss), with 5 meetings per iteration instead of 44, and each rank learning one model instead of both; the adaptive
-  schedule's KL goes from actor to critic at every minibatch without the actor waiting.
+- data-parallel: a rank learns both models from the samples it holds, its losses being their share of each global
+  minibatch, and the gradients are summed over the ranks (the KL and the losses ride in the same buffer);
+- split (``split_update``, an even number of ranks, ``ftrain.train.split``): the rollout is gathered, the first half
+  of the ranks learns the actor and the second half the critic on all of it (each team data-parallel over shares of
+  every minibatch), Adam steps only the weights with gradients, and each team's first rank sends its model and Adam's
+  state for it to all at the end; the critic's learning rate follows the actor's KL, sent to it per minibatch.
 
-Its ``act`` computes what rsl-rl's does, on the one observation group ftrain's environments have, without the
-TensorDict round trips; Adam runs as one fused kernel. The update computes rsl-rl's losses to rounding with fewer
-operations: what a minibatch reads of the rollout is made once per update (``ftrain.train.minibatch``), and the
-actor's loss is one autograd node (``ftrain.train.surrogate``), which brought the actor's minibatch step, the one a
-split update waits for, from 1.32x the critic's to 1.18x (per rank, in training: docs/speed.md).
+Every collective goes through ``ftrain.comm.collectives.Comm``, sized here from what is sent. ``act`` computes rsl-rl's
+on the one observation group ftrain's environments have; the actor's loss is one autograd node
+(``ftrain.train.surrogate``); Adam runs as one fused kernel.
+
+May import: ``ftrain.comm``, ``ftrain.policy.model``, ``ftrain.train``'s update modules, torch and rsl-rl.
 """
 
 from __future__ import annotations
 
-import math
+from collections.abc import Callable
 
 import torch
-import torch.distributed as dist
 from rsl_rl.algorithms import PPO, Distillation
 from rsl_rl.storage import RolloutStorage
 from tensordict import TensorDict
 from torch import nn
 
+from ftrain.comm.collectives import Comm, Traffic
+from ftrain.comm.group import RankInfo, run_seed
 from ftrain.config import Config
-from ftrain.dist.group import RankInfo
-from ftrain.dist.host_first import Collectives, build_collectives, hosts_of_ranks
 from ftrain.policy.model import OBS_GROUP, build_actor, build_model, gaussian_log_std, gaussian_std
 from ftrain.train.distillation import build_distillation
 from ftrain.train.envs import MujocoVecEnv
-from ftrain.train.minibatch import MiniBatch, mini_batches, rollout_fields
+from ftrain.train.minibatch import MiniBatch, Rollout, mini_batches, rollout_fields
 from ftrain.train.phases import Phases
-from ftrain.train.split import Role, Team, adam_record, build_team, load_adam_record, record_size
+from ftrain.train.split import Role, Team, adam_record, build_team, load_adam_record, record_size, splits_update
 from ftrain.train.surrogate import clipped_surrogate
+
+SMALL_GATHERS = 256
+"""float32 elements per rank that the iteration's small gathers carry at most (metrics, votes, reward statistics)."""
 
 
 class FusedPPO(PPO):
-    """rsl-rl PPO (MLP policies) with one all-reduce per minibatch, over shared memory where ranks share a host."""
+    """rsl-rl PPO (MLP policies): one rank's update of the global batch, on any number of ranks."""
 
     def __init__(
         self,
         *args,
-        reducer: Collectives | None = None,
+        comm: Comm,
+        shared_seed: int = 0,
         reshuffle_each_epoch: bool = False,
+        normalize_advantage_per_mini_batch: bool = False,
         phases: Phases | None = None,
         team: Team | None = None,
         **kwargs,
     ) -> None:
-        super().__init__(*args, **kwargs)
-        self.reducer = reducer
+        # rsl-rl would normalise the advantages over this rank's rollout alone: here the update does, over all ranks'
+        super().__init__(*args, normalize_advantage_per_mini_batch=True, **kwargs)
+        self.per_minibatch_advantages = normalize_advantage_per_mini_batch
+        self.comm = comm
+        """The collectives of all ranks."""
         self.team = team
         """This rank's team in a split update (``ftrain.train.split``); None: data-parallel, or alone."""
+        self.shared_generator = torch.Generator().manual_seed(shared_seed)
+        """The run's random stream for the action noise and the sample orders: the same on every rank."""
         self.phases = phases or Phases()
         self.reshuffle_each_epoch = reshuffle_each_epoch
+        self.first_env = self.gpu_global_rank * self.storage.num_envs
+        """This rank's first environment's global index."""
+        self.total_envs = self.gpu_world_size * self.storage.num_envs
         self._actor_params = list(self.actor.parameters())
         self._critic_params = list(self.critic.parameters())
         self.optimizer = torch.optim.Adam(self._actor_params + self._critic_params, lr=self.learning_rate, fused=True)
@@ -73,8 +80,12 @@ class FusedPPO(PPO):
         x = obs[OBS_GROUP]
         actor, critic = self._raw_actor, self._raw_critic
         distribution = actor.distribution
-        distribution.update(actor.mlp(actor.obs_normalizer(x)))
-        actions = distribution.sample()
+        mean = actor.mlp(actor.obs_normalizer(x))
+        distribution.update(mean)
+        # rsl-rl's sample (torch.normal(mean, std) is mean + std x standard noise, bit for bit), with the noise of
+        # every environment of the run drawn alike on every rank and this rank's rows taken
+        noise = torch.randn((self.total_envs, mean.shape[1]), generator=self.shared_generator)
+        actions = mean + gaussian_std(distribution) * noise[self.first_env : self.first_env + mean.shape[0]]
         transition = self.transition
         transition.hidden_states = (None, None)
         transition.actions = actions
@@ -97,9 +108,9 @@ class FusedPPO(PPO):
     def update(self) -> dict[str, float]:
         sums = {"value": 0.0, "surrogate": 0.0, "entropy": 0.0}
         learns_actor, learns_critic = self.role is not Role.CRITIC, self.role is not Role.ACTOR
-        fields, orders = self._gathered_rollout() if self.role is not None else self._local_rollout()
+        rollout = self._gathered_rollout() if self.role is not None else self._local_rollout()
         sends = []  # split update, adaptive schedule: the actor's KL of each minibatch, on its way to the critic
-        for batch in mini_batches(self, fields, orders):
+        for batch in mini_batches(self, rollout, self._sample_orders(rollout.samples)):
             if learns_actor:
                 actor_loss, surrogate_loss, entropy, kl_mean = self._actor_terms(batch)
             if learns_critic:
@@ -132,41 +143,55 @@ class FusedPPO(PPO):
             for send in sends:
                 send.wait()
             sums = self._exchange_models(sums)
-        self._update_normalizers(fields[0])
+        elif self.comm.size > 1:  # each rank's sums are its shares of the minibatches' means
+            sums = dict(zip(sums, self._sum_over_ranks(torch.tensor(list(sums.values()))).tolist(), strict=True))
+        self._update_normalizers(rollout.fields[0])
         self.storage.clear()
         num_updates = self.num_learning_epochs * self.num_mini_batches
         return {key: value / num_updates for key, value in sums.items()}
 
     def _actor_terms(self, batch: MiniBatch) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """The actor's loss of a minibatch, its clipped surrogate and entropy terms, and (adaptive schedule) its KL."""
+        """This rank's share of the actor's loss of a minibatch, of its clipped surrogate and entropy terms, and
+        (adaptive schedule) of its KL."""
         actor = self._raw_actor
         mean = actor.mlp(batch.actor_obs)
         log_std = gaussian_log_std(actor.distribution)
         loss, surrogate, entropy = clipped_surrogate(
-            mean, log_std, batch.actions, batch.advantages, batch.old_log_prob, self.clip_param, self.entropy_coef
+            mean,
+            log_std,
+            batch.actions,
+            batch.advantages,
+            batch.old_log_prob,
+            self.clip_param,
+            self.entropy_coef,
+            batch.size,
         )
         kl_mean = None
         if self.adaptive:
             with torch.inference_mode():
                 new = (mean, gaussian_std(actor.distribution).expand_as(mean))
-                kl_mean = torch.mean(actor.distribution.kl_divergence((batch.old_mean, batch.old_std), new))
+                kl_mean = actor.distribution.kl_divergence((batch.old_mean, batch.old_std), new).sum() / batch.size
         return loss, surrogate, entropy, kl_mean
 
     def _value_loss(self, batch: MiniBatch) -> torch.Tensor:
+        """This rank's share of the critic's loss of a minibatch."""
         values = self._raw_critic.mlp(batch.critic_obs)
         if self.use_clipped_value_loss:
             value_clipped = batch.values + (values - batch.values).clamp(-self.clip_param, self.clip_param)
-            return torch.max((values - batch.returns).pow(2), (value_clipped - batch.returns).pow(2)).mean()
-        return (batch.returns - values).pow(2).mean()
+            errors = torch.max((values - batch.returns).pow(2), (value_clipped - batch.returns).pow(2))
+        else:
+            errors = (batch.returns - values).pow(2)
+        return errors.sum() / batch.size
 
     def _synchronise(self, kl_mean: torch.Tensor | None, sends: list) -> torch.Tensor | None:
-        """After a backward pass: gradients averaged over the ranks that share a model, and the KL the learning rate
-        follows (``kl_mean``: this rank's actor's, adaptive schedule; a critic's rank receives its partner's)."""
-        if self.is_multi_gpu and self.role is None:
-            return self._all_reduce_mean(self._actor_params + self._critic_params, kl_mean)
+        """After a backward pass: gradients summed over the ranks that share a model, and the KL the learning rate
+        follows (``kl_mean``: this rank's share of the actor's, adaptive schedule; a critic's rank receives its
+        partner's)."""
+        if self.comm.size > 1 and self.role is None:
+            return self._all_reduce(self._actor_params + self._critic_params, kl_mean, self.comm)
         if self.team is not None and self.team.size > 1:
             own = self._actor_params if self.role is Role.ACTOR else self._critic_params
-            reduced = self._all_reduce_mean(own, kl_mean, self.team)
+            reduced = self._all_reduce(own, kl_mean, self.team.comm)
             kl_mean = reduced if kl_mean is not None else None
         if kl_mean is not None and self.role is Role.ACTOR:  # the critic's learning rate follows the actor's KL
             sends.append(self.team.send_kl(kl_mean))
@@ -175,73 +200,56 @@ class FusedPPO(PPO):
                 kl_mean = self.team.receive_kl()
         return kl_mean
 
-    def _local_rollout(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    def _local_rollout(self) -> Rollout:
         """This rank's rollout, flat (the one observation group as a plain tensor, no TensorDict indexing per
-        minibatch), and the sample order of each epoch."""
-        fields = rollout_fields(self.storage)
-        return [field.flatten(0, 1) for field in fields], self._sample_orders(self.storage.num_envs)
+        minibatch), and the advantages of all ranks (data-parallel: one all-gather per iteration)."""
+        fields = [field.flatten(0, 1) for field in rollout_fields(self.storage)]
+        advantages = self.storage.advantages.squeeze(-1)  # [steps, envs]
+        if self.comm.size > 1:  # [ranks, steps x envs] -> [steps, ranks, envs]: in the global order
+            every = self._all_gather(advantages.reshape(-1)).view(self.gpu_world_size, *advantages.shape)
+            advantages = every.transpose(0, 1)
+        envs = self.storage.num_envs
+        return Rollout(fields, advantages.reshape(-1), envs, self.first_env, self.total_envs)
 
-    def _gathered_rollout(self) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    def _gathered_rollout(self) -> Rollout:
         """Split update: every rank's rollout, environments in rank order (one global batch, as one rank with all
-        the environments would hold it), in the sample order rank 0 drew. One all-gather per iteration."""
+        the environments would hold it). One all-gather per iteration."""
         fields = rollout_fields(self.storage)
-        orders = self._sample_orders(self.storage.num_envs * self.gpu_world_size)  # every rank draws, alike
-        every = self._all_gather(
-            torch.cat([field.reshape(-1) for field in fields] + [order.float() for order in orders])
-        )
-        sizes = [field.numel() for field in fields] + [order.numel() for order in orders]
-        per_rank = [torch.split(row, sizes) for row in every]
+        every = self._all_gather(torch.cat([field.reshape(-1) for field in fields]))
+        per_rank = [torch.split(row, [field.numel() for field in fields]) for row in every]
         gathered = [  # [steps, envs, d] of each rank -> [steps, envs of all ranks, d] -> [steps x all envs, d]
             torch.cat([parts[i].view(field.shape) for parts in per_rank], dim=1).flatten(0, 1)
             for i, field in enumerate(fields)
         ]
-        return gathered, [order.long() for order in per_rank[0][len(fields) :]]
+        return Rollout(gathered, gathered[3].squeeze(-1), self.total_envs, 0, self.total_envs)
 
-    def _sample_orders(self, num_envs: int) -> list[torch.Tensor]:
-        """The sample order of each epoch, drawn up front (nothing else draws during the update): rsl-rl draws one
-        permutation for all epochs, so every epoch visits the same minibatches in the same order; with
-        ``reshuffle_each_epoch`` each epoch draws its own, as SB3 and most PPOs do."""
-        count = num_envs * self.storage.num_transitions_per_env
-        return [torch.randperm(count) for _ in range(self.num_learning_epochs if self.reshuffle_each_epoch else 1)]
+    def _sample_orders(self, samples: int) -> list[torch.Tensor]:
+        """The sample order of each epoch, drawn up front from the shared generator (every rank draws alike, so no
+        order is sent): rsl-rl draws one permutation for all epochs, so every epoch visits the same minibatches in
+        the same order; with ``reshuffle_each_epoch`` each epoch draws its own, as SB3 and most PPOs do."""
+        draws = self.num_learning_epochs if self.reshuffle_each_epoch else 1
+        return [torch.randperm(samples, generator=self.shared_generator) for _ in range(draws)]
 
-    def _all_reduce_mean(
-        self, params: list[nn.Parameter], kl_mean: torch.Tensor | None, team: Team | None = None
-    ) -> torch.Tensor | None:
-        """Average every gradient (and the KL, riding in the same buffer) over all ranks, or over ``team``, in place."""
+    def _all_reduce(self, params: list[nn.Parameter], kl_mean: torch.Tensor | None, comm: Comm) -> torch.Tensor | None:
+        """Sum every gradient (and the KL, riding in the same buffer) over ``comm``'s ranks, in place."""
         grads = [p.grad.view(-1) for p in params if p.grad is not None]
         extra = [kl_mean.view(1).to(grads[0].dtype)] if kl_mean is not None else []
-        ranks = team.size if team is not None else self.gpu_world_size
-        packed = self._sum_over_ranks(torch.cat(grads + extra), team).div_(ranks)
+        packed = self._sum_over_ranks(torch.cat(grads + extra), comm)
         offset = 0
         for grad in grads:
             grad.copy_(packed[offset : offset + grad.numel()])
             offset += grad.numel()
         return packed[offset] if kl_mean is not None else None
 
-    def _sum_over_ranks(self, tensor: torch.Tensor, team: Team | None = None) -> torch.Tensor:
-        """In place, over all ranks or over ``team``: through shared memory where it has some, else gloo."""
-        reducer, group = (team.reducer, team.group) if team is not None else (self.reducer, None)
+    def _sum_over_ranks(self, tensor: torch.Tensor, comm: Comm | None = None) -> torch.Tensor:
+        """In place, over all ranks or over ``comm``'s."""
         with self.phases("sync_update"):
-            if reducer is not None:
-                return reducer.all_reduce_(tensor)
-            dist.all_reduce(tensor, group=group)
-            return tensor
+            return (comm or self.comm).all_reduce_sum_(tensor)
 
     def _all_gather(self, tensor: torch.Tensor) -> torch.Tensor:
         """Every rank's ``tensor`` in rank order, ``[world, n]``."""
         with self.phases("sync_update"):
-            if self.reducer is not None and tensor.numel() <= self.reducer.capacity:
-                return self.reducer.all_gather(tensor)
-            every = [torch.empty_like(tensor) for _ in range(self.gpu_world_size)]
-            dist.all_gather(every, tensor)
-            return torch.stack(every)
-
-    def _broadcast(self, tensor: torch.Tensor, src: int) -> None:
-        """Rank ``src``'s ``tensor`` on every rank, in place: through shared memory where it fits, else gloo."""
-        if self.reducer is not None and tensor.numel() <= self.reducer.broadcast_capacity:
-            self.reducer.broadcast_(tensor, src)
-        else:
-            dist.broadcast(tensor, src=src)
+            return self.comm.all_gather(tensor)
 
     def _exchange_models(self, sums: dict[str, float]) -> dict[str, float]:
         """Split update: each team's first rank sends the model the team learned (weights, Adam's moments and step
@@ -249,8 +257,8 @@ class FusedPPO(PPO):
         data-parallel one."""
         team = self.team
         mine = torch.tensor(list(sums.values()))
-        if team.size > 1:  # the mean over the members' shares
-            mine = self._sum_over_ranks(mine, team) / team.size
+        if team.size > 1:  # the members' shares of the minibatches' means
+            mine = self._sum_over_ranks(mine, team.comm)
         losses = {}
         with self.phases("sync_update"):
             for role, params in ((Role.ACTOR, self._actor_params), (Role.CRITIC, self._critic_params)):
@@ -259,7 +267,7 @@ class FusedPPO(PPO):
                     record = torch.cat([mine, adam_record(self.optimizer, params)])
                 else:
                     record = torch.empty(len(sums) + record_size(params))
-                self._broadcast(record, (team.ranks if ours else team.other)[0])
+                self.comm.broadcast_(record, (team.ranks if ours else team.other)[0])
                 if not ours:
                     load_adam_record(self.optimizer, params, record[len(sums) :])
                 losses[role] = dict(zip(sums, record[: len(sums)].tolist(), strict=True))
@@ -309,23 +317,17 @@ class FusedPPO(PPO):
             group["lr"] = self.learning_rate
 
 
-def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases | None = None) -> FusedPPO:
+def build_ppo(
+    config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases | None = None, say: Callable[[str], None] = print
+) -> FusedPPO:
+    """``say``: where the collectives say a fallback to gloo (``ftrain.comm.collectives``)."""
     obs = env.get_observations()
     actor = build_actor(config, obs, env.num_actions)
     critic = build_model(config, obs, "critic", 1)
     storage = RolloutStorage("rl", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
     a = config.algorithm
-    sizes = [[p.numel() for p in model.parameters()] for model in (actor, critic)]
-    hosts = hosts_of_ranks(info) if config.shared_memory_all_reduce and info.distributed else None
-    team = build_team(config, info, max(map(sum, sizes)) + 1, hosts)
-    capacity = sum(map(sum, sizes)) + 1  # data-parallel: the gradients of both models and the KL
-    if team is not None:  # gathers the rollout and its sample orders instead, and broadcasts the models
-        samples = env.num_envs * config.num_steps_per_env
-        draws = a.num_learning_epochs if a.reshuffle_each_epoch else 1
-        record = 3 + max(record_size(list(model.parameters())) for model in (actor, critic))
-        rollout = samples * (env.num_obs + 3 * env.num_actions + 4 + 2 * draws)
-        capacity = max(rollout, math.ceil(record / info.world_size))  # a broadcast carries world x capacity
-    reducer = build_collectives(info, capacity, config.dist_timeout, hosts)
+    comm, team_traffic = _build_comm(config, env, info, [actor, critic], say)
+    team = build_team(config, info, comm, team_traffic)
     return FusedPPO(
         actor,
         critic,
@@ -344,20 +346,41 @@ def build_ppo(config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases 
         desired_kl=a.desired_kl,
         normalize_advantage_per_mini_batch=a.normalize_advantage_per_mini_batch,
         multi_gpu_cfg=info.rsl_rl_cfg(),
-        reducer=reducer,
+        comm=comm,
+        shared_seed=run_seed(config.seed, "update"),
         reshuffle_each_epoch=a.reshuffle_each_epoch,
         phases=phases,
         team=team,
     )
 
 
+def _build_comm(
+    config: Config, env: MujocoVecEnv, info: RankInfo, models: list[nn.Module], say: Callable[[str], None]
+) -> tuple[Comm, Traffic]:
+    """The comm of all ranks, sized for what the update sends, and what a split update's team member sends its team."""
+    sizes = [sum(p.numel() for p in model.parameters()) for model in models]
+    samples = env.num_envs * config.num_steps_per_env
+    small = max(SMALL_GATHERS, 2 * (env.num_obs + 1))  # (the observation normalizer's moments)
+    if splits_update(config, info):  # the rollout gathered; each team's model with Adam's state broadcast
+        rollout = samples * (env.num_obs + 3 * env.num_actions + 4)
+        record = 3 + max(record_size(list(model.parameters())) for model in models)
+        traffic = Traffic(per_rank=max(rollout, small), broadcast=record)
+    else:  # both models' gradients, the KL and the losses; the advantages gathered
+        traffic = Traffic(per_rank=max(sum(sizes) + 4, samples, small))
+    comm = Comm.build(info, traffic, config.dist_timeout, config.shared_memory_all_reduce, say)
+    return comm, Traffic(per_rank=max(sizes) + 4)
+
+
 def build_algorithm(
-    config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases | None = None
-) -> PPO | Distillation:
-    """``phases``: where PPO's update charges its all-reduces (rsl-rl's Distillation keeps them in its update)."""
+    config: Config, env: MujocoVecEnv, info: RankInfo, phases: Phases, say: Callable[[str], None]
+) -> tuple[PPO | Distillation, Comm]:
+    """The algorithm and the comm the training loop's own collectives go through. ``phases``: where PPO's update
+    charges its collectives (rsl-rl's Distillation keeps its own, over gloo, in its update)."""
     if config.algorithm.class_name == "Distillation":
-        return build_distillation(config, env, info)
-    return build_ppo(config, env, info, phases)
+        small = Traffic(per_rank=SMALL_GATHERS)
+        return build_distillation(config, env, info), Comm.build(info, small, config.dist_timeout, False, say)
+    alg = build_ppo(config, env, info, phases, say)
+    return alg, alg.comm
 
 
 def load_learned_state(alg: PPO | Distillation, state: dict, learning_rate: float) -> None:

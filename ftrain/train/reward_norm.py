@@ -15,15 +15,11 @@ per-step collective; the first iteration, before any statistics, leaves rewards 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import torch
 
+from ftrain.comm.collectives import Comm
 from ftrain.config import Config
-from ftrain.dist import group
-
-if TYPE_CHECKING:
-    from ftrain.dist.host_first import Collectives
 
 EPSILON = 1e-8
 """Added to the variance before the square root (SB3's default)."""
@@ -36,14 +32,12 @@ class RewardNormalizer:
         num_steps: int,
         gamma: float,
         clip: float,
-        info: group.RankInfo,
-        reducer: Collectives | None = None,
+        comm: Comm,
     ) -> None:
         self.gamma = gamma
         self.clip = clip
-        self.info = info
-        self.reducer = reducer
-        """The ranks' shared memory, if they have one: the statistics' all-reduce goes through it."""
+        self.comm = comm
+        """How the ranks meet: the statistics' sum goes through it."""
         self.returns = torch.zeros(num_envs, dtype=torch.float64)
         """Each environment's discounted return since its episode began."""
         self.count = 0.0
@@ -69,9 +63,7 @@ class RewardNormalizer:
         """Fold this iteration's returns, from all ranks, into the shared statistics (Chan et al.'s merge)."""
         seen = self._seen[: self._steps]
         self._steps = 0
-        count, total, squares = group.all_reduce_sum(
-            [seen.numel(), seen.sum().item(), seen.square().sum().item()], self.info, self.reducer
-        )
+        count, total, squares = self.comm.sum_values([seen.numel(), seen.sum().item(), seen.square().sum().item()])
         if not count:
             return
         batch_mean = total / count
@@ -93,12 +85,10 @@ class RewardNormalizer:
         self.returns.copy_(returns)
 
 
-def build_reward_normalizer(
-    config: Config, info: group.RankInfo, reducer: Collectives | None = None
-) -> RewardNormalizer | None:
+def build_reward_normalizer(config: Config, comm: Comm) -> RewardNormalizer | None:
     """The normalizer ``config.reward`` asks for, if any."""
     if not config.reward.normalize:
         return None
     return RewardNormalizer(
-        config.env.num_envs, config.num_steps_per_env, config.algorithm.gamma, config.reward.clip, info, reducer
+        config.env.num_envs, config.num_steps_per_env, config.algorithm.gamma, config.reward.clip, comm
     )

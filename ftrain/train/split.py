@@ -9,7 +9,6 @@ minibatch never leave it. A model's weights travel with Adam's state for them, i
 
 from __future__ import annotations
 
-import datetime
 import enum
 from dataclasses import dataclass
 
@@ -17,9 +16,9 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from ftrain.comm.collectives import Comm, Traffic
+from ftrain.comm.group import RankInfo
 from ftrain.config import Config
-from ftrain.dist.group import RankInfo
-from ftrain.dist.shm_allreduce import SharedMemoryAllReduce
 
 
 class Role(enum.Enum):
@@ -38,10 +37,8 @@ class Team:
     """The other team's ranks."""
     rank: int
     """This rank's global rank."""
-    group: dist.ProcessGroup | None
-    """The team's own process group (None: a team of one)."""
-    reducer: SharedMemoryAllReduce | None
-    """The team's shared memory, where its ranks share a machine."""
+    comm: Comm
+    """The team's collectives: its own process group, and its shared memory where its ranks share a machine."""
 
     @property
     def index(self) -> int:
@@ -73,21 +70,16 @@ def splits_update(config: Config, info: RankInfo) -> bool:
     return config.split_update and info.world_size >= 2 and info.world_size % 2 == 0
 
 
-def build_team(config: Config, info: RankInfo, capacity: int, hosts: list[str] | None) -> Team | None:
+def build_team(config: Config, info: RankInfo, comm: Comm, traffic: Traffic) -> Team | None:
     """This rank's team (every rank calls it at the same point), or None where the update is not split.
-    ``capacity``: the floats of one model's gradients, for the team's shared memory, where its ranks share a host
-    (``hosts``: every rank's, None where ranks do not share memory)."""
+    ``traffic``: what a team member sends its team (one model's gradients with the KL and the losses)."""
     if not splits_update(config, info):
         return None
     half = info.world_size // 2
     teams = [list(range(half)), list(range(half, info.world_size))]
-    timeout = datetime.timedelta(seconds=config.dist_timeout)
-    groups = [dist.new_group(ranks, timeout=timeout, backend="gloo") for ranks in teams] if half > 1 else [None] * 2
     number = 0 if info.rank < half else 1
-    reducer = None
-    if half > 1 and hosts is not None and len({hosts[rank] for rank in teams[number]}) == 1:
-        reducer = SharedMemoryAllReduce(info, capacity, config.dist_timeout, groups[number], teams[number])
-    return Team(Role(number), teams[number], teams[1 - number], info.rank, groups[number], reducer)
+    own = comm.team(teams, traffic, config.dist_timeout)
+    return Team(Role(number), teams[number], teams[1 - number], info.rank, own)
 
 
 def adam_record(optimizer: torch.optim.Adam, params: list[nn.Parameter]) -> torch.Tensor:

@@ -21,7 +21,7 @@ LOG_SQRT_2PI = math.log(math.sqrt(2 * math.pi))
 
 class _ClippedSurrogate(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, mean, log_std, actions, advantages, old_log_prob, clip: float, entropy_coef: float):
+    def forward(ctx, mean, log_std, actions, advantages, old_log_prob, clip: float, entropy_coef: float, batch: int):
         # in place wherever a temporary allows: at a minibatch of ~100 samples the cost is per operation, not per number
         inv_std = log_std.neg().exp_()
         z = (actions - mean).mul_(inv_std)
@@ -35,11 +35,12 @@ class _ClippedSurrogate(torch.autograd.Function):
         # through each, all of it reaching the ratio; two terms that round equal outside it (a ratio an ulp past the
         # range) give the ratio all of it here and half under autograd: a difference of rounding's size
         through = unclipped <= clipped
-        surrogate = torch.minimum(unclipped, clipped).mean().neg_()
-        slope = unclipped.mul_(through).div_(-mean.shape[0])
-        entropy = log_std_sum + mean.shape[-1] * (0.5 + LOG_SQRT_2PI)
+        surrogate = torch.minimum(unclipped, clipped).sum().div_(batch).neg_()
+        slope = unclipped.mul_(through).div_(-batch)
+        share = mean.shape[0] / batch
+        entropy = (log_std_sum + mean.shape[-1] * (0.5 + LOG_SQRT_2PI)) * share
         ctx.save_for_backward(z, inv_std, slope)
-        ctx.entropy_coef = entropy_coef
+        ctx.entropy_weight = entropy_coef * share
         ctx.mark_non_differentiable(surrogate, entropy)
         return surrogate - entropy_coef * entropy, surrogate, entropy
 
@@ -48,8 +49,8 @@ class _ClippedSurrogate(torch.autograd.Function):
         z, inv_std, slope = ctx.saved_tensors
         weight = (slope * grad_loss).unsqueeze(-1)
         grad_mean = weight * z * inv_std
-        grad_log_std = (weight * (z.square() - 1.0)).sum(0) - ctx.entropy_coef * grad_loss
-        return grad_mean, grad_log_std, None, None, None, None, None
+        grad_log_std = (weight * (z.square() - 1.0)).sum(0) - ctx.entropy_weight * grad_loss
+        return grad_mean, grad_log_std, None, None, None, None, None, None
 
 
 def clipped_surrogate(
@@ -60,8 +61,11 @@ def clipped_surrogate(
     old_log_prob: torch.Tensor,
     clip: float,
     entropy_coef: float,
+    batch: int | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """PPO's actor loss ``surrogate - entropy_coef * entropy`` of a minibatch, differentiable in ``mean`` ``[B, d]``
-    and ``log_std`` ``[d]``; with the clipped surrogate loss and the mean entropy, for the logs.
-    ``advantages`` and ``old_log_prob``: ``[B]``."""
-    return _ClippedSurrogate.apply(mean, log_std, actions, advantages, old_log_prob, clip, entropy_coef)
+    and ``log_std`` ``[d]``; with the clipped surrogate loss and the mean entropy, for the logs. ``advantages`` and
+    ``old_log_prob``: ``[B]``. ``batch``: the size of the whole minibatch, where these ``B`` samples are a rank's
+    share of it (default ``B``): each term is then the share's part of the whole minibatch's mean."""
+    batch = mean.shape[0] if batch is None else batch
+    return _ClippedSurrogate.apply(mean, log_std, actions, advantages, old_log_prob, clip, entropy_coef, batch)

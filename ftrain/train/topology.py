@@ -9,17 +9,16 @@ import socket
 from collections.abc import Callable
 from pathlib import Path
 
+from ftrain.comm import group
+from ftrain.comm.collectives import Comm
 from ftrain.config import Config
-from ftrain.dist import group
-from ftrain.dist.host_first import HostFirst
 from ftrain.train.split import splits_update
 
 RUN_FILE = "run.json"
 
 
-def describe(config: Config, info: group.RankInfo, hosts: list[str], reducer: object | None) -> dict:
-    """The run as data: ``hosts``, every rank's host name in rank order; ``reducer``, the collectives of the ranks'
-    shared memory that the algorithm built (``ftrain.dist.host_first``; None: none)."""
+def describe(config: Config, info: group.RankInfo, hosts: list[str], comm: Comm) -> dict:
+    """The run as data: ``hosts``, every rank's host name in rank order; ``comm``, how the ranks meet."""
     world = info.world_size
     batch = {"ranks": world, "envs": config.env.num_envs, "steps": config.num_steps_per_env}
     batch["total"] = world * config.env.num_envs * config.num_steps_per_env
@@ -27,7 +26,7 @@ def describe(config: Config, info: group.RankInfo, hosts: list[str], reducer: ob
         "ranks": world,
         "hosts": {host: [rank for rank, name in enumerate(hosts) if name == host] for host in dict.fromkeys(hosts)},
         "update": _update(config, info),
-        "transport": _transport(config, info, reducer),
+        "transport": _transport(config, comm),
         "global_batch": batch,
     }
 
@@ -45,13 +44,9 @@ def _update(config: Config, info: group.RankInfo) -> dict:
     return {"kind": "data-parallel", "why": why}
 
 
-def _transport(config: Config, info: group.RankInfo, reducer: object | None) -> str:
-    if not info.distributed:
-        return "none (one process)"
-    if isinstance(reducer, HostFirst):
-        return "shared memory within hosts, gloo between them"
-    if reducer is not None:
-        return "shared memory (one host)"
+def _transport(config: Config, comm: Comm) -> str:
+    if comm.size == 1 or comm.shared is not None:
+        return comm.transport
     if not config.shared_memory_all_reduce:
         return "gloo (shared_memory_all_reduce=false)"
     if config.algorithm.class_name == "Distillation":
@@ -63,15 +58,7 @@ def summary(run: dict) -> str:
     """``describe``'s run in one line."""
     hosts = run["hosts"]
     where = ", ".join(f"{_ranks(ranks)} on {host}" for host, ranks in hosts.items())
-    update = run["update"]
-    if update["kind"] == "split":
-        team = len(update["actor"])
-        within = f", data-parallel within each team of {team}" if team > 1 else ""
-        shared = f"split: actor on {_ranks(update['actor'])}, critic on {_ranks(update['critic'])}{within}"
-    elif update["kind"] == "data-parallel":
-        shared = f"data-parallel ({update['why']})"
-    else:
-        shared = "on one rank"
+    shared = update_words(run["update"])
     batch = run["global_batch"]
     ranks = "rank" if run["ranks"] == 1 else "ranks"
     return (
@@ -81,10 +68,21 @@ def summary(run: dict) -> str:
     )
 
 
-def announce(config: Config, info: group.RankInfo, reducer: object | None, log: Callable[[str], None]) -> dict:
+def update_words(update: dict) -> str:
+    """How the update is shared between the ranks (``describe``'s ``update``), in words."""
+    if update["kind"] == "split":
+        team = len(update["actor"])
+        within = f", data-parallel within each team of {team}" if team > 1 else ""
+        return f"split: actor on {_ranks(update['actor'])}, critic on {_ranks(update['critic'])}{within}"
+    if update["kind"] == "data-parallel":
+        return f"data-parallel ({update['why']})"
+    return "on one rank"
+
+
+def announce(config: Config, info: group.RankInfo, comm: Comm, log: Callable[[str], None]) -> dict:
     """Every rank at the same point (it gathers the hosts' names): rank 0 logs the run's line and writes
     ``run.json``."""
-    run = describe(config, info, group.all_gather_object(socket.gethostname(), info), reducer)
+    run = describe(config, info, group.all_gather_object(socket.gethostname(), info), comm)
     if info.is_main:
         log(summary(run))
         log_dir = Path(config.log_dir)

@@ -25,8 +25,8 @@ from ftrain.ckpt.lease import LeaseHeld, LeaseLost
 from ftrain.ckpt.manager import Checkpointer
 from ftrain.ckpt.resume import CheckpointError
 from ftrain.ckpt.storage import StorageUnavailable
+from ftrain.comm import group
 from ftrain.config import Config
-from ftrain.dist import group
 from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, stop_code
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter, read_stop_reason
 from ftrain.policy.model import action_std
@@ -40,39 +40,13 @@ from ftrain.train.phases import Phases
 from ftrain.train.ppo import build_algorithm, load_learned_state
 from ftrain.train.reward_norm import build_reward_normalizer
 from ftrain.train.snapshot_hook import PolicySnapshotHook
+from ftrain.train.stop import StopRequest
 from ftrain.train.tracking import TrackingHook
 
 EXIT_CHECKPOINT = 1
 """Exit code when a checkpoint cannot be saved or loaded (the supervisor restarts; its crash-loop rule stops it)."""
 EPISODE_WINDOW = 100
 """Completed episodes per rank that the mean return and length are taken over."""
-
-
-class StopRequest:
-    """SIGTERM or SIGINT: stop at the next iteration boundary (the ranks agree, save, and exit 143 or 130, 128 + the
-    signal, so that scripts and schedulers tell a stop from the end of training).
-
-    Installed before anything slow starts, so an early signal is not lost. Repeated SIGTERMs are one request (a
-    scheduler and torchrun may both forward it); a second SIGINT (Ctrl-C twice) stops at once.
-    """
-
-    def __init__(self) -> None:
-        self.signal: int | None = None
-        """The first stop signal this rank received."""
-
-    @property
-    def requested(self) -> bool:
-        return self.signal is not None
-
-    def install(self) -> None:
-        signal.signal(signal.SIGTERM, self._handle)
-        signal.signal(signal.SIGINT, self._handle)
-
-    def _handle(self, signum: int, frame: object) -> None:
-        if self.requested and signum == signal.SIGINT:
-            signal.signal(signal.SIGINT, signal.SIG_DFL)
-            raise KeyboardInterrupt
-        self.signal = self.signal or signum
 
 
 class Votes(typing.NamedTuple):
@@ -106,23 +80,26 @@ class Trainer:
         self.lease_lost = lease_lost
         torch.set_num_threads(config.torch_threads)
         group.seed_all(config.seed)  # identical model initialisation on every rank
-        seed = group.rank_seed(config.seed, info.rank)
-        self.env = MujocoVecEnv(config.env.id, config.env.num_envs, seed, config.env.kwargs, config.env.imports)
+        first_env = info.rank * config.env.num_envs  # environments are seeded by their global index
+        env_seed = group.env_seed(config.seed, first_env)
+        self.env = MujocoVecEnv(config.env.id, config.env.num_envs, env_seed, config.env.kwargs, config.env.imports)
         if notice := unsaved_state_notice(self.env.robot):
             self.log(notice)
         self.phases = Phases()
-        self.alg = build_algorithm(config, self.env, info, self.phases)
-        self.reducer = getattr(self.alg, "reducer", None)
-        """The ranks' shared memory, where they share a machine: the iteration's small all-reduces go through it."""
-        topology.announce(config, info, self.reducer, self.log)  # what runs where, in one line, and run.json
-        self.reward_norm = build_reward_normalizer(config, info, self.reducer)
+        self.alg, self.comm = build_algorithm(
+            config, self.env, info, self.phases, lambda line: self.log(line, every_rank=True)
+        )
+        """``comm``: how the ranks meet; the iteration's small collectives go through it too."""
+        self.run_description = topology.announce(config, info, self.comm, self.log)  # one line, and run.json
+        self.reward_norm = build_reward_normalizer(config, self.comm)
         self.lr_schedule = build_lr_schedule(config.algorithm)
         if notice := horizon_notice(config.algorithm, config.iterations):
             self.log(notice)
         if hasattr(self.alg, "teacher_identity"):  # which teacher a distillation learns from, at once
             teacher = self.alg.teacher_identity
             self.log(f"teacher: {teacher['source']} (step {teacher['step']}, state_sha256 {teacher['digest'][:16]})")
-        group.seed_all(seed)  # from here on, each rank samples its own actions and minibatches
+        group.seed_all(group.rank_seed(config.seed, info.rank))  # what else draws (the action noise and the
+        # sample orders come from the algorithm's shared generator: the same on every rank)
         self.hooks = build_hooks(config)
         self.iteration = 0
         self.env_steps = 0
@@ -160,6 +137,12 @@ class Trainer:
                 "metrics": dict(self.metrics),
                 "hooks": self.hooks.state_dict(),
                 "config": self._config_json,
+                "update": self.run_description["update"]["kind"],
+                **(
+                    {"shared_rng": self.alg.shared_generator.get_state()}
+                    if hasattr(self.alg, "shared_generator")
+                    else {}
+                ),
                 **({"reward_norm": self.reward_norm.common_state()} if self.reward_norm is not None else {}),
                 **({"teacher": self.alg.teacher_identity} if hasattr(self.alg, "teacher_identity") else {}),
             },
@@ -192,10 +175,20 @@ class Trainer:
                     f"it started with ({own['teacher']['source']}, step {own['teacher']['step']})"
                 )
             self.alg.teacher_identity = own["teacher"]
+        if hasattr(self.alg, "shared_generator"):  # (absent: a checkpoint of before the shared stream)
+            shared = own.get("shared_rng")
+            if shared is not None:
+                self.alg.shared_generator.set_state(shared)
+            else:
+                self.alg.shared_generator.manual_seed(group.run_seed(self.config.seed, "update", self.iteration))
+        update = self.run_description["update"]
+        if own.get("update", update["kind"]) != update["kind"]:
+            now = topology.update_words(update)
+            self.log(f"the update was {own['update']} until step {self.iteration}; from here on: {now}")
         if rank is None:  # a rank that joins a resized run: environments and random streams of its own
-            seed = group.rank_seed(self.config.seed, self.info.rank, self.iteration)
-            self.env.reset(seed)
-            group.seed_all(seed)
+            first_env = self.info.rank * self.config.env.num_envs
+            self.env.reset(group.env_seed(self.config.seed, first_env, self.iteration))
+            group.seed_all(group.rank_seed(self.config.seed, self.info.rank, self.iteration))
             self.episodes.clear()
             return
         self.env.set_state(rank["env"])
@@ -302,10 +295,8 @@ class Trainer:
         votes = (*stops, *self.checkpointer.votes(self.iteration), self.lease_lost() is not None)
         phases = self.phases.take()
         with self.phases("sync_metrics"):
-            every = group.all_gather_values(
-                [returns, lengths, len(self.episodes), steps, *map(float, votes), *phases.values()],
-                self.info,
-                self.reducer,
+            every = self.comm.gather_values(
+                [returns, lengths, len(self.episodes), steps, *map(float, votes), *phases.values()]
             )
         total_returns, total_lengths, count, total_steps, *summed = every.sum(dim=0).tolist()
         terms, ints, save, store, hold, lost = (vote > 0 for vote in summed[: len(votes)])
@@ -330,6 +321,9 @@ class Trainer:
             "collect_time": collect_time,
             "learn_time": learn_time,
             "iteration_time": iteration_time,
+            "update_split": float(self.run_description["update"]["kind"] == "split"),
+            "comm_fallbacks": float(self.comm.fallbacks),
+            "comm_sent_kb": self.comm.take_sent() / 1024,
             **phase_ms,
         }
 

@@ -55,8 +55,8 @@ HEADER = struct.Struct("!I")
 STREAMS = (0, 1, 2)
 FORWARDED = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2)
 """What a stand-in passes on to its worker (SIGKILL and SIGSTOP cannot be caught: the pool sees the stand-in end)."""
-ENTRIES = {"train": ("ftrain.cli", "main"), "torchrun": ("ftrain.dist.torchrun", "run")}
-"""What a stand-in asks the pool to run: ``ftrain train ARGS`` (a worker), torchrun (``ftrain.dist.torchrun``)."""
+ENTRIES = {"train": ("ftrain.cli", "main"), "torchrun": ("ftrain.torchrun", "run")}
+"""What a stand-in asks the pool to run: ``ftrain train ARGS`` (a worker), torchrun (``ftrain.torchrun``)."""
 
 
 def address(supervisor: str) -> str:

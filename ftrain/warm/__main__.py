@@ -3,7 +3,7 @@
 cold). It imports what it forks, then forks one child per stand-in. A forked child leaves the pool's loop with the
 stand-in's request and runs its entry as the stand-in would have.
 
-``python -m ftrain.warm torchrun ARGS``: the supervisor's stand-in for ``python -m ftrain.dist.torchrun ARGS``."""
+``python -m ftrain.warm torchrun ARGS``: the supervisor's stand-in for ``python -m ftrain.torchrun ARGS``."""
 
 from __future__ import annotations
 
@@ -188,7 +188,7 @@ def _forget_exit_functions() -> None:
 
 
 def stand_in_for_torchrun(argv: list[str]) -> int:
-    """Like ``python -m ftrain.dist.torchrun ARGV``, which it becomes where no pool answers."""
+    """Like ``python -m ftrain.torchrun ARGV``, which it becomes where no pool answers."""
     die_with_supervisor()
     name_process("torchrun stand-in")
     code = handover(TORCHRUN, argv)

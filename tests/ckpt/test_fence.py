@@ -13,8 +13,8 @@ from ftrain.ckpt.lease import LEASE, Lease, Record
 from ftrain.ckpt.save import Result, StepWriter
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
+from ftrain.comm.group import RankInfo
 from ftrain.config import CheckpointConfig
-from ftrain.dist.group import RankInfo
 from ftrain.identity import ATTEMPT_ENV, GENERATION_ENV, RUN_ID_ENV, Identity
 
 

@@ -19,8 +19,8 @@ from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.save import Result, StepWriter
 from ftrain.ckpt.steps import ASIDE, clear_newer, quarantine, scan, select_resume, set_aside, superseded_reason
 from ftrain.ckpt.storage import Storage
+from ftrain.comm.group import RankInfo
 from ftrain.config import CheckpointConfig
-from ftrain.dist.group import RankInfo
 from ftrain.errors import UserError
 from ftrain.identity import ATTEMPT_ENV, GENERATION_ENV, RUN_ID_ENV, Identity
 from ftrain.policy.snapshots import PoliciesView

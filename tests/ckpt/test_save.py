@@ -18,8 +18,8 @@ from ftrain.ckpt.format import MANIFEST, VERIFIED, decode, encode, learned_state
 from ftrain.ckpt.save import Result, StepWriter, snapshot
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
+from ftrain.comm.group import RankInfo
 from ftrain.config import CheckpointConfig, load_config
-from ftrain.dist.group import RankInfo
 from ftrain.heartbeat import ENV_DIR
 from ftrain.train.trainer import train
 

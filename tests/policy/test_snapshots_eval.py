@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from ftrain.cli import main
-from ftrain.dist.group import RankInfo
+from ftrain.comm.group import RankInfo
 from ftrain.errors import UserError
 from ftrain.policy import snapshots
 from ftrain.policy.export import sample_observations

@@ -135,5 +135,5 @@ def test_a_socket_name_taken_by_someone_else_means_cold_starts(tmp_path, capfd) 
     with squatter:
         launcher = Launcher(SupervisorOptions(), tmp_path / "pool.log")
     command, env = launcher.command([], [], tmp_path)
-    assert launcher.pool is None and env == {} and "ftrain.dist.torchrun" in command
+    assert launcher.pool is None and env == {} and "ftrain.torchrun" in command
     assert "ftrain supervise: no warm pool ([Errno 98] Address already in use): cold starts" in capfd.readouterr().err

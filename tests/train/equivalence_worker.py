@@ -1,5 +1,7 @@
-"""Run under torchrun (or alone): FusedPPO and rsl-rl's own PPO, from the same weights, the same environment state
-and the same random streams, must produce the same actions and, after an update, the same learned state."""
+"""Run alone: FusedPPO and rsl-rl's own PPO, from the same weights, the same environment state and the same random
+streams (FusedPPO's shared generator in the state of torch's, which rsl-rl draws from), must produce the same actions
+and, after an update, the same learned state. (At N ranks, FusedPPO trains what it trains here on all the
+environments: tests/train/test_world_size.py.)"""
 
 from __future__ import annotations
 
@@ -11,8 +13,8 @@ import torch
 from rsl_rl.algorithms import PPO
 from rsl_rl.storage import RolloutStorage
 
+from ftrain.comm import group
 from ftrain.config import load_config
-from ftrain.dist import group
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.ppo import build_ppo
 
@@ -39,7 +41,6 @@ def rollout_and_update(alg, env: MujocoVecEnv, steps: int) -> tuple[list[torch.T
 def main(out: str) -> None:
     info = group.init(30)
     torch.set_num_threads(1)
-    # data-parallel, as rsl-rl is (two ranks would split the update: tests/train/split_worker.py)
     config = load_config("configs/smoke.yaml", ["env.num_envs=8", "algorithm.num_mini_batches=4", "split_update=false"])
     seed = group.rank_seed(config.seed, info.rank)
     group.seed_all(config.seed)
@@ -63,6 +64,7 @@ def main(out: str) -> None:
     for name, alg in (("ours", ours), ("theirs", theirs)):
         env.set_state(start_env)
         group.set_rng_state(start_rng)
+        ours.shared_generator.set_state(start_rng["torch"])
         actions, losses = rollout_and_update(alg, env, config.num_steps_per_env)
         results[name] = (actions, losses, alg)
     (a_ours, l_ours, ours), (a_theirs, l_theirs, theirs) = results["ours"], results["theirs"]

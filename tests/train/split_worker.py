@@ -1,6 +1,7 @@
 """Run under torchrun at two ranks: one rollout and one split update (rank 0 learns the actor, rank 1 the critic).
-Rank 0 saves, to OUT, what the update started from (models, optimizer, the gathered batch and its sample orders) and
-what it ended with; every rank saves its end state to OUT.RANK, so the test can replay the update on one rank."""
+Rank 0 saves, to OUT, what the update started from (models, optimizer, the gathered batch, and the state of the shared
+generator its sample orders come from) and what it ended with; every rank saves its end state to OUT.RANK, so the
+test can replay the update on one rank."""
 
 from __future__ import annotations
 
@@ -10,8 +11,8 @@ import sys
 import torch
 from equivalence_worker import rollout
 
+from ftrain.comm import group
 from ftrain.config import load_config
-from ftrain.dist import group
 from ftrain.train.envs import MujocoVecEnv
 from ftrain.train.ppo import build_ppo
 
@@ -21,13 +22,16 @@ def main(out: str, *overrides: str) -> None:
     torch.set_num_threads(1)
     config = load_config("configs/smoke.yaml", list(overrides))
     group.seed_all(config.seed)
-    env = MujocoVecEnv(config.env.id, config.env.num_envs, group.rank_seed(config.seed, info.rank), config.env.kwargs)
+    first_env = info.rank * config.env.num_envs
+    env = MujocoVecEnv(config.env.id, config.env.num_envs, group.env_seed(config.seed, first_env), config.env.kwargs)
     alg = build_ppo(config, env, info)
     assert alg.team is not None, "an even number of ranks splits the update by default"
     rollout(alg, env, config.num_steps_per_env)
     start = {"models": copy.deepcopy(alg.save()), "learning_rate": alg.learning_rate}
-    gather = alg._gathered_rollout
-    alg._gathered_rollout = lambda: start.setdefault("batch", gather())
+    start["shared_rng"] = alg.shared_generator.get_state()  # the update's sample orders are drawn from it
+    batch = alg._gathered_rollout()
+    alg._gathered_rollout = lambda: batch
+    start |= {"fields": batch.fields, "advantages": batch.advantages}
     losses = alg.update()
     end = {"models": alg.save(), "losses": losses, "learning_rate": alg.learning_rate}
     if info.is_main:

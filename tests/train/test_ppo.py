@@ -1,4 +1,5 @@
-"""FusedPPO is rsl-rl's PPO with cheaper synchronisation: same actions, same update, on 1 and 2 real ranks."""
+"""FusedPPO is rsl-rl's PPO: the same actions and update on one rank; a split update of real ranks is one rank's update
+of the gathered batch; a data-parallel rank learns from exactly the samples of the global batch that it holds."""
 
 from __future__ import annotations
 
@@ -10,24 +11,20 @@ import pytest
 import torch
 from equivalence_worker import rollout
 
+from ftrain.comm.group import RankInfo
 from ftrain.config import load_config
-from ftrain.dist.group import RankInfo
 from ftrain.train.envs import MujocoVecEnv
-from ftrain.train.minibatch import mini_batches
+from ftrain.train.minibatch import Rollout, mini_batches
 from ftrain.train.ppo import build_ppo, load_learned_state
 
 from helpers import REPO, SMOKE, child_env
 
 
 @pytest.mark.slow  # a worker process of its own
-@pytest.mark.parametrize("ranks", [1, 2])
-def test_fused_ppo_matches_rsl_rl_ppo(tmp_path, ranks: int) -> None:
+def test_fused_ppo_matches_rsl_rl_ppo(tmp_path) -> None:
     out = tmp_path / "report.json"
-    launcher = [sys.executable]
-    if ranks > 1:
-        launcher += ["-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={ranks}"]
     subprocess.run(
-        [*launcher, str(REPO / "tests" / "train" / "equivalence_worker.py"), str(out)],
+        [sys.executable, str(REPO / "tests" / "train" / "equivalence_worker.py"), str(out)],
         cwd=REPO,
         env=child_env(),
         check=True,
@@ -71,13 +68,38 @@ def test_minibatches_cover_the_rollout_every_epoch_in_one_or_fresh_orders(reshuf
     env = MujocoVecEnv(config.env.id, config.env.num_envs, seed=0, kwargs=config.env.kwargs)
     alg = build_ppo(config, env, RankInfo(0, 1, 0))
     rollout(alg, env, config.num_steps_per_env)
-    batches = [batch.actor_obs for batch in mini_batches(alg, *alg._local_rollout())]
+    batch = alg._local_rollout()
+    batches = [each.actor_obs for each in mini_batches(alg, batch, alg._sample_orders(batch.samples))]
     per_epoch = len(batches) // 3
     epochs = [torch.cat(batches[i * per_epoch : (i + 1) * per_epoch]) for i in range(3)]
     everything = alg.actor.obs_normalizer(alg.storage.observations["policy"].flatten(0, 1))
     for epoch in epochs:
         assert torch.equal(epoch.sort(dim=0).values, everything.sort(dim=0).values)
     assert torch.equal(epochs[0], epochs[1]) == torch.equal(epochs[1], epochs[2]) == (not reshuffle)
+
+
+def test_ranks_hold_every_sample_of_the_global_batch_once_where_one_rank_would() -> None:
+    """Generated layouts: a global row ``step x total_envs + env`` is held by exactly one rank of a data-parallel
+    update, at the row where that rank stores the step of that environment."""
+    generator = torch.Generator().manual_seed(0)
+    cases = 0
+    for _ in range(50):
+        ranks, envs, steps = (
+            int(torch.randint(low, high, (1,), generator=generator)) for low, high in ((1, 9), (1, 6), (1, 5))
+        )
+        total = ranks * envs
+        rows = torch.randperm(total * steps, generator=generator)[: int(torch.randint(1, total * steps + 1, (1,)))]
+        # what each row holds: its (step, global env) pair, stored as each rank stores its own environments
+        held_by = []
+        for rank in range(ranks):
+            local = torch.tensor([[step, rank * envs + env] for step in range(steps) for env in range(envs)])
+            batch = Rollout([local], torch.zeros(total * steps), envs, rank * envs, total)
+            mine, where = batch.held(rows)
+            assert torch.equal(local[where], torch.stack([mine // total, mine % total], dim=1))
+            held_by.append(mine)
+        assert torch.equal(torch.cat(held_by).sort().values, rows.sort().values)
+        cases += 1
+    print(f"{cases} layouts checked")
 
 
 @pytest.mark.slow  # worker processes under torchrun
@@ -105,9 +127,10 @@ def test_split_update_is_one_ranks_update_of_the_whole_batch(tmp_path, ranks: in
     config = load_config(SMOKE, [*overrides, f"env.num_envs={envs}"])
     alone = build_ppo(config, MujocoVecEnv(config.env.id, envs, seed=0, kwargs=config.env.kwargs), RankInfo(0, 1, 0))
     load_learned_state(alone, saved["start"]["models"], saved["start"]["learning_rate"])
-    fields, orders = saved["start"]["batch"]
-    assert fields[0].shape[0] == envs * config.num_steps_per_env and len(orders) == (2 if len(overrides) > 1 else 1)
-    alone._local_rollout = lambda: (fields, orders)
+    fields = saved["start"]["fields"]
+    assert fields[0].shape[0] == envs * config.num_steps_per_env
+    alone._local_rollout = lambda: Rollout(fields, saved["start"]["advantages"], envs, 0, envs)
+    alone.shared_generator.set_state(saved["start"]["shared_rng"])  # the same sample orders
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as the ranks ran: another thread count sums a product in another order
     try:

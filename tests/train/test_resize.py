@@ -3,6 +3,7 @@ start fresh from (seed, rank, step), and the result depends on (checkpoint, new 
 
 from __future__ import annotations
 
+import csv
 from collections.abc import Callable
 from pathlib import Path
 
@@ -40,7 +41,7 @@ def resumed(tmp_path_factory, two_rank_step: str) -> Callable[..., tuple[Path, s
 
 
 @pytest.mark.parametrize("ranks", [1, 3])
-def test_a_resize_is_a_function_of_checkpoint_and_world_size(resumed, ranks: int) -> None:
+def test_a_resize_is_a_function_of_checkpoint_and_world_size(resumed, two_rank_step: str, ranks: int) -> None:
     digests, logs = [], []
     for attempt in ("a", "b"):
         storage, output = resumed(f"{ranks}-ranks-{attempt}", ranks)
@@ -52,10 +53,20 @@ def test_a_resize_is_a_function_of_checkpoint_and_world_size(resumed, ranks: int
         digests.append(manifest["state_sha256"])
     assert digests[0] == digests[1], "two resumes of one step at one world size must train the same"
     assert f"resized from 2 to {ranks} ranks at step 4" in logs[0]
+    now = "data-parallel (3 ranks: a split needs an even number)" if ranks == 3 else "on one rank"
+    assert f"the update was split until step 4; from here on: {now}" in logs[0]
+    before, after = (update_split(path / "metrics.csv") for path in (Path(two_rank_step).parents[1], storage))
+    assert (set(before), set(after)) == ({1, 2, 3, 4}, {5, 6, 7, 8})  # the kind, iteration by iteration
+    assert set(before.values()) == {1.0} and set(after.values()) == {0.0}
     if ranks == 3:
         assert "rank 2 start with fresh ones" in logs[0] and "3 x 4 envs" in logs[0]
     else:
         assert "the shards of rank 1 are dropped" in logs[0]
+
+
+def update_split(metrics: Path) -> dict[int, float]:
+    with metrics.open() as file:
+        return {int(row["iteration"]): float(row["update_split"]) for row in csv.DictReader(file)}
 
 
 def test_growing_changes_training_and_the_same_size_continues_bit_for_bit(resumed, reference_state) -> None:

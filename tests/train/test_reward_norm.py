@@ -6,10 +6,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from ftrain.dist.group import RankInfo
+from ftrain.comm.collectives import Comm, Traffic
+from ftrain.comm.group import RankInfo
 from ftrain.train.reward_norm import EPSILON, RewardNormalizer
 
-ALONE = RankInfo(0, 1, 0)
+ALONE = Comm.build(RankInfo(0, 1, 0), Traffic(per_rank=1), timeout_s=1, shared_memory=False, say=print)
 GAMMA = 0.9
 
 
@@ -24,7 +25,7 @@ def steps(iterations: int, num_envs: int = 3, num_steps: int = 4, seed: int = 0)
 
 
 def test_rewards_are_divided_by_the_std_of_the_discounted_returns_of_earlier_iterations() -> None:
-    normalizer = RewardNormalizer(3, 4, GAMMA, clip=10.0, info=ALONE)
+    normalizer = RewardNormalizer(3, 4, GAMMA, clip=10.0, comm=ALONE)
     returns, seen, current, scale = np.zeros(3), [], 0, 1.0  # unscaled until there are statistics
     for iteration, rewards, dones in steps(5):
         if iteration != current:  # the statistics move at iteration boundaries only
@@ -41,7 +42,7 @@ def test_rewards_are_divided_by_the_std_of_the_discounted_returns_of_earlier_ite
 
 
 def test_normalised_rewards_are_clipped() -> None:
-    normalizer = RewardNormalizer(2, 1, GAMMA, clip=3.0, info=ALONE)
+    normalizer = RewardNormalizer(2, 1, GAMMA, clip=3.0, comm=ALONE)
     normalizer(torch.tensor([1.0, -1.0]), torch.zeros(2, dtype=torch.bool))
     normalizer.update()
     scaled = normalizer(torch.tensor([100.0, -100.0]), torch.zeros(2, dtype=torch.bool))
@@ -60,9 +61,9 @@ def run(normalizer: RewardNormalizer, rollout: list) -> list[torch.Tensor]:
 
 def test_state_restores_exactly() -> None:
     rollout = list(steps(6))
-    original = RewardNormalizer(3, 4, GAMMA, clip=10.0, info=ALONE)
+    original = RewardNormalizer(3, 4, GAMMA, clip=10.0, comm=ALONE)
     run(original, rollout[:12])
-    restored = RewardNormalizer(3, 4, GAMMA, clip=10.0, info=ALONE)
+    restored = RewardNormalizer(3, 4, GAMMA, clip=10.0, comm=ALONE)
     restored.load_state(original.common_state(), original.rank_state())
     for ours, theirs in zip(run(restored, rollout[12:]), run(original, rollout[12:]), strict=True):
         assert torch.equal(ours, theirs)

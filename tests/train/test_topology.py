@@ -9,8 +9,9 @@ import sys
 
 import pytest
 
+from ftrain.comm.collectives import Comm
+from ftrain.comm.group import RankInfo
 from ftrain.config import load_config
-from ftrain.dist.group import RankInfo
 from ftrain.supervise.attempt import TORCHRUN
 from ftrain.train.topology import RUN_FILE, describe, summary
 
@@ -19,7 +20,9 @@ from helpers import REPO, SMOKE, child_env
 
 def line(world: int, *overrides: str, hosts: list[str] | None = None) -> str:
     config = load_config(SMOKE, ["env.num_envs=4", *overrides])
-    return summary(describe(config, RankInfo(0, world, 0), hosts or ["a"] * world, None))
+    info = RankInfo(0, world, 0)
+    gloo_only = Comm(info, list(range(world)), None, None, print)
+    return summary(describe(config, info, hosts or ["a"] * world, gloo_only))
 
 
 def test_an_even_number_of_ranks_says_which_learn_the_actor_and_which_the_critic() -> None:

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import time
 
-from ftrain.dist import group
-from ftrain.dist.shm_allreduce import SharedMemoryAllReduce
+from ftrain.comm import group
+from ftrain.comm.shm_allreduce import SharedMemoryAllReduce
 
 if __name__ == "__main__":
     info = group.init(120)

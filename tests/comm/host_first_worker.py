@@ -14,8 +14,9 @@ import time
 import torch
 import torch.distributed as dist
 
-from ftrain.dist import group
-from ftrain.dist.host_first import HostFirst, build_collectives, hosts_of_ranks
+from ftrain.comm import group
+from ftrain.comm.collectives import Comm
+from ftrain.comm.host_first import HostFirst, build_collectives, hosts_of_ranks
 
 
 def main(out: str, timeout_s: float) -> None:
@@ -64,7 +65,10 @@ def check(collectives: HostFirst, info: group.RankInfo) -> dict:
             bound = info.world_size * torch.finfo(torch.float32).eps * torch.stack(every).abs().sum(dim=0)
             reduced &= bool(((result - by_gloo).abs() <= bound).all())
             values = (torch.randn(size, dtype=torch.float64, generator=generator) * 1e9).tolist()
-            small = torch.tensor(group.all_reduce_sum(values, info, collectives), dtype=torch.float64)
+            small = torch.tensor(
+                Comm(info, list(range(info.world_size)), None, collectives, print).sum_values(values),
+                dtype=torch.float64,
+            )
             every64 = [torch.empty(size, dtype=torch.float64) for _ in range(info.world_size)]
             dist.all_gather(every64, torch.tensor(values, dtype=torch.float64))
             if 2 * size <= collectives.capacity:  # (a larger one goes through gloo)

@@ -9,7 +9,7 @@ import sys
 import torch
 import torch.distributed as dist
 
-from ftrain.dist import group
+from ftrain.comm import group
 
 
 class Payload:

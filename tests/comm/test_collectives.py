@@ -11,7 +11,7 @@ import pytest
 
 from helpers import REPO, child_env
 
-WORKER = REPO / "tests" / "dist" / "collectives_worker.py"
+WORKER = REPO / "tests" / "comm" / "collectives_worker.py"
 
 
 @pytest.mark.slow  # ranks under torchrun

@@ -22,8 +22,8 @@ import socket
 import torch
 import torch.distributed as dist
 
-from ftrain.dist.group import RankInfo, all_gather_object
-from ftrain.dist.shm_allreduce import SharedMemoryAllReduce
+from ftrain.comm.group import RankInfo, all_gather_object
+from ftrain.comm.shm_allreduce import SharedMemoryAllReduce
 
 
 def build_collectives(info: RankInfo, capacity: int, timeout_s: float, hosts: list[str] | None) -> Collectives | None:

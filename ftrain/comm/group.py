@@ -10,14 +10,10 @@ import json
 import os
 import random
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 import torch.distributed as dist
-
-if TYPE_CHECKING:
-    from ftrain.dist.host_first import Collectives
 
 
 @dataclass(frozen=True)
@@ -73,6 +69,17 @@ def rank_seed(seed: int, rank: int, *at_step: int) -> int:
     return int(np.random.SeedSequence([seed, rank, *at_step]).generate_state(1)[0] >> 1)
 
 
+def run_seed(seed: int, stream: str, *at_step: int) -> int:
+    """A well-mixed 31-bit seed of the run's ``stream`` (the same on every rank), or of its restart at ``step``."""
+    return int(np.random.SeedSequence([seed, *stream.encode(), *at_step], spawn_key=(1,)).generate_state(1)[0] >> 1)
+
+
+def env_seed(seed: int, first_env: int, *at_step: int) -> int:
+    """The seed of a rank's first environment (its ``i``-th gets this + ``i``, gymnasium's rule): the run's
+    environment ``g`` is seeded alike whatever the number of ranks that share the environments."""
+    return run_seed(seed, "envs", *at_step) + first_env
+
+
 def seed_all(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
@@ -95,26 +102,6 @@ def set_rng_state(state: dict) -> None:
     np.random.set_state(numpy_state)
     version, internal, gauss = state["python"]
     random.setstate((version, tuple(internal.tolist()), gauss))
-
-
-def all_gather_values(values: list[float], info: RankInfo, reducer: Collectives | None = None) -> torch.Tensor:
-    """Every rank's few numbers, ``[world, n]`` float64 in rank order (counts stay exact), in one collective: through
-    ``reducer`` (ranks that share memory: one host's, or host first across hosts) where it has room, as float32
-    bits, in tens of microseconds where gloo's loopback round trip took 1-2 ms on a busy 2-core machine; else gloo."""
-    tensor = torch.tensor(values, dtype=torch.float64)
-    if not info.distributed:
-        return tensor.view(1, -1)
-    if reducer is not None and 2 * tensor.numel() <= reducer.capacity:
-        return reducer.all_gather(tensor.view(torch.float32)).view(torch.float64)
-    every = [torch.empty_like(tensor) for _ in range(info.world_size)]
-    dist.all_gather(every, tensor)
-    return torch.stack(every)
-
-
-def all_reduce_sum(values: list[float], info: RankInfo, reducer: Collectives | None = None) -> list[float]:
-    """Sum a few numbers over all ranks (float64): every rank's gathered and summed in rank order, the same bits on
-    every rank, whatever the ranks' layout on hosts and the way they meet (at two ranks gloo's own all-reduce's)."""
-    return all_gather_values(values, info, reducer).sum(dim=0).tolist()
 
 
 def broadcast_object(value: object, info: RankInfo, group: dist.ProcessGroup | None = None, src: int = 0) -> object:

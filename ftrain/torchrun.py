@@ -1,4 +1,4 @@
-"""torchrun with ftrain's exit codes: ``python -m ftrain.dist.torchrun [--failures=FILE] <torchrun arguments>``.
+"""torchrun with ftrain's exit codes: ``python -m ftrain.torchrun [--failures=FILE] <torchrun arguments>``.
 
 This is torchrun itself, in this process, except for how it ends. Stopped by a signal (SIGINT, SIGTERM), it stops the
 workers with it (torchrun's own shutdown: they save) and exits 128 + the signal (130, 143) where torchrun would raise

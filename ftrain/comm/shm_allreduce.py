@@ -28,7 +28,7 @@ import uuid
 import torch
 import torch.distributed as dist
 
-from ftrain.dist.group import RankInfo, broadcast_object
+from ftrain.comm.group import RankInfo, broadcast_object
 from ftrain.procfs import start_time
 
 

@@ -13,8 +13,9 @@ import time
 import torch
 import torch.distributed as dist
 
-from ftrain.dist import group
-from ftrain.dist.shm_allreduce import PeerLost, SharedMemoryAllReduce
+from ftrain.comm import group
+from ftrain.comm.collectives import Comm
+from ftrain.comm.shm_allreduce import PeerLost, SharedMemoryAllReduce
 
 
 def main(out: str, timeout_s: float) -> None:
@@ -43,13 +44,20 @@ def main(out: str, timeout_s: float) -> None:
             digest.update(result.numpy().tobytes())
             # the iteration's small float64 sums (counts, votes, metrics, reward statistics) through the same memory
             values = (torch.randn(size, dtype=torch.float64, generator=generator) * 1e9).tolist()
-            small = torch.tensor(group.all_reduce_sum(values, info, reducer), dtype=torch.float64)
+            small = torch.tensor(
+                Comm(info, list(range(info.world_size)), None, reducer, print).sum_values(values), dtype=torch.float64
+            )
             every = [torch.empty(size, dtype=torch.float64) for _ in range(info.world_size)]
             dist.all_gather(every, torch.tensor(values, dtype=torch.float64))
             small_by_gloo = torch.tensor(values, dtype=torch.float64)
             dist.all_reduce(small_by_gloo)
             exact &= torch.equal(small, torch.stack(every).sum(dim=0))  # (a larger one is gathered through gloo)
-            exact &= torch.equal(small, torch.tensor(group.all_reduce_sum(values, info), dtype=torch.float64))
+            exact &= torch.equal(
+                small,
+                torch.tensor(
+                    Comm(info, list(range(info.world_size)), None, None, print).sum_values(values), dtype=torch.float64
+                ),
+            )
             like_gloo &= torch.equal(small, small_by_gloo)
             digest.update(small.numpy().tobytes())
     wide = torch.arange(reducer.broadcast_capacity, dtype=torch.float32)  # one sender fills every rank's slots

@@ -42,7 +42,7 @@ def test_host_first_collectives_hand_on_every_bit_and_a_dead_peer_ends_the_other
     dies between two collectives: a survivor on its host sees its shared memory's peer gone, the others gloo's, all
     within the timeout."""
     out, ranks = tmp_path / "report.json", sum(per_node)
-    worker = [str(REPO / "tests" / "dist" / "host_first_worker.py"), str(out), str(TIMEOUT)]
+    worker = [str(REPO / "tests" / "comm" / "host_first_worker.py"), str(out), str(TIMEOUT)]
     nodes = start_nodes(per_node, worker, tmp_path)
     for node in nodes:
         node.wait(timeout=120)

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from ftrain.dist.shm_allreduce import PREFIX, _owner_tag
-from ftrain.dist.shm_allreduce import _shared_dir as sweep_dir
+from ftrain.comm.shm_allreduce import PREFIX, _owner_tag
+from ftrain.comm.shm_allreduce import _shared_dir as sweep_dir
 from ftrain.procfs import descendants
 
 from helpers import REPO, child_env
@@ -35,7 +35,7 @@ def test_shared_memory_all_reduce_is_exact_leaves_nothing_and_a_dead_peer_ends_t
     out = tmp_path / "report.json"
     launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={ranks}"]
     done = subprocess.run(
-        [*launcher, str(REPO / "tests" / "dist" / "shm_worker.py"), str(out), str(TIMEOUT)],
+        [*launcher, str(REPO / "tests" / "comm" / "shm_worker.py"), str(out), str(TIMEOUT)],
         cwd=REPO,
         env=child_env(),
         capture_output=True,
@@ -67,7 +67,7 @@ def test_a_rank_killed_inside_the_set_up_leaves_names_that_the_next_start_on_the
     removes them, and only them (a live process's names stay)."""
     launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node=2"]
     run = subprocess.Popen(
-        [*launcher, str(REPO / "tests" / "dist" / "shm_setup_worker.py")],
+        [*launcher, str(REPO / "tests" / "comm" / "shm_setup_worker.py")],
         cwd=REPO,
         env=child_env(),
         stdout=subprocess.DEVNULL,
@@ -91,7 +91,7 @@ def test_a_rank_killed_inside_the_set_up_leaves_names_that_the_next_start_on_the
         run.wait(timeout=30)
         assert all(path.exists() for path in orphans), "names left behind by the kill (the case the sweep is for)"
         next_start = subprocess.run(  # the next reducer on this host: the same set-up, with a peer that comes
-            [*launcher, str(REPO / "tests" / "dist" / "shm_worker.py"), str(tmp_path / "report.json"), str(TIMEOUT)],
+            [*launcher, str(REPO / "tests" / "comm" / "shm_worker.py"), str(tmp_path / "report.json"), str(TIMEOUT)],
             cwd=REPO,
             env=child_env(),
             capture_output=True,

@@ -1,0 +1,36 @@
+"""A stop asked for by a signal: SIGTERM or SIGINT sets a request that the training loop acts on at its next
+iteration boundary (the ranks agree, save, and exit 128 + the signal).
+
+May import: the standard library only.
+"""
+
+from __future__ import annotations
+
+import signal
+
+
+class StopRequest:
+    """SIGTERM or SIGINT: stop at the next iteration boundary (the ranks agree, save, and exit 143 or 130, 128 + the
+    signal, so that scripts and schedulers tell a stop from the end of training).
+
+    Installed before anything slow starts, so an early signal is not lost. Repeated SIGTERMs are one request (a
+    scheduler and torchrun may both forward it); a second SIGINT (Ctrl-C twice) stops at once.
+    """
+
+    def __init__(self) -> None:
+        self.signal: int | None = None
+        """The first stop signal this rank received."""
+
+    @property
+    def requested(self) -> bool:
+        return self.signal is not None
+
+    def install(self) -> None:
+        signal.signal(signal.SIGTERM, self._handle)
+        signal.signal(signal.SIGINT, self._handle)
+
+    def _handle(self, signum: int, frame: object) -> None:
+        if self.requested and signum == signal.SIGINT:
+            signal.signal(signal.SIGINT, signal.SIG_DFL)
+            raise KeyboardInterrupt
+        self.signal = self.signal or signum

@@ -1,0 +1,51 @@
+"""Run under torchrun at W ranks (or alone, W = 1): each case of CASES (a JSON file) whose ``worlds`` hold W trains
+its iterations from a fresh start, through the real training loop (``Trainer``: rollout, reward normalisation, update,
+metrics) without checkpoints, with its ``total_envs`` shared by the W ranks (or ``envs`` on each rank). Rank 0 saves
+what each case learned, with the collectives' fallbacks, to ``OUT/<case>.w<W>.pt``."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from ftrain.comm import group
+from ftrain.config import load_config
+from ftrain.train.trainer import Trainer
+
+QUIET = ["log.console=false", "log.csv=false", "log.tensorboard=false", "eval.every=0", "snapshots.every=0"]
+
+
+def main(cases_file: str, out: str) -> None:
+    info = group.init(60)
+    cases = json.loads(Path(cases_file).read_text())
+    for name, case in cases.items():
+        if info.world_size not in case["worlds"]:
+            continue
+        envs = case.get("envs") or case["total_envs"] // info.world_size
+        overrides = [*case["overrides"], *QUIET, f"env.num_envs={envs}", f"iterations={case['iterations']}"]
+        storage = f"{out}/storage-{name}-w{info.world_size}"
+        config = load_config(case["config"], overrides, storage=storage)
+        trainer = Trainer(config, info)
+        trainer.alg.train_mode()
+        for _ in range(case["iterations"]):
+            trainer._iterate()
+        if info.is_main:
+            learned = {
+                "models": trainer.alg.save(),
+                "learning_rate": trainer.alg.learning_rate,
+                "reward_norm": trainer.reward_norm.common_state() if trainer.reward_norm else None,
+                "env_steps": trainer.env_steps,
+                "fallbacks": trainer.comm.fallbacks,
+                "update": trainer.run_description["update"]["kind"],
+            }
+            torch.save(learned, f"{out}/{name}.w{info.world_size}.pt")
+        trainer.checkpointer.shutdown()
+        trainer.env.close()
+    group.shutdown()
+
+
+if __name__ == "__main__":
+    main(*sys.argv[1:])
