@@ -31,15 +31,22 @@ from helpers import (
     make_certificates,
     run_train,
     start_azurite,
+    start_fake_gcs,
     stop_launched,
 )
+
+os.environ.setdefault("GCSFS_EXPERIMENTAL_ZB_HNS_SUPPORT", "false")
+"""gcsfs (2025.10 on) probes each bucket over gRPC for a zonal layout, by default: an emulator has no gRPC endpoint,
+and each probe would wait a minute. Set before gcsfs is imported, here and in every child (``gcs_server``)."""
 
 # --- Lanes: the fast lane (-m "not slow") has no servers and no multi-process runs ---
 
 SERVERS = frozenset(
-    {"s3_server", "s3_url", "s3_env", "s3_outage", "azurite_server", "etcd_server", "etcd_tls_server", "slurm"}
+    {"s3_server", "s3_url", "s3_env", "s3_outage", "azurite_server", "gcs_server", "etcd_server", "etcd_tls_server"}
+    | {"slurm"}
 )
-"""Fixtures that start a server (moto's S3, Azurite, etcd, a private SLURM cluster): a test that uses one is slow."""
+"""Fixtures that start a server (moto's S3, Azurite, fake-gcs-server, etcd, a private SLURM cluster): a test that uses
+one is slow."""
 LANES_OF_THEIR_OWN = ("cluster", "slurm", "scale")
 
 
@@ -197,6 +204,19 @@ def azurite_server(tmp_path_factory):
     if command is None:
         pytest.skip(AZURITE_MISSING)
     proc, server = start_azurite(command, free_port(), tmp_path_factory.mktemp("azurite"))
+    try:
+        yield server
+    finally:
+        stop(proc)
+
+
+@pytest.fixture(scope="session")
+def gcs_server(tmp_path_factory):
+    """fake-gcs-server's real GCS JSON API in a subprocess, on a free port (helpers.start_fake_gcs); yields
+    ``{"endpoint_url", "port"}``. gcsfs is told not to probe buckets over gRPC for a zonal layout (an emulator has no
+    gRPC endpoint: each probe would wait a minute); its plain JSON API is what ftrain uses."""
+    pytest.importorskip("gcsfs", reason="gcsfs is not installed (pip install -e '.[gcs]')")
+    proc, server = start_fake_gcs(free_port(), tmp_path_factory.mktemp("fake-gcs"))
     try:
         yield server
     finally:

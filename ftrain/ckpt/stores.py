@@ -1,0 +1,79 @@
+"""The object stores ftrain knows by protocol (S3, Google Cloud Storage, Azure Blob storage), and what each needs when
+a storage is opened: listings read afresh (another node may have written since), a silent server given up on within
+seconds, and the client's own retries off, so that ``Storage``'s retry loop is the only one.
+
+May import: fsspec, ``ftrain.redact``, the standard library.
+"""
+
+from __future__ import annotations
+
+from urllib.parse import unquote, urlsplit
+
+import fsspec
+
+from ftrain.redact import display_url
+
+S3_TIMEOUTS = {"connect_timeout": 5, "read_timeout": 15}
+"""botocore's defaults are 60 s each (the Azure SDK's 300 s; Azure storages get the same as S3's): a paused server
+would hold one request for minutes, longer than the ranks' collectives wait for each other. Large objects go up in
+parts, each its own request."""
+S3_PROTOCOLS = frozenset({"s3", "s3a"})
+"""s3fs's protocols. Its class is imported (by fsspec) only for a storage that names one: importing s3fs takes a
+second, in every ``ftrain ckpt`` command and every worker of a run on a local directory."""
+GCS_PROTOCOLS = frozenset({"gs", "gcs"})
+"""gcsfs's protocols: Google Cloud Storage."""
+AZURE_PROTOCOLS = frozenset({"abfs", "abfss", "az"})
+"""adlfs's protocols: Azure Blob storage (and Data Lake Gen2, which is Blob storage underneath)."""
+
+
+def prepare(protocol: str, url: str, options: dict) -> str:
+    """The URL to open, after ``options`` (in place) got what ``protocol``'s store needs."""
+    if protocol in S3_PROTOCOLS:
+        return _s3_options(url, options)
+    if protocol in GCS_PROTOCOLS:
+        options.setdefault("skip_instance_cache", True)
+        options.setdefault("requests_timeout", S3_TIMEOUTS["read_timeout"])
+    if protocol in AZURE_PROTOCOLS:
+        _azure_options(options)
+    return url
+
+
+def send_once(fs: fsspec.AbstractFileSystem, protocol: str) -> None:
+    """Turn off the retries of ``fs``'s own client where it takes that (s3fs, adlfs; gcsfs retries each request
+    itself, up to 6 times, and takes no option for it)."""
+    if protocol in S3_PROTOCOLS:
+        fs.retries = 1  # s3fs's own retry loop: one attempt, ours does the retrying
+    if protocol in AZURE_PROTOCOLS:
+        _azure_send_once(fs)
+
+
+def _s3_options(url: str, options: dict) -> str:
+    """Move ``key:secret@`` out of an S3 URL into ``options``; make s3fs list afresh and never retry on its own."""
+    parts = urlsplit(url)
+    if "@" in parts.netloc:
+        options.setdefault("key", unquote(parts.username or ""))
+        options.setdefault("secret", unquote(parts.password or ""))
+        url = display_url(url)
+    options.setdefault("use_listings_cache", False)
+    options.setdefault("skip_instance_cache", True)
+    config = {**S3_TIMEOUTS, **(options.get("config_kwargs") or {})}
+    config.setdefault("retries", {"total_max_attempts": 1})
+    options["config_kwargs"] = config
+    return url
+
+
+def _azure_options(options: dict) -> None:
+    """Make adlfs list afresh (another node may have written since), and give up on a silent server within seconds,
+    as on S3."""
+    options.setdefault("use_listings_cache", False)
+    options.setdefault("connection_timeout", S3_TIMEOUTS["connect_timeout"])
+    options.setdefault("read_timeout", S3_TIMEOUTS["read_timeout"])
+
+
+def _azure_send_once(fs: fsspec.AbstractFileSystem) -> None:
+    """Turn off the retries of adlfs's Azure client (3 per request, 15-24 s apart: a minute and a half before a
+    request to a server that is down fails), so that ours are the only ones, as on S3. adlfs takes no option for it:
+    this sets the counts of the retry policy its client's pipeline runs (azure-storage-blob's ``_config``)."""
+    policy = fs.service_client._config.retry_policy
+    for name in ("total_retries", "connect_retries", "read_retries", "status_retries"):
+        setattr(policy, name, 0)
