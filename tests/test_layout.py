@@ -78,27 +78,25 @@ def modules() -> dict[str, Path]:
     }
 
 
-def ftrain_imports(path: Path) -> list[tuple[str, bool, bool]]:
-    """``(module, at module level, only for type checking)`` of every ``ftrain`` import in ``path``."""
+def ftrain_imports(path: Path) -> list[tuple[str, bool]]:
+    """``(module, at module level)`` of every ``ftrain`` import in ``path`` (those for type checking alone too)."""
     tree = ast.parse(path.read_text())
     found = []
 
-    def visit(node: ast.AST, top: bool, typing_only: bool) -> None:
+    def visit(node: ast.AST, top: bool) -> None:
         for child in ast.iter_child_nodes(node):
-            if isinstance(child, ast.If) and ast.unparse(child.test) == "TYPE_CHECKING":
-                visit(child, top, True)
-            elif isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                visit(child, False, typing_only)
+            if isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                visit(child, False)
             elif isinstance(child, ast.ImportFrom) and child.module and child.module.split(".")[0] == "ftrain":
                 for alias in child.names:
                     name = f"{child.module}.{alias.name}"
-                    found.append((name if name in modules() else child.module, top, typing_only))
+                    found.append((name if name in modules() else child.module, top))
             elif isinstance(child, ast.Import):
-                found.extend((a.name, top, typing_only) for a in child.names if a.name.split(".")[0] == "ftrain")
+                found.extend((a.name, top) for a in child.names if a.name.split(".")[0] == "ftrain")
             else:
-                visit(child, top, typing_only)
+                visit(child, top)
 
-    visit(tree, True, False)
+    visit(tree, True)
     return found
 
 
@@ -109,7 +107,7 @@ def layer(module: str) -> str:
 def test_packages_import_one_way() -> None:
     wrong = []
     for module, path in modules().items():
-        for imported, _, _ in ftrain_imports(path):
+        for imported, _ in ftrain_imports(path):
             source, target = layer(module), layer(imported)
             if source != target and target != "ftrain" and target not in LAYERS[source]:
                 wrong.append(f"{module} imports {imported}")
@@ -120,10 +118,10 @@ def test_no_import_cycles_and_no_imports_hidden_in_functions() -> None:
     graph = {module: set() for module in modules()}
     hidden = []
     for module, path in modules().items():
-        for imported, top, typing_only in ftrain_imports(path):
+        for imported, top in ftrain_imports(path):
             if not top and module not in LAZY_IMPORTS_ALLOWED:
                 hidden.append(f"{module} imports {imported} inside a function")
-            if top and not typing_only and imported in graph and imported != module:
+            if top and imported in graph and imported != module:  # a type's import too: a circle of types is one
                 graph[module].add(imported)
     assert not hidden, "\n".join(hidden)
 

@@ -11,7 +11,7 @@ from ftrain.config import MlflowConfig
 from ftrain.values import dotted
 
 if TYPE_CHECKING:
-    from ftrain.track.run import RunInfo
+    from ftrain.track.sender import RunInfo
 
 RUN_TAG = "ftrain.run_id"
 STEP_METRIC = "env_steps"

@@ -1,25 +1,11 @@
-"""What a tracker is told about a training run, as plain data (no trainer), and the trackers a config turns on."""
+"""The trackers a config turns on (what each is told and what each implements: ``sender.py``)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 from ftrain.config import Config
 from ftrain.track.mlflow_run import MlflowRun
-from ftrain.track.sender import Tracker
+from ftrain.track.sender import RunInfo, Tracker
 from ftrain.track.wandb_run import WandbRun
-
-
-@dataclass(frozen=True)
-class RunInfo:
-    run_id: str
-    """ftrain's id of the tracker run: W&B's run id, an MLflow tag (MLflow makes its own ids)."""
-    name: str
-    config: dict
-    """The resolved config, credentials redacted (``Config.public_dict``)."""
-    identity: dict[str, str | int]
-    """Config hash, storage URL (redacted), world size of this start."""
-    log_dir: str
 
 
 def trackers(config: Config, run: RunInfo) -> list[Tracker]:

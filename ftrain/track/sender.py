@@ -11,6 +11,7 @@ import atexit
 import queue
 import threading
 from collections.abc import Callable, Iterable
+from dataclasses import dataclass
 from typing import Protocol
 
 QUEUE_ROWS = 1000
@@ -18,6 +19,20 @@ QUEUE_ROWS = 1000
 CLOSE_SECONDS = 10.0
 """How long the end of a run waits for a tracker to take what is queued."""
 GOES_ON = "training goes on without it"
+
+
+@dataclass(frozen=True)
+class RunInfo:
+    """What a tracker is told about a training run, as plain data (no trainer)."""
+
+    run_id: str
+    """ftrain's id of the tracker run: W&B's run id, an MLflow tag (MLflow makes its own ids)."""
+    name: str
+    config: dict
+    """The resolved config, credentials redacted (``Config.public_dict``)."""
+    identity: dict[str, str | int]
+    """Config hash, storage URL (redacted), world size of this start."""
+    log_dir: str
 
 
 class Tracker(Protocol):

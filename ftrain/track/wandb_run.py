@@ -13,7 +13,7 @@ from ftrain.config import WandbConfig
 from ftrain.track.wandb_log import last_offline_step
 
 if TYPE_CHECKING:
-    from ftrain.track.run import RunInfo
+    from ftrain.track.sender import RunInfo
 
 
 class WandbRun:

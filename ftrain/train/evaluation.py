@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import time
-from typing import TYPE_CHECKING
 
 import gymnasium as gym
 
@@ -19,10 +18,7 @@ from ftrain.heartbeat import Phase
 from ftrain.policy.model import actor_actions
 from ftrain.policy.robot import make_env
 from ftrain.policy.rollout import rollout
-from ftrain.train.hooks import Hook
-
-if TYPE_CHECKING:
-    from ftrain.train.trainer import Trainer
+from ftrain.train.hooks import Hook, TrainerView
 
 
 class EvalHook(Hook):
@@ -41,7 +37,7 @@ class EvalHook(Hook):
         self.config = config
         self.envs: list[gym.Env] = []
 
-    def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
+    def after_iteration(self, trainer: TrainerView, metrics: dict[str, float]) -> None:
         if trainer.iteration % self.config.every:
             metrics["eval_return"] = metrics["eval_time"] = math.nan
             return
@@ -58,7 +54,7 @@ class EvalHook(Hook):
         metrics["eval_return"] = total / self.config.episodes
         metrics["eval_time"] = time.perf_counter() - started
 
-    def on_end(self, trainer: Trainer) -> None:
+    def on_end(self, trainer: TrainerView) -> None:
         for env in self.envs:
             env.close()
 

@@ -17,7 +17,7 @@ import statistics
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Protocol
 
 from ftrain.ckpt.format import human_size, step_dir
 from ftrain.errors import UserError
@@ -26,7 +26,36 @@ METRICS_CSV = "metrics.csv"
 """What ``CsvHook`` writes in the log directory, and ``read_metrics`` reads."""
 
 if TYPE_CHECKING:
-    from ftrain.train.trainer import Trainer
+    from ftrain.ckpt.manager import Checkpointer
+    from ftrain.comm.collectives import Comm
+    from ftrain.comm.group import RankInfo
+    from ftrain.config import Config
+    from ftrain.heartbeat import HeartbeatWriter
+    from ftrain.train.envs import MujocoVecEnv
+
+
+class TrainerView(Protocol):
+    """What a hook sees of the training loop (``ftrain.train.trainer.Trainer`` is one): the run's config and ranks,
+    the iteration just completed, and the parts the built-in hooks read."""
+
+    config: Config
+    info: RankInfo
+    iteration: int
+    env: MujocoVecEnv
+    alg: Any
+    """rsl-rl's algorithm (``ftrain.train.ppo.FusedPPO``, or rsl-rl's Distillation)."""
+    comm: Comm
+    heartbeat: HeartbeatWriter
+    checkpointer: Checkpointer
+    run_description: dict
+
+    def log(self, message: str, every_rank: bool = False) -> None: ...
+
+    def learned_digest(self) -> str: ...
+
+    def common_state(self) -> dict: ...
+
+    def rank_state(self) -> dict: ...
 
 
 class Hook:
@@ -34,22 +63,22 @@ class Hook:
 
     every: int = 1
 
-    def on_start(self, trainer: Trainer) -> None:
+    def on_start(self, trainer: TrainerView) -> None:
         """After set-up and resume, before the first iteration of this process."""
 
-    def after_rollout(self, trainer: Trainer) -> None:
+    def after_rollout(self, trainer: TrainerView) -> None:
         """After the rollout and the return computation of an iteration."""
 
-    def after_update(self, trainer: Trainer, losses: dict[str, float]) -> None:
+    def after_update(self, trainer: TrainerView, losses: dict[str, float]) -> None:
         """After the policy update of an iteration."""
 
-    def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
+    def after_iteration(self, trainer: TrainerView, metrics: dict[str, float]) -> None:
         """After an iteration; ``metrics`` are global (averaged over ranks where it matters)."""
 
-    def on_checkpoint(self, trainer: Trainer, step: int, manifest: dict) -> None:
+    def on_checkpoint(self, trainer: TrainerView, step: int, manifest: dict) -> None:
         """On every rank, on the main thread, once all ranks agree that checkpoint ``step`` was committed."""
 
-    def on_end(self, trainer: Trainer) -> None:
+    def on_end(self, trainer: TrainerView) -> None:
         """After the last iteration of this process (completed or preempted)."""
 
     def state_dict(self) -> dict:
@@ -65,7 +94,7 @@ class Hooks:
     def __init__(self, hooks: list[Hook]) -> None:
         self.hooks = hooks
 
-    def call(self, point: str, trainer: Trainer, *args: object) -> None:
+    def call(self, point: str, trainer: TrainerView, *args: object) -> None:
         for hook in self.hooks:
             if point == "after_iteration" and trainer.iteration % max(1, hook.every):
                 continue
@@ -117,7 +146,7 @@ class ConsoleHook(Hook):
         self._recent: collections.deque[float] = collections.deque(maxlen=self.ETA_WINDOW)
         self._said_no_episode = False
 
-    def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
+    def after_iteration(self, trainer: TrainerView, metrics: dict[str, float]) -> None:
         if not trainer.info.is_main:
             return
         returned, length = f"{metrics['mean_return']:.2f}", f"{metrics['mean_length']:.0f}"
@@ -144,7 +173,7 @@ class ConsoleHook(Hook):
             flush=True,
         )
 
-    def on_checkpoint(self, trainer: Trainer, step: int, manifest: dict) -> None:
+    def on_checkpoint(self, trainer: TrainerView, step: int, manifest: dict) -> None:
         if not trainer.info.is_main:
             return
         previous, self._saved = self._saved, (step, self.clock())
@@ -156,7 +185,7 @@ class ConsoleHook(Hook):
             where = checkpointer.storage.where(step_dir(step))
             print(f"[ftrain] saved step {step} to {where} ({size}, {checkpointer.last_commit_s:.1f} s)", flush=True)
 
-    def on_end(self, trainer: Trainer) -> None:
+    def on_end(self, trainer: TrainerView) -> None:
         """Where the run is, for whoever comes back to it: storage, newest step, logs, and the commands to use it."""
         if not trainer.info.is_main:
             return
@@ -187,7 +216,7 @@ class TensorBoardHook(Hook):
     def __init__(self) -> None:
         self.writer = None
 
-    def on_start(self, trainer: Trainer) -> None:
+    def on_start(self, trainer: TrainerView) -> None:
         if trainer.info.is_main:
             from torch.utils.tensorboard import SummaryWriter
 
@@ -197,12 +226,12 @@ class TensorBoardHook(Hook):
                 purge_step=trainer.iteration + 1,
             )
 
-    def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
+    def after_iteration(self, trainer: TrainerView, metrics: dict[str, float]) -> None:
         if self.writer is not None:
             for key, value in metrics.items():
                 self.writer.add_scalar(key, value, trainer.iteration)
 
-    def on_end(self, trainer: Trainer) -> None:
+    def on_end(self, trainer: TrainerView) -> None:
         if self.writer is not None:
             self.writer.close()
 
@@ -218,11 +247,11 @@ class CsvHook(Hook):
         self.resumed_from: int | None = None
         self.config_change: str | None = None
 
-    def on_start(self, trainer: Trainer) -> None:
+    def on_start(self, trainer: TrainerView) -> None:
         self.resumed_from = trainer.iteration or None
         self.config_change = trainer.checkpointer.config_change
 
-    def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
+    def after_iteration(self, trainer: TrainerView, metrics: dict[str, float]) -> None:
         if not trainer.info.is_main:
             return
         if self.writer is None:
@@ -252,7 +281,7 @@ class CsvHook(Hook):
         self.file = path.open("a", newline="")
         self.writer = csv.DictWriter(self.file, fields, extrasaction="ignore")
 
-    def on_end(self, trainer: Trainer) -> None:
+    def on_end(self, trainer: TrainerView) -> None:
         if self.file is not None:
             self.file.close()
 

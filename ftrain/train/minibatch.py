@@ -9,23 +9,38 @@ learns from the samples it holds (data-parallel: its own environments') or from 
 minibatch (a split update's team). What a step reads of the rollout alone (observations through the normalizers,
 normalised advantages) does not change while the models learn, so it is made once per update, not once per epoch.
 
-May import: ``ftrain.policy.model``, ``ftrain.train.split``, torch and rsl-rl.
+May import: ``ftrain.policy.model``, ``ftrain.train.split``, torch and rsl-rl (not ``ppo.py``, which uses it).
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple, Protocol
 
 import torch
 from rsl_rl.storage import RolloutStorage
+from torch import nn
 
 from ftrain.policy.model import OBS_GROUP
-from ftrain.train.split import Role
+from ftrain.train.split import Role, Team
 
-if TYPE_CHECKING:
-    from ftrain.train.ppo import FusedPPO
+
+class Learner(Protocol):
+    """What the minibatches read of the algorithm (``ftrain.train.ppo.FusedPPO`` is one)."""
+
+    num_learning_epochs: int
+    num_mini_batches: int
+    per_minibatch_advantages: bool
+    team: Team | None
+    actor: nn.Module
+    critic: nn.Module
+
+    @property
+    def role(self) -> Role | None: ...
+
+    @property
+    def adaptive(self) -> bool: ...
 
 
 class MiniBatch(NamedTuple):
@@ -89,7 +104,7 @@ def rollout_fields(storage: RolloutStorage) -> list[torch.Tensor]:
     return [*fields, storage.returns, storage.actions_log_prob, *storage.distribution_params]
 
 
-def mini_batches(alg: FusedPPO, rollout: Rollout, orders: list[torch.Tensor]) -> Iterator[MiniBatch]:
+def mini_batches(alg: Learner, rollout: Rollout, orders: list[torch.Tensor]) -> Iterator[MiniBatch]:
     """rsl-rl's ``mini_batch_generator`` over the global batch in the sample order of each epoch (``orders``: one for
     all epochs, or one each), for the model ``alg``'s rank learns, from the samples it learns from."""
     advantages = rollout.advantages
@@ -110,7 +125,7 @@ def _epoch_rows(order: torch.Tensor, count: int) -> Iterator[torch.Tensor]:
         yield order[start : start + size]
 
 
-def _mini_batch(alg: FusedPPO, rollout: Rollout, advantages: torch.Tensor, rows: torch.Tensor) -> MiniBatch:
+def _mini_batch(alg: Learner, rollout: Rollout, advantages: torch.Tensor, rows: torch.Tensor) -> MiniBatch:
     """The minibatch of the global ``rows``: of the samples this rank learns from, the fields its model reads (the
     adaptive schedule's KL reads the old distribution too)."""
     role, team = alg.role, alg.team

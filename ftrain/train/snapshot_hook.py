@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-from typing import TYPE_CHECKING
 
 import torch
 
@@ -18,10 +17,7 @@ from ftrain.policy import export
 from ftrain.policy.load import Policy
 from ftrain.policy.model import OBS_GROUP
 from ftrain.policy.snapshots import ACTOR, FILE_NAMES, LINEAGE, PoliciesView, prune
-from ftrain.train.hooks import Hook
-
-if TYPE_CHECKING:
-    from ftrain.train.trainer import Trainer
+from ftrain.train.hooks import Hook, TrainerView
 
 
 def write_snapshot(
@@ -61,7 +57,7 @@ class PolicySnapshotHook(Hook):
         self.storage: PoliciesView | None = None
         self.parent: dict | None = None
 
-    def on_start(self, trainer: Trainer) -> None:
+    def on_start(self, trainer: TrainerView) -> None:
         if not trainer.info.is_main:
             return
         self.storage = PoliciesView(trainer.checkpointer.storage)
@@ -74,16 +70,16 @@ class PolicySnapshotHook(Hook):
                 trainer.log(f"deleting policy snapshot step {info.step} ({info.status}): newer than the start")
                 delete_step(self.storage, info.step)
 
-    def on_checkpoint(self, trainer: Trainer, step: int, manifest: dict) -> None:
+    def on_checkpoint(self, trainer: TrainerView, step: int, manifest: dict) -> None:
         if trainer.info.is_main:
             self._set_parent(trainer, step, manifest)
 
-    def _set_parent(self, trainer: Trainer, step: int, manifest: dict) -> None:
+    def _set_parent(self, trainer: TrainerView, step: int, manifest: dict) -> None:
         """Remember the newest committed checkpoint: the lineage of the snapshots that follow."""
         where = trainer.checkpointer.storage.where(step_dir(step))
         self.parent = {"step": step, "url": where, "state_sha256": manifest["state_sha256"]}
 
-    def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
+    def after_iteration(self, trainer: TrainerView, metrics: dict[str, float]) -> None:
         if not trainer.info.is_main:
             return
         step = trainer.iteration

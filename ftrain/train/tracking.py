@@ -12,18 +12,14 @@ from __future__ import annotations
 
 import os
 import uuid
-from typing import TYPE_CHECKING
 
 from ftrain.config import Config
 from ftrain.redact import display_url
 from ftrain.track.record import record_run, recorded_run
-from ftrain.track.run import RunInfo, trackers
-from ftrain.track.sender import Sender
+from ftrain.track.run import trackers
+from ftrain.track.sender import RunInfo, Sender
 from ftrain.track.supervisor_totals import SupervisorTotals
-from ftrain.train.hooks import Hook, read_metrics
-
-if TYPE_CHECKING:
-    from ftrain.train.trainer import Trainer
+from ftrain.train.hooks import Hook, TrainerView, read_metrics
 
 
 class TrackingHook(Hook):
@@ -40,7 +36,7 @@ class TrackingHook(Hook):
         """A checkpoint of another storage (``resume=`` a step of another run) starts a training run of its own."""
         self.run_id = state["run_id"] if state.get("storage") == self.storage else ""
 
-    def on_start(self, trainer: Trainer) -> None:
+    def on_start(self, trainer: TrainerView) -> None:
         if not trainer.info.is_main:
             return
         config, storage = self.config, self.storage
@@ -64,11 +60,11 @@ class TrackingHook(Hook):
             Sender(tracker, earlier, SupervisorTotals(config.log_dir), trainer.log) for tracker in trackers(config, run)
         ]
 
-    def after_iteration(self, trainer: Trainer, metrics: dict[str, float]) -> None:
+    def after_iteration(self, trainer: TrainerView, metrics: dict[str, float]) -> None:
         for sender in self.senders:  # empty but on rank 0
             sender.send(trainer.iteration, {**metrics, "world_size": trainer.info.world_size})
 
-    def on_end(self, trainer: Trainer) -> None:
+    def on_end(self, trainer: TrainerView) -> None:
         for sender in self.senders:
             sender.close(finished=trainer.iteration >= self.config.iterations)
 
