@@ -1,15 +1,13 @@
 """Collectives for a world that spans hosts, host first: a host's ranks meet in its shared memory, and only each host's
 first rank crosses the network, in one gloo collective of the hosts' first ranks.
 
-gloo runs every collective as rounds between all ranks (a ring or a tree over the world), so with ranks on two hosts
-each of its rounds crosses the network and waits out a round trip: 2 hosts x 2 ranks 1 ms apart reached 0.79 of 4
-ranks on one host, the iteration's five meetings costing 40 ms more (docs/speed.md). Host first, a meeting crosses
-once, between two processes, whatever the ranks per host, and the rest of it costs what it costs on one host.
+Why: gloo runs every collective as rounds between all ranks, each round across the network where ranks sit on two
+hosts; host first, a meeting crosses once, whatever the ranks per host (docs/speed.md, "Across hosts").
 
-An all-gather and a broadcast hand on every bit, so what the ranks sum from them (the iteration's small float64 sums,
-summed in rank order after the gather) has the same bits on any layout of ranks on hosts. An all-reduce (the
-data-parallel update's gradients) sums within each host, in rank order, then across hosts: the same bits on every
-rank and at every run of one layout, not the same as the one-host sum beyond rounding.
+Promises: an all-gather and a broadcast hand on every bit, so what the ranks sum from them (the iteration's small
+float64 sums, summed in rank order after the gather) has the same bits on any layout of ranks on hosts. An
+all-reduce sums within each host, in rank order, then across hosts: the same bits on every rank and at every run of
+one layout, not the same as the one-host sum beyond rounding. May import: ``group``, ``shm_allreduce``, torch.
 """
 
 from __future__ import annotations

@@ -1,18 +1,15 @@
-"""All-reduce through shared memory for ranks on one machine: ~30 us where gloo over loopback TCP takes 0.3-1.5 ms.
+"""All-reduce, all-gather and broadcast through shared memory for ranks on one machine.
 
-PPO's data-parallel update needs one gradient all-reduce per minibatch (20 per iteration in the default config),
-so on one machine the latency of gloo's TCP round trips, each a wake-up of gloo's I/O thread and then of the
-caller, dominates the update. Here every rank copies its buffer into its own slot of a shared memory segment,
-tells each peer through a named pipe (one byte, a blocking read: no busy waiting), waits for the peers' bytes,
-and sums the slots in rank order, so every rank computes the bitwise same result. Two slot sets alternate, so a
-rank can write round k+1 while a slower peer still reads round k; it cannot get further ahead, because round
-k+1 needs that peer's byte, which the peer sends only after it has finished reading round k.
+Why: a data-parallel update meets once per minibatch, and on one machine gloo's loopback round trips (a wake-up of
+its I/O thread, then of the caller) dominate it; shared memory costs a copy and a byte per peer (docs/speed.md).
 
-The segment and the pipes are unlinked as soon as every rank has opened them. Their names carry the creating
-process (``ftrain-<pid namespace>-<pid>-<start time>-...``): a creator SIGKILLed before the unlink leaves them behind,
-and the next creator on that host removes every such name whose process is gone (``sweep``). A peer that dies closes
-its end of the pipes: with two ranks the survivor sees end-of-file at once; otherwise it waits at most ``timeout_s``,
-like a gloo collective.
+How: every rank copies its buffer into its own slot of a shared memory segment, tells each peer through a named pipe
+(one byte, a blocking read: no busy waiting), waits for the peers' bytes, and sums the slots in rank order, so every
+rank computes the bitwise same result. Two slot sets alternate, so a rank can write round k+1 while a slower peer
+still reads round k, and no further. The segment and pipes are unlinked once every rank has opened them; their names
+carry the creating process (``ftrain-<pid namespace>-<pid>-<start time>-...``), and the next creator on a host
+removes those whose process is gone (``sweep``). A dead peer is end-of-file at once with two ranks, else a wait of
+at most ``timeout_s``, like a gloo collective. May import: ``group``, ``ftrain.procfs``, torch.
 """
 
 from __future__ import annotations

@@ -2,8 +2,8 @@
 
 ``python -m ftrain.policy.robot ENV_JSON`` makes the env once (``robot.make_env``: the module imported, the id
 registered, the model compiled, the spaces flat) and closes it; a UserError is its one line and exit code 2. It runs
-in a child so that the supervisor stays free of MuJoCo and of the user's module, whose import may do anything: ~1 s,
-where a refused worker took 7-9 s and left the run's log directory behind.
+in a child so that the supervisor stays free of MuJoCo and of the user's module, whose import may do anything, and
+a bad env is refused before any worker starts or any log directory is made.
 """
 
 from __future__ import annotations

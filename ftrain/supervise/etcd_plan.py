@@ -1,15 +1,12 @@
 """Several nodes on etcd (``--rdzv-backend etcd-v2``): no node is special; what the supervisors agree on lives in etcd.
 
-Measured with plain ``torchrun --rdzv-backend etcd-v2 --max-restarts 2`` on two agents (torch 2.13, etcd 3.4): when
-one worker is killed, every node's agent restarts its workers in a new round (3 s to a new world of two), and once
-an agent has used up its restarts every agent ends. So torchrun could number the attempts and end the run; it does
-not tell a hang (it waits), bad input or an unreachable storage from a crash (it restarts them all alike, and burns
-its restarts on an outage), nor does it count restarts that commit nothing, and its restarts reuse one rendezvous
-whose first round's store a node keeps (see ``attempt.attempt_env``). So the supervisors keep their own restart
+Plain torchrun on etcd restarts every node's workers in a new round after a failure, but it does not tell a hang,
+bad input or an unreachable storage from a crash, does not count restarts that commit nothing, and reuses one
+rendezvous across its restarts (docs/clusters.md has what was measured). So the supervisors keep their own restart
 policy (``--max-restarts=0`` for torchrun, one fresh rendezvous per attempt, as with c10d) and keep in etcd only
 what node 0's coordinator keeps for c10d: the plan (``plan.py``: the current attempt, the run's end, a node that
-left), changed by compare-and-swap. The crash-loop count was never shared (each node counts its own). Each node
-also takes a number from etcd for its logs and events (``node-N``): a node that starts again gets a new one.
+left), changed by compare-and-swap. Each node counts its own crash loop, and takes a number from etcd for its logs
+and events (``node-N``): a node that starts again gets a new one.
 
 Keys, under ``/ftrain/<--rdzv-id>``: ``plan`` (JSON) and ``nodes`` (the next node number). A supervisor that finds
 no plan, or the plan of an ended run, makes a new one at the next generation of the storage's lease (``identity.py``):

@@ -1,13 +1,12 @@
 """PPO's actor loss for rsl-rl's Gaussian policy (a state-independent standard deviation) as one autograd node.
 
-Why: the split update (``ftrain.train.split``) is paced by the actor's rank, and a minibatch step of the actor took
-about 1.35x the critic's on the same weights and samples. Nearly all of the difference was the per-operation cost of
-the twenty-odd small tensor operations between the policy's mean and the loss (a ``Normal`` built, its
-log-probability and entropy, the ratio, the clipped surrogate), each recorded by autograd and replayed backwards. Here
-the same loss is a few operations forward and a few backward, with its gradient written out: the log-probability
-``-|z|^2/2 - sum(log_std) - d log sqrt(2 pi)`` with ``z = (action - mean) / std``, and the entropy
-``sum(log_std) + d (1/2 + log sqrt(2 pi))``, the same for every sample. The values are rsl-rl's to rounding
-(``tests/train/test_surrogate.py`` checks loss and gradients against rsl-rl's distribution under autograd).
+Why: the split update is paced by the actor's rank, and the actor's minibatch step was mostly the per-operation cost
+of the twenty-odd small tensor operations between the policy's mean and the loss (docs/speed.md, "The split update's
+balance"). Here the loss is a few operations forward and a few backward, its gradient written out: the
+log-probability ``-|z|^2/2 - sum(log_std) - d log sqrt(2 pi)`` with ``z = (action - mean) / std``, and the entropy
+``sum(log_std) + d (1/2 + log sqrt(2 pi))``, the same for every sample. Promises: rsl-rl's values to rounding
+(``tests/train/test_surrogate.py``); a rank's share of a minibatch gives its share of the minibatch's mean (``batch``).
+May import: torch.
 """
 
 from __future__ import annotations

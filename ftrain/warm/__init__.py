@@ -1,10 +1,9 @@
 """Warm starts: a restart forks torchrun and its workers from a process that has imported torch, rsl-rl and MuJoCo.
 
-A cold restart spends most of its time importing: torchrun's agent imports torch (1.2 s), then each worker imports
-torch, rsl-rl's tensordict (which imports torch's compiler), s3fs and gymnasium (2.5-3 s): most of the ~4.6 s from a
-crash to the first iteration of the next attempt. ``ftrain supervise --workers warm`` (the default) starts one more
-process on its node, the pool (``python -m ftrain.warm serve``: ``__main__.py``), which imports all of that once and
-then waits on a Unix socket named after its supervisor.
+A cold restart spends most of its time importing (torchrun's agent imports torch, then each worker torch, rsl-rl's
+tensordict, s3fs and gymnasium: docs/supervision.md has the seconds). ``ftrain supervise --workers warm`` (the
+default) starts one more process on its node, the pool (``python -m ftrain.warm serve``: ``__main__.py``), which
+imports all of that once and then waits on a Unix socket named after its supervisor.
 
 Every process is still started as before, by the same command line, but as a stand-in: ``python -m ftrain.warm
 torchrun ...`` for the supervisor's torchrun, ``python -m ftrain train ...`` for each worker torchrun starts (its
@@ -23,7 +22,7 @@ The supervisor binds the socket (in Linux's abstract namespace: no file to leave
 and hands it over; a name someone else holds already means cold starts, with a line. A stand-in talks only to its
 supervisor's socket (``SO_PEERCRED``), the pool only to processes of its user that know the secret of ``POOL_ENV``.
 
-May import: lifeline, proctitle, process, and by name in the pool (``__main__.py``) the entries it forks: cli, dist.
+May import: lifeline, proctitle, process, and by name in the pool (``__main__.py``) the entries it forks: cli, torchrun.
 """
 
 from __future__ import annotations
