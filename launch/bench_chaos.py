@@ -3,7 +3,7 @@ PERIOD seconds, against the same run uninterrupted.
 
     .venv/bin/python launch/bench_chaos.py [--iterations 2500] [--period 30] [--seed 0] [--outage 60]
 
-Storage is a moto S3 server behind a TCP proxy (``ftrain.tools.outage``). First the run goes uninterrupted, then
+Storage is a moto S3 server behind a TCP proxy (``launch/s3_outage.py``). First the run goes uninterrupted, then
 again on a fresh bucket while faults come in a fixed rotation whose order, target ranks and time jitter are drawn
 from ``--seed`` (two runs with the same seed inject the same sequence): a worker SIGKILLed, a worker SIGSTOPped (a
 hang), the supervisor SIGTERMed and the same command run again, a flipped byte in the newest committed shard plus a
@@ -53,7 +53,8 @@ from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_PREEMPTED
 from ftrain.heartbeat import Heartbeat
-from ftrain.tools.outage import S3Server
+
+from s3_outage import S3Server  # beside this script
 
 KINDS = ("worker-kill", "worker-hang", "preempt-rerun", "corrupt-kill", "tree-kill", "storage-outage")
 NEEDS_TRAINING = {"worker-kill", "worker-hang", "preempt-rerun", "corrupt-kill", "tree-kill"}

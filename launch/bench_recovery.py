@@ -43,7 +43,8 @@ from ftrain.errors import EXIT_PREEMPTED  # noqa: E402
 from ftrain.heartbeat import read_heartbeats  # noqa: E402
 from ftrain.supervise.auth import SECRET_ENV  # noqa: E402
 from ftrain.supervise.coordinator import free_port  # noqa: E402
-from ftrain.tools.etcd_server import etcd_server  # noqa: E402
+
+from etcd_server import etcd_server  # noqa: E402 - beside this script
 
 OVERRIDES = ["iterations=1000000", "dist_timeout=10", "log.console=false"]
 HANG_TIMEOUT = 3

@@ -15,9 +15,8 @@ import pytest
 from filelock import FileLock
 
 from ftrain.identity import ENV_NAMES
-from ftrain.tools import etcd_server as etcd_tools
-from ftrain.tools.outage import S3Server, free_port, start_moto, stop
 
+import etcd_server as etcd_tools
 from helpers import (
     AZURITE_MISSING,
     BACKENDS,
@@ -34,6 +33,7 @@ from helpers import (
     start_fake_gcs,
     stop_launched,
 )
+from s3_outage import S3Server, free_port, start_moto, stop
 
 os.environ.setdefault("GCSFS_EXPERIMENTAL_ZB_HNS_SUPPORT", "false")
 """gcsfs (2025.10 on) probes each bucket over gRPC for a zonal layout, by default: an emulator has no gRPC endpoint,

@@ -36,8 +36,9 @@ from ftrain.ckpt.format import FileEntry, commit, encode, step_dir, write_file
 from ftrain.ckpt.storage import Storage
 from ftrain.heartbeat import read_heartbeats
 from ftrain.supervise.attempt import TORCHRUN
-from ftrain.tools.outage import S3Server
-from ftrain.tools.outage import free_port as free_port  # the tests take it from here
+
+from s3_outage import S3Server
+from s3_outage import free_port as free_port  # the tests take it from here
 
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"

@@ -8,8 +8,7 @@ import shutil
 
 import pytest
 
-from ftrain.tools import etcd_server as etcd_tools
-
+import etcd_server as etcd_tools
 import netns
 from slurm_cluster import SlurmCluster, missing
 

@@ -23,7 +23,8 @@ from pathlib import Path
 from typing import TypeVar
 
 from ftrain import procfs
-from ftrain.tools.outage import free_port
+
+from s3_outage import free_port
 
 T = TypeVar("T")
 COMMANDS = ("munged", "slurmctld", "slurmd", "sbatch", "scontrol")

@@ -12,7 +12,7 @@ import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
 
-from ftrain.tools.outage import HOST, free_port, stop
+from s3_outage import HOST, free_port, stop
 
 MISSING = "no etcd binary: install Debian's etcd-server (launch/setup.sh does, as root)"
 START_TIMEOUT = 30.0
