@@ -47,11 +47,11 @@ from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, Launcher, attempt_env, kill, new_log_dir, signal_name
-from ftrain.supervise.claim import claim_log_dir
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.hang import QUIET_PHASES, HangWatch
 from ftrain.supervise.ledger import Ledger
 from ftrain.supervise.link import begin, connect, makes_plan, node_lease, rendezvous, worker_env
+from ftrain.supervise.log_dir_lock import claim_log_dir
 from ftrain.supervise.options import (
     EXIT_DONE,
     EXIT_PEER_LOST,
