@@ -1,28 +1,17 @@
-"""One run per storage: the lease ``<storage>/LEASE.json``, held by a run while it lives.
+"""One run per storage: the lease ``<storage>/LEASE.json``, held by a run while it lives (docs/supervision.md, "One run
+per storage").
 
-The record names the run (``run_id``), its ``generation`` (``ftrain/identity.py``), the holders' ``ttl`` and
-``expires_at`` (wall clock, for humans and other hosts), and one entry per process that renews it (host, pid, the
-process's start time, the host's boot id and pid namespace, ``renewed_at``): every node of a run renews its own entry,
-so the lease lives while any node does. A second run is refused while any entry lives; an entry lives until ``renewed_at
-+ ttl`` (and, as the storage's own clock tells, while the record was written within ``ttl``: no host's clock is trusted
-to agree with another's), except on its own host (same name, boot id and pid namespace), where a process whose pid no
-longer has the recorded start time (``/proc/<pid>/stat``) is seen gone at once (so the same command again right after a
-crash never waits for the expiry), and a process seen running there holds it even past the expiry. A host that has
-rebooted since counts as another host: cloned machines may share a host name.
-
-Every change is a compare-and-swap of the record read (``cas.py``: conditional requests on S3, ``flock`` and an
-atomic replace locally), so of two processes that race, one wins and the other reads again.
-
-The generation is the run's fencing token. It only grows: a release keeps the record (with no holders), and a record
-deleted by hand starts after the newest generation that committed, so the next holder takes generation + 1, be it
-another run or the same run id once none of its processes lives (a requeued job, the same command again). On several
-nodes the maker of a new plan also takes generation + 1 (``advance``), and the other nodes follow the plan's
-(``follows``). A process that finds a newer generation in the record (its lease expired while it was paused, or cut off,
-and another holder took the storage) has lost the storage for good: it never takes it back, none of its processes writes
-there any more (``fence.py``), and the supervisor, whose renewal finds it too, stops the workers (exit 8); one that
-follows a plan leaves that to the plan (a newer generation of its own run is the plan it will follow next).
-
-Torch-free: the supervisor holds the lease for its workers; unsupervised, rank 0 of the world does (``claim.py``).
+Owns the record: the run id, its ``generation`` (``ftrain/identity.py``), the ``ttl``, and one entry per renewing
+process (host, pid, start time, boot id, pid namespace, ``renewed_at``). Promises:
+- a second run is refused while any entry lives: until ``renewed_at + ttl`` and, by the storage's own clock, while
+  the record was written within ``ttl`` (no host's clock is trusted to agree with another's); on the entry's own
+  host (same name, boot id and pid namespace) a dead pid frees it at once and a live one holds it past the expiry;
+- every change is a compare-and-swap of the record read (``cas.py``): of two racing processes one wins;
+- the generation only grows (a release keeps the record; a record deleted by hand restarts after the newest
+  generation that committed); on several nodes a plan's maker takes the next one (``advance``), the others
+  ``follow`` it; a holder that finds a newer generation has lost the storage for good (``lost``; ``fence.py`` then
+  refuses its writes, its supervisor stops the workers: exit 8).
+Torch-free: the supervisor holds the lease for its workers; unsupervised, rank 0 does (``claim.py``).
 """
 
 from __future__ import annotations

@@ -1,33 +1,16 @@
-"""``ftrain supervise``: launch torchrun, watch its workers, restart them from the newest verified checkpoint.
-Torch-free (config, heartbeat, the storage lease and the standard library): it launches and watches processes.
+"""``ftrain supervise``: launch torchrun, watch its workers, restart them from the newest verified checkpoint
+(docs/supervision.md has the rules and the numbers).
 
-Launch. Every attempt is a new ``torchrun --max-restarts=0`` in its own session, with ``FTRAIN_HEARTBEAT_DIR`` set,
-and a rendezvous nothing has used before (``link.rendezvous``): torchrun's own restarts keep one TCP store, from which
-restarted workers read stale gloo peer addresses; a new torchrun cannot. Credentials reach the workers in their
-environment, never on a command line; no process outlives the supervisor (``attempt.py``).
-
-Detect. Crash: torchrun exits non-zero, or is killed (its workers, each in a session of its own, are then orphans: the
-supervisor finds every process of an attempt by the ``FTRAIN_ATTEMPT_TOKEN`` in its environment). Who failed and why
-comes from torchrun's account of its workers (exit codes, and the one-line error each recorded in its error file: see
-``attempt.py``); a worker exiting 2 refused its input, which no restart fixes. The cause is one line on the console and
-in ``events.jsonl``; torchrun's and the workers' stderr go to the attempt's log directory. Hang: every working rank has
-stayed in the phase its heartbeat names longer than that phase's limit (``auto``: max(5 s, 10 x the longest time in that
-phase), ``--startup-grace`` for start-up, the first iteration after it and a phase not seen yet), or ``--hang-timeout``.
-
-Recover. A worker that died mid-training dooms the others: they get SIGKILL at once. Orphans of a killed torchrun get
-SIGTERM (they agree, save, exit), then SIGKILL after ``--stop-grace``. A hung group gets SIGKILL at once (its
-collectives cannot agree on a save; commits are crash-safe). Then back off (none after an attempt that completed
-iterations; ``--backoff-initial`` after one that completed none, doubled for each further one, at most
-``--backoff-max``) and launch again; the workers resume from the newest verified checkpoint themselves.
-
-Preemption. SIGTERM or SIGINT: SIGTERM to the workers, which agree at the next iteration boundary, save and exit 143
-(``ftrain/torchrun.py`` passes it on); SIGKILL after ``--stop-grace``, or at a second signal. No restart: exit
-128 + the signal (143; 130 for SIGINT). Elastic, this node leaves alone while MIN nodes remain (etcd-v2: any node;
-c10d: any but node 0): the others regroup from the save.
-
-Several nodes: ``link.py``. Records: ``events.py``. Exit codes: ``options.py``. Warm starts: ``attempt.Launcher``. A
-worker that cannot reach the storage exits 7: it is waited for (``outage.py``). One run per log dir: ``claim.py``. A
-lease (``ckpt/lease.py``) lost to a newer generation (``Lease.lost``) stops the workers at once: exit 8.
+Owns the run's state machine on this node, attempt after attempt:
+- launch: a new ``torchrun --max-restarts=0`` per attempt, in its own session, on a fresh rendezvous, credentials in
+  the environment only (``attempt.py``; warm: ``attempt.Launcher``; several nodes: ``link.py``);
+- detect: a crash (torchrun's account of its workers: ``outcome.py``), a hang (``hang.py``), a storage that does not
+  answer (exit 7: waited for, ``outage.py``), a lease lost to a newer generation (``Lease.lost``: exit 8);
+- recover: SIGKILL to a doomed or hung group, SIGTERM then SIGKILL to orphans, back-off and restart
+  (``restarts.py``); a worker that refused its input (exit 2) is not restarted;
+- preemption: SIGTERM or SIGINT is passed on as SIGTERM (save at the next iteration boundary), exit 143 or 130.
+Every decision is a line and an ``events.jsonl`` record (``events.py``); exit codes: ``options.py``; one supervisor
+per log directory: ``log_dir_lock.py``. Torch-free: config, heartbeat, the storage lease and the standard library.
 """
 
 from __future__ import annotations
