@@ -11,9 +11,10 @@ sits between two ceiling measurements, and is taken as a fraction of their mean;
 ``--rounds`` such fractions.
 
 Each run says its transport; a collective that falls back to gloo fails the benchmark (exit 1). It also prints where
-an iteration's time goes at N ranks (``ftrain.train.phases``: mean over ranks and timed iterations, in ms), what rank
-0 puts into collectives per iteration (``sent KB``: it grows with the data, not with the ranks' count squared),
-rsl-rl's and stable-baselines3's 1-process steps/s in the same run (``--peers``), and the cores.
+an iteration's time goes at N ranks (``ftrain.train.phases``: mean over ranks and timed iterations, in ms), what a rank
+puts into collectives per iteration (``sent KB``: the mean over ranks, and the most in the slowest rank's row; it
+grows with the data, not with the ranks' count squared), rsl-rl's and stable-baselines3's 1-process steps/s in the
+same run (``--peers``), and the cores.
 
     .venv/bin/python launch/bench_scale.py [--ranks 1 2] [--rounds 3] [--iterations 60] [--peers] [--set KEY=VALUE]
 
@@ -122,15 +123,16 @@ def _measure(
         if ours["fallbacks"]:
             FALLBACKS.append(f"{label}: {ours['fallbacks']} collectives fell back to gloo")
         phases.append(ours["phases_ms"])
-        sent.append(ours["sent_kb"])
+        sent.append((ours["sent_kb"], ours["sent_max_kb"]))
         line = f"  {label}: ftrain {speeds[-1]:,.0f} steps/s between ceilings {ceilings[-2]:,.0f} and "
         print(f"{line}{ceilings[-1]:,.0f} (transport {ours['transport']})", flush=True)
     fractions = [speed / statistics.mean(ceilings[k : k + 2]) for k, speed in enumerate(speeds)]
     mean = {name: statistics.median(round_[name] for round_ in phases) for name in PHASES}
     slowest = {name: statistics.median(round_[f"{name}_max"] for round_ in phases) for name in PHASES}
     numbers = statistics.median(ceilings), statistics.median(speeds), statistics.median(fractions)
-    row = _row(label, *numbers, mean, statistics.median(sent))
-    return row, f"{label:>5} {'':>39}  " + " ".join(f"{slowest[name]:>8.1f}" for name in PHASES)
+    row = _row(label, *numbers, mean, statistics.median(mean for mean, _ in sent))
+    most = statistics.median(most for _, most in sent)
+    return row, f"{label:>5} {'':>29} {most:>9,.0f}  " + " ".join(f"{slowest[name]:>8.1f}" for name in PHASES)
 
 
 def _row(

@@ -88,8 +88,9 @@ class ThroughputHook(Hook):
         self.iterations: list[tuple[float, float]] = []
         """(seconds, env steps) of each timed iteration, save included."""
         self.phases: dict[str, list[float]] = {}
-        self.sent_kb: list[float] = []
-        """What rank 0 put into collectives in each timed iteration (``comm_sent_kb``)."""
+        self.sent_kb: list[tuple[float, float]] = []
+        """What a rank put into collectives in each timed iteration, the mean over ranks and the most (``comm_sent_kb``,
+        ``comm_sent_max_kb``)."""
 
     def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
         if trainer.iteration == self.warmup and self.barrier is not None:
@@ -102,7 +103,7 @@ class ThroughputHook(Hook):
             trainer.checkpointer.last_blocking_s = 0.0
             self.steps_per_s = (now[1] - self.start[1]) / (now[0] - self.start[0])
             self.iterations.append((now[0] - self.last[0], now[1] - self.last[1]))
-            self.sent_kb.append(metrics["comm_sent_kb"])
+            self.sent_kb.append((metrics["comm_sent_kb"], metrics["comm_sent_max_kb"]))
             for name, value in metrics.items():
                 if name.startswith("time/"):
                     self.phases.setdefault(name.removeprefix("time/").removesuffix("_ms"), []).append(value)
@@ -126,7 +127,8 @@ class ThroughputHook(Hook):
             "blocking_s": saves,
             "torch_save_s": torch_save_s,
             "phases_ms": {name: statistics.mean(values) for name, values in self.phases.items()},
-            "sent_kb": statistics.median(self.sent_kb),
+            "sent_kb": statistics.median(mean for mean, _ in self.sent_kb),
+            "sent_max_kb": statistics.median(most for _, most in self.sent_kb),
             "transport": trainer.run_description["transport"],
             "fallbacks": trainer.comm.fallbacks,
         }

@@ -286,23 +286,26 @@ class Trainer:
                 self.alg.compute_returns(obs)
 
     def _record_metrics(self, losses: dict[str, float], collect_time: float, learn_time: float) -> None:
-        """Global metrics: the episode window, the step count, the votes (see ``Votes``) and the phases' times of every
-        rank are gathered in one collective and summed; of the phases, the mean over ranks and the slowest rank's."""
+        """Global metrics: the episode window, the step count, the votes (see ``Votes``), the bytes sent and the phases'
+        times of every rank are gathered in one collective and summed; of the bytes and the phases, the mean over ranks
+        and the largest."""
         returns = sum(ret for ret, _ in self.episodes)
         lengths = sum(length for _, length in self.episodes)
         steps = self.env.num_envs * self.config.num_steps_per_env
         stops = (self.stop.signal == signal.SIGTERM, self.stop.signal == signal.SIGINT)
         votes = (*stops, *self.checkpointer.votes(self.iteration), self.lease_lost() is not None)
         phases = self.phases.take()
+        sent_kb = self.comm.take_sent() / 1024  # (the iteration's collectives, this gather's of the one before)
         with self.phases("sync_metrics"):
             every = self.comm.gather_values(
-                [returns, lengths, len(self.episodes), steps, *map(float, votes), *phases.values()]
+                [returns, lengths, len(self.episodes), steps, *map(float, votes), sent_kb, *phases.values()]
             )
         total_returns, total_lengths, count, total_steps, *summed = every.sum(dim=0).tolist()
         terms, ints, save, store, hold, lost = (vote > 0 for vote in summed[: len(votes)])
         if lost:  # another run took the storage's lease: every rank stops here alike; rank 0 knows why
             raise LeaseLost(self.lease_lost() or "another run took the storage's lease (rank 0 says which)")
-        mean = (total / self.info.world_size for total in summed[len(votes) :])
+        total_sent, *phase_totals = summed[len(votes) :]
+        mean = (total / self.info.world_size for total in phase_totals)
         slowest = every[:, -len(phases) :].max(dim=0).values.tolist()
         phase_ms = {f"time/{name}_ms": 1000 * seconds for name, seconds in zip(phases, mean, strict=True)}
         phase_ms |= {f"time/{name}_max_ms": 1000 * seconds for name, seconds in zip(phases, slowest, strict=True)}
@@ -323,7 +326,8 @@ class Trainer:
             "iteration_time": iteration_time,
             "update_split": float(self.run_description["update"]["kind"] == "split"),
             "comm_fallbacks": float(self.comm.fallbacks),
-            "comm_sent_kb": self.comm.take_sent() / 1024,
+            "comm_sent_kb": total_sent / self.info.world_size,
+            "comm_sent_max_kb": every[:, -len(phases) - 1].max().item(),
             **phase_ms,
         }
 
