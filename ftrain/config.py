@@ -33,7 +33,11 @@ class EnvConfig:
     """Modules to import before the env is made (they register your envs; hooks' modules may go here too), from the
     working directory or the installed packages: every process that makes the env imports them."""
     num_envs: int = 16
-    """Environments per rank."""
+    """Environments per rank (with ``total_envs``: total_envs / ranks, set at start)."""
+    total_envs: int = 0
+    """Environments of all ranks together (0: ``num_envs`` per rank). With it, the ranks share a fixed set of
+    environments, and a resume at another world size hands every environment on by its global index: the same
+    training continues (docs/checkpoints.md, "Resume and resize")."""
     kwargs: dict = field(default_factory=dict)
     """Passed to ``gymnasium.make_vec`` (e.g. ``max_episode_steps``)."""
 
@@ -251,6 +255,8 @@ def training_part(data: dict) -> dict:
     for key in (*run_only, "storage", "log", "eval", "snapshots", "hooks"):
         data.pop(key, None)
     data["env"].pop("imports", None)  # where the code is found, not what it is: the robot's identity says that
+    if data["env"].get("total_envs"):  # the environments per rank follow the world size
+        data["env"].pop("num_envs", None)
     defaults = Config().to_dict()
     for key in KEYS_ADDED_LATER:
         section, _, leaf = key.rpartition(".")
@@ -262,7 +268,23 @@ def training_part(data: dict) -> dict:
 
 KEYS_ADDED_LATER = ("policy.std_type", "policy.obs_clip", "algorithm.schedule_iterations")
 KEYS_ADDED_LATER += ("algorithm.reshuffle_each_epoch", "reward", "shared_memory_all_reduce", "split_update")
+KEYS_ADDED_LATER += ("env.total_envs",)
 """Training keys newer than the first checkpoints: hashed only when not at their defaults, so older runs resume."""
+
+
+def for_world(config: Config, world_size: int) -> Config:
+    """``config`` as ``world_size`` ranks run it: with ``env.total_envs``, that many environments shared evenly."""
+    total = config.env.total_envs
+    if not total:
+        return config
+    if total % world_size:
+        raise UserError(
+            f"env.total_envs={total} cannot be shared evenly by {world_size} ranks: use a multiple of {world_size}, "
+            f"or a number of ranks that divides {total}"
+        )
+    resolved = copy.deepcopy(config)
+    resolved.env.num_envs = total // world_size
+    return resolved
 
 
 def load_config(path: str | None, overrides: list[str] = (), storage: str | None = None) -> Config:
@@ -334,6 +356,7 @@ def validate(config: Config) -> None:
     minimums = {  # key: (value, smallest allowed)
         "iterations": (config.iterations, 1),
         "env.num_envs": (config.env.num_envs, 1),
+        "env.total_envs": (config.env.total_envs, 0),
         "num_steps_per_env": (config.num_steps_per_env, 1),
         "torch_threads": (config.torch_threads, 1),
         "algorithm.num_learning_epochs": (config.algorithm.num_learning_epochs, 1),

@@ -5,7 +5,7 @@ import sys
 
 import pytest
 
-from ftrain.config import load_config
+from ftrain.config import for_world, load_config
 from ftrain.errors import UserError
 from ftrain.train.lr_schedule import horizon_notice
 
@@ -125,3 +125,12 @@ def test_an_iterations_override_scales_a_linear_schedule_to_the_run_and_nothing_
     adaptive = load_config(SMOKE, ["iterations=3"])  # no linear schedule: what is trained stays the same
     assert adaptive.algorithm.schedule_iterations == 0
     assert adaptive.training_hash() == load_config(SMOKE).training_hash()
+
+
+def test_total_envs_are_shared_evenly_by_the_ranks_or_refused_in_one_line() -> None:
+    config = load_config(SMOKE, ["env.total_envs=12"])
+    assert [for_world(config, world).env.num_envs for world in (1, 2, 3, 4, 6)] == [12, 6, 4, 3, 2]
+    assert config.training_hash() == load_config(SMOKE, ["env.total_envs=12", "env.num_envs=3"]).training_hash()
+    assert for_world(load_config(SMOKE), 4).env.num_envs == 4  # without it: env.num_envs per rank, as configured
+    with pytest.raises(UserError, match=r"^env.total_envs=12 cannot be shared evenly by 5 ranks: use a multiple of 5"):
+        for_world(config, 5)

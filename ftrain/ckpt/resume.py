@@ -1,11 +1,12 @@
 """Resume: which step a run starts from, whether it fits, and loading it on every rank.
 
 At another world size the run resizes, by one rule that depends on (checkpoint, new world size) only: the learned
-state (models, optimizer, normalizers, learning rate, counters, hook states) loads exactly on every rank; rank r
-takes the environments and random streams of the checkpoint's rank r where there is one; ranks beyond the old world
-start fresh ones, seeded from (run seed, rank, step); shards of ranks beyond the new world are dropped. Per-rank
-settings stay as configured, so the global batch follows the world size. At the same world size a resume continues
-bit for bit.
+state (models, optimizer, normalizers, learning rate, counters, hook states) loads exactly on every rank. With
+``env.total_envs`` every environment goes on, on the rank that holds its global index, and the same training
+continues. Without it, rank r takes the environments and random streams of the checkpoint's rank r where there is
+one; ranks beyond the old world start fresh ones, seeded from (run seed, rank, step); shards of ranks beyond the new
+world are dropped, and the global batch follows the world size. At the same world size a resume continues bit for
+bit.
 
 Rank 0 decides (newest step that verifies, or the one ``resume=`` names; a newer one in this node's spool, see
 ``spool.py``, also while the storage does not answer) and tells the others. Every rank then
@@ -67,6 +68,10 @@ class Checkpointable(Protocol):
         checkpoint's world did not have (it starts fresh environments and random streams, from the run's seed, the
         step and its rank)."""
 
+    def rank_state_from(self, shards: list[dict], offset: int) -> dict:
+        """This rank's own state from consecutive ranks' ``shards`` of another world size, its environments theirs
+        from row ``offset`` on (``env.total_envs``)."""
+
 
 class CheckpointError(RuntimeError):
     """Saving or loading a checkpoint failed in a way training must not run on from (one-line message)."""
@@ -116,7 +121,8 @@ def restore(
         return Resumed(None, False, [[0, info.world_size]])
     url, step, manifest, spooled = decision["url"], decision["step"], decision["manifest"], decision["spooled"]
     source = spool.storage if spooled else storage if url is None else Storage.open(url, config.storage.options)
-    failure = _load(trainer, source, step, manifest, info.rank)
+    resharded = bool(config.env.total_envs) and manifest["world_size"] != info.world_size
+    failure = _load(trainer, source, step, manifest, info.rank, config.env.num_envs if resharded else None)
     failures = [f for f in group.all_gather_object(failure, info) if f]
     where = source.where(step_dir(step))
     for kind in ("unavailable", "integrity", "storage", "fit"):
@@ -154,6 +160,13 @@ def restore(
 
 def resize_line(old: int, new: int, step: int, config: Config) -> str:
     """What a resize does, in one line for the log."""
+    total = config.env.total_envs
+    if total:
+        return (
+            f"resized from {old} to {new} ranks at step {step}: env.total_envs={total}, every environment goes on, "
+            f"{config.env.num_envs} per rank by global index; the global batch stays {total * config.num_steps_per_env}"
+            " per iteration"
+        )
     parts = [f"resized from {old} to {new} ranks at step {step}: {_ranks(0, min(old, new))} keep their environments"]
     if new > old:
         parts.append(f"{_ranks(old, new)} start with fresh ones (seeded from seed {config.seed}, rank, step {step})")
@@ -169,11 +182,22 @@ def _ranks(first: int, end: int) -> str:
     return f"rank {first}" if end - first == 1 else f"ranks {first}-{end - 1}"
 
 
-def _load(trainer: Checkpointable, storage: Storage, step: int, manifest: dict, rank: int) -> list | None:
-    """This rank's part of a resume: ``None``, or ``[kind of failure, why]``."""
+def _load(
+    trainer: Checkpointable, storage: Storage, step: int, manifest: dict, rank: int, envs: int | None = None
+) -> list | None:
+    """This rank's part of a resume: ``None``, or ``[kind of failure, why]``. ``envs``: this rank's environments,
+    where they are taken by global index from the checkpoint's shards (``env.total_envs``, another world size)."""
     try:
         common = read_verified(storage, step, COMMON, manifest)
-        shard = read_verified(storage, step, shard_name(rank), manifest) if rank < manifest["world_size"] else None
+        if envs is not None:
+            first, saved = rank * envs, manifest["envs_per_rank"]
+            holders = range(first // saved, (first + envs - 1) // saved + 1)
+            shards = [read_verified(storage, step, shard_name(holder), manifest) for holder in holders]
+            shard = trainer.rank_state_from(shards, first - holders[0] * saved)
+        elif rank < manifest["world_size"]:
+            shard = read_verified(storage, step, shard_name(rank), manifest)
+        else:
+            shard = None
     except CorruptCheckpoint as exc:
         return ["integrity", f"rank {rank}: {exc}"]
     except StorageUnavailable as exc:
@@ -318,7 +342,14 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
             f"{STATE_FORMAT}: resume it with the ftrain that wrote it ({manifest['versions']}), or start another "
             "--storage"
         )
-    if manifest["envs_per_rank"] != config.env.num_envs:
+    saved_total = manifest["envs_per_rank"] * manifest["world_size"]
+    if config.env.total_envs and saved_total != config.env.total_envs:
+        raise UserError(
+            f"checkpoint step {step} has {saved_total} environments in all ({manifest['world_size']} ranks x "
+            f"{manifest['envs_per_rank']}), the config has env.total_envs={config.env.total_envs}: set "
+            f"env.total_envs={saved_total}"
+        )
+    if not config.env.total_envs and manifest["envs_per_rank"] != config.env.num_envs:
         raise UserError(
             f"checkpoint step {step} has env.num_envs={manifest['envs_per_rank']} per rank, the config has "
             f"{config.env.num_envs}: set env.num_envs={manifest['envs_per_rank']}"

@@ -165,6 +165,26 @@ class MujocoVecEnv(VecEnv):
         return [base.np_random.bit_generator for base in self._bases]
 
 
+ROW_FIELDS = ("physics", "derived", "obs", "episode_length", "episode_return", "rng", "elapsed_steps", "python")
+ROW_FIELDS += ("xpos", "xipos")  # (state format 4's)
+"""The fields of ``get_state`` with a row per sub-env (tensors, or lists: the rest describe the model)."""
+
+
+def take_rows(states: list[dict], first: int, count: int) -> dict:
+    """The state of ``count`` sub-envs from ``first`` on, of the sub-envs of ``states`` (``get_state``'s, in order)
+    taken as one row after the other: how an environment's state goes to whichever rank holds its global index."""
+    taken = dict(states[0])
+    for name in ROW_FIELDS:
+        rows = [state[name] for state in states if name in state]
+        if not rows:
+            continue
+        if isinstance(rows[0], torch.Tensor):
+            taken[name] = torch.cat(rows)[first : first + count].clone()
+        else:
+            taken[name] = [row for part in rows for row in part][first : first + count]
+    return taken
+
+
 def _derived_fields(model: mujoco.MjModel) -> list[str]:
     """The arrays of MuJoCo's data that it derives from the state and that keep their size (the model's): those of
     a fresh ``MjData`` with any element (contacts and constraints come and go: the next step computes them anew)."""

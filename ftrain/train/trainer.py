@@ -26,13 +26,13 @@ from ftrain.ckpt.manager import Checkpointer
 from ftrain.ckpt.resume import CheckpointError
 from ftrain.ckpt.storage import StorageUnavailable
 from ftrain.comm import group
-from ftrain.config import Config
+from ftrain.config import Config, for_world
 from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, stop_code
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter, read_stop_reason
 from ftrain.policy.model import action_std
 from ftrain.policy.robot import unsaved_state_notice
 from ftrain.train import topology
-from ftrain.train.envs import MujocoVecEnv
+from ftrain.train.envs import MujocoVecEnv, take_rows
 from ftrain.train.evaluation import EvalHook
 from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
 from ftrain.train.lr_schedule import build_lr_schedule, horizon_notice
@@ -74,6 +74,7 @@ class Trainer:
     ) -> None:
         """``lease_lost``: why the storage's lease was lost to another run, once it was (rank 0 without a supervisor,
         which holds the lease; a supervisor stops its workers itself)."""
+        config = for_world(config, info.world_size)  # env.total_envs shared by this world's ranks
         self.config = config
         self.info = info
         self.stop = stop or StopRequest()
@@ -156,6 +157,16 @@ class Trainer:
             "episodes": [list(episode) for episode in self.episodes],
             **({"reward_norm": self.reward_norm.rank_state()} if self.reward_norm is not None else {}),
         }
+
+    def rank_state_from(self, shards: list[dict], offset: int) -> dict:
+        """This rank's state from consecutive ranks' ``shards`` of a checkpoint of another world size: its
+        environments are theirs from row ``offset`` on (``env.total_envs``: each goes on by its global index); the
+        random streams and the episode window are the first shard's."""
+        count = self.config.env.num_envs
+        state = {**shards[0], "env": take_rows([shard["env"] for shard in shards], offset, count)}
+        if "reward_norm" in shards[0]:  # each environment's discounted return so far
+            state["reward_norm"] = torch.cat([shard["reward_norm"] for shard in shards])[offset : offset + count]
+        return state
 
     def load_state(self, common: dict, rank: dict | None) -> None:
         """``rank``: this rank's shard, None for a rank the checkpoint did not have (see ``ftrain.ckpt.resume``)."""

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from ftrain.train.envs import MujocoVecEnv
+from ftrain.train.envs import MujocoVecEnv, take_rows
 
 
 def _rollout(env: MujocoVecEnv, actions: list[torch.Tensor]) -> list[tuple]:
@@ -89,3 +89,25 @@ def test_random_states_survive_as_words_at_the_edges_of_128_bits() -> None:
     older = MujocoVecEnv("HalfCheetah-v5", 2, seed=3)
     older.set_state({**saved, "rng": expected})  # state format 2 kept numpy's state dicts
     assert [base.np_random.bit_generator.state for base in older._bases] == expected
+
+
+def test_environments_move_between_vector_envs_by_index_bit_for_bit() -> None:
+    """Two vector envs of 4 (two ranks' shares of 8) and one of 8 seeded as their union step alike; the rows 2-5 of
+    the two, taken into a third of 4 (a resize's share), go on as rows 2-5 of the one of 8 (``take_rows``)."""
+    kwargs = {"max_episode_steps": 20}
+    whole = MujocoVecEnv("Hopper-v5", 8, seed=100, kwargs=kwargs)
+    parts = [MujocoVecEnv("Hopper-v5", 4, seed=100 + 4 * part, kwargs=kwargs) for part in range(2)]
+    generator = torch.Generator().manual_seed(0)
+    for _ in range(30):
+        action = torch.rand(8, whole.num_actions, generator=generator) * 2 - 1
+        whole.step(action)
+        for part, env in enumerate(parts):
+            env.step(action[4 * part : 4 * part + 4])
+    middle = MujocoVecEnv("Hopper-v5", 4, seed=999, kwargs=kwargs)
+    middle.set_state(take_rows([env.get_state() for env in parts], 2, 4))
+    for _ in range(30):  # across time limits and the terminations of a hopper
+        action = torch.rand(8, whole.num_actions, generator=generator) * 2 - 1
+        expected = whole.step(action)
+        got = middle.step(action[2:6])
+        assert torch.equal(got[0]["policy"], expected[0]["policy"][2:6])
+        assert torch.equal(got[1], expected[1][2:6]) and torch.equal(got[2], expected[2][2:6])

@@ -1,9 +1,11 @@
 """Resuming at another world size: the learned state loads exactly, rank r keeps rank r's environments, new ranks
-start fresh from (seed, rank, step), and the result depends on (checkpoint, new world size) only."""
+start fresh from (seed, rank, step), and the result depends on (checkpoint, new world size) only; with
+``env.total_envs`` every environment goes on by its global index, and the training does not change."""
 
 from __future__ import annotations
 
 import csv
+import random
 from collections.abc import Callable
 from pathlib import Path
 
@@ -91,3 +93,31 @@ def test_gloo_instead_of_shared_memory_trains_the_same_bits_at_two_ranks_and_oth
     )
     three = final_manifest(resumed("3-ranks-a", 3)[0])["state_sha256"]
     assert final_manifest(resumed("3-ranks-gloo", 3, gloo, "allow_config_change=true")[0])["state_sha256"] != three
+
+
+EXACT = ["env.total_envs=8", "algorithm.schedule_iterations=8"]
+"""A run whose ranks share 8 environments: at 1 and 2 ranks one rank's arithmetic (a split update of teams of one,
+inferences whose rows do not depend on the batch's size), so resizes between them must not change a bit."""
+
+
+def test_with_total_envs_any_resize_schedule_between_one_and_two_ranks_trains_bit_for_bit(tmp_path) -> None:
+    """Random schedules of world sizes (1 or 2) and resize steps, ``env.total_envs`` fixed: every environment goes on
+    by its global index, so each schedule ends with the state of the run that was never resized."""
+    reference = tmp_path / "reference"
+    run_train(reference, "iterations=8", *EXACT, ranks=1)
+    expected = final_manifest(reference)["state_sha256"]
+    seed = random.SystemRandom().randrange(2**31)  # a fresh draw each run: printed, to replay a failure
+    draw = random.Random(seed)
+    schedules = []
+    for number in range(2):
+        steps = sorted(draw.sample(range(1, 8), 2))
+        first = draw.choice([1, 2])
+        sizes = [first, 3 - first, draw.choice([1, 2])]  # at least one resize
+        storage, outputs = tmp_path / f"schedule-{number}", []
+        for size, step in zip(sizes, [*steps, 8], strict=True):
+            outputs.append(run_train(storage, f"iterations={step}", *EXACT, ranks=size).stdout)
+        manifest = final_manifest(storage)
+        schedules.append(list(zip(sizes, [*steps, 8], strict=True)))
+        assert manifest["state_sha256"] == expected, f"schedule {schedules[-1]} (seed {seed})"
+        assert "every environment goes on" in outputs[1]
+    print(f"{len(schedules)} resize schedules (world size, to step), seed {seed}, ended as one rank's: {schedules}")
