@@ -44,8 +44,10 @@ REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
 SMOKE = str(REPO / "configs" / "smoke.yaml")
 NOT_LEARNED = ("steps_per_s", "collect_time", "learn_time", "iteration_time", "resumed_from", "config_change", "time/")
+NOT_LEARNED += ("comm_sent",)
 """The only columns of metrics.csv (or their prefixes) allowed to differ between identical runs: wall-clock times, the
-phases' too, where a resumed run started and what a config change changed there."""
+phases' too, where a resumed run started, what a config change changed there, and the bytes the ranks sent (an
+evaluation's sum, a resume's first gathers)."""
 
 
 def train_command(storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE) -> list[str]:
@@ -65,10 +67,11 @@ def supervise_command(storage: str | Path, *overrides: str, ranks: int = 2, conf
 
 def child_env(extra: dict | None = None) -> dict:
     """A test subprocess's environment: one OpenMP thread, and this repository first on ``PYTHONPATH`` (a script run
-    by its path, or a process started elsewhere, would import whichever ftrain is installed, maybe another checkout's);
-    ``extra``'s ``PYTHONPATH`` comes after it."""
+    by its path, or a process started elsewhere, would import whichever ftrain is installed, maybe another checkout's),
+    then ``launch/`` (the servers this module imports, as pytest's ``pythonpath`` has it); ``extra``'s ``PYTHONPATH``
+    comes after them."""
     extra = dict(extra or {})
-    paths = [str(REPO), *([extra.pop("PYTHONPATH")] if extra.get("PYTHONPATH") else [])]
+    paths = [str(REPO), str(REPO / "launch"), *([extra.pop("PYTHONPATH")] if extra.get("PYTHONPATH") else [])]
     return {**os.environ, "OMP_NUM_THREADS": "1", **extra, "PYTHONPATH": os.pathsep.join(paths)}
 
 

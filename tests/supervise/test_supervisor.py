@@ -149,7 +149,7 @@ def start_supervisor(
     ``ITERATIONS``."""
     env = {
         **os.environ,
-        "PYTHONPATH": os.pathsep.join([str(HERE), str(TESTS), str(REPO)]),  # this module, helpers, ftrain
+        "PYTHONPATH": os.pathsep.join([str(HERE), str(TESTS), str(REPO), str(REPO / "launch")]),  # helpers: launch/ too
         WORKER_MODULE_ENV: "test_supervisor",
         "FAKE_FAULT": fault,
         **(env or {}),
