@@ -81,8 +81,7 @@ class Trainer:
         self.lease_lost = lease_lost
         torch.set_num_threads(config.torch_threads)
         group.seed_all(config.seed)  # identical model initialisation on every rank
-        first_env = info.rank * config.env.num_envs  # environments are seeded by their global index
-        env_seed = group.env_seed(config.seed, first_env)
+        env_seed = self._env_seed()
         self.env = MujocoVecEnv(config.env.id, config.env.num_envs, env_seed, config.env.kwargs, config.env.imports)
         if notice := unsaved_state_notice(self.env.robot):
             self.log(notice)
@@ -197,8 +196,7 @@ class Trainer:
             now = topology.update_words(update)
             self.log(f"the update was {own['update']} until step {self.iteration}; from here on: {now}")
         if rank is None:  # a rank that joins a resized run: environments and random streams of its own
-            first_env = self.info.rank * self.config.env.num_envs
-            self.env.reset(group.env_seed(self.config.seed, first_env, self.iteration))
+            self.env.reset(self._env_seed(self.iteration))
             group.seed_all(group.rank_seed(self.config.seed, self.info.rank, self.iteration))
             self.episodes.clear()
             return
@@ -206,6 +204,11 @@ class Trainer:
         group.set_rng_state(rank["rng"])
         self.episodes.clear()
         self.episodes.extend((float(ret), int(length)) for ret, length in rank["episodes"])
+
+    def _env_seed(self, *at_step: int) -> int:
+        """The seed of this rank's first environment (of a fresh start, or of a rank joining at ``at_step``): by its
+        global index, so that an environment is seeded alike whatever the number of ranks."""
+        return group.env_seed(self.config.seed, self.info.rank * self.config.env.num_envs, *at_step)
 
     def learned_digest(self) -> str:
         """What a checkpoint of this state records as ``state_sha256``."""
