@@ -15,8 +15,10 @@ import yaml
 SECRET_OPTIONS = frozenset(
     {"key", "secret", "token", "password", "aws_access_key_id", "aws_secret_access_key", "aws_session_token"}
     | {"account_key", "connection_string", "sas_token", "credential", "client_secret"}
+    | {"private_key", "private_key_id", "refresh_token"}
 )
-"""fsspec storage options that hold credentials: s3fs's, then adlfs's (Azure)."""
+"""fsspec storage options that hold credentials: s3fs's, adlfs's (Azure), and those of a gcsfs ``token`` given as a
+service account's or a user's credentials (a dict: its values are redacted key by key)."""
 SECRET_QUERY = frozenset(
     {"sig", "signature", "x-amz-signature", "x-amz-credential", "x-amz-security-token", "x-goog-signature"}
     | {"x-goog-credential", "token", "access_token", "sas_token", "password", "secret", "key", "code"}

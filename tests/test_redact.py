@@ -16,6 +16,7 @@ from ftrain.redact import (
     redact_options,
     reveal_credentials,
     scrub,
+    secret_values,
     url_secrets,
 )
 
@@ -113,3 +114,15 @@ def test_credentials_travel_in_the_environment_and_come_back_in_place():
     assert "SK" not in " ".join(shown) and reveal_credentials(shown, env) == words
     assert reveal_credentials(["c.yaml", "iterations=4"], env) == ["c.yaml", "iterations=4"]  # another command line
     assert hide_credentials(["c.yaml", "iterations=3"]) == (["c.yaml", "iterations=3"], {})  # nothing to hide
+
+
+def test_a_gcs_token_given_as_credentials_loses_its_keys() -> None:
+    """gcsfs takes ``token`` as a service account's (or a user's) credentials, a dict: its secrets are hidden and
+    known for scrubbing, the rest stays readable."""
+    token = {"type": "service_account", "client_email": "ci@p.iam", "private_key": "-----PEM-----"}
+    token["private_key_id"] = "ID9"
+    options = {"project": "p", "token": {**token, "refresh_token": "RT"}}
+    shown = redact_options(options)
+    assert shown["project"] == "p" and shown["token"]["client_email"] == "ci@p.iam"
+    assert "-----PEM-----" not in str(shown) and "ID9" not in str(shown) and "RT" not in str(shown)
+    assert {"-----PEM-----", "ID9", "RT"} <= set(secret_values(options))
