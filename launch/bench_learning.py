@@ -1,26 +1,24 @@
-"""Learning benchmark: time to a good policy on HalfCheetah, Hopper, Walker2d and Ant (v5), ftrain at 2 ranks against
-stable-baselines3 PPO with the RL Zoo's tuned hyperparameters, side by side on this machine.
+"""Learning benchmark: every seed of the shipped configs on HalfCheetah, Hopper, Walker2d and Ant (v5) at 2 ranks,
+with stable-baselines3 PPO (the RL Zoo's tuned hyperparameters) side by side on this machine if asked.
 
-    .venv/bin/python launch/bench_learning.py [--envs halfcheetah hopper] [--seeds 1 2 3] [--steps 1000000]
-        [--sb3-steps 30000] [--out runs/bench_learning] [--set key=value ...]
+    .venv/bin/python launch/bench_learning.py [--envs halfcheetah hopper] [--seeds 1 2 3 4 5] [--steps 1000000]
+        [--sb3-steps 0] [--out runs/bench_learning] [--reuse results.json] [--set key=value ...]
 
-For each environment, SB3 first, then ftrain, so that both see the same machine:
-
-- SB3 PPO (``ftrain.tools.zoo``) trains in a process of its own until a deterministic evaluation (10 episodes,
-  every ``--sb3-eval-every`` steps, its clock paused while it evaluates) reaches the target, or for ``--sb3-steps``
-  steps. Its time to 1M steps is scaled from that run: the time from launch to its first completed rollout, plus
-  the remaining steps at its rate over the later rollouts (each with its update). Where it did not reach the target,
-  its time to the target is at least the length of its run, and the ratio printed is an upper bound.
-- ``--reuse results.json`` takes ftrain's runs from an earlier run of this benchmark and measures SB3 only.
 - ``configs/<env>.yaml`` trains for ``--steps`` steps at 2 ranks (torchrun) once per seed. Its times are wall clock
-  from launching torchrun, start-up and checkpoints included; like SB3's, its clock stops while the config's
-  periodic evaluation (``eval.every``, 10 deterministic episodes) runs (the metric ``eval_time``), and the table
-  gives the time with evaluation too. Its time to the target is that of the first periodic evaluation at or above
-  it. Its return at the end is the final policy's mean over 10 deterministic episodes (the evaluation's seeds).
+  from launching torchrun, start-up and checkpoints included, with the clock stopped while the config's periodic
+  evaluation (``eval.every``, 10 deterministic episodes) runs; the figures with it follow in parentheses. Its time
+  and steps to the target are those of the first periodic evaluation at or above it; its return at the end is the
+  final policy's mean over 10 deterministic episodes. Each run's storage (``metrics.csv``: losses, learning rate,
+  action noise) stays under ``--out``/runs for a look at a seed that fell.
+- Per environment it prints one row per seed, the median and the worst seed, and how many seeds reached the target
+  and the RL Zoo's return at the end; it draws one curve per seed, their median and their band (``<env>.png``).
+- SB3 PPO (``ftrain.tools.zoo``, ``--sb3-steps`` > 0) trains in a process of its own until a deterministic
+  evaluation reaches the target, or for ``--sb3-steps`` steps; its time to 1M steps is scaled from that run.
+- ``--reuse results.json`` takes ftrain's runs from an earlier run of this benchmark (to report again, or to measure
+  SB3 only).
 
-Targets: 3,000 on HalfCheetah, the RL Zoo's return after 1M steps on the others. Prints one table (median and range
-over seeds) and writes, to ``--out``, a learning-curve PNG per environment (return against environment steps and
-against wall time) and ``results.json`` with every curve and the machine's load average around each run.
+Targets: 5,000 on HalfCheetah, the RL Zoo's return after 1M steps on the others. Writes ``results.json`` with every
+curve, every seed's figures and the machine's load average around each run.
 """
 
 from __future__ import annotations
@@ -30,11 +28,11 @@ import hashlib
 import json
 import math
 import os
+import shutil
 import signal
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -53,8 +51,8 @@ RANKS = 2
 EPISODES = 10
 EVAL_SEED = 10_000
 ENV_IDS = {"halfcheetah": "HalfCheetah-v5", "hopper": "Hopper-v5", "walker2d": "Walker2d-v5", "ant": "Ant-v5"}
-TARGETS = {"HalfCheetah-v5": 3000.0}
-"""The return whose first reach is timed, where it is not the Zoo's."""
+TARGETS = {"HalfCheetah-v5": 5000.0}
+"""The return every seed should reach, where it is not the Zoo's."""
 WORKERS = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).parent)}
 """Environment of the processes this benchmark launches: one OpenMP thread, this module importable."""
 
@@ -77,8 +75,11 @@ class Run:
     """Time ftrain spent in its periodic evaluation, on top of ``seconds``."""
     steps: int = 0
     final_return: float = math.nan
+    episodes: list[float] = field(default_factory=list)
+    """The returns of the final evaluation's episodes: a gait that falls over in some shows as a low one."""
     load: tuple[float, float] = (math.nan, math.nan)
     """The machine's 1-minute load average at the start and at the end."""
+    seed: int = 0
 
     @classmethod
     def from_json(cls, run: dict) -> Run:
@@ -89,6 +90,10 @@ class Run:
         """Seconds to the first evaluation at or above ``score`` (``with_eval``: ftrain's evaluations counted)."""
         times = (point[1] + (point[3] if with_eval else 0.0) for point in self.curve if point[2] >= score)
         return next(times, math.nan)
+
+    def steps_to(self, score: float) -> float:
+        """Environment steps to the first evaluation at or above ``score``."""
+        return next((point[0] for point in self.curve if point[2] >= score), math.nan)
 
 
 class CurveHook(Hook):
@@ -114,11 +119,11 @@ def load_average() -> float:
     return float(Path("/proc/loadavg").read_text().split()[0])
 
 
-def evaluate(act, env_config: EnvConfig, seed: int = EVAL_SEED) -> float:
-    """Mean return of ``EPISODES`` deterministic episodes seeded ``seed``, ``seed + 1``, ..."""
+def evaluate(act, env_config: EnvConfig, seed: int = EVAL_SEED) -> list[float]:
+    """The returns of ``EPISODES`` deterministic episodes seeded ``seed``, ``seed + 1``, ..."""
     envs = [make_env(env_config) for _ in range(EPISODES)]
     try:
-        return statistics.fmean(episode.ret for episode in rollout(envs, act, EPISODES, seed))
+        return [episode.ret for episode in rollout(envs, act, EPISODES, seed)]
     finally:
         for env in envs:
             env.close()
@@ -136,7 +141,9 @@ def run_ftrain(
     digest = hashlib.sha256(" ".join(overrides).encode()).hexdigest()[:8]
     tag = f"{name}-{ranks}x{config.env.num_envs}-{digest}-seed{seed}"  # each case a storage and a curve of its own
     storage, curve = work / tag, work / f"{tag}.jsonl"
-    run = Run(steps=iterations * per_iteration, load=(load_average(), math.nan))
+    shutil.rmtree(storage, ignore_errors=True)  # a fresh run, not a resume of an earlier one
+    curve.unlink(missing_ok=True)
+    run = Run(steps=iterations * per_iteration, load=(load_average(), math.nan), seed=seed)
     launched = time.time()
     hook = f"hooks=[{{target: 'bench_learning:CurveHook', kwargs: {{path: '{curve}', launched: {launched}}}}}]"
     launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={ranks}"]
@@ -160,7 +167,8 @@ def run_ftrain(
     run.seconds = wall - run.eval_seconds
     if not reached:
         policy = load_policy(str(storage))
-        run.final_return = evaluate(policy.act, policy.config.env, policy.config.eval.seed)
+        run.episodes = evaluate(policy.act, policy.config.env, policy.config.eval.seed)
+        run.final_return = statistics.fmean(run.episodes)
     return run
 
 
@@ -209,7 +217,7 @@ def sb3_worker(env_id: str, steps: int, eval_every: int, launched: float, out: s
                 def act(obs: torch.Tensor) -> torch.Tensor:
                     return torch.as_tensor(self.model.predict(venv.normalize_obs(obs.numpy()), deterministic=True)[0])
 
-                curve.append((self.num_timesteps, trained, evaluate(act, EnvConfig(env_id))))
+                curve.append((self.num_timesteps, trained, statistics.fmean(evaluate(act, EnvConfig(env_id)))))
                 paused += time.time() - started
                 return curve[-1][2] < target(env_id)  # reached: its time to the target is known, stop
             return True
@@ -220,26 +228,35 @@ def sb3_worker(env_id: str, steps: int, eval_every: int, launched: float, out: s
 
 
 def plot(env_id: str, runs: list[Run], sb3: Run | None, path: Path) -> None:
-    """Return against environment steps and against wall time: each ftrain seed, SB3's run, the target."""
+    """Return against environment steps (each seed, their median and band) and against wall time (each seed),
+    SB3's run and the target."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     figure, axes = plt.subplots(1, 2, figsize=(10, 3.6))
-    lines = [(run, "tab:blue", "-", f"ftrain, 2 ranks ({len(runs)} seeds)") for run in runs]
-    lines += [(sb3, "tab:orange", "o-", "SB3 PPO, RL Zoo hyperparameters")] if sb3 and sb3.curve else []
-    for ax, column, label in ((axes[0], 0, "environment steps"), (axes[1], 1, "wall time (s)")):
-        for index, (run, color, style, name) in enumerate(lines):
+    for run in runs:
+        for ax, column in zip(axes, (0, 1), strict=True):
             points = [(point[column], point[2]) for point in run.curve]
-            first = index == 0 or color != lines[index - 1][1]
-            ax.plot(*zip(*points, strict=True), style, color=color, markersize=3, label=name if first else None)
+            ax.plot(*zip(*points, strict=True), "-", linewidth=1, label=f"seed {run.seed}")
+    steps = sorted(set.intersection(*(set(point[0] for point in run.curve) for run in runs))) if runs else []
+    at = [[next(p[2] for p in run.curve if p[0] == step) for run in runs] for step in steps]
+    if len(runs) > 1 and steps:
+        axes[0].fill_between(steps, [min(r) for r in at], [max(r) for r in at], color="tab:blue", alpha=0.12)
+        median = [statistics.median(returns) for returns in at]
+        axes[0].plot(steps, median, "-", color="black", linewidth=2, label=f"median of {len(runs)} seeds")
+    for ax in axes if sb3 and sb3.curve else ():
+        column = 0 if ax is axes[0] else 1
+        points = [(point[column], point[2]) for point in sb3.curve]
+        ax.plot(*zip(*points, strict=True), "o-", color="tab:gray", markersize=3, label="SB3 PPO, RL Zoo")
+    for ax, label in zip(axes, ("environment steps", "wall time (s), evaluation excluded"), strict=True):
         ax.axhline(target(env_id), color="gray", linestyle="--", linewidth=1, label=f"target {target(env_id):,.0f}")
         ax.set_xlabel(label)
         ax.set_ylabel("deterministic return (10 episodes)")
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize="small")
-    figure.suptitle(env_id)
+    axes[0].legend(fontsize="x-small")
+    figure.suptitle(f"{env_id}: ftrain at {RANKS} ranks, shipped config")
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=72)
@@ -250,6 +267,81 @@ def _seconds(value: float) -> str:
     return f"{value:,.0f} s" if math.isfinite(value) else "not reached"
 
 
+def _steps(value: float) -> str:
+    return f"{value:,.0f}" if math.isfinite(value) else "not reached"
+
+
+@dataclass
+class Seeds:
+    """What the seeds of one environment reached: the median and the worst seed of each figure (the worst time or
+    step count of a seed that did not reach the target is infinite)."""
+
+    target: float
+    zoo: float
+    returns: list[float]
+    steps_to: list[float]
+    times_to: list[float]
+    reached: int
+    above_zoo: int
+
+    @classmethod
+    def of(cls, env_id: str, runs: list[Run]) -> Seeds:
+        goal, zoo = target(env_id), float(ZOO[env_id].zoo_return)
+        returns = [run.final_return for run in runs]
+        steps_to = [or_inf(run.steps_to(goal)) for run in runs]
+        times_to = [or_inf(run.time_to(goal)) for run in runs]
+        reached = sum(math.isfinite(steps) for steps in steps_to)
+        return cls(goal, zoo, returns, steps_to, times_to, reached, sum(value >= zoo for value in returns))
+
+    @property
+    def worst_return(self) -> float:
+        return min(self.returns)
+
+    @property
+    def spread(self) -> float:
+        """The worst seed's time to the target over the median's (infinite if a seed did not reach it)."""
+        return max(self.times_to) / statistics.median(self.times_to)
+
+    def verdict(self) -> str:
+        n = len(self.returns)
+        return (
+            f"{self.reached}/{n} seeds reached {self.target:,.0f}; {self.above_zoo}/{n} ended at or above the RL Zoo's "
+            f"{self.zoo:,.0f}; worst at the end {self.worst_return:,.0f}, median {statistics.median(self.returns):,.0f}"
+            f"; worst time to {self.target:,.0f} / median: {self.spread:.2f}"
+        )
+
+
+def or_inf(value: float) -> float:
+    """A time or step count never reached (NaN) as infinite: the worst of any."""
+    return value if math.isfinite(value) else math.inf
+
+
+def seed_table(env_id: str, runs: list[Run]) -> str:
+    """One row per seed, then the median and the worst seed."""
+    seeds, goal = Seeds.of(env_id, runs), f"{target(env_id):,.0f}"
+    lines = [
+        f"| seed | return at the end (its worst episode) | steps to {goal} | time to {goal} (with evaluation) "
+        "| time to the end (with evaluation) | load average at start, end |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for run in runs:
+        with_eval = run.time_to(target(env_id), with_eval=True)
+        lines.append(
+            f"| {run.seed} | {run.final_return:,.0f} ({min(run.episodes, default=math.nan):,.0f}) "
+            f"| {_steps(run.steps_to(target(env_id)))} "
+            f"| {_seconds(run.time_to(target(env_id)))} ({_seconds(with_eval)}) "
+            f"| {run.seconds:,.0f} s ({run.seconds + run.eval_seconds:,.0f} s) | {run.load[0]:.1f}, {run.load[1]:.1f} |"
+        )
+    ends = [run.seconds for run in runs]
+    for name, pick in (("median", statistics.median), ("worst", None)):
+        returns = pick(seeds.returns) if pick else seeds.worst_return
+        steps = pick(seeds.steps_to) if pick else max(seeds.steps_to)
+        times = pick(seeds.times_to) if pick else max(seeds.times_to)
+        end = pick(ends) if pick else max(ends)
+        lines.append(f"| {name} | {returns:,.0f} | {_steps(steps)} | {_seconds(times)} | {end:,.0f} s | |")
+    return "\n".join(lines)
+
+
 HEADER = (
     "| environment | ftrain return at the end: median (range) | RL Zoo | ftrain time to the end (with evaluation) "
     "| ftrain time to target (with evaluation) | SB3 time to 1M steps | SB3 time to target "
@@ -258,9 +350,10 @@ HEADER = (
 )
 
 
-def summary(env_id: str, runs: list[Run], sb3: Run | None) -> str:
-    """One table row (times are medians over the seeds; a target counts if most seeds reached it). ftrain's times
-    leave its periodic evaluation out, as SB3's do; the figures with it follow in parentheses."""
+def against_sb3(env_id: str, runs: list[Run], sb3: Run) -> str:
+    """One row of the comparison with SB3 (ftrain's times are medians over the seeds; a target counts if most seeds
+    reached it). ftrain's times leave its periodic evaluation out, as SB3's do; the figures with it follow in
+    parentheses."""
     goal = target(env_id)
     returns = [run.final_return for run in runs]
     reached = [run.time_to(goal) for run in runs if math.isfinite(run.time_to(goal))]
@@ -270,19 +363,15 @@ def summary(env_id: str, runs: list[Run], sb3: Run | None) -> str:
         statistics.median(run.time_to(goal, with_eval) for run in runs) if len(reached) * 2 > len(runs) else math.nan
         for with_eval in (False, True)
     )
+    sb3_goal = sb3.time_to(goal)
+    reached_by_sb3 = math.isfinite(sb3_goal)
+    bound = sb3_goal if reached_by_sb3 else sb3.curve[-1][1]  # not reached: it takes longer than its whole run
     cells = [
         env_id,
         f"{statistics.median(returns):,.0f} ({min(returns):,.0f} to {max(returns):,.0f})",
         f"{ZOO[env_id].zoo_return:,}",
         f"{total:,.0f} s ({total_with_eval:,.0f} s; {runs[0].steps:,} steps)",
         f"{_seconds(to_goal)} ({_seconds(to_goal_with_eval)}; {len(reached)}/{len(runs)} reached {goal:,.0f})",
-    ]
-    if sb3 is None:
-        return "| " + " | ".join([*cells, "-", "-", "-"]) + " |"
-    sb3_goal = sb3.time_to(goal)
-    reached_by_sb3 = math.isfinite(sb3_goal)
-    bound = sb3_goal if reached_by_sb3 else sb3.curve[-1][1]  # not reached: it takes longer than its whole run
-    cells += [
         f"{sb3.seconds:,.0f} s (scaled from {sb3.steps:,} steps)",
         _seconds(sb3_goal) if reached_by_sb3 else f"> {bound:,.0f} s (not in {sb3.steps:,} steps)",
         f"{total / sb3.seconds:.2f}, {'' if reached_by_sb3 else '< '}{to_goal / bound:.2f} "
@@ -294,10 +383,10 @@ def summary(env_id: str, runs: list[Run], sb3: Run | None) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--envs", nargs="+", default=list(ENV_IDS), choices=list(ENV_IDS))
-    parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3])
+    parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3, 4, 5])
     parser.add_argument("--steps", type=float, default=1e6, help="environment steps of each ftrain run")
     parser.add_argument(
-        "--sb3-steps", type=float, default=300_000, help="SB3 runs until the target or this many steps (0: no SB3)"
+        "--sb3-steps", type=float, default=0, help="SB3 runs until the target or this many steps (0: no SB3)"
     )
     parser.add_argument(
         "--reuse", type=Path, help="take ftrain's runs from this earlier results.json instead of training again"
@@ -306,35 +395,40 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=REPO / "runs" / "bench_learning")
     parser.add_argument("--set", nargs="*", default=[], metavar="key=value", help="config overrides for ftrain")
     args = parser.parse_args()
-    results, rows = {}, []
-    with tempfile.TemporaryDirectory() as tmp:
-        for name in args.envs:
-            env_id = ENV_IDS[name]
-            sb3 = None
-            if args.sb3_steps:
-                sb3 = run_sb3(env_id, int(args.sb3_steps), int(args.sb3_eval_every), Path(tmp))
-                print(f"{env_id} SB3: {sb3.seconds:,.0f} s to 1M steps (scaled), load {sb3.load}", flush=True)
-            runs = []
-            if args.reuse:
-                earlier = json.loads(args.reuse.read_text())["results"][env_id]["ftrain"]
-                runs = [Run.from_json(run) for run in earlier]
-            for seed in [] if args.reuse else args.seeds:
-                runs.append(run := run_ftrain(name, seed, int(args.steps), args.set, Path(tmp)))
-                print(
-                    f"{env_id} seed {seed}: return {run.final_return:,.1f} after {run.steps:,} steps in "
-                    f"{run.seconds:,.0f} s + {run.eval_seconds:,.0f} s evaluating, "
-                    f"target {target(env_id):,.0f} at {_seconds(run.time_to(target(env_id)))}, "
-                    f"load {run.load}",
-                    flush=True,
-                )
-            plot(env_id, runs, sb3, args.out / f"{name}.png")
-            results[env_id] = {"ftrain": [asdict(run) for run in runs], "sb3": asdict(sb3) if sb3 else None}
-            rows.append(summary(env_id, runs, sb3))
-    args.out.mkdir(parents=True, exist_ok=True)
+    work = args.out / "runs"
+    work.mkdir(parents=True, exist_ok=True)
+    results, tables, rows = {}, [], []
+    for name in args.envs:
+        env_id = ENV_IDS[name]
+        sb3 = None
+        if args.sb3_steps:
+            sb3 = run_sb3(env_id, int(args.sb3_steps), int(args.sb3_eval_every), work)
+            print(f"{env_id} SB3: {sb3.seconds:,.0f} s to 1M steps (scaled), load {sb3.load}", flush=True)
+        runs = []
+        if args.reuse:
+            earlier = json.loads(args.reuse.read_text())["results"][env_id]["ftrain"]
+            runs = [Run.from_json(run) for run in earlier]
+        for seed in [] if args.reuse else args.seeds:
+            runs.append(run := run_ftrain(name, seed, int(args.steps), args.set, work))
+            print(
+                f"{env_id} seed {seed}: return {run.final_return:,.1f} after {run.steps:,} steps in "
+                f"{run.seconds:,.0f} s + {run.eval_seconds:,.0f} s evaluating, "
+                f"target {target(env_id):,.0f} at {_seconds(run.time_to(target(env_id)))}, "
+                f"load {run.load}",
+                flush=True,
+            )
+        plot(env_id, runs, sb3, args.out / f"{name}.png")
+        seeds = Seeds.of(env_id, runs)
+        results[env_id] = {"ftrain": [asdict(run) for run in runs], "sb3": asdict(sb3) if sb3 else None}
+        results[env_id]["seeds"] = asdict(seeds) | {"verdict": seeds.verdict()}
+        tables.append(f"{env_id}, {len(runs)} seeds, {runs[0].steps:,} steps each:\n{seed_table(env_id, runs)}")
+        tables[-1] += f"\n{env_id}: {seeds.verdict()}"
+        rows += [against_sb3(env_id, runs, sb3)] if sb3 else []
     settings = {key: str(value) if isinstance(value, Path) else value for key, value in vars(args).items()}
     (args.out / "results.json").write_text(json.dumps({"args": settings, "results": results}, indent=1))
-    print(HEADER)
-    print("\n".join(rows))
+    print("\n\n".join(tables))
+    if rows:
+        print(f"\n{HEADER}\n" + "\n".join(rows))
 
 
 if __name__ == "__main__":

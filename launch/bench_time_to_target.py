@@ -46,7 +46,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import bench_learning
-from bench_learning import Run, run_ftrain
+from bench_learning import Run, or_inf, run_ftrain
 
 from ftrain.config import load_config
 from ftrain.tools.bench import run_side_by_side
@@ -154,7 +154,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     shapes = "RANKSxENVS[/MINIBATCHES][:dp] (default: the config's batch at 1 rank, 2 split, 2 data-parallel)"
     parser.add_argument("--cases", type=parse_case, nargs="+", default=None, help=shapes)
-    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4, 5])
     parser.add_argument("--target", type=float, default=5000.0)
     parser.add_argument("--steps", type=float, default=3e6, help="environment steps at most per run")
     horizon = "environment steps at which the learning rate reaches zero (default: the config's own horizon)"
@@ -184,7 +184,7 @@ def main() -> int:
                 overrides = [*case.overrides(), f"algorithm.schedule_iterations={schedule}", *args.set]
                 run = run_ftrain(args.config, seed, int(args.steps), overrides, Path(tmp), case.ranks, args.target)
                 runs[name].append(run)
-                where = next((point[0] for point in run.curve if point[2] >= args.target), math.nan)
+                where = run.steps_to(args.target)
                 print(
                     f"seed {seed}, {name}: {args.target:,.0f} at {run.time_to(args.target):,.0f} s, {where:,.0f} steps "
                     f"(+{run.eval_seconds:,.0f} s evaluating), load {run.load}",
@@ -193,18 +193,22 @@ def main() -> int:
     print("what the machine allows (throughput runs, the same cores, right after):", flush=True)
     best = [best_speed(case, args.iterations, config_path, tuple(args.set)) for case in cases]
     allowed = {name: speed / best[0] for name, speed in zip(names, best, strict=True)}
-    print(f"\n| ranks x envs | time to {args.target:,.0f}: median (range) | seeds | steps to it: median ", end="")
-    print(f"| speed-up vs {names[0]} | steps/s at best (ceiling) | steps/s reached: median (range) |")
-    print("| --- " * 7 + "|")
+    print(f"\n| ranks x envs | time to {args.target:,.0f}: median (range) | worst seed: its time / the median ", end="")
+    print(f"| seeds | steps to it: median | speed-up vs {names[0]} | steps/s at best (ceiling) ", end="")
+    print("| steps/s reached: median (range) |")
+    print("| --- " * 8 + "|")
     times = {name: [run.time_to(args.target) for run in seeds] for name, seeds in runs.items()}
     rates = {name: [rate(run, args.target) for run in seeds] for name, seeds in runs.items()}
     for name, seeds in runs.items():
         reached = [time for time in times[name] if math.isfinite(time)]
-        steps = [next((p[0] for p in run.curve if p[2] >= args.target), math.nan) for run in seeds]
+        steps = [run.steps_to(args.target) for run in seeds]
         middle, spread = statistics.median(times[name]), f"{min(times[name]):,.0f} to {max(times[name]):,.0f}"
+        worst = max(seeds, key=lambda run: or_inf(run.time_to(args.target)))
+        worst_time = or_inf(worst.time_to(args.target))
         speed, speeds = statistics.median(rates[name]), f"{min(rates[name]):,.0f} to {max(rates[name]):,.0f}"
         print(
-            f"| {name} | {middle:,.0f} s ({spread}) | {len(reached)}/{len(seeds)} reached "
+            f"| {name} | {middle:,.0f} s ({spread}) | seed {worst.seed}: {worst_time / middle:.2f} "
+            f"| {len(reached)}/{len(seeds)} reached "
             f"| {statistics.median(steps):,.0f} | {statistics.median(times[names[0]]) / middle:.2f} "
             f"| {allowed[name]:.2f} | {speed / statistics.median(rates[names[0]]):.2f}: {speed:,.0f} ({speeds}) |"
         )

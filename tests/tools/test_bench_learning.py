@@ -1,0 +1,44 @@
+"""The learning benchmark's per-seed report: what counts as reached, the worst seed and the median."""
+
+import math
+
+from bench_learning import Run, Seeds, seed_table
+
+
+def run(seed: int, final: float, returns: list[float], every: float = 20_000.0, pace: float = 10.0) -> Run:
+    """A run whose evaluations come every ``every`` steps and ``pace`` seconds, returning ``returns``."""
+    curve = [(every * (i + 1), pace * (i + 1), value, 0.5 * (i + 1)) for i, value in enumerate(returns)]
+    return Run(
+        curve=curve,
+        seconds=pace * len(returns),
+        eval_seconds=0.5 * len(returns),
+        steps=1000,
+        seed=seed,
+        final_return=final,
+        episodes=[final - 100.0, final + 100.0],
+        load=(0.0, 0.0),
+    )
+
+
+def test_every_seed_is_reported_with_the_median_and_the_worst() -> None:
+    runs = [
+        run(1, 6_100.0, [3_000.0, 5_200.0, 6_000.0]),  # 5,000 at the second evaluation
+        run(2, 5_900.0, [5_100.0, 5_000.0, 6_000.0]),  # at the first
+        run(3, 4_400.0, [3_000.0, 4_000.0, 4_900.0]),  # never
+    ]
+    seeds = Seeds.of("HalfCheetah-v5", runs)
+    assert (seeds.reached, seeds.above_zoo, seeds.worst_return) == (2, 2, 4_400.0)
+    assert seeds.steps_to == [40_000.0, 20_000.0, math.inf]
+    assert seeds.times_to == [20.0, 10.0, math.inf] and seeds.spread == math.inf
+    table = seed_table("HalfCheetah-v5", runs).splitlines()
+    assert len(table) == 2 + 3 + 2
+    assert table[2].startswith("| 1 | 6,100 (6,000) | 40,000 | 20 s (21 s) |")  # with evaluation: 20 s + 2 x 0.5 s
+    assert table[-2].startswith("| median | 5,900 | 40,000 | 20 s |")
+    assert table[-1].startswith("| worst | 4,400 | not reached | not reached |")
+    assert "2/3 seeds reached 5,000; 2/3 ended at or above the RL Zoo's 5,819" in seeds.verdict()
+
+
+def test_the_spread_is_the_worst_time_over_the_median() -> None:
+    runs = [run(seed, 6_000.0, [0.0] * (seed - 1) + [5_500.0], pace=pace) for seed, pace in ((1, 10), (2, 10), (3, 30))]
+    assert Seeds.of("HalfCheetah-v5", runs).times_to == [10.0, 20.0, 90.0]
+    assert Seeds.of("HalfCheetah-v5", runs).spread == 90.0 / 20.0
