@@ -27,6 +27,7 @@ import threading
 import time
 from collections.abc import Callable
 
+from ftrain.ckpt.lease import Lease
 from ftrain.errors import UserError
 from ftrain.supervise.auth import HOW_TO_SET, REPLY, REQUEST, Refused, read_line, seal, unseal
 from ftrain.supervise.options import Nodes, SupervisorOptions
@@ -170,8 +171,9 @@ def _well_formed(request: dict) -> bool:
 
 
 class Link:
-    """This node's line to the coordinator: a direct call on node 0, one signed TCP request per question elsewhere.
-    Every request names the plan's generation (node 0 knows it; the others learn it from the first reply)."""
+    """This node's line to the coordinator (``link.PlanLink``): a direct call on node 0, one signed TCP request per
+    question elsewhere. Every request names the plan's generation (node 0 knows it; the others learn it from the
+    first reply). Node 0's link holds the coordinator: it makes the plan, serves the others and closes with it."""
 
     def __init__(
         self, node: int, coordinator: Coordinator | None, address: tuple[str, int] | None, secret: bytes | None
@@ -182,6 +184,21 @@ class Link:
         self.peer = "node 0 at {}:{}".format(*address) if address else "node 0"
         self.secret = secret
         self.generation: int | None = None
+
+    def begin(self, lease: Lease) -> None:
+        """Node 0 (or one node alone) makes the plan at the generation of the ``lease`` it holds; the other nodes
+        learn it from node 0's first reply."""
+        if self.coordinator is not None:
+            self.coordinator.begin(lease.generation)
+
+    def settle(self, nnodes: int, timeout: float) -> None:
+        """Node 0: until every node has learnt the run's end (``Coordinator.wait_informed``)."""
+        if self.coordinator is not None:
+            self.coordinator.wait_informed(nnodes, timeout)
+
+    def close(self) -> None:
+        if self.coordinator is not None:
+            self.coordinator.close()
 
     def ask(self, op: str, **fields) -> Plan:
         """Raises OSError when node 0 cannot be reached, is starting, or refuses the request."""

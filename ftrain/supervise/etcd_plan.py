@@ -59,7 +59,8 @@ def etcd_client(nodes: Nodes) -> Any:
 
 
 class EtcdLink:
-    """This node's line to the run's plan in etcd: the same questions as ``coordinator.Link``, answered by etcd."""
+    """This node's line to the run's plan in etcd (``link.PlanLink``): the same questions as ``coordinator.Link``,
+    answered by etcd, which keeps the plan for every node (nothing to settle or close)."""
 
     def __init__(self, nodes: Nodes, timeout: float) -> None:
         """Takes a node number; waits up to ``timeout`` seconds for etcd (``ConnectionError`` then)."""
@@ -109,6 +110,12 @@ class EtcdLink:
         plan = Plan(**self._update("plan", lambda value: dataclasses.asdict(apply(_plan(value), request, _no_port))))
         self.generation = plan.generation
         return plan
+
+    def settle(self, nnodes: int, timeout: float) -> None:
+        """Every node reads the run's end from etcd: nobody to wait for."""
+
+    def close(self) -> None:
+        """Nothing held: each question is one request to etcd."""
 
     def _waiting(self, call: Callable[[], Any]) -> Any:
         """``call()``, tried again while etcd cannot be reached, up to ``timeout`` seconds (then ConnectionError)."""

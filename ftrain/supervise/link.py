@@ -1,10 +1,15 @@
-"""This node's line to what the nodes of a run agree on (``plan.py``), and torchrun's rendezvous, by backend: node 0's
-coordinator with c10d (``coordinator.py``), etcd with etcd-v2 (``etcd_plan.py``, where the coordinator is not used)."""
+"""This node's line to what the nodes of a run agree on (``plan.py``), and torchrun's rendezvous, by backend.
+
+One protocol, ``PlanLink``, with two keepers of the plan behind it: node 0's coordinator with c10d
+(``coordinator.Link``), etcd with etcd-v2 (``etcd_plan.EtcdLink``). Both change the plan by ``plan.apply`` alone. The
+supervisor holds a ``PlanLink`` and never asks which. May import ckpt, config and supervise's plan modules.
+"""
 
 from __future__ import annotations
 
 import os
 from collections.abc import Callable
+from typing import Protocol
 
 from ftrain.ckpt.claim import storage_lease
 from ftrain.ckpt.lease import Lease
@@ -15,19 +20,39 @@ from ftrain.supervise.options import Backend, Nodes, SupervisorOptions
 from ftrain.supervise.plan import Plan
 
 
-def connect(
-    nodes: Nodes, options: SupervisorOptions, log: Callable[..., None]
-) -> tuple[Link | EtcdLink, Coordinator | None]:
-    """This node's link, and the coordinator it holds if it is node 0 of a c10d run (serving the others: ``close`` it)
-    or alone. etcd-v2: waits up to ``--rdzv-timeout`` for etcd (``ConnectionError`` then). ``log``: records refused
-    connections (an EventLog)."""
+class PlanLink(Protocol):
+    """What a supervisor asks of the run's plan, wherever it is kept."""
+
+    node: int
+    """This node's number (c10d: its ``--node-rank``; etcd: taken from etcd when the link is made)."""
+    peer: str
+    """The plan's keeper, for messages: "node 0 at HOST:PORT" or "etcd at HOST:PORT"."""
+
+    def begin(self, lease: Lease) -> None:
+        """Once this node holds the storage's ``lease``: the plan made at its generation, or joined."""
+
+    def ask(self, op: str, **fields) -> Plan:
+        """The plan after this node's request (``plan.apply``; ``plan``: only read it). OSError: the keeper is not
+        reached."""
+
+    def settle(self, nnodes: int, timeout: float) -> None:
+        """After the run's end was asked for: until every node can have learnt it, at most ``timeout`` seconds."""
+
+    def close(self) -> None:
+        """Stop serving the other nodes, if this link does."""
+
+
+def connect(nodes: Nodes, options: SupervisorOptions, log: Callable[..., None]) -> PlanLink:
+    """This node's link. c10d: node 0 (or one node alone) holds the coordinator and, of several, serves the others
+    (``close`` the link). etcd-v2: waits up to ``--rdzv-timeout`` for etcd (``ConnectionError`` then). ``log``:
+    records refused connections (an EventLog)."""
     if nodes.backend is Backend.ETCD:
-        return EtcdLink(nodes, options.rdzv_timeout), None
+        return EtcdLink(nodes, options.rdzv_timeout)
     multi = nodes.count > 1
     coordinator = Coordinator(multi, nodes.secret, log) if options.node_rank == 0 or not multi else None
     if multi and coordinator is not None:
         coordinator.serve(*nodes.endpoint)
-    return Link(options.node_rank, coordinator, nodes.endpoint, nodes.secret), coordinator
+    return Link(options.node_rank, coordinator, nodes.endpoint, nodes.secret)
 
 
 def makes_plan(nodes: Nodes, options: SupervisorOptions) -> bool:
@@ -42,15 +67,6 @@ def node_lease(config: Config, nodes: Nodes, options: SupervisorOptions, log: Ca
     follow the plan's generation (``Lease``)."""
     follows = nodes.count > 1 and not makes_plan(nodes, options)
     return storage_lease(config, log, nodes.run_key, nodes.lease_endpoint, follows=follows)
-
-
-def begin(link: Link | EtcdLink, coordinator: Coordinator | None, lease: Lease) -> None:
-    """Once this node holds the storage's ``lease``: the plan made (at the lease's generation, on node 0 or one node
-    alone) or joined (etcd; c10d's other nodes learn it from node 0)."""
-    if coordinator is not None:
-        coordinator.begin(lease.generation)
-    elif isinstance(link, EtcdLink):
-        link.begin(lease)
 
 
 def rendezvous(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> list[str]:

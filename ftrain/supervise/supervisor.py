@@ -33,7 +33,7 @@ from ftrain.supervise.attempt import Attempt, Launcher, attempt_env, kill, new_l
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.hang import QUIET_PHASES, HangWatch
 from ftrain.supervise.ledger import Ledger
-from ftrain.supervise.link import begin, connect, makes_plan, node_lease, rendezvous, worker_env
+from ftrain.supervise.link import connect, makes_plan, node_lease, rendezvous, worker_env
 from ftrain.supervise.log_dir_lock import claim_log_dir
 from ftrain.supervise.options import (
     EXIT_DONE,
@@ -109,7 +109,7 @@ class Supervisor:
         self.train_args = train_args
         log_dir = Path(config.log_dir)
         self.events = EventLog(log_dir / "events.jsonl", None)
-        self.link, self.coordinator = connect(nodes, options, self.events)
+        self.link = connect(nodes, options, self.events)
         self.node = self.link.node
         self.events.node = self.node if nodes.count > 1 else None
         node_dir = f"node-{self.node}" if nodes.count > 1 else ""
@@ -128,15 +128,14 @@ class Supervisor:
         self.signals.append(number)
 
     def close(self) -> None:
-        if self.coordinator is not None:
-            self.coordinator.close()
+        self.link.close()
         self.launcher.close()
 
     def run(self, lease: Lease) -> int:
         """Attempts, under the storage's ``lease`` (stopped once ``lost``), until the run ends (raises ``_Stop``)."""
         self.lease = lease
         try:
-            begin(self.link, self.coordinator, lease)
+            self.link.begin(lease)
         except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
             raise _Stop(Outcome("peer_lost", EXIT_PEER_LOST, str(error))) from None
         plan = self._next_plan(None)
@@ -371,8 +370,7 @@ class Supervisor:
         self.events(ending.event, ending.message, code=ending.code)
         if self.nodes.count > 1 and not (ending.event == "preempted" and self._leaves_alone()):
             self._tell("finish", code=ending.code)
-            if self.coordinator is not None:
-                self.coordinator.wait_informed(self.nodes.count, LINGER)
+            self.link.settle(self.nodes.count, LINGER)
         self.ledger.summarize(ending.event, ending.code, self.policy.restarts)
         return ending.code
 
