@@ -18,7 +18,7 @@ with stable-baselines3 PPO (the RL Zoo's tuned hyperparameters) side by side on 
   SB3 only).
 
 Targets: 5,000 on HalfCheetah, the RL Zoo's return after 1M steps on the others. Writes ``results.json`` with every
-curve, every seed's figures and the machine's load average around each run.
+curve, every seed's figures, the machine's load average around each run and its speed (``machine_speed.py``).
 """
 
 from __future__ import annotations
@@ -39,6 +39,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+
+from machine_speed import cold_smoke  # noqa: E402
 
 from ftrain.config import EnvConfig, load_config  # noqa: E402
 from ftrain.policy.load import load_policy  # noqa: E402
@@ -227,9 +229,9 @@ def sb3_worker(env_id: str, steps: int, eval_every: int, launched: float, out: s
     Path(out).write_text(json.dumps({"curve": curve, "rollouts": rollouts, "steps": model.num_timesteps}))
 
 
-def plot(env_id: str, runs: list[Run], sb3: Run | None, path: Path) -> None:
+def plot(env_id: str, runs: list[Run], sb3: Run | None, path: Path, overrides: list[str]) -> None:
     """Return against environment steps (each seed, their median and band) and against wall time (each seed),
-    SB3's run and the target."""
+    SB3's run and the target; the title names the config's ``overrides``."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -256,7 +258,8 @@ def plot(env_id: str, runs: list[Run], sb3: Run | None, path: Path) -> None:
         ax.set_ylabel("deterministic return (10 episodes)")
         ax.grid(alpha=0.3)
     axes[0].legend(fontsize="x-small")
-    figure.suptitle(f"{env_id}: ftrain at {RANKS} ranks, shipped config")
+    config = "shipped config" + (f" with {' '.join(overrides)}" if overrides else "")
+    figure.suptitle(f"{env_id}: ftrain at {RANKS} ranks, {config}")
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=72)
@@ -327,7 +330,7 @@ def seed_table(env_id: str, runs: list[Run]) -> str:
     for run in runs:
         with_eval = run.time_to(target(env_id), with_eval=True)
         lines.append(
-            f"| {run.seed} | {run.final_return:,.0f} ({min(run.episodes, default=math.nan):,.0f}) "
+            f"| {run.seed} | {run.final_return:,.0f}{f' ({min(run.episodes):,.0f})' if run.episodes else ''} "
             f"| {_steps(run.steps_to(target(env_id)))} "
             f"| {_seconds(run.time_to(target(env_id)))} ({_seconds(with_eval)}) "
             f"| {run.seconds:,.0f} s ({run.seconds + run.eval_seconds:,.0f} s) | {run.load[0]:.1f}, {run.load[1]:.1f} |"
@@ -397,6 +400,8 @@ def main() -> None:
     args = parser.parse_args()
     work = args.out / "runs"
     work.mkdir(parents=True, exist_ok=True)
+    speed = cold_smoke()[0]
+    print(f"machine speed: a cold 2-iteration smoke run took {speed:.1f} CPU-s (launch/machine_speed.py)", flush=True)
     results, tables, rows = {}, [], []
     for name in args.envs:
         env_id = ENV_IDS[name]
@@ -417,7 +422,7 @@ def main() -> None:
                 f"load {run.load}",
                 flush=True,
             )
-        plot(env_id, runs, sb3, args.out / f"{name}.png")
+        plot(env_id, runs, sb3, args.out / f"{name}.png", args.set)
         seeds = Seeds.of(env_id, runs)
         results[env_id] = {"ftrain": [asdict(run) for run in runs], "sb3": asdict(sb3) if sb3 else None}
         results[env_id]["seeds"] = asdict(seeds) | {"verdict": seeds.verdict()}
@@ -425,7 +430,8 @@ def main() -> None:
         tables[-1] += f"\n{env_id}: {seeds.verdict()}"
         rows += [against_sb3(env_id, runs, sb3)] if sb3 else []
     settings = {key: str(value) if isinstance(value, Path) else value for key, value in vars(args).items()}
-    (args.out / "results.json").write_text(json.dumps({"args": settings, "results": results}, indent=1))
+    summary = {"args": settings, "machine_speed_cpu_s": speed, "results": results}
+    (args.out / "results.json").write_text(json.dumps(summary, indent=1))
     print("\n\n".join(tables))
     if rows:
         print(f"\n{HEADER}\n" + "\n".join(rows))
