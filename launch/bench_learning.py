@@ -242,8 +242,9 @@ def plot(env_id: str, runs: list[Run], sb3: Run | None, path: Path, overrides: l
         for ax, column in zip(axes, (0, 1), strict=True):
             points = [(point[column], point[2]) for point in run.curve]
             ax.plot(*zip(*points, strict=True), "-", linewidth=1, label=f"seed {run.seed}")
-    steps = sorted(set.intersection(*(set(point[0] for point in run.curve) for run in runs))) if runs else []
-    at = [[next(p[2] for p in run.curve if p[0] == step) for run in runs] for step in steps]
+    by_step = [{point[0]: point[2] for point in run.curve} for run in runs]
+    steps = sorted(set.intersection(*(set(returns) for returns in by_step))) if runs else []
+    at = [[returns[step] for returns in by_step] for step in steps]
     if len(runs) > 1 and steps:
         axes[0].fill_between(steps, [min(r) for r in at], [max(r) for r in at], color="tab:blue", alpha=0.12)
         median = [statistics.median(returns) for returns in at]
@@ -267,11 +268,12 @@ def plot(env_id: str, runs: list[Run], sb3: Run | None, path: Path, overrides: l
 
 
 def _seconds(value: float) -> str:
-    return f"{value:,.0f} s" if math.isfinite(value) else "not reached"
+    return _reached(value, " s")
 
 
-def _steps(value: float) -> str:
-    return f"{value:,.0f}" if math.isfinite(value) else "not reached"
+def _reached(value: float, unit: str = "") -> str:
+    """A time or step count, or "not reached" where there is none."""
+    return f"{value:,.0f}{unit}" if math.isfinite(value) else "not reached"
 
 
 @dataclass
@@ -284,8 +286,6 @@ class Seeds:
     returns: list[float]
     steps_to: list[float]
     times_to: list[float]
-    reached: int
-    above_zoo: int
 
     @classmethod
     def of(cls, env_id: str, runs: list[Run]) -> Seeds:
@@ -293,8 +293,15 @@ class Seeds:
         returns = [run.final_return for run in runs]
         steps_to = [or_inf(run.steps_to(goal)) for run in runs]
         times_to = [or_inf(run.time_to(goal)) for run in runs]
-        reached = sum(math.isfinite(steps) for steps in steps_to)
-        return cls(goal, zoo, returns, steps_to, times_to, reached, sum(value >= zoo for value in returns))
+        return cls(goal, zoo, returns, steps_to, times_to)
+
+    @property
+    def reached(self) -> int:
+        return sum(math.isfinite(steps) for steps in self.steps_to)
+
+    @property
+    def above_zoo(self) -> int:
+        return sum(value >= self.zoo for value in self.returns)
 
     @property
     def worst_return(self) -> float:
@@ -331,17 +338,15 @@ def seed_table(env_id: str, runs: list[Run]) -> str:
         with_eval = run.time_to(target(env_id), with_eval=True)
         lines.append(
             f"| {run.seed} | {run.final_return:,.0f}{f' ({min(run.episodes):,.0f})' if run.episodes else ''} "
-            f"| {_steps(run.steps_to(target(env_id)))} "
+            f"| {_reached(run.steps_to(target(env_id)))} "
             f"| {_seconds(run.time_to(target(env_id)))} ({_seconds(with_eval)}) "
             f"| {run.seconds:,.0f} s ({run.seconds + run.eval_seconds:,.0f} s) | {run.load[0]:.1f}, {run.load[1]:.1f} |"
         )
     ends = [run.seconds for run in runs]
-    for name, pick in (("median", statistics.median), ("worst", None)):
-        returns = pick(seeds.returns) if pick else seeds.worst_return
-        steps = pick(seeds.steps_to) if pick else max(seeds.steps_to)
-        times = pick(seeds.times_to) if pick else max(seeds.times_to)
-        end = pick(ends) if pick else max(ends)
-        lines.append(f"| {name} | {returns:,.0f} | {_steps(steps)} | {_seconds(times)} | {end:,.0f} s | |")
+    median = [statistics.median(figures) for figures in (seeds.returns, seeds.steps_to, seeds.times_to, ends)]
+    worst = [seeds.worst_return, max(seeds.steps_to), max(seeds.times_to), max(ends)]
+    for name, (returns, steps, times, end) in (("median", median), ("worst", worst)):
+        lines.append(f"| {name} | {returns:,.0f} | {_reached(steps)} | {_seconds(times)} | {end:,.0f} s | |")
     return "\n".join(lines)
 
 
@@ -425,7 +430,8 @@ def main() -> None:
         plot(env_id, runs, sb3, args.out / f"{name}.png", args.set)
         seeds = Seeds.of(env_id, runs)
         results[env_id] = {"ftrain": [asdict(run) for run in runs], "sb3": asdict(sb3) if sb3 else None}
-        results[env_id]["seeds"] = asdict(seeds) | {"verdict": seeds.verdict()}
+        counts = {"reached": seeds.reached, "above_zoo": seeds.above_zoo, "verdict": seeds.verdict()}
+        results[env_id]["seeds"] = asdict(seeds) | counts
         tables.append(f"{env_id}, {len(runs)} seeds, {runs[0].steps:,} steps each:\n{seed_table(env_id, runs)}")
         tables[-1] += f"\n{env_id}: {seeds.verdict()}"
         rows += [against_sb3(env_id, runs, sb3)] if sb3 else []
