@@ -314,8 +314,18 @@ def plain_torchrun(storage: Path, port: int, *overrides: str, launcher: str = "t
     return [*command, "-m", "ftrain", "train", SMOKE, "--storage", str(storage), *OVERRIDES, *overrides]
 
 
-def files(storage: Path) -> dict[str, bytes]:
-    return {str(path.relative_to(storage)): path.read_bytes() for path in sorted(storage.rglob("*")) if path.is_file()}
+def files(storage: Path) -> dict[str, object]:
+    """Every file of a local storage, by path; the lease as who holds it, at which generation, since when: the holder
+    renews it every 20 s (``renewed_at``), and a test on a slow machine outlasts that while it watches."""
+    found: dict[str, object] = {}
+    for path in sorted(storage.rglob("*")):
+        if path.is_file():
+            found[str(path.relative_to(storage))] = path.read_bytes()
+    if LEASE in found:
+        lease = Record.decode(found[LEASE])
+        holders = tuple((entry.process, entry.since) for entry in lease.entries)
+        found[LEASE] = (lease.run_id, lease.generation, lease.ttl, holders)
+    return found
 
 
 def test_a_second_plain_torchrun_on_a_live_runs_storage_is_refused_in_one_line_and_writes_nothing(tmp_path, reference):
