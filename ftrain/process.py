@@ -1,16 +1,11 @@
-"""A cold start and a clean exit, cheaper: most of the CPU a short ftrain process spends goes into importing torch and
-into tearing down what it imported.
+"""A cold start and a clean exit, cheaper: most of the CPU of a short ftrain process goes into importing torch and
+MuJoCo and into tearing down what they made (docs/speed.md, "Start-up and exit", has the figures).
 
-Measured on the 2-core machine (a cold ``python -m ftrain train`` of the smoke config, 2 iterations: about 8 CPU-s):
-
-- Python's cyclic garbage collector runs dozens of times while torch, tensordict (and through it ``torch._dynamo``)
-  and MuJoCo import, and each full pass walks every object imported so far: about 1.2 of the 5 CPU-s that importing
-  ``ftrain.train.trainer`` takes. ``imports()`` keeps the collector off while they import, then freezes what they
-  made (``gc.freeze``): later collections, those of the training loop included, skip those objects, and a process
-  forked from the warm pool does not copy the pages that a collection would have written to (the recipe of the
-  ``gc.freeze`` documentation). Nothing that is trained depends on when the collector runs.
-- Interpreter teardown frees those objects one by one: about 1.2 CPU-s more, and in a fork of the warm pool it also
-  copies all of its memory. ``exit_fast`` ends a process as multiprocessing ends its children instead.
+Owns ``imports()``, around the heavy imports: Python's cyclic collector off while they run, then what they made
+frozen (``gc.freeze``), so later collections skip it and a fork of the warm pool does not copy its pages; and
+``exit_fast``, which ends a process as multiprocessing ends its children, without the interpreter's teardown.
+Promises: nothing that is trained depends on when the collector runs; an exit flushes what Python and C printed.
+Imports the standard library only.
 """
 
 from __future__ import annotations
