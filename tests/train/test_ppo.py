@@ -106,12 +106,11 @@ def test_ranks_hold_every_sample_of_the_global_batch_once_where_one_rank_would()
 @pytest.mark.parametrize(
     ("ranks", "overrides"),
     [
-        (2, ["algorithm.schedule=fixed"]),
         (2, ["algorithm.schedule=adaptive"]),
         (2, ["algorithm.schedule=fixed", "algorithm.reshuffle_each_epoch=true", "shared_memory_all_reduce=false"]),
         (4, ["algorithm.schedule=adaptive"]),
     ],
-    ids=["shm", "adaptive", "gloo", "teams-of-2"],
+    ids=["shm-adaptive", "gloo-fixed", "teams-of-2"],
 )
 def test_split_update_is_one_ranks_update_of_the_whole_batch(tmp_path, ranks: int, overrides: list[str]) -> None:
     """The first half of the ranks learns the actor and the second half the critic: every rank must end with the state

@@ -2,7 +2,7 @@
 
 Real ranks under torchrun (oversubscribed on two cores: correctness, not speed), the real training loop. Generated
 cases (environments, minibatches, epochs, steps and every flag the shipped configs use) each train one iteration from
-the same start at every world size of 1, 2, 3, 4, 6, 8 that divides their environments, and every float tensor of
+the same start at every world size of 1, 2, 3, 4, 8 that divides their environments, and every float tensor of
 what they learned (models, normalizers, Adam's moments) must agree with one rank's to rounding; the shipped
 HalfCheetah config must train 4 iterations as 2 x 16 bit for bit what it trains as 1 x 32. Every shipped config runs
 at 4 and 8 ranks without a collective that falls back to gloo.
@@ -26,7 +26,8 @@ from test_ppo import learned_tensors
 
 from helpers import REPO, child_env
 
-WORLDS = (1, 2, 3, 4, 6, 8)
+WORLDS = (1, 2, 3, 4, 8)
+"""An odd world, the even ones up to 4, and 8 (6 checked nothing that 2 and 3 do not, for a launch of 6 processes)."""
 WORKER = REPO / "tests" / "train" / "world_size_worker.py"
 GENERATED = 10
 """Generated cases per run (a fresh draw each day: the seed is printed, to replay a failure)."""
