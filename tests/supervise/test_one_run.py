@@ -317,10 +317,9 @@ def plain_torchrun(storage: Path, port: int, *overrides: str, launcher: str = "t
 def files(storage: Path) -> dict[str, object]:
     """Every file of a local storage, by path; the lease as who holds it, at which generation, since when: the holder
     renews it every 20 s (``renewed_at``), and a test on a slow machine outlasts that while it watches."""
-    found: dict[str, object] = {}
-    for path in sorted(storage.rglob("*")):
-        if path.is_file():
-            found[str(path.relative_to(storage))] = path.read_bytes()
+    found: dict[str, object] = {
+        str(path.relative_to(storage)): path.read_bytes() for path in sorted(storage.rglob("*")) if path.is_file()
+    }
     if LEASE in found:
         lease = Record.decode(found[LEASE])
         holders = tuple((entry.process, entry.since) for entry in lease.entries)
