@@ -1,27 +1,18 @@
 """Warm starts: a restart forks torchrun and its workers from a process that has imported torch, rsl-rl and MuJoCo.
 
-A cold restart spends most of its time importing (torchrun's agent imports torch, then each worker torch, rsl-rl's
-tensordict, s3fs and gymnasium: docs/supervision.md has the seconds). ``ftrain supervise --workers warm`` (the
-default) starts one more process on its node, the pool (``python -m ftrain.warm serve``: ``__main__.py``), which
-imports all of that once and then waits on a Unix socket named after its supervisor.
-
-Every process is still started as before, by the same command line, but as a stand-in: ``python -m ftrain.warm
-torchrun ...`` for the supervisor's torchrun, ``python -m ftrain train ...`` for each worker torchrun starts (its
-agent, its environment variables, error files and view of exit codes stay torchrun's own). The stand-in hands its
-arguments, environment, working directory and standard streams to the pool (``handover``), which forks a child that
-runs with exactly those. The stand-in stays as its parent's view of it: it passes on the signals it gets (SIGTERM:
-save and stop) and ends as the child ended, with its exit code or by its signal.
-
-Lifetimes are tied both ways, as for cold processes: the pool ends with its supervisor (``lifeline``), a forked child
-ends with the pool (``PR_SET_PDEATHSIG``), and when a stand-in ends (stopped, or SIGKILLed by the supervisor, which
-finds stand-ins by their attempt's token), the pool SIGKILLs its child at once, a stopped (hung) one too. Where the
-pool cannot be reached (``--workers cold``, plain ``torchrun -m ftrain train``, or it ended) or closes the connection
-before it forks, the stand-in simply runs the command itself, cold.
-
-The supervisor binds the socket (in Linux's abstract namespace: no file to leave behind) before it starts the pool,
-and hands it over; a name someone else holds already means cold starts, with a line. A stand-in talks only to its
-supervisor's socket (``SO_PEERCRED``), the pool only to processes of its user that know the secret of ``POOL_ENV``.
-
+Owns the pool (``python -m ftrain.warm serve``, one per supervisor, waiting on a Unix socket in the abstract
+namespace named after it) and the stand-ins (``python -m ftrain.warm torchrun ...`` and each worker's ``python -m
+ftrain train ...``). Promises:
+- a process is started by the same command line as a cold one; its stand-in hands arguments, environment, working
+  directory and standard streams to the pool (``handover``), which forks a child that runs with exactly those, so
+  torchrun's agent, error files and exit codes stay torchrun's own;
+- the stand-in is its parent's view of the child: it passes on signals and ends as the child ended;
+- lifetimes are tied both ways: the pool ends with its supervisor (``lifeline``), a child with the pool
+  (``PR_SET_PDEATHSIG``), and a stand-in's end SIGKILLs its child at once, a stopped (hung) one too;
+- where the pool cannot be reached (its socket's name held by another process: a line) or closes before it forks,
+  the stand-in runs the command itself, cold;
+- a stand-in talks only to its supervisor's socket (``SO_PEERCRED``), the pool only to processes of its user that
+  know the secret of ``POOL_ENV``.
 May import: lifeline, proctitle, process, and by name in the pool (``__main__.py``) the entries it forks: cli, torchrun.
 """
 
