@@ -9,8 +9,8 @@ ftrain train ...``). Promises:
 - the stand-in is its parent's view of the child: it passes on signals and ends as the child ended;
 - lifetimes are tied both ways: the pool ends with its supervisor (``lifeline``), a child with the pool
   (``PR_SET_PDEATHSIG``), and a stand-in's end SIGKILLs its child at once, a stopped (hung) one too;
-- where the pool cannot be reached (its socket's name held by another process: a line) or closes before it forks,
-  the stand-in runs the command itself, cold;
+- where the pool cannot be reached (``--workers cold``, plain ``torchrun -m ftrain train``, the pool ended, or its
+  socket's name held by another process: a line) or closes before it forks, the stand-in runs the command cold;
 - a stand-in talks only to its supervisor's socket (``SO_PEERCRED``), the pool only to processes of its user that
   know the secret of ``POOL_ENV``.
 May import: lifeline, proctitle, process, and by name in the pool (``__main__.py``) the entries it forks: cli, torchrun.
