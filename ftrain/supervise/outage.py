@@ -34,14 +34,20 @@ away."""
 
 class StorageWait:
     def __init__(
-        self, storage: StorageConfig, limit: float | None, events: EventLog, sleep: Callable[[float], None]
+        self,
+        storage: StorageConfig,
+        limit: float | None,
+        events: EventLog,
+        sleep: Callable[[float], None],
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
-        """``limit``: seconds to wait (None: ``WAITS``); ``sleep``: the supervisor's sleep, which ends the run on a
-        signal."""
+        """``limit``: seconds to wait (None: ``WAITS``) by ``clock``; ``sleep``: the supervisor's sleep, which ends the
+        run on a signal."""
         self.storage = storage
         self.explicit_limit = limit
         self.events = events
         self.sleep = sleep
+        self.clock = clock
         self.reached = False
         """Whether the storage has answered since the command started (its lease was taken, or a probe answered)."""
 
@@ -66,7 +72,7 @@ class StorageWait:
         answers no waiting fixes (a bucket gone, access denied). ``why``: what found it unreachable (None: nothing
         yet, this is a first look)."""
         url = self.storage.url  # a Url: printed and recorded without its credentials
-        started, since, tries, lines = time.monotonic(), time.strftime("%H:%M:%S"), 0, WaitLines()
+        started, since, tries, lines = self.clock(), time.strftime("%H:%M:%S"), 0, WaitLines()
         progress = Progress(sys.stderr)  # on a terminal, while it sleeps between tries: how long it has waited
         if why is not None:
             self._waiting(url, why, lines)
@@ -75,7 +81,7 @@ class StorageWait:
                 problem = probe(self.storage.url, self.storage.options)
             except UserError as error:
                 return Outcome("usage", EXIT_USAGE, str(error))
-            waited = time.monotonic() - started
+            waited = self.clock() - started
             if problem is None:
                 if why is not None or tries:
                     back = f"the storage answers again after {waited:.0f} s"

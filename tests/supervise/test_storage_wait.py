@@ -8,7 +8,6 @@ import os
 import pty
 import re
 import sys
-import time
 
 from ftrain.config import StorageConfig
 from ftrain.redact import Url
@@ -24,9 +23,13 @@ def test_a_storage_wait_on_a_terminal_shows_how_long_it_has_waited(tmp_path, mon
     terminal = os.fdopen(theirs, "w")
     monkeypatch.setattr(sys, "stderr", terminal)
     options = {"endpoint_url": f"http://127.0.0.1:{free_port()}", "key": "k", "secret": "s"}
-    wait = StorageWait(
-        StorageConfig(Url("s3://bucket/run"), options), 1.0, EventLog(tmp_path / "events", 0), time.sleep
-    )
+    clock = [0.0]  # the wait's clock moves only while it sleeps: a probe takes 0.4-5 s, by how busy the machine is
+
+    def sleep(seconds: float) -> None:
+        clock[0] += seconds
+
+    storage = StorageConfig(Url("s3://bucket/run"), options)
+    wait = StorageWait(storage, 1.0, EventLog(tmp_path / "events", 0), sleep, clock=lambda: clock[0])
     outcome = wait("refused")
     terminal.close()
     shown = b""
