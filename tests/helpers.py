@@ -43,11 +43,26 @@ from s3_outage import free_port as free_port  # the tests take it from here
 REPO = Path(__file__).resolve().parents[1]
 TESTS = REPO / "tests"
 SMOKE = str(REPO / "configs" / "smoke.yaml")
+
 NOT_LEARNED = ("steps_per_s", "collect_time", "learn_time", "iteration_time", "resumed_from", "config_change", "time/")
 NOT_LEARNED += ("comm_sent",)
 """The only columns of metrics.csv (or their prefixes) allowed to differ between identical runs: wall-clock times, the
 phases' too, where a resumed run started, what a config change changed there, and the bytes the ranks sent (an
 evaluation's sum, a resume's first gathers)."""
+
+
+class ManualClock:
+    """A clock for code that takes one (``clock=``): it reads ``now``, which moves only when a test moves it or when
+    the code under test sleeps by ``sleep``."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
 
 
 def train_command(storage: str | Path, *overrides: str, ranks: int = 1, config: str = SMOKE) -> list[str]:

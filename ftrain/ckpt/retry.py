@@ -17,6 +17,7 @@ import os
 import random
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from botocore.exceptions import ConnectionError as BotoConnectionError
@@ -81,12 +82,13 @@ where the tries come every few seconds, a line each would flood the log of a lon
 class WaitLines:
     """When the next line about a wait for the storage is due: the first at once, then every ``WAIT_LINES`` s."""
 
-    def __init__(self) -> None:
+    def __init__(self, clock: Callable[[], float] = time.monotonic) -> None:
+        self._clock = clock
         self._told = -math.inf
 
     def due(self, always: bool = False) -> bool:
         """Whether to print a line now (``always``: yes, and the next one is ``WAIT_LINES`` seconds from now)."""
-        now = time.monotonic()
+        now = self._clock()
         if not always and now - self._told < WAIT_LINES:
             return False
         self._told = now

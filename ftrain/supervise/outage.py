@@ -72,7 +72,7 @@ class StorageWait:
         answers no waiting fixes (a bucket gone, access denied). ``why``: what found it unreachable (None: nothing
         yet, this is a first look)."""
         url = self.storage.url  # a Url: printed and recorded without its credentials
-        started, since, tries, lines = self.clock(), time.strftime("%H:%M:%S"), 0, WaitLines()
+        started, since, tries, lines = self.clock(), time.strftime("%H:%M:%S"), 0, WaitLines(self.clock)
         progress = Progress(sys.stderr)  # on a terminal, while it sleeps between tries: how long it has waited
         if why is not None:
             self._waiting(url, why, lines)

@@ -15,7 +15,7 @@ from ftrain.supervise.events import EventLog
 from ftrain.supervise.options import EXIT_STORAGE_WAIT
 from ftrain.supervise.outage import StorageWait
 
-from helpers import free_port
+from helpers import ManualClock, free_port
 
 
 def test_a_storage_wait_on_a_terminal_shows_how_long_it_has_waited(tmp_path, monkeypatch) -> None:
@@ -23,13 +23,9 @@ def test_a_storage_wait_on_a_terminal_shows_how_long_it_has_waited(tmp_path, mon
     terminal = os.fdopen(theirs, "w")
     monkeypatch.setattr(sys, "stderr", terminal)
     options = {"endpoint_url": f"http://127.0.0.1:{free_port()}", "key": "k", "secret": "s"}
-    clock = [0.0]  # the wait's clock moves only while it sleeps: a probe takes 0.4-5 s, by how busy the machine is
-
-    def sleep(seconds: float) -> None:
-        clock[0] += seconds
-
+    clock = ManualClock()  # moves only while the wait sleeps: a probe takes 0.4-5 s, by how busy the machine is
     storage = StorageConfig(Url("s3://bucket/run"), options)
-    wait = StorageWait(storage, 1.0, EventLog(tmp_path / "events", 0), sleep, clock=lambda: clock[0])
+    wait = StorageWait(storage, 1.0, EventLog(tmp_path / "events", 0), clock.sleep, clock=clock)
     outcome = wait("refused")
     terminal.close()
     shown = b""

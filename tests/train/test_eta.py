@@ -10,18 +10,12 @@ import pytest
 
 from ftrain.train.hooks import ConsoleHook, CsvHook
 
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
+from helpers import ManualClock
 
 
 def estimates(durations: list[float], compute_time: float = 0.5) -> list[float]:
     """The hook's estimate after each iteration, when iterations take ``durations`` seconds of wall time."""
-    clock = Clock()
+    clock = ManualClock()
     hook = ConsoleHook(clock)
     found = []
     for seconds in durations:
@@ -46,7 +40,7 @@ def test_one_slow_iteration_moves_the_estimate_a_little() -> None:
 
 def saves_said(iterations: int, steps: range, every_save: bool, capsys) -> list[int]:
     """The steps whose commit the console says in a line of its own, and the progress line after the last."""
-    clock = Clock()
+    clock = ManualClock()
     hook = ConsoleHook(clock, every_save=every_save)
     storage = SimpleNamespace(where=lambda rel: f"runs/x/{rel}")
     trainer = SimpleNamespace(
@@ -68,7 +62,7 @@ def test_the_console_says_the_first_save_each_quarter_and_the_last_and_every_one
 
 
 def test_the_progress_line_says_how_long_ago_the_newest_save_was(capsys) -> None:
-    clock = Clock()
+    clock = ManualClock()
     hook = ConsoleHook(clock)
     storage = SimpleNamespace(where=lambda rel: rel)
     trainer = SimpleNamespace(

@@ -6,17 +6,11 @@ import pytest
 
 from ftrain.train.phases import PHASES, Phases
 
-
-class Clock:
-    def __init__(self) -> None:
-        self.now = 0.0
-
-    def __call__(self) -> float:
-        return self.now
+from helpers import ManualClock
 
 
 def test_nested_phases_pause_the_outer_one_and_the_rest_is_other() -> None:
-    clock = Clock()
+    clock = ManualClock()
     phases = Phases(clock)
     clock.now = 1.0  # outside every phase
     with phases("update"):
@@ -32,7 +26,7 @@ def test_nested_phases_pause_the_outer_one_and_the_rest_is_other() -> None:
 
 
 def test_a_take_counts_afresh_and_a_phase_open_across_it_is_split() -> None:
-    clock = Clock()
+    clock = ManualClock()
     phases = Phases(clock)
     with phases("sync_metrics"):
         clock.now = 2.0
@@ -44,7 +38,7 @@ def test_a_take_counts_afresh_and_a_phase_open_across_it_is_split() -> None:
 
 
 def test_an_unknown_phase_is_refused_before_it_is_entered() -> None:
-    clock = Clock()
+    clock = ManualClock()
     phases = Phases(clock)
     with pytest.raises(KeyError, match="rendering"):
         phases("rendering")
