@@ -24,7 +24,7 @@ import os
 import time
 from collections.abc import Callable
 
-from ftrain.ckpt import resume
+from ftrain.ckpt import arithmetic, resume
 from ftrain.ckpt.fence import guarded
 from ftrain.ckpt.format import COMMON, STATE_FORMAT, is_timing, shard_name
 from ftrain.ckpt.lease import LeaseLost
@@ -112,6 +112,8 @@ class Checkpointer:
         """Saves failing in a row; None while the newest settled save committed."""
         self._failure_lines = WaitLines()
         self._checked_loadable = False
+        self.arithmetic = group.all_gather_object(arithmetic.describe(), info)
+        """Every rank's arithmetic (``arithmetic.describe``), in rank order."""
         self.last_blocking_s = 0.0
         self.last_commit_s = 0.0
         """Seconds from the start of the newest committed save to its commit (what the console tells)."""
@@ -124,12 +126,13 @@ class Checkpointer:
             **({"robot": robot} if robot is not None else {}),
             "config": config.public_dict(),
             "versions": _versions(),
+            "arithmetic": arithmetic.by_rank(self.arithmetic),
         }
 
     def restore(self, trainer: Checkpointable) -> int | None:
         """Load the step to start from into ``trainer`` (see ``resume.py``); the step, or None for a fresh start."""
         resumed = resume.restore(
-            trainer, self.config, self.info, self.storage, self.log, self.robot, self.spool, self._down
+            trainer, self.config, self.info, self.storage, self.log, self.robot, self.spool, self._down, self.arithmetic
         )
         if resumed.own:
             self.committed_step = self._writer.newest_committed = resumed.committed

@@ -5,8 +5,8 @@ state (models, optimizer, normalizers, learning rate, counters, hook states) loa
 ``env.total_envs`` every environment goes on, on the rank that holds its global index, and the same training
 continues. Without it, rank r takes the environments and random streams of the checkpoint's rank r where there is
 one; ranks beyond the old world start fresh ones, seeded from (run seed, rank, step); shards of ranks beyond the new
-world are dropped, and the global batch follows the world size. At the same world size a resume continues bit for
-bit.
+world are dropped, and the global batch follows the world size. At the same world size and arithmetic
+(``arithmetic.py``) a resume continues bit for bit; on another arithmetic it says so in one line.
 
 Rank 0 decides (newest step that verifies, or the one ``resume=`` names; a newer one in this node's spool, see
 ``spool.py``, also while the storage does not answer) and tells the others. Every rank then
@@ -27,6 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
+from ftrain.ckpt.arithmetic import change as arithmetic_change
 from ftrain.ckpt.changes import config_change, robot_change
 from ftrain.ckpt.format import (
     COMMON,
@@ -102,10 +103,12 @@ def restore(
     robot: dict | None = None,
     spool: Spool | None = None,
     down: StorageUnavailable | None = None,
+    arithmetic: list[str] | None = None,
 ) -> Resumed:
     """Load the step rank 0 chose into ``trainer``, which trains ``robot`` (see ``check_compatible``), from the
     storage, the ``spool`` or another run's storage (``resume=URL``); ``down``: why the storage did not answer when it
-    was opened just now (it is not asked again)."""
+    was opened just now (it is not asked again); ``arithmetic``: every rank's (``arithmetic.describe``), to say
+    whether the run continues bit for bit."""
     decision = decide(config, storage, log, robot, spool, down) if info.is_main else None
     decision = group.broadcast_object(decision, info)
     if decision["kind"] == "usage":
@@ -151,6 +154,8 @@ def restore(
     change = config_change(manifest["config"], config.public_dict(), manifest.get("robot"), robot)
     if change:  # only allow_config_change lets a change this far
         log(f"changed since step {step} (allow_config_change=true): {change}")
+    if moved := arithmetic_change(manifest.get("arithmetic"), arithmetic or []):
+        log(f"step {step} was trained on other arithmetic ({moved}): the run continues, not bit for bit")
     world_sizes = manifest.get("world_sizes") or [[0, manifest["world_size"]]]
     if manifest["world_size"] != info.world_size:
         log(resize_line(manifest["world_size"], info.world_size, step, config))
