@@ -69,7 +69,8 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
         print(f"ftrain supervise: error: {error}", file=sys.stderr)
         return EXIT_PEER_LOST
-    previous = {sig: signal.signal(sig, supervisor.on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+    for sig in (signal.SIGTERM, signal.SIGINT):  # to the end of the process: a signal once the run has ended (SLURM's
+        signal.signal(sig, supervisor.on_signal)  # time limit as the job finishes) changes nothing, its exit code stays
     log = lambda line: supervisor.events("lease", line, detail=line)  # noqa: E731
     refused = lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr)  # noqa: E731
 
@@ -84,8 +85,6 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     except _Stop as stop:  # a signal or another node ended the run, in the loop or while the storage was waited for
         return supervisor.end(stop.ending)
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
         supervisor.close()
 
 
@@ -138,6 +137,11 @@ class Supervisor:
             self.link.begin(lease)
         except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
             raise _Stop(Outcome("peer_lost", EXIT_PEER_LOST, str(error))) from None
+        if self.nodes.count > 1 and self.storage_wait.holds(self.last_step):
+            # a node that finds the run finished leaves (``_next_plan``), and torchrun cannot start without it
+            raise _Stop(
+                finished(self.last_step, f"nothing to train: pass iterations=N with N > {self.last_step} to train on")
+            )
         plan = self._next_plan(None)
         while True:
             attempt = self._launch(plan)

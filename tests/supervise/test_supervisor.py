@@ -485,13 +485,27 @@ def test_two_nodes_both_restart_after_one_node_loses_a_worker_and_a_node_back_af
     assert any(event["event"] == "exit" and event["cause"] == "rank 3 killed by SIGKILL" for event in log)
 
     # node 1 again, after the end (a requeued task, a node that was away): node 0 is gone for good, but the storage
-    # holds the last step, so it ends finished at once instead of waiting --rdzv-timeout (600 s) and exiting 5
+    # holds the last step, so it ends finished before it asks for a plan instead of waiting --rdzv-timeout (600 s)
     before, _ = len(events(run)), capfd.readouterr()
     (late,) = start_nodes(tmp_path, port=port, ranks=(1,))
     assert finish(late, timeout=120) == options.EXIT_DONE
     said = capfd.readouterr().err
-    assert f"training finished (step {ITERATIONS}; ended while this node was away)" in said, said
+    assert f"training finished (step {ITERATIONS}; nothing to train: pass iterations=N with N > {ITERATIONS}" in said
     assert [(event["event"], event["node"]) for event in events(run)[before:]] == [("done", 1), ("summary", 1)]
+    assert_finished(run)
+
+    # both nodes again (SLURM requeued the finished job: its time limit's signal came as it ended): neither launches,
+    # whichever starts first; node 0 used to launch and wait for node 1, gone already, until the time limit
+    before = len(events(run))
+    again = start_nodes(tmp_path, port=port)
+    assert [finish(node, timeout=120) for node in again] == [options.EXIT_DONE] * 2
+    assert capfd.readouterr().err.count(f"training finished (step {ITERATIONS}; ") == 2
+    assert sorted((event["event"], event["node"]) for event in events(run)[before:]) == [
+        ("done", 0),
+        ("done", 1),
+        ("summary", 0),
+        ("summary", 1),
+    ]
     assert_finished(run)
 
 
