@@ -50,6 +50,10 @@ class PolicyConfig:
     init_noise_std: float = 1.0
     obs_clip: float = 0.0
     """Clip normalised observations to ±``obs_clip`` (0: no clipping; SB3's VecNormalize clips at 10)."""
+    obs_normalization_until: int = 0
+    """Freeze the observation normalizers once they have seen this many observations, all ranks together (0: never;
+    rsl-rl's ``EmpiricalNormalization(until=...)``): inputs that keep shifting under a policy that has settled cost
+    every HalfCheetah seed return (docs/learning.md)."""
     std_type: str = "scalar"
     """How the actor's learned action noise is parameterised: ``scalar`` (the std itself) or ``log`` (its log)."""
 
@@ -268,7 +272,7 @@ def training_part(data: dict) -> dict:
 
 KEYS_ADDED_LATER = ("policy.std_type", "policy.obs_clip", "algorithm.schedule_iterations")
 KEYS_ADDED_LATER += ("algorithm.reshuffle_each_epoch", "reward", "shared_memory_all_reduce", "split_update")
-KEYS_ADDED_LATER += ("env.total_envs",)
+KEYS_ADDED_LATER += ("env.total_envs", "policy.obs_normalization_until")
 """Training keys newer than the first checkpoints: hashed only when not at their defaults, so older runs resume."""
 
 
@@ -357,6 +361,7 @@ def validate(config: Config) -> None:
         "iterations": (config.iterations, 1),
         "env.num_envs": (config.env.num_envs, 1),
         "env.total_envs": (config.env.total_envs, 0),
+        "policy.obs_normalization_until": (config.policy.obs_normalization_until, 0),
         "num_steps_per_env": (config.num_steps_per_env, 1),
         "torch_threads": (config.torch_threads, 1),
         "algorithm.num_learning_epochs": (config.algorithm.num_learning_epochs, 1),

@@ -360,7 +360,7 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
             f"{config.env.num_envs}: set env.num_envs={manifest['envs_per_rank']}"
         )
     saved = manifest["config"]
-    if saved["env"]["id"] != config.env.id or saved["policy"] != config.public_dict()["policy"]:
+    if saved["env"]["id"] != config.env.id or _models(saved["policy"]) != _models(config.public_dict()["policy"]):
         raise UserError(
             f"checkpoint step {step} holds a {saved['env']['id']} policy {saved['policy']}, the config asks for a "
             f"{config.env.id} policy {config.public_dict()['policy']}: they cannot be loaded into each other (not "
@@ -379,3 +379,9 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
             f"({keys or 'hash ' + manifest['config_hash'] + ', now ' + config.training_hash(robot)}): restore the "
             "config, or pass allow_config_change=true"
         )
+
+
+def _models(policy: dict) -> dict:
+    """A config's ``policy`` as far as it decides the models' tensors (when the normalizers freeze does not: a change
+    of it is a config change, which ``allow_config_change`` lets through)."""
+    return {key: value for key, value in policy.items() if key != "obs_normalization_until"}

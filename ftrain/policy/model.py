@@ -47,6 +47,8 @@ def build_model(config: Config, obs, obs_set: str, output_dim: int, distribution
     )
     if config.policy.obs_normalization and config.policy.obs_clip > 0:
         model.obs_normalizer = ClippedNormalization(model.obs_dim, config.policy.obs_clip)
+    if config.policy.obs_normalization and config.policy.obs_normalization_until:
+        model.obs_normalizer.until = config.policy.obs_normalization_until
     return model
 
 

@@ -285,6 +285,8 @@ class FusedPPO(PPO):
         normalizers = [m.obs_normalizer for m in (self.actor, self.critic) if m.obs_normalization]
         if not normalizers or not normalizers[0].training:
             return
+        if normalizers[0].until is not None and normalizers[0].count >= normalizers[0].until:
+            return  # frozen (``policy.obs_normalization_until``): both saw the same observations
         if not self.is_multi_gpu:
             for normalizer in normalizers:
                 normalizer.update(obs)
