@@ -15,7 +15,7 @@ import sys
 import time
 from collections.abc import Callable
 
-from ftrain.ckpt.format import MANIFEST, step_dir
+from ftrain.ckpt.format import verify_step
 from ftrain.ckpt.retry import OUTAGE, WaitLines
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import StorageConfig
@@ -113,11 +113,10 @@ class StorageWait:
             tries += 1
 
     def holds(self, step: int) -> bool:
-        """Whether the storage holds ``step`` committed (its manifest is there); False also where it does not answer."""
+        """Whether the storage holds ``step`` committed and intact (its files match its manifest's sizes and SHA-256,
+        as a resume checks them); False also where it does not answer."""
         try:
-            return Storage.open(self.storage.url, self.storage.options, retries=0).exists(
-                f"{step_dir(step)}/{MANIFEST}"
-            )
+            return verify_step(Storage.open(self.storage.url, self.storage.options, retries=0), step).ok
         except (StorageError, UserError):
             return False
 

@@ -8,7 +8,7 @@ import re
 
 import pytest
 
-from ftrain.ckpt.arithmetic import by_rank, change, describe
+from ftrain.ckpt.arithmetic import PINS, by_rank, change, describe
 
 from helpers import final_manifest, run_train
 
@@ -25,7 +25,8 @@ def test_a_moved_rank_is_named_with_what_it_runs_on_now_and_before() -> None:
 
 
 def test_the_description_names_the_cpu_its_kernels_the_pins_and_the_versions(monkeypatch) -> None:
-    monkeypatch.delenv("MKL_CBWR", raising=False)
+    for name in PINS:
+        monkeypatch.delenv(name, raising=False)
     plain = describe()
     assert re.fullmatch(r".+, \w+ kernels; torch [^,]+, mujoco [^,]+, numpy .+", plain), plain
     monkeypatch.setenv("MKL_CBWR", "COMPATIBLE")

@@ -9,13 +9,14 @@ import pty
 import re
 import sys
 
+from ftrain.ckpt.storage import Storage
 from ftrain.config import StorageConfig
 from ftrain.redact import Url
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.options import EXIT_STORAGE_WAIT
 from ftrain.supervise.outage import StorageWait
 
-from helpers import ManualClock, free_port
+from helpers import ManualClock, flip_shard_byte, free_port, make_step
 
 
 def test_a_storage_wait_on_a_terminal_shows_how_long_it_has_waited(tmp_path, monkeypatch) -> None:
@@ -38,3 +39,15 @@ def test_a_storage_wait_on_a_terminal_shows_how_long_it_has_waited(tmp_path, mon
     live = re.search(r"\r(ftrain supervise: waiting for storage s3://bucket/run: 0s of at most 1s\.\.\.)\r( *)\r", text)
     assert live and len(live[2]) == len(live[1]), repr(text)  # drawn, then wiped before anything else
     assert text.startswith("ftrain supervise: storage s3://bucket/run has not answered"), repr(text)
+
+
+def test_the_storage_holds_a_step_only_while_it_verifies(tmp_path) -> None:
+    """What a node checks before it ends a run as finished without launching: the step committed and intact, as a
+    resume would load it (a flipped byte in a shard is a step to fall back from, not a finished run)."""
+    storage = Storage.open(str(tmp_path / "run"))
+    wait = StorageWait(StorageConfig(Url(str(tmp_path / "run"))), 1.0, EventLog(tmp_path / "events", 0), lambda s: None)
+    assert not wait.holds(4)
+    make_step(storage, 4)
+    assert wait.holds(4) and not wait.holds(8)
+    flip_shard_byte(storage, 4)
+    assert not wait.holds(4)

@@ -2,7 +2,8 @@
 
 The stand-in (``python -m test_supervisor train CONFIG --storage DIR``, picked through the supervisor's
 ``FTRAIN_WORKER_MODULE`` hook) speaks the heartbeat protocol like the trainer and joins a real gloo process group,
-but its "training" is a SHA-256 chain over iterations and a checkpoint is a MANIFEST.json holding the chain. It
+but its "training" is a SHA-256 chain over iterations and a checkpoint is a MANIFEST.json holding the chain (a
+manifest of no files, which verifies). It
 resumes from the newest manifest, saves on SIGTERM at the next iteration boundary (all ranks agree through an
 all-reduce) and exits 128 + the signal, and can inject a fault from ``FAKE_FAULT=kind:rank:iteration`` (crash /
 crash-always / usage; rank -1: every rank).
@@ -24,6 +25,7 @@ from pathlib import Path
 import pytest
 
 from ftrain import errorfile
+from ftrain.ckpt.format import FORMAT_VERSION
 from ftrain.heartbeat import ENV_DIR, HeartbeatWriter
 from ftrain.supervise import options
 from ftrain.supervise.attempt import WORKER_MODULE_ENV
@@ -122,7 +124,8 @@ def fake_worker(argv: list[str]) -> int:
             if rank == 0:
                 step_dir = storage / "checkpoints" / f"step-{iteration:09d}"
                 step_dir.mkdir(parents=True, exist_ok=True)
-                (step_dir / "MANIFEST.json").write_text(json.dumps({"step": iteration, "state": state}))
+                record = {"format_version": FORMAT_VERSION, "step": iteration, "state": state, "files": {}}
+                (step_dir / "MANIFEST.json").write_text(json.dumps(record))
             dist.barrier()
             heartbeat.committed_step = iteration
         if flag.item():
@@ -179,7 +182,7 @@ def names(log_dir: Path) -> list[str]:
 
 def assert_finished(run: Path, iterations: int = ITERATIONS) -> None:
     manifest = final_manifest(run)
-    assert manifest == {"step": iterations, "state": expected_state(iterations)}
+    assert (manifest["step"], manifest["state"]) == (iterations, expected_state(iterations))
 
 
 ETCD = ["--rdzv-backend", "etcd-v2", "--rdzv-endpoint", "127.0.0.1:2379", "--rdzv-id", "run"]
