@@ -28,8 +28,8 @@ def describe() -> str:
     """This process's arithmetic in one line, e.g. ``AMD EPYC, AVX512 kernels; torch 2.13.0+cpu, mujoco 4.0.0, ...``."""
     kernels = f"{_cpu()}, {torch.backends.cpu.get_cpu_capability()} kernels"
     pins = [f"{name}={os.environ[name]}" for name in PINS if os.environ.get(name)]
-    versions = ", ".join(f"{package} {_version(package)}" for package in PACKAGES)
-    return "; ".join([kernels, *pins, versions])
+    installed = ", ".join(f"{package} {version or 'none'}" for package, version in versions(PACKAGES).items())
+    return "; ".join([kernels, *pins, installed])
 
 
 def by_rank(descriptions: list[str]) -> dict[str, list[int]]:
@@ -65,8 +65,12 @@ def _cpu() -> str:
     return platform.processor() or platform.machine() or "unknown CPU"
 
 
-def _version(package: str) -> str:
-    try:
-        return importlib.metadata.version(package)
-    except importlib.metadata.PackageNotFoundError:
-        return "none"
+def versions(packages: tuple[str, ...]) -> dict[str, str | None]:
+    """Each installed package's version (None: not installed); the manifests' ``versions`` too."""
+    found: dict[str, str | None] = {}
+    for package in packages:
+        try:
+            found[package] = importlib.metadata.version(package)
+        except importlib.metadata.PackageNotFoundError:
+            found[package] = None
+    return found

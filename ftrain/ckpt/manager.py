@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import importlib.metadata
 import math
 import os
 import time
@@ -125,7 +124,7 @@ class Checkpointer:
             "config_hash": config.training_hash(robot),
             **({"robot": robot} if robot is not None else {}),
             "config": config.public_dict(),
-            "versions": _versions(),
+            "versions": arithmetic.versions(("ftrain", "torch", "rsl-rl-lib", "gymnasium", "mujoco")),
             "arithmetic": arithmetic.by_rank(self.arithmetic),
         }
 
@@ -311,13 +310,3 @@ def _open_storage(config: Config) -> tuple[Storage, StorageUnavailable | None]:
         except StorageUnavailable as down:
             return storage, down
     return storage, None
-
-
-def _versions() -> dict:
-    versions = {}
-    for package in ("ftrain", "torch", "rsl-rl-lib", "gymnasium", "mujoco"):
-        try:
-            versions[package] = importlib.metadata.version(package)
-        except importlib.metadata.PackageNotFoundError:
-            versions[package] = None
-    return versions
