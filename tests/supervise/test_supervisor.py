@@ -11,6 +11,7 @@ crash-always / usage; rank -1: every rank).
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -26,7 +27,7 @@ import pytest
 
 from ftrain import errorfile
 from ftrain.ckpt.format import FORMAT_VERSION
-from ftrain.heartbeat import ENV_DIR, HeartbeatWriter
+from ftrain.heartbeat import ENV_DIR, HeartbeatWriter, Phase, read_heartbeats
 from ftrain.supervise import options
 from ftrain.supervise.attempt import WORKER_MODULE_ENV
 from ftrain.supervise.auth import MAX_MESSAGE, REQUEST, SECRET_ENV, Refused, seal
@@ -509,6 +510,34 @@ def test_two_nodes_both_restart_after_one_node_loses_a_worker_and_a_node_back_af
         ("summary", 0),
         ("summary", 1),
     ]
+    assert_finished(run)
+
+
+@pytest.mark.slow
+def test_stop_signals_after_the_end_leave_its_exit_code(tmp_path):
+    """SLURM's time limit can signal a job as it finishes. Node 1's supervisor is frozen once its workers are done, so
+    node 0 lingers after the end for node 1 to learn it (up to ``GONE_AFTER``): SIGTERMs one after another at node 0
+    from its ``done`` record on, through the linger and its closing, leave exit 0 and nothing more recorded. (Python's
+    teardown would reset the handler to the default; ``ftrain`` exits without one, ``process.exit_fast``.)"""
+    nodes = start_nodes(tmp_path)
+    run = tmp_path / "run"
+    phases = lambda: {rank: b.phase for rank, b in read_heartbeats(run / "heartbeat" / "node-1").items()}  # noqa: E731
+    wait_for(lambda: phases() == {2: Phase.DONE, 3: Phase.DONE}, "node 1's workers to finish", interval=0.01)
+    nodes[1].send_signal(signal.SIGSTOP)
+    wait_for(lambda: ("done", 0) in [(event["event"], event["node"]) for event in events(run)], "node 0's end")
+    sent = 0
+    with contextlib.suppress(ProcessLookupError):  # as fast as they go: Python's teardown lasts milliseconds
+        while True:
+            os.kill(nodes[0].pid, signal.SIGTERM)  # a zombie, once it has exited: then ProcessLookupError on reaping
+            sent += 1
+            if sent % 1000 == 0 and nodes[0].poll() is not None:
+                break
+    nodes[1].send_signal(signal.SIGCONT)
+    print(f"{sent} SIGTERMs at node 0 after its end")
+    assert [finish(node) for node in nodes] == [options.EXIT_DONE] * 2
+    assert sent >= 10_000  # it lingered for node 1 (each look at events.jsonl may take 50 ms of that)
+    mine = [event["event"] for event in events(run) if event["node"] == 0]
+    assert mine[-2:] == ["done", "summary"] and "preempt" not in mine
     assert_finished(run)
 
 
