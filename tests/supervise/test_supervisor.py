@@ -27,12 +27,15 @@ import pytest
 
 from ftrain import errorfile
 from ftrain.ckpt.format import FORMAT_VERSION
+from ftrain.config import load_config
 from ftrain.heartbeat import ENV_DIR, HeartbeatWriter, Phase, read_heartbeats
 from ftrain.supervise import options
 from ftrain.supervise.attempt import WORKER_MODULE_ENV
 from ftrain.supervise.auth import MAX_MESSAGE, REQUEST, SECRET_ENV, Refused, seal
 from ftrain.supervise.coordinator import CONNECTION_TIMEOUT, Coordinator, Link
 from ftrain.supervise.events import EventLog
+from ftrain.supervise.supervisor import Supervisor
+from ftrain.supervise.supervisor import _Stop as Stop
 
 from helpers import (
     REPO,
@@ -71,7 +74,6 @@ def expected_state(iterations: int) -> str:
 def fake_worker(argv: list[str]) -> int:
     import datetime
 
-    from ftrain.config import load_config
     from ftrain.process import imports
 
     with imports():  # as ftrain's own cold workers import torch
@@ -123,10 +125,7 @@ def fake_worker(argv: list[str]) -> int:
             heartbeat.beat("checkpoint")
             dist.barrier()
             if rank == 0:
-                step_dir = storage / "checkpoints" / f"step-{iteration:09d}"
-                step_dir.mkdir(parents=True, exist_ok=True)
-                record = {"format_version": FORMAT_VERSION, "step": iteration, "state": state, "files": {}}
-                (step_dir / "MANIFEST.json").write_text(json.dumps(record))
+                commit(storage, iteration, state)
             dist.barrier()
             heartbeat.committed_step = iteration
         if flag.item():
@@ -137,6 +136,14 @@ def fake_worker(argv: list[str]) -> int:
 
 
 # --- helpers -------------------------------------------------------------------------------------------------------
+
+
+def commit(storage: Path, step: int, state: str) -> None:
+    """The stand-in's checkpoint of ``step``: a manifest of no files, holding the chain's ``state``."""
+    step_dir = storage / "checkpoints" / f"step-{step:09d}"
+    step_dir.mkdir(parents=True, exist_ok=True)
+    record = {"format_version": FORMAT_VERSION, "step": step, "state": state, "files": {}}
+    (step_dir / "MANIFEST.json").write_text(json.dumps(record))
 
 
 def write_config(tmp_path: Path) -> Path:
@@ -328,6 +335,32 @@ def test_bad_input_fails_before_launch(tmp_path, options, overrides, fragment):
     assert done.returncode == 2, done.stderr
     assert fragment in done.stderr and "Traceback" not in done.stderr and "hunter2" not in done.stderr
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("last", [ITERATIONS, ITERATIONS // 2])
+def test_node_0_gone_between_attempts_ends_finished_only_on_the_last_step(tmp_path, monkeypatch, last):
+    """Node 1 asks node 0 for its next attempt, and nothing listens on node 0's port any more: with the run's last
+    step committed and intact in the storage, the run ended while node 1 was away (exit 0, at once); otherwise node 0
+    is lost (exit 5 after ``--rdzv-timeout``)."""
+    monkeypatch.setenv(SECRET_ENV, SECRET)
+    storage = tmp_path / "run"
+    commit(storage, last, expected_state(last))
+    node1 = options.SupervisorOptions(
+        nnodes="2", node_rank=1, rdzv_endpoint=f"127.0.0.1:{free_port()}", rdzv_timeout=1, workers="cold"
+    )
+    config = load_config(str(write_config(tmp_path)), [], str(storage))
+    supervisor = Supervisor(node1, options.parse_nodes(node1), None, [], config)
+    try:
+        with pytest.raises(Stop) as stop:
+            supervisor._next_plan(None)
+    finally:
+        supervisor.close()
+    ending = stop.value.ending
+    if last == ITERATIONS:
+        assert (ending.event, ending.code) == ("done", options.EXIT_DONE), ending
+        assert ending.message == f"training finished (step {ITERATIONS}; ended while this node was away)"
+    else:
+        assert (ending.event, ending.code) == ("peer_lost", options.EXIT_PEER_LOST), ending
 
 
 def test_etcd_that_does_not_answer_ends_with_exit_5_after_the_rendezvous_timeout(tmp_path):
