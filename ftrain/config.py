@@ -52,8 +52,7 @@ class PolicyConfig:
     """Clip normalised observations to ±``obs_clip`` (0: no clipping; SB3's VecNormalize clips at 10)."""
     obs_normalization_until: int = 0
     """Freeze the observation normalizers once they have seen this many observations, all ranks together (0: never;
-    rsl-rl's ``EmpiricalNormalization(until=...)``). The shipped HalfCheetah config freezes them at 100,000: all
-    five seeds ended higher, one run each (docs/learning.md)."""
+    rsl-rl's ``EmpiricalNormalization(until=...)``): inputs that stop shifting under a policy that still learns."""
     std_type: str = "scalar"
     """How the actor's learned action noise is parameterised: ``scalar`` (the std itself) or ``log`` (its log)."""
 
