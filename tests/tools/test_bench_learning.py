@@ -1,8 +1,12 @@
 """The learning benchmark's per-seed report: what counts as reached, the worst seed and the median."""
 
+import json
 import math
+from dataclasses import asdict
+from pathlib import Path
 
-from bench_learning import Run, Seeds, seed_table
+import pytest
+from bench_learning import Run, Seeds, reused, seed_table
 
 
 def run(seed: int, final: float, returns: list[float], every: float = 20_000.0, pace: float = 10.0) -> Run:
@@ -42,3 +46,28 @@ def test_the_spread_is_the_worst_time_over_the_median() -> None:
     runs = [run(seed, 6_000.0, [0.0] * (seed - 1) + [5_500.0], pace=pace) for seed, pace in ((1, 10), (2, 10), (3, 30))]
     assert Seeds.of("HalfCheetah-v5", runs).times_to == [10.0, 20.0, 90.0]
     assert Seeds.of("HalfCheetah-v5", runs).spread == 90.0 / 20.0
+
+
+def test_over_more_seeds_than_five_it_reports_how_often_five_would_all_end_above_the_zoo() -> None:
+    finals = [7_000.0, 6_500.0, 6_000.0, 5_900.0, 5_850.0, 5_000.0, 4_600.0]  # 5 of 7 at or above 5,819
+    seeds = Seeds.of("HalfCheetah-v5", [run(seed, final, [final]) for seed, final in enumerate(finals, 1)])
+    assert seeds.above_zoo == 5
+    assert seeds.all_above_zoo_share == pytest.approx(1 / 21)  # one of the C(7, 5) = 21 ways to pick five
+    verdict = seeds.verdict()
+    assert "mean 5,836 ± 822 (sd across seeds)" in verdict
+    assert "all 5 at or above 5,819 in 5% of the 21 ways to pick 5 of these 7 seeds" in verdict
+    assert math.isnan(Seeds.of("HalfCheetah-v5", [run(1, 6_000.0, [6_000.0])]).all_above_zoo_share)
+
+
+def test_reused_runs_pool_the_seeds_of_several_files_and_refuse_one_seed_twice(tmp_path: Path) -> None:
+    def results(name: str, *seeds: int) -> Path:
+        runs = [asdict(run(seed, 6_000.0 + seed, [5_500.0])) for seed in seeds]
+        path = tmp_path / name
+        path.write_text(json.dumps({"results": {"HalfCheetah-v5": {"ftrain": runs}}}))
+        return path
+
+    first, second = results("a.json", 3, 1), results("b.json", 2)
+    pooled = reused("HalfCheetah-v5", [first, second])
+    assert [(r.seed, r.final_return) for r in pooled] == [(1, 6_001.0), (2, 6_002.0), (3, 6_003.0)]
+    with pytest.raises(SystemExit, match=r"seeds \[2\] of HalfCheetah-v5 are in more than one"):
+        reused("HalfCheetah-v5", [first, second, results("c.json", 2, 4)])
