@@ -7,12 +7,11 @@ with stable-baselines3 PPO (the RL Zoo's tuned hyperparameters) side by side on 
 
 - ``configs/<env>.yaml`` trains for ``--steps`` steps at ``--ranks`` ranks (torchrun) once per seed, ``--parallel``
   seeds at a time (more than one: many seeds in less time, their times contended and not comparable). Its times are
-  wall clock
-  from launching torchrun, start-up and checkpoints included, with the clock stopped while the config's periodic
-  evaluation (``eval.every``, 10 deterministic episodes) runs; the figures with it follow in parentheses. Its time
-  and steps to the target are those of the first periodic evaluation at or above it; its return at the end is the
-  final policy's mean over 10 deterministic episodes. Each run's storage (``metrics.csv``: losses, learning rate,
-  action noise) stays under ``--out``/runs for a look at a seed that fell.
+  wall clock from launching torchrun, start-up and checkpoints included, with the clock stopped while the config's
+  periodic evaluation (``eval.every``, 10 deterministic episodes) runs; the figures with it follow in parentheses.
+  Its time and steps to the target are those of the first periodic evaluation at or above it; its return at the end
+  is the final policy's mean over 10 deterministic episodes. Each run's storage (``metrics.csv``: losses, learning
+  rate, action noise) stays under ``--out``/runs for a look at a seed that fell.
 - Per environment it prints one row per seed, the median and the worst seed, how many seeds reached the target and
   the RL Zoo's return at the end, the mean and spread of the returns, and (over more than five seeds) how often five
   seeds drawn from them would all end at or above the Zoo's; it draws one curve per seed, their median and their band
@@ -431,8 +430,14 @@ def train_seeds(name: str, args: argparse.Namespace, work: Path) -> list[Run]:
 
 
 def reused(env_id: str, paths: list[Path]) -> list[Run]:
-    """The runs of ``env_id`` in earlier ``results.json`` files, pooled; a seed found twice is an error."""
-    runs = [Run.from_json(run) for path in paths for run in json.loads(path.read_text())["results"][env_id]["ftrain"]]
+    """The runs of ``env_id`` in earlier ``results.json`` files, pooled; a file without them, or a seed found twice, is
+    an error."""
+    runs = []
+    for path in paths:
+        earlier = json.loads(path.read_text())["results"]
+        if env_id not in earlier:
+            sys.exit(f"--reuse {path}: no runs of {env_id} in it (it has {', '.join(earlier)}); pick them with --envs")
+        runs += [Run.from_json(run) for run in earlier[env_id]["ftrain"]]
     seeds = [run.seed for run in runs]
     if len(set(seeds)) < len(seeds):
         twice = sorted({seed for seed in seeds if seeds.count(seed) > 1})
@@ -462,6 +467,10 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=REPO / "runs" / "bench_learning")
     parser.add_argument("--set", nargs="*", default=[], metavar="key=value", help="config overrides for ftrain")
     args = parser.parse_args()
+    if len(set(args.seeds)) < len(args.seeds):
+        parser.error(f"--seeds {' '.join(map(str, args.seeds))}: each seed once (a seed's runs share one storage)")
+    if args.ranks < 1 or args.parallel < 1:
+        parser.error(f"--ranks {args.ranks} --parallel {args.parallel}: both at least 1")
     if args.parallel > 1:
         print(f"--parallel {args.parallel}: runs share the machine; compare their returns and steps, not their times")
     work = args.out / "runs"

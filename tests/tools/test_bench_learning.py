@@ -2,6 +2,8 @@
 
 import json
 import math
+import subprocess
+import sys
 from dataclasses import asdict
 from pathlib import Path
 
@@ -71,3 +73,14 @@ def test_reused_runs_pool_the_seeds_of_several_files_and_refuse_one_seed_twice(t
     assert [(r.seed, r.final_return) for r in pooled] == [(1, 6_001.0), (2, 6_002.0), (3, 6_003.0)]
     with pytest.raises(SystemExit, match=r"seeds \[2\] of HalfCheetah-v5 are in more than one"):
         reused("HalfCheetah-v5", [first, second, results("c.json", 2, 4)])
+    with pytest.raises(SystemExit, match=r"a.json: no runs of Hopper-v5 in it \(it has HalfCheetah-v5\)"):
+        reused("Hopper-v5", [first])
+
+
+def test_a_seed_asked_twice_is_refused_before_anything_runs(tmp_path: Path) -> None:
+    bench = Path(__file__).resolve().parents[2] / "launch" / "bench_learning.py"
+    arguments = ["--envs", "hopper", "--seeds", "1", "2", "1", "--out", str(tmp_path)]
+    done = subprocess.run([sys.executable, str(bench), *arguments], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert "--seeds 1 2 1: each seed once" in done.stderr and "Traceback" not in done.stderr
+    assert list(tmp_path.iterdir()) == []  # refused before any run or smoke test
