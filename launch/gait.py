@@ -2,11 +2,13 @@
 mean forward speed and how far its torso pitched. Tells a slow gait that stays upright from one that rears up or
 turns over, where the return alone looks the same (docs/learning.md).
 
-    .venv/bin/python launch/gait.py STORAGE [--episodes 5]
+    .venv/bin/python launch/gait.py STORAGE [--episodes 10]
 
 STORAGE is anything ``ftrain play`` takes (a run's storage, a checkpoint, a policy snapshot, an export). Episodes are
-seeded from the config's evaluation seed, as the benchmark's final evaluation. Speed is the mean of the root's forward
-velocity (``data.qvel[0]``, m/s), pitch the largest ``|data.qpos[2]|`` (the ``rooty`` hinge, rad) of each episode.
+seeded from the config's evaluation seed, as the benchmark's final evaluation, but played one at a time where the
+benchmark plays ten in a batch: the actions differ in their last bits, and a gait on the edge of turning over may
+fall in other episodes. Speed is the mean of the root's forward velocity (``data.qvel[0]``, m/s), pitch the largest
+``|data.qpos[2]|`` (the ``rooty`` hinge, rad) of each episode.
 """
 
 from __future__ import annotations
@@ -73,7 +75,7 @@ def gait(act: Act, env_config: EnvConfig, episodes: int, seed: int) -> list[Gait
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("storage", help="a run's storage, a checkpoint, a policy snapshot or an exported policy")
-    parser.add_argument("--episodes", type=int, default=5)
+    parser.add_argument("--episodes", type=int, default=10)
     args = parser.parse_args()
     try:
         policy = load_policy(args.storage)

@@ -61,26 +61,48 @@ def test_over_more_seeds_than_five_it_reports_how_often_five_would_all_end_above
     assert math.isnan(Seeds.of("HalfCheetah-v5", [run(1, 6_000.0, [6_000.0])]).all_above_zoo_share)
 
 
-def test_reused_runs_pool_the_seeds_of_several_files_and_refuse_one_seed_twice(tmp_path: Path) -> None:
-    def results(name: str, *seeds: int) -> Path:
+def bench(*arguments: str) -> subprocess.CompletedProcess:
+    """launch/bench_learning.py run as a user runs it."""
+    script = Path(__file__).resolve().parents[2] / "launch" / "bench_learning.py"
+    return subprocess.run([sys.executable, str(script), *arguments], capture_output=True, text=True, timeout=120)
+
+
+def test_reused_runs_pool_the_seeds_of_several_files_into_one_report(tmp_path: Path) -> None:
+    def results(name: str, *seeds: int, ranks: int | None = None) -> Path:
         runs = [asdict(run(seed, 6_000.0 + seed, [5_500.0])) for seed in seeds]
+        for entry in runs:
+            if ranks is None:
+                del entry["ranks"]  # a file from before --ranks
+            else:
+                entry["ranks"] = ranks
         path = tmp_path / name
-        path.write_text(json.dumps({"results": {"HalfCheetah-v5": {"ftrain": runs}}}))
+        path.write_text(json.dumps({"machine_speed_cpu_s": 2.5, "results": {"HalfCheetah-v5": {"ftrain": runs}}}))
         return path
 
-    first, second = results("a.json", 3, 1), results("b.json", 2)
-    pooled = reused("HalfCheetah-v5", [first, second])
-    assert [(r.seed, r.final_return) for r in pooled] == [(1, 6_001.0), (2, 6_002.0), (3, 6_003.0)]
+    first, second, out = results("a.json", 3, 1, ranks=1), results("b.json", 2), tmp_path / "out"
+    done = bench("--envs", "halfcheetah", "--reuse", str(first), str(second), "--out", str(out))
+    assert done.returncode == 0, done.stderr
+    assert "a cold 2-iteration smoke run" not in done.stdout  # nothing trains: this machine's speed is not theirs
+    assert f"--reuse {first}: measured at machine speed 2.5 CPU-s" in done.stdout
+    assert "HalfCheetah-v5, 3 seeds" in done.stdout and "3/3 seeds reached 5,000" in done.stdout
+    report = json.loads((out / "results.json").read_text())
+    pooled = report["results"]["HalfCheetah-v5"]["ftrain"]
+    assert [(r["seed"], r["final_return"], r["ranks"]) for r in pooled] == [(1, 6_001, 1), (2, 6_002, 2), (3, 6_003, 1)]
+    assert report["args"]["reuse"] == [str(first), str(second)] and (out / "halfcheetah.png").stat().st_size > 0
     with pytest.raises(SystemExit, match=r"seeds \[2\] of HalfCheetah-v5 are in more than one"):
         reused("HalfCheetah-v5", [first, second, results("c.json", 2, 4)])
     with pytest.raises(SystemExit, match=r"a.json: no runs of Hopper-v5 in it \(it has HalfCheetah-v5\)"):
         reused("Hopper-v5", [first])
 
 
-def test_a_seed_asked_twice_is_refused_before_anything_runs(tmp_path: Path) -> None:
-    bench = Path(__file__).resolve().parents[2] / "launch" / "bench_learning.py"
-    arguments = ["--envs", "hopper", "--seeds", "1", "2", "1", "--out", str(tmp_path)]
-    done = subprocess.run([sys.executable, str(bench), *arguments], capture_output=True, text=True, timeout=120)
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [(["--seeds", "1", "2", "1"], "--seeds 1 2 1: each seed once"), (["--ranks", "0"], "--ranks 0 --parallel 1: both")],
+)
+def test_bad_arguments_are_refused_in_one_line_before_anything_runs(
+    tmp_path: Path, arguments: list[str], message: str
+) -> None:
+    done = bench("--envs", "hopper", *arguments, "--out", str(tmp_path))
     assert done.returncode == 2
-    assert "--seeds 1 2 1: each seed once" in done.stderr and "Traceback" not in done.stderr
+    assert message in done.stderr and "Traceback" not in done.stderr
     assert list(tmp_path.iterdir()) == []  # refused before any run or smoke test
