@@ -171,13 +171,17 @@ def on_a_terminal(command: list[str], cwd: Path, code: int = 0, timeout: float =
     return seen.decode()
 
 
-def finish(proc: subprocess.Popen, timeout: float = 180) -> int:
-    """The exit code of ``proc``; killed (and the test failed) if it takes longer than ``timeout``."""
+def finish(proc: subprocess.Popen, timeout: float = 180, output: Path | None = None) -> int:
+    """The exit code of ``proc``; killed (and the test failed) if it takes longer than ``timeout``, with the end of
+    ``output`` (the file it writes to), where it hung, in the failure."""
     try:
         return proc.wait(timeout=timeout)
     except subprocess.TimeoutExpired:
         proc.kill()
-        raise
+        if output is None:
+            raise
+        said = output.read_text(errors="replace") if output.exists() else "(no output file)"
+        raise AssertionError(f"{proc.args} did not end within {timeout} s; its output ends:\n{said[-3000:]}") from None
 
 
 def events(log_dir: str | Path) -> list[dict]:

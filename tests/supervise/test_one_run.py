@@ -265,16 +265,19 @@ def test_a_run_paused_past_its_lease_whose_storage_another_run_took_commits_noth
         newest = final_manifest(storage)["step"]
         assert {manifest["generation"] for manifest in manifests(storage).values()} == {1}
         elsewhere = ["unshare", "--uts", "sh", "-c", 'hostname elsewhere && exec "$@"', "sh"]
-        second = subprocess.run(
-            [*elsewhere, *command, f"iterations={newest + 10}", "checkpoint.interval=2", f"log_dir={tmp_path / 'b'}"],
-            cwd=REPO,
-            env=child_env(),
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
-        assert second.returncode == 0, second.stderr[-3000:]
-        assert "took over the lease of" in second.stderr and "expired at" in second.stderr
+        b_log, b_arguments = tmp_path / "b.log", [f"iterations={newest + 10}", "checkpoint.interval=2"]
+        with b_log.open("wb") as output:
+            second = launch(
+                [*elsewhere, *command, *b_arguments, f"log_dir={tmp_path / 'b'}"],
+                cwd=REPO,
+                env=child_env(),
+                stdout=output,
+                stderr=subprocess.STDOUT,
+            )
+        code = finish(second, timeout=120, output=b_log)
+        said_b = b_log.read_text()
+        assert code == 0, said_b[-3000:]
+        assert "took over the lease of" in said_b and "expired at" in said_b
     finally:
         for pid in paused:
             with contextlib.suppress(ProcessLookupError):
