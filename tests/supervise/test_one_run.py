@@ -20,6 +20,7 @@ from pathlib import Path
 import pytest
 
 from ftrain import procfs
+from ftrain.ckpt import cas
 from ftrain.ckpt.lease import LEASE, TTL_ENV, Entry, Record
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD
@@ -241,10 +242,11 @@ def test_a_lease_taken_while_the_workers_train_stops_them_at_once_with_exit_8(tm
 
 @pytest.mark.skipif(os.geteuid() != 0 or not shutil.which("unshare"), reason="another host: a UTS namespace (root)")
 def test_a_run_paused_past_its_lease_whose_storage_another_run_took_commits_nothing_more(tmp_path) -> None:
-    """Run A (a 4 s lease) is SIGSTOPped; run B, on "another host" (a hostname of its own: A's entry can only
-    expire there), takes the lease at the next generation, trains on from A's newest step and ends. A, continued,
-    commits nothing over B's steps: its rank 0 finds B's generation in the lease before its next manifest, and A
-    stops with exit 8 and one line; its supervisor never takes the lease back."""
+    """Run A (a 4 s lease) is SIGSTOPped outside its lease's lock (paused inside it, A stalls every other run on
+    this file system, B too: not what this test is about); run B, on "another host" (a hostname of its own: A's
+    entry can only expire there), takes the lease at the next generation, trains on from A's newest step and ends.
+    A, continued, commits nothing over B's steps: its rank 0 finds B's generation in the lease before its next
+    manifest, and A stops with exit 8 and one line; its supervisor never takes the lease back."""
     storage = tmp_path / "run"
     command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node=1", SMOKE, "--storage", str(storage)]
     a_log = tmp_path / "a.log"
@@ -257,9 +259,10 @@ def test_a_run_paused_past_its_lease_whose_storage_another_run_took_commits_noth
             stderr=subprocess.STDOUT,
         )
     wait_for(lambda: len(manifests(storage)) >= 2, "run A's first commits", timeout=120)
-    paused = [first.pid, *procfs.descendants(first.pid)]
-    for pid in paused:
-        os.kill(pid, signal.SIGSTOP)
+    with cas.locked(Storage.open(str(storage)), LEASE):  # A paused outside its lease's lock, which would stall B
+        paused = [first.pid, *procfs.descendants(first.pid)]
+        for pid in paused:
+            os.kill(pid, signal.SIGSTOP)
     try:
         time.sleep(5)  # past A's lease, which only expiry ends from another host
         newest = final_manifest(storage)["step"]
