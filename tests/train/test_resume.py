@@ -217,8 +217,12 @@ def test_failed_saves_are_logged_training_goes_on_and_holds_past_the_unsaved_bou
         timeout=300,
     )
     assert failed.returncode == EXIT_STORAGE_DOWN, failed.stderr
-    assert "training held at step 4: 4 iterations" in failed.stdout
-    assert "held at step 5" not in failed.stdout, "training stays where it is while it holds"
+    held = re.search(r"training held at step (\d+): (\d+) iterations", failed.stdout)
+    assert held and held[1] == held[2], failed.stdout  # nothing ever saved: every iteration unsaved
+    # past the bound of 3 at step 4; at 5 where a save's failure is learned an iteration later (saves run in the
+    # background: a loaded machine)
+    assert int(held[1]) in (4, 5), failed.stdout
+    assert f"held at step {int(held[1]) + 1}" not in failed.stdout, "training stays where it is while it holds"
     assert "took no checkpoint for" in failed.stderr and "Traceback" not in failed.stderr
     assert (blocked / "checkpoints").read_text() == "no step directory can go below a file"
 
