@@ -436,12 +436,12 @@ def train_seeds(name: str, args: argparse.Namespace, work: Path) -> list[Run]:
         return list(pool.map(train, args.seeds))
 
 
-def reused(env_id: str, paths: list[Path]) -> list[Run]:
-    """The runs of ``env_id`` in earlier ``results.json`` files, pooled; a file without them, or a seed found twice, is
-    an error."""
+def reused(env_id: str, files: dict[Path, dict]) -> list[Run]:
+    """The runs of ``env_id`` in earlier ``results.json`` files (read, by path), pooled; a file without them, or a seed
+    found twice, is an error."""
     runs = []
-    for path in paths:
-        earlier = json.loads(path.read_text())["results"]
+    for path, report in files.items():
+        earlier = report["results"]
         if env_id not in earlier:
             sys.exit(f"--reuse {path}: no runs of {env_id} in it (it has {', '.join(earlier)}); pick them with --envs")
         runs += [Run.from_json(run) for run in earlier[env_id]["ftrain"]]
@@ -488,8 +488,9 @@ def main() -> None:
         print(
             f"machine speed: a cold 2-iteration smoke run took {speed:.1f} CPU-s (launch/machine_speed.py)", flush=True
         )
-    for path in args.reuse or []:
-        print(f"--reuse {path}: measured at machine speed {json.loads(path.read_text())['machine_speed_cpu_s']} CPU-s")
+    files = {path: json.loads(path.read_text()) for path in args.reuse or []}
+    for path, report in files.items():
+        print(f"--reuse {path}: measured at machine speed {report['machine_speed_cpu_s']} CPU-s")
     results, tables, rows = {}, [], []
     for name in args.envs:
         env_id = ENV_IDS[name]
@@ -497,7 +498,7 @@ def main() -> None:
         if args.sb3_steps:
             sb3 = run_sb3(env_id, int(args.sb3_steps), int(args.sb3_eval_every), work)
             print(f"{env_id} SB3: {sb3.seconds:,.0f} s to 1M steps (scaled), load {sb3.load}", flush=True)
-        runs = reused(env_id, args.reuse) if args.reuse else train_seeds(name, args, work)
+        runs = reused(env_id, files) if files else train_seeds(name, args, work)
         plot(env_id, runs, sb3, args.out / f"{name}.png", args.set)
         seeds = Seeds.of(env_id, runs)
         results[env_id] = {"ftrain": [asdict(run) for run in runs], "sb3": asdict(sb3) if sb3 else None}

@@ -90,9 +90,11 @@ def test_reused_runs_pool_the_seeds_of_several_files_into_one_report(tmp_path: P
     assert [(r["seed"], r["final_return"], r["ranks"]) for r in pooled] == [(1, 6_001, 1), (2, 6_002, 2), (3, 6_003, 1)]
     assert report["args"]["reuse"] == [str(first), str(second)] and (out / "halfcheetah.png").stat().st_size > 0
     with pytest.raises(SystemExit, match=r"seeds \[2\] of HalfCheetah-v5 are in more than one"):
-        reused("HalfCheetah-v5", [first, second, results("c.json", 2, 4)])
+        reused(
+            "HalfCheetah-v5", {path: json.loads(path.read_text()) for path in (first, second, results("c.json", 2, 4))}
+        )
     with pytest.raises(SystemExit, match=r"a.json: no runs of Hopper-v5 in it \(it has HalfCheetah-v5\)"):
-        reused("Hopper-v5", [first])
+        reused("Hopper-v5", {first: json.loads(first.read_text())})
 
 
 @pytest.mark.parametrize(
