@@ -192,6 +192,17 @@ def events(log_dir: str | Path) -> list[dict]:
     return [json.loads(line) for line in text[: text.rfind("\n") + 1].splitlines()]
 
 
+def assert_all_nodes_restarted_once(log: list[dict], nodes: Iterable[int] = (0, 1)) -> None:
+    """One failure, one restart of every node: each started attempts 0 and 1 only and recovered once (else every
+    ``exit`` event's cause, to tell what else ended an attempt)."""
+    exits = [(event["node"], event["attempt"], event["cause"]) for event in log if event["event"] == "exit"]
+    for node in nodes:
+        mine = [event for event in log if event["node"] == node]
+        started = [event["attempt"] for event in mine if event["event"] == "start"]
+        assert started == [0, 1], f"node {node} started attempts {started}; exits (node, attempt, cause): {exits}"
+        assert sum(event["event"] == "recovered" for event in mine) == 1, exits
+
+
 def torchrun_pid(supervisor_pid: int) -> int:
     """The torchrun agent a supervisor launched (waits until there is one): ``ftrain.torchrun``, or with warm
     workers its stand-in ``ftrain.warm torchrun``, the process the supervisor watches."""

@@ -19,6 +19,7 @@ from ftrain.supervise.auth import SECRET_ENV
 
 from helpers import (
     REPO,
+    assert_all_nodes_restarted_once,
     child_env,
     events,
     final_manifest,
@@ -155,6 +156,8 @@ def test_two_nodes_both_recover_when_one_loses_its_worker(tmp_path, reference):
             str(node),
             "--rdzv-endpoint",
             endpoint,
+            "--hang-timeout",  # not auto's 5 s floor: a phase slowed that long by a loaded machine is no hang here
+            "60",
             log=f"node{node}",
             env={SECRET_ENV: "ftrain-test-chaos-secret"},
         )
@@ -167,8 +170,5 @@ def test_two_nodes_both_recover_when_one_loses_its_worker(tmp_path, reference):
     step = manifest["step"]
     assert (step, manifest["state_sha256"]) == (100, reference)
     log = events(storage)
-    for node in (0, 1):
-        mine = [event for event in log if event["node"] == node]
-        assert [event["attempt"] for event in mine if event["event"] == "start"] == [0, 1]
-        assert sum(event["event"] == "recovered" for event in mine) == 1
+    assert_all_nodes_restarted_once(log)
     assert any(event["event"] == "exit" and event["cause"] == "rank 1 killed by SIGKILL" for event in log)
