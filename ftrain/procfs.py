@@ -74,6 +74,26 @@ def descendants(pid: int) -> list[int]:
     return found
 
 
+def lock_holders(fd: int) -> list[int]:
+    """The processes holding a lock (``flock`` or POSIX) of the file open as ``fd`` on this host, by ``/proc/locks``,
+    which names the file by device and inode (a waiter's line, marked ``->``, holds nothing)."""
+    stat = os.fstat(fd)
+    file = f"{os.major(stat.st_dev):02x}:{os.minor(stat.st_dev):02x}:{stat.st_ino}"
+    try:
+        lines = Path("/proc/locks").read_text().splitlines()
+    except OSError:
+        return []
+    held = [line.split() for line in lines if "->" not in line.split()[:2]]
+    return [int(fields[4]) for fields in held if len(fields) > 5 and fields[5] == file]
+
+
+def describe(pid: int) -> str:
+    """``pid`` as a person finds it in ``ps``: its command line (an ftrain process's names its role) and, if it is
+    stopped, that it is."""
+    command = " ".join(read(pid, "cmdline").decode(errors="replace").replace("\0", " ").split())[:120] or "gone"
+    return f"process {pid} ({command}{', stopped' if state(pid) in ('T', 't') else ''})"
+
+
 @dataclass(frozen=True)
 class Process:
     """A process, as precisely as its host lets another process recognise it."""

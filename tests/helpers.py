@@ -192,6 +192,19 @@ def events(log_dir: str | Path) -> list[dict]:
     return [json.loads(line) for line in text[: text.rfind("\n") + 1].splitlines()]
 
 
+HOLD_LOCK = """
+import os, signal, sys
+from ftrain.ckpt import cas
+from ftrain.ckpt.lease import LEASE
+from ftrain.ckpt.storage import Storage
+with cas.locked(Storage.open(sys.argv[1]), LEASE):
+    print("held", flush=True)
+    os.kill(os.getpid(), signal.SIGSTOP)
+"""
+"""A process that stops itself inside the lease's lock (as a run paused mid-commit would be), and lets go once it is
+continued."""
+
+
 def assert_all_nodes_restarted_once(log: list[dict], nodes: Iterable[int] = (0, 1)) -> None:
     """One failure, one restart of every node: each started attempts 0 and 1 only and recovered once (else every
     ``exit`` event's cause, to tell what else ended an attempt)."""

@@ -7,8 +7,9 @@ S3 and Azure Blob storage (``abfs://``, ``az://``): the version is the ETag; a w
 On Azure the requests go through the blob client adlfs holds, as they go through s3fs's on S3 and gcsfs's session on
 GCS, and are sent once each (the Azure SDK's own retries off), so that the retry loop is ``Storage``'s alone. Local:
 the version is a digest of the bytes; the read-check-write runs under an exclusive ``flock`` of a side file
-``<object>.lock`` (released by the kernel if the process dies), and the new object is put in place by an atomic
-rename of a fsynced temporary file. Other protocols (``memory://``: one process): a plain check, then the write.
+``<object>.lock`` (released by the kernel if the process dies; a long wait for it is told, naming its holder), and
+the new object is put in place by an atomic rename of a fsynced temporary file. Other protocols (``memory://``: one
+process): a plain check, then the write.
 
 The lease, the fence and every manifest's exclusive create rest on this, so a run checks its storage before it
 takes the lease (``require_atomic``): a server that ignores the conditions (some S3-compatible ones do) would turn
@@ -24,14 +25,17 @@ import datetime
 import fcntl
 import hashlib
 import json
+import logging
 import os
 import secrets
+import time
 from collections.abc import AsyncIterator, Iterator
 from email.utils import parsedate_to_datetime
 from typing import TYPE_CHECKING, Any
 
 import fsspec.asyn
 
+from ftrain import procfs
 from ftrain.ckpt.storage import Storage
 from ftrain.ckpt.stores import S3_TIMEOUTS
 from ftrain.errors import StorageError, UserError
@@ -59,6 +63,11 @@ RISK = (
     "Ceph), or pass "
     "storage.plain_writes=true to accept the risk"
 )
+LOCK_POLL = 0.02
+"""Seconds between two tries of a local lock (a compare-and-swap holds it for milliseconds)."""
+LOCK_PATIENCE = 10.0
+"""Seconds a local lock is waited for before the wait is told, with who holds it."""
+log = logging.getLogger(__name__)
 _checked: set[str] = set()
 """The storages this process found atomic."""
 
@@ -313,11 +322,38 @@ def _lock_file(path: str) -> int:
     os.makedirs(os.path.dirname(path), exist_ok=True)
     fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        fcntl.flock(fd, fcntl.LOCK_EX)
+        _wait_for_lock(fd, path)
     except BaseException:
         os.close(fd)
         raise
     return fd
+
+
+def _wait_for_lock(fd: int, path: str) -> None:
+    """Take the lock, however long its holder keeps it: the holder is inside a compare-and-swap or a commit, which
+    must end before another begins. Past ``LOCK_PATIENCE`` the wait is told in one line naming the holder (a process
+    paused inside, by SIGSTOP or a frozen machine, keeps it until it goes on or ends), and its end in another."""
+    began = time.monotonic()
+    told = False
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            break
+        except BlockingIOError:
+            pass
+        if not told and time.monotonic() - began > LOCK_PATIENCE:
+            told = True
+            holders = ", ".join(procfs.describe(pid) for pid in procfs.lock_holders(fd)) or "a process of another host"
+            log.warning(
+                "%s has been locked for %.0f s by %s: every commit and lease change on this storage waits for it; "
+                "a stopped holder keeps it until it is continued (kill -CONT) or ended",
+                path,
+                LOCK_PATIENCE,
+                holders,
+            )
+        time.sleep(LOCK_POLL)
+    if told:
+        log.warning("%s: got the lock after %.0f s; going on", path, time.monotonic() - began)
 
 
 def _replace_local(path: str, data: bytes) -> None:

@@ -125,6 +125,8 @@ class Supervisor:
 
     def on_signal(self, number: int, frame: object) -> None:
         self.signals.append(number)
+        if self.lease is None:  # before the run holds its storage (waiting for it, or for its lease): nothing to save
+            raise _Stop(self._stopped_before_training())
 
     def close(self) -> None:
         self.link.close()
@@ -177,8 +179,11 @@ class Supervisor:
     def _raise_if_signalled(self) -> None:
         if self.signals:
             self.events("preempt", signal=signal_name(self.signals[0]))
-            code = stop_code(self.signals[0])
-            raise _Stop(Outcome("preempted", code, "stopped by a signal while no workers ran; rerun to continue"))
+            raise _Stop(self._stopped_before_training())
+
+    def _stopped_before_training(self) -> Outcome:
+        code = stop_code(self.signals[0])
+        return Outcome("preempted", code, "stopped by a signal while no workers ran; rerun to continue")
 
     def _next_plan(self, previous: Plan | None) -> Plan:
         """The next attempt to run (on several nodes: once node 0 has moved on from ``previous``, or ended the run)."""

@@ -3,13 +3,18 @@ Cloud Storage (fake-gcs-server, from PyPI) and Azure Blob storage (Azurite), whe
 and a write from a stale version are refused, and (on Azure) all but one of writers racing from one version. A
 storage whose compare-and-swap is not atomic is refused before the lease (``ftrain/ckpt/cas.py``): an S3 server that
 ignores If-Match and If-None-Match (here moto behind a real HTTP proxy that drops those headers, as some
-S3-compatible servers do), and a protocol without conditional writes; ``storage.plain_writes=true`` accepts it."""
+S3-compatible servers do), and a protocol without conditional writes; ``storage.plain_writes=true`` accepts it. On a
+local file system, a compare-and-swap that waits for the lock a stopped process holds says so, naming it, and goes on
+once it is free."""
 
 from __future__ import annotations
 
 import base64
+import logging
 import os
+import signal
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -23,6 +28,7 @@ from ftrain.ckpt.storage import Storage
 from ftrain.errors import StorageUnavailable, UserError
 
 from helpers import (
+    HOLD_LOCK,
     REPO,
     S3Proxy,
     azurite_connection,
@@ -199,3 +205,21 @@ def test_a_protocol_without_conditional_writes_is_refused_unless_accepted(tmp_pa
     cas.require_atomic(storage, plain_writes=True)  # accepted: nothing is asked of it here
     cas.require_atomic(Storage.open(str(tmp_path / "run")))  # local: flock and an atomic rename
     cas.require_atomic(Storage.open("memory://run"))  # one process
+
+
+def test_a_local_wait_for_the_lock_is_told_naming_its_stopped_holder_and_ends_when_it_is_continued(
+    tmp_path, monkeypatch, caplog
+):
+    monkeypatch.setattr(cas, "LOCK_PATIENCE", 0.5)
+    caplog.set_level(logging.WARNING, logger="ftrain.ckpt.cas")
+    storage = Storage.open(str(tmp_path / "run"))
+    holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, storage.url], env=child_env(), stdout=subprocess.PIPE)
+    assert holder.stdout.readline() == b"held\n"
+    threading.Timer(2.0, os.kill, (holder.pid, signal.SIGCONT)).start()
+    began = time.monotonic()
+    cas.write(storage, "LEASE.json", b"mine", None)
+    assert time.monotonic() - began >= 1.5  # it waited for the holder to go on and let go
+    assert holder.wait(timeout=30) == 0 and storage.read("LEASE.json") == b"mine"
+    told, got = (record.getMessage() for record in caplog.records)
+    assert f"LEASE.json.lock has been locked for 0 s by process {holder.pid} (" in told and "stopped)" in told, told
+    assert "LEASE.json.lock: got the lock after 2 s; going on" in got, got

@@ -30,6 +30,7 @@ from ftrain.supervise.auth import SECRET_ENV
 
 import helpers
 from helpers import (
+    HOLD_LOCK,
     REPO,
     SMOKE,
     TESTS,
@@ -408,3 +409,27 @@ def test_an_unsupervised_run_whose_lease_another_run_took_stops_at_once_with_exi
     assert len(lines) == 1 and lines[0].endswith("this run lost the storage and commits nothing more"), said
     assert re.search(rf"exitcode\s*:\s*{EXIT_STORAGE_HELD}\b", said), said
     assert sorted(manifests(storage)) == committed  # nothing after the takeover
+
+
+def test_a_run_that_waits_for_a_lock_a_stopped_process_holds_says_who_holds_it_and_stops_on_sigterm(tmp_path):
+    storage, output = tmp_path / "run", tmp_path / "supervise.log"
+    holder = launch([sys.executable, "-c", HOLD_LOCK, str(storage)], env=child_env(), stdout=subprocess.PIPE)
+    try:
+        assert holder.stdout.readline() == b"held\n"
+        with output.open("wb") as log:
+            run = launch(supervise_command(storage, "iterations=4"), cwd=REPO, env=child_env(), stdout=log, stderr=log)
+        said = lambda: output.read_text()  # noqa: E731
+        waiting = wait_for(lambda: "has been locked for" in said() and said(), "the wait told", timeout=60)
+        line = next(line for line in waiting.splitlines() if "has been locked for" in line)
+        assert f"{storage}/LEASE.json.lock has been locked for 10 s by process {holder.pid} (" in line, line
+        assert "stopped): every commit and lease change on this storage waits for it" in line, line
+        assert run.poll() is None and not manifests(storage)  # it waits, and nothing was written meanwhile
+        run.send_signal(signal.SIGTERM)  # as SLURM or Ctrl-C would: it stops now, not once the lock is free
+        assert finish(run, timeout=10, output=output) == 128 + signal.SIGTERM
+        assert "stopped by a signal while no workers ran; rerun to continue" in said()
+    finally:
+        os.kill(holder.pid, signal.SIGCONT)
+    assert finish(holder) == 0
+    assert finish(launch(supervise_command(storage, "iterations=4"), cwd=REPO, env=child_env())) == 0  # the rerun
+    assert final_manifest(storage)["step"] == 4
+    assert "Traceback" not in said()
