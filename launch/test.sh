@@ -5,10 +5,11 @@
 #   bash launch/test.sh --lane scale    one lane alone (pytest markers: scale, slurm, cluster, slow; `fast` is
 #                                       `not slow`: no servers, no multi-process runs)
 #   bash launch/test.sh --all           every lane, `scale` included
-# Tests run in FTRAIN_TEST_WORKERS processes (pytest-xdist, default: one per core and one more), a file at a time each
-# (`-n 0`: one process). At most one test per core runs at once (tests/conftest.py: CPU_SLOTS); the extra worker is
-# for the SLURM lane, which mostly waits for slurmctld and runs beside the others. The longest files go first
-# (tests/conftest.py: LONGEST_FIRST), so that no worker is left with one at the end.
+# Tests run in FTRAIN_TEST_WORKERS processes (pytest-xdist, default: one per core and two more), a file at a time each
+# (`-n 0`: one process). At most one test per core runs at once (tests/conftest.py: CPU_SLOTS); the extra workers are
+# for the SLURM lane, which mostly waits for slurmctld, and the tests marked `waits` (expiries, timeouts), which run
+# beside the others. The longest files go first (tests/conftest.py: LONGEST_FIRST), so that no worker is left with
+# one at the end.
 # Further arguments go to pytest (a later `-m` or `-n` wins over the lane's). The SLURM lane (tests/cluster) runs a private
 # SLURM cluster and skips with the reason where slurm-wlm and munge are missing or not root; the cluster lane needs
 # etcd and, for tests/cluster/test_netns.py, network namespaces (root).
@@ -35,5 +36,5 @@ FTRAIN_TEST_DEPS=1 bash launch/setup.sh
 .venv/bin/ruff check ftrain tests launch examples
 .venv/bin/ruff format --check ftrain tests launch examples
 .venv/bin/python launch/machine_speed.py
-workers=(-n "${FTRAIN_TEST_WORKERS:-$(($(nproc) + 1))}" --dist loadfile --no-loadscope-reorder)  # LONGEST_FIRST's order
+workers=(-n "${FTRAIN_TEST_WORKERS:-$(($(nproc) + 2))}" --dist loadfile --no-loadscope-reorder)  # LONGEST_FIRST's order
 exec .venv/bin/python -m pytest -p no:cacheprovider --durations=15 "${workers[@]}" "${select[@]}" "$@"

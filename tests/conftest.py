@@ -91,7 +91,12 @@ CPU_SLOTS = int(os.environ.get("FTRAIN_TEST_CPU_SLOTS") or os.cpu_count() or 1)
 """How many tests run at once across the xdist workers, one per core: more only slow each other down (measured: three
 files at once on two cores took 34.6 min against 30.5, with 24% more CPU time). The SLURM lane's tests take no slot:
 they wait for slurmctld (its checks every 30 s) nearly all the time, so launch/test.sh starts one worker more than
-the slots, and that lane runs beside the others instead of in the place of one."""
+the slots, and that lane runs beside the others instead of in the place of one. So do the tests marked ``waits`` (a
+lease's expiry, a hang's timeout: under a third of their time on the CPU), in one worker more."""
+
+
+FREE = ("slurm", "waits")
+"""The markers of tests that take no CPU slot."""
 
 
 @pytest.hookimpl(hookwrapper=True, tryfirst=True)  # outermost: the wait for a slot is not the test's (its timeout)
@@ -113,10 +118,11 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
 @contextlib.contextmanager
 def cpu_slot(item: pytest.Item) -> Iterator[None]:
     """Hold one of ``CPU_SLOTS`` slots (an exclusive ``flock`` of a file in the xdist workers' shared temporary
-    directory) while the test runs; none is needed by a SLURM test or where the workers are no more than the slots.
+    directory) while the test runs; none is needed by a SLURM test, one marked ``waits``, or where the workers are no
+    more than the slots.
     Waiters queue (a worker looks for a free slot only while it holds the queue's lock), so that a worker that has
     just freed a slot cannot take it again at once, test after test, while another waits."""
-    if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) <= CPU_SLOTS or item.get_closest_marker("slurm"):
+    if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) <= CPU_SLOTS or any(map(item.get_closest_marker, FREE)):
         yield
         return
     shared = Path(item.config.option.basetemp).parent  # xdist gives each worker a directory of the run's

@@ -118,6 +118,7 @@ def test_refused_while_another_process_holds_it_then_taken_over_at_once_when_it_
     assert [e.process.pid for e in now.entries] == [os.getpid()]
 
 
+@pytest.mark.waits
 @pytest.mark.slow
 def test_of_processes_that_race_for_a_free_lease_exactly_one_wins(storage):
     url, options = open_again(storage)
@@ -136,6 +137,7 @@ def test_of_processes_that_race_for_a_free_lease_exactly_one_wins(storage):
     assert record(storage).run_id == f"run-{outcomes.index('won')}"
 
 
+@pytest.mark.waits
 def test_a_lease_of_another_host_holds_until_it_expires_by_the_storages_clock(storage):
     storage.write_replace(LEASE, foreign("far-run", time.time()).encode())
     with pytest.raises(LeaseHeld, match="far-run, pid 4242 on host node-far-away"):
@@ -203,6 +205,7 @@ def test_a_lease_taken_by_another_run_is_lost_for_good_and_said_once(storage):
     assert lease.renew() is None and record(storage).run_id == "intruder"  # never taken back: two writers
 
 
+@pytest.mark.waits
 def test_a_run_id_started_again_when_none_of_its_processes_lives_fences_off_the_old_ones(storage):
     """A batch job keeps its run id across a requeue: the requeued job is a new holder, and what the old one still
     has running (a node paused past the expiry, as another host sees it) commits nothing more."""
@@ -248,6 +251,7 @@ def test_a_new_plan_takes_the_next_generation_and_the_nodes_that_follow_plans_ar
     maker.release()
 
 
+@pytest.mark.waits
 def test_a_node_starting_after_an_outage_joins_the_nodes_of_its_run_that_renew_again(storage):
     """After an outage longer than the ttl every entry of another host looks expired; a node of the same run that
     starts then looks again after a third of the ttl, finds them renewed, and joins their generation instead of

@@ -167,6 +167,7 @@ def test_when_rank_0_cannot_write_a_manifest_every_rank_hears_so_and_training_go
     assert final_manifest(storage)["state_sha256"] == reference_state(8)
 
 
+@pytest.mark.waits
 def test_a_commit_whose_answer_was_lost_counts_when_its_manifest_landed_and_is_never_deleted_unseen(s3_url):
     """The manifest's PUT is done by S3 but its answer never arrives (a reset connection, every try): a direct look
     finds the manifest, and the step is committed. When the storage stops answering right after that PUT, the look

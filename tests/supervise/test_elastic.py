@@ -249,6 +249,7 @@ def test_on_etcd_over_tls_the_certificates_come_from_rdzv_conf_files(tmp_path, e
         assert "PRIVATE KEY" not in output.read_text()
 
 
+@pytest.mark.waits
 def test_below_min_nodes_wait_then_exit_6_and_keep_every_checkpoint(tmp_path) -> None:
     storage, endpoint = tmp_path / "run", f"127.0.0.1:{free_port()}"
     nodes = [

@@ -116,6 +116,7 @@ def test_a_refusing_storage_with_a_worker_then_torchrun_killed_inside_the_outage
     assert [e["step"] for e in found if e["event"] == "recovered"] == [recovered["step"], int(resumed[0])]
 
 
+@pytest.mark.waits
 def test_a_hanging_storage_with_a_worker_killed_inside_the_outage_is_waited_out_without_a_spool(
     tmp_path, s3_outage, reference
 ):
@@ -137,6 +138,7 @@ MOUNT_OUTAGE = 9.0
 MOUNT_ITERATIONS = 8
 
 
+@pytest.mark.waits
 def test_a_failing_mount_is_waited_out(tmp_path, reference_state):
     """A storage on a FUSE mount of the test's own that answers every operation with EIO for ``MOUNT_OUTAGE`` s, as a
     hung NFS or FUSE mount does, from iteration 4 of 8 (``Hold``): the saves fail while training goes on, the last one

@@ -83,6 +83,7 @@ def test_many_concurrent_connections_pass(s3_outage):
         sock.close()
 
 
+@pytest.mark.waits
 def test_hung_server_makes_requests_time_out_until_continued(s3_outage):
     server = s3_outage.server
     client = s3_client(server.endpoint_url, timeout=1)

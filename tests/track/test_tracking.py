@@ -129,6 +129,7 @@ def test_one_tracker_run_across_restarts_every_iteration_once_no_secret(tmp_path
     assert config["storage"]["options"] == {"secret": "***"}
 
 
+@pytest.mark.waits
 @pytest.mark.slow
 def test_an_unreachable_tracker_costs_one_warning_and_never_stops_training(tmp_path):
     closed = f"http://127.0.0.1:{free_port()}"  # nothing listens there
