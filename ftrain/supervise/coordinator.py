@@ -63,6 +63,8 @@ class Coordinator:
         self._informed: set[int] = set()
         self._seen: dict[int, float] = {}
         """When each node last asked (nodes of an elastic run may be gone for good)."""
+        self._made = time.monotonic()
+        """When the plan was made: a node that never asked since counts as silent from then."""
         self._refusals: dict[str, int] = {}
         """Refused connections so far, by reason."""
         self._server: _Server | None = None
@@ -71,6 +73,7 @@ class Coordinator:
         """Make the run's plan at ``generation``, which this node took as the plan's maker (``Lease.hold``)."""
         with self._lock:
             self._plan = Plan(generation, 0, self._port())
+            self._made = time.monotonic()
 
     @property
     def generation(self) -> int | None:
@@ -124,12 +127,13 @@ class Coordinator:
 
     def wait_informed(self, nnodes: int, timeout: float) -> None:
         """Until every node has learnt the outcome, at most ``timeout`` seconds; a node silent for ``GONE_AFTER``
-        seconds is not waited for (an elastic run went on without it)."""
+        seconds is not waited for (an elastic run went on without it), nor one that has not asked since the plan was
+        made that long ago (a node started again after the run's end finds that end in the storage and never asks)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             with self._lock:
                 now = time.monotonic()
-                silent = {node for node, seen in self._seen.items() if now - seen > GONE_AFTER}
+                silent = {node for node in range(nnodes) if now - self._seen.get(node, self._made) > GONE_AFTER}
                 if self._informed | silent >= set(range(nnodes)):
                     return
             time.sleep(POLL)

@@ -32,7 +32,7 @@ from ftrain.heartbeat import ENV_DIR, HeartbeatWriter, Phase, read_heartbeats
 from ftrain.supervise import options
 from ftrain.supervise.attempt import WORKER_MODULE_ENV
 from ftrain.supervise.auth import MAX_MESSAGE, REQUEST, SECRET_ENV, Refused, seal
-from ftrain.supervise.coordinator import CONNECTION_TIMEOUT, Coordinator, Link
+from ftrain.supervise.coordinator import CONNECTION_TIMEOUT, GONE_AFTER, Coordinator, Link
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.supervisor import Supervisor
 from ftrain.supervise.supervisor import _Stop as Stop
@@ -243,6 +243,18 @@ def test_coordinator_moves_every_node_to_one_new_attempt(node0):
     assert remote.ask("finish", code=3).final == 3
     coordinator.wait_informed(2, timeout=0)
     assert local.ask("finish", code=0).final == 3  # the first ending wins
+
+
+def test_node_0_lingers_after_the_end_for_a_node_that_asks_but_not_for_one_silent_since_the_plan(node0):
+    coordinator, address = node0
+    Link(1, None, address, KEY).ask("plan")  # node 1 asked; node 2 never did (it found the end in the storage)
+    Link(0, coordinator, None, KEY).ask("finish", code=0)
+    began = time.monotonic()
+    coordinator.wait_informed(3, timeout=30)  # node 1 falls silent: waited for until GONE_AFTER past its request
+    assert GONE_AFTER - 0.5 < time.monotonic() - began < GONE_AFTER + 2
+    began = time.monotonic()
+    coordinator.wait_informed(3, timeout=30)  # both silent for longer: no wait
+    assert time.monotonic() - began < 0.5
 
 
 def test_node_0_answers_that_it_is_starting_until_it_holds_the_lease_and_made_the_plan(tmp_path):
