@@ -75,16 +75,21 @@ def descendants(pid: int) -> list[int]:
 
 
 def lock_holders(fd: int) -> list[int]:
-    """The processes holding a lock (``flock`` or POSIX) of the file open as ``fd`` on this host, by ``/proc/locks``,
-    which names the file by device and inode (a waiter's line, marked ``->``, holds nothing)."""
+    """The processes of this pid namespace holding a lock (``flock`` or POSIX) of the file open as ``fd``, by
+    ``/proc/locks``, which names the file by device and inode (a waiter's line, marked ``->``, holds nothing; another
+    namespace's holder shows pid 0). Where no line has the device (btrfs and overlayfs list another one than ``stat``
+    gives), the inode alone."""
     stat = os.fstat(fd)
-    file = f"{os.major(stat.st_dev):02x}:{os.minor(stat.st_dev):02x}:{stat.st_ino}"
+    device = f"{os.major(stat.st_dev):02x}:{os.minor(stat.st_dev):02x}"
     try:
         lines = Path("/proc/locks").read_text().splitlines()
     except OSError:
         return []
-    held = [line.split() for line in lines if "->" not in line.split()[:2]]
-    return [int(fields[4]) for fields in held if len(fields) > 5 and fields[5] == file]
+    held = [fields for fields in map(str.split, lines) if len(fields) > 5 and fields[1] != "->"]
+    files = [(int(fields[4]), fields[5].rpartition(":")) for fields in held]
+    mine = [(pid, dev) for pid, (dev, _, inode) in files if inode == str(stat.st_ino)]
+    exact = [pid for pid, dev in mine if dev == device]
+    return [pid for pid in (exact or [pid for pid, _ in mine]) if pid > 0]
 
 
 def describe(pid: int) -> str:

@@ -29,7 +29,7 @@ import logging
 import os
 import secrets
 import time
-from collections.abc import AsyncIterator, Iterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from email.utils import parsedate_to_datetime
 from typing import TYPE_CHECKING, Any
 
@@ -67,6 +67,27 @@ LOCK_POLL = 0.02
 """Seconds between two tries of a local lock (a compare-and-swap holds it for milliseconds)."""
 LOCK_PATIENCE = 10.0
 """Seconds a local lock is waited for before the wait is told, with who holds it."""
+
+
+def _never() -> bool:
+    return False
+
+
+_stop_waiting: Callable[[], bool] = _never
+
+
+class LockWaitStopped(BaseException):
+    """A wait for a local lock ended by ``stop_waiting_when`` (a BaseException: no retry loop takes it for a storage
+    error)."""
+
+
+def stop_waiting_when(check: Callable[[], bool]) -> None:
+    """End this process's waits for a local lock with ``LockWaitStopped`` once ``check()`` is true (a supervisor's stop
+    signal before its run holds the storage: nothing is written yet, and nothing to save)."""
+    global _stop_waiting
+    _stop_waiting = check
+
+
 log = logging.getLogger(__name__)
 _checked: set[str] = set()
 """The storages this process found atomic."""
@@ -341,15 +362,19 @@ def _wait_for_lock(fd: int, path: str) -> None:
             break
         except BlockingIOError:
             pass
-        if not told and time.monotonic() - began > LOCK_PATIENCE:
+        if _stop_waiting():
+            raise LockWaitStopped(path)
+        waited = time.monotonic() - began
+        if not told and waited > LOCK_PATIENCE:
             told = True
-            holders = ", ".join(procfs.describe(pid) for pid in procfs.lock_holders(fd)) or "a process of another host"
+            holders = procfs.lock_holders(fd)
+            named = ", ".join(map(procfs.describe, holders)) or "a process /proc/locks does not show (another host?)"
             log.warning(
                 "%s has been locked for %.0f s by %s: every commit and lease change on this storage waits for it; "
                 "a stopped holder keeps it until it is continued (kill -CONT) or ended",
                 path,
-                LOCK_PATIENCE,
-                holders,
+                waited,
+                named,
             )
         time.sleep(LOCK_POLL)
     if told:

@@ -30,7 +30,7 @@ from collections.abc import Callable
 from ftrain.ckpt.lease import Lease
 from ftrain.errors import UserError
 from ftrain.supervise.auth import HOW_TO_SET, REPLY, REQUEST, Refused, read_line, seal, unseal
-from ftrain.supervise.options import Nodes, SupervisorOptions
+from ftrain.supervise.options import EXIT_DONE, Nodes, SupervisorOptions
 from ftrain.supervise.plan import Plan, apply, elastic_rendezvous
 
 POLL = 0.1
@@ -127,13 +127,15 @@ class Coordinator:
 
     def wait_informed(self, nnodes: int, timeout: float) -> None:
         """Until every node has learnt the outcome, at most ``timeout`` seconds; a node silent for ``GONE_AFTER``
-        seconds is not waited for (an elastic run went on without it), nor one that has not asked since the plan was
-        made that long ago (a node started again after the run's end finds that end in the storage and never asks)."""
+        seconds is not waited for (an elastic run went on without it), nor, when the run finished, one that has not
+        asked since the plan was made that long ago: a finished run's end is in the storage, where a node started
+        again after it finds it without asking (another ending it can learn from node 0 alone)."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             with self._lock:
                 now = time.monotonic()
-                silent = {node for node in range(nnodes) if now - self._seen.get(node, self._made) > GONE_AFTER}
+                never = self._made if self._plan is not None and self._plan.final == EXIT_DONE else math.inf
+                silent = {node for node in range(nnodes) if now - self._seen.get(node, never) > GONE_AFTER}
                 if self._informed | silent >= set(range(nnodes)):
                     return
             time.sleep(POLL)

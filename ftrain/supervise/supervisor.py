@@ -19,10 +19,12 @@ import contextlib
 import os
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
 from ftrain import procfs
+from ftrain.ckpt import cas
 from ftrain.ckpt.lease import Lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config
@@ -71,6 +73,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
         return EXIT_PEER_LOST
     for sig in (signal.SIGTERM, signal.SIGINT):  # to the end of the process: a signal once the run has ended (SLURM's
         signal.signal(sig, supervisor.on_signal)  # time limit as the job finishes) changes nothing, its exit code stays
+    cas.stop_waiting_when(supervisor.waiting_stopped)
     log = lambda line: supervisor.events("lease", line, detail=line)  # noqa: E731
     refused = lambda line: print(f"ftrain supervise: error: {line}", file=sys.stderr)  # noqa: E731
 
@@ -84,6 +87,8 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
         return supervisor.storage_wait.retrying(held, supervisor.end)
     except _Stop as stop:  # a signal or another node ended the run, in the loop or while the storage was waited for
         return supervisor.end(stop.ending)
+    except cas.LockWaitStopped:  # a signal while it waited for the storage's lock, before it held the storage
+        return supervisor.end(supervisor.stopped_without_workers())
     finally:
         supervisor.close()
 
@@ -125,8 +130,11 @@ class Supervisor:
 
     def on_signal(self, number: int, frame: object) -> None:
         self.signals.append(number)
-        if self.lease is None:  # before the run holds its storage (waiting for it, or for its lease): nothing to save
-            raise _Stop(self._stopped_before_training())
+
+    def waiting_stopped(self) -> bool:
+        """Whether the main thread should stop waiting for the storage's lock: a signal came before the run held the
+        storage (``cas.stop_waiting_when``), so nothing is written yet and nothing is to be saved."""
+        return bool(self.signals) and self.lease is None and threading.current_thread() is threading.main_thread()
 
     def close(self) -> None:
         self.link.close()
@@ -178,10 +186,11 @@ class Supervisor:
 
     def _raise_if_signalled(self) -> None:
         if self.signals:
-            self.events("preempt", signal=signal_name(self.signals[0]))
-            raise _Stop(self._stopped_before_training())
+            raise _Stop(self.stopped_without_workers())
 
-    def _stopped_before_training(self) -> Outcome:
+    def stopped_without_workers(self) -> Outcome:
+        """The run's ending after a stop signal that came while no workers ran (recorded as a ``preempt``)."""
+        self.events("preempt", signal=signal_name(self.signals[0]))
         code = stop_code(self.signals[0])
         return Outcome("preempted", code, "stopped by a signal while no workers ran; rerun to continue")
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import base64
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -214,12 +215,31 @@ def test_a_local_wait_for_the_lock_is_told_naming_its_stopped_holder_and_ends_wh
     caplog.set_level(logging.WARNING, logger="ftrain.ckpt.cas")
     storage = Storage.open(str(tmp_path / "run"))
     holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, storage.url], env=child_env(), stdout=subprocess.PIPE)
-    assert holder.stdout.readline() == b"held\n"
-    threading.Timer(2.0, os.kill, (holder.pid, signal.SIGCONT)).start()
-    began = time.monotonic()
-    cas.write(storage, "LEASE.json", b"mine", None)
-    assert time.monotonic() - began >= 1.5  # it waited for the holder to go on and let go
+    try:
+        assert holder.stdout.readline() == b"held\n"
+        threading.Timer(2.0, os.kill, (holder.pid, signal.SIGCONT)).start()
+        began = time.monotonic()
+        cas.write(storage, "LEASE.json", b"mine", None)
+        assert time.monotonic() - began >= 1.5  # it waited for the holder to go on and let go
+    finally:
+        os.kill(holder.pid, signal.SIGCONT)
     assert holder.wait(timeout=30) == 0 and storage.read("LEASE.json") == b"mine"
     told, got = (record.getMessage() for record in caplog.records)
-    assert f"LEASE.json.lock has been locked for 0 s by process {holder.pid} (" in told and "stopped)" in told, told
-    assert "LEASE.json.lock: got the lock after 2 s; going on" in got, got
+    named = rf"LEASE\.json\.lock has been locked for \d+ s by process {holder.pid} \(.*, stopped\)"
+    assert re.search(named, told), told
+    assert re.search(r"LEASE\.json\.lock: got the lock after \d+ s; going on", got), got
+
+
+def test_a_wait_for_the_lock_ends_when_the_process_is_told_to_stop_waiting(tmp_path, monkeypatch):
+    storage = Storage.open(str(tmp_path / "run"))
+    holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, storage.url], env=child_env(), stdout=subprocess.PIPE)
+    try:
+        assert holder.stdout.readline() == b"held\n"
+        stop = threading.Event()
+        monkeypatch.setattr(cas, "_stop_waiting", stop.is_set)
+        threading.Timer(0.5, stop.set).start()
+        with pytest.raises(cas.LockWaitStopped):
+            cas.write(storage, "LEASE.json", b"mine", None)
+    finally:
+        os.kill(holder.pid, signal.SIGCONT)
+    assert holder.wait(timeout=30) == 0 and not storage.exists("LEASE.json")

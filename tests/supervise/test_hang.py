@@ -181,7 +181,6 @@ def test_a_fixed_timeout_holds_for_every_phase_after_start_up():
     assert both(watch, 3, Phase.DONE, 1, now=100) is None  # ranks that finished only exit
 
 
-@pytest.mark.waits
 @pytest.mark.slow
 def test_a_slow_first_iteration_is_not_a_hang_and_a_stopped_worker_is_caught_in_seconds(tmp_path):
     """In one real supervised run: the first iteration of a fresh start sleeps ``FIRST`` s (both ranks), twice the

@@ -45,7 +45,6 @@ def test_torchrun_ties_itself_to_its_parent_only():
     assert tie({}).stdout == "tied\n"  # no supervisor (plain torchrun): nothing to tie to
 
 
-@pytest.mark.waits
 @pytest.mark.slow
 def test_a_sigkilled_supervisor_leaves_no_process_of_its_run(tmp_path):
     """One worker is stopped (SIGSTOP) first: no thread of its own can end it, its siblings must."""

@@ -427,6 +427,10 @@ def test_a_run_that_waits_for_a_lock_a_stopped_process_holds_says_who_holds_it_a
         run.send_signal(signal.SIGTERM)  # as SLURM or Ctrl-C would: it stops now, not once the lock is free
         assert finish(run, timeout=10, output=output) == 128 + signal.SIGTERM
         assert "stopped by a signal while no workers ran; rerun to continue" in said()
+        assert [(event["event"], event.get("signal")) for event in events(storage)][:2] == [
+            ("preempt", "SIGTERM"),
+            ("preempted", None),
+        ]
     finally:
         os.kill(holder.pid, signal.SIGCONT)
     assert finish(holder) == 0
