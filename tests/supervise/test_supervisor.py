@@ -251,12 +251,12 @@ def test_node_0_lingers_after_the_end_for_a_node_that_asks_and_unless_it_finishe
     Link(1, None, address, KEY).ask("plan")  # node 1 asked; node 2 never did (started again after a finished run's
     Link(0, coordinator, None, KEY).ask("finish", code=code)  # end, it finds the end in the storage)
     began = time.monotonic()
-    coordinator.wait_informed(3, timeout=GONE_AFTER + 3)  # node 1 falls silent: waited for until GONE_AFTER past it
+    coordinator.wait_informed(3, timeout=GONE_AFTER + 1)  # node 1 falls silent: waited for until GONE_AFTER past it
     waited = time.monotonic() - began
     if code == 0:
-        assert GONE_AFTER - 1 < waited < GONE_AFTER + 2
+        assert GONE_AFTER - 1 < waited < GONE_AFTER + 0.8
     else:  # a preemption's or a failure's code: node 2 can learn it from node 0 alone, which waits the timeout
-        assert waited >= GONE_AFTER + 3
+        assert waited >= GONE_AFTER + 1
     began = time.monotonic()
     coordinator.wait_informed(2, timeout=30)  # node 1 silent for longer: no wait
     assert time.monotonic() - began < 0.5
