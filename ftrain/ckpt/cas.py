@@ -7,9 +7,9 @@ S3 and Azure Blob storage (``abfs://``, ``az://``): the version is the ETag; a w
 On Azure the requests go through the blob client adlfs holds, as they go through s3fs's on S3 and gcsfs's session on
 GCS, and are sent once each (the Azure SDK's own retries off), so that the retry loop is ``Storage``'s alone. Local:
 the version is a digest of the bytes; the read-check-write runs under an exclusive ``flock`` of a side file
-``<object>.lock`` (released by the kernel if the process dies; a long wait for it is told, naming its holder), and
-the new object is put in place by an atomic rename of a fsynced temporary file. Other protocols (``memory://``: one
-process): a plain check, then the write.
+``<object>.lock`` (released by the kernel if the process dies; a long wait for it is told, naming its holder, and
+ends early only by ``stop_waiting_when``), and the new object is put in place by an atomic rename of a fsynced
+temporary file. Other protocols (``memory://``: one process): a plain check, then the write.
 
 The lease, the fence and every manifest's exclusive create rest on this, so a run checks its storage before it
 takes the lease (``require_atomic``): a server that ignores the conditions (some S3-compatible ones do) would turn
