@@ -119,9 +119,8 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None):
 def cpu_slot(item: pytest.Item) -> Iterator[None]:
     """Hold one of ``CPU_SLOTS`` slots (an exclusive ``flock`` of a file in the xdist workers' shared temporary
     directory) while the test runs; none is needed by a SLURM test, one marked ``waits``, or where the workers are no
-    more than the slots.
-    Waiters queue (a worker looks for a free slot only while it holds the queue's lock), so that a worker that has
-    just freed a slot cannot take it again at once, test after test, while another waits."""
+    more than the slots. Waiters queue (a worker looks for a free slot only while it holds the queue's lock), so that
+    a worker that has just freed a slot cannot take it again at once, test after test, while another waits."""
     if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) <= CPU_SLOTS or any(map(item.get_closest_marker, FREE)):
         yield
         return

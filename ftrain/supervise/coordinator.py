@@ -63,8 +63,8 @@ class Coordinator:
         self._informed: set[int] = set()
         self._seen: dict[int, float] = {}
         """When each node last asked (nodes of an elastic run may be gone for good)."""
-        self._made = time.monotonic()
-        """When the plan was made: a node that never asked since counts as silent from then."""
+        self._made = 0.0
+        """When the plan was made (``begin``): a node that never asked since counts as silent from then."""
         self._refusals: dict[str, int] = {}
         """Refused connections so far, by reason."""
         self._server: _Server | None = None
