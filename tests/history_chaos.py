@@ -1,12 +1,16 @@
 """One history under random faults: a seeded schedule of 2-4 users who run the same ``ftrain train`` command on one
 storage, each from a host of its own (a UTS namespace: another host name, so that only a lease's expiry frees its
-storage), some with a wall clock off by seconds (``tests/skewed_clock``), while the schedule starts them, SIGKILLs
-them, SIGSTOPs them for longer than the lease's time to live and cuts the storage off; then a last user trains the run
-to its end.
+storage), some with a wall clock off by seconds (``tests/skewed_clock``), some under one shared run id (one
+``FTRAIN_RUN_ID``: launches that are not nodes of one run, whose second start takes the storage from the first), while
+the schedule starts them, SIGKILLs them, SIGSTOPs them for longer than the lease's time to live and cuts the storage
+off; then a last user trains the run to its end.
 
 A watcher reads the storage throughout: each poll reads the lease, then lists the manifests. A manifest of generation
 g that first appears after a poll whose lease read already had a newer generation was written after the lease had
 moved on (a late commit). What ``check`` asserts of the storage's whole history:
+- one holder at a time: the lease never names two processes (each user's run is one process; users that share a run
+  id are two launches, not two nodes of one run, and deterministic alike, so their interleaved commits would
+  otherwise pass for one history);
 - one lineage (``lineage.history``: no fork), its generations never decreasing along the line;
 - no late commit on a file system (the holder's check runs under the lease's lock there); on an object store, every
   late commit superseded by the newer generation's line, or on the line itself;
@@ -34,6 +38,7 @@ from ftrain.ckpt.lease import TTL_ENV, read_record
 from ftrain.ckpt.lineage import generation, history
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
+from ftrain.identity import RUN_ID_ENV
 
 from helpers import REPO, SMOKE, TESTS, child_env
 
@@ -42,6 +47,8 @@ SKEW_ENV = "FTRAIN_TEST_CLOCK_SKEW"
 TTL = 2.0
 """The lease's time to live in these runs (renewed every third of it)."""
 OVERRIDES = ("checkpoint.interval=4", "checkpoint.keep_last=100000", "checkpoint.keep_best=0", "log.console=false")
+SHARED_RUN_ID = "job-1"
+"""The run id (``FTRAIN_RUN_ID``) of the users that share one; the others draw their own at every start (rank 0)."""
 SKEWS = (0.0, 0.0, -20.0, 3.0)
 """Each user's clock: most right, one 20 s behind (its lease would look expired to the others but for the storage's
 own clock), one a little ahead."""
@@ -53,6 +60,7 @@ STARTUP = 4.0
 class Tally:
     histories: int = 0
     starts: int = 0
+    shared_id_starts: int = 0
     refused: int = 0
     kills: int = 0
     pauses: int = 0
@@ -69,7 +77,8 @@ class Tally:
     def line(self) -> str:
         return (
             f"one history held in {self.histories} histories, {self.operations} operations checked: {self.starts} "
-            f"starts ({self.refused} refused), {self.kills} SIGKILLs, {self.pauses} pauses past the lease, "
+            f"starts ({self.shared_id_starts} under a run id users share, {self.refused} refused), {self.kills} "
+            f"SIGKILLs, {self.pauses} pauses past the lease, "
             f"{self.outages} storage outages, {self.generations} lease generations, {self.commits} commits "
             f"({self.late} late, {self.superseded} superseded)"
         )
@@ -80,6 +89,7 @@ class User:
     host: str
     skew: float
     log: Path
+    run_id: str | None = None
     proc: subprocess.Popen | None = None
     started: float = 0.0
     paused_until: float | None = None
@@ -98,6 +108,8 @@ class Watcher(threading.Thread):
         self.seen: dict[str, bytes] = {}
         self.late: set[str] = set()
         self.generations: set[int] = set()
+        self.most_holders = 0
+        """The most processes the lease named at once: each user is one process, never a node of another's run."""
         self.stop = threading.Event()
 
     def run(self) -> None:
@@ -109,6 +121,7 @@ class Watcher(threading.Thread):
     def poll(self, previous: int) -> int:
         current = read_record(self.storage)
         lease = current[0].generation if current is not None else 0
+        self.most_holders = max(self.most_holders, len(current[0].entries) if current is not None else 0)
         for path in manifests(self.storage):
             if path not in self.seen:
                 data = self.storage.fs.cat_file(path)
@@ -144,6 +157,8 @@ class Schedule:
         self.operations, self.outage = operations, outage
         count = self.rng.randint(2, 4)
         self.users = [User(f"user-{i}", self.rng.choice(SKEWS), workdir / f"user-{i}.log") for i in range(count)]
+        for user in self.rng.sample(self.users, self.rng.randint(0, count)):
+            user.run_id = SHARED_RUN_ID
 
     def command(self, user: User) -> list[str]:
         host = ["unshare", "--uts", "sh", "-c", f'hostname {user.host} && exec "$@"', "sh"]
@@ -152,13 +167,15 @@ class Schedule:
 
     def start(self, user: User, tally: Tally) -> None:
         clock = {"PYTHONPATH": str(TESTS / "skewed_clock"), SKEW_ENV: str(user.skew)}
-        env = child_env({**self.env, TTL_ENV: str(TTL), **clock})
+        run_id = {RUN_ID_ENV: user.run_id} if user.run_id else {}
+        env = child_env({**self.env, TTL_ENV: str(TTL), **clock, **run_id})
         with user.log.open("ab") as log:
             user.proc = subprocess.Popen(
                 self.command(user), cwd=REPO, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True
             )
         user.started = time.monotonic()
         tally.starts += 1
+        tally.shared_id_starts += user.run_id is not None
 
     def play(self, tally: Tally) -> None:
         """The random part: each operation, then a random wait; paused users go on when their pause is over."""
@@ -232,6 +249,7 @@ class Schedule:
 
 def check(storage: Storage, watcher: Watcher, reference: str, local: bool, tally: Tally) -> None:
     """The invariants of the module's doc, over the storage's whole history; ``tally`` counts what was checked."""
+    assert watcher.most_holders <= 1, f"the lease named {watcher.most_holders} holders at once: two runs wrote"
     infos = scan(storage)
     past = history(infos)
     assert past.forks == [], past.fork_message(storage.url)

@@ -25,14 +25,16 @@ def storage_lease(
     secret: bytes | None = None,
     endpoint: tuple[str, int] | None = None,
     retries: int | None = None,
+    shared: bool = False,
     follows: bool = False,
 ) -> Lease:
     """The lease of ``config``'s storage for this run (``identity.run_id`` of ``secret`` and ``endpoint``), not taken
-    yet. ``retries``: of the storage's requests (default: ``checkpoint.retries``); ``follows``: see ``Lease``."""
+    yet. ``retries``: of the storage's requests (default: ``checkpoint.retries``); ``shared``, ``follows``: see
+    ``Lease``."""
     retries = config.checkpoint.retries if retries is None else retries
     storage = Storage.open(config.storage.url, config.storage.options, retries=retries)
     ttl = float(os.environ.get(TTL_ENV) or TTL)
-    return Lease(storage, run_id(secret, endpoint), log, ttl, config.storage.plain_writes, follows)
+    return Lease(storage, run_id(secret, endpoint), log, ttl, config.storage.plain_writes, shared, follows)
 
 
 class Claim:

@@ -6,6 +6,8 @@ process (host, pid, start time, boot id, pid namespace, ``renewed_at``). Promise
 - a second run is refused while any entry lives: until ``renewed_at + ttl`` and, by the storage's own clock, while
   the record was written within ``ttl`` (no host's clock is trusted to agree with another's); on the entry's own
   host (same name, boot id and pid namespace) a dead pid frees it at once and a live one holds it past the expiry;
+- a run id names one start of a run: a second start of it is refused while the first runs on this host, and takes
+  the next generation from another host's (only the supervisors of one run's nodes share a generation: ``shared``);
 - every change is a compare-and-swap of the record read (``cas.py``): of two racing processes one wins;
 - the generation only grows (a release keeps the record; a record deleted by hand restarts after the newest
   generation that committed); on several nodes a plan's maker takes the next one (``advance``), the others
@@ -117,13 +119,19 @@ class Lease:
         log: Callable[[str], None],
         ttl: float = TTL,
         plain_writes: bool = False,
+        shared: bool = False,
         follows: bool = False,
     ) -> None:
         """``plain_writes``: hold it even on a storage without conditional writes (``cas.require_atomic``);
-        ``follows``: a supervisor on several nodes, whose workers take their generation from the plan: a newer
-        generation of its own run is a newer plan, which it follows, not a loss."""
+        ``shared``: held by the supervisors of several nodes of one run, which join each other's entries. Else one
+        process holds it for its run (one node's supervisor, an unsupervised run's rank 0), and a live entry of its
+        run id is another start of the run: refused where it is seen running (this host), taken over elsewhere (it
+        may be the run's old holder on a host it left; if it still runs, the fence stops it). ``follows``: a
+        supervisor on several nodes, whose workers take their generation from the plan: a newer generation of its
+        own run is a newer plan, which it follows, not a loss."""
         self.storage = storage
         self.plain_writes = plain_writes
+        self.shared = shared or follows
         self.follows = follows
         self.run_id = run_id
         self.log = log
@@ -140,16 +148,18 @@ class Lease:
         """Why the storage is lost to another run, once it is (for good)."""
 
     def acquire(self, advance: bool = False, expected: int | None = None) -> str | None:
-        """Take the lease, or join this run's while another of its processes holds it (the nodes of one run share a
-        generation; ``advance``: the maker of a new plan, which takes the next one for them all, only from generation
-        ``expected`` if given, else ``Advanced``); LeaseHeld if another run holds it, LeaseLost if a newer generation
-        took it after this process held it. A line saying so if this took over another run's live lease, else None.
+        """Take the lease, or, ``shared``, join this run's while another of its nodes holds it (the nodes of one run
+        share a generation; ``advance``: the maker of a new plan, which takes the next one for them all, only from
+        generation ``expected`` if given, else ``Advanced``); LeaseHeld if another run holds it, or another start of
+        this run on this host; LeaseLost if a newer generation took it after this process held it. A line saying so
+        if this took over a lease with holders, else None.
 
         A run id may outlive its processes (a batch job's id kept across a requeue, the same command run again), so
         a process that finds none of its run alive takes the next generation, as another run would: whatever the old
-        ones still have in flight is then refused at commit (``fence.Fence``). Entries of other hosts that only
-        look expired get a third of the ttl first: nodes cut off from the storage by an outage renew by then, and are
-        joined. (A requeued job whose old processes on other hosts still renew joins them: SLURM kills those.)"""
+        ones still have in flight is then refused at commit (``fence.Fence``). Shared, entries of other hosts that
+        only look expired get a third of the ttl first: nodes cut off from the storage by an outage renew by then,
+        and are joined. (A requeued job whose old processes on other hosts still renew joins them: SLURM kills
+        those.)"""
         looked = None
         while True:
             now = time.time()
@@ -165,8 +175,10 @@ class Lease:
                 raise LeaseHeld(self._held_message(record, live))
             ours = record is not None and record.run_id == self.run_id
             others = tuple(e for e in live if e.process != self.process) if ours else ()
-            joins = ours and (self.generation is not None or bool(others))
-            if ours and not joins and version != looked and _unseen(record):
+            if others and self.generation is None and not self.shared and (here := _seen_running(others)):
+                raise LeaseHeld(self._held_message(record, here))  # the same run id launched twice on this host
+            joins = ours and (self.generation is not None or (bool(others) and self.shared))
+            if ours and not joins and self.shared and version != looked and _unseen(record):
                 # its other hosts' entries only look expired: after an outage they renew within a third of the
                 # ttl (``_keep``). Look again then, and join them if they did, rather than fence them off
                 looked = version
@@ -189,7 +201,8 @@ class Lease:
             if self.generation is None or advance:
                 self.took = advance or not joins
             self.generation = generation
-            return None if ours or record is None or not record.entries else self._taken_message(record)
+            replaced = record is not None and bool(record.entries) and not (ours and (joins or not others))
+            return self._taken_message(record) if replaced else None
 
     def renew(self) -> str | None:
         """Renew this process's entry (``acquire``); once another run took it, a line saying so, once (``lost``)."""
@@ -321,19 +334,31 @@ class Lease:
         ends, now = record.expires_at, time.time()
         end = f"ended at {_when(ends)}, but the process runs" if ends < now else f"ends at {_when(ends)}"
         since = f" since {_when(holder.since)}" if holder.since else ""
+        if record.run_id == self.run_id:
+            return (
+                f"storage {self.storage.url} is held by another start of run {record.run_id} "
+                f"({holder.process.describe()}{since}): two launches share the run id {record.run_id} (FTRAIN_RUN_ID "
+                f"or torchrun's --rdzv-id); stop that one first, or give this one another storage"
+            )
         return (
             f"storage {self.storage.url} is held by another run ({record.run_id}, {holder.process.describe()}{since}): "
             f"its lease {end} unless renewed; stop that run first, or use another storage"
         )
 
     def _taken_message(self, record: Record) -> str:
-        holders = ", ".join(
-            f"{e.process.describe()} is gone"
-            if e.process.running() is False
-            else f"the lease of {e.process.describe()} expired at {_when(e.renewed_at + record.ttl)}"
-            for e in record.entries
-        )
-        return f"took over the lease of {self.storage.url} from run {record.run_id}: {holders or 'no holder'}"
+        now = time.time()
+
+        def fate(entry: Entry) -> str:
+            if entry.process.running() is False:
+                return f"{entry.process.describe()} is gone"
+            ends = entry.renewed_at + record.ttl
+            if ends < now:
+                return f"the lease of {entry.process.describe()} expired at {_when(ends)}"
+            return f"{entry.process.describe()} held it until {_when(ends)}: if it still runs, it commits nothing more"
+
+        holders = ", ".join(fate(entry) for entry in record.entries)
+        started = "an earlier start of run" if record.run_id == self.run_id else "run"
+        return f"took over the lease of {self.storage.url} from {started} {record.run_id}: {holders or 'no holder'}"
 
 
 def read_fence(current: tuple[bytes, str] | None) -> dict:
@@ -345,6 +370,11 @@ def read_fence(current: tuple[bytes, str] | None) -> dict:
         return {}
     valid = isinstance(record, dict) and all(type(record.get(key)) is int for key in ("generation", "attempt"))
     return record if valid else {}
+
+
+def _seen_running(entries: tuple[Entry, ...]) -> list[Entry]:
+    """Those of ``entries`` seen running on this host."""
+    return [entry for entry in entries if entry.process.running()]
 
 
 def _unseen(record: Record) -> bool:

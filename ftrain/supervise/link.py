@@ -63,10 +63,10 @@ def makes_plan(nodes: Nodes, options: SupervisorOptions) -> bool:
 
 
 def node_lease(config: Config, nodes: Nodes, options: SupervisorOptions, log: Callable[[str], None]) -> Lease:
-    """The storage's lease for this node's supervisor, not taken yet: on several nodes, all but the plan's maker
-    follow the plan's generation (``Lease``)."""
+    """The storage's lease for this node's supervisor, not taken yet: on several nodes, shared by their supervisors,
+    all but the plan's maker following the plan's generation (``Lease``)."""
     follows = nodes.count > 1 and not makes_plan(nodes, options)
-    return storage_lease(config, log, nodes.run_key, nodes.lease_endpoint, follows=follows)
+    return storage_lease(config, log, nodes.run_key, nodes.lease_endpoint, shared=nodes.count > 1, follows=follows)
 
 
 def rendezvous(plan: Plan, nodes: Nodes, options: SupervisorOptions) -> list[str]:

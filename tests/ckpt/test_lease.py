@@ -155,7 +155,7 @@ def test_a_lease_of_another_host_holds_until_it_expires_by_the_storages_clock(st
 
 def test_every_node_of_one_run_is_admitted_and_renews_its_own_entry(storage):
     storage.write_replace(LEASE, foreign("shared-run", time.time()).encode())
-    lease = Lease(storage, "shared-run", print)
+    lease = Lease(storage, "shared-run", print, shared=True)
     assert lease.acquire() is None
     pids = sorted(e.process.pid for e in record(storage).entries)
     assert pids == sorted([4242, os.getpid()])
@@ -165,6 +165,33 @@ def test_every_node_of_one_run_is_admitted_and_renews_its_own_entry(storage):
     assert [e.process.pid for e in record(storage).entries] == [4242]
     with pytest.raises(LeaseHeld):
         Lease(storage, "another-run", print).acquire()
+
+
+def test_a_second_start_of_a_run_id_is_refused_while_the_first_runs_on_this_host(storage, holder):
+    """Two launches that share a run id (one FTRAIN_RUN_ID, one --rdzv-id) are not nodes of one run: the second is
+    refused in one line naming the first, which keeps its generation and its entry; only the supervisors of one
+    run's nodes (``shared``) join each other's."""
+    before = record(storage)
+    with pytest.raises(LeaseHeld) as refused:
+        Lease(storage, "first-run", print).acquire()
+    message = str(refused.value)
+    assert "\n" not in message and f"another start of run first-run (pid {holder.pid} on host " in message, message
+    assert record(storage) == before  # not joined, not taken
+    node = Lease(storage, "first-run", print, shared=True)
+    assert node.acquire() is None and node.generation == before.generation
+    assert sorted(e.process.pid for e in record(storage).entries) == sorted([holder.pid, os.getpid()])
+
+
+def test_a_second_start_of_a_run_id_takes_the_next_generation_from_another_hosts(storage):
+    """Seen only by its renewals, another host's entry of this run id may be the run's own old holder on a host it
+    left (a restart elsewhere): the new start takes the next generation, says so, and the old one is fenced off."""
+    storage.write_replace(LEASE, foreign("job-7", time.time()).encode())
+    lease = Lease(storage, "job-7", print)
+    taken = lease.acquire()
+    assert taken is not None and "from an earlier start of run job-7: pid 4242 on host node-far-away held it" in taken
+    assert (record(storage).generation, [e.process.pid for e in record(storage).entries]) == (5, [os.getpid()])
+    with pytest.raises(LeaseLost, match="newer start of run job-7"):
+        Fence(storage, Identity("job-7", 4)).check()
 
 
 def test_release_lets_the_next_run_start_at_once_at_the_next_generation(storage):
@@ -210,11 +237,11 @@ def test_a_run_id_started_again_when_none_of_its_processes_lives_fences_off_the_
     """A batch job keeps its run id across a requeue: the requeued job is a new holder, and what the old one still
     has running (a node paused past the expiry, as another host sees it) commits nothing more."""
     storage.write_replace(LEASE, foreign("job-42", time.time(), generation=4).encode())
-    old = Lease(storage, "job-42", print)
+    old = Lease(storage, "job-42", print, shared=True)
     assert old.acquire() is None and record(storage).generation == 4  # a node of the live run joins it
     storage.write_replace(LEASE, foreign("job-42", time.time() - 61, ttl=2.0, generation=4).encode())
     time.sleep(3.5)  # every process of the job has stopped renewing (by the storage's clock too)
-    requeued = Lease(storage, "job-42", print, ttl=3.0)  # it looks again after a third of its ttl: still expired
+    requeued = Lease(storage, "job-42", print, ttl=3.0, shared=True)  # looks again after a third of its ttl: expired
     assert requeued.acquire() is None
     assert (record(storage).generation, [e.process.pid for e in record(storage).entries]) == (5, [os.getpid()])
     lost = old.renew()
@@ -234,9 +261,9 @@ def test_a_new_plan_takes_the_next_generation_and_the_nodes_that_follow_plans_ar
         return lease
 
     follower = elsewhere(Lease(storage, "shared-run", print, follows=True), 1)
-    alone = elsewhere(Lease(storage, "shared-run", print), 2)
+    alone = elsewhere(Lease(storage, "shared-run", print, shared=True), 2)
     assert follower.acquire() is None and alone.acquire() is None and record(storage).generation == 1
-    maker = Lease(storage, "shared-run", print)
+    maker = Lease(storage, "shared-run", print, shared=True)
     assert maker.hold(advance=True) is None
     assert (maker.generation, os.environ[GENERATION_ENV]) == (2, "2")
     assert sorted(e.process.pid for e in record(storage).entries) == sorted([1, 2, os.getpid()])  # nobody dropped
@@ -265,7 +292,7 @@ def test_a_node_starting_after_an_outage_joins_the_nodes_of_its_run_that_renew_a
 
     renewal = threading.Thread(target=back)
     renewal.start()
-    lease = Lease(storage, "shared-run", print, ttl=3.0)
+    lease = Lease(storage, "shared-run", print, ttl=3.0, shared=True)
     assert lease.acquire() is None
     renewal.join()
     assert (lease.generation, record(storage).generation) == (4, 4)

@@ -85,7 +85,7 @@ def histories(
 
 def test_on_a_local_directory(tmp_path, reference):
     runs = iter(range(SCHEDULES))
-    histories(1000, lambda: (str(tmp_path / f"run-{next(runs)}"), None), {}, tmp_path, reference, local=True)
+    histories(1001, lambda: (str(tmp_path / f"run-{next(runs)}"), None), {}, tmp_path, reference, local=True)
 
 
 def test_on_s3_refusing_connections_now_and_then(tmp_path, reference, s3_outage):

@@ -1,7 +1,7 @@
 """One run per storage, with real processes: a second ``ftrain supervise``, ``torchrun -m ftrain train`` or
-``ftrain train`` on the storage of a live run is refused with one line naming the holder (exit 8), and the first run
-ends as it would have alone; the same command again right after a SIGKILL takes over at once; a lease that expired
-on another host is taken over."""
+``ftrain train`` on the storage of a live run, or a second launch under its run id, is refused with one line naming
+the holder (exit 8), and the first run ends as it would have alone; the same command again right after a SIGKILL
+takes over at once; a lease that expired on another host is taken over."""
 
 from __future__ import annotations
 
@@ -24,6 +24,7 @@ from ftrain.ckpt import cas
 from ftrain.ckpt.lease import LEASE, TTL_ENV, Entry, Record
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD
+from ftrain.identity import RUN_ID_ENV
 from ftrain.procfs import Process
 from ftrain.supervise.attempt import TORCHRUN
 from ftrain.supervise.auth import SECRET_ENV
@@ -65,14 +66,14 @@ def intrude(command: list[str], env: dict | None = None) -> subprocess.Popen:
     return subprocess.Popen(command, cwd=REPO, env=child_env(env), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
 
 
-def refused(proc: subprocess.Popen, holders: list[int]) -> tuple[str, str]:
-    """The one line that refused ``proc``, which must name one of the first run's ``holders`` (pids), and all its
-    output."""
+def refused(proc: subprocess.Popen, holders: list[int], by: str = "another run") -> tuple[str, str]:
+    """The one line that refused ``proc``, which must say it is held ``by`` one of the first run's ``holders``
+    (pids), and all its output."""
     stdout, stderr = proc.communicate(timeout=120)
     output = stdout.decode() + stderr.decode()
-    lines = [line for line in output.splitlines() if "is held by another run" in line]
+    lines = [line for line in output.splitlines() if f"is held by {by}" in line]
     assert lines, f"no refusal in:\n{output}"
-    assert "lease ends at " in lines[0] and any(f"pid {pid} on host " in lines[0] for pid in holders), lines[0]
+    assert any(f"pid {pid} on host " in lines[0] for pid in holders), lines[0]
     return lines[0], output
 
 
@@ -89,18 +90,29 @@ def released(storage: Storage | Path) -> bool:
 
 
 def test_a_second_run_beside_a_supervised_one_is_refused_and_the_first_ends_as_alone(tmp_path, reference):
+    """Refused too: a second launch under the first's run id (one FTRAIN_RUN_ID: a batch script run twice), which is
+    another start of the run, not a node of it."""
     storage, hold = tmp_path / "run", Hold(tmp_path, 4)
-    first = launch(supervise_command(storage, hold.override), cwd=REPO, env=child_env(HOLD_ENV))
+    env = child_env({**HOLD_ENV, RUN_ID_ENV: "job-1"})
+    first = launch(supervise_command(storage, hold.override), cwd=REPO, env=env)
     hold.held()
     supervise = intrude(supervise_command(storage))
     plain = intrude(train_command(storage, *OVERRIDES))
-    assert supervise.wait(timeout=120) == EXIT_STORAGE_HELD
-    assert plain.wait(timeout=120) == EXIT_STORAGE_HELD
+    again = {RUN_ID_ENV: "job-1"}
+    supervise_again = intrude(supervise_command(storage, f"log_dir={tmp_path / 'again'}"), env=again)
+    plain_again = intrude(train_command(storage, *OVERRIDES), env=again)
+    for proc in (supervise, plain, supervise_again, plain_again):
+        assert proc.wait(timeout=120) == EXIT_STORAGE_HELD
     assert first.poll() is None
     line, output = refused(supervise, [first.pid])
     assert line.startswith("ftrain supervise: error: storage ") and output == line + "\n"  # nothing else
+    assert "lease ends at " in line
     line, output = refused(plain, [first.pid])
     assert line.startswith("ftrain: error: storage ") and output == line + "\n"
+    for proc, program in ((supervise_again, "ftrain supervise"), (plain_again, "ftrain")):
+        line, output = refused(proc, [first.pid], by="another start of run job-1")
+        assert line.startswith(f"{program}: error: storage ") and output == line + "\n", output
+    assert not (tmp_path / "again" / "events.jsonl").exists()
 
     hold.release()
     assert finish(first) == 0
