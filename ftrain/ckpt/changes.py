@@ -19,14 +19,16 @@ def config_change(saved: dict, current: dict, saved_robot: dict | None, robot: d
     ``saved``: a manifest's ``config`` (``public_dict``), ``current``: this run's ``public_dict``; ``saved_robot``,
     ``robot``: their robots' identities (``ftrain.policy.robot.identity``; None: not known)."""
     before, now = dotted(training_part(saved)), dotted(training_part(current))
-    parts = [
-        f"{key} {_text(before.get(key))} -> {_text(now.get(key))}"
-        for key in sorted(before.keys() | now.keys())
-        if before.get(key) != now.get(key)
-    ]
+    parts = [f"{key} {_text(before.get(key))} -> {_text(now.get(key))}" for key in changed_keys(saved, current)]
     if changed := robot_change(saved_robot, robot):
         parts.append(f"robot: {changed}")
     return "; ".join(parts) or None
+
+
+def changed_keys(saved: dict, current: dict) -> list[str]:
+    """The training keys (dotted) whose values differ between two configs as dicts (``config_change``)."""
+    before, now = dotted(training_part(saved)), dotted(training_part(current))
+    return [key for key in sorted(before.keys() | now.keys()) if before.get(key) != now.get(key)]
 
 
 def robot_change(saved: dict | None, current: dict | None) -> str | None:

@@ -139,6 +139,8 @@ class Checkpointer:
         if resumed.step is not None:
             self._writer.parent = {"step": resumed.step, "state_sha256": resumed.digest}
         self._static_meta["world_sizes"] = resumed.world_sizes
+        if resumed.origin is not None:
+            self._static_meta[resume.ORIGIN] = resumed.origin
         self.config_change = resumed.config_change
         return resumed.step
 

@@ -8,8 +8,9 @@ one; ranks beyond the old world start fresh ones, seeded from (run seed, rank, s
 world are dropped, and the global batch follows the world size. At the same world size and arithmetic
 (``arithmetic.py``) a resume continues bit for bit; on another arithmetic it says so in one line.
 
-Rank 0 decides (newest step that verifies, or the one ``resume=`` names; a newer one in this node's spool, see
-``spool.py``, also while the storage does not answer) and tells the others. Every rank then
+Rank 0 decides (newest step that verifies, or the one ``resume=`` names where this storage's history does not
+already go on from it; a newer one in this node's spool, see ``spool.py``, also while the storage does not answer) and
+tells the others. Every rank then
 reads and checks its own files, and the ranks agree on what went wrong, if anything, so that all stop with the
 same one line:
 
@@ -28,7 +29,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from ftrain.ckpt.arithmetic import change as arithmetic_change
-from ftrain.ckpt.changes import config_change, robot_change
+from ftrain.ckpt.changes import changed_keys, config_change, robot_change
 from ftrain.ckpt.format import (
     COMMON,
     INCOMPLETE,
@@ -50,6 +51,10 @@ from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.comm import group
 from ftrain.config import Config
 from ftrain.errors import UserError
+from ftrain.redact import display_url
+
+ORIGIN = "origin"
+"""The manifest key (and decision key) of ``Resumed.origin``."""
 
 
 class Checkpointable(Protocol):
@@ -92,6 +97,10 @@ class Resumed:
     """What ``allow_config_change`` let change since ``step`` (``ftrain.ckpt.changes``), in words."""
     digest: str | None = None
     """The ``state_sha256`` of ``step``: the parent of this run's first commit (``lineage.py``)."""
+    origin: dict | None = None
+    """Where this storage's history started from, if from a step named by ``resume=URL`` (``{"url", "step",
+    "state_sha256"}``): every manifest records it (``ORIGIN``), and the same ``resume=URL`` again goes on from this
+    storage's newest step."""
 
 
 def restore(
@@ -152,15 +161,17 @@ def restore(
         )
     log(f"resumed from step {step} ({decision['where']}), iteration {trainer.iteration}")
     change = config_change(manifest["config"], config.public_dict(), manifest.get("robot"), robot)
-    if change:  # only allow_config_change lets a change this far
-        log(f"changed since step {step} (allow_config_change=true): {change}")
+    if change:  # only allow_config_change, or a horizon that follows the run's length, lets a change this far
+        why = "allow_config_change=true" if config.allow_config_change else "the learning rate follows iterations"
+        log(f"changed since step {step} ({why}): {change}")
     if moved := arithmetic_change(manifest.get("arithmetic"), arithmetic or []):
         log(f"step {step} was trained on other arithmetic ({moved}): the run continues, not bit for bit")
     world_sizes = manifest.get("world_sizes") or [[0, manifest["world_size"]]]
     if manifest["world_size"] != info.world_size:
         log(resize_line(manifest["world_size"], info.world_size, step, config))
         world_sizes = [*world_sizes, [step, info.world_size]]
-    return Resumed(step, url is None, world_sizes, decision["committed"], change, manifest.get("state_sha256"))
+    digest = manifest.get("state_sha256")
+    return Resumed(step, url is None, world_sizes, decision["committed"], change, digest, decision[ORIGIN])
 
 
 def resize_line(old: int, new: int, step: int, config: Config) -> str:
@@ -265,11 +276,7 @@ def _decide(
         clear_newer(storage, 0, log)
         return {"kind": "fresh", "why": "resume=never: starting fresh"}
     if resume != "auto":
-        _, step, manifest = resolve_checkpoint_url(resume, config.storage.options, log)
-        check_compatible(config, step, manifest, robot)
-        clear_newer(storage, step, log)
-        url = parse_checkpoint_url(resume)[0]
-        return _resume(step, manifest, url=url, where=url, committed=None)
+        return _from_url(config, storage, log, robot)
     found = None
     try:
         if down is None:
@@ -307,6 +314,34 @@ def _decide(
     return _resume(step, manifest, url=None, where="this storage", committed=step)
 
 
+def _from_url(config: Config, storage: Storage, log: Callable[[str], None], robot: dict | None) -> dict:
+    """``resume=URL``: the start of this storage's history from that step (of another run's storage, or of this
+    one). Its manifests name that step as their ``origin``, so the same command again (a restart, a rerun after an
+    interruption) goes on from this storage's newest step. Another history already here is refused, untouched."""
+    shown = display_url(config.resume)
+    found = select_resume(storage, log=log)
+    origin = (found[1].get(ORIGIN) or {}) if found is not None else {}
+    if found is None or origin.get("url") != shown:
+        _, step, manifest = resolve_checkpoint_url(config.resume, config.storage.options, log)
+        digest = manifest.get("state_sha256")
+        if found is None or found[1].get("state_sha256") == digest:  # nothing here yet, or that step is the newest
+            check_compatible(config, step, manifest, robot)
+            clear_newer(storage, step, log)
+            url = parse_checkpoint_url(config.resume)[0]
+            started = {ORIGIN: {"url": shown, "step": step, "state_sha256": digest}}
+            return _resume(step, manifest, url=url, where=url, committed=None) | started
+        if origin.get("state_sha256") != digest:
+            raise UserError(
+                f"{storage.url} already holds checkpoints (newest: step {found[0]}) that do not continue {shown}: "
+                "resume=auto goes on from them; to start from that step, use another --storage"
+            )
+    step, manifest = found
+    check_compatible(config, step, manifest, robot)
+    clear_newer(storage, step, log)
+    where = f"this storage, whose history started from {origin['url']}"
+    return _resume(step, manifest, url=None, where=where, committed=step)
+
+
 def _spooled(spool: Spool, found: tuple | None, reachable: bool, log: Callable[[str], None]) -> tuple | None:
     """The spooled step to resume from (``Spool.newest``); a spool that cannot be read is passed over, with a line:
     it is optional, the storage is not."""
@@ -328,6 +363,7 @@ def _resume(
         "where": where,
         "committed": committed,
         "spooled": spooled,
+        ORIGIN: manifest.get(ORIGIN),
     }
 
 
@@ -372,13 +408,25 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
             f"checkpoint step {step} was trained with another robot: {changed}: restore it, or pass "
             "allow_config_change=true to go on with the robot as it is now"
         )
-    if manifest["config_hash"] != config.training_hash(robot) and not config.allow_config_change:
+    lengthened = _horizon_follows_length(manifest["config"], config)
+    if manifest["config_hash"] != config.training_hash(robot) and not config.allow_config_change and not lengthened:
         keys = config_change(manifest["config"], config.public_dict(), None, None)
         raise UserError(
             f"checkpoint step {step} was trained with a different config "
             f"({keys or 'hash ' + manifest['config_hash'] + ', now ' + config.training_hash(robot)}): restore the "
             "config, or pass allow_config_change=true"
         )
+
+
+def _horizon_follows_length(saved: dict, config: Config) -> bool:
+    """Whether the one change since ``saved`` (a manifest's config) is a linear schedule's horizon that follows the
+    run's length on both sides (``iterations=N`` alone sets it to N: ``load_config``): a run started short and
+    lengthened, whose rate then falls to zero at the new end."""
+    if saved["algorithm"].get("schedule") != "linear" or config.algorithm.schedule != "linear":
+        return False
+    horizons = (saved["algorithm"].get("schedule_iterations"), config.algorithm.schedule_iterations)
+    follows = horizons == (saved.get("iterations"), config.iterations)
+    return follows and changed_keys(saved, config.public_dict()) == ["algorithm.schedule_iterations"]
 
 
 def _models(policy: dict) -> dict:

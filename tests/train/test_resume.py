@@ -97,6 +97,34 @@ def test_killed_anywhere_resumes_bit_for_bit(tmp_path, env_id: str, ranks: int) 
     assert metrics_by_iteration(run) == metrics_by_iteration(tmp_path / "reference")
 
 
+def test_a_run_started_from_another_runs_step_goes_on_from_its_own_and_refuses_another_history(tmp_path) -> None:
+    """``resume=URL`` names where a storage's history starts. Killed before and after its first commit, the same
+    command again (what a supervisor's restart runs) goes on from its own newest step, and ends bit for bit where an
+    undisturbed run ends; the same URL into a storage that holds another history is refused in one line, untouched."""
+    run_train(tmp_path / "source", "iterations=4")
+    start = f"resume={tmp_path / 'source' / 'checkpoints' / 'step-000000004'}"
+    overrides = ["iterations=10", "checkpoint.interval=2", start]
+    run_train(tmp_path / "reference", *overrides)
+    run = tmp_path / "run"
+    for phase, iteration, async_save in [("rollout", 5, True), ("checkpoint", 6, False), ("update", 8, True)]:
+        kill_during(run, phase, iteration, [*overrides, f"checkpoint.async_save={str(async_save).lower()}"], ranks=1)
+    assert manifests(run), "a kill after the run's first commit"
+    result = run_train(run, *overrides, supervised=True)
+    assert "whose history started from " in result.stdout, result.stdout
+    assert final_manifest(run)["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
+    assert metrics_by_iteration(run) == metrics_by_iteration(tmp_path / "reference")
+
+    other = tmp_path / "other"
+    run_train(other, "iterations=2")
+    checkpoints = lambda: {path: path.read_bytes() for path in (other / "checkpoints").rglob("*") if path.is_file()}  # noqa: E731
+    before = checkpoints()
+    command = train_command(other, *overrides)
+    refused = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True)
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr, refused.stderr
+    assert "already holds checkpoints (newest: step 2) that do not continue " in refused.stderr, refused.stderr
+    assert checkpoints() == before
+
+
 def test_async_and_sync_saves_write_the_same_checkpoints(tmp_path) -> None:
     run_train(tmp_path / "async", "checkpoint.async_save=true", "checkpoint.keep_last=10")
     run_train(tmp_path / "sync", "checkpoint.async_save=false", "checkpoint.keep_last=10")
@@ -149,6 +177,24 @@ def test_resume_refuses_other_env_count_config_and_format(tmp_path) -> None:
     assert (rows["3"]["resumed_from"], rows["3"]["config_change"], rows["4"]["config_change"]) == ("2", changed, "")
     assert [event.get("config_change") for event in events(storage) if event["event"] == "resumed"] == [changed]
     assert plot_run(storage, tmp_path / "curves.png").changes == [2]
+
+
+def test_a_run_lengthened_goes_on_with_its_learning_rate_falling_to_the_new_end_and_other_horizons_are_refused(
+    tmp_path,
+) -> None:
+    """``iterations=N`` alone sets a linear schedule's horizon to N: a short run lengthened goes on (one line says
+    so), at the rate a run of the new length has there; a horizon set apart from the length is a config change."""
+    linear = "algorithm.schedule=linear"
+    run_train(tmp_path / "run", "iterations=2", linear)
+    lengthened = run_train(tmp_path / "run", "iterations=4", linear).stdout
+    said = "changed since step 2 (the learning rate follows iterations): algorithm.schedule_iterations 2 -> 4"
+    assert said in lengthened, lengthened
+    run_train(tmp_path / "alone", "iterations=4", linear)
+    rates = [metrics_by_iteration(tmp_path / name)[3]["learning_rate"] for name in ("run", "alone")]
+    assert rates[0] == rates[1] and float(rates[0]) > 0, rates
+    command = train_command(tmp_path / "run", "iterations=6", linear, "algorithm.schedule_iterations=5")
+    refused = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True)
+    assert refused.returncode == 2 and "(algorithm.schedule_iterations 4 -> 5): restore the config" in refused.stderr
 
 
 def test_two_ranks_on_s3_killed_and_resumed(tmp_path, s3_server, s3_env, reference_state) -> None:
