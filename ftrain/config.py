@@ -10,6 +10,8 @@ import dataclasses
 import hashlib
 import importlib.util
 import json
+import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -342,6 +344,15 @@ def config_from_dict(data: dict) -> Config:
     return build(Config, data, prefix="")
 
 
+def blocking_file(path: str) -> str | None:
+    """The file that keeps ``path`` from being a directory: ``path`` itself, or the nearest part of it that exists,
+    where that is not a directory; None if ``path`` is a directory or can be made one."""
+    path = os.path.abspath(path)
+    while not os.path.lexists(path) and os.path.dirname(path) != path:
+        path = os.path.dirname(path)
+    return path if os.path.exists(path) and not os.path.isdir(path) else None
+
+
 def default_log_dir(storage_url: str, name: str) -> str:
     """Logs go next to the checkpoints when storage is local, else to ``runs/<name>/<the storage>`` on this machine
     (``s3://bkt/exp1`` -> ``runs/exp/s3/bkt/exp1``): two runs of one config on two storages keep their logs apart."""
@@ -378,6 +389,22 @@ def validate(config: Config) -> None:
     for key, (value, minimum) in minimums.items():
         if value < minimum:
             raise UserError(f"{key}={value} must be {'at least 1' if minimum else '0 or more'}")
+    algorithm, policy = config.algorithm, config.policy
+    ranges = {  # key: (value, low, high, whether low itself is allowed, what the range is)
+        "algorithm.gamma": (algorithm.gamma, 0.0, 1.0, True, "a discount between 0 and 1"),
+        "algorithm.lam": (algorithm.lam, 0.0, 1.0, True, "a GAE lambda between 0 and 1"),
+        "algorithm.clip_param": (algorithm.clip_param, 0.0, math.inf, False, "a positive clip range, e.g. 0.2"),
+        "algorithm.learning_rate": (algorithm.learning_rate, 0.0, math.inf, False, "a positive rate, e.g. 3e-4"),
+        "algorithm.desired_kl": (algorithm.desired_kl, 0.0, math.inf, False, "a positive KL bound, e.g. 0.01"),
+        "algorithm.max_grad_norm": (algorithm.max_grad_norm, 0.0, math.inf, False, "a positive norm, e.g. 1.0"),
+        "algorithm.value_loss_coef": (algorithm.value_loss_coef, 0.0, math.inf, True, "0 or more, e.g. 0.5"),
+        "algorithm.entropy_coef": (algorithm.entropy_coef, 0.0, math.inf, True, "0 or more, e.g. 0.0"),
+        "policy.init_noise_std": (policy.init_noise_std, 0.0, math.inf, False, "a positive action noise, e.g. 1.0"),
+        "policy.obs_clip": (policy.obs_clip, 0.0, math.inf, True, "0 (no clipping) or a positive bound, e.g. 10"),
+    }
+    for key, (value, low, high, closed, what) in ranges.items():
+        if not (low <= value <= high if closed else low < value <= high):
+            raise UserError(f"{key}={value} is out of range: use {what}")
     choices = {  # key: (value, allowed)
         "algorithm.class_name": (config.algorithm.class_name, ("PPO", "Distillation")),
         "algorithm.schedule": (config.algorithm.schedule, ("adaptive", "fixed", "linear")),
@@ -401,6 +428,10 @@ def validate(config: Config) -> None:
     parse_amount("checkpoint.max_unsaved", config.checkpoint.max_unsaved)
     if not 0 < config.checkpoint.max_overhead < 1:
         raise UserError(f"checkpoint.max_overhead={config.checkpoint.max_overhead} must be a fraction between 0 and 1")
+    if (file := blocking_file(config.log_dir)) is not None:
+        named = "" if file == os.path.abspath(config.log_dir) else f" ({file} is a file)"
+        what = "storage" if config.log_dir == default_log_dir(config.storage.url, config.name) else "log_dir"
+        raise UserError(f"{what} {config.log_dir} is not a directory{named}: pass a directory path (made if missing)")
     if config.dist_timeout <= 0:
         raise UserError(f"dist_timeout={config.dist_timeout} must be a positive number of seconds")
     if config.algorithm.class_name == "Distillation" and not config.teacher:

@@ -59,6 +59,18 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
         (["noequals"], "is not key=value"),
         (["policy.std_type=exp"], "policy.std_type='exp' is unknown: use scalar or log"),
         (["reward.clip=0"], "reward.clip=0.0 must be a positive number"),
+        (["algorithm.gamma=1.5"], r"algorithm.gamma=1.5 is out of range: use a discount between 0 and 1"),
+        (["algorithm.lam=2"], "algorithm.lam=2.0 is out of range: use a GAE lambda between 0 and 1"),
+        (["algorithm.clip_param=-0.2"], "algorithm.clip_param=-0.2 is out of range: use a positive clip range"),
+        (["algorithm.learning_rate=0"], "algorithm.learning_rate=0.0 is out of range: use a positive rate"),
+        (["algorithm.learning_rate=-1"], "algorithm.learning_rate=-1.0 is out of range"),
+        (["algorithm.desired_kl=0"], "algorithm.desired_kl=0.0 is out of range"),
+        (["algorithm.max_grad_norm=-1"], "algorithm.max_grad_norm=-1.0 is out of range"),
+        (["algorithm.value_loss_coef=-0.5"], "algorithm.value_loss_coef=-0.5 is out of range"),
+        (["algorithm.entropy_coef=-0.01"], "algorithm.entropy_coef=-0.01 is out of range"),
+        (["policy.init_noise_std=-1"], "policy.init_noise_std=-1.0 is out of range: use a positive action noise"),
+        (["policy.obs_clip=-1"], "policy.obs_clip=-1.0 is out of range"),
+        (["algorithm.gamma=nan"], "algorithm.gamma=nan is out of range"),
     ],
 )
 def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> None:
@@ -83,6 +95,7 @@ def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> 
         ([SMOKE, "env.id=HalfCheetah-v3"], "env.id='HalfCheetah-v3' is not a MuJoCo environment"),
         ([SMOKE, "iterations=ten"], "iterations='ten' must be an integer"),
         ([SMOKE, "env.num_envs=0"], "env.num_envs=0 must be at least 1"),
+        ([SMOKE, "algorithm.learning_rate=-1"], "algorithm.learning_rate=-1.0 is out of range: use a positive rate"),
     ],
 )
 def test_cli_bad_input_is_one_line_exit_2(args: list[str], message: str) -> None:
@@ -134,3 +147,19 @@ def test_total_envs_are_shared_evenly_by_the_ranks_or_refused_in_one_line() -> N
     assert for_world(load_config(SMOKE), 4).env.num_envs == 4  # without it: env.num_envs per rank, as configured
     with pytest.raises(UserError, match=r"^env.total_envs=12 cannot be shared evenly by 5 ranks: use a multiple of 5"):
         for_world(config, 5)
+
+
+def test_a_storage_or_log_dir_that_is_a_file_is_one_line_exit_2_and_the_file_is_left_alone(tmp_path) -> None:
+    file = tmp_path / "notes.txt"
+    file.write_text("not a directory")
+    cases = [
+        (["train", SMOKE, "--storage", str(file)], f"storage {file} is not a directory: pass a directory path"),
+        (["supervise", SMOKE, "--storage", str(file / "run")], f"storage {file / 'run'} is not a directory ({file} is"),
+        (["train", SMOKE, "--storage", str(tmp_path / "run"), f"log_dir={file}"], f"log_dir {file} is not a directory"),
+        (["ckpt", "ls", str(file)], f"storage {file} is not a directory"),
+    ]
+    for args, message in cases:
+        result = subprocess.run([sys.executable, "-m", "ftrain", *args], cwd=REPO, capture_output=True, text=True)
+        assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+        assert result.stderr.count("\n") == 1 and message in result.stderr, result.stderr
+    assert file.read_text() == "not a directory" and sorted(tmp_path.iterdir()) == [file]

@@ -37,6 +37,7 @@ from fsspec.implementations.local import LocalFileSystem
 from ftrain.ckpt import localfs, stores
 from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, azure_errors, is_transient
 from ftrain.ckpt.stores import AZURE_PROTOCOLS, GCS_PROTOCOLS, S3_PROTOCOLS
+from ftrain.config import blocking_file
 from ftrain.errors import StorageError, StorageUnavailable, UserError
 from ftrain.redact import Url, display_url, scrub, secret_values, url_secrets
 
@@ -56,6 +57,11 @@ _SECRET_ENV = (
 )
 """Credentials that s3fs and adlfs read from the environment."""
 _PROTOCOL = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*$")
+_MISTYPED = re.compile(
+    rf"^({'|'.join(sorted(S3_PROTOCOLS | GCS_PROTOCOLS | AZURE_PROTOCOLS))})(?::/?|//)(?!/)", re.IGNORECASE
+)
+"""A local path that is a remote URL with a slash or the colon missing (``s3:/bucket``, ``s3//bucket``): fsspec would
+make it a directory of the working one."""
 
 
 class Storage:
@@ -96,6 +102,11 @@ class Storage:
         shown = display_url(url)
         if not _PROTOCOL.match(protocol):
             raise UserError(f"storage URL {shown!r} is malformed: use a local path or protocol://location")
+        if protocol == "file" and (typo := _MISTYPED.match(shown)):
+            raise UserError(
+                f"storage URL {shown!r} looks like a mistyped {typo[1]}:// URL: write "
+                f"{typo[1]}://{shown[typo.end() :]}, or ./{shown} for a local directory of that name"
+            )
         try:
             fsspec.get_filesystem_class(protocol)
         except ValueError:
@@ -310,7 +321,10 @@ class Storage:
                 time.sleep(delay)
 
     def check(self) -> None:
-        """On S3, that the bucket answers and exists."""
+        """On S3, that the bucket answers and exists; on a local file system, that the path is (or can become) a
+        directory."""
+        if self.is_local:
+            self._check_directory()
         if not self.is_s3:
             return
         bucket = self.root.split("/", 1)[0]
@@ -332,6 +346,12 @@ class Storage:
                     "storage.options.endpoint_url right?"
                 ) from None
             raise UserError(f"cannot open storage {self.url}: {self._scrub(exc)}") from None
+
+    def _check_directory(self) -> None:
+        """UserError where the storage's path, or the nearest part of it that exists, is not a directory."""
+        if (file := blocking_file(self.root)) is not None:
+            named = "" if file == os.path.abspath(self.root) else f" ({file} is a file)"
+            raise UserError(f"storage {self.url} is not a directory{named}: pass a directory path (made if missing)")
 
     def _endpoint(self) -> str:
         return display_url(self.fs.s3.meta.endpoint_url)

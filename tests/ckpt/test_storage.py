@@ -2,6 +2,7 @@ import contextlib
 import errno
 import logging
 import os
+import re
 import socket
 import threading
 import time
@@ -66,11 +67,20 @@ def test_a_new_storage_sees_what_another_wrote(storage_url):
 
 @pytest.mark.parametrize(
     ("url", "message"),
-    [("", "empty"), ("nosuchproto://x/y", "unknown protocol"), ("1x://a", "malformed")],
+    [
+        ("", "empty"),
+        ("nosuchproto://x/y", "unknown protocol"),
+        ("1x://a", "malformed"),
+        ("s3:/bucket/run", "looks like a mistyped s3:// URL: write s3://bucket/run, or ./s3:/bucket/run for a local"),
+        ("s3//bucket/run", "looks like a mistyped s3:// URL: write s3://bucket/run,"),
+        ("gs:bucket", "looks like a mistyped gs:// URL: write gs://bucket,"),
+    ],
 )
-def test_bad_url_is_a_user_error(url, message):
-    with pytest.raises(UserError, match=message):
+def test_bad_url_is_a_user_error(url, message, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(UserError, match=re.escape(message)):
         Storage.open(url)
+    assert list(tmp_path.iterdir()) == []  # nothing made in the working directory
 
 
 def test_s3_without_bucket_or_with_a_missing_one(s3_url):
