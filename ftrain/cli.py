@@ -142,30 +142,30 @@ def build_parser() -> argparse.ArgumentParser:
     prune = ckpt_commands.add_parser("prune", help="apply a retention policy")
     prune.add_argument("url", help=storage_url)
     _add_storage_options(prune)
+    own = "default: the run's own checkpoint.{}, as ftrain ckpt ls marks it"
     prune.add_argument(
-        "--keep-last", type=int, default=3, metavar="N", help="keep the newest N verified steps (default: %(default)s)"
+        "--keep-last", type=int, metavar="N", help=f"keep the newest N verified steps ({own.format('keep_last')})"
     )
     prune.add_argument(
-        "--keep-best",
-        type=int,
-        default=0,
-        metavar="N",
-        help="keep the N best steps by --best-metric (default: %(default)s)",
+        "--keep-best", type=int, metavar="N", help=f"keep the N best steps by --best-metric ({own.format('keep_best')})"
     )
     prune.add_argument(
         "--best-metric",
-        default="mean_return",
-        help="the metric that ranks steps for --keep-best, higher is better (default: %(default)s)",
+        help=f"the metric that ranks steps for --keep-best, higher is better ({own.format('best_metric')})",
     )
     prune.add_argument(
         "--keep-every",
         type=int,
-        default=0,
         metavar="N",
-        help="also keep every multiple of N (0: off; default: %(default)s)",
+        help=f"also keep every multiple of N (0: off; {own.format('keep_every')})",
     )
     prune.add_argument(
-        "--pin", type=int, action="append", default=[], metavar="STEP", help="a step to keep (repeatable)"
+        "--pin",
+        type=int,
+        action="append",
+        default=[],
+        metavar="STEP",
+        help="a step to keep, besides the run's pinned ones (repeatable)",
     )
     prune.add_argument("--dry-run", action="store_true", help="print what would be deleted, delete nothing")
     prune.add_argument(

@@ -527,15 +527,17 @@ def create_container(server: dict) -> str:
 # --- Checkpoint steps to inspect and damage ---
 
 
-def make_step(storage: Storage, step: int, world_size: int = 2, metrics: dict | None = None) -> dict:
-    """Write and commit a small real checkpoint: common.pt and one shard per rank."""
+def make_step(
+    storage: Storage, step: int, world_size: int = 2, metrics: dict | None = None, config: dict | None = None
+) -> dict:
+    """Write and commit a small real checkpoint: common.pt and one shard per rank; ``config``: the manifest's."""
     common = {"policy": {"weight": torch.full((2, 3), float(step))}, "iteration": step, "lr": 1e-3}
     files: dict[str, FileEntry] = {"common.pt": write_file(storage, step, "common.pt", encode(common))}
     for rank in range(world_size):
         shard = {"rank": rank, "rng": torch.arange(4) + rank, "env": [1.0, 2.0]}
         files[f"rank-{rank:05d}.pt"] = write_file(storage, step, f"rank-{rank:05d}.pt", encode(shard))
     meta = {"iteration": step, "world_size": world_size, "metrics": metrics or {"mean_return": float(step)}}
-    return commit(storage, step, files, meta)
+    return commit(storage, step, files, meta | ({"config": config} if config else {}))
 
 
 def step_path(step: int, name: str) -> str:

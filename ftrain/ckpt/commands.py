@@ -163,10 +163,10 @@ def _print_robot(robot: dict) -> None:
 
 def prune(
     url: str,
-    keep_last: int,
-    keep_best: int = 0,
-    best_metric: str = "mean_return",
-    keep_every: int = 0,
+    keep_last: int | None = None,
+    keep_best: int | None = None,
+    best_metric: str | None = None,
+    keep_every: int | None = None,
     pinned: Iterable[int] = (),
     dry_run: bool = False,
     options: dict | None = None,
@@ -174,9 +174,10 @@ def prune(
     force: bool = False,
 ) -> int:
     """Apply the retention rules of ``checkpoint.retention_plan`` to a run's storage (``dry_run``: only print), as the
-    holder of its lease (``as_lease_holder``; ``force``: without it)."""
+    holder of its lease (``as_lease_holder``; ``force``: without it). A rule left None is the run's own (the
+    ``checkpoint`` settings of its newest verified step, as ``ls`` marks them); ``pinned`` adds to the run's."""
     for name, value in {"keep-last": keep_last, "keep-best": keep_best, "keep-every": keep_every}.items():
-        if value < 0:
+        if value is not None and value < 0:
             raise UserError(f"--{name}={value} must be 0 or more")
     storage, step = _open(url, options)
     if step is not None:
@@ -235,6 +236,19 @@ def _prune(
     dry_run: bool,
 ) -> int:
     infos = scan(storage, full=True)  # digests too: a bit-rotted step must not pass for the newest good one
+    own = _settings([info for info in infos if info.status == VERIFIED])
+    recorded = sorted({name for info in infos if info.status == VERIFIED for name in _metrics(info)})
+    if best_metric is not None and recorded and best_metric not in recorded:
+        raise UserError(
+            f"--best-metric {best_metric}: no step of {storage.url} records it; use one of {', '.join(recorded)}"
+        )
+    keep_last = own.keep_last if keep_last is None else keep_last
+    keep_best = own.keep_best if keep_best is None else keep_best
+    best_metric = own.best_metric if best_metric is None else best_metric
+    keep_every = own.keep_every if keep_every is None else keep_every
+    pinned = sorted({*pinned, *own.pinned})
+    rules = f"keep_last={keep_last}, keep_best={keep_best} ({best_metric}), keep_every={keep_every}, pinned={pinned}"
+    print(f"retention: {rules}")
     doomed = set(retention_plan(infos, keep_last, keep_best, best_metric, keep_every, pinned, drop_bad))
     for info in infos:
         if info.step in doomed and info.status == INCOMPLETE and not abandoned(storage, info, time.time()):
@@ -298,16 +312,25 @@ def _open(url: str, options: dict | None) -> tuple[Storage, int | None]:
 
 
 def _marks(infos: list[StepInfo]) -> dict[int, list[Kept]]:
-    """Which verified steps retention keeps and why, by the ``checkpoint`` settings of the newest verified step's run
-    (the defaults where its manifest has none)."""
+    """Which verified steps retention keeps and why, by the run's own settings (``_settings``)."""
     verified = [info for info in infos if info.status == VERIFIED]
     if not verified:
         return {}
-    recorded = ((verified[0].manifest or {}).get("config") or {}).get("checkpoint") or {}
-    settings = CheckpointConfig(**{k: v for k, v in recorded.items() if k in vars(CheckpointConfig())})
+    settings = _settings(verified)
     return kept(
         verified, settings.keep_last, settings.keep_best, settings.best_metric, settings.keep_every, settings.pinned
     )
+
+
+def _settings(verified: list[StepInfo]) -> CheckpointConfig:
+    """The ``checkpoint`` settings of the newest verified step's run (newest first; the defaults where its manifest
+    has none)."""
+    recorded = ((verified[0].manifest or {}).get("config") or {}).get("checkpoint") or {} if verified else {}
+    return CheckpointConfig(**{k: v for k, v in recorded.items() if k in vars(CheckpointConfig())})
+
+
+def _metrics(info: StepInfo) -> dict:
+    return (info.manifest or {}).get("metrics") or {}
 
 
 def _fit(line: str) -> str:

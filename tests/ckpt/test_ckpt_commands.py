@@ -112,6 +112,24 @@ def test_prune(run, capsys):
     assert [info.step for info in scan(Storage.open(run))] == [40, 30]
 
 
+def test_prune_keeps_by_the_runs_own_settings_unless_told_otherwise_and_refuses_a_metric_no_step_records(
+    tmp_path, capsys
+):
+    url = str(tmp_path / "run")
+    own = {"checkpoint": {"keep_last": 3, "keep_best": 1, "best_metric": "eval_return", "pinned": [10]}}
+    for step, score in ((10, 1.0), (20, 9.0), (30, 2.0), (40, 3.0), (50, 4.0)):
+        make_step(Storage.open(url), step, metrics={"mean_return": float(step), "eval_return": score}, config=own)
+    with pytest.raises(UserError, match=r"--best-metric eval_retrun: no step .* use one of eval_return, mean_return"):
+        ckpt_commands.prune(url, keep_last=1, best_metric="eval_retrun")
+    steps = lambda: [info.step for info in scan(Storage.open(url))]  # noqa: E731
+    assert steps() == [50, 40, 30, 20, 10]  # refused: nothing deleted
+    assert ckpt_commands.prune(url, keep_last=1) == 0  # the run's best (by eval_return) and its pinned step stay
+    assert "retention: keep_last=1, keep_best=1 (eval_return), keep_every=0, pinned=[10]" in capsys.readouterr().out
+    assert steps() == [50, 20, 10]
+    assert ckpt_commands.prune(url, keep_last=1, keep_best=0) == 0
+    assert steps() == [50, 10]
+
+
 def test_prune_keeps_an_incomplete_step_written_lately_and_deletes_it_once_abandoned(run, capsys):
     """An incomplete step older than the newest verified one is an abandoned save, unless it was written lately:
     then it may be a save in flight of a run on another host, and ``prune`` leaves it until it is old."""
