@@ -428,10 +428,12 @@ def validate(config: Config) -> None:
     parse_amount("checkpoint.max_unsaved", config.checkpoint.max_unsaved)
     if not 0 < config.checkpoint.max_overhead < 1:
         raise UserError(f"checkpoint.max_overhead={config.checkpoint.max_overhead} must be a fraction between 0 and 1")
-    if (file := blocking_file(config.log_dir)) is not None:
-        named = "" if file == os.path.abspath(config.log_dir) else f" ({file} is a file)"
-        what = "storage" if config.log_dir == default_log_dir(config.storage.url, config.name) else "log_dir"
-        raise UserError(f"{what} {config.log_dir} is not a directory{named}: pass a directory path (made if missing)")
+    local = config.storage.url.removeprefix("file://")
+    directories = {"storage": local if "://" not in local else None, "log_dir": config.log_dir}
+    for what, path in directories.items():
+        if path and (file := blocking_file(path)) is not None:
+            named = "" if file == os.path.abspath(path) else f" ({file} is a file)"
+            raise UserError(f"{what} {path} is not a directory{named}: pass a directory path (made if missing)")
     if config.dist_timeout <= 0:
         raise UserError(f"dist_timeout={config.dist_timeout} must be a positive number of seconds")
     if config.algorithm.class_name == "Distillation" and not config.teacher:

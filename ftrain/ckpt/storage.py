@@ -37,7 +37,6 @@ from fsspec.implementations.local import LocalFileSystem
 from ftrain.ckpt import localfs, stores
 from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, azure_errors, is_transient
 from ftrain.ckpt.stores import AZURE_PROTOCOLS, GCS_PROTOCOLS, S3_PROTOCOLS
-from ftrain.config import blocking_file
 from ftrain.errors import StorageError, StorageUnavailable, UserError
 from ftrain.redact import Url, display_url, scrub, secret_values, url_secrets
 
@@ -321,10 +320,7 @@ class Storage:
                 time.sleep(delay)
 
     def check(self) -> None:
-        """On S3, that the bucket answers and exists; on a local file system, that the path is (or can become) a
-        directory."""
-        if self.is_local:
-            self._check_directory()
+        """On S3, that the bucket answers and exists."""
         if not self.is_s3:
             return
         bucket = self.root.split("/", 1)[0]
@@ -346,12 +342,6 @@ class Storage:
                     "storage.options.endpoint_url right?"
                 ) from None
             raise UserError(f"cannot open storage {self.url}: {self._scrub(exc)}") from None
-
-    def _check_directory(self) -> None:
-        """UserError where the storage's path, or the nearest part of it that exists, is not a directory."""
-        if (file := blocking_file(self.root)) is not None:
-            named = "" if file == os.path.abspath(self.root) else f" ({file} is a file)"
-            raise UserError(f"storage {self.url} is not a directory{named}: pass a directory path (made if missing)")
 
     def _endpoint(self) -> str:
         return display_url(self.fs.s3.meta.endpoint_url)

@@ -35,6 +35,21 @@ def check_format(fmt: str) -> None:
         raise UserError(f"unknown policy format {fmt!r}: use {' or '.join(POLICY_FORMATS)}")
 
 
+def output_path(fmt: str, path: str | Path | None, directory: Path, name: str) -> Path:
+    """Where ``export`` writes: ``path``, or ``name`` in it where it is a directory (in ``directory`` where None).
+    UserError for a file whose suffix is not the format's: ``-o README.md`` would write over a file of another kind."""
+    if path is None or Path(path).is_dir():
+        return Path(path or directory) / name
+    suffix = SUFFIXES[fmt]
+    if Path(path).suffix != suffix:
+        other = next(other for other in POLICY_FORMATS if other != fmt)
+        raise UserError(
+            f"-o {path}: {fmt} policy files end in {suffix}: use -o {Path(path).with_suffix(suffix)}, a directory, "
+            f"or --format {other} for a {SUFFIXES[other]} file"
+        )
+    return Path(path)
+
+
 def encode(policy: Policy, fmt: str, observations: torch.Tensor) -> bytes:
     """``policy`` as a self-contained ``fmt`` file, verified: loaded back and run on ``observations [N, obs_dim]``,
     its actions must match the actor's deterministic ones (ExportMismatch otherwise)."""
@@ -130,6 +145,9 @@ def export(policy: Policy, fmt: str, path: str | Path | None = None) -> Path:
     ``<run>/exports/<run name>-step-<N>.pt``/``.onnx`` (for a run on S3, in its local log directory ``runs/<name>``),
     not in the working directory."""
     check_format(fmt)
+    run = policy.source.rstrip("/").rsplit("/", 2)[0]  # the source is <run>/checkpoints/step-N or <run>/policies/...
+    name = f"{policy.config.name}-step-{policy.step}{SUFFIXES[fmt]}"
+    path = output_path(fmt, path, Path(default_log_dir(run, policy.config.name)) / "exports", name)
     progress = Progress()
     progress.show("export: playing the policy's episodes that the export is checked on...")
     try:
@@ -138,9 +156,6 @@ def export(policy: Policy, fmt: str, path: str | Path | None = None) -> Path:
         data = encode(policy, fmt, observations)
     finally:
         progress.clear()
-    run = policy.source.rstrip("/").rsplit("/", 2)[0]  # the source is <run>/checkpoints/step-N or <run>/policies/...
-    default = Path(default_log_dir(run, policy.config.name)) / "exports"
-    path = Path(path or default / f"{policy.config.name}-step-{policy.step}{SUFFIXES[fmt]}")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_bytes(data)
     print(

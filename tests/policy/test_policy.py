@@ -206,11 +206,18 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
         "an unknown video format": (["play", str(trained), "--video", "out.avi"], "must end in .mp4 or .gif"),
         "no episodes": (["play", str(trained), "--episodes", "0"], "play at least 1 episode"),
         "an exported policy to export": (["export", str(exported), "--format", "torchscript"], "exported onnx policy"),
+        "an output of another kind": (
+            ["export", str(trained), "--format", "onnx", "-o", str(notes)],
+            f"-o {notes}: onnx policy files end in .onnx: use -o {notes.with_suffix('.onnx')}, a directory, or",
+        ),
     }
     for case, (argv, message) in cases.items():
         assert main(argv) == 2, case
         err = capsys.readouterr().err
         assert err.startswith("ftrain: error: ") and err.count("\n") == 1, f"{case}: {err!r}"
         assert message in err, f"{case}: {err!r}"
+    assert notes.read_text() == "not a policy\n"  # not written over
+    assert main(["export", str(trained), "--format", "torchscript", "-o", str(tmp_path)]) == 0  # a directory: into it
+    assert load_policy(str(tmp_path / f"smoke-step-{load_policy(str(trained)).step}.pt")).step > 0
     with pytest.raises(UserError, match="unknown policy format 'tflite': use torchscript or onnx"):
         export(load_policy(str(trained)), "tflite")  # the CLI's --format choices refuse it before (tests/test_cli.py)

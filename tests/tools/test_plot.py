@@ -95,3 +95,7 @@ def test_cli(resumed, tmp_path, capsys) -> None:
     assert main(["plot", str(tmp_path / "nothing")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "metrics.csv does not exist: pass a run's log directory" in err
+    assert main(["plot", str(resumed), "-o", str(tmp_path / "c.txt")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "c.txt: not a picture file matplotlib writes: end it in .png, .svg or .pdf" in err
+    assert main(["plot", str(resumed), "-o", str(tmp_path)]) == 0 and png_size(tmp_path / "curves.png") == (1200, 800)
