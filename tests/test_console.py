@@ -127,3 +127,8 @@ def test_verbose_says_every_save_and_quiet_says_nothing_per_iteration(tmp_path) 
     assert [int(line.split()[3]) for line in saves] == list(range(1, 9)), said["-v"]
     assert [line for line in said["-v"] if line.startswith("it ")][-1].startswith("it 8/8 | ")
     assert not [line for line in said["-q"] if line.startswith(("it ", "[ftrain] saved step"))], said["-q"]
+    storage = tmp_path / "-q"  # where the run ended, said whatever the flag (docs/logging.md)
+    assert said["-q"][-2:] == [
+        f"[ftrain] run saved in {storage}: newest step 8; logs in {storage}",
+        f"[ftrain] play it: ftrain play {storage}   export it: ftrain export {storage} --format onnx",
+    ], said["-q"]

@@ -125,7 +125,7 @@ class ConsoleHook(Hook):
     losses, learning rate, how long ago the newest save committed, ETA; a short line (step, where, size, seconds) for
     the saves a person wants to see: the first of the process, the first past each quarter of the run, the last
     (``every_save``: each; a failed save, a recovery and a hold have lines of their own from the checkpointer); at
-    the end, where the run is and how to play or export it.
+    the end, where the run is and how to play or export it (``lines=False``, ``log.console=false``: that alone).
 
     The ETA is the remaining iterations times the mean wall time of the last ``ETA_WINDOW`` iterations of this
     process, not counting the first ``ETA_SKIP`` after a (re)start (imports, the first save, warm caches); until
@@ -136,9 +136,12 @@ class ConsoleHook(Hook):
     ETA_SKIP = 2
     MILESTONES = 4
 
-    def __init__(self, clock: Callable[[], float] = time.perf_counter, every_save: bool = False) -> None:
+    def __init__(
+        self, clock: Callable[[], float] = time.perf_counter, every_save: bool = False, lines: bool = True
+    ) -> None:
         self.clock = clock
         self.every_save = every_save
+        self.lines = lines
         self._saved: tuple[int, float] | None = None
         """The newest committed step this process saw, and when."""
         self._last: float | None = None
@@ -147,7 +150,7 @@ class ConsoleHook(Hook):
         self._said_no_episode = False
 
     def after_iteration(self, trainer: TrainerView, metrics: dict[str, float]) -> None:
-        if not trainer.info.is_main:
+        if not trainer.info.is_main or not self.lines:
             return
         returned, length = f"{metrics['mean_return']:.2f}", f"{metrics['mean_length']:.0f}"
         if not math.isfinite(metrics["mean_return"]):
@@ -179,7 +182,7 @@ class ConsoleHook(Hook):
         previous, self._saved = self._saved, (step, self.clock())
         quarter = max(1, trainer.config.iterations // self.MILESTONES)
         milestone = previous is None or step // quarter > previous[0] // quarter or step >= trainer.config.iterations
-        if self.every_save or milestone:
+        if self.lines and (self.every_save or milestone):
             checkpointer = trainer.checkpointer
             size = human_size(sum(entry["size"] for entry in manifest["files"].values()))
             where = checkpointer.storage.where(step_dir(step))

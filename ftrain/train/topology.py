@@ -1,6 +1,7 @@
 """What a run will run, said once at its start: its ranks and hosts, how the update is shared between them (split by
-model, or data-parallel and why), how the ranks meet, and the global batch. Rank 0 prints it as one line and writes
-it to ``<log_dir>/run.json``, next to ``config.yaml``."""
+model, or data-parallel and why), how the ranks meet, and the global batch. Rank 0 prints it as one line, and the
+trainer writes it to ``<log_dir>/run.json``, next to ``config.yaml``, once the run has a step to start from (a start
+refused as bad input leaves the run's files as they were)."""
 
 from __future__ import annotations
 
@@ -80,15 +81,16 @@ def update_words(update: dict) -> str:
 
 
 def announce(config: Config, info: group.RankInfo, comm: Comm, log: Callable[[str], None]) -> dict:
-    """Every rank at the same point (it gathers the hosts' names): rank 0 logs the run's line and writes
-    ``run.json``."""
+    """Every rank at the same point (it gathers the hosts' names): rank 0 logs the run's line."""
     run = describe(config, info, group.all_gather_object(socket.gethostname(), info), comm)
     if info.is_main:
         log(summary(run))
-        log_dir = Path(config.log_dir)
-        log_dir.mkdir(parents=True, exist_ok=True)
-        (log_dir / RUN_FILE).write_text(json.dumps(run, indent=1) + "\n")
     return run
+
+
+def write(log_dir: Path, run: dict) -> None:
+    """``run`` (``describe``) as ``<log_dir>/run.json``."""
+    (log_dir / RUN_FILE).write_text(json.dumps(run, indent=1) + "\n")
 
 
 def _ranks(ranks: list[int]) -> str:

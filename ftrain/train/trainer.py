@@ -90,7 +90,7 @@ class Trainer:
             config, self.env, info, self.phases, lambda line: self.log(line, every_rank=True)
         )
         """``comm``: how the ranks meet; the iteration's small collectives go through it too."""
-        self.run_description = topology.announce(config, info, self.comm, self.log)  # one line, and run.json
+        self.run_description = topology.announce(config, info, self.comm, self.log)  # one line
         self.reward_norm = build_reward_normalizer(config, self.comm)
         self.lr_schedule = build_lr_schedule(config.algorithm)
         if notice := horizon_notice(config.algorithm, config.iterations):
@@ -346,10 +346,12 @@ class Trainer:
         }
 
     def _write_resolved_config(self) -> None:
+        """``config.yaml`` and ``run.json``: what this run is, once it has a step to start from."""
         if self.info.is_main:
             log_dir = Path(self.config.log_dir)
             log_dir.mkdir(parents=True, exist_ok=True)
             (log_dir / "config.yaml").write_text(yaml.safe_dump(self.config.public_dict(), sort_keys=False))
+            topology.write(log_dir, self.run_description)
 
 
 def build_hooks(config: Config) -> Hooks:
@@ -358,8 +360,7 @@ def build_hooks(config: Config) -> Hooks:
     hooks: list[Hook] = []
     if config.eval.every:
         hooks.append(EvalHook(config.eval))
-    if config.log.console:
-        hooks.append(ConsoleHook(every_save=config.log.console_saves == "every"))
+    hooks.append(ConsoleHook(every_save=config.log.console_saves == "every", lines=config.log.console))
     if config.log.tensorboard:
         hooks.append(TensorBoardHook())
     if config.log.csv:

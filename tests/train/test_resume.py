@@ -7,6 +7,7 @@ import csv
 import json
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
@@ -106,7 +107,7 @@ def test_a_run_started_from_another_runs_step_goes_on_from_its_own_and_refuses_a
     overrides = ["iterations=10", "checkpoint.interval=2", start]
     run_train(tmp_path / "reference", *overrides)
     run = tmp_path / "run"
-    for phase, iteration, async_save in [("rollout", 5, True), ("checkpoint", 6, False), ("update", 8, True)]:
+    for phase, iteration, async_save in [("rollout", 5, True), ("update", 8, True)]:
         kill_during(run, phase, iteration, [*overrides, f"checkpoint.async_save={str(async_save).lower()}"], ranks=1)
     assert manifests(run), "a kill after the run's first commit"
     result = run_train(run, *overrides, supervised=True)
@@ -114,8 +115,9 @@ def test_a_run_started_from_another_runs_step_goes_on_from_its_own_and_refuses_a
     assert final_manifest(run)["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
     assert metrics_by_iteration(run) == metrics_by_iteration(tmp_path / "reference")
 
-    other = tmp_path / "other"
-    run_train(other, "iterations=2")
+    other = tmp_path / "other"  # the source's history up to step 2: not the step the URL names, nor after it
+    shutil.copytree(tmp_path / "source", other)
+    shutil.rmtree(other / "checkpoints" / "step-000000004")
     checkpoints = lambda: {path: path.read_bytes() for path in (other / "checkpoints").rglob("*") if path.is_file()}  # noqa: E731
     before = checkpoints()
     command = train_command(other, *overrides)
@@ -138,6 +140,7 @@ def test_async_and_sync_saves_write_the_same_checkpoints(tmp_path) -> None:
 def test_resume_refuses_other_env_count_config_and_format(tmp_path) -> None:
     storage = tmp_path / "run"
     run_train(storage, "iterations=2")
+    described = (storage / "run.json").read_text()
     # one rank each: test_console has the same env-count refusal under plain torchrun at 2 ranks, said once by rank 0
     for overrides, message in [
         (["iterations=4", "env.num_envs=3"], "set env.num_envs=4"),
@@ -148,6 +151,7 @@ def test_resume_refuses_other_env_count_config_and_format(tmp_path) -> None:
         )
         assert result.returncode == 2 and message in result.stderr and "Traceback" not in result.stderr
     assert sorted(manifests(storage)) == [2], "a refused resume must not touch the checkpoints"
+    assert (storage / "run.json").read_text() == described, "nor describe the refused start as the run"
     manifest_file = storage / "checkpoints/step-000000002/MANIFEST.json"
     current = manifest_file.read_text()
     for written, message in [(1, b"holds training state in format 1"), (3, b"in ftrain 0.1's packed format")]:
