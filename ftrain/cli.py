@@ -229,12 +229,19 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("url", help=policy_url)
     _add_storage_options(export)
     export.add_argument("--format", required=True, choices=POLICY_FORMATS, help="the file format")
-    export.add_argument("-o", "--output", help="file to write (default: <run>/exports/<run name>-step-<N>.pt or .onnx)")
+    export.add_argument(
+        "-o",
+        "--output",
+        help="file to write, ending in .pt or .onnx as the format, or a directory to write it into (default: "
+        "<run>/exports/<run name>-step-<N>.pt or .onnx)",
+    )
 
     plot = commands.add_parser("plot", help="learning curves of a run as a PNG, restarts marked")
     plot.add_argument("run", help="the run's log directory (holds metrics.csv): a local path or an fsspec URL")
     _add_storage_options(plot)
-    plot.add_argument("-o", "--output", help="PNG to write (default: <run>/curves.png)")
+    plot.add_argument(
+        "-o", "--output", help="picture to write (.png, .svg, .pdf...), or a directory (default: <run>/curves.png)"
+    )
     return parser
 
 

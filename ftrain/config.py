@@ -294,7 +294,7 @@ def for_world(config: Config, world_size: int) -> Config:
 
 def load_config(path: str | None, overrides: list[str] = (), storage: str | None = None) -> Config:
     """Read a YAML config (or the defaults when ``path`` is None), apply overrides, validate. ``iterations=N`` alone
-    (no ``algorithm.schedule_iterations=``) sets a linear schedule's horizon to N (to lengthen a run, set both)."""
+    (no ``algorithm.schedule_iterations=``) sets a linear schedule's horizon to N."""
     data: dict = {}
     if path is not None:
         file = Path(path)
@@ -395,15 +395,16 @@ def validate(config: Config) -> None:
         "algorithm.lam": (algorithm.lam, 0.0, 1.0, True, "a GAE lambda between 0 and 1"),
         "algorithm.clip_param": (algorithm.clip_param, 0.0, math.inf, False, "a positive clip range, e.g. 0.2"),
         "algorithm.learning_rate": (algorithm.learning_rate, 0.0, math.inf, False, "a positive rate, e.g. 3e-4"),
-        "algorithm.desired_kl": (algorithm.desired_kl, 0.0, math.inf, False, "a positive KL bound, e.g. 0.01"),
         "algorithm.max_grad_norm": (algorithm.max_grad_norm, 0.0, math.inf, False, "a positive norm, e.g. 1.0"),
         "algorithm.value_loss_coef": (algorithm.value_loss_coef, 0.0, math.inf, True, "0 or more, e.g. 0.5"),
         "algorithm.entropy_coef": (algorithm.entropy_coef, 0.0, math.inf, True, "0 or more, e.g. 0.0"),
         "policy.init_noise_std": (policy.init_noise_std, 0.0, math.inf, False, "a positive action noise, e.g. 1.0"),
         "policy.obs_clip": (policy.obs_clip, 0.0, math.inf, True, "0 (no clipping) or a positive bound, e.g. 10"),
     }
+    if algorithm.schedule == "adaptive":  # the rate's KL bound: unused by the other schedules
+        ranges["algorithm.desired_kl"] = (algorithm.desired_kl, 0.0, math.inf, False, "a positive KL bound, e.g. 0.01")
     for key, (value, low, high, closed, what) in ranges.items():
-        if not (low <= value <= high if closed else low < value <= high):
+        if not math.isfinite(value) or not (low <= value <= high if closed else low < value <= high):
             raise UserError(f"{key}={value} is out of range: use {what}")
     choices = {  # key: (value, allowed)
         "algorithm.class_name": (config.algorithm.class_name, ("PPO", "Distillation")),

@@ -1,8 +1,9 @@
 """What a resume changes: the training keys of the config (old -> new) and the robot's files, in words.
 
-A resume refused for a changed config names what changed, and one that ``allow_config_change=true`` lets through
-says so in one line, which the run also records (``metrics.csv``'s ``config_change``, the supervisor's ``resumed``
-event) and ``ftrain plot`` marks as a change, not a plain resume.
+A resume refused for a changed config names what changed, and one that goes on anyway (``allow_config_change=true``,
+or a lengthened run whose learning rate follows its length: ``ftrain.ckpt.resume``) says so in one line, which the run
+also records (``metrics.csv``'s ``config_change``, the supervisor's ``resumed`` event) and ``ftrain plot`` marks as a
+change, not a plain resume.
 """
 
 from __future__ import annotations

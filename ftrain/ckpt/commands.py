@@ -227,14 +227,15 @@ def as_lease_holder(storage: Storage, command: str, force: bool, body: Callable[
 
 def _prune(
     storage: Storage,
-    keep_last: int,
-    keep_best: int,
-    best_metric: str,
-    keep_every: int,
+    keep_last: int | None,
+    keep_best: int | None,
+    best_metric: str | None,
+    keep_every: int | None,
     pinned: Iterable[int],
     drop_bad: bool,
     dry_run: bool,
 ) -> int:
+    """``prune``'s work, as the lease's holder (or with ``dry_run``); a rule left None is the run's own."""
     infos = scan(storage, full=True)  # digests too: a bit-rotted step must not pass for the newest good one
     own = _settings([info for info in infos if info.status == VERIFIED])
     recorded = sorted({name for info in infos if info.status == VERIFIED for name in _metrics(info)})

@@ -275,8 +275,8 @@ def _decide(
             )
         clear_newer(storage, 0, log)
         return {"kind": "fresh", "why": "resume=never: starting fresh"}
-    if resume != "auto":
-        return _from_url(config, storage, log, robot)
+    if resume != "auto" and (started := _from_url(config, storage, log, robot)) is not None:
+        return started
     found = None
     try:
         if down is None:
@@ -314,32 +314,33 @@ def _decide(
     return _resume(step, manifest, url=None, where="this storage", committed=step)
 
 
-def _from_url(config: Config, storage: Storage, log: Callable[[str], None], robot: dict | None) -> dict:
+def _from_url(config: Config, storage: Storage, log: Callable[[str], None], robot: dict | None) -> dict | None:
     """``resume=URL``: the start of this storage's history from that step (of another run's storage, or of this
-    one). Its manifests name that step as their ``origin``, so the same command again (a restart, a rerun after an
-    interruption) goes on from this storage's newest step. Another history already here is refused, untouched."""
+    one). Its manifests name that step as their ``origin``; where this storage's history already goes on from it (the
+    same command again: a restart, a rerun after an interruption), None: the run resumes as with ``resume=auto``, the
+    spool included. Another history already here is refused."""
     shown = display_url(config.resume)
     found = select_resume(storage, log=log)
     origin = (found[1].get(ORIGIN) or {}) if found is not None else {}
     if found is None or origin.get("url") != shown:
-        _, step, manifest = resolve_checkpoint_url(config.resume, config.storage.options, log)
+        try:
+            _, step, manifest = resolve_checkpoint_url(config.resume, config.storage.options, log)
+        except UserError as error:
+            raise UserError(f"resume={shown}: {error}") from None
         digest = manifest.get("state_sha256")
-        if found is None or found[1].get("state_sha256") == digest:  # nothing here yet, or that step is the newest
+        if found is None:
             check_compatible(config, step, manifest, robot)
             clear_newer(storage, step, log)
             url = parse_checkpoint_url(config.resume)[0]
             started = {ORIGIN: {"url": shown, "step": step, "state_sha256": digest}}
-            return _resume(step, manifest, url=url, where=url, committed=None) | started
-        if origin.get("state_sha256") != digest:
+            return _resume(step, manifest, url=url, where=display_url(url), committed=None) | started
+        if digest not in (origin.get("state_sha256"), found[1].get("state_sha256")):
             raise UserError(
                 f"{storage.url} already holds checkpoints (newest: step {found[0]}) that do not continue {shown}: "
                 "resume=auto goes on from them; to start from that step, use another --storage"
             )
-    step, manifest = found
-    check_compatible(config, step, manifest, robot)
-    clear_newer(storage, step, log)
-    where = f"this storage, whose history started from {origin['url']}"
-    return _resume(step, manifest, url=None, where=where, committed=step)
+    log(f"resume={shown}: the history of {storage.url} goes on from that step; resuming from its newest")
+    return None
 
 
 def _spooled(spool: Spool, found: tuple | None, reachable: bool, log: Callable[[str], None]) -> tuple | None:
@@ -425,8 +426,8 @@ def _horizon_follows_length(saved: dict, config: Config) -> bool:
     if saved["algorithm"].get("schedule") != "linear" or config.algorithm.schedule != "linear":
         return False
     horizons = (saved["algorithm"].get("schedule_iterations"), config.algorithm.schedule_iterations)
-    follows = horizons == (saved.get("iterations"), config.iterations)
-    return follows and changed_keys(saved, config.public_dict()) == ["algorithm.schedule_iterations"]
+    lengthened = horizons == (saved.get("iterations"), config.iterations) and horizons[1] > horizons[0]
+    return lengthened and changed_keys(saved, config.public_dict()) == ["algorithm.schedule_iterations"]
 
 
 def _models(policy: dict) -> dict:

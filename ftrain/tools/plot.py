@@ -99,7 +99,8 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
 
     if output is not None and Path(output).is_dir():
         output = Path(output) / "curves.png"
-    if output is not None and Path(output).suffix.lstrip(".").lower() not in FigureCanvasBase.get_supported_filetypes():
+    kinds = {"", *FigureCanvasBase.get_supported_filetypes()}  # no suffix: matplotlib writes a .png
+    if output is not None and Path(output).suffix.lstrip(".").lower() not in kinds:
         raise UserError(f"-o {output}: not a picture file matplotlib writes: end it in .png, .svg or .pdf")
     storage = Storage.open(str(run), options)
     columns, resumed, changed = read_metrics(run, options)

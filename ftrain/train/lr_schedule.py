@@ -5,8 +5,9 @@ Why: a step size large enough to learn fast early makes PPO's late updates overs
 around a good gait instead of settling on it (SB3's and CleanRL's MuJoCo PPOs anneal for the same reason; rsl-rl has
 only a fixed and a KL-adaptive rate). The rate is a function of the iteration count alone, set before each update:
 the same on every rank and in a resumed run, with no state of its own; the horizon is a key of its own rather than
-the run's ``iterations``, so lengthening a run does not change what it trains. An ``iterations=N`` override without
-one of the horizon sets the horizon to N too (``ftrain.config.load_config``): a short run anneals over itself.
+the run's ``iterations``, which a config sets to the run it was tuned for. An ``iterations=N`` override without one
+of the horizon sets the horizon to N too (``ftrain.config.load_config``): a short run anneals over itself, and, so
+set, lengthened, over its new length (``ftrain.ckpt.resume``).
 """
 
 from __future__ import annotations

@@ -111,7 +111,7 @@ def test_a_run_started_from_another_runs_step_goes_on_from_its_own_and_refuses_a
         kill_during(run, phase, iteration, [*overrides, f"checkpoint.async_save={str(async_save).lower()}"], ranks=1)
     assert manifests(run), "a kill after the run's first commit"
     result = run_train(run, *overrides, supervised=True)
-    assert "whose history started from " in result.stdout, result.stdout
+    assert f"resume={start.removeprefix('resume=')}: the history of {run} goes on from that step" in result.stdout
     assert final_manifest(run)["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
     assert metrics_by_iteration(run) == metrics_by_iteration(tmp_path / "reference")
 
@@ -145,6 +145,7 @@ def test_resume_refuses_other_env_count_config_and_format(tmp_path) -> None:
     for overrides, message in [
         (["iterations=4", "env.num_envs=3"], "set env.num_envs=4"),
         (["iterations=4", "algorithm.clip_param=0.1"], "pass allow_config_change=true"),
+        (["iterations=4", "resume=maybe"], "resume=maybe: no verified checkpoint under maybe: pass a run's storage"),
     ]:
         result = subprocess.run(
             train_command(storage, *overrides), cwd=REPO, env=child_env(), capture_output=True, text=True
@@ -187,7 +188,8 @@ def test_a_run_lengthened_goes_on_with_its_learning_rate_falling_to_the_new_end_
     tmp_path,
 ) -> None:
     """``iterations=N`` alone sets a linear schedule's horizon to N: a short run lengthened goes on (one line says
-    so), at the rate a run of the new length has there; a horizon set apart from the length is a config change."""
+    so), at the rate a run of the new length has there; a horizon set apart from the length, or a run shortened, is
+    a config change."""
     linear = "algorithm.schedule=linear"
     run_train(tmp_path / "run", "iterations=2", linear)
     lengthened = run_train(tmp_path / "run", "iterations=4", linear).stdout
@@ -196,9 +198,11 @@ def test_a_run_lengthened_goes_on_with_its_learning_rate_falling_to_the_new_end_
     run_train(tmp_path / "alone", "iterations=4", linear)
     rates = [metrics_by_iteration(tmp_path / name)[3]["learning_rate"] for name in ("run", "alone")]
     assert rates[0] == rates[1] and float(rates[0]) > 0, rates
-    command = train_command(tmp_path / "run", "iterations=6", linear, "algorithm.schedule_iterations=5")
-    refused = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True)
-    assert refused.returncode == 2 and "(algorithm.schedule_iterations 4 -> 5): restore the config" in refused.stderr
+    for horizon, overrides in ((5, ["iterations=6", "algorithm.schedule_iterations=5"]), (3, ["iterations=3"])):
+        command = train_command(tmp_path / "run", *overrides, linear)  # set apart from the length, or shortened
+        refused = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True)
+        assert refused.returncode == 2, refused.stderr
+        assert f"(algorithm.schedule_iterations 4 -> {horizon}): restore the config" in refused.stderr
 
 
 def test_two_ranks_on_s3_killed_and_resumed(tmp_path, s3_server, s3_env, reference_state) -> None:
