@@ -315,8 +315,6 @@ def _open(url: str, options: dict | None) -> tuple[Storage, int | None]:
 def _marks(infos: list[StepInfo]) -> dict[int, list[Kept]]:
     """Which verified steps retention keeps and why, by the run's own settings (``_settings``)."""
     verified = [info for info in infos if info.status == VERIFIED]
-    if not verified:
-        return {}
     settings = _settings(verified)
     return kept(
         verified, settings.keep_last, settings.keep_best, settings.best_metric, settings.keep_every, settings.pinned
@@ -331,6 +329,7 @@ def _settings(verified: list[StepInfo]) -> CheckpointConfig:
 
 
 def _metrics(info: StepInfo) -> dict:
+    """The metrics ``info``'s manifest records (none: {})."""
     return (info.manifest or {}).get("metrics") or {}
 
 

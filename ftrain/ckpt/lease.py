@@ -201,7 +201,7 @@ class Lease:
             if self.generation is None or advance:
                 self.took = advance or not joins
             self.generation = generation
-            replaced = record is not None and bool(record.entries) and not (ours and (joins or not others))
+            replaced = record is not None and bool(record.entries) and not joins and (not ours or bool(others))
             return self._taken_message(record) if replaced else None
 
     def renew(self) -> str | None:

@@ -94,7 +94,8 @@ class Resumed:
     committed: int | None = None
     """The storage's newest committed step as far as the resume knows: ``step``, unless it came from the spool."""
     config_change: str | None = None
-    """What ``allow_config_change`` let change since ``step`` (``ftrain.ckpt.changes``), in words."""
+    """What changed since ``step`` and was let through (``allow_config_change``, or a lengthened run's learning-rate
+    horizon: ``check_compatible``), in words (``ftrain.ckpt.changes``)."""
     digest: str | None = None
     """The ``state_sha256`` of ``step``: the parent of this run's first commit (``lineage.py``)."""
     origin: dict | None = None

@@ -242,7 +242,7 @@ class TensorBoardHook(Hook):
 class CsvHook(Hook):
     """``<log_dir>/metrics.csv`` on rank 0, one row per iteration: a resumed run first drops the rows past the step
     it resumed from (the iterations it is about to redo), then appends; its first row names that step in
-    ``resumed_from`` (empty in every other row), and ``config_change`` what ``allow_config_change`` let change there."""
+    ``resumed_from`` (empty in every other row), and ``config_change`` what changed there and was let through."""
 
     def __init__(self) -> None:
         self.file = None
