@@ -66,7 +66,8 @@ def _add_storage_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_dataclass_arguments(parser: argparse.ArgumentParser, options_class: type) -> None:
-    """One ``--flag`` per dataclass field, typed by its default, documented by its ``help`` metadata and default."""
+    """One ``--flag`` per dataclass field, typed by its default, documented by its ``help`` metadata and default; its
+    underscore spelling (``--nproc_per_node``, which torchrun takes too) is taken, unlisted."""
     hints = typing.get_type_hints(options_class)
     for field in dataclasses.fields(options_class):
         flag = "--" + field.name.replace("_", "-")
@@ -74,6 +75,9 @@ def _add_dataclass_arguments(parser: argparse.ArgumentParser, options_class: typ
         kind = kind if kind in (int, float) else str  # ``float | None``: a float, None where the help says why
         help_text = field.metadata["help"] + (" (default: %(default)s)" if field.default not in ("", None) else "")
         parser.add_argument(flag, dest=field.name, type=kind, default=field.default, help=help_text)
+        if "_" in field.name:
+            hidden = {"type": kind, "default": argparse.SUPPRESS, "help": argparse.SUPPRESS}
+            parser.add_argument("--" + field.name, dest=field.name, **hidden)
 
 
 def _config_keys_help() -> str:

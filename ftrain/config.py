@@ -313,9 +313,11 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
             ) from None
         if not isinstance(data, dict):
             raise UserError(f"config file {path!r} must hold a mapping of keys to values")
-    for item in overrides:
+    for before, item in zip(["", *overrides], overrides, strict=False):
         key, sep, raw = item.partition("=")
         if not sep or not key:
+            if "=[" in before and "]" not in before:  # key=[64, 64] unquoted: the shell made two words of it
+                raise UserError(f"override {before} {item} has a space: quote it as one word, '{before} {item}'")
             raise UserError(f"override {item!r} is not key=value: write it like env.num_envs=8")
         set_dotted(data, key.strip(), parse_value(raw))
     if storage is not None:

@@ -85,3 +85,16 @@ def test_train_help_lists_every_config_key_with_its_default() -> None:
     assert result.returncode == 0
     for line in ("--storage", "env.num_envs=16", "checkpoint.keep_last=3", "algorithm.clip_param=0.2", "resume='auto'"):
         assert line in result.stdout
+
+
+def test_torchruns_underscore_spellings_are_taken_and_a_split_list_override_says_to_quote_it() -> None:
+    from ftrain.cli import parse
+
+    args = parse(["supervise", "--nproc_per_node", "2", "--max_restarts", "5", "configs/smoke.yaml"])
+    assert (args.nproc_per_node, args.max_restarts) == (2, 5)
+    assert parse(["supervise", "configs/smoke.yaml"]).nproc_per_node == 1  # the unlisted spelling keeps the default
+    assert "--nproc_per_node" not in ftrain("supervise", "--help").stdout
+    split = ftrain("train", "configs/smoke.yaml", "policy.hidden_dims=[64,", "64]")
+    assert split.returncode == 2 and "Traceback" not in split.stderr
+    said = "override policy.hidden_dims=[64, 64] has a space: quote it as one word, 'policy.hidden_dims=[64, 64]'"
+    assert split.stderr == f"ftrain: error: {said}\n", split.stderr
