@@ -276,11 +276,11 @@ def _decide(
             )
         clear_newer(storage, 0, log)
         return {"kind": "fresh", "why": "resume=never: starting fresh"}
-    if resume != "auto" and (started := _from_url(config, storage, log, robot)) is not None:
+    found = select_resume(storage, log=log) if resume != "auto" else None
+    if resume != "auto" and (started := _from_url(config, storage, found, log, robot)) is not None:
         return started
-    found = None
     try:
-        if down is None:
+        if down is None and found is None:
             found = select_resume(storage, log=log)
     except StorageUnavailable as error:
         if spool is None:
@@ -315,13 +315,15 @@ def _decide(
     return _resume(step, manifest, url=None, where="this storage", committed=step)
 
 
-def _from_url(config: Config, storage: Storage, log: Callable[[str], None], robot: dict | None) -> dict | None:
+def _from_url(
+    config: Config, storage: Storage, found: tuple[int, dict] | None, log: Callable[[str], None], robot: dict | None
+) -> dict | None:
     """``resume=URL``: the start of this storage's history from that step (of another run's storage, or of this
     one). Its manifests name that step as their ``origin``; where this storage's history already goes on from it (the
     same command again: a restart, a rerun after an interruption), None: the run resumes as with ``resume=auto``, the
-    spool included. Another history already here is refused."""
+    spool included. Another history already here is refused. ``found``: this storage's newest step (``select_resume``).
+    """
     shown = display_url(config.resume)
-    found = select_resume(storage, log=log)
     origin = (found[1].get(ORIGIN) or {}) if found is not None else {}
     if found is None or origin.get("url") != shown:
         try:
