@@ -57,6 +57,9 @@ class PolicyConfig:
     rsl-rl's ``EmpiricalNormalization(until=...)``): inputs that stop shifting under a policy that still learns."""
     std_type: str = "scalar"
     """How the actor's learned action noise is parameterised: ``scalar`` (the std itself) or ``log`` (its log)."""
+    final_noise_std: float = 0.0
+    """A ceiling on the action noise that falls linearly from ``init_noise_std`` to this at
+    ``algorithm.schedule_iterations`` (0: none; ``ftrain.policy.noise_ceiling``)."""
 
 
 @dataclass
@@ -273,7 +276,7 @@ def training_part(data: dict) -> dict:
 
 KEYS_ADDED_LATER = ("policy.std_type", "policy.obs_clip", "algorithm.schedule_iterations")
 KEYS_ADDED_LATER += ("algorithm.reshuffle_each_epoch", "reward", "shared_memory_all_reduce", "split_update")
-KEYS_ADDED_LATER += ("env.total_envs", "policy.obs_normalization_until")
+KEYS_ADDED_LATER += ("env.total_envs", "policy.obs_normalization_until", "policy.final_noise_std")
 """Training keys newer than the first checkpoints: hashed only when not at their defaults, so older runs resume."""
 
 
@@ -403,6 +406,9 @@ def validate(config: Config) -> None:
         "policy.init_noise_std": (policy.init_noise_std, 0.0, math.inf, False, "a positive action noise, e.g. 1.0"),
         "policy.obs_clip": (policy.obs_clip, 0.0, math.inf, True, "0 (no clipping) or a positive bound, e.g. 10"),
     }
+    if policy.final_noise_std:  # 0: no ceiling
+        what = "0 (no ceiling) or up to policy.init_noise_std"
+        ranges["policy.final_noise_std"] = (policy.final_noise_std, 0.0, policy.init_noise_std, False, what)
     if algorithm.schedule == "adaptive":  # the rate's KL bound: unused by the other schedules
         ranges["algorithm.desired_kl"] = (algorithm.desired_kl, 0.0, math.inf, False, "a positive KL bound, e.g. 0.01")
     for key, (value, low, high, closed, what) in ranges.items():
@@ -443,6 +449,13 @@ def validate(config: Config) -> None:
         raise UserError("algorithm.class_name=Distillation needs a teacher: add teacher=<checkpoint URL>")
     if config.algorithm.schedule == "linear" and config.algorithm.schedule_iterations < 1:
         raise UserError("algorithm.schedule=linear needs algorithm.schedule_iterations=N: the rate is 0 at iteration N")
+    if config.policy.final_noise_std and config.algorithm.class_name != "PPO":
+        raise UserError("policy.final_noise_std is PPO's action noise: unset it for algorithm.class_name=Distillation")
+    if config.policy.final_noise_std and config.algorithm.schedule_iterations < 1:
+        raise UserError(
+            "policy.final_noise_std needs algorithm.schedule_iterations=N, the iteration where the noise's ceiling "
+            "reaches it: use algorithm.schedule=linear with it"
+        )
     if config.reward.clip <= 0:
         raise UserError(f"reward.clip={config.reward.clip} must be a positive number")
     if config.log.wandb.mode not in WANDB_MODES:

@@ -11,6 +11,8 @@ from ftrain.train.lr_schedule import horizon_notice
 
 from helpers import REPO, SMOKE
 
+LINEAR = ["algorithm.schedule=linear", "algorithm.schedule_iterations=8"]
+
 
 def test_overrides_are_typed_and_dotted() -> None:
     config = load_config(SMOKE, ["env.num_envs=8", "policy.hidden_dims=[32,32]", "algorithm.learning_rate=3e-4"])
@@ -71,6 +73,9 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
         (["algorithm.entropy_coef=-0.01"], "algorithm.entropy_coef=-0.01 is out of range"),
         (["policy.init_noise_std=-1"], "policy.init_noise_std=-1.0 is out of range: use a positive action noise"),
         (["policy.obs_clip=-1"], "policy.obs_clip=-1.0 is out of range"),
+        (["policy.final_noise_std=2", *LINEAR], "final_noise_std=2.0 is out of range: use 0 .* up to policy.init"),
+        (["policy.final_noise_std=0.2"], "policy.final_noise_std needs algorithm.schedule_iterations=N"),
+        (["policy.final_noise_std=0.2", *LINEAR, "algorithm.class_name=Distillation", "teacher=runs/t"], "PPO's"),
         (["algorithm.gamma=nan"], "algorithm.gamma=nan is out of range"),
     ],
 )

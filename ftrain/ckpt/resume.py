@@ -434,6 +434,6 @@ def _horizon_follows_length(saved: dict, config: Config) -> bool:
 
 
 def _models(policy: dict) -> dict:
-    """A config's ``policy`` as far as it decides the models' tensors (when the normalizers freeze does not: a change
-    of it is a config change, which ``allow_config_change`` lets through)."""
-    return {key: value for key, value in policy.items() if key != "obs_normalization_until"}
+    """A config's ``policy`` as far as it decides the models' tensors (when the normalizers freeze and where the action
+    noise ends do not: a change of them is a config change, which ``allow_config_change`` lets through)."""
+    return {key: value for key, value in policy.items() if key not in ("obs_normalization_until", "final_noise_std")}

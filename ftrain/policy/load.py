@@ -38,6 +38,7 @@ from ftrain.config import Config, config_from_dict
 from ftrain.errors import UserError
 from ftrain.policy import snapshots
 from ftrain.policy.model import OBS_GROUP, actor_actions, build_actor
+from ftrain.policy.noise_ceiling import build_noise_ceiling
 from ftrain.policy.robot import make_env
 
 METADATA = "ftrain.json"
@@ -89,7 +90,10 @@ def load_policy(url: str, options: dict | None = None, log: Callable[[str], None
         raise UserError(f"{url} does not verify ({exc}): pick another step") from None
     config = config_from_dict(manifest["config"])
     source = storage.where(step_dir(step))
-    return Policy(_actor(config, state), config, source, step, manifest, manifest["state_sha256"])
+    actor = _actor(config, state)
+    if (ceiling := build_noise_ceiling(config)) is not None:  # --stochastic samples with the noise of its step
+        ceiling.apply(actor.distribution, step)
+    return Policy(actor, config, source, step, manifest, manifest["state_sha256"])
 
 
 def _refuse_packed(where: str, manifest: dict) -> None:

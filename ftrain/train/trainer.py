@@ -30,6 +30,7 @@ from ftrain.config import Config, for_world
 from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, stop_code
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter, read_stop_reason
 from ftrain.policy.model import action_std
+from ftrain.policy.noise_ceiling import build_noise_ceiling
 from ftrain.policy.robot import unsaved_state_notice
 from ftrain.train import topology
 from ftrain.train.envs import MujocoVecEnv, take_rows
@@ -93,6 +94,7 @@ class Trainer:
         self.run_description = topology.announce(config, info, self.comm, self.log)  # one line
         self.reward_norm = build_reward_normalizer(config, self.comm)
         self.lr_schedule = build_lr_schedule(config.algorithm)
+        self.noise_ceiling = build_noise_ceiling(config)
         if notice := horizon_notice(config.algorithm, config.iterations):
             self.log(notice)
         if hasattr(self.alg, "teacher_identity"):  # which teacher a distillation learns from, at once
@@ -264,6 +266,8 @@ class Trainer:
     def _iterate(self) -> None:
         start = time.perf_counter()
         self.heartbeat.beat("rollout", self.iteration)
+        if self.noise_ceiling is not None:  # before the rollout: its noise is the update's
+            self.noise_ceiling.apply(self.alg.get_policy().distribution, self.iteration)
         self._collect()
         if self.reward_norm is not None:
             with self.phases("sync_rewards"):  # an all-reduce of the returns' moments: where the ranks first meet

@@ -82,6 +82,7 @@ def test_killed_anywhere_resumes_bit_for_bit(tmp_path, env_id: str, ranks: int) 
     overrides = [f"env.id={env_id}", "iterations=10", "checkpoint.interval=2", "env.num_envs=8", "num_steps_per_env=32"]
     overrides += ["reward.normalize=true", "policy.std_type=log", "algorithm.reshuffle_each_epoch=true"]
     overrides += ["algorithm.schedule=linear", "algorithm.schedule_iterations=12"]  # as the shipped configs train
+    overrides += ["policy.final_noise_std=0.2"]  # the noise's ceiling, a function of the iteration, set on resume too
     said = run_train(tmp_path / "reference", *overrides, ranks=ranks).stdout
     assert said.count("algorithm.schedule_iterations=12 but iterations=10") == 1, said  # rank 0 says it, once
     reference = final_manifest(tmp_path / "reference")
