@@ -155,6 +155,16 @@ def test_total_envs_are_shared_evenly_by_the_ranks_or_refused_in_one_line() -> N
         for_world(config, 5)
 
 
+def test_supervise_refuses_total_envs_its_world_cannot_share_before_it_launches_anything(tmp_path) -> None:
+    storage = tmp_path / "run"
+    args = ["supervise", "--nproc-per-node", "2", SMOKE, "--storage", str(storage), "env.total_envs=5"]
+    result = subprocess.run([sys.executable, "-m", "ftrain", *args], cwd=tmp_path, capture_output=True, text=True)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    refused = "env.total_envs=5 cannot be shared evenly by 2 ranks: use a multiple of 2, or a number of ranks that"
+    assert result.stderr == f"ftrain: error: {refused} divides 5\n"
+    assert not storage.exists() and list(tmp_path.iterdir()) == []  # no storage, no log directory
+
+
 def test_a_storage_or_log_dir_that_is_a_file_is_one_line_exit_2_and_the_file_is_left_alone(tmp_path) -> None:
     file = tmp_path / "notes.txt"
     file.write_text("not a directory")
