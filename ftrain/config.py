@@ -316,6 +316,11 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
             ) from None
         if not isinstance(data, dict):
             raise UserError(f"config file {path!r} must hold a mapping of keys to values")
+        if not data and not overrides:  # a file saved empty would train the defaults, whatever it was meant to hold
+            raise UserError(
+                f"config file {path!r} is empty: give it keys (configs/smoke.yaml shows them), or pass key=value "
+                "overrides to train the defaults with them"
+            )
     for before, item in zip(["", *overrides], overrides, strict=False):
         key, sep, raw = item.partition("=")
         if not sep or not key:

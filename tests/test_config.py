@@ -115,6 +115,14 @@ def test_cli_bad_input_is_one_line_exit_2(args: list[str], message: str) -> None
     assert "Traceback" not in result.stderr
 
 
+def test_an_empty_config_file_is_refused_unless_overrides_say_what_to_train(tmp_path) -> None:
+    empty = tmp_path / "empty.yaml"
+    empty.write_text("# to be filled in\n")
+    with pytest.raises(UserError, match=r"^config file '.*empty.yaml' is empty: give it keys \(configs/smoke.yaml"):
+        load_config(str(empty))
+    assert load_config(str(empty), ["env.id=Hopper-v5"]).env.id == "Hopper-v5"  # the defaults, as asked
+
+
 def test_a_yaml_error_names_the_file_the_line_the_column_and_the_problem(tmp_path) -> None:
     config = tmp_path / "broken.yaml"
     config.write_text("env:\n  num_envs: [4, 8\nseed: 1\n")
