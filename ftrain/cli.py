@@ -306,10 +306,12 @@ def _dispatch(args: argparse.Namespace) -> int:
         name_process(rank_role("worker"), config.name)
         watch_supervisor()
         with imports():
+            from ftrain.config import make_local_directories
             from ftrain.policy.robot import make_env
             from ftrain.train.trainer import train
 
         make_env(config.env).close()  # the user's module, id, model and spaces: refused here, before any rendezvous
+        make_local_directories(config)
 
         return train(config)
     if args.command == "supervise":

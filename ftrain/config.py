@@ -354,6 +354,24 @@ def config_from_dict(data: dict) -> Config:
     return build(Config, data, prefix="")
 
 
+def local_directories(config: Config) -> dict[str, str]:
+    """The directories of this machine that a run writes: the storage where it is local, and the log directory."""
+    local = config.storage.url.removeprefix("file://")
+    directories = {"storage": local if "://" not in local else "", "log_dir": config.log_dir}
+    return {what: path for what, path in directories.items() if path}
+
+
+def make_local_directories(config: Config) -> None:
+    """The run's local directories, made once its config and env passed their checks: one that cannot be made (a
+    read-only mount, /proc) is one line here, not a traceback from the first write."""
+    for what, path in local_directories(config).items():
+        try:
+            os.makedirs(path, exist_ok=True)
+        except OSError as error:
+            fix = "pass a directory you can write"
+            raise UserError(f"{what} {path} cannot be made ({error.strerror}): {fix}") from None
+
+
 def blocking_file(path: str) -> str | None:
     """The file that keeps ``path`` from being a directory: ``path`` itself, or the nearest part of it that exists,
     where that is not a directory; None if ``path`` is a directory or can be made one."""
@@ -442,10 +460,8 @@ def validate(config: Config) -> None:
     parse_amount("checkpoint.max_unsaved", config.checkpoint.max_unsaved)
     if not 0 < config.checkpoint.max_overhead < 1:
         raise UserError(f"checkpoint.max_overhead={config.checkpoint.max_overhead} must be a fraction between 0 and 1")
-    local = config.storage.url.removeprefix("file://")
-    directories = {"storage": local if "://" not in local else None, "log_dir": config.log_dir}
-    for what, path in directories.items():
-        if path and (file := blocking_file(path)) is not None:
+    for what, path in local_directories(config).items():
+        if (file := blocking_file(path)) is not None:
             named = "" if file == os.path.abspath(path) else f" ({file} is a file)"
             raise UserError(f"{what} {path} is not a directory{named}: pass a directory path (made if missing)")
     if config.dist_timeout <= 0:

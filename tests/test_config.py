@@ -163,6 +163,22 @@ def test_total_envs_are_shared_evenly_by_the_ranks_or_refused_in_one_line() -> N
         for_world(config, 5)
 
 
+def test_a_storage_or_log_dir_that_cannot_be_made_is_one_line_exit_2(tmp_path) -> None:
+    cases = [  # /proc takes no new directories, whoever asks (a read-only mount answers alike, with its own reason)
+        (["train", SMOKE, "--storage", "/proc/ftrain-run"], "storage /proc/ftrain-run cannot be made (No such file"),
+        (["supervise", SMOKE, "--storage", "/proc/ftrain-run"], "storage /proc/ftrain-run cannot be made"),
+        (
+            ["train", SMOKE, "--storage", str(tmp_path / "run"), "log_dir=/proc/ftrain-logs"],
+            "log_dir /proc/ftrain-logs",
+        ),
+    ]
+    for args, message in cases:
+        result = subprocess.run([sys.executable, "-m", "ftrain", *args], cwd=REPO, capture_output=True, text=True)
+        assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+        assert result.stderr.count("\n") == 1 and message in result.stderr, result.stderr
+        assert result.stderr.endswith("): pass a directory you can write\n"), result.stderr
+
+
 def test_supervise_refuses_total_envs_its_world_cannot_share_before_it_launches_anything(tmp_path) -> None:
     storage = tmp_path / "run"
     args = ["supervise", "--nproc-per-node", "2", SMOKE, "--storage", str(storage), "env.total_envs=5"]

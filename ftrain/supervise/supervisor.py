@@ -27,7 +27,7 @@ from ftrain import procfs
 from ftrain.ckpt import cas
 from ftrain.ckpt.lease import Lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
-from ftrain.config import Config, for_world
+from ftrain.config import Config, for_world, make_local_directories
 from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.redact import hide_credentials, redact_command
@@ -68,6 +68,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     nodes = parse_nodes(options)
     if not nodes.elastic:  # env.total_envs shared by this world's ranks: refused here, not by every worker
         for_world(config, nodes.count * options.nproc_per_node)
+    make_local_directories(config)
     try:
         supervisor = Supervisor(options, nodes, hang_timeout, train_args, config)
     except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
