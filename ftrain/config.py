@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import errno
 import hashlib
 import importlib.util
 import json
@@ -363,13 +364,19 @@ def local_directories(config: Config) -> dict[str, str]:
 
 def make_local_directories(config: Config) -> None:
     """The run's local directories, made once its config and env passed their checks: one that cannot be made (a
-    read-only mount, /proc) is one line here, not a traceback from the first write."""
+    read-only mount, /proc, no permission) is one line here, not a traceback from the first write. A mount that fails
+    otherwise (EIO, a stale handle) is an outage, which the storage's own calls wait out."""
     for what, path in local_directories(config).items():
         try:
             os.makedirs(path, exist_ok=True)
         except OSError as error:
-            fix = "pass a directory you can write"
-            raise UserError(f"{what} {path} cannot be made ({error.strerror}): {fix}") from None
+            if error.errno in CANNOT_BE_MADE:
+                fix = "pass a directory you can write"
+                raise UserError(f"{what} {path} cannot be made ({error.strerror}): {fix}") from None
+
+
+CANNOT_BE_MADE = (errno.ENOENT, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOTDIR)
+"""What ``mkdir`` answers for a path that will never be made as it is: the user's to fix, not an outage."""
 
 
 def blocking_file(path: str) -> str | None:

@@ -28,7 +28,7 @@ from ftrain.ckpt import cas
 from ftrain.ckpt.lease import Lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config, for_world, make_local_directories
-from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, stop_code
+from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, UserError, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, Launcher, attempt_env, kill, new_log_dir, signal_name
@@ -68,7 +68,6 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     nodes = parse_nodes(options)
     if not nodes.elastic:  # env.total_envs shared by this world's ranks: refused here, not by every worker
         for_world(config, nodes.count * options.nproc_per_node)
-    make_local_directories(config)
     try:
         supervisor = Supervisor(options, nodes, hang_timeout, train_args, config)
     except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
@@ -118,6 +117,11 @@ class Supervisor:
         self.events = EventLog(log_dir / "events.jsonl", None)
         self.link = connect(nodes, options, self.events)
         self.node = self.link.node
+        try:
+            make_local_directories(config)  # once this node's options passed too, before its logs go there
+        except UserError:
+            self.link.close()
+            raise
         self.events.node = self.node if nodes.count > 1 else None
         node_dir = f"node-{self.node}" if nodes.count > 1 else ""
         self.heartbeat_dir = (log_dir / "heartbeat" / node_dir).resolve()
