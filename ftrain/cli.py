@@ -305,8 +305,9 @@ def _dispatch(args: argparse.Namespace) -> int:
         config = _run_config(args)
         name_process(rank_role("worker"), config.name)
         watch_supervisor()
+        from ftrain.config import make_local_directories
+
         with imports():
-            from ftrain.config import make_local_directories
             from ftrain.policy.robot import make_env
             from ftrain.train.trainer import train
 
