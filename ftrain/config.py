@@ -362,6 +362,10 @@ def local_directories(config: Config) -> dict[str, str]:
     return {what: path for what, path in directories.items() if path}
 
 
+CANNOT_BE_MADE = (errno.ENOENT, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOTDIR)
+"""What ``mkdir`` answers for a path that will never be made as it is: the user's to fix, not an outage."""
+
+
 def make_local_directories(config: Config) -> None:
     """The run's local directories, made once its config and env passed their checks: one that cannot be made (a
     read-only mount, /proc, no permission) is one line here, not a traceback from the first write. A mount that fails
@@ -373,10 +377,6 @@ def make_local_directories(config: Config) -> None:
             if error.errno in CANNOT_BE_MADE:
                 fix = "pass a directory you can write"
                 raise UserError(f"{what} {path} cannot be made ({error.strerror}): {fix}") from None
-
-
-CANNOT_BE_MADE = (errno.ENOENT, errno.EROFS, errno.EACCES, errno.EPERM, errno.ENOTDIR)
-"""What ``mkdir`` answers for a path that will never be made as it is: the user's to fix, not an outage."""
 
 
 def blocking_file(path: str) -> str | None:
