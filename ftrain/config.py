@@ -355,10 +355,19 @@ def config_from_dict(data: dict) -> Config:
     return build(Config, data, prefix="")
 
 
+LOCAL_PROTOCOLS = ("file://", "local://")
+"""fsspec's names of this machine's file system."""
+
+
+def local_path(url: str) -> str:
+    """The path of a storage on this machine's file system (a plain path, ``file://`` or ``local://``), else ""."""
+    path = next((url.removeprefix(protocol) for protocol in LOCAL_PROTOCOLS if url.startswith(protocol)), url)
+    return path if "://" not in path else ""
+
+
 def local_directories(config: Config) -> dict[str, str]:
     """The directories of this machine that a run writes: the storage where it is local, and the log directory."""
-    local = config.storage.url.removeprefix("file://")
-    directories = {"storage": local if "://" not in local else "", "log_dir": config.log_dir}
+    directories = {"storage": local_path(config.storage.url), "log_dir": config.log_dir}
     return {what: path for what, path in directories.items() if path}
 
 
@@ -391,12 +400,16 @@ def blocking_file(path: str) -> str | None:
 def default_log_dir(storage_url: str, name: str) -> str:
     """Logs go next to the checkpoints when storage is local, else to ``runs/<name>/<the storage>`` on this machine
     (``s3://bkt/exp1`` -> ``runs/exp/s3/bkt/exp1``): two runs of one config on two storages keep their logs apart."""
-    shown = display_url(storage_url).removeprefix("file://").partition("?")[0]  # a SAS token's query rotates
-    if "://" not in shown:
-        return shown
+    if local := local_path(storage_url):
+        return local
+    shown = display_url(storage_url).partition("?")[0]  # a SAS token's query rotates
     protocol, _, where = shown.partition("://")
     parts = [part for part in where.split("/") if part not in ("", ".", "..")]
     return "/".join(["runs", name, protocol, *parts])
+
+
+SEEDS = 2**32
+"""How many seeds numpy and gymnasium take: 0 to 2**32 - 1."""
 
 
 def validate(config: Config) -> None:
@@ -424,6 +437,14 @@ def validate(config: Config) -> None:
     for key, (value, minimum) in minimums.items():
         if value < minimum:
             raise UserError(f"{key}={value} must be {'at least 1' if minimum else '0 or more'}")
+    for key, first, count in (("seed", config.seed, 1), ("eval.seed", config.eval.seed, config.eval.episodes)):
+        if not 0 <= first <= SEEDS - count:  # the seeds of numpy and gymnasium; evaluation uses ``count`` of them
+            raise UserError(f"{key}={first} is out of range: use a seed from 0 to {SEEDS - count}")
+    if not config.policy.hidden_dims or min(config.policy.hidden_dims) < 1:
+        raise UserError(
+            f"policy.hidden_dims={config.policy.hidden_dims} must list one or more layer widths of at least 1, "
+            "e.g. [256, 256]"
+        )
     algorithm, policy = config.algorithm, config.policy
     ranges = {  # key: (value, low, high, whether low itself is allowed, what the range is)
         "algorithm.gamma": (algorithm.gamma, 0.0, 1.0, True, "a discount between 0 and 1"),

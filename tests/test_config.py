@@ -5,7 +5,7 @@ import sys
 
 import pytest
 
-from ftrain.config import for_world, load_config
+from ftrain.config import for_world, load_config, local_directories
 from ftrain.errors import UserError
 from ftrain.train.lr_schedule import horizon_notice
 
@@ -28,7 +28,12 @@ def test_storage_decides_log_dir() -> None:
     assert load_config(SMOKE, [], storage="s3://bucket/runs/x").log_dir == "runs/smoke/s3/bucket/runs/x"
     secret = load_config(SMOKE, [], storage="s3://AKIA1:S3CR3T@bucket/exp1/").log_dir
     assert secret == "runs/smoke/s3/bucket/exp1"  # two storages, two directories; no credential in a path
-    assert load_config(SMOKE, [], storage="file:///tmp/x").log_dir == "/tmp/x"
+    for spelling in ("/tmp/x", "file:///tmp/x", "local:///tmp/x"):  # one storage, one log directory: its own
+        assert load_config(SMOKE, [], storage=spelling).log_dir == "/tmp/x", spelling
+    assert local_directories(load_config(SMOKE, [], storage="local:///tmp/x")) == {
+        "storage": "/tmp/x",
+        "log_dir": "/tmp/x",
+    }
     sas = "abfs://box@acct.dfs.core.windows.net/x?sv=1&se=2026-12-01&sig=S"  # a SAS token rotates: not in the path
     assert load_config(SMOKE, [], storage=sas).log_dir == "runs/smoke/abfs/box@acct.dfs.core.windows.net/x"
     assert load_config(SMOKE, ["log_dir=elsewhere"], storage="s3://b/x").log_dir == "elsewhere"
@@ -77,6 +82,15 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
         (["policy.final_noise_std=0.2"], "policy.final_noise_std needs algorithm.schedule_iterations=N"),
         (["policy.final_noise_std=0.2", *LINEAR, "algorithm.class_name=Distillation", "teacher=runs/t"], "PPO's"),
         (["algorithm.gamma=nan"], "algorithm.gamma=nan is out of range"),
+        (["seed=-1"], "seed=-1 is out of range: use a seed from 0 to 4294967295"),
+        (["seed=4294967296"], "seed=4294967296 is out of range"),
+        (
+            ["eval.seed=4294967295", "eval.episodes=2"],
+            "eval.seed=4294967295 is out of range: use a seed from 0 to 4294967294",
+        ),
+        (["policy.hidden_dims=[]"], r"policy.hidden_dims=\[\] must list one or more layer widths of at least 1"),
+        (["policy.hidden_dims=[64, 0]"], r"policy.hidden_dims=\[64, 0\] must list"),
+        (["policy.hidden_dims=[-5]"], r"policy.hidden_dims=\[-5\] must list"),
     ],
 )
 def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> None:
@@ -102,6 +116,7 @@ def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> 
         ([SMOKE, "iterations=ten"], "iterations='ten' must be an integer"),
         ([SMOKE, "env.num_envs=0"], "env.num_envs=0 must be at least 1"),
         ([SMOKE, "algorithm.learning_rate=-1"], "algorithm.learning_rate=-1.0 is out of range: use a positive rate"),
+        ([SMOKE, "seed=-1"], "seed=-1 is out of range"),
     ],
 )
 def test_cli_bad_input_is_one_line_exit_2(args: list[str], message: str) -> None:
