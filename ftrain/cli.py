@@ -386,11 +386,13 @@ def _dispatch(args: argparse.Namespace) -> int:
 def _run_config(args: argparse.Namespace) -> Config:
     """The config of ``train`` and ``supervise``, validated before anything starts: its env id too, against
     gymnasium's registry (not in ``config.py``, which the supervisor imports and which stays free of gymnasium)."""
+    from ftrain.ckpt.steps import check_storage_place
     from ftrain.config import load_config
     from ftrain.train.env_ids import check_env_id
 
     config = load_config(args.config, args.overrides, args.storage)
     check_env_id(config.env)
+    check_storage_place(config.storage.url)
     return config
 
 

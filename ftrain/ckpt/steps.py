@@ -36,9 +36,25 @@ from ftrain.ckpt.lineage import History, generation, history
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
+from ftrain.redact import display_url
 
 ASIDE = "quarantine"
 """Where corrupt and quarantined steps go when a run needs their step number again (see :func:`set_aside`)."""
+
+
+def check_storage_place(url: str) -> None:
+    """UserError if ``url`` is or lies inside a step directory of a storage (``<run>/checkpoints/step-N``, or one set
+    aside under ``quarantine/``): that run's retention and clean-up would delete what a run there writes."""
+    shown = display_url(url)
+    parts = shown.partition("?")[0].rstrip("/").split("/")
+    for index in range(1, len(parts)):
+        if STEP_DIR.match(parts[index]) and parts[index - 1] in (CHECKPOINTS, ASIDE):
+            step = "/".join(parts[: index + 1])
+            resume = f" (to train on from that step: resume={step})" if parts[index - 1] == CHECKPOINTS else ""
+            raise UserError(
+                f"storage {shown} is inside {step}, a checkpoint step of another run's storage, which that run may "
+                f"delete: pass a directory of its own{resume}"
+            )
 
 
 def scan(storage: Storage, full: bool = False) -> list[StepInfo]:

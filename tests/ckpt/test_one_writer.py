@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import re
+import subprocess
 
 import pytest
 import torch
@@ -17,7 +18,16 @@ from ftrain.ckpt.format import commit, encode, step_dir, write_file
 from ftrain.ckpt.lease import Lease, LeaseLost
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.save import Result, StepWriter
-from ftrain.ckpt.steps import ASIDE, clear_newer, quarantine, scan, select_resume, set_aside, superseded_reason
+from ftrain.ckpt.steps import (
+    ASIDE,
+    check_storage_place,
+    clear_newer,
+    quarantine,
+    scan,
+    select_resume,
+    set_aside,
+    superseded_reason,
+)
 from ftrain.ckpt.storage import Storage
 from ftrain.comm.group import RankInfo
 from ftrain.config import CheckpointConfig
@@ -26,7 +36,7 @@ from ftrain.identity import ATTEMPT_ENV, GENERATION_ENV, RUN_ID_ENV, Identity
 from ftrain.policy.snapshots import PoliciesView
 from ftrain.policy.snapshots import prune as prune_snapshots
 
-from helpers import make_step
+from helpers import child_env, make_step, supervise_command, train_command
 
 
 @pytest.fixture(params=["local", "s3"])
@@ -197,3 +207,41 @@ def test_a_lease_record_deleted_by_hand_starts_after_the_newest_generation_that_
     assert after.generation == 4
     save(storage, monkeypatch, Identity("run-d", 4), 20, {"step": 10, "state_sha256": None})
     assert lineage.history(scan(storage)).line == [20, 10]
+
+
+INSIDE_A_STEP = [
+    ("{run}/checkpoints/step-000000004", "{run}/checkpoints/step-000000004", True),
+    ("{run}/checkpoints/step-000000004/sub/", "{run}/checkpoints/step-000000004", True),
+    ("file://{run}/checkpoints/step-000000004", "file://{run}/checkpoints/step-000000004", True),
+    ("{run}/quarantine/step-000000004/x", "{run}/quarantine/step-000000004", False),
+    ("s3://bucket/exp/checkpoints/step-7", "s3://bucket/exp/checkpoints/step-7", True),
+]
+
+
+@pytest.mark.parametrize(("url", "step", "resumable"), INSIDE_A_STEP)
+def test_a_storage_inside_a_step_of_another_storage_is_refused(tmp_path, url, step, resumable) -> None:
+    """That run's retention and clean-up would delete what a run there writes, while it reports success."""
+    run = tmp_path / "run"
+    with pytest.raises(UserError) as refused:
+        check_storage_place(url.format(run=run))
+    line = str(refused.value)
+    assert line.startswith(f"storage {url.format(run=run)} is inside {step.format(run=run)}, "), line
+    assert ("resume=" in line) == resumable, line
+    for own in (run, f"{run}/checkpoints", f"{run}/steps/step-000000004", "s3://bucket/checkpoints/run"):
+        check_storage_place(str(own))  # a directory named checkpoints, or a step of nothing, is a storage's own
+
+
+@pytest.mark.parametrize("command", [train_command, supervise_command])
+def test_train_and_supervise_refuse_a_storage_inside_a_step_before_they_touch_it(tmp_path, command) -> None:
+    run = Storage.open(str(tmp_path / "run"))
+    make_step(run, 4)
+    inside = tmp_path / "run" / "checkpoints" / "step-000000004"
+    before = sorted(path.name for path in inside.iterdir())
+    result = subprocess.run(command(inside), cwd=tmp_path, env=child_env(), capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        f"ftrain: error: storage {inside} is inside {inside}, a checkpoint step of another run's storage, which that "
+        f"run may delete: pass a directory of its own (to train on from that step: resume={inside})"
+    ], result.stderr
+    assert sorted(path.name for path in inside.iterdir()) == before
+    assert [info.status for info in scan(run, full=True)] == ["verified"]
