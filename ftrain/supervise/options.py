@@ -6,6 +6,7 @@ Exit codes: ``EXIT_CODES`` (``ftrain supervise --help`` lists them; so does docs
 from __future__ import annotations
 
 import enum
+import math
 import os
 import re
 from dataclasses import dataclass, field
@@ -150,6 +151,31 @@ class SupervisorOptions:
         },
     )
 
+    def __post_init__(self) -> None:
+        """Every numeric option in its range, refused in one line as the options are built, before anything starts;
+        ``--node-rank`` against ``--nnodes``: ``parse_nodes``."""
+        parse_hang_timeout(self.hang_timeout)
+        inf = math.inf
+        ranges = {  # option: (low, high, whether low itself is allowed, what to use)
+            "nproc_per_node": (1, inf, True, "1 or more worker processes"),
+            "node_rank": (0, inf, True, "0 to --nnodes minus 1"),
+            "rdzv_timeout": (0, inf, False, "a positive number of seconds, e.g. 600"),
+            "rejoin_timeout": (0, inf, True, "0 or more seconds, e.g. 30"),
+            "max_restarts": (0, inf, True, "0 (never restart) or more, e.g. 10"),
+            "startup_grace": (0, inf, False, "a positive number of seconds, e.g. 300"),
+            "backoff_max": (0, inf, True, "0 or more seconds, e.g. 60"),
+            "backoff_initial": (0, self.backoff_max, True, f"0 to --backoff-max ({self.backoff_max}) seconds"),
+            "crash_loop": (0, inf, True, "0 (never stop for a crash loop) or more restarts, e.g. 3"),
+            "storage_wait": (0, inf, True, "0 (do not wait) or more seconds, e.g. 3600"),
+            "stop_grace": (0, inf, False, "a positive number of seconds, e.g. 30"),
+        }
+        for name, (low, high, closed, what) in ranges.items():
+            value = getattr(self, name)
+            if value is None:  # --storage-wait's default (outage.WAITS)
+                continue
+            if not math.isfinite(value) or not (low <= value <= high if closed else low < value <= high):
+                raise UserError(f"--{name.replace('_', '-')}={value} is out of range: use {what}")
+
 
 class Workers(enum.StrEnum):
     """How an attempt's workers start: forked from the node's warm pool, or as fresh processes."""
@@ -230,25 +256,24 @@ class Nodes:
 def parse_nodes(options: SupervisorOptions) -> Nodes:
     least, _, most = options.nnodes.partition(":")
     most = most or least
-    if not (least.isdigit() and most.isdigit() and 1 <= int(least) <= int(most)):
+    if not (least.isdecimal() and most.isdecimal() and 1 <= int(least) <= int(most)):
         raise UserError(f"--nnodes={options.nnodes!r} must be a number of nodes N, or MIN:MAX with 1 <= MIN <= MAX")
     least, nnodes = int(least), int(most)
-    if options.nproc_per_node < 1:
-        raise UserError(f"--nproc-per-node={options.nproc_per_node} must be at least 1")
-    if not options.rejoin_timeout >= 0:
-        raise UserError(f"--rejoin-timeout={options.rejoin_timeout} must be a number of seconds, 0 or more")
     backends = {backend.value: backend for backend in Backend}
     if options.rdzv_backend not in backends:
         raise UserError(f"--rdzv-backend={options.rdzv_backend!r} must be one of {', '.join(backends)}")
     backend = backends[options.rdzv_backend]
     if backend is Backend.C10D and options.rdzv_conf:
         raise UserError("--rdzv-conf is for --rdzv-backend etcd-v2 (c10d takes no connection settings): drop it")
+    if (nnodes == 1 or backend is Backend.C10D) and options.node_rank >= nnodes:  # etcd-v2's nodes: not used
+        ranks = "0 on one node" if nnodes == 1 else f"0 to {nnodes - 1}, one per node"
+        raise UserError(f"--node-rank={options.node_rank} is out of range for --nnodes={options.nnodes}: use {ranks}")
     if nnodes == 1:
         return Nodes(1)
     host, _, port = options.rdzv_endpoint.rpartition(":")
-    if not host or not port.isdigit():
+    if not host or not (port.isdecimal() and 0 < int(port) < 65536):
         where = "etcd's client address" if backend is Backend.ETCD else "node 0's address and a free port"
-        raise UserError(f"several nodes need --rdzv-endpoint=HOST:PORT, {where}")
+        raise UserError(f"several nodes need --rdzv-endpoint=HOST:PORT (PORT 1 to 65535), {where}")
     interface = interface_of(options.local_addr) if options.local_addr else ""
     if backend is Backend.ETCD:
         if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", options.rdzv_id):
@@ -257,8 +282,6 @@ def parse_nodes(options: SupervisorOptions) -> Nodes:
         return Nodes(
             nnodes, least, (host, int(port)), backend=backend, run_id=options.rdzv_id, conf=conf, interface=interface
         )
-    if not 0 <= options.node_rank < nnodes:
-        raise UserError(f"--node-rank={options.node_rank} must be between 0 and {nnodes - 1}")
     return Nodes(
         nnodes, least, (host, int(port)), load_secret(options.rdzv_secret_file, os.environ), interface=interface
     )
@@ -278,7 +301,7 @@ def parse_etcd_conf(text: str) -> tuple[tuple[str, str], ...]:
             )
         if allowed is Path and not Path(value).is_file():
             raise UserError(f"--rdzv-conf: {key}={value!r} must name a readable file (a PEM certificate or key)")
-        if allowed is int and not (value.isdigit() and int(value) > 0):
+        if allowed is int and not (value.isdecimal() and int(value) > 0):
             raise UserError(f"--rdzv-conf: {key}={value!r} must be a positive number of seconds")
         if isinstance(allowed, tuple) and value not in allowed:
             raise UserError(f"--rdzv-conf: {key}={value!r} must be one of {', '.join(allowed)}")

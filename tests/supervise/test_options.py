@@ -1,0 +1,128 @@
+"""``ftrain supervise``'s numeric options: a value outside its range is refused in one line that names the option, the
+value and what to use, before anything starts (``SupervisorOptions`` as it is built, ``parse_nodes`` for the nodes)."""
+
+from __future__ import annotations
+
+import math
+import typing
+from dataclasses import fields
+
+import pytest
+
+from ftrain.cli import main
+from ftrain.errors import EXIT_USAGE, UserError
+from ftrain.supervise.auth import SECRET_ENV
+from ftrain.supervise.options import Nodes, SupervisorOptions, parse_nodes
+
+TINY = 0.001
+EDGES = [  # option, a value just outside its range, a value at its edge
+    ("nproc_per_node", 0, 1),
+    ("nnodes", "0", "1"),
+    ("node_rank", -1, 0),
+    ("rdzv_timeout", 0.0, TINY),
+    ("rejoin_timeout", -TINY, 0.0),
+    ("max_restarts", -1, 0),  # 0: never restart
+    ("hang_timeout", "0", str(TINY)),
+    ("startup_grace", 0.0, TINY),
+    ("backoff_initial", -TINY, 0.0),  # 0: restart at once
+    ("backoff_initial", 60 + TINY, 60.0),  # at most --backoff-max (60)
+    ("backoff_max", -TINY, 0.0),
+    ("crash_loop", -1, 0),  # 0: never stop for a crash loop
+    ("storage_wait", -TINY, 0.0),  # 0: do not wait
+    ("stop_grace", 0.0, TINY),
+]
+OTHERS = {"backoff_max": {"backoff_initial": 0.0}}
+"""What else an option's edge needs: ``--backoff-initial`` at most ``--backoff-max``."""
+ETCD = {"rdzv_backend": "etcd-v2", "rdzv_endpoint": "127.0.0.1:2379", "rdzv_id": "run"}
+C10D = {"rdzv_endpoint": "127.0.0.1:29400"}
+HINTS = typing.get_type_hints(SupervisorOptions)
+
+
+def kinds(name: str) -> set[object]:
+    """An option's types: ``float | None`` is a float."""
+    return {HINTS[name], *typing.get_args(HINTS[name])}
+
+
+NUMERIC = [f.name for f in fields(SupervisorOptions) if {int, float} & kinds(f.name)]
+
+
+def check(**values: object) -> Nodes:
+    """What ``ftrain supervise`` does with its options before it launches anything: builds them, parses the nodes."""
+    return parse_nodes(SupervisorOptions(**values))
+
+
+def flag(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def test_every_numeric_option_has_its_edges_here() -> None:
+    assert {name for name, _, _ in EDGES} == {*NUMERIC, "nnodes", "hang_timeout"}  # the last two: strings
+
+
+@pytest.mark.parametrize(("name", "refused", "accepted"), EDGES)
+def test_a_value_just_outside_its_range_is_refused_in_one_line_naming_it(name, refused, accepted) -> None:
+    with pytest.raises(UserError) as error:
+        check(**{**OTHERS.get(name, {}), name: refused})
+    line = str(error.value)
+    assert line.startswith(f"{flag(name)}=") and str(refused) in line and "\n" not in line, line
+
+
+@pytest.mark.parametrize(("name", "refused", "accepted"), EDGES)
+def test_a_value_at_the_edge_of_its_range_is_taken(name, refused, accepted) -> None:
+    check(**{**OTHERS.get(name, {}), name: accepted})
+
+
+@pytest.mark.parametrize("value", [math.nan, math.inf, -math.inf])
+@pytest.mark.parametrize("name", [name for name in NUMERIC if float in kinds(name)])
+def test_a_float_option_must_be_finite(name, value) -> None:
+    with pytest.raises(UserError, match=f"^{flag(name)}={value} is out of range: use "):
+        check(**{name: value})
+
+
+def test_the_backoff_may_not_start_above_its_most() -> None:
+    with pytest.raises(UserError, match=r"^--backoff-initial=10 is out of range: use 0 to --backoff-max \(5.0\)"):
+        check(backoff_initial=10, backoff_max=5.0)
+
+
+@pytest.mark.parametrize(
+    ("nnodes", "rank", "backend", "taken"),
+    [
+        ("1", 0, C10D, True),
+        ("1", 1, C10D, False),
+        ("1", 1, ETCD, False),  # one node is node 0, whatever the backend
+        ("3", 2, C10D, True),
+        ("3", 3, C10D, False),
+        ("2:3", 2, C10D, True),  # elastic: below MAX
+        ("2:3", 3, C10D, False),
+        ("3", 5, ETCD, True),  # etcd-v2's nodes: not used
+    ],
+)
+def test_node_rank_is_below_nnodes(monkeypatch, nnodes, rank, backend, taken) -> None:
+    monkeypatch.setenv(SECRET_ENV, "a-secret-of-sixteen-or-more")
+    if taken:
+        check(nnodes=nnodes, node_rank=rank, **backend)
+        return
+    with pytest.raises(UserError, match=f"^--node-rank={rank} is out of range for --nnodes={nnodes}: use 0 "):
+        check(nnodes=nnodes, node_rank=rank, **backend)
+
+
+@pytest.mark.parametrize(
+    ("port", "taken"), [("0", False), ("65536", False), ("²", False), ("1", True), ("65535", True)]
+)
+def test_the_rendezvous_port_is_a_port(monkeypatch, port, taken) -> None:
+    monkeypatch.setenv(SECRET_ENV, "a-secret-of-sixteen-or-more")
+    if taken:
+        assert check(nnodes="2", rdzv_endpoint=f"127.0.0.1:{port}").endpoint == ("127.0.0.1", int(port))
+        return
+    with pytest.raises(UserError, match=r"^several nodes need --rdzv-endpoint=HOST:PORT \(PORT 1 to 65535\)"):
+        check(nnodes="2", rdzv_endpoint=f"127.0.0.1:{port}")
+
+
+def test_the_command_refuses_it_in_one_line_before_it_starts_anything(monkeypatch, capsys, tmp_path) -> None:
+    monkeypatch.delenv("RANK", raising=False)
+    monkeypatch.delenv("TORCHELASTIC_ERROR_FILE", raising=False)
+    storage = tmp_path / "run"
+    assert main(["supervise", "--startup-grace", "-1", "configs/smoke.yaml", "--storage", str(storage)]) == EXIT_USAGE
+    said = "--startup-grace=-1.0 is out of range: use a positive number of seconds, e.g. 300"
+    assert capsys.readouterr().err == f"ftrain: error: {said}\n"
+    assert not storage.exists()
