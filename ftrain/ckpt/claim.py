@@ -5,8 +5,10 @@ every other rank receives the identity it holds, so that every rank's writes are
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable
+from pathlib import Path
 
 from ftrain.ckpt.lease import TTL, TTL_ENV, Lease, LeaseHeld
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
@@ -14,6 +16,7 @@ from ftrain.config import Config
 from ftrain.errors import UserError
 from ftrain.heartbeat import TOKEN_ENV
 from ftrain.identity import Identity, restore_environ, run_id, saved_environ
+from ftrain.log_dir_lock import claim_log_dir
 
 _AGREED = {kind.__name__: kind for kind in (LeaseHeld, UserError, StorageUnavailable, StorageError)}
 """What rank 0's claim may end in, as the other ranks raise it too."""
@@ -38,10 +41,12 @@ def storage_lease(
 
 
 class Claim:
-    """What ``claim`` leaves a rank: the lease where this rank holds it, and the identity it gave this process."""
+    """What ``claim`` leaves a rank: the lease and the log directory where this rank holds them, and the identity it
+    gave this process."""
 
-    def __init__(self, lease: Lease | None, environ: dict[str, str | None]) -> None:
+    def __init__(self, lease: Lease | None, log_dir: contextlib.ExitStack, environ: dict[str, str | None]) -> None:
         self.lease = lease
+        self._log_dir = log_dir
         self._environ = environ
 
     @property
@@ -50,7 +55,8 @@ class Claim:
         return self.lease.lost if self.lease is not None else None
 
     def release(self) -> None:
-        """Release the lease (rank 0), and leave the environment as it was before ``claim``."""
+        """Release the log directory and the lease (rank 0), and leave the environment as it was before ``claim``."""
+        self._log_dir.close()
         if self.lease is not None:
             self.lease.release()
         restore_environ(self._environ)
@@ -59,21 +65,31 @@ class Claim:
 def claim(
     config: Config, is_main: bool, agree: Callable[[list | None], list | None], log: Callable[[str], None]
 ) -> Claim:
-    """Every rank of a world calls this at the start. Rank 0 (``is_main``) holds the lease for the run, or, started
-    by ``ftrain supervise`` (which holds it), checks that no other run holds it; ``agree`` (a broadcast from rank 0)
-    tells every rank how that went, so that every rank raises alike (LeaseHeld if refused) and none waits for a rank 0
-    that failed, and hands every rank the identity rank 0 holds (``Identity.env``)."""
+    """Every rank of a world calls this at the start. Rank 0 (``is_main``) holds the lease for the run, then its log
+    directory (``ftrain.log_dir_lock``), or, started by ``ftrain supervise`` (which holds both), checks that no other
+    run holds the lease; ``agree`` (a broadcast from rank 0) tells every rank how that went, so that every rank raises
+    alike (LeaseHeld or UserError if refused) and none waits for a rank 0 that failed, and hands every rank the
+    identity rank 0 holds (``Identity.env``)."""
     lease, outcome, failure = None, None, None
+    log_dir = contextlib.ExitStack()
     environ = saved_environ()
     if is_main:
         try:
             if os.environ.get(TOKEN_ENV):
                 _check_for_supervisor(config, log)
-            elif taken := (lease := storage_lease(config, log)).hold():
-                log(taken)
+            else:
+                lease = storage_lease(config, log)
+                if taken := lease.hold():
+                    log(taken)
+                try:
+                    log_dir.enter_context(claim_log_dir(Path(config.log_dir), None, "ftrain train"))
+                except UserError:
+                    lease.release()  # refused: it goes back at once, nothing written
+                    raise
             identity = Identity.from_env()
             outcome = [None, identity.env() if identity is not None else {}]
         except Exception as error:
+            log_dir.close()
             lease, failure = None, error
             outcome = [type(error).__name__ if type(error).__name__ in _AGREED else "StorageError", str(error)]
     outcome = agree(outcome)
@@ -82,7 +98,7 @@ def claim(
     if outcome[0] is not None:
         raise _AGREED[outcome[0]](outcome[1])
     os.environ.update(outcome[1])
-    return Claim(lease, environ)
+    return Claim(lease, log_dir, environ)
 
 
 def _check_for_supervisor(config: Config, log: Callable[[str], None]) -> None:

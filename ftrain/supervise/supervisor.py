@@ -10,7 +10,7 @@ Owns the run's state machine on this node, attempt after attempt:
   (``restarts.py``); a worker that refused its input (exit 2) is not restarted;
 - preemption: SIGTERM or SIGINT is passed on as SIGTERM (save at the next iteration boundary), exit 143 or 130.
 Every decision is a line and an ``events.jsonl`` record (``events.py``); exit codes: ``options.py``; one supervisor
-per log directory: ``log_dir_lock.py``. Torch-free: config, heartbeat, the storage lease and the standard library.
+per log directory: ``ftrain.log_dir_lock``. Torch-free: config, heartbeat, the storage lease and the standard library.
 """
 
 from __future__ import annotations
@@ -30,13 +30,13 @@ from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config, for_world, make_local_directories
 from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, UserError, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
+from ftrain.log_dir_lock import claim_log_dir
 from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, Launcher, attempt_env, kill, new_log_dir, signal_name
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.hang import QUIET_PHASES, HangWatch
 from ftrain.supervise.ledger import Ledger
 from ftrain.supervise.link import connect, makes_plan, node_lease, rendezvous, worker_env
-from ftrain.supervise.log_dir_lock import claim_log_dir
 from ftrain.supervise.options import (
     EXIT_DONE,
     EXIT_PEER_LOST,
@@ -81,7 +81,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
 
     def claimed(held: Lease) -> int:  # with the storage's lease, the log directory too (claim.py)
         supervisor.storage_wait.reached = True
-        with claim_log_dir(Path(config.log_dir), supervisor.events.node):
+        with claim_log_dir(Path(config.log_dir), supervisor.events.node, "supervisor"):
             return supervisor.run(held)
 
     try:  # the lease is taken before anything is launched: an unreachable storage is waited out then too

@@ -16,14 +16,17 @@ import time
 import pytest
 
 from ftrain.ckpt import cas
+from ftrain.ckpt.claim import claim
 from ftrain.ckpt.fence import Fence
 from ftrain.ckpt.lease import LEASE, Entry, Lease, LeaseHeld, LeaseLost, Record
 from ftrain.ckpt.storage import Storage
+from ftrain.config import Config, load_config
 from ftrain.errors import UserError
 from ftrain.identity import GENERATION_ENV, RUN_ID_ENV, Identity
+from ftrain.log_dir_lock import claim_log_dir
 from ftrain.procfs import Process
 
-from helpers import child_env, wait_for
+from helpers import SMOKE, child_env, wait_for
 
 RACER = textwrap.dedent(
     """
@@ -347,3 +350,29 @@ def test_an_unreadable_lease_is_bad_input_and_left_alone(storage):
     with pytest.raises(UserError, match=r"LEASE.json is not a lease ftrain can read: if no run uses this storage"):
         Lease(storage, "mine", print).acquire()
     assert storage.read(LEASE) == b"{not json"
+
+
+def test_an_unsupervised_run_holds_its_log_directory_and_one_refused_there_gives_the_lease_back(tmp_path):
+    """Rank 0 of a run without a supervisor holds its log directory as a supervisor does: a run told to log where
+    another logs (another run's storage, say) is refused with one line before it writes anything, and the lease of its
+    own storage it had just taken goes back, so that the same command starts at once once the directory is free."""
+    logs = tmp_path / "logs"
+
+    def config_of(storage: str) -> Config:
+        return load_config(SMOKE, [f"log_dir={logs}"], storage=str(tmp_path / storage))
+
+    first = claim(config_of("first"), True, lambda outcome: outcome, print)
+    try:
+        with pytest.raises(UserError) as refused:
+            claim(config_of("second"), True, lambda outcome: outcome, print)
+        assert str(refused.value) == (
+            f"log directory {logs} is in use by another run (ftrain train pid {os.getpid()}): stop that run, or give "
+            "this one a log directory of its own with log_dir=DIR"
+        )
+        assert Record.decode(Storage.open(str(tmp_path / "second")).read(LEASE)).entries == ()  # given back
+        assert sorted(path.name for path in logs.iterdir()) == ["run.lock"]  # nothing of the second run's
+        with pytest.raises(UserError, match="in use by another run"), claim_log_dir(logs, None, "supervisor"):
+            pass  # the supervisor of a run on the same log directory is refused alike
+    finally:
+        first.release()
+    claim(config_of("second"), True, lambda outcome: outcome, print).release()
