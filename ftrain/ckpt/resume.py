@@ -338,10 +338,16 @@ def _from_url(
             started = {ORIGIN: {"url": shown, "step": step, "state_sha256": digest}}
             return _resume(step, manifest, url=url, where=display_url(url), committed=None) | started
         if digest not in (origin.get("state_sha256"), found[1].get("state_sha256")):
-            raise UserError(
-                f"{storage.url} already holds checkpoints (newest: step {found[0]}) that do not continue {shown}: "
-                "resume=auto goes on from them; to start from that step, use another --storage"
+            held = any(
+                info.step == step and (info.manifest or {}).get("state_sha256") == digest for info in scan(storage)
             )
+            already = (
+                f"already holds step {step} and goes on past it (newest: step {found[0]})"
+                if held
+                else f"already holds checkpoints (newest: step {found[0]}) that do not continue {shown}"
+            )
+            fix = "resume=auto goes on from them; to start from that step, use another --storage"
+            raise UserError(f"{storage.url} {already}: {fix}")
     log(f"resume={shown}: the history of {storage.url} goes on from that step; resuming from its newest")
     return None
 
@@ -387,6 +393,13 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
             f"{STATE_FORMAT}: resume it with the ftrain that wrote it ({manifest['versions']}), or start another "
             "--storage"
         )
+    saved = manifest["config"]  # another robot or model first: no count of environments mends that
+    if saved["env"]["id"] != config.env.id or _models(saved["policy"]) != _models(config.public_dict()["policy"]):
+        raise UserError(
+            f"checkpoint step {step} holds a {saved['env']['id']} policy {saved['policy']}, the config asks for a "
+            f"{config.env.id} policy {config.public_dict()['policy']}: they cannot be loaded into each other (not "
+            "even with allow_config_change=true): use another --storage"
+        )
     saved_total = manifest["envs_per_rank"] * manifest["world_size"]
     if config.env.total_envs and saved_total != config.env.total_envs:
         raise UserError(
@@ -398,13 +411,6 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
         raise UserError(
             f"checkpoint step {step} has env.num_envs={manifest['envs_per_rank']} per rank, the config has "
             f"{config.env.num_envs}: set env.num_envs={manifest['envs_per_rank']}"
-        )
-    saved = manifest["config"]
-    if saved["env"]["id"] != config.env.id or _models(saved["policy"]) != _models(config.public_dict()["policy"]):
-        raise UserError(
-            f"checkpoint step {step} holds a {saved['env']['id']} policy {saved['policy']}, the config asks for a "
-            f"{config.env.id} policy {config.public_dict()['policy']}: they cannot be loaded into each other (not "
-            "even with allow_config_change=true): use another --storage"
         )
     changed = robot_change(manifest.get("robot"), robot)
     if changed and not config.allow_config_change:

@@ -102,7 +102,8 @@ def test_killed_anywhere_resumes_bit_for_bit(tmp_path, env_id: str, ranks: int) 
 def test_a_run_started_from_another_runs_step_goes_on_from_its_own_and_refuses_another_history(tmp_path) -> None:
     """``resume=URL`` names where a storage's history starts. Killed before and after its first commit, the same
     command again (what a supervisor's restart runs) goes on from its own newest step, and ends bit for bit where an
-    undisturbed run ends; the same URL into a storage that holds another history is refused in one line, untouched."""
+    undisturbed run ends; the same URL into a storage that holds another history is refused in one line, untouched, and
+    so is an earlier step of a storage into itself, with a line that says its history goes on past that step."""
     run_train(tmp_path / "source", "iterations=4")
     start = f"resume={tmp_path / 'source' / 'checkpoints' / 'step-000000004'}"
     overrides = ["iterations=10", "checkpoint.interval=2", start]
@@ -127,6 +128,12 @@ def test_a_run_started_from_another_runs_step_goes_on_from_its_own_and_refuses_a
     assert "already holds checkpoints (newest: step 2) that do not continue " in refused.stderr, refused.stderr
     assert checkpoints() == before
 
+    earlier = f"resume={tmp_path / 'source' / 'checkpoints' / 'step-000000002'}"  # a step of its own history
+    command = train_command(tmp_path / "source", "iterations=10", earlier)
+    refused = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True)
+    assert refused.returncode == 2 and "Traceback" not in refused.stderr, refused.stderr
+    assert "already holds step 2 and goes on past it (newest: step 4)" in refused.stderr, refused.stderr
+
 
 def test_async_and_sync_saves_write_the_same_checkpoints(tmp_path) -> None:
     run_train(tmp_path / "async", "checkpoint.async_save=true", "checkpoint.keep_last=10")
@@ -145,6 +152,7 @@ def test_resume_refuses_other_env_count_config_and_format(tmp_path) -> None:
     # one rank each: test_console has the same env-count refusal under plain torchrun at 2 ranks, said once by rank 0
     for overrides, message in [
         (["iterations=4", "env.num_envs=3"], "set env.num_envs=4"),
+        (["iterations=4", "env.num_envs=3", "env.id=Hopper-v5"], "holds a HalfCheetah-v5 policy"),  # not num_envs
         (["iterations=4", "algorithm.clip_param=0.1"], "pass allow_config_change=true"),
         (["iterations=4", "resume=maybe"], "resume=maybe: no verified checkpoint under maybe: pass a run's storage"),
     ]:
