@@ -56,7 +56,8 @@ METRICS = ("mean_return", "eval_return")
 def ls(url: str, options: dict | None = None) -> int:
     """A table of the steps, newest first: step, status, size, when created (UTC), the returns, and which steps
     retention keeps as the newest, the best, pinned or milestones (not those it keeps only as among the last few);
-    under a step that is not verified, its problems."""
+    under a step that is not committed whole, its problems. Manifests and file sizes only: ``verify`` reads every
+    byte."""
     storage, step = _open(url, options)
     progress = Progress()
     progress.show("ckpt ls: reading the steps' manifests...")
@@ -69,7 +70,8 @@ def ls(url: str, options: dict | None = None) -> int:
         created = str((info.manifest or {}).get("created") or "-").replace("T", " ")[:16]
         returns = [_number(info.metrics.get(name)) for name in METRICS]
         why = ", ".join(reason.value for reason in marks.get(info.step, []) if reason is not Kept.LAST)
-        print(row.format(info.step, info.status, human_size(info.size), created, *returns, why).rstrip())
+        status = "committed" if info.status == VERIFIED else info.status  # by sizes: ``verify`` reads the digests
+        print(row.format(info.step, status, human_size(info.size), created, *returns, why).rstrip())
         for problem in info.problems:
             print(_fit(f"{'':>11}{problem}"))
     if step is None:

@@ -56,8 +56,8 @@ def test_ls_is_a_table_that_fits_a_terminal_and_marks_what_retention_keeps(run, 
     assert "None" not in out
     rows = lines_by_step(out)
     assert list(rows) == [50, 40, 30, 25, 20, 10]
-    assert rows[50].split()[1] == "verified" and rows[50].endswith("5.00            -  newest")
-    assert rows[30].split()[1] == "verified" and rows[30].endswith("30.00            -  best")  # keep_best 1
+    assert rows[50].split()[1] == "committed" and rows[50].endswith("5.00            -  newest")
+    assert rows[30].split()[1] == "committed" and rows[30].endswith("30.00            -  best")  # keep_best 1
     assert rows[30].split()[3] == "KiB" and re.fullmatch(r"\d{4}-\d\d-\d\d \d\d:\d\d", " ".join(rows[30].split()[4:6]))
     assert rows[20].endswith("20.00            -")  # kept by nothing but keep_last
     assert rows[25].split()[1] == "corrupt" and "\n           rank-00001.pt: size mismatch" in rows[25]
