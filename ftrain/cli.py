@@ -47,7 +47,7 @@ def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
     loudness.add_argument(
         "-v", "--verbose", dest="loudness", action="store_const", const=VERBOSE, help="a line for every save"
     )
-    parser.add_argument("overrides", nargs="*", metavar="key=value", help=OVERRIDES_HELP)
+    parser.add_argument("overrides", nargs="*", default=(), metavar="key=value", help=OVERRIDES_HELP)  # optional
 
 
 def _add_storage_options(parser: argparse.ArgumentParser) -> None:
@@ -131,7 +131,7 @@ def build_parser() -> argparse.ArgumentParser:
     newest = f"{storage_url} for its newest verified step"
     ckpt = commands.add_parser("ckpt", help="inspect and repair checkpoint storage")
     ckpt_commands = ckpt.add_subparsers(dest="ckpt_command", required=True, metavar="ACTION", help="one of:")
-    ls = ckpt_commands.add_parser("ls", help="list steps: verified / incomplete / corrupt / quarantined")
+    ls = ckpt_commands.add_parser("ls", help="list steps: committed (by sizes) / incomplete / corrupt / quarantined")
     ls.add_argument("url", help=f"{storage_url}, or {step_url}")
     _add_storage_options(ls)
     verify = ckpt_commands.add_parser(
@@ -263,14 +263,27 @@ def parse(argv: list[str]) -> argparse.Namespace:
     UserError."""
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
-    unknown = [word for word in extra if word.startswith("-") or "=" not in word]
+    unknown = [word for word in extra if word.startswith("-")]  # a bare word is an override, checked as one
     if unknown or (extra and not hasattr(args, "overrides")):
-        parser.error(f"unrecognized arguments: {' '.join(unknown or extra)}")
+        _command_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown or extra)}")
     if hasattr(args, "overrides"):
         from ftrain.values import storage_option_overrides
 
-        args.overrides += [*extra, *storage_option_overrides(args.storage_option), *filter(None, [args.loudness])]
+        args.overrides = [
+            *args.overrides,
+            *extra,
+            *storage_option_overrides(args.storage_option),
+            *filter(None, [args.loudness]),
+        ]
     return args
+
+
+def _command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:
+    """The parser of the (sub)command ``args`` ran, whose usage line an error shows."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction) and getattr(args, action.dest, None) in action.choices:
+            return _command_parser(action.choices[getattr(args, action.dest)], args)
+    return parser
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -302,10 +302,9 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
     data: dict = {}
     if path is not None:
         file = Path(path)
-        if not file.is_file():
-            raise UserError(
-                f"config file {path!r} does not exist: pass the path of a YAML file such as configs/smoke.yaml"
-            )
+        if not file.exists() or file.is_dir():
+            problem = "is a directory" if file.is_dir() else "does not exist"
+            raise UserError(f"config file {path!r} {problem}: pass the path of a YAML file such as configs/smoke.yaml")
         try:
             data = yaml.safe_load(file.read_text()) or {}
         except yaml.YAMLError as exc:

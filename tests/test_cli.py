@@ -98,3 +98,28 @@ def test_torchruns_underscore_spellings_are_taken_and_a_split_list_override_says
     assert split.returncode == 2 and "Traceback" not in split.stderr
     said = "override policy.hidden_dims=[64, 64] has a space: quote it as one word, 'policy.hidden_dims=[64, 64]'"
     assert split.stderr == f"ftrain: error: {said}\n", split.stderr
+
+
+def test_a_usage_error_shows_its_commands_usage_and_a_bare_word_is_told_as_an_override(tmp_path) -> None:
+    cases = [  # (arguments, the usage line, the error line)
+        (["train"], "usage: ftrain train ", "ftrain train: error: the following arguments are required: config"),
+        (["train", "configs/smoke.yaml", "--bogus"], "usage: ftrain train ", "error: unrecognized arguments: --bogus"),
+        (["ckpt", "ls", str(tmp_path), "--bogus"], "usage: ftrain ckpt ls ", "ftrain ckpt ls: error: unrecognized"),
+        (
+            ["supervise", "configs/smoke.yaml", "--storage", str(tmp_path / "run"), "iterations"],
+            None,
+            "ftrain: error: override 'iterations' is not key=value: write it like env.num_envs=8",
+        ),
+        (
+            ["train", str(tmp_path)],
+            None,
+            f"ftrain: error: config file '{tmp_path}' is a directory: pass the path of a YAML file such as ",
+        ),
+    ]
+    for args, usage, error in cases:
+        result = ftrain(*args)
+        lines = result.stderr.strip().splitlines()
+        assert result.returncode == 2 and error in lines[-1], (args, result.stderr)
+        assert (usage is None and len(lines) == 1) or lines[0].startswith(usage), (args, result.stderr)
+    assert not (tmp_path / "run").exists()
+    print(f"{len(cases)} usage errors checked")
