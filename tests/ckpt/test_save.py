@@ -201,3 +201,27 @@ def test_a_commit_whose_answer_was_lost_counts_when_its_manifest_landed_and_is_n
         proxy.close()
     direct = Storage.open(url, options)
     assert {info.step: info.status for info in scan(direct)} == {4: VERIFIED, 3: VERIFIED}
+
+
+def test_a_best_metric_the_run_does_not_record_is_said_once_at_its_first_commit(tmp_path, capsys) -> None:
+    """Hooks add metrics of their own, so only a commit can tell: keep_best would keep no step by such a name."""
+    said = {}
+    for metric in ("mean_retrun", "eval_return", "mean_return"):  # a typo; a metric of evaluation, which is off
+        overrides = ["iterations=6", "checkpoint.interval=2", f"checkpoint.best_metric={metric}", "log.console=false"]
+        url = f"memory://ftrain-test/{uuid.uuid4().hex}"
+        config = load_config(SMOKE, [*overrides, f"log_dir={tmp_path / metric}"], storage=url)
+        handlers = {number: signal.getsignal(number) for number in (signal.SIGTERM, signal.SIGINT)}
+        try:
+            assert train(config) == 0
+        finally:
+            for number, handler in handlers.items():
+                signal.signal(number, handler)
+        said[metric] = [line for line in capsys.readouterr().out.splitlines() if "checkpoint.best_metric=" in line]
+    for metric in ("mean_retrun", "eval_return"):
+        assert len(said[metric]) == 1, said
+        assert (
+            f"checkpoint.best_metric={metric} is not a metric of this run, so keep_best keeps no step"
+            in said[metric][0]
+        )
+        assert "use one of " in said[metric][0] and "mean_return" in said[metric][0]
+    assert said["mean_return"] == []
