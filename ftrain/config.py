@@ -13,6 +13,7 @@ import importlib.util
 import json
 import math
 import os
+import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -394,6 +395,23 @@ def blocking_file(path: str) -> str | None:
     while not os.path.lexists(path) and os.path.dirname(path) != path:
         path = os.path.dirname(path)
     return path if os.path.exists(path) and not os.path.isdir(path) else None
+
+
+def check_writable(path: Path, option: str) -> None:
+    """UserError unless ``path`` can be written, said before the work that makes its contents. It tries: a file made
+    and dropped in the nearest directory that exists (root passes every permission check, /proc and read-only mounts
+    refuse anyway), or ``path`` opened to append where it exists (its contents untouched). ``option``: the flag that
+    chooses the path."""
+    where = path if path.exists() else next(parent for parent in path.absolute().parents if parent.exists())
+    try:
+        if where == path:
+            path.open("ab").close()
+        else:
+            tempfile.TemporaryFile(dir=where).close()
+    except OSError as error:
+        raise UserError(
+            f"cannot write {path} ({where}: {error.strerror or error}): pass {option} a path you can write to"
+        ) from None
 
 
 def default_log_dir(storage_url: str, name: str) -> str:

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ftrain.config import SEEDS, check_writable
 from ftrain.errors import UserError
 from ftrain.policy.load import Policy
 from ftrain.policy.robot import make_env
@@ -35,9 +36,12 @@ def play(
     headless (MUJOCO_GL=egl)."""
     if episodes < 1:
         raise UserError(f"--episodes {episodes}: play at least 1 episode")
+    if not 0 <= seed <= SEEDS - episodes:  # the episodes take the seeds seed to seed + episodes - 1
+        raise UserError(f"--seed {seed} is out of range: use a seed from 0 to {SEEDS - episodes}")
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
         raise UserError(f"video {str(video)!r} must end in {' or '.join(VIDEO_SUFFIXES)}")
     if video is not None:
+        check_writable(Path(video), "--video")
         os.environ.setdefault("MUJOCO_GL", "egl")  # read when the first renderer is made: headless, no display
     deterministic = deterministic or policy.exported is not None
     mode = "deterministic (mean) actions" if deterministic else "sampled actions"

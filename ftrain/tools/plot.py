@@ -19,11 +19,13 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
 from ftrain.ckpt.storage import Storage
-from ftrain.config import default_log_dir
+from ftrain.config import check_writable, default_log_dir
 from ftrain.errors import UserError
 
 METRICS = "metrics.csv"
 EVENTS = "events.jsonl"
+NOT_OURS = "pass a run's log directory, with the files ftrain wrote there"
+"""The fix for a metrics or events file that ftrain cannot have written (bytes that are not UTF-8, no iteration)."""
 
 
 @dataclass
@@ -54,16 +56,23 @@ def read_metrics(
     restarts: set[int] = set()
     changes: dict[int, str] = {}
     previous = 0
-    for row in csv.DictReader(io.StringIO(text, newline="")):
-        iteration = int(row["iteration"])
-        if iteration <= previous:
-            restarts.add(iteration - 1)
-        if row.get("resumed_from"):
-            restarts.add(int(row["resumed_from"]))
-            if row.get("config_change"):
-                changes[int(row["resumed_from"])] = row["config_change"]
-        previous = iteration
-        rows[iteration] = row
+    reader = csv.DictReader(io.StringIO(text, newline=""))
+    try:
+        if reader.fieldnames is not None and "iteration" not in reader.fieldnames:
+            raise UserError(f"{path} has no iteration column (its columns: {', '.join(reader.fieldnames)}): {NOT_OURS}")
+        for row in reader:
+            iteration = _whole(row, "iteration", f"{path} line {reader.line_num}")
+            if iteration <= previous:
+                restarts.add(iteration - 1)
+            if row.get("resumed_from"):
+                resumed_from = _whole(row, "resumed_from", f"{path} line {reader.line_num}")
+                restarts.add(resumed_from)
+                if row.get("config_change"):
+                    changes[resumed_from] = row["config_change"]
+            previous = iteration
+            rows[iteration] = row
+    except csv.Error as error:
+        raise UserError(f"{path} line {reader.line_num} is not CSV ({error}): {NOT_OURS}") from None
     if not rows:
         raise UserError(f"{path} has no rows yet: plot the run after its first iteration")
     ordered = [rows[iteration] for iteration in sorted(rows)]
@@ -104,6 +113,9 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
         raise UserError(f"-o {output}: not a picture file matplotlib writes: end it in .png, .svg or .pdf")
     storage = Storage.open(str(run), options)
     columns, resumed, changed = read_metrics(run, options)
+    name = Path(run).resolve().name if storage.is_local else PurePosixPath(storage.url).name
+    path = Path(output) if output else Path(default_log_dir(str(run), name)) / "curves.png"
+    check_writable(path, "-o")
     changes = sorted(changed)
     restarts = sorted(set(read_restarts(storage)) - set(changes))
     resumes = sorted(set(resumed) - set(restarts) - set(changes))
@@ -152,10 +164,8 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     marks.append(_count(len(changes), "config change") + " (dash-dot)" if changes else "")
     marked = ", ".join(mark for mark in marks if mark)
     where = f", {marked}: at the step resumed from" if marked else ""
-    name = Path(run).resolve().name if storage.is_local else PurePosixPath(storage.url).name
     figure.suptitle(f"{name}: {int(iterations[-1])} iterations{where}")
     figure.tight_layout()
-    path = Path(output) if output else Path(default_log_dir(str(run), name)) / "curves.png"
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=100)
     plt.close(figure)
@@ -169,6 +179,16 @@ def _read(storage: Storage, name: str) -> str | None:
         return storage.read(name).decode()
     except FileNotFoundError:
         return None
+    except UnicodeDecodeError as error:
+        raise UserError(f"{storage.where(name)} is not text (byte {error.start} is not UTF-8): {NOT_OURS}") from None
+
+
+def _whole(row: dict[str, str | None], column: str, where: str) -> int:
+    """``row[column]`` as an int; UserError naming ``where`` (the file and line) if it is not one."""
+    try:
+        return int(row[column] or "")
+    except ValueError:
+        raise UserError(f"{where}: {column} {row[column]!r} is not a whole number: {NOT_OURS}") from None
 
 
 def _count(n: int, noun: str) -> str:

@@ -1,0 +1,76 @@
+"""Bad input to play and export, refused in one line before any rollout: no trained policy needed, since the checks
+come before the policy is touched (a stand-in that has only what naming the export's path reads)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from types import SimpleNamespace
+
+import pytest
+
+from ftrain.config import check_writable
+from ftrain.errors import UserError
+from ftrain.policy import export as export_module
+from ftrain.policy.export import export
+from ftrain.policy.play import play
+
+UNWRITABLE = {
+    "a directory that takes no new files": (Path("/proc/x.onnx"), "(/proc: No such file or directory)"),
+    "a directory missing under one that takes none": (Path("/proc/nope/x.onnx"), "(/proc: No such file or directory)"),
+}
+
+
+def unwritable(tmp_path: Path) -> dict[str, tuple[Path, str]]:
+    """Paths that cannot be written, with what the refusal says about each."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("kept\n")
+    return {**UNWRITABLE, "a file in place of a directory": (notes / "x.onnx", f"({notes}: Not a directory)")}
+
+
+def test_a_path_that_cannot_be_written_is_one_line_naming_it_and_the_flag(tmp_path) -> None:
+    for case, (path, reason) in unwritable(tmp_path).items():
+        with pytest.raises(UserError) as refused:
+            check_writable(path, "-o")
+        message = str(refused.value)
+        assert message == f"cannot write {path} {reason}: pass -o a path you can write to", case
+    assert (tmp_path / "notes.txt").read_text() == "kept\n"
+
+
+def test_a_writable_path_passes_and_is_left_as_it_was(tmp_path) -> None:
+    existing = tmp_path / "policy.onnx"
+    existing.write_bytes(b"an older export")
+    check_writable(existing, "-o")
+    assert existing.read_bytes() == b"an older export"
+    check_writable(tmp_path / "new" / "deeper" / "policy.onnx", "-o")  # made by the export, not by the check
+    assert sorted(tmp_path.iterdir()) == [existing]
+
+
+def test_export_refuses_an_unwritable_output_before_playing_episodes(tmp_path, monkeypatch) -> None:
+    def rollout(policy: object) -> None:
+        raise AssertionError("the export played the policy's episodes before checking its output")
+
+    monkeypatch.setattr(export_module, "sample_observations", rollout)
+    policy = SimpleNamespace(
+        source=f"{tmp_path}/run/checkpoints/step-000000008", step=8, config=SimpleNamespace(name="r")
+    )
+    for path, reason in unwritable(tmp_path).values():
+        message = f"cannot write {path} {reason}: pass -o a path you can write to"
+        with pytest.raises(UserError, match=f"^{re.escape(message)}$"):
+            export(policy, "onnx", path)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"seed": -1}, "--seed -1 is out of range: use a seed from 0 to 4294967295"),
+        ({"seed": 2**32}, "--seed 4294967296 is out of range: use a seed from 0 to 4294967295"),
+        ({"seed": 2**32 - 1, "episodes": 2}, "--seed 4294967295 is out of range: use a seed from 0 to 4294967294"),
+        ({"video": "/proc/x.mp4"}, "cannot write /proc/x.mp4 (/proc: No such file or directory): pass --video a path"),
+        ({"video": "/proc/nope/x.gif"}, "cannot write /proc/nope/x.gif (/proc: No such file or directory): pass --v"),
+    ],
+)
+def test_play_refuses_before_it_makes_an_env(kwargs: dict, message: str) -> None:
+    with pytest.raises(UserError) as refused:
+        play(object(), **kwargs)  # type: ignore[arg-type]  # touched only after the checks
+    assert message in str(refused.value)
