@@ -41,7 +41,7 @@ import sys
 from pathlib import Path
 
 from ftrain.config import load_config
-from ftrain.tools.bench import CONFIG, SETTINGS, run_side_by_side
+from ftrain.tools.bench import CONFIG, SETTINGS, case_command, run_side_by_side
 from ftrain.train.phases import PHASES
 
 
@@ -80,9 +80,8 @@ def main() -> int:
     _print_table("weak scaling", args.rounds, rows, slowest_rows)
     if args.peers:
         for name in ("rsl_rl", "sb3"):
-            code = "import torch; torch.set_num_threads(1); from ftrain.tools.bench import CASES, SETTINGS; "
-            code += f"print(CASES[{name!r}]({args.iterations}, SETTINGS['fixed']()))"
-            done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_one_thread())
+            command = case_command(name, args.iterations, "fixed")
+            done = subprocess.run(command, capture_output=True, text=True, env=_one_thread())
             speed = f"{float(done.stdout.split()[-1]):,.0f} steps/s" if done.returncode == 0 else "failed"
             print(f"{name:>7}, 1 process: {speed}")
     return _fell_back()

@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ftrain.config import load_config
+from ftrain.errors import UserError
 from ftrain.progress import Progress
 from ftrain.train.hooks import Hook
 
@@ -307,8 +308,20 @@ CASES = {
 }
 
 
+def case_command(name: str, iterations: int, setting_name: str) -> list[str]:
+    """The command of a fresh process that runs case ``name`` and prints its steps/s: one torch thread, and MuJoCo's
+    warnings routed as ``ftrain train`` routes them (``ftrain.policy.mujoco_warnings``), so that gymnasium's own envs
+    (raw, sb3) append no ``MUJOCO_LOG.TXT`` to the working directory."""
+    code = "from ftrain.policy.mujoco_warnings import route_mujoco_warnings; route_mujoco_warnings(); "
+    code += "import torch; torch.set_num_threads(1); from ftrain.tools.bench import CASES, SETTINGS; "
+    code += f"print(CASES[{name!r}]({iterations}, SETTINGS[{setting_name!r}]()))"
+    return [sys.executable, "-c", code]
+
+
 def run_benchmark(iterations: int, settings: list[str]) -> int:
     """Run every case of every setting in a fresh process, print steps/s and the ratios the targets are stated in."""
+    if iterations < 1:
+        raise UserError(f"--iterations {iterations}: time at least 1 iteration per case")
     return max(_run_setting(iterations, name) for name in settings)
 
 
@@ -319,10 +332,8 @@ def _run_setting(iterations: int, setting_name: str) -> int:
     progress = Progress()
     for number, name in enumerate(CASES, start=1):
         progress.show(f"running case {number}/{len(CASES)}: {name} ({iterations} iterations)...")
-        code = "import torch; torch.set_num_threads(1); from ftrain.tools.bench import CASES, SETTINGS; "
-        code += f"print(CASES[{name!r}]({iterations}, SETTINGS[{setting_name!r}]()))"
         done = subprocess.run(
-            [sys.executable, "-c", code],
+            case_command(name, iterations, setting_name),
             capture_output=True,
             text=True,
             env={**os.environ, "OMP_NUM_THREADS": "1"},
