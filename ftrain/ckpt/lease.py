@@ -332,7 +332,10 @@ class Lease:
     def _held_message(self, record: Record, live: list[Entry]) -> str:
         holder = max(live, key=lambda e: e.renewed_at)
         ends, now = record.expires_at, time.time()
-        end = f"ended at {_when(ends)}, but the process runs" if ends < now else f"ends at {_when(ends)}"
+        if ends < now:  # not renewed, but its process lives on this host (stopped, say): never taken from it
+            end = f"ran out at {_when(ends)}, but its process still exists on this host and keeps it"
+        else:
+            end = f"ends at {_when(ends)} unless renewed"
         since = f" since {_when(holder.since)}" if holder.since else ""
         if record.run_id == self.run_id:
             return (
@@ -342,7 +345,7 @@ class Lease:
             )
         return (
             f"storage {self.storage.url} is held by another run ({record.run_id}, {holder.process.describe()}{since}): "
-            f"its lease {end} unless renewed; stop that run first, or use another storage"
+            f"its lease {end}; stop that run first, or use another storage"
         )
 
     def _taken_message(self, record: Record) -> str:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -119,6 +120,24 @@ def test_refused_while_another_process_holds_it_then_taken_over_at_once_when_it_
     now = record(storage)
     assert now.run_id == "second-run" and now.generation == 2
     assert [e.process.pid for e in now.entries] == [os.getpid()]
+
+
+@pytest.mark.waits
+@pytest.mark.slow
+def test_a_stopped_holder_on_this_host_keeps_the_lease_past_its_end_and_the_refusal_says_so(storage, holder):
+    """SIGSTOP: no renewal, but the process lives, and may go on at any moment: its lease is not taken."""
+    holder.send_signal(signal.SIGSTOP)
+    try:
+        time.sleep(7)  # past the holder's 6 s time to live
+        with pytest.raises(LeaseHeld) as refused:
+            Lease(storage, "second-run", print).acquire()
+        message = str(refused.value)
+        assert re.search(
+            r"its lease ran out at .+ UTC, but its process still exists on this host and keeps it; stop", message
+        )
+        assert record(storage).run_id == "first-run", message
+    finally:
+        holder.send_signal(signal.SIGCONT)
 
 
 @pytest.mark.waits
