@@ -174,8 +174,8 @@ def clear_newer(storage: Storage, step: int, log: Callable[[str], None] = print)
             reason = f"{status} on a file system whose listings may lag: set aside, not deleted"
             quarantine(storage, info.step, reason)
         where = set_aside(storage, info)
-        again = ": the run saves that step again" if info.step > step else ""
-        log(f"checkpoint step {info.step} ({status}) moved to {where}{again}")
+        newer_than = f": newer than step {step}, which this run goes on from" if info.step > step else ""
+        log(f"checkpoint step {info.step} ({status}) moved to {where}{newer_than}")
 
 
 ABANDONED_AFTER = 600.0

@@ -325,6 +325,7 @@ def test_clear_newer_deletes_abandoned_steps_and_sets_bad_ones_aside_intact(stor
     lines: list[str] = []
     clear_newer(storage, 10, log=lines.append)
     assert len(lines) == 3 and "step 40 (corrupt) moved to" in lines[0]
+    assert lines[0].endswith(": newer than step 10, which this run goes on from"), lines  # not "saves it again"
     assert "step 30 (quarantined) moved to" in lines[1] and "step 20 (incomplete)" in lines[2]
     assert [i.step for i in scan(storage)] == [10]
     aside = dict(set_aside_steps(storage))
