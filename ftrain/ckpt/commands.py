@@ -34,6 +34,7 @@ from ftrain.ckpt.retention import Kept, delete_step, kept, retention_plan
 from ftrain.ckpt.steps import (
     ASIDE,
     abandoned,
+    part_of_a_storage,
     quarantine,
     scan,
     select_resume,
@@ -305,10 +306,8 @@ def _open(url: str, options: dict | None) -> tuple[Storage, int | None]:
     root, step = parse_checkpoint_url(url)
     storage = Storage.open(root, options)
     if step is None and not storage.list_dirs(CHECKPOINTS):
-        raise UserError(
-            f"no checkpoints under {storage.url}: pass a run's storage (the directory holding checkpoints/) "
-            "or one step directory"
-        )
+        usual = "pass a run's storage (the directory holding checkpoints/) or one step directory"
+        raise UserError(f"no checkpoints under {storage.url}: {part_of_a_storage(storage.url) or usual}")
     if step is not None and not storage.list_files(step_dir(step)):
         raise UserError(f"{storage.where(step_dir(step))} does not exist: see ftrain ckpt ls {storage.url}")
     return storage, step

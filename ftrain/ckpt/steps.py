@@ -9,6 +9,7 @@ manifest) was abandoned and may be deleted. A step that verifies is never quaran
 from __future__ import annotations
 
 import json
+import re
 import time
 from collections.abc import Callable
 
@@ -216,6 +217,18 @@ def _aside_name(step: int, n: int) -> str:
     return f"step-{step:09d}" + (f".{n}" if n else "")
 
 
+def part_of_a_storage(url: str) -> str | None:
+    """What to pass instead of ``url``, a part of a run's storage that holds no step itself (its ``checkpoints/``,
+    or a step set aside under ``quarantine/``), for the line that refuses it; None for anything else."""
+    head, _, last = url.rstrip("/").rpartition("/")
+    root = head.rpartition("/")[0] or "."
+    if last == CHECKPOINTS:
+        return f"that is the {CHECKPOINTS}/ directory of {head or '.'}: pass {head or '.'}"
+    if head.rpartition("/")[2] == ASIDE and re.fullmatch(r"step-\d+(\.\d+)?", last):
+        return f"that is a step set aside under {ASIDE}/, out of the history of {root}: see ftrain ckpt ls {root}"
+    return None
+
+
 def resolve_checkpoint_url(
     url: str, options: dict | None = None, log: Callable[[str], None] = print
 ) -> tuple[Storage, int, dict]:
@@ -226,7 +239,8 @@ def resolve_checkpoint_url(
     if step is None:
         selected = select_resume(storage, log, quarantine_bad=False)
         if selected is None:
-            raise UserError(f"no verified checkpoint under {storage.url}: pass a run's storage or a step directory")
+            fix = part_of_a_storage(storage.url) or "pass a run's storage or a step directory"
+            raise UserError(f"no verified checkpoint under {storage.url}: {fix}")
         return storage, *selected
     result = verify_step(storage, step)
     if not result.ok:

@@ -11,7 +11,7 @@ import pytest
 
 from ftrain.ckpt import commands as ckpt_commands
 from ftrain.ckpt.format import read_manifest, write_file
-from ftrain.ckpt.steps import ABANDONED_AFTER, scan
+from ftrain.ckpt.steps import ABANDONED_AFTER, resolve_checkpoint_url, scan
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
 
@@ -143,6 +143,25 @@ def test_prune_keeps_an_incomplete_step_written_lately_and_deletes_it_once_aband
     assert ckpt_commands.prune(run, keep_last=5) == 0
     assert "deleting step 15 (abandoned, never committed)" in capsys.readouterr().out
     assert 15 not in [info.step for info in scan(storage)]
+
+
+def test_a_part_of_a_storage_that_holds_no_step_is_told_what_to_pass_instead(run):
+    """A run's checkpoints/ directory, or a step set aside under quarantine/, as the URL of a command that reads."""
+    set_aside = f"{run}/quarantine/step-000000030.1"
+    os.makedirs(set_aside)
+    cases = [
+        (ckpt_commands.ls, f"{run}/checkpoints", f"that is the checkpoints/ directory of {run}: pass {run}"),
+        (resolve_checkpoint_url, f"{run}/checkpoints/", f"that is the checkpoints/ directory of {run}: pass {run}"),
+        (
+            ckpt_commands.unquarantine,
+            set_aside,
+            f"set aside under quarantine/, out of the history of {run}: see ftrain",
+        ),
+    ]
+    for command, url, fix in cases:
+        with pytest.raises(UserError) as refused:
+            command(url)
+        assert fix in str(refused.value), (url, str(refused.value))
 
 
 def test_bad_input_is_a_user_error(run, tmp_path):
