@@ -110,7 +110,7 @@ class Storage:
             fsspec.get_filesystem_class(protocol)
         except ValueError:
             raise UserError(
-                f"storage URL {shown!r}: unknown protocol {protocol!r}; use a local path, s3:// or file://"
+                f"storage URL {shown!r}: unknown protocol {protocol!r}; use a local path, file://, s3://, gs:// or abfs://"
             ) from None
         except ImportError as exc:
             raise UserError(f"storage URL {shown!r} needs a package that is not installed: {exc}") from None

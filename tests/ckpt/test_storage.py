@@ -69,7 +69,7 @@ def test_a_new_storage_sees_what_another_wrote(storage_url):
     ("url", "message"),
     [
         ("", "empty"),
-        ("nosuchproto://x/y", "unknown protocol"),
+        ("nosuchproto://x/y", "unknown protocol 'nosuchproto'; use a local path, file://, s3://, gs:// or abfs://"),
         ("1x://a", "malformed"),
         ("s3:/bucket/run", "looks like a mistyped s3:// URL: write s3://bucket/run, or ./s3:/bucket/run for a local"),
         ("s3//bucket/run", "looks like a mistyped s3:// URL: write s3://bucket/run,"),
