@@ -513,6 +513,11 @@ def validate(config: Config) -> None:
         raise UserError(f"dist_timeout={config.dist_timeout} must be a positive number of seconds")
     if config.algorithm.class_name == "Distillation" and not config.teacher:
         raise UserError("algorithm.class_name=Distillation needs a teacher: add teacher=<checkpoint URL>")
+    if config.teacher and config.algorithm.class_name != "Distillation":
+        raise UserError(
+            f"teacher={display_url(config.teacher)} is for distillation: set algorithm.class_name=Distillation (as "
+            "configs/distill_halfcheetah.yaml does), or drop teacher="
+        )
     if config.algorithm.schedule == "linear" and config.algorithm.schedule_iterations < 1:
         raise UserError("algorithm.schedule=linear needs algorithm.schedule_iterations=N: the rate is 0 at iteration N")
     if config.policy.final_noise_std and config.algorithm.class_name != "PPO":

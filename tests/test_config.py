@@ -83,6 +83,7 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
         (["policy.final_noise_std=0.2", *LINEAR, "algorithm.class_name=Distillation", "teacher=runs/t"], "PPO's"),
         (["algorithm.gamma=nan"], "algorithm.gamma=nan is out of range"),
         (["seed=-1"], "seed=-1 is out of range: use a seed from 0 to 4294967295"),
+        (["teacher=runs/t"], "teacher=runs/t is for distillation: set algorithm.class_name=Distillation"),
         (["seed=4294967296"], "seed=4294967296 is out of range"),
         (
             ["eval.seed=4294967295", "eval.episodes=2"],

@@ -56,7 +56,12 @@ def test_credentials_in_a_urls_query_are_hidden_and_known_for_scrubbing() -> Non
 def test_a_config_url_formats_without_its_credentials_and_reveals_them_only_when_asked(caplog) -> None:
     config = load_config(
         None,
-        ["teacher=s3://AK:SK@bucket/teacher", "resume=s3://AK:SK@bucket/old", "log.mlflow.tracking_uri=http://u:PW@h"],
+        [
+            "algorithm.class_name=Distillation",
+            "teacher=s3://AK:SK@bucket/teacher",
+            "resume=s3://AK:SK@bucket/old",
+            "log.mlflow.tracking_uri=http://u:PW@h",
+        ],
         storage="s3://AK:SK@bucket/run",
     )
     urls = [config.storage.url, config.teacher, config.log.mlflow.tracking_uri]

@@ -246,6 +246,10 @@ def _prune(
         raise UserError(
             f"--best-metric {best_metric}: no step of {storage.url} records it; use one of {', '.join(recorded)}"
         )
+    if missing := sorted(set(pinned) - {info.step for info in infos}):
+        raise UserError(
+            f"--pin {missing[0]}: {storage.url} holds no step {missing[0]}; see ftrain ckpt ls {storage.url}"
+        )
     keep_last = own.keep_last if keep_last is None else keep_last
     keep_best = own.keep_best if keep_best is None else keep_best
     best_metric = own.best_metric if best_metric is None else best_metric

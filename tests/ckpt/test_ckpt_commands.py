@@ -173,6 +173,10 @@ def test_bad_input_is_a_user_error(run, tmp_path):
         ckpt_commands.prune(f"{run}/checkpoints/step-000000010", keep_last=1)
     with pytest.raises(UserError, match="keep-last=-1"):
         ckpt_commands.prune(run, keep_last=-1)
+    for dry_run in (True, False):  # a typo, not a step: refused before anything is deleted
+        with pytest.raises(UserError, match=rf"^--pin 999: {re.escape(run)} holds no step 999; see ftrain ckpt ls"):
+            ckpt_commands.prune(run, keep_last=1, pinned=[10, 999], dry_run=dry_run)
+    assert 20 in [info.step for info in scan(Storage.open(run))]
     with pytest.raises(UserError, match="no usable manifest"):
         ckpt_commands.show(f"{run}/checkpoints/step-000000040")
 
