@@ -246,7 +246,19 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument(
         "-o", "--output", help="picture to write (.png, .svg, .pdf...), or a directory (default: <run>/curves.png)"
     )
+    _describe(parser)
     return parser
+
+
+def _describe(parser: argparse.ArgumentParser) -> None:
+    """Every (sub)command's ``--help`` opens with what it does: its line in its parent's list, where it has no
+    description of its own."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for listed in action._choices_actions:
+                command = action.choices[listed.dest]
+                command.description = command.description or f"{listed.help[0].upper()}{listed.help[1:]}."
+                _describe(command)
 
 
 def _version() -> str:

@@ -37,6 +37,13 @@ def test_every_option_command_and_argument_has_help() -> None:
     assert not missing, f"no help text: {missing}"
 
 
+def test_every_commands_help_opens_with_what_it_does() -> None:
+    described = {name: (parser.description or "").strip() for name, parser in parsers(build_parser())}
+    assert all(described.values()), [name for name, text in described.items() if not text]
+    assert described["ftrain plot"] == "Learning curves of a run as a PNG, restarts marked."
+    print(f"{len(described)} commands described")
+
+
 def test_every_option_with_a_default_shows_it() -> None:
     hidden = []
     for name, parser in parsers(build_parser()):
