@@ -7,6 +7,7 @@ May import: fsspec, ``ftrain.redact``, the standard library.
 
 from __future__ import annotations
 
+import logging
 from urllib.parse import unquote, urlsplit
 
 import fsspec
@@ -31,6 +32,7 @@ def prepare(protocol: str, url: str, options: dict) -> str:
     if protocol in S3_PROTOCOLS:
         return _s3_options(url, options)
     if protocol in GCS_PROTOCOLS:
+        logging.getLogger("gcsfs").setLevel(logging.CRITICAL)  # its traceback per failed request: Storage says it once
         options.setdefault("skip_instance_cache", True)
         options.setdefault("requests_timeout", S3_TIMEOUTS["read_timeout"])
     if protocol in AZURE_PROTOCOLS:

@@ -4,6 +4,9 @@ import logging
 import os
 import re
 import socket
+import subprocess
+import sys
+import textwrap
 import threading
 import time
 from urllib.parse import urlsplit
@@ -15,7 +18,7 @@ from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.errors import UserError
 from ftrain.redact import display_url
 
-from helpers import S3_KEY, S3_SECRET, create_bucket, free_port
+from helpers import S3_KEY, S3_SECRET, child_env, create_bucket, free_port
 
 
 def test_round_trip(storage_url):
@@ -330,3 +333,23 @@ def test_a_failing_mount_is_an_outage_not_bad_input(tmp_path, code) -> None:
     assert calls == [code, code]
     with pytest.raises(FileNotFoundError):
         storage.read("missing")
+
+
+def test_gcsfs_prints_no_traceback_for_a_request_the_storage_reports_itself() -> None:
+    """gcsfs logs every request that ran out of its own retries with its traceback (four of them, 100 lines, before
+    the one line of an unreachable storage); the storage's error says it. In a process of its own: pytest captures
+    logging, where a command prints it."""
+    code = textwrap.dedent(
+        """
+        import logging
+        from ftrain.ckpt.storage import Storage
+        Storage.open("gs://bucket/run", {"token": "anon", "endpoint_url": "http://127.0.0.1:1"})
+        try:
+            raise ConnectionError("Cannot connect to host")
+        except ConnectionError as error:
+            logging.getLogger("gcsfs").exception(f"_request out of retries on exception: {error}")  # as gcsfs does
+        logging.getLogger("ftrain").warning("a warning of ftrain's own")
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", code], env=child_env(), capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and done.stderr == "a warning of ftrain's own\n", done.stderr
