@@ -291,7 +291,7 @@ class StepWriter:
                 self._steps[step] = StepInfo(step, INCOMPLETE)  # abandoned: retention deletes it
             return (Result.FAILED, step, "; ".join(errors))
         self._steps[step] = StepInfo(step, VERIFIED, sum(entry.size for entry in files.values()), manifest)
-        if not self._best_metric_checked:
+        if not self._best_metric_checked and manifest.get("metrics"):
             self._check_best_metric(manifest["metrics"])
         self.newest_committed = step
         self._apply_retention()
