@@ -14,7 +14,8 @@
 Derived from them: the fence record, the plan (its generation is the one its maker took; requests of another
 generation do nothing), torchrun's rendezvous id, the attempt token that finds an attempt's processes, the attempt's
 log directory, and each manifest's ``run_id``, ``generation`` and ``attempt``. The log directory is the storage's
-(one supervisor per log directory, a lock), and the tracker run is saved with the checkpoints.
+(one run per log directory: its supervisor, or rank 0 without one, holds a lock), and the tracker run is saved with
+the checkpoints.
 """
 
 from __future__ import annotations

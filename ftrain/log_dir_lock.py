@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import fcntl
 import os
+import socket
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -28,7 +29,11 @@ def claim_log_dir(log_dir: Path, node: int | None, holder: str) -> Iterator[None
     way out if another run holds it."""
     log_dir.mkdir(parents=True, exist_ok=True)
     path = log_dir / f"run{'' if node is None else f'-node-{node}'}.lock"
-    with path.open("a+") as lock:
+    try:
+        lock = path.open("a+")
+    except OSError as error:
+        raise _cannot_hold(log_dir, path, error) from None
+    with lock:
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -38,7 +43,17 @@ def claim_log_dir(log_dir: Path, node: int | None, holder: str) -> Iterator[None
                 f"log directory {log_dir} is in use by another run ({other}): stop that run, or give this one a log "
                 "directory of its own with log_dir=DIR"
             ) from None
+        except OSError as error:
+            raise _cannot_hold(log_dir, path, error) from None
         lock.truncate(0)
-        lock.write(f"{holder} pid {os.getpid()}\n")
+        lock.write(f"{holder} pid {os.getpid()} on {socket.gethostname()}\n")
         lock.flush()
         yield
+
+
+def _cannot_hold(log_dir: Path, path: Path, error: OSError) -> UserError:
+    """A lock file that is not ours to write, or a file system without locks."""
+    return UserError(
+        f"log directory {log_dir} cannot be held ({path}: {error.strerror or error}): give this run a log directory "
+        "on a local file system you can write, with log_dir=DIR"
+    )

@@ -1,5 +1,6 @@
-"""Who holds a run's storage lease (``lease.py``): ``ftrain supervise`` for its workers, else rank 0 of the world
-(``claim``), which every rank calls at the start. Rank 0 draws the run's id (``identity.run_id``) and takes the lease;
+"""Who holds a run's storage lease (``lease.py``) and its log directory (``ftrain.log_dir_lock``): ``ftrain
+supervise`` for its workers, else rank 0 of the world (``claim``), which every rank calls at the start. Rank 0 draws
+the run's id (``identity.run_id``), takes the lease, then the log directory (a run refused either keeps neither);
 every other rank receives the identity it holds, so that every rank's writes are checked against it
 (``fence.Fence``). Torch-free."""
 
@@ -44,9 +45,10 @@ class Claim:
     """What ``claim`` leaves a rank: the lease and the log directory where this rank holds them, and the identity it
     gave this process."""
 
-    def __init__(self, lease: Lease | None, log_dir: contextlib.ExitStack, environ: dict[str, str | None]) -> None:
+    def __init__(self, lease: Lease | None, held: contextlib.ExitStack, environ: dict[str, str | None]) -> None:
         self.lease = lease
-        self._log_dir = log_dir
+        self._held = held
+        """Releases what this rank holds, the log directory first, then the lease."""
         self._environ = environ
 
     @property
@@ -56,9 +58,7 @@ class Claim:
 
     def release(self) -> None:
         """Release the log directory and the lease (rank 0), and leave the environment as it was before ``claim``."""
-        self._log_dir.close()
-        if self.lease is not None:
-            self.lease.release()
+        self._held.close()
         restore_environ(self._environ)
 
 
@@ -71,7 +71,7 @@ def claim(
     alike (LeaseHeld or UserError if refused) and none waits for a rank 0 that failed, and hands every rank the
     identity rank 0 holds (``Identity.env``)."""
     lease, outcome, failure = None, None, None
-    log_dir = contextlib.ExitStack()
+    held = contextlib.ExitStack()
     environ = saved_environ()
     if is_main:
         try:
@@ -79,17 +79,15 @@ def claim(
                 _check_for_supervisor(config, log)
             else:
                 lease = storage_lease(config, log)
-                if taken := lease.hold():
+                taken = lease.hold()
+                held.callback(lease.release)  # at the run's end, or at once if what follows fails
+                if taken:
                     log(taken)
-                try:
-                    log_dir.enter_context(claim_log_dir(Path(config.log_dir), None, "ftrain train"))
-                except UserError:
-                    lease.release()  # refused: it goes back at once, nothing written
-                    raise
+                held.enter_context(claim_log_dir(Path(config.log_dir), None, "ftrain train"))
             identity = Identity.from_env()
             outcome = [None, identity.env() if identity is not None else {}]
         except Exception as error:
-            log_dir.close()
+            held.close()  # the log directory and the lease, where taken: a refused run keeps nothing
             lease, failure = None, error
             outcome = [type(error).__name__ if type(error).__name__ in _AGREED else "StorageError", str(error)]
     outcome = agree(outcome)
@@ -98,7 +96,7 @@ def claim(
     if outcome[0] is not None:
         raise _AGREED[outcome[0]](outcome[1])
     os.environ.update(outcome[1])
-    return Claim(lease, log_dir, environ)
+    return Claim(lease, held, environ)
 
 
 def _check_for_supervisor(config: Config, log: Callable[[str], None]) -> None:

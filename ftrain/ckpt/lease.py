@@ -332,8 +332,10 @@ class Lease:
     def _held_message(self, record: Record, live: list[Entry]) -> str:
         holder = max(live, key=lambda e: e.renewed_at)
         ends, now = record.expires_at, time.time()
-        if ends < now:  # not renewed, but its process lives on this host (stopped, say): never taken from it
+        if ends < now and holder.process.running():  # not renewed, but alive here (stopped, say): never taken from it
             end = f"ran out at {_when(ends)}, but its process still exists on this host and keeps it"
+        elif ends < now:  # by its host's clock; the storage's own clock says it was renewed within its time to live
+            end = f"ran out at {_when(ends)} by its host's clock, but the storage's clock says it is still renewed"
         else:
             end = f"ends at {_when(ends)} unless renewed"
         since = f" since {_when(holder.since)}" if holder.since else ""

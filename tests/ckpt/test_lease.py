@@ -8,6 +8,7 @@ import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -167,8 +168,9 @@ def test_a_lease_of_another_host_holds_until_it_expires_by_the_storages_clock(st
 
     # that host's clock is 5 minutes behind: its renewal looks expired here, but the storage wrote it just now
     storage.write_replace(LEASE, foreign("far-run", time.time() - 300, ttl=3.0).encode())
-    with pytest.raises(LeaseHeld, match="far-run, pid 4242 on host node-far-away"):
+    with pytest.raises(LeaseHeld, match="far-run, pid 4242 on host node-far-away") as refused:
         Lease(storage, "mine", print).acquire()
+    assert "by its host's clock, but the storage's clock says it is still renewed" in str(refused.value)
     time.sleep(4.5)  # no renewal for longer than its ttl, by the storage's clock (whole seconds on S3)
     taken = Lease(storage, "mine", print).acquire()
     assert taken is not None and "from run far-run" in taken and "expired at" in taken
@@ -385,8 +387,8 @@ def test_an_unsupervised_run_holds_its_log_directory_and_one_refused_there_gives
         with pytest.raises(UserError) as refused:
             claim(config_of("second"), True, lambda outcome: outcome, print)
         assert str(refused.value) == (
-            f"log directory {logs} is in use by another run (ftrain train pid {os.getpid()}): stop that run, or give "
-            "this one a log directory of its own with log_dir=DIR"
+            f"log directory {logs} is in use by another run (ftrain train pid {os.getpid()} on "
+            f"{socket.gethostname()}): stop that run, or give this one a log directory of its own with log_dir=DIR"
         )
         assert Record.decode(Storage.open(str(tmp_path / "second")).read(LEASE)).entries == ()  # given back
         assert sorted(path.name for path in logs.iterdir()) == ["run.lock"]  # nothing of the second run's
@@ -395,3 +397,8 @@ def test_an_unsupervised_run_holds_its_log_directory_and_one_refused_there_gives
     finally:
         first.release()
     claim(config_of("second"), True, lambda outcome: outcome, print).release()
+    (logs / "run.lock").unlink()
+    (logs / "run.lock").mkdir()  # a lock that cannot be taken at all (not ours to write, a file system without locks)
+    with pytest.raises(UserError, match=rf"^log directory {logs} cannot be held \({logs}/run.lock: Is a directory\)"):
+        claim(config_of("third"), True, lambda outcome: outcome, print)
+    assert Record.decode(Storage.open(str(tmp_path / "third")).read(LEASE)).entries == ()  # given back too
