@@ -291,17 +291,18 @@ class StepWriter:
                 self._steps[step] = StepInfo(step, INCOMPLETE)  # abandoned: retention deletes it
             return (Result.FAILED, step, "; ".join(errors))
         self._steps[step] = StepInfo(step, VERIFIED, sum(entry.size for entry in files.values()), manifest)
-        if not self._best_metric_checked and manifest.get("metrics"):
-            self._check_best_metric(manifest["metrics"])
         self.newest_committed = step
         self._apply_retention()
+        if not self._best_metric_checked:
+            with contextlib.suppress(Exception):  # a word to the user: nothing of it may fail a commit
+                self._check_best_metric(manifest.get("metrics") or {})
         return (Result.COMMITTED, step, manifest)
 
     def _check_best_metric(self, recorded: dict) -> None:
         """Say once, at this run's first commit, when ``checkpoint.best_metric`` names no metric the run records (hooks
         add theirs, so the config alone cannot tell): keep_best then keeps no step by it."""
         self._best_metric_checked = True
-        if self.policy.keep_best and self.policy.best_metric not in recorded:
+        if self.policy.keep_best and recorded and self.policy.best_metric not in recorded:
             self.log(
                 f"checkpoint.best_metric={self.policy.best_metric} is not a metric of this run, so keep_best keeps no "
                 f"step by it: use one of {', '.join(sorted(recorded))}"
