@@ -311,7 +311,7 @@ def _open(url: str, options: dict | None) -> tuple[Storage, int | None]:
     storage = Storage.open(root, options)
     if step is None and not storage.list_dirs(CHECKPOINTS):
         usual = "pass a run's storage (the directory holding checkpoints/) or one step directory"
-        raise UserError(f"no checkpoints under {storage.url}: {part_of_a_storage(storage.url) or usual}")
+        raise UserError(f"no checkpoints under {storage.url}: {part_of_a_storage(storage) or usual}")
     if step is not None and not storage.list_files(step_dir(step)):
         raise UserError(f"{storage.where(step_dir(step))} does not exist: see ftrain ckpt ls {storage.url}")
     return storage, step

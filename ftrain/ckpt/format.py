@@ -31,6 +31,8 @@ it, and ftrain's state under ``ftrain``. ``state_sha256`` is :func:`state_digest
 PACKED_STATE_FORMATS = (2, 3)
 """ftrain 0.1's packed tensors (one flat tensor per dtype): refused with one line, never quarantined."""
 CHECKPOINTS = "checkpoints"
+POLICIES = "policies"
+"""Where policy snapshots go: ``policies/step-N``, beside ``checkpoints/`` (``ftrain.policy.snapshots``)."""
 MANIFEST = "MANIFEST.json"
 QUARANTINED = "QUARANTINED.json"
 COMMON = "common.pt"

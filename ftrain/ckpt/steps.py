@@ -3,7 +3,9 @@
 Rules (see ``format.py`` for what "verified" means): a committed step that fails verification (a missing or
 damaged file) is quarantined, never loaded, and never deleted except by an explicit ``ftrain ckpt prune
 --drop-bad``; a run that needs its step number again sets it aside under ``quarantine/``. An incomplete step (no
-manifest) was abandoned and may be deleted. A step that verifies is never quarantined.
+manifest) was abandoned and may be deleted. A step that verifies is never quarantined. No storage lies inside another
+storage's step directories, which its retention deletes (``check_storage_place``); a URL of a storage's part that
+holds no step is told what to pass instead (``part_of_a_storage``).
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from ftrain.ckpt.format import (
     CORRUPT,
     INCOMPLETE,
     MANIFEST,
+    POLICIES,
     QUARANTINE,
     QUARANTINED,
     STEP_DIR,
@@ -43,19 +46,32 @@ ASIDE = "quarantine"
 """Where corrupt and quarantined steps go when a run needs their step number again (see :func:`set_aside`)."""
 
 
-def check_storage_place(url: str) -> None:
-    """UserError if ``url`` is or lies inside a step directory of a storage (``<run>/checkpoints/step-N``, or one set
-    aside under ``quarantine/``): that run's retention and clean-up would delete what a run there writes."""
-    shown = display_url(url)
-    parts = shown.partition("?")[0].rstrip("/").split("/")
+STEP_PARENTS = (CHECKPOINTS, ASIDE, POLICIES)
+"""The directories of a storage whose ``step-N`` (``step-N.k`` set aside again) its run's retention deletes."""
+_STEP_NAME = re.compile(r"^step-\d+(\.\d+)?$")
+
+
+def _enclosing_step(url: str) -> tuple[str, str] | None:
+    """The step directory of a storage that ``url`` is or lies inside, and its parent's name (``STEP_PARENTS``)."""
+    parts = url.partition("?")[0].rstrip("/").split("/")
     for index in range(1, len(parts)):
-        if STEP_DIR.match(parts[index]) and parts[index - 1] in (CHECKPOINTS, ASIDE):
-            step = "/".join(parts[: index + 1])
-            resume = f" (to train on from that step: resume={step})" if parts[index - 1] == CHECKPOINTS else ""
-            raise UserError(
-                f"storage {shown} is inside {step}, a checkpoint step of another run's storage, which that run may "
-                f"delete: pass a directory of its own{resume}"
-            )
+        if _STEP_NAME.match(parts[index]) and parts[index - 1] in STEP_PARENTS:
+            return "/".join(parts[: index + 1]), parts[index - 1]
+    return None
+
+
+def check_storage_place(url: str) -> None:
+    """UserError if ``url`` is or lies inside a step directory of a storage (``<run>/checkpoints/step-N``, one set
+    aside under ``quarantine/``, a policy snapshot under ``policies/``): that run's retention and clean-up would
+    delete what a run there writes."""
+    shown = display_url(url)
+    if (found := _enclosing_step(shown)) is not None:
+        step, parent = found
+        resume = f" (to train on from that step: resume={step})" if parent == CHECKPOINTS else ""
+        raise UserError(
+            f"storage {shown} is inside {step}, a step of another run's storage, which that run may delete: pass a "
+            f"directory of its own{resume}"
+        )
 
 
 def scan(storage: Storage, full: bool = False) -> list[StepInfo]:
@@ -217,14 +233,16 @@ def _aside_name(step: int, n: int) -> str:
     return f"step-{step:09d}" + (f".{n}" if n else "")
 
 
-def part_of_a_storage(url: str) -> str | None:
-    """What to pass instead of ``url``, a part of a run's storage that holds no step itself (its ``checkpoints/``,
-    or a step set aside under ``quarantine/``), for the line that refuses it; None for anything else."""
-    head, _, last = url.rstrip("/").rpartition("/")
-    root = head.rpartition("/")[0] or "."
-    if last == CHECKPOINTS:
-        return f"that is the {CHECKPOINTS}/ directory of {head or '.'}: pass {head or '.'}"
-    if head.rpartition("/")[2] == ASIDE and re.fullmatch(r"step-\d+(\.\d+)?", last):
+def part_of_a_storage(storage: Storage) -> str | None:
+    """What to pass instead of ``storage``, which holds no step: where it is a run's ``checkpoints/`` directory (its
+    listing holds steps) or a step set aside under ``quarantine/``, the line that refuses it says so; else None."""
+    head, _, last = storage.url.rstrip("/").rpartition("/")
+    if not head or head.endswith(":/"):  # a bucket, or a directory with no parent named: nothing above it to pass
+        return None
+    if last == CHECKPOINTS and any(_STEP_NAME.match(name) for name in storage.list_dirs("")):
+        return f"that is the {CHECKPOINTS}/ directory of {head}: pass {head}"
+    if (found := _enclosing_step(storage.url)) is not None and found[1] == ASIDE:
+        root = found[0].rsplit("/", 2)[0]
         return f"that is a step set aside under {ASIDE}/, out of the history of {root}: see ftrain ckpt ls {root}"
     return None
 
@@ -239,7 +257,7 @@ def resolve_checkpoint_url(
     if step is None:
         selected = select_resume(storage, log, quarantine_bad=False)
         if selected is None:
-            fix = part_of_a_storage(storage.url) or "pass a run's storage or a step directory"
+            fix = part_of_a_storage(storage) or "pass a run's storage or a step directory"
             raise UserError(f"no verified checkpoint under {storage.url}: {fix}")
         return storage, *selected
     result = verify_step(storage, step)

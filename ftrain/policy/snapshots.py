@@ -16,13 +16,12 @@ Snapshots have their own retention (``snapshots.keep_last``), independent of the
 
 from __future__ import annotations
 
-from ftrain.ckpt.format import CHECKPOINTS, parse_checkpoint_url, step_dir, verify_step
+from ftrain.ckpt.format import CHECKPOINTS, POLICIES, parse_checkpoint_url, step_dir, verify_step
 from ftrain.ckpt.retention import delete_step, retention_plan
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
 
-POLICIES = "policies"
 ACTOR = "actor.pt"
 LINEAGE = "lineage.json"
 FILE_NAMES = {"torchscript": "policy.pt", "onnx": "policy.onnx"}

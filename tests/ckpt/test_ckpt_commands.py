@@ -162,6 +162,13 @@ def test_a_part_of_a_storage_that_holds_no_step_is_told_what_to_pass_instead(run
         with pytest.raises(UserError) as refused:
             command(url)
         assert fix in str(refused.value), (url, str(refused.value))
+    own = Storage.open(f"{run}/more/checkpoints")  # a storage of one's own named checkpoints: no hint of a parent
+    own.write_exclusive("notes.txt", b"not a step")
+    with pytest.raises(UserError) as refused:
+        ckpt_commands.ls(own.url)
+    assert str(refused.value).endswith(
+        ": pass a run's storage (the directory holding checkpoints/) or one step directory"
+    )
 
 
 def test_bad_input_is_a_user_error(run, tmp_path):

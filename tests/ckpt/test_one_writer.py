@@ -214,6 +214,8 @@ INSIDE_A_STEP = [
     ("{run}/checkpoints/step-000000004/sub/", "{run}/checkpoints/step-000000004", True),
     ("file://{run}/checkpoints/step-000000004", "file://{run}/checkpoints/step-000000004", True),
     ("{run}/quarantine/step-000000004/x", "{run}/quarantine/step-000000004", False),
+    ("{run}/quarantine/step-000000004.1", "{run}/quarantine/step-000000004.1", False),  # set aside a second time
+    ("{run}/policies/step-000000004/mine", "{run}/policies/step-000000004", False),  # a policy snapshot
     ("s3://bucket/exp/checkpoints/step-7", "s3://bucket/exp/checkpoints/step-7", True),
 ]
 
@@ -240,8 +242,8 @@ def test_train_and_supervise_refuse_a_storage_inside_a_step_before_they_touch_it
     result = subprocess.run(command(inside), cwd=tmp_path, env=child_env(), capture_output=True, text=True, timeout=60)
     assert result.returncode == 2, result.stderr
     assert result.stderr.strip().splitlines() == [
-        f"ftrain: error: storage {inside} is inside {inside}, a checkpoint step of another run's storage, which that "
-        f"run may delete: pass a directory of its own (to train on from that step: resume={inside})"
+        f"ftrain: error: storage {inside} is inside {inside}, a step of another run's storage, which that run may "
+        f"delete: pass a directory of its own (to train on from that step: resume={inside})"
     ], result.stderr
     assert sorted(path.name for path in inside.iterdir()) == before
     assert [info.status for info in scan(run, full=True)] == ["verified"]
