@@ -164,7 +164,7 @@ class SupervisorOptions:
             "max_restarts": (0, inf, True, "0 (never restart) or more, e.g. 10"),
             "startup_grace": (0, inf, False, "a positive number of seconds, e.g. 300"),
             "backoff_max": (0, inf, True, "0 or more seconds, e.g. 60"),
-            "backoff_initial": (0, self.backoff_max, True, f"0 to --backoff-max ({self.backoff_max}) seconds"),
+            "backoff_initial": (0, inf, True, "0 or more seconds (at most --backoff-max is waited), e.g. 1"),
             "crash_loop": (0, inf, True, "0 (never stop for a crash loop) or more restarts, e.g. 3"),
             "storage_wait": (0, inf, True, "0 (do not wait) or more seconds, e.g. 3600"),
             "stop_grace": (0, inf, False, "a positive number of seconds, e.g. 30"),
