@@ -409,9 +409,9 @@ def check_writable(path: Path, option: str) -> None:
         else:
             tempfile.TemporaryFile(dir=where).close()
     except OSError as error:
-        raise UserError(
-            f"cannot write {path} ({where}: {error.strerror or error}): pass {option} a path you can write to"
-        ) from None
+        why = error.strerror or str(error)
+        detail = why if where == path else f"{where}{' takes no new file' if where.is_dir() else ''}: {why}"
+        raise UserError(f"cannot write {path} ({detail}): pass {option} a path you can write to") from None
 
 
 def default_log_dir(storage_url: str, name: str) -> str:

@@ -16,8 +16,14 @@ from ftrain.policy.export import export
 from ftrain.policy.play import play
 
 UNWRITABLE = {
-    "a directory that takes no new files": (Path("/proc/x.onnx"), "(/proc: No such file or directory)"),
-    "a directory missing under one that takes none": (Path("/proc/nope/x.onnx"), "(/proc: No such file or directory)"),
+    "a directory that takes no new files": (
+        Path("/proc/x.onnx"),
+        "(/proc takes no new file: No such file or directory)",
+    ),
+    "a directory missing under one that takes none": (
+        Path("/proc/nope/x.onnx"),
+        "(/proc takes no new file: No such file or directory)",
+    ),
 }
 
 
@@ -25,7 +31,10 @@ def unwritable(tmp_path: Path) -> dict[str, tuple[Path, str]]:
     """Paths that cannot be written, with what the refusal says about each."""
     notes = tmp_path / "notes.txt"
     notes.write_text("kept\n")
-    return {**UNWRITABLE, "a file in place of a directory": (notes / "x.onnx", f"({notes}: Not a directory)")}
+    return {
+        **UNWRITABLE,
+        "a file in place of a directory": (notes / "x.onnx", f"({notes}: Not a directory)"),
+    }
 
 
 def test_a_path_that_cannot_be_written_is_one_line_naming_it_and_the_flag(tmp_path) -> None:
@@ -66,8 +75,14 @@ def test_export_refuses_an_unwritable_output_before_playing_episodes(tmp_path, m
         ({"seed": -1}, "--seed -1 is out of range: use a seed from 0 to 4294967295"),
         ({"seed": 2**32}, "--seed 4294967296 is out of range: use a seed from 0 to 4294967295"),
         ({"seed": 2**32 - 1, "episodes": 2}, "--seed 4294967295 is out of range: use a seed from 0 to 4294967294"),
-        ({"video": "/proc/x.mp4"}, "cannot write /proc/x.mp4 (/proc: No such file or directory): pass --video a path"),
-        ({"video": "/proc/nope/x.gif"}, "cannot write /proc/nope/x.gif (/proc: No such file or directory): pass --v"),
+        (
+            {"video": "/proc/x.mp4"},
+            "cannot write /proc/x.mp4 (/proc takes no new file: No such file or directory): pass --video a path",
+        ),
+        (
+            {"video": "/proc/nope/x.gif"},
+            "cannot write /proc/nope/x.gif (/proc takes no new file: No such file or directory): pass --v",
+        ),
     ],
 )
 def test_play_refuses_before_it_makes_an_env(kwargs: dict, message: str) -> None:

@@ -208,15 +208,15 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
         "a seed gymnasium refuses": (["play", str(trained), "--seed", "-1"], "--seed -1 is out of range: use a seed"),
         "a video where no file can be made": (
             ["play", str(trained), "--video", "/proc/x.mp4"],
-            "cannot write /proc/x.mp4 (/proc: No such file or directory): pass --video a path you can write to",
+            "cannot write /proc/x.mp4 (/proc takes no new file: No such file or directory): pass --video a path",
         ),
         "a video under a directory that cannot be made": (
             ["play", str(trained), "--video", "/proc/nope/x.mp4"],
-            "cannot write /proc/nope/x.mp4 (/proc: No such file or directory): pass --video a path you can write to",
+            "cannot write /proc/nope/x.mp4 (/proc takes no new file: No such file or directory): pass --video a",
         ),
         "an export where no file can be made": (
             ["export", str(trained), "--format", "onnx", "-o", "/proc/x.onnx"],
-            "cannot write /proc/x.onnx (/proc: No such file or directory): pass -o a path you can write to",
+            "cannot write /proc/x.onnx (/proc takes no new file: No such file or directory): pass -o a path",
         ),
         "an exported policy to export": (["export", str(exported), "--format", "torchscript"], "exported onnx policy"),
         "an output of another kind": (

@@ -100,5 +100,8 @@ def test_cli(resumed, tmp_path, capsys) -> None:
     assert err.count("\n") == 1 and "c.txt: not a picture file matplotlib writes: end it in .png, .svg or .pdf" in err
     assert main(["plot", str(resumed), "-o", "/proc/c.png"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "cannot write /proc/c.png (/proc: No such file or directory): pass -o a" in err
+    assert (
+        err.count("\n") == 1
+        and "cannot write /proc/c.png (/proc takes no new file: No such file or directory): pass -o a" in err
+    )
     assert main(["plot", str(resumed), "-o", str(tmp_path)]) == 0 and png_size(tmp_path / "curves.png") == (1200, 800)

@@ -50,8 +50,8 @@ def test_an_output_that_cannot_be_written_is_one_line_naming_it(tmp_path, capsys
     notes = tmp_path / "notes.txt"
     notes.write_text("kept\n")
     for output, reason in [
-        ("/proc/c.png", "/proc: No such file or directory"),
-        ("/proc/nope/c.png", "/proc: No such file or directory"),
+        ("/proc/c.png", "/proc takes no new file: No such file or directory"),
+        ("/proc/nope/c.png", "/proc takes no new file: No such file or directory"),
         (f"{notes}/c.png", f"{notes}: Not a directory"),
     ]:
         err = refused(["plot", str(run), "-o", output], capsys)
