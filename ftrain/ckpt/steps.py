@@ -51,12 +51,16 @@ STEP_PARENTS = (CHECKPOINTS, ASIDE, POLICIES)
 _STEP_NAME = re.compile(r"^step-\d+(\.\d+)?$")
 
 
-def _enclosing_step(url: str) -> tuple[str, str] | None:
-    """The step directory of a storage that ``url`` is or lies inside, and its parent's name (``STEP_PARENTS``)."""
+def _enclosing_step(url: str) -> tuple[str, str, str] | None:
+    """The step directory of a storage that ``url`` is or lies inside, its parent's name (``STEP_PARENTS``) and the
+    storage's root; None where there is none, or where the parent is a bucket (nothing can lie above a bucket)."""
     parts = url.partition("?")[0].rstrip("/").split("/")
     for index in range(1, len(parts)):
         if _STEP_NAME.match(parts[index]) and parts[index - 1] in STEP_PARENTS:
-            return "/".join(parts[: index + 1]), parts[index - 1]
+            above = parts[: index - 1]
+            root = "/".join(above) or ("/" if above else ".")
+            if not root.endswith(":/"):
+                return "/".join(parts[: index + 1]), parts[index - 1], root
     return None
 
 
@@ -66,7 +70,7 @@ def check_storage_place(url: str) -> None:
     delete what a run there writes."""
     shown = display_url(url)
     if (found := _enclosing_step(shown)) is not None:
-        step, parent = found
+        step, parent, _ = found
         resume = f" (to train on from that step: resume={step})" if parent == CHECKPOINTS else ""
         raise UserError(
             f"storage {shown} is inside {step}, a step of another run's storage, which that run may delete: pass a "
@@ -237,12 +241,12 @@ def part_of_a_storage(storage: Storage) -> str | None:
     """What to pass instead of ``storage``, which holds no step: where it is a run's ``checkpoints/`` directory (its
     listing holds steps) or a step set aside under ``quarantine/``, the line that refuses it says so; else None."""
     head, _, last = storage.url.rstrip("/").rpartition("/")
-    if not head or head.endswith(":/"):  # a bucket, or a directory with no parent named: nothing above it to pass
-        return None
-    if last == CHECKPOINTS and any(_STEP_NAME.match(name) for name in storage.list_dirs("")):
-        return f"that is the {CHECKPOINTS}/ directory of {head}: pass {head}"
+    parent = head or ("/" if storage.url.startswith("/") else ".")
+    above_a_bucket = parent.endswith(":/")  # nothing can lie above a bucket
+    if last == CHECKPOINTS and not above_a_bucket and any(map(_STEP_NAME.match, storage.list_dirs(""))):
+        return f"that is the {CHECKPOINTS}/ directory of {parent}: pass {parent}"
     if (found := _enclosing_step(storage.url)) is not None and found[1] == ASIDE:
-        root = found[0].rsplit("/", 2)[0]
+        root = found[2]
         return f"that is a step set aside under {ASIDE}/, out of the history of {root}: see ftrain ckpt ls {root}"
     return None
 

@@ -145,7 +145,7 @@ def test_prune_keeps_an_incomplete_step_written_lately_and_deletes_it_once_aband
     assert 15 not in [info.step for info in scan(storage)]
 
 
-def test_a_part_of_a_storage_that_holds_no_step_is_told_what_to_pass_instead(run):
+def test_a_part_of_a_storage_that_holds_no_step_is_told_what_to_pass_instead(run, monkeypatch):
     """A run's checkpoints/ directory, or a step set aside under quarantine/, as the URL of a command that reads."""
     set_aside = f"{run}/quarantine/step-000000030.1"
     os.makedirs(set_aside)
@@ -162,6 +162,11 @@ def test_a_part_of_a_storage_that_holds_no_step_is_told_what_to_pass_instead(run
         with pytest.raises(UserError) as refused:
             command(url)
         assert fix in str(refused.value), (url, str(refused.value))
+    monkeypatch.chdir(run)
+    with pytest.raises(UserError, match=r"that is the checkpoints/ directory of \.: pass \.$"):
+        ckpt_commands.ls("checkpoints")  # from inside the run's storage
+    with pytest.raises(UserError, match=r": pass a run's storage \(the directory holding checkpoints/\) or one step"):
+        ckpt_commands.ls("memory://quarantine/step-000000005")  # a bucket: nothing above it to pass
     own = Storage.open(f"{run}/more/checkpoints")  # a storage of one's own named checkpoints: no hint of a parent
     own.write_exclusive("notes.txt", b"not a step")
     with pytest.raises(UserError) as refused:

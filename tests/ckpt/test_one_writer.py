@@ -229,7 +229,8 @@ def test_a_storage_inside_a_step_of_another_storage_is_refused(tmp_path, url, st
     line = str(refused.value)
     assert line.startswith(f"storage {url.format(run=run)} is inside {step.format(run=run)}, "), line
     assert ("resume=" in line) == resumable, line
-    for own in (run, f"{run}/checkpoints", f"{run}/steps/step-000000004", "s3://bucket/checkpoints/run"):
+    named_alike = (f"{run}/checkpoints", f"{run}/steps/step-000000004", "s3://bucket/checkpoints/run")
+    for own in (run, *named_alike, "s3://checkpoints/step-1", "memory://policies/step-3/run"):  # nothing above a bucket
         check_storage_place(str(own))  # a directory named checkpoints, or a step of nothing, is a storage's own
 
 
