@@ -36,6 +36,9 @@ def claim_log_dir(log_dir: Path, node: int | None, holder: str) -> Iterator[None
     with lock:
         try:
             fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            lock.truncate(0)
+            lock.write(f"{holder} pid {os.getpid()} on {socket.gethostname()}\n")  # for a run refused to read
+            lock.flush()
         except BlockingIOError:
             lock.seek(0)
             other = lock.read().strip() or "another run"
@@ -43,16 +46,13 @@ def claim_log_dir(log_dir: Path, node: int | None, holder: str) -> Iterator[None
                 f"log directory {log_dir} is in use by another run ({other}): stop that run, or give this one a log "
                 "directory of its own with log_dir=DIR"
             ) from None
-        except OSError as error:
+        except OSError as error:  # no locks on that file system, a full disk
             raise _cannot_hold(log_dir, path, error) from None
-        lock.truncate(0)
-        lock.write(f"{holder} pid {os.getpid()} on {socket.gethostname()}\n")
-        lock.flush()
         yield
 
 
 def _cannot_hold(log_dir: Path, path: Path, error: OSError) -> UserError:
-    """A lock file that is not ours to write, or a file system without locks."""
+    """A lock file that is not ours to write, a file system without locks, a full disk."""
     return UserError(
         f"log directory {log_dir} cannot be held ({path}: {error.strerror or error}): give this run a log directory "
         "on a local file system you can write, with log_dir=DIR"

@@ -301,8 +301,10 @@ class StepWriter:
     def _check_best_metric(self, recorded: dict) -> None:
         """Say once, at this run's first commit, when ``checkpoint.best_metric`` names no metric the run records (hooks
         add theirs, so the config alone cannot tell): keep_best then keeps no step by it."""
+        if not recorded:  # a step with no metrics says nothing: a later one is checked
+            return
         self._best_metric_checked = True
-        if self.policy.keep_best and recorded and self.policy.best_metric not in recorded:
+        if self.policy.keep_best and self.policy.best_metric not in recorded:
             self.log(
                 f"checkpoint.best_metric={self.policy.best_metric} is not a metric of this run, so keep_best keeps no "
                 f"step by it: use one of {', '.join(sorted(recorded))}"
