@@ -6,6 +6,7 @@ Lineage (``lineage.py``): what resume and ``ftrain ckpt verify`` make of forked 
 from __future__ import annotations
 
 import json
+import random
 import re
 import subprocess
 
@@ -232,6 +233,33 @@ def test_a_storage_inside_a_step_of_another_storage_is_refused(tmp_path, url, st
     named_alike = (f"{run}/checkpoints", f"{run}/steps/step-000000004", "s3://bucket/checkpoints/run")
     for own in (run, *named_alike, "s3://checkpoints/step-1", "memory://policies/step-3/run"):  # nothing above a bucket
         check_storage_place(str(own))  # a directory named checkpoints, or a step of nothing, is a storage's own
+
+
+def test_generated_places_inside_a_step_are_refused_and_others_taken_with_no_credential_shown() -> None:
+    """Generated URLs (roots, step parents, step names, depths, credentials): refused exactly where a step of a
+    storage with something above its parent encloses them, and the line never shows a credential."""
+    draw = random.Random(random.SystemRandom().randrange(2**31))
+    roots = ["run", "/data/run", "s3://AKIA1:S3CR3T@bucket/exp", "abfs://box@acct/x?sig=S3CR3T", "file:///r", "."]
+    parents = ["checkpoints", "quarantine", "policies", "steps", "check"]
+    names = ["step-000000012", "step-7.2", "step-", "steps-1", "step-1x"]
+    count = refused = 0
+    for _ in range(500):
+        root, parent, name = draw.choice(roots), draw.choice(parents), draw.choice(names)
+        base, _, query = root.partition("?")
+        tail = "/".join(draw.choice(["a", "b", "c"]) for _ in range(draw.randrange(3)))
+        url = "/".join(filter(None, [base, parent, name, tail])) + (f"?{query}" if query else "")
+        inside = parent in ("checkpoints", "quarantine", "policies") and re.fullmatch(r"step-\d+(\.\d+)?", name)
+        count += 1
+        try:
+            check_storage_place(url)
+        except UserError as error:
+            refused += 1
+            assert inside, url
+            assert "S3CR3T" not in str(error) and "AKIA1:" not in str(error), str(error)
+        else:
+            assert not inside, url
+    print(f"{count} generated places checked, {refused} refused")
+    assert 0 < refused < count
 
 
 @pytest.mark.parametrize("command", [train_command, supervise_command])

@@ -19,7 +19,7 @@ from ftrain.ckpt.save import Result, StepWriter, snapshot
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
 from ftrain.comm.group import RankInfo
-from ftrain.config import CheckpointConfig, load_config
+from ftrain.config import CheckpointConfig, Config, load_config
 from ftrain.heartbeat import ENV_DIR
 from ftrain.train.trainer import train
 
@@ -120,18 +120,24 @@ def test_sigterm_to_every_process_still_commits_the_stop_save_and_ranks_have_no_
     assert verify_step(Storage.open(str(storage)), newest).ok
 
 
-@pytest.mark.parametrize("async_save", [True, False])
-def test_a_memory_run_saves_and_its_steps_verify(tmp_path, async_save: bool) -> None:
-    """memory:// storage lives inside one process: the writer thread shares it, the inline path too."""
-    url = f"memory://ftrain-test/{uuid.uuid4().hex}"
-    overrides = ["iterations=4", "checkpoint.interval=2", f"log_dir={tmp_path}", "log.console=false"]
-    config = load_config(SMOKE, [*overrides, f"checkpoint.async_save={str(async_save).lower()}"], storage=url)
+def train_here(config: Config) -> None:
+    """Train ``config`` to its end in this process (a memory:// storage lives only here), leaving the signal handlers
+    as they were."""
     handlers = {number: signal.getsignal(number) for number in (signal.SIGTERM, signal.SIGINT)}
     try:
         assert train(config) == 0
     finally:
         for number, handler in handlers.items():
             signal.signal(number, handler)
+
+
+@pytest.mark.parametrize("async_save", [True, False])
+def test_a_memory_run_saves_and_its_steps_verify(tmp_path, async_save: bool) -> None:
+    """memory:// storage lives inside one process: the writer thread shares it, the inline path too."""
+    url = f"memory://ftrain-test/{uuid.uuid4().hex}"
+    overrides = ["iterations=4", "checkpoint.interval=2", f"log_dir={tmp_path}", "log.console=false"]
+    config = load_config(SMOKE, [*overrides, f"checkpoint.async_save={str(async_save).lower()}"], storage=url)
+    train_here(config)
     steps = scan(Storage.open(url), full=True)
     assert [(info.step, info.status) for info in steps] == [(4, VERIFIED), (2, VERIFIED)]
     assert steps[0].manifest["iteration"] == 4
@@ -210,12 +216,7 @@ def test_a_best_metric_the_run_does_not_record_is_said_once_at_its_first_commit(
         overrides = ["iterations=6", "checkpoint.interval=2", f"checkpoint.best_metric={metric}", "log.console=false"]
         url = f"memory://ftrain-test/{uuid.uuid4().hex}"
         config = load_config(SMOKE, [*overrides, f"log_dir={tmp_path / metric}"], storage=url)
-        handlers = {number: signal.getsignal(number) for number in (signal.SIGTERM, signal.SIGINT)}
-        try:
-            assert train(config) == 0
-        finally:
-            for number, handler in handlers.items():
-                signal.signal(number, handler)
+        train_here(config)
         said[metric] = [line for line in capsys.readouterr().out.splitlines() if "checkpoint.best_metric=" in line]
     for metric in ("mean_retrun", "eval_return"):
         assert len(said[metric]) == 1, said
