@@ -1,6 +1,9 @@
-"""Typed run configuration: YAML file + dotted ``key=value`` overrides, validated with one-line errors.
+"""Typed run configuration: YAML file + dotted ``key=value`` overrides, validated with one-line errors; and the paths
+on this machine that a run or a command writes (the storage where local, the log directory, an output file), made or
+tried before any work, so that one that cannot be written is one line, not a traceback halfway through.
 
-Torch-free on purpose: the supervisor loads and validates the config before it launches anything.
+Torch-free on purpose: the supervisor loads and validates the config before it launches anything. Imports: values,
+errors, redact.
 """
 
 from __future__ import annotations
