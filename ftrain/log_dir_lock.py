@@ -4,10 +4,11 @@ The log directory holds what is this run's alone on this machine: ``config.yaml`
 the heartbeats (which a supervisor clears for a new attempt and whose pids it kills), the spool (which prunes steps it
 did not write) and the attempts' logs. Two runs sharing one would overwrite each other's records and kill each other's
 workers, so the run's holder, its supervisor or else an unsupervised run's rank 0, holds an exclusive ``flock`` on
-``<log_dir>/run[-node-N].lock`` while it runs (the kernel drops it with the process, however it ends), and a second
-one is refused with one line. It is taken after the storage's lease: a second run on the same local storage (its log
-directory too) hears of the lease, which names the run. Several nodes of one run on one host share the directory, one
-lock each. Imports: errors.
+``<log_dir>/run.lock`` while it runs (the kernel drops it with the process, however it ends), and a second one is
+refused with one line. It is taken after the storage's lease: a second run on the same local storage (its log
+directory too) hears of the lease, which names the run. Several nodes of one run on one host share the directory: each
+holds ``run-node-N.lock`` alone and ``run.lock`` shared, so a run on one node and a run on several exclude each other.
+Imports: errors.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import contextlib
 import fcntl
 import os
 import socket
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from ftrain.errors import UserError
@@ -26,29 +27,55 @@ from ftrain.errors import UserError
 def claim_log_dir(log_dir: Path, node: int | None, holder: str) -> Iterator[None]:
     """Hold ``log_dir`` for this run (``node``: this node's number on several nodes, else None; ``holder``: what
     holds it, e.g. "supervisor", shown to a run refused) for the ``with`` block; UserError naming the holder and the
-    way out if another run holds it."""
+    way out if another run holds it.
+
+    A run on one node holds ``run.lock`` alone; each node of a run on several holds ``run-node-N.lock`` alone and
+    ``run.lock`` shared with the other nodes, so that neither kind of run starts beside the other."""
     log_dir.mkdir(parents=True, exist_ok=True)
-    path = log_dir / f"run{'' if node is None else f'-node-{node}'}.lock"
+    with contextlib.ExitStack() as held:
+        if node is None:
+            _hold(held, log_dir, "run.lock", fcntl.LOCK_EX, holder)
+        else:
+            _hold(held, log_dir, "run.lock", fcntl.LOCK_SH, None)
+            _hold(held, log_dir, f"run-node-{node}.lock", fcntl.LOCK_EX, holder)
+        yield
+
+
+def _hold(held: contextlib.ExitStack, log_dir: Path, name: str, mode: int, holder: str | None) -> None:
+    """``flock`` ``log_dir/name`` in ``mode`` until ``held`` closes; an exclusive holder writes its name in the file."""
+    path = log_dir / name
     try:
-        lock = path.open("a+")
+        lock = held.enter_context(path.open("a+"))
     except OSError as error:
         raise _cannot_hold(log_dir, path, error) from None
-    with lock:
-        try:
-            fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            lock.truncate(0)
+    try:
+        fcntl.flock(lock, mode | fcntl.LOCK_NB)
+        lock.truncate(0)  # a shared holder clears the name of an exclusive one gone
+        if holder is not None:
             lock.write(f"{holder} pid {os.getpid()} on {socket.gethostname()}\n")  # for a run refused to read
-            lock.flush()
-        except BlockingIOError:
-            lock.seek(0)
-            other = lock.read().strip() or "another run"
-            raise UserError(
-                f"log directory {log_dir} is in use by another run ({other}): stop that run, or give this one a log "
-                "directory of its own with log_dir=DIR"
-            ) from None
-        except OSError as error:  # no locks on that file system, a full disk
-            raise _cannot_hold(log_dir, path, error) from None
-        yield
+        lock.flush()
+    except BlockingIOError:
+        # a run on one node wrote its name; where none is written, the nodes of a run on several hold it shared
+        holders = _held_names([path]) or _held_names(log_dir.glob("run-node-*.lock")) or "another run"
+        raise UserError(
+            f"log directory {log_dir} is in use by another run ({holders}): stop that run, or give this one a log "
+            "directory of its own with log_dir=DIR"
+        ) from None
+    except OSError as error:  # no locks on that file system, a full disk
+        raise _cannot_hold(log_dir, path, error) from None
+
+
+def _held_names(paths: Iterable[Path]) -> str:
+    """The names written in those of ``paths`` that a process holds now (a lock file left by a run gone is not)."""
+    said = []
+    for path in sorted(paths):
+        with contextlib.suppress(OSError), path.open() as lock:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_SH | fcntl.LOCK_NB)
+                fcntl.flock(lock, fcntl.LOCK_UN)
+            except BlockingIOError:
+                said += [line for line in lock.read().splitlines() if line]
+    return ", ".join(said)
 
 
 def _cannot_hold(log_dir: Path, path: Path, error: OSError) -> UserError:
