@@ -104,9 +104,10 @@ def require_atomic(storage: Storage, plain_writes: bool = False) -> None:
         return
     if not _server_decides(storage):
         raise UserError(f"storage {storage.url} offers no conditional writes that ftrain uses: {RISK}")
-    name = f"{PROBE}-{secrets.token_hex(4)}"
+    name, written = f"{PROBE}-{secrets.token_hex(4)}", False
     try:
         write(storage, name, b"0", None)
+        written = True
         other = "1" if storage.is_gcs else '"0"'  # a generation, or an ETag, that the object does not have
         for condition, version in (("If-None-Match: *", None), ("If-Match with another version", other)):
             try:
@@ -119,8 +120,11 @@ def require_atomic(storage: Storage, plain_writes: bool = False) -> None:
             raise
         raise UserError(f"storage {storage.url} does not take conditional writes ({error}): {RISK}") from None
     finally:
-        with contextlib.suppress(StorageError):  # a probe object left behind harms nothing
-            storage.delete(name)
+        # not after a first write that failed (a storage that does not answer: the delete would wait out its retries
+        # too); a probe object left behind, by a write whose answer was lost, harms nothing
+        with contextlib.suppress(StorageError):
+            if written:
+                storage.delete(name)
     _checked.add(storage.url)
 
 

@@ -20,8 +20,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from botocore.exceptions import BotoCoreError, HTTPClientError
 from botocore.exceptions import ConnectionError as BotoConnectionError
-from botocore.exceptions import HTTPClientError
 
 DEFAULT_RETRIES = 4
 _JITTER = random.Random()
@@ -41,11 +41,18 @@ def is_transient(exc: BaseException) -> bool:
         return True
     if isinstance(exc, OSError) and exc.errno in _MOUNT_FAILURES:
         return True
-    if isinstance(exc, azure_errors("ServiceRequestError", "ServiceResponseError")):  # no answer, or none in time
+    if isinstance(exc, loaded_errors(AZURE, "ServiceRequestError", "ServiceResponseError")):  # no answer, or late
         return True
-    if isinstance(exc, azure_errors("HttpResponseError")):
+    if isinstance(exc, loaded_errors(AIOHTTP, "ClientConnectionError")):  # gcsfs's session: no connection, or late
+        return True
+    if isinstance(exc, loaded_errors(AZURE, "HttpResponseError")):
         status = exc.status_code or 0
         return status >= 500 or status == 429
+    if isinstance(exc, loaded_errors(REQUESTS, "ConnectionError", "Timeout")):  # gcsfs's word for a 502 too
+        return True
+    if isinstance(exc, loaded_errors(GCSFS, "HttpError")):  # Google's answer; a 401 of a token just expired, as gcsfs
+        status = exc.code or 0
+        return status >= 500 or status in (408, 429) or (status == 401 and "Invalid Credentials" in str(exc))
     response = getattr(exc.__cause__, "response", None) or getattr(exc, "response", None)
     if not isinstance(response, dict):
         return False
@@ -95,9 +102,29 @@ class WaitLines:
         return True
 
 
-def azure_errors(*names: str) -> tuple[type[Exception], ...]:
-    """azure-core's exception classes ``names``, none where azure-core is not loaded: only a process that loaded it
-    (adlfs does, for an Azure storage) can meet an Azure error, and importing it would cost every other process a
-    tenth of a second."""
-    module = sys.modules.get("azure.core.exceptions")
-    return tuple(getattr(module, name) for name in names) if module else ()
+AZURE = "azure.core.exceptions"
+AIOHTTP = "aiohttp.client_exceptions"
+GCSFS = "gcsfs.retry"
+REQUESTS = "requests.exceptions"
+"""Modules of the exceptions of the stores' own clients (adlfs's azure-core; gcsfs's aiohttp session, its own errors
+and those of requests it raises)."""
+
+
+def client_errors() -> tuple[type[BaseException], ...]:
+    """What a storage request may fail with: the OS's errors (local paths, mounts), botocore's (S3), and those of the
+    clients of adlfs (Azure) and gcsfs (its aiohttp session, and its own) where they are loaded."""
+    return (
+        OSError,
+        BotoCoreError,
+        asyncio.TimeoutError,
+        *loaded_errors(AZURE, "AzureError"),
+        *loaded_errors(GCSFS, "HttpError"),
+        *loaded_errors(AIOHTTP, "ClientError"),
+    )
+
+
+def loaded_errors(module: str, *names: str) -> tuple[type[Exception], ...]:
+    """The exception classes ``names`` of ``module``, none where it is not loaded: only a process that loaded a store's
+    client (adlfs, gcsfs) can meet its errors, and importing it would cost every other process a tenth of a second."""
+    loaded = sys.modules.get(module)
+    return tuple(getattr(loaded, name) for name in names) if loaded else ()

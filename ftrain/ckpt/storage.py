@@ -17,7 +17,6 @@ check (``fence.py``).
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import copy
 import datetime
@@ -31,11 +30,11 @@ from collections.abc import Callable, Iterable
 from typing import Any, TypeVar
 
 import fsspec
-from botocore.exceptions import BotoCoreError, NoCredentialsError
+from botocore.exceptions import NoCredentialsError
 from fsspec.implementations.local import LocalFileSystem
 
 from ftrain.ckpt import localfs, stores
-from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, azure_errors, is_transient
+from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, client_errors, is_transient
 from ftrain.ckpt.stores import AZURE_PROTOCOLS, GCS_PROTOCOLS, S3_PROTOCOLS
 from ftrain.errors import StorageError, StorageUnavailable, UserError
 from ftrain.redact import Url, display_url, scrub, secret_values, url_secrets
@@ -296,7 +295,7 @@ class Storage:
             raise FileExistsError(errno.EEXIST, "already exists", self.where(rel)) from None
         except (PermissionError, NoCredentialsError) as exc:
             raise self._access_error(exc) from None
-        except (OSError, BotoCoreError, asyncio.TimeoutError, *azure_errors("AzureError")) as exc:
+        except client_errors() as exc:
             if getattr(exc, "status_code", None) in (401, 403):  # Azure's answer to a wrong key or a missing role
                 raise self._access_error(exc) from None
             if is_transient(exc):

@@ -8,6 +8,7 @@ May import: fsspec, ``ftrain.redact``, the standard library.
 from __future__ import annotations
 
 import logging
+import types
 from urllib.parse import unquote, urlsplit
 
 import fsspec
@@ -41,12 +42,21 @@ def prepare(protocol: str, url: str, options: dict) -> str:
 
 
 def send_once(fs: fsspec.AbstractFileSystem, protocol: str) -> None:
-    """Turn off the retries of ``fs``'s own client where it takes that (s3fs, adlfs; gcsfs retries each request
-    itself, up to 6 times, and takes no option for it)."""
+    """Turn off the retries of ``fs``'s own client, so that ours (``Storage``) are the only ones and a storage that is
+    down is told within seconds, whichever store it is."""
     if protocol in S3_PROTOCOLS:
         fs.retries = 1  # s3fs's own retry loop: one attempt, ours does the retrying
+    if protocol in GCS_PROTOCOLS:
+        _gcs_send_once(fs)
     if protocol in AZURE_PROTOCOLS:
         _azure_send_once(fs)
+
+
+def _gcs_send_once(fs: fsspec.AbstractFileSystem) -> None:
+    """Send each request of this gcsfs instance once: gcsfs wraps its one request method in a retry of its own (6
+    tries over half a minute, so that a storage down at start took a minute and a half to tell) and takes no option
+    for it; this instance gets the method unwrapped."""
+    fs._request = types.MethodType(type(fs)._request.__wrapped__, fs)
 
 
 def _s3_options(url: str, options: dict) -> str:

@@ -15,10 +15,10 @@ import pytest
 
 from ftrain.ckpt.retry import Backoff
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
-from ftrain.errors import UserError
+from ftrain.errors import EXIT_STORAGE_DOWN, UserError
 from ftrain.redact import display_url
 
-from helpers import S3_KEY, S3_SECRET, child_env, create_bucket, free_port
+from helpers import REPO, S3_KEY, S3_SECRET, child_env, create_bucket, free_port, train_command
 
 
 def test_round_trip(storage_url):
@@ -353,3 +353,48 @@ def test_gcsfs_prints_no_traceback_for_a_request_the_storage_reports_itself() ->
     )
     done = subprocess.run([sys.executable, "-c", code], env=child_env(), capture_output=True, text=True, timeout=60)
     assert done.returncode == 0 and done.stderr == "a warning of ftrain's own\n", done.stderr
+
+
+def test_a_gcs_storage_that_does_not_answer_is_tried_by_our_retries_alone_and_told_within_seconds(tmp_path) -> None:
+    """gcsfs retries each request itself (6 tries over half a minute) and takes no option for it; ftrain sends each
+    once, so a server that cuts every connection sees exactly our tries of the request, the storage is reported
+    unavailable (an outage the supervisor waits out) and not bad input, and a run started on it exits 7 with one
+    line."""
+    listener = socket.create_server(("127.0.0.1", 0))
+    requests: list[bytes] = []
+
+    def cut_every_connection() -> None:
+        while True:
+            try:
+                connection, _ = listener.accept()
+                request = connection.recv(65536)
+            except OSError:
+                return
+            if request.startswith((b"GET ", b"POST ")):  # gcsfs's JSON API (its gRPC calls speak HTTP/2)
+                requests.append(request.split(b"\r\n", 1)[0])
+            connection.close()
+
+    threading.Thread(target=cut_every_connection, daemon=True).start()
+    options = {"token": "anon", "endpoint_url": f"http://127.0.0.1:{listener.getsockname()[1]}"}
+    tries = {}
+    for retries in (0, 2):
+        requests.clear()
+        storage = Storage.open("gs://bucket/run", options, retries=retries, base_delay=0.01)
+        expected = rf"^read gs://bucket/run/LEASE.json failed after {retries + 1} attempts: ServerDisconnectedError"
+        with pytest.raises(StorageUnavailable, match=expected) as down:
+            storage.read("LEASE.json")
+        assert not isinstance(down.value, UserError)
+        tries[retries] = len(requests)
+    # aiohttp sends a GET again once where the connection closed unanswered; gcsfs's own retries would be 6 per try
+    assert tries[0] in (1, 2) and tries[2] == 3 * tries[0], tries
+    listener.close()
+
+    start = time.monotonic()
+    options = ["storage.options.token=anon", f"storage.options.endpoint_url=http://127.0.0.1:{free_port()}"]
+    command = [*train_command("gs://bucket/run", *options, f"log_dir={tmp_path / 'logs'}"), "iterations=1"]
+    run = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=300)
+    errors = [line for line in run.stderr.splitlines() if line.startswith("ftrain: error:")]
+    assert run.returncode == EXIT_STORAGE_DOWN, run.stderr[-2000:]
+    assert len(errors) == 1 and "failed after 5 attempts: ClientConnectorError" in errors[0], run.stderr[-2000:]
+    assert "Traceback" not in run.stderr
+    print(f"a run on a GCS storage that does not answer ended in {time.monotonic() - start:.0f} s")
