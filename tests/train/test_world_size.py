@@ -3,9 +3,10 @@
 Real ranks under torchrun (oversubscribed on two cores: correctness, not speed), the real training loop. Generated
 cases (environments, minibatches, epochs, steps and every flag the shipped configs use) each train one iteration from
 the same start at every world size of 1, 2, 3, 4, 8 that divides their environments, and every float tensor of
-what they learned (models, normalizers, Adam's moments) must agree with one rank's to rounding; the shipped
-HalfCheetah config must train 4 iterations as 2 x 16 bit for bit what it trains as 1 x 32. Every shipped config runs
-at 4 and 8 ranks without a collective that falls back to gloo.
+what they learned (models, normalizers, Adam's moments) must agree with one rank's to rounding; more generated cases
+train 3 iterations, through the observation normalizers' freeze and the noise's ceiling, which must come at the same
+iteration at every world size; the shipped HalfCheetah config must train 4 iterations as 2 x 16 bit for bit what it
+trains as 1 x 32. Every shipped config runs at 4 and 8 ranks without a collective that falls back to gloo.
 
 Beyond one iteration, N ranks and one rank drift apart by what rounding starts (the same drift as between two one-rank
 runs whose weights differ by rounding): docs/speed.md has the numbers.
@@ -30,19 +31,24 @@ WORLDS = (1, 2, 3, 4, 8)
 """An odd world, the even ones up to 4, and 8 (6 checked nothing that 2 and 3 do not, for a launch of 6 processes)."""
 WORKER = REPO / "tests" / "train" / "world_size_worker.py"
 GENERATED = 10
-"""Generated cases per run (a fresh draw each day: the seed is printed, to replay a failure)."""
+"""Generated one-iteration cases per run (a fresh draw each day: the seed is printed, to replay a failure)."""
+GENERATED_LONGER = 4
+"""Generated three-iteration cases per run: what is decided by the iteration (a freeze, a ceiling) beyond the first."""
 TOLERANCE = 1e-3
 """Of each tensor's norm: rounding and the odd sample on the other side of a clip (1e-7..1e-4 measured)."""
 SHIPPED = ["ant", "halfcheetah", "halfcheetah_large", "hopper", "walker2d", "reach"]
 """Every shipped PPO config (distill_halfcheetah is rsl-rl's distillation, and needs a teacher)."""
 
 
-def generated_cases(seed: int, count: int) -> dict[str, dict]:
+def generated_cases(seed: int, count: int, iterations: int = 1) -> dict[str, dict]:
     """Random cases over what decides the update: environments (24 or 48: every world size divides them), steps,
-    minibatches, epochs, and every flag the shipped configs use."""
-    draw = random.Random(seed)
+    minibatches, epochs, and every flag the shipped configs use, the freeze of the observation normalizers (after the
+    first or second iteration's observations) and a ceiling on the noise that falls over the run too."""
+    draw = random.Random(f"{seed}-{iterations}")
     cases = {}
     for number in range(count):
+        total, steps = draw.choice([24, 48]), draw.choice([4, 8])
+        ceiling = draw.choice([0.0, 0.5])
         flags = {
             "algorithm.normalize_advantage_per_mini_batch": draw.choice(["true", "false"]),
             "algorithm.reshuffle_each_epoch": draw.choice(["true", "false"]),
@@ -53,13 +59,15 @@ def generated_cases(seed: int, count: int) -> dict[str, dict]:
             "policy.std_type": draw.choice(["log", "scalar"]),
             "reward.normalize": draw.choice(["true", "false"]),
             "split_update": draw.choice(["true", "false"]),
-            "num_steps_per_env": draw.choice([4, 8]),
+            "num_steps_per_env": steps,
+            "policy.obs_normalization_until": draw.choice([0, total * steps, 2 * total * steps]),
+            "policy.final_noise_std": ceiling,
+            **({"algorithm.schedule_iterations": iterations} if ceiling else {}),
         }
-        total = draw.choice([24, 48])
-        cases[f"case{number}"] = {
+        cases[f"case{number}" if iterations == 1 else f"longer{number}"] = {
             "config": "configs/smoke.yaml",
             "total_envs": total,
-            "iterations": 1,
+            "iterations": iterations,
             "overrides": [f"{key}={value}" for key, value in flags.items()],
             "worlds": [world for world in WORLDS if total % world == 0],
         }
@@ -94,7 +102,7 @@ def trained(tmp_path_factory) -> tuple[Path, dict[str, dict], int]:
     """Every case trained at every world size it lists: one torchrun launch per world size."""
     out = tmp_path_factory.mktemp("world_size")
     seed = random.SystemRandom().randrange(2**31)
-    cases = generated_cases(seed, GENERATED) | shipped_cases()
+    cases = generated_cases(seed, GENERATED) | generated_cases(seed, GENERATED_LONGER, iterations=3) | shipped_cases()
     (out / "cases.json").write_text(json.dumps(cases))
     for world in WORLDS:
         launcher = [sys.executable]
@@ -140,6 +148,28 @@ def test_n_ranks_learn_what_one_rank_learns_from_the_same_start(trained) -> None
             checked += 1
     print(f"{checked} (case, world size) pairs agree with one rank (generated cases from seed {seed})")
     assert checked >= GENERATED * 3
+
+
+@pytest.mark.slow
+def test_n_ranks_freeze_the_normalizers_and_cap_the_noise_where_one_rank_does(trained) -> None:
+    """Over three iterations the weights of N ranks part from one rank's by what rounding grows to (docs/speed.md), but
+    what is counted is exact: the observations each normalizer has taken in (all of them until its freeze, none
+    after), the steps, and the ceiling on the noise; and the noise sampled with keeps under that ceiling."""
+    out, cases, seed = trained
+    checked = 0
+    for name, case in cases.items():
+        if not name.startswith("longer"):
+            continue
+        alone = _load(out, name, 1)
+        for world in case["worlds"][1:]:
+            ranks = _load(out, name, world)
+            where = f"{name} at {world} ranks (seed {seed}: {case['overrides']})"
+            assert ranks["observations_normalized"] == alone["observations_normalized"], where
+            assert (ranks["env_steps"], ranks["noise_ceiling"]) == (alone["env_steps"], alone["noise_ceiling"]), where
+            assert ranks["noise"] <= ranks["noise_ceiling"] * (1 + 1e-6), where
+            checked += 1
+    print(f"{checked} (three-iteration case, world size) pairs freeze and cap as one rank (seed {seed})")
+    assert checked >= GENERATED_LONGER * 3
 
 
 @pytest.mark.slow

@@ -13,6 +13,7 @@ import torch
 
 from ftrain.comm import group
 from ftrain.config import load_config
+from ftrain.policy.model import action_std
 from ftrain.train.trainer import Trainer
 
 QUIET = ["log.console=false", "log.csv=false", "log.tensorboard=false", "eval.every=0", "snapshots.every=0"]
@@ -40,6 +41,11 @@ def main(cases_file: str, out: str) -> None:
                 "env_steps": trainer.env_steps,
                 "fallbacks": trainer.comm.fallbacks,
                 "update": trainer.run_description["update"]["kind"],
+                "observations_normalized": [
+                    int(model.obs_normalizer.count) for model in (trainer.alg.actor, trainer.alg.critic)
+                ],
+                "noise": action_std(trainer.alg.actor),
+                "noise_ceiling": trainer.alg.actor.distribution.std_range[1],
             }
             torch.save(learned, f"{out}/{name}.w{info.world_size}.pt")
         trainer.checkpointer.shutdown()
