@@ -60,7 +60,7 @@ def resizes(storage: Path, node: int) -> list[dict]:
     return found[next((n for n, event in enumerate(found) if event["new_world"] < event["old_world"]), len(found)) :]
 
 
-def wait_resizes(storage: Path, nodes: list[int], count: int, timeout: float = 180) -> None:
+def wait_resizes(storage: Path, nodes: list[int], count: int, timeout: float = 300) -> None:
     def done() -> bool:
         return all(len(resizes(storage, node)) >= count for node in nodes)
 

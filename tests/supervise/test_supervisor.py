@@ -571,7 +571,18 @@ def test_stop_signals_after_the_end_leave_its_exit_code(tmp_path):
     one after another at node 0 from its ``done`` record on, through the linger and its closing, leave exit 0 and
     nothing more recorded. (Python's teardown would reset the handler to the default; ``ftrain`` exits without one,
     ``process.exit_fast``.) Node 1 is frozen within 10 ms of its workers' last heartbeat, before its own torchrun
-    has exited: frozen later, it could have learnt the end already, and node 0 would not linger."""
+    has exited: frozen later, it could have learnt the end already, and node 0 would not linger: on a loaded machine
+    the freeze can come late, so the scenario is run again, up to three times, until node 0 lingered."""
+    for attempt in range(3):
+        lingered = _signals_at_the_end(tmp_path / f"try{attempt}")
+        if lingered >= 0.5:  # it lingered for node 1 (closing alone takes up to 0.15 s)
+            return
+    pytest.fail(f"node 1 was never frozen before it learnt the end, in 3 tries (the last lingered {lingered:.2f} s)")
+
+
+def _signals_at_the_end(tmp_path: Path) -> float:
+    """One run of the scenario above: its checks of the exit codes and records, and how long node 0 lingered."""
+    tmp_path.mkdir()
     nodes = start_nodes(tmp_path)
     run = tmp_path / "run"
     phases = lambda: {rank: b.phase for rank, b in read_heartbeats(run / "heartbeat" / "node-1").items()}  # noqa: E731
@@ -593,8 +604,8 @@ def test_stop_signals_after_the_end_leave_its_exit_code(tmp_path):
     names, lingered = [event["event"] for event in mine], mine[-1]["time"] - mine[-2]["time"]
     print(f"{sent} SIGTERMs at node 0 in the {lingered:.2f} s after its end")
     assert names[-2:] == ["done", "summary"] and "preempt" not in names
-    assert lingered >= 0.5  # it lingered for node 1 (closing alone takes up to 0.15 s)
     assert_finished(run)
+    return lingered
 
 
 @pytest.mark.slow
