@@ -388,8 +388,9 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "play":
         with imports():
             from ftrain.policy.load import load_policy
-            from ftrain.policy.play import play
+            from ftrain.policy.play import check_play_options, play
 
+        check_play_options(args.episodes, args.seed, args.video)
         policy = load_policy(args.url, options, log=_stderr)
         play(policy, args.episodes, deterministic=not args.stochastic, video=args.video, seed=args.seed)
         return 0

@@ -27,13 +27,8 @@ class PlayResult:
     """Video frames written: one per observation, ``sum(length + 1)`` (0 without a video)."""
 
 
-def play(
-    policy: Policy, episodes: int = 1, deterministic: bool = True, video: str | Path | None = None, seed: int = 0
-) -> PlayResult:
-    """Roll ``policy`` out for ``episodes`` episodes (seeded ``seed``, ``seed + 1``, ...) in an environment of its
-    own; print each return and the mean. It takes the mean action, as rsl-rl's and IsaacLab's play do, unless not
-    ``deterministic`` (then actions are sampled, seeded by ``seed``). ``video`` (``.mp4`` or ``.gif``) renders it
-    headless (MUJOCO_GL=egl)."""
+def check_play_options(episodes: int, seed: int, video: str | Path | None) -> None:
+    """UserError for options of ``play`` it cannot take: before a policy is loaded (from a remote storage, maybe)."""
     if episodes < 1:
         raise UserError(f"--episodes {episodes}: play at least 1 episode")
     if not 0 <= seed <= SEEDS - episodes:  # the episodes take the seeds seed to seed + episodes - 1
@@ -42,6 +37,17 @@ def play(
         raise UserError(f"video {str(video)!r} must end in {' or '.join(VIDEO_SUFFIXES)}")
     if video is not None:
         check_writable(Path(video), "--video")
+
+
+def play(
+    policy: Policy, episodes: int = 1, deterministic: bool = True, video: str | Path | None = None, seed: int = 0
+) -> PlayResult:
+    """Roll ``policy`` out for ``episodes`` episodes (seeded ``seed``, ``seed + 1``, ...) in an environment of its
+    own; print each return and the mean. It takes the mean action, as rsl-rl's and IsaacLab's play do, unless not
+    ``deterministic`` (then actions are sampled, seeded by ``seed``). ``video`` (``.mp4`` or ``.gif``) renders it
+    headless (MUJOCO_GL=egl)."""
+    check_play_options(episodes, seed, video)
+    if video is not None:
         os.environ.setdefault("MUJOCO_GL", "egl")  # read when the first renderer is made: headless, no display
     deterministic = deterministic or policy.exported is not None
     mode = "deterministic (mean) actions" if deterministic else "sampled actions"

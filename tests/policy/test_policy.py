@@ -206,6 +206,10 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
         "an unknown video format": (["play", str(trained), "--video", "out.avi"], "must end in .mp4 or .gif"),
         "no episodes": (["play", str(trained), "--episodes", "0"], "play at least 1 episode"),
         "a seed gymnasium refuses": (["play", str(trained), "--seed", "-1"], "--seed -1 is out of range: use a seed"),
+        "bad options before any policy is looked for": (
+            ["play", str(tmp_path / "empty"), "--episodes", "0"],
+            "play at least 1 episode",
+        ),
         "a video where no file can be made": (
             ["play", str(trained), "--video", "/proc/x.mp4"],
             "cannot write /proc/x.mp4 (/proc takes no new file: No such file or directory): pass --video a path",
