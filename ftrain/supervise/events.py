@@ -6,10 +6,10 @@ workers saved and it goes on without it), ``restart``, ``recovered``, ``storage_
 unreachable storage waited out: why, how long), ``resize`` (the world size changed: old and new
 world and nodes, why, the step resumed from, iterations lost, downtime), ``preempt``, ``refused`` (node 0: a
 connection that brought no signed request), ``undead`` (a process of an ended attempt outlives its SIGKILL: the
-next attempt waits), ``lease`` (the storage's lease taken over from a run that is gone, lost
-to another run, or not renewed: ``detail``), and the ending (``done``, ``preempted``, ``crash_loop``,
-``max_restarts``, ``usage``, ``peer_lost``, ``peer_ended``, ``too_few_nodes``, ``storage_down``), then ``summary``
-(restarts, iterations lost, downtime).
+next attempt waits), ``absent`` (the supervisor itself did not run for a while: stopped, suspended), ``lease`` (the
+storage's lease taken over from a run that is gone, lost to another run, or not renewed: ``detail``), and the
+ending (``done``, ``preempted``, ``crash_loop``, ``max_restarts``, ``usage``, ``peer_lost``, ``peer_ended``,
+``too_few_nodes``, ``storage_down``), then ``summary`` (restarts, iterations lost, downtime).
 """
 
 from __future__ import annotations

@@ -16,6 +16,8 @@ first iteration must not make a later hang in the same phase wait for ten times 
 The group is hung when every rank still working has been in its phase for longer than that phase's limit. Ranks wait
 for each other in collectives, so a rank that works on and beats (rank 0 holding a save while storage is down) while
 the others wait silently is slow work, not a hang; and a stopped rank stops the others at their next collective.
+Silence counts only while the supervisor watches: a supervisor that did not run for ``ABSENT_AFTER`` or more (stopped
+with its workers, a paused VM, a host asleep) is ``credit``ed the gap: its workers get their full limit again.
 """
 
 from __future__ import annotations
@@ -30,6 +32,8 @@ HANG_FLOOR = 5.0
 HANG_FACTOR = 10.0
 QUIET_PHASES = (Phase.DONE, Phase.PREEMPTED)
 """Phases after which a rank only exits: never a hang."""
+ABSENT_AFTER = HANG_FLOOR
+"""A gap between two of the supervisor's polls this long is its own absence, not a slow poll on a busy machine."""
 UNTIMED_PHASES = (Phase.CLOSING,)
 """Phases limited by the start-up grace only: once per attempt, and rank 0's differs from its peers' (it alone commits
 the last save and flushes the trackers), so no earlier close, and no peer's quick one, says how long this one takes."""
@@ -53,6 +57,11 @@ class HangWatch:
         """Each rank's latest heartbeat and when it was first seen."""
         self.first: dict[int, int] = {}
         """Each rank's first iteration in this attempt: the iteration of the first heartbeat seen past ``start``."""
+
+    def credit(self, seconds: float) -> None:
+        """The supervisor was away for ``seconds``: what it last saw is dated as if seen ``seconds`` later."""
+        self.launched += seconds
+        self.changed = {rank: (beat, seen + seconds) for rank, (beat, seen) in self.changed.items()}
 
     def limit(self, rank: int, beat: Heartbeat) -> float:
         """How long ``rank`` may stay in the phase of ``beat``."""

@@ -34,7 +34,7 @@ from ftrain.log_dir_lock import claim_log_dir
 from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, Launcher, attempt_env, kill, new_log_dir, signal_name
 from ftrain.supervise.events import EventLog
-from ftrain.supervise.hang import QUIET_PHASES, HangWatch
+from ftrain.supervise.hang import ABSENT_AFTER, QUIET_PHASES, HangWatch
 from ftrain.supervise.ledger import Ledger
 from ftrain.supervise.link import connect, makes_plan, node_lease, rendezvous, worker_env
 from ftrain.supervise.options import (
@@ -242,10 +242,13 @@ class Supervisor:
 
     def _watch(self, attempt: Attempt) -> Outcome:
         preempt_deadline = None
-        next_peer_check = time.monotonic() + PEER_POLL
+        now = time.monotonic()
+        next_peer_check = now + PEER_POLL
         while True:
             time.sleep(POLL)
-            now = time.monotonic()
+            previous, now = now, time.monotonic()
+            if now - previous >= ABSENT_AFTER:
+                self._absent(attempt, now - previous)
             beats = read_heartbeats(self.heartbeat_dir)
             if self.ledger.observe(attempt, beats, now):
                 self.hangs.restart(now)  # torchrun restarted the workers in a larger world: start-up again
@@ -282,6 +285,13 @@ class Supervisor:
                 outcome = self._check_peers(attempt, now)
                 if outcome is not None:
                     return outcome
+
+    def _absent(self, attempt: Attempt, seconds: float) -> None:
+        """This supervisor did not run for ``seconds`` (stopped with its workers, a paused VM): it did not watch, so the
+        workers' silence in that time is no hang."""
+        self.hangs.credit(seconds)
+        message = f"not running for {seconds:.1f} s (stopped or suspended): the workers' silence in it is not counted"
+        self.events("absent", message, attempt=attempt.plan.attempt, seconds=round(seconds, 1))
 
     def _check_workers(self, attempt: Attempt, beats: dict[int, Heartbeat]) -> None:
         """A worker that died mid-training dooms the others (no collective can complete): SIGKILL them now rather

@@ -6,7 +6,7 @@ but its "training" is a SHA-256 chain over iterations and a checkpoint is a MANI
 manifest of no files, which verifies). It
 resumes from the newest manifest, saves on SIGTERM at the next iteration boundary (all ranks agree through an
 all-reduce) and exits 128 + the signal, and can inject a fault from ``FAKE_FAULT=kind:rank:iteration`` (crash /
-crash-always / usage; rank -1: every rank).
+crash-always / usage / hold-end; rank -1: every rank).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from ftrain import errorfile
+from ftrain import errorfile, procfs
 from ftrain.ckpt.format import FORMAT_VERSION
 from ftrain.config import load_config
 from ftrain.heartbeat import ENV_DIR, HeartbeatWriter, Phase, read_heartbeats
@@ -34,6 +34,7 @@ from ftrain.supervise.attempt import WORKER_MODULE_ENV
 from ftrain.supervise.auth import MAX_MESSAGE, REQUEST, SECRET_ENV, Refused, seal
 from ftrain.supervise.coordinator import CONNECTION_TIMEOUT, GONE_AFTER, Coordinator, Link
 from ftrain.supervise.events import EventLog
+from ftrain.supervise.hang import HANG_FLOOR
 from ftrain.supervise.supervisor import Supervisor
 from ftrain.supervise.supervisor import _Stop as Stop
 
@@ -57,6 +58,9 @@ SECRET = "ftrain-test-coordinator-secret"
 KEY = SECRET.encode()
 ITERATIONS = 16
 PHASE_SECONDS = 0.05
+END_RELEASED = "end-released"
+"""With ``FAKE_FAULT=hold-end``, a rank's worker, once done, exits only after ``end-released-RANK`` is in the storage
+directory."""
 
 # --- the stand-in worker -----------------------------------------------------------------------------------------
 
@@ -132,6 +136,8 @@ def fake_worker(argv: list[str]) -> int:
         if flag.item():
             break
     heartbeat.beat("preempted" if iteration < config.iterations else "done")
+    while kind == "hold-end" and not (storage / f"{END_RELEASED}-{rank}").exists():  # the test holds the end
+        time.sleep(0.01)
     dist.destroy_process_group()
     return int(flag.item()) if iteration < config.iterations else 0
 
@@ -172,14 +178,26 @@ def start_supervisor(
 
 
 def start_nodes(
-    tmp_path: Path, *options: str, iterations: int = 0, port: int = 0, ranks: tuple[int, ...] = (0, 1)
+    tmp_path: Path,
+    *options: str,
+    iterations: int = 0,
+    port: int = 0,
+    ranks: tuple[int, ...] = (0, 1),
+    fault: str = "",
 ) -> list[subprocess.Popen]:
     """Two nodes of the stand-in on this machine (``ranks``: only these), node 0 coordinating on
-    127.0.0.1:``port`` (default: a free one) with ``SECRET``."""
+    127.0.0.1:``port`` (default: a free one) with ``SECRET``; ``fault``: ``FAKE_FAULT`` on both."""
     endpoint = ["--nnodes", "2", "--rdzv-endpoint", f"127.0.0.1:{port or free_port()}"]
     return [
         start_supervisor(
-            tmp_path, *endpoint, "--node-rank", str(node), *options, env={SECRET_ENV: SECRET}, iterations=iterations
+            tmp_path,
+            *endpoint,
+            "--node-rank",
+            str(node),
+            *options,
+            env={SECRET_ENV: SECRET},
+            iterations=iterations,
+            fault=fault,
         )
         for node in ranks
     ]
@@ -472,6 +490,35 @@ def test_stopped_worker_is_a_hang(tmp_path):
 
 
 @pytest.mark.slow
+def test_a_supervisor_stopped_with_its_workers_blames_nobody(tmp_path):
+    """The whole tree stopped (a job suspended, a VM paused) for longer than the hang limit, then continued, the
+    supervisor 0.5 s before its workers: it did not watch while stopped, so nothing hung; the run goes on with no
+    restart and records the supervisor's absence. The workers are stopped 0.5 s before the supervisor, so that it has
+    seen their last heartbeats (without the credit, it then finds them silent for 7 s and kills them). The pause stays
+    under the stand-in's collective timeout (10 s)."""
+    proc = start_supervisor(tmp_path)
+    run = tmp_path / "run"
+    training(run / "heartbeat", 6, [0, 1])
+    supervisor, *below = [proc.pid, *procfs.descendants(proc.pid)]
+    for pid in below:
+        os.kill(pid, signal.SIGSTOP)
+    time.sleep(0.5)
+    os.kill(supervisor, signal.SIGSTOP)
+    time.sleep(HANG_FLOOR + 1)
+    os.kill(supervisor, signal.SIGCONT)
+    time.sleep(0.5)
+    for pid in below:
+        with contextlib.suppress(ProcessLookupError):  # killed as hung (the defect this guards against)
+            os.kill(pid, signal.SIGCONT)
+    assert finish(proc) == options.EXIT_DONE
+    assert_finished(run)
+    log = events(run)
+    assert "hang" not in names(run) and log[-1]["restarts"] == 0, log
+    absent = [event["seconds"] for event in log if event["event"] == "absent"]
+    assert len(absent) == 1 and absent[0] >= HANG_FLOOR + 1, absent
+
+
+@pytest.mark.slow
 def test_a_stop_signal_saves_and_the_same_command_continues(tmp_path):
     """SIGTERM (a scheduler) exits 143, SIGINT (Ctrl-C) 130: the shell's 128 + signal. Each time the same command
     goes on from the step saved on the stop."""
@@ -566,28 +613,37 @@ def test_two_nodes_both_restart_after_one_node_loses_a_worker_and_a_node_back_af
 
 @pytest.mark.slow
 def test_stop_signals_after_the_end_leave_its_exit_code(tmp_path):
-    """SLURM's time limit can signal a job as it finishes. Node 1's supervisor is frozen once its workers are done, so
-    node 0 lingers after the end for node 1 to learn it (up to ``GONE_AFTER`` after node 1's last request): SIGTERMs
-    one after another at node 0 from its ``done`` record on, through the linger and its closing, leave exit 0 and
-    nothing more recorded. (Python's teardown would reset the handler to the default; ``ftrain`` exits without one,
-    ``process.exit_fast``.) Node 1 is frozen within 10 ms of its workers' last heartbeat, before its own torchrun
-    has exited: frozen later, it could have learnt the end already, and node 0 would not linger: on a loaded machine
-    the freeze can come late, so the scenario is run again, up to three times, until node 0 lingered."""
+    """SLURM's time limit can signal a job as it finishes. Node 1 has not learnt the end, so node 0 lingers for it (up
+    to ``GONE_AFTER`` after node 1's last request): SIGTERMs one after another at node 0 from its ``done`` record on,
+    through the linger and its closing, leave exit 0 and nothing more recorded. (Python's teardown would reset the
+    handler to the default; ``ftrain`` exits without one, ``process.exit_fast``.)
+    Node 1's supervisor is frozen once every worker is done (``FAKE_FAULT=hold-end`` holds them there), so it cannot
+    learn the end; the test then asks node 0 in node 1's name, as node 1's supervisor would, until node 0's torchrun
+    has exited (it takes a second or more to end, and longer on a slow machine, which would eat up ``GONE_AFTER``).
+    An ask of the test that happens to learn the end itself leaves nothing to linger for: then the scenario is run
+    again, up to three times."""
     for attempt in range(3):
         lingered = _signals_at_the_end(tmp_path / f"try{attempt}")
         if lingered >= 0.5:  # it lingered for node 1 (closing alone takes up to 0.15 s)
             return
-    pytest.fail(f"node 1 was never frozen before it learnt the end, in 3 tries (the last lingered {lingered:.2f} s)")
+    pytest.fail(f"node 0 never lingered for node 1 in 3 tries (the last lingered {lingered:.2f} s)")
 
 
 def _signals_at_the_end(tmp_path: Path) -> float:
     """One run of the scenario above: its checks of the exit codes and records, and how long node 0 lingered."""
     tmp_path.mkdir()
-    nodes = start_nodes(tmp_path)
+    port = free_port()
+    nodes = start_nodes(tmp_path, port=port, fault="hold-end:-1:-1")
     run = tmp_path / "run"
-    phases = lambda: {rank: b.phase for rank, b in read_heartbeats(run / "heartbeat" / "node-1").items()}  # noqa: E731
-    wait_for(lambda: phases() == {2: Phase.DONE, 3: Phase.DONE}, "node 1's workers to finish", interval=0.01)
+    phases = lambda node: [beat.phase for beat in read_heartbeats(run / "heartbeat" / f"node-{node}").values()]  # noqa: E731
+    wait_for(lambda: phases(0) + phases(1) == [Phase.DONE] * 4, "every worker to be done")
     nodes[1].send_signal(signal.SIGSTOP)
+    torchrun = torchrun_pid(nodes[0].pid)
+    for rank in range(4):
+        (run / f"{END_RELEASED}-{rank}").touch()
+    as_node_1 = Link(1, None, ("127.0.0.1", port), KEY)
+    while procfs.state(torchrun) not in ("gone", "Z") and as_node_1.ask("plan").final is None:
+        time.sleep(0.1)
     sent = 0
     try:
         wait_for(lambda: ("done", 0) in [(event["event"], event["node"]) for event in events(run)], "node 0's end")
