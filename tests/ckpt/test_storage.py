@@ -385,8 +385,9 @@ def test_a_gcs_storage_that_does_not_answer_is_tried_by_our_retries_alone_and_to
             storage.read("LEASE.json")
         assert not isinstance(down.value, UserError)
         tries[retries] = len(requests)
-    # aiohttp sends a GET again once where the connection closed unanswered; gcsfs's own retries would be 6 per try
-    assert tries[0] in (1, 2) and tries[2] == 3 * tries[0], tries
+    # aiohttp sends a GET again once where a reused connection closed unanswered (whether it reuses one depends on
+    # timing): 1 or 2 requests per try of ours; gcsfs's own retries would be 6 per try
+    assert 1 <= tries[0] <= 2 and 3 <= tries[2] <= 6, tries
     listener.close()
 
     start = time.monotonic()
