@@ -278,14 +278,13 @@ def hooks_override(*hooks: str) -> str:
 
 class Hold:
     """A run that holds after an iteration until the test lets it go on (``probe_hooks.HoldHook``): ``override`` is
-    the config override that loads the hook (the run's ``PYTHONPATH`` must name ``TESTS``), ``held`` waits until rank
-    0 holds, ``release`` lets every rank go on."""
+    the config override that loads the hook (the run's ``PYTHONPATH`` must name ``TESTS``), ``hook`` the hook's entry
+    alone (to list with others), ``held`` waits until rank 0 holds, ``release`` lets every rank go on."""
 
     def __init__(self, directory: Path, iteration: int) -> None:
         self.marker, self.released = directory / "held", directory / "release"
-        self.override = hooks_override(
-            probe_hook("HoldHook", marker=self.marker, release=self.released, iteration=iteration)
-        )
+        self.hook = probe_hook("HoldHook", marker=self.marker, release=self.released, iteration=iteration)
+        self.override = hooks_override(self.hook)
 
     def held(self) -> None:
         wait_for(self.marker.exists, "the run holding")

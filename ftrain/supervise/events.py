@@ -9,7 +9,8 @@ connection that brought no signed request), ``undead`` (a process of an ended at
 next attempt waits), ``absent`` (the supervisor itself did not run for a while: stopped, suspended), ``lease`` (the
 storage's lease taken over from a run that is gone, lost to another run, or not renewed: ``detail``), and the
 ending (``done``, ``preempted``, ``crash_loop``, ``max_restarts``, ``usage``, ``peer_lost``, ``peer_ended``,
-``too_few_nodes``, ``storage_down``), then ``summary`` (restarts, iterations lost, downtime).
+``too_few_nodes``, ``not_admitted`` (elastic: this node alone found no worker group), ``storage_down``), then
+``summary`` (restarts, iterations lost, downtime).
 """
 
 from __future__ import annotations

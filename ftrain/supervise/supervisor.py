@@ -47,7 +47,7 @@ from ftrain.supervise.options import (
     parse_nodes,
 )
 from ftrain.supervise.outage import StorageWait
-from ftrain.supervise.outcome import Outcome, classify, finished, peer_ended
+from ftrain.supervise.outcome import Outcome, classify, finished, not_admitted, peer_ended
 from ftrain.supervise.plan import Plan, plan_key
 from ftrain.supervise.restarts import RestartPolicy
 
@@ -361,6 +361,8 @@ class Supervisor:
         stopped = stop_code(self.signals[0]) if self.signals else None
         committed = attempt.committed if attempt.committed is not None else self.policy.best_committed
         outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
+        if outcome.event == "too_few_nodes" and self._keeps_no_plan():
+            outcome = not_admitted(committed)
         if moved and current.left is not None and outcome.failed:  # saved for a node that left: no failure
             return self._regroup(attempt, current, cause, phases)
         self._log_exit(attempt, cause, f"attempt {attempt.plan.attempt}: {cause}" if outcome.failed else "", phases)
@@ -403,14 +405,22 @@ class Supervisor:
     def end(self, ending: Outcome) -> int:
         """The run ends: record it, tell the other nodes, sum up; the exit code."""
         self.events(ending.event, ending.message, code=ending.code)
-        if self.nodes.count > 1 and not (ending.event == "preempted" and self._leaves_alone()):
+        if self.nodes.count > 1 and not self._ends_alone(ending):
             self._tell("finish", code=ending.code)
             self.link.settle(self.nodes.count, LINGER)
         self.ledger.summarize(ending.event, ending.code, self.policy.restarts)
         return ending.code
 
+    def _ends_alone(self, ending: Outcome) -> bool:
+        """Whether ``ending`` ends this node only: its preemption when it ``_leaves_alone``, or its rendezvous timeout
+        when ``not_admitted`` (a node that came back late and was not taken in must not stop those that train)."""
+        return self._leaves_alone() if ending.event == "preempted" else ending.event == "not_admitted"
+
+    def _keeps_no_plan(self) -> bool:
+        """An elastic node that neither keeps the plan nor hosts the rendezvous: on etcd-v2 any, on c10d not node 0."""
+        return self.nodes.elastic and (self.nodes.backend is Backend.ETCD or self.node != 0)
+
     def _leaves_alone(self) -> bool:
         """Whether this node's preemption leaves the others training from the workers' save: an elastic run with MIN
         nodes left without it, on etcd-v2 or (c10d) not node 0, which keeps the plan and hosts the rendezvous."""
-        left = len(self.ledger.nodes) - 1 >= self.nodes.least
-        return self.nodes.elastic and (self.nodes.backend is Backend.ETCD or self.node != 0) and left
+        return self._keeps_no_plan() and len(self.ledger.nodes) - 1 >= self.nodes.least

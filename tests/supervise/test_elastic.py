@@ -40,6 +40,7 @@ from elastic_nodes import (
     worlds,
 )
 from helpers import (
+    Hold,
     child_env,
     events,
     final_manifest,
@@ -81,6 +82,34 @@ def test_three_nodes_shrink_to_two_when_one_is_lost_and_grow_back_when_it_return
         assert (grow["old_world"], grow["new_world"], grow["new_nodes"]) == (2, 3, [0, 1, 2]), grow
         assert grow["why"] == "node 2 joined" and grow["lost"] == 0, grow
         assert grow["downtime"] < 60 and shrink["downtime"] < 60
+    assert verify_cli(storage) == 0
+
+
+def test_a_node_back_late_and_not_taken_in_ends_alone_and_the_others_train_on(tmp_path) -> None:
+    """c10d, 2:3 nodes: nodes 0 and 1 train at world 2 and hold (``HoldHook``); node 2 starts with a 5 s
+    ``--rdzv-timeout``, and the agents, whose workers hold, cannot take it in before it times out. Node 2 ends alone
+    (exit 6, ``not_admitted``, saying the others go on); released, nodes 0 and 1 train to the end at world 2."""
+    storage, endpoint, iterations = tmp_path / "run", f"127.0.0.1:{free_port()}", 40
+    hold = Hold(tmp_path, iteration=12)
+    hooks = (PACING, hold.hook)
+    nodes = [
+        start_node(storage, node, "2:3", c10d(node, endpoint), f"iterations={iterations}", hooks=hooks)
+        for node in (0, 1)
+    ]
+    hold.held()
+    late = start_node(storage, 2, "2:3", c10d(2, endpoint), f"iterations={iterations}", hooks=hooks, rdzv_timeout="5")
+    assert finish(late, timeout=120) == EXIT_TOO_FEW_NODES
+    hold.release()
+    assert [finish(node, timeout=180) for node in nodes] == [0, 0]
+
+    (ending,) = node_events(storage, "not_admitted", 2)
+    assert ending["code"] == EXIT_TOO_FEW_NODES, ending
+    console = Path(f"{storage}.node2.log").read_text()
+    assert "joined no worker group within --rdzv-timeout" in console and "not stopped" in console, console
+    for node in (0, 1):
+        assert not node_events(storage, "peer_ended", node) and len(node_events(storage, "done", node)) == 1
+    manifest = final_manifest(storage)
+    assert manifest["step"] == iterations and {world for _, world in manifest["world_sizes"]} == {2}, manifest
     assert verify_cli(storage) == 0
 
 
