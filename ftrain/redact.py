@@ -7,6 +7,7 @@ Torch-free and fsspec-free: the config module and the supervisor use it too.
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Mapping
 from urllib.parse import SplitResult, unquote, urlsplit, urlunsplit
 
@@ -150,11 +151,19 @@ def reveal_credentials(words: list[str], environ: Mapping[str, str]) -> list[str
     return real if isinstance(real, list) and redact_command(real) == words else words
 
 
+SHORT_SECRET = 8
+"""A secret shorter than this many characters is blanked only where it stands alone, not inside a longer word:
+blanking a one-letter password wherever its letter occurs would garble the whole message."""
+
+
 def scrub(exc: BaseException, secrets: list[str]) -> str:
-    """One line naming the exception, with every secret blanked out."""
+    """One line naming the exception, with every secret blanked out (a short one where it stands alone)."""
     text = " ".join(f"{type(exc).__name__}: {exc}".split())
     for secret in sorted({s for s in secrets if s}, key=len, reverse=True):
-        text = text.replace(secret, HIDDEN)
+        if len(secret) >= SHORT_SECRET:
+            text = text.replace(secret, HIDDEN)
+        else:
+            text = re.sub(rf"(?<![A-Za-z0-9]){re.escape(secret)}(?![A-Za-z0-9])", HIDDEN, text)
     return text
 
 

@@ -53,6 +53,15 @@ def test_credentials_in_a_urls_query_are_hidden_and_known_for_scrubbing() -> Non
     assert "AbC" not in scrub(OSError(f"request to {Url(sas).reveal()} failed"), url_secrets(sas))
 
 
+def test_a_short_secret_is_blanked_where_it_stands_alone_and_the_message_stays_readable() -> None:
+    """A one-letter user and password (``s3://a:b@...``): blanked in the URL, not in every word with an a or a b."""
+    url = "http://a:b@127.0.0.1:9000/bucket"
+    message = scrub(OSError(f"cannot reach {url}: connection refused by the server"), url_secrets(url))
+    assert message == "OSError: cannot reach http://***@127.0.0.1:9000/bucket: connection refused by the server"
+    long = "s3://AKIAEXAMPLE:wJalrXUtnFEMI@b/run"  # a long one goes wherever it is, inside a word too
+    assert "AKIAEXAMPLE" not in scrub(OSError(f"no key xAKIAEXAMPLEx for {long}"), url_secrets(long))
+
+
 def test_a_config_url_formats_without_its_credentials_and_reveals_them_only_when_asked(caplog) -> None:
     config = load_config(
         None,
