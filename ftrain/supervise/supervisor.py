@@ -249,6 +249,8 @@ class Supervisor:
             previous, now = now, time.monotonic()
             if now - previous >= ABSENT_AFTER:
                 self._absent(attempt, now - previous)
+                if preempt_deadline is not None:  # the workers' grace to save did not run out while nobody ran
+                    preempt_deadline += now - previous
             beats = read_heartbeats(self.heartbeat_dir)
             if self.ledger.observe(attempt, beats, now):
                 self.hangs.restart(now)  # torchrun restarted the workers in a larger world: start-up again

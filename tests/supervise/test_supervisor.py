@@ -34,7 +34,7 @@ from ftrain.supervise.attempt import WORKER_MODULE_ENV
 from ftrain.supervise.auth import MAX_MESSAGE, REQUEST, SECRET_ENV, Refused, seal
 from ftrain.supervise.coordinator import CONNECTION_TIMEOUT, GONE_AFTER, Coordinator, Link
 from ftrain.supervise.events import EventLog
-from ftrain.supervise.hang import HANG_FLOOR
+from ftrain.supervise.hang import ABSENT_AFTER, HANG_FLOOR
 from ftrain.supervise.supervisor import Supervisor
 from ftrain.supervise.supervisor import _Stop as Stop
 
@@ -516,6 +516,32 @@ def test_a_supervisor_stopped_with_its_workers_blames_nobody(tmp_path):
     assert "hang" not in names(run) and log[-1]["restarts"] == 0, log
     absent = [event["seconds"] for event in log if event["event"] == "absent"]
     assert len(absent) == 1 and absent[0] >= HANG_FLOOR + 1, absent
+
+
+def test_a_supervisor_stopped_during_a_stop_still_gives_its_workers_their_grace_to_save(tmp_path):
+    """SIGTERM reached the supervisor, then the whole tree was stopped for longer than ``--stop-grace`` before the
+    workers could save (a job suspended mid-preemption), and continued, the supervisor first: the grace did not run
+    while nobody ran, so the workers save and the run exits 143 with their save (without the credit the supervisor
+    kills them on waking)."""
+    proc = start_supervisor(tmp_path, "--stop-grace", "4")
+    run = tmp_path / "run"
+    training(run / "heartbeat", 6, [0, 1])
+    supervisor, *below = [proc.pid, *procfs.descendants(proc.pid)]
+    for pid in below:
+        os.kill(pid, signal.SIGSTOP)
+    proc.send_signal(signal.SIGTERM)
+    wait_for(lambda: "preempt" in names(run), "the supervisor asking its workers to save")
+    os.kill(supervisor, signal.SIGSTOP)
+    time.sleep(ABSENT_AFTER + 1)
+    os.kill(supervisor, signal.SIGCONT)
+    time.sleep(0.5)
+    for pid in below:
+        with contextlib.suppress(ProcessLookupError):  # killed on waking (the defect this guards against)
+            os.kill(pid, signal.SIGCONT)
+    assert finish(proc) == 143
+    (exit_event,) = [event for event in events(run) if event["event"] == "exit"]
+    assert exit_event["phases"] == ["preempted"], exit_event
+    assert any(event["event"] == "absent" for event in events(run))
 
 
 @pytest.mark.slow
