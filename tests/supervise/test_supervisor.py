@@ -490,6 +490,16 @@ def test_stopped_worker_is_a_hang(tmp_path):
 
 
 @pytest.mark.slow
+def continue_supervisor_first(supervisor: int, below: list[int]) -> None:
+    """SIGCONT to a stopped supervisor, then 0.5 s later to the processes below it (one it killed meanwhile, the
+    defect the callers guard against, is gone)."""
+    os.kill(supervisor, signal.SIGCONT)
+    time.sleep(0.5)
+    for pid in below:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGCONT)
+
+
 def test_a_supervisor_stopped_with_its_workers_blames_nobody(tmp_path):
     """The whole tree stopped (a job suspended, a VM paused) for longer than the hang limit, then continued, the
     supervisor 0.5 s before its workers: it did not watch while stopped, so nothing hung; the run goes on with no
@@ -505,11 +515,7 @@ def test_a_supervisor_stopped_with_its_workers_blames_nobody(tmp_path):
     time.sleep(0.5)
     os.kill(supervisor, signal.SIGSTOP)
     time.sleep(HANG_FLOOR + 1)
-    os.kill(supervisor, signal.SIGCONT)
-    time.sleep(0.5)
-    for pid in below:
-        with contextlib.suppress(ProcessLookupError):  # killed as hung (the defect this guards against)
-            os.kill(pid, signal.SIGCONT)
+    continue_supervisor_first(supervisor, below)
     assert finish(proc) == options.EXIT_DONE
     assert_finished(run)
     log = events(run)
@@ -533,11 +539,7 @@ def test_a_supervisor_stopped_during_a_stop_still_gives_its_workers_their_grace_
     wait_for(lambda: "preempt" in names(run), "the supervisor asking its workers to save")
     os.kill(supervisor, signal.SIGSTOP)
     time.sleep(ABSENT_AFTER + 1)
-    os.kill(supervisor, signal.SIGCONT)
-    time.sleep(0.5)
-    for pid in below:
-        with contextlib.suppress(ProcessLookupError):  # killed on waking (the defect this guards against)
-            os.kill(pid, signal.SIGCONT)
+    continue_supervisor_first(supervisor, below)
     assert finish(proc) == 143
     (exit_event,) = [event for event in events(run) if event["event"] == "exit"]
     assert exit_event["phases"] == ["preempted"], exit_event
