@@ -60,6 +60,17 @@ def is_transient(exc: BaseException) -> bool:
     return status >= 500 or status == 429 or response.get("Error", {}).get("Code") in _THROTTLING
 
 
+def is_denied(exc: BaseException) -> bool:
+    """The storage refused the credentials or their permissions (HTTP 401 or 403): bad input, never an outage.
+    Azure's errors carry the status; gcsfs's ``HttpError`` its code, and gcsfs raises a 403 as a plain ``OSError``
+    whose text starts with "Forbidden:" (S3's denials are ``PermissionError``, caught by their type)."""
+    if getattr(exc, "status_code", None) in (401, 403):
+        return True
+    if isinstance(exc, loaded_errors(GCSFS, "HttpError")):
+        return exc.code in (401, 403)
+    return type(exc) is OSError and exc.errno is None and str(exc).startswith("Forbidden: ")
+
+
 @dataclass(frozen=True)
 class Backoff:
     """Doubling waits: ``first`` seconds before the first retry, at most ``longest``, each with +-25% jitter so that

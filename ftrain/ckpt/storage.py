@@ -34,7 +34,7 @@ from botocore.exceptions import NoCredentialsError
 from fsspec.implementations.local import LocalFileSystem
 
 from ftrain.ckpt import localfs, stores
-from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, client_errors, is_transient
+from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, client_errors, is_denied, is_transient
 from ftrain.ckpt.stores import AZURE_PROTOCOLS, GCS_PROTOCOLS, S3_PROTOCOLS
 from ftrain.errors import StorageError, StorageUnavailable, UserError
 from ftrain.redact import Url, display_url, scrub, secret_values, url_secrets
@@ -296,7 +296,7 @@ class Storage:
         except (PermissionError, NoCredentialsError) as exc:
             raise self._access_error(exc) from None
         except client_errors() as exc:
-            if getattr(exc, "status_code", None) in (401, 403):  # Azure's answer to a wrong key or a missing role
+            if is_denied(exc):
                 raise self._access_error(exc) from None
             if is_transient(exc):
                 raise StorageUnavailable(

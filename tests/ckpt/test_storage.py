@@ -1,5 +1,7 @@
 import contextlib
 import errno
+import http.server
+import json
 import logging
 import os
 import re
@@ -15,7 +17,7 @@ import pytest
 
 from ftrain.ckpt.retry import Backoff
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
-from ftrain.errors import EXIT_STORAGE_DOWN, UserError
+from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_USAGE, UserError
 from ftrain.redact import display_url
 
 from helpers import REPO, S3_KEY, S3_SECRET, child_env, create_bucket, free_port, train_command
@@ -399,3 +401,46 @@ def test_a_gcs_storage_that_does_not_answer_is_tried_by_our_retries_alone_and_to
     assert len(errors) == 1 and "failed after 5 attempts: ClientConnectorError" in errors[0], run.stderr[-2000:]
     assert "Traceback" not in run.stderr
     print(f"a run on a GCS storage that does not answer ended in {time.monotonic() - start:.0f} s")
+
+
+@pytest.mark.parametrize(
+    ("status", "message"),
+    [
+        (403, "ci@p.iam.gserviceaccount.com lacks storage.objects.get access to the Google Cloud Storage object"),
+        (401, "Anonymous caller lacks storage.objects.get access to the Google Cloud Storage object"),
+    ],
+)
+def test_a_gcs_storage_that_refuses_the_credentials_is_bad_input_told_in_one_line(tmp_path, status, message) -> None:
+    """Google's answer to credentials without the permission (403) or to none (401), as its JSON API gives it: access
+    denied, bad input that no wait fixes (gcsfs raises a 403 as a plain OSError), and a run on it exits 2, one line."""
+
+    class Refusing(http.server.BaseHTTPRequestHandler):
+        def refuse(self) -> None:
+            body = json.dumps({"error": {"code": status, "message": message, "errors": [{"reason": "forbidden"}]}})
+            self.send_response(status)
+            self.send_header("Content-Type", "application/json; charset=UTF-8")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body.encode())
+
+        do_GET = do_POST = do_PUT = do_DELETE = refuse
+
+        def log_message(self, *args) -> None:
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Refusing)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    endpoint = f"http://127.0.0.1:{server.server_address[1]}"
+    try:
+        storage = Storage.open("gs://bucket/run", {"token": "anon", "endpoint_url": endpoint}, base_delay=0.01)
+        with pytest.raises(UserError, match=r"^access denied to gs://bucket/run \(.*\): check the credentials"):
+            storage.read("LEASE.json")
+        options = ["storage.options.token=anon", f"storage.options.endpoint_url={endpoint}"]
+        command = [*train_command("gs://bucket/run", *options, f"log_dir={tmp_path / 'logs'}"), "iterations=1"]
+        run = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=300)
+    finally:
+        server.shutdown()
+    errors = [line for line in run.stderr.splitlines() if line.startswith("ftrain: error:")]
+    assert run.returncode == EXIT_USAGE, run.stderr[-2000:]
+    assert len(errors) == 1 and "access denied to gs://bucket/run" in errors[0], run.stderr[-2000:]
+    assert "Traceback" not in run.stderr
