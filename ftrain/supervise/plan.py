@@ -15,9 +15,6 @@ from dataclasses import dataclass
 from ftrain.identity import Identity
 from ftrain.supervise.options import Nodes, SupervisorOptions
 
-KEEP_ALIVE_INTERVAL = 1
-KEEP_ALIVE_MISSES = 3
-"""Elastic rendezvous: seconds between two keep-alives of a node's torchrun, and how many it may miss."""
 REGROUP_LAST_CALL = 1
 """Seconds a regroup after a node left waits for more than MIN nodes (torch's least; it polls once a second)."""
 
@@ -78,14 +75,14 @@ def elastic_rendezvous(
     that SIGTERM: the world grows at a checkpoint boundary). A regroup after a node left on its own (``plan.left``,
     its preemption) waits no ``--rejoin-timeout``: every node that is not leaving launches at once, so the wait is
     ``REGROUP_LAST_CALL``, and one that still comes later joins as a late node does. A node that stops sending
-    keep-alives drops out after ``KEEP_ALIVE_INTERVAL`` x ``KEEP_ALIVE_MISSES`` seconds. ``conf``: the backend's own
-    settings."""
+    keep-alives drops out after torch's 15 s (3 missed of one per 5 s): every node's keep-alive goes through the
+    store's host, so a stall of that host longer than the window (a loaded machine) would make every node look dead
+    to the first to look again, and a node waiting to join would open a round alone and never be let in.
+    ``conf``: the backend's own settings."""
     rejoin = REGROUP_LAST_CALL if plan.left is not None else max(REGROUP_LAST_CALL, math.ceil(options.rejoin_timeout))
     settings = {
         "join_timeout": math.ceil(options.rdzv_timeout),
         "last_call_timeout": rejoin,
-        "keep_alive_interval": KEEP_ALIVE_INTERVAL,
-        "keep_alive_max_attempt": KEEP_ALIVE_MISSES,
         **conf,
     }
     return [

@@ -324,12 +324,13 @@ def test_eight_nodes_lose_three_at_once_continue_with_five_and_take_them_back(tm
     assert grows and grows[-1]["new_world"] == 8 and all(grow["lost"] == 0 for grow in grows), grows
 
 
-def torchrun_node(node: int, port: int, log: Path, share_store: bool) -> subprocess.Popen:
-    """A bare elastic torchrun node (1:2 nodes, the rendezvous arguments the supervisor gives) of ``elastic_worker``."""
+def torchrun_node(node: int, port: int, log: Path, share_store: bool = False) -> subprocess.Popen:
+    """A bare elastic torchrun node (1:2 nodes, the rendezvous arguments the supervisor gives) of ``elastic_worker``,
+    logging at INFO (torch's agent says when it joins the rendezvous)."""
     options = SupervisorOptions(node_rank=node, rejoin_timeout=2, rdzv_timeout=60)
     arguments = rendezvous_args(Plan(1, 0, port), Nodes(2, 1, ("127.0.0.1", 0)), options)
     command = [sys.executable, "-m", "torch.distributed.run", "--nproc-per-node=1", "--max-restarts=0", *arguments]
-    env = child_env({"TORCH_DISABLE_SHARE_RDZV_TCP_STORE": "0" if share_store else "1"})
+    env = child_env({"TORCH_DISABLE_SHARE_RDZV_TCP_STORE": "0" if share_store else "1", "LOGLEVEL": "INFO"})
     output = log.open("ab")
     return launch([*command, str(HERE / "elastic_worker.py")], env=env, stdout=output, stderr=subprocess.STDOUT)
 
@@ -350,3 +351,24 @@ def test_a_late_node_grows_torchruns_world_only_without_the_shared_agent_store(t
     for node in nodes:
         kill_tree(node)
     assert bool(grew) is not share_store, (first.read_text(errors="replace"), second.read_text(errors="replace"))
+
+
+def test_a_late_node_is_let_in_after_the_rendezvous_host_stalled_for_seconds(tmp_path) -> None:
+    """Node 0's torchrun hosts the rendezvous store, so every keep-alive goes through it: stalled for 5 s (SIGSTOP: a
+    loaded machine, seen in the suite), every node's last keep-alive looks older than a short window to the first to
+    look again. With a 3 s window the late node 1 then opened a round alone and was never let in (2 of 2 tries, and
+    the elastic test that failed under load); torch's 15 s window lets it in at the next iteration boundary."""
+    port, first, second = free_port(), tmp_path / "node0.log", tmp_path / "node1.log"
+    nodes = [torchrun_node(0, port, first)]
+    try:
+        wait_for(lambda: "world 1 rank 0" in first.read_text(errors="replace"), "a world of one", timeout=90)
+        nodes.append(torchrun_node(1, port, second))
+        joining = lambda: "Rendezvous'ing worker group" in second.read_text(errors="replace")  # noqa: E731
+        wait_for(joining, "node 1's agent at the rendezvous", timeout=90)
+        os.kill(nodes[0].pid, signal.SIGSTOP)
+        time.sleep(5)
+        os.kill(nodes[0].pid, signal.SIGCONT)
+        wait_for(lambda: "world 2" in second.read_text(errors="replace"), "node 1 let in: a world of two", timeout=60)
+    finally:
+        for node in nodes:
+            kill_tree(node)
