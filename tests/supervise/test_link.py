@@ -65,7 +65,8 @@ def test_a_regroup_after_a_node_left_waits_no_rejoin_timeout(monkeypatch, backen
     options = SupervisorOptions(nnodes="2:3", rejoin_timeout=rejoin, **backend)
     arguments = rendezvous(Plan(1, 1, 29401, left=left), parse_nodes(options), options)
     (conf,) = [argument for argument in arguments if argument.startswith("--rdzv-conf=")]
-    assert f"last_call_timeout={last_call}," in conf, conf
+    settings = dict(setting.split("=") for setting in conf.removeprefix("--rdzv-conf=").split(","))
+    assert settings["last_call_timeout"] == str(last_call), conf
 
 
 @pytest.mark.cluster
