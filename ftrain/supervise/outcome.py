@@ -66,12 +66,13 @@ def not_admitted(committed: int | None) -> Outcome:
     """An elastic node that neither keeps the plan nor hosts the rendezvous joined no worker group within
     --rdzv-timeout: fewer than MIN nodes met, or (it came back late) the nodes training did not take it in. It ends
     alone: the others time out by themselves in the first case, and train on in the second."""
+    newest = f"newest step {committed}" if committed is not None else "this node saw no commit"
     return Outcome(
         "not_admitted",
         EXIT_TOO_FEW_NODES,
         f"this node joined no worker group within --rdzv-timeout: fewer than MIN nodes met, or the nodes training did "
-        f"not take it in; the other nodes are not stopped and nothing committed is lost (newest step {committed}): "
-        f"start the missing nodes, or run the same command again on this node to rejoin",
+        f"not take it in; the other nodes are not stopped and nothing committed is lost ({newest}): start the missing "
+        f"nodes, or run the same command again on this node to rejoin",
     )
 
 
