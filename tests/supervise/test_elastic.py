@@ -354,10 +354,10 @@ def test_a_late_node_grows_torchruns_world_only_without_the_shared_agent_store(t
 
 
 def test_a_late_node_is_let_in_after_the_rendezvous_host_stalled_for_seconds(tmp_path) -> None:
-    """Node 0's torchrun hosts the rendezvous store, so every keep-alive goes through it: stalled for 5 s (SIGSTOP: a
-    loaded machine, seen in the suite), every node's last keep-alive looks older than a short window to the first to
-    look again. With a 3 s window the late node 1 then opened a round alone and was never let in (2 of 2 tries, and
-    the elastic test that failed under load); torch's 15 s window lets it in at the next iteration boundary."""
+    """Node 0's torchrun hosts the rendezvous store, so every keep-alive goes through it: stalled for 5 s (SIGSTOP, as
+    a loaded machine stalls it), every node's last keep-alive looks older than a short window to the first to look
+    again, and with a 3 s window the waiting node 1 opened a round alone and was never let in; within torch's 15 s
+    window it is let in."""
     port, first, second = free_port(), tmp_path / "node0.log", tmp_path / "node1.log"
     nodes = [torchrun_node(0, port, first)]
     try:

@@ -489,7 +489,6 @@ def test_stopped_worker_is_a_hang(tmp_path):
     assert "recovered" in names(run)
 
 
-@pytest.mark.slow
 def continue_supervisor_first(supervisor: int, below: list[int]) -> None:
     """SIGCONT to a stopped supervisor, then 0.5 s later to the processes below it (one it killed meanwhile, the
     defect the callers guard against, is gone)."""
@@ -500,6 +499,7 @@ def continue_supervisor_first(supervisor: int, below: list[int]) -> None:
             os.kill(pid, signal.SIGCONT)
 
 
+@pytest.mark.slow
 def test_a_supervisor_stopped_with_its_workers_blames_nobody(tmp_path):
     """The whole tree stopped (a job suspended, a VM paused) for longer than the hang limit, then continued, the
     supervisor 0.5 s before its workers: it did not watch while stopped, so nothing hung; the run goes on with no
@@ -524,6 +524,7 @@ def test_a_supervisor_stopped_with_its_workers_blames_nobody(tmp_path):
     assert len(absent) == 1 and absent[0] >= HANG_FLOOR + 1, absent
 
 
+@pytest.mark.slow
 def test_a_supervisor_stopped_during_a_stop_still_gives_its_workers_their_grace_to_save(tmp_path):
     """SIGTERM reached the supervisor, then the whole tree was stopped for longer than ``--stop-grace`` before the
     workers could save (a job suspended mid-preemption), and continued, the supervisor first: the grace did not run
