@@ -62,7 +62,7 @@ class TrackingHook(Hook):
 
     def after_iteration(self, trainer: TrainerView, metrics: dict[str, float]) -> None:
         for sender in self.senders:  # empty but on rank 0
-            sender.send(trainer.iteration, {**metrics, "world_size": trainer.info.world_size})
+            sender.send(trainer.iteration, metrics)
 
     def on_end(self, trainer: TrainerView) -> None:
         for sender in self.senders:

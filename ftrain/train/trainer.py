@@ -335,6 +335,7 @@ class Trainer:
             "mean_return": total_returns / count if count else previous.get("mean_return", math.nan),
             "mean_length": total_lengths / count if count else previous.get("mean_length", math.nan),
             "env_steps": float(self.env_steps),
+            "world_size": float(self.info.world_size),
             **{f"loss/{key}": value for key, value in losses.items()},
             "learning_rate": self.alg.learning_rate,
             "action_std": action_std(self.alg.get_policy()),

@@ -3,6 +3,7 @@ read back from what the trackers wrote (W&B: its offline transaction logs); an u
 
 from __future__ import annotations
 
+import csv
 import json
 import math
 import os
@@ -21,6 +22,7 @@ from ftrain.errors import UserError
 from ftrain.supervise.options import EXIT_DONE
 from ftrain.track.sender import GOES_ON, QUEUE_ROWS, Sender
 from ftrain.track.wandb_log import records
+from ftrain.train.hooks import CSV_ONLY
 
 from helpers import (
     REPO,
@@ -131,7 +133,7 @@ def test_one_tracker_run_across_restarts_every_iteration_once_no_secret(tmp_path
 
 @pytest.mark.waits
 @pytest.mark.slow
-def test_an_unreachable_tracker_costs_one_warning_and_never_stops_training(tmp_path):
+def test_an_unreachable_tracker_costs_one_warning_never_stops_training_and_gets_every_row_when_back(tmp_path):
     closed = f"http://127.0.0.1:{free_port()}"  # nothing listens there
     start = time.monotonic()
     result = subprocess.run(
@@ -150,6 +152,19 @@ def test_an_unreachable_tracker_costs_one_warning_and_never_stops_training(tmp_p
     assert took < 60, f"training took {took:.0f} s with an unreachable tracker"
     run_train(tmp_path / "plain", env=OFFLINE, cwd=tmp_path)  # the tracker changed nothing that was trained
     assert final_manifest(tmp_path / "plain")["state_sha256"] == final_manifest(tmp_path / "run")["state_sha256"]
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"  # the tracker back: the run goes on, its first 8 rows sent from the CSV
+    MlflowClient(uri).search_experiments()
+    run_train(tmp_path / "run", "iterations=10", f"log.mlflow.tracking_uri={uri}", env=OFFLINE, cwd=tmp_path)
+    client = MlflowClient(uri)
+    (run,) = client.search_runs([client.get_experiment_by_name("smoke").experiment_id])
+    with (tmp_path / "run" / "metrics.csv").open() as file:
+        rows = {int(row["iteration"]): row for row in csv.DictReader(file)}
+    assert sorted(rows) == list(range(1, 11)) and "world_size" in rows[1]
+    for key in rows[1].keys() - set(CSV_ONLY):  # every metric of every row, as the CSV has it
+        logged = {metric.step: metric.value for metric in client.get_metric_history(run.info.run_id, key)}
+        expected = {step: float(row[key]) for step, row in rows.items() if row[key]}  # (empty: not measured)
+        assert logged.keys() == expected.keys() and all(_same(logged[step], expected[step]) for step in logged), key
 
 
 @pytest.mark.parametrize(
