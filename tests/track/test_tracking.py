@@ -158,7 +158,7 @@ def test_an_unreachable_tracker_costs_one_warning_never_stops_training_and_gets_
     run_train(tmp_path / "run", "iterations=10", f"log.mlflow.tracking_uri={uri}", env=OFFLINE, cwd=tmp_path)
     client = MlflowClient(uri)
     (run,) = client.search_runs([client.get_experiment_by_name("smoke").experiment_id])
-    with (tmp_path / "run" / "metrics.csv").open() as file:
+    with (tmp_path / "run" / "metrics.csv").open() as file:  # read here, not by read_metrics, which the resend uses
         rows = {int(row["iteration"]): row for row in csv.DictReader(file)}
     assert sorted(rows) == list(range(1, 11)) and "world_size" in rows[1]
     for key in rows[1].keys() - set(CSV_ONLY):  # every metric of every row, as the CSV has it
