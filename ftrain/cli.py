@@ -17,7 +17,7 @@ import typing
 
 from ftrain import errorfile
 from ftrain.errors import EXIT_FAILED, EXIT_STORAGE_DOWN, EXIT_USAGE, StorageError, StorageUnavailable, UserError
-from ftrain.lifeline import watch_supervisor
+from ftrain.lifeline import watch_launcher
 from ftrain.process import imports
 from ftrain.proctitle import name_process, rank_role
 from ftrain.redact import reveal_credentials
@@ -329,7 +329,7 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "train":
         config = _run_config(args)
         name_process(rank_role("worker"), config.name)
-        watch_supervisor()
+        watch_launcher()
         from ftrain.config import make_local_directories
 
         with imports():

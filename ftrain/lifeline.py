@@ -1,4 +1,5 @@
-"""No process of a supervised run outlives its supervisor, however the supervisor ends (SIGKILL included).
+"""No process of a supervised run outlives its supervisor, however the supervisor ends (SIGKILL included); no worker
+of a plain torchrun outlives its torchrun unsaved.
 
 The supervisor names itself in ``FTRAIN_SUPERVISOR`` (its pid and start time: a pid the kernel hands out again has
 another start time). torchrun, its child, asks the kernel for SIGKILL when its parent ends (``PR_SET_PDEATHSIG``),
@@ -8,7 +9,9 @@ so a kernel tie to their parent does not fit them: each runs a thread that looks
 seconds and, once it is gone, SIGKILLs every process of its attempt (found by the attempt token, so a stopped sibling
 too, which no thread of its own can end), itself last. Warm workers (``ftrain/warm``) carry the token in their
 stand-ins, whose end makes the pool SIGKILL their forks; the pool itself dies with the supervisor, and its forks with
-it. Without ``FTRAIN_SUPERVISOR`` (plain ``torchrun -m ftrain train``) nothing of this happens.
+it. Without ``FTRAIN_SUPERVISOR`` (plain ``torchrun -m ftrain train``) a worker whose torchrun ends (SIGKILL
+included) stops as if torchrun had stopped it: it SIGTERMs itself, and the ranks save and exit 143, so that no worker
+trains on unseen, holding the storage against the next launch.
 """
 
 from __future__ import annotations
@@ -29,6 +32,8 @@ POLL = 0.5
 """Seconds between two looks of a worker at its supervisor."""
 PR_SET_PDEATHSIG = 1
 """From ``<linux/prctl.h>``."""
+TORCHRUN_ENV = "TORCHELASTIC_RUN_ID"
+"""Set by torchrun in its workers' environment: a worker without it was not started by torchrun."""
 
 
 def supervisor_env() -> dict[str, str]:
@@ -58,11 +63,22 @@ def die_with_parent(parent: int) -> None:
         os.kill(os.getpid(), signal.SIGKILL)
 
 
-def watch_supervisor() -> None:
-    """In a worker: once the supervisor is gone, SIGKILL every process of this attempt, this one last."""
+def watch_launcher() -> None:
+    """In a worker: once the supervisor is gone, SIGKILL every process of this attempt, this one last; without a
+    supervisor, once torchrun (this worker's parent) is gone, stop this rank as torchrun would (SIGTERM)."""
     supervisor, token = named_supervisor(), os.environ.get(TOKEN_ENV)
     if supervisor is not None and token:
         threading.Thread(target=_watch, args=(supervisor, token), name="ftrain-lifeline", daemon=True).start()
+    elif supervisor is None and TORCHRUN_ENV in os.environ:
+        threading.Thread(target=_watch_torchrun, args=(os.getppid(),), name="ftrain-lifeline", daemon=True).start()
+
+
+def _watch_torchrun(torchrun: int) -> None:
+    while os.getppid() == torchrun:
+        time.sleep(POLL)
+    if os.environ.get("LOCAL_RANK", "0") == "0":
+        print(f"ftrain: torchrun (pid {torchrun}) ended under its workers: they save and exit", file=sys.stderr)
+    os.kill(os.getpid(), signal.SIGTERM)
 
 
 def _watch(supervisor: tuple[int, str], token: str) -> None:

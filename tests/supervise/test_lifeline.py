@@ -1,5 +1,5 @@
 """No orphans: whatever ends ``ftrain supervise`` (SIGKILL included), its torchrun and workers end within seconds;
-a plain torchrun run knows no supervisor."""
+a plain torchrun run knows no supervisor, and its workers save and exit once their torchrun is gone."""
 
 from __future__ import annotations
 
@@ -13,7 +13,19 @@ import pytest
 
 from ftrain import lifeline, procfs
 
-from helpers import REPO, SMOKE, child_env, launch, torchrun_pid, training, wait_for
+from helpers import (
+    REPO,
+    SMOKE,
+    child_env,
+    launch,
+    manifests,
+    metrics_by_iteration,
+    run_train,
+    start_train,
+    torchrun_pid,
+    training,
+    wait_for,
+)
 
 ORPHAN_DEADLINE = 15.0
 """Seconds after the supervisor's death by which no process of its run may be left (the issue's bound)."""
@@ -67,3 +79,31 @@ def test_a_sigkilled_supervisor_leaves_no_process_of_its_run(tmp_path):
         for pid in filter(alive, run_processes):
             os.kill(pid, signal.SIGKILL)
     print(f"every process of the run ended {time.monotonic() - killed:.2f} s after the supervisor's SIGKILL")
+
+
+@pytest.mark.slow
+def test_the_workers_of_a_sigkilled_plain_torchrun_save_and_exit_and_the_next_launch_resumes(tmp_path):
+    """Without a supervisor, workers whose torchrun ends stop as torchrun would have stopped them: they save and exit,
+    where they trained on unseen and held the storage against the next launch. Only the stop saves (no interval)."""
+    run = tmp_path / "run"
+    agent = start_train(run, "iterations=100000", "checkpoint.interval=100000", ranks=2)
+    try:
+        wait_for(lambda: (run / "metrics.csv").exists() and len(metrics_by_iteration(run)) >= 3, "3 iterations", 180)
+    finally:
+        workers = procfs.descendants(agent.pid)
+        agent.kill()
+        agent.wait()
+    killed = time.monotonic()
+    try:
+        assert len(workers) == 2, workers
+        wait_for(lambda: not any(map(alive, workers)), "the workers to save and exit", ORPHAN_DEADLINE, 0.05)
+    finally:  # a failed test leaves no orphans either
+        for pid in filter(alive, workers):
+            os.kill(pid, signal.SIGKILL)
+    print(f"both workers saved and exited {time.monotonic() - killed:.2f} s after torchrun's SIGKILL")
+    (saved,) = manifests(run)  # the stop's save, verified
+    assert saved >= 3
+
+    resumed = run_train(run, f"iterations={saved + 2}", ranks=2)
+    assert f"resumed from step {saved}" in resumed.stdout + resumed.stderr
+    assert max(manifests(run)) == saved + 2
