@@ -16,7 +16,16 @@ import sys
 import typing
 
 from ftrain import errorfile
-from ftrain.errors import EXIT_FAILED, EXIT_STORAGE_DOWN, EXIT_USAGE, StorageError, StorageUnavailable, UserError
+from ftrain.errors import (
+    EXIT_FAILED,
+    EXIT_STORAGE_DOWN,
+    EXIT_USAGE,
+    NO_SPACE,
+    StorageError,
+    StorageUnavailable,
+    UserError,
+    no_space_line,
+)
 from ftrain.lifeline import watch_launcher
 from ftrain.process import imports
 from ftrain.proctitle import name_process, rank_role
@@ -320,6 +329,12 @@ def main(argv: list[str] | None = None) -> int:
         # what is still buffered go nowhere instead of failing again
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
+    except OSError as error:
+        if error.errno not in NO_SPACE:
+            errorfile.record_exception(error)
+            raise
+        errorfile.report(no_space_line(error))  # the supervisor waits for space, as for a storage that went away
+        return EXIT_STORAGE_DOWN
     except Exception as error:  # a bug: it keeps its traceback, and torchrun and the supervisor learn what it was
         errorfile.record_exception(error)
         raise

@@ -4,6 +4,7 @@
 bug and keeps its traceback.
 """
 
+import errno
 import signal
 
 EXIT_FAILED = 1
@@ -25,6 +26,17 @@ EXIT_INTERRUPTED = 128 + signal.SIGINT
 """Stopped by SIGINT (Ctrl-C) after saving: the same as ``EXIT_PREEMPTED``, with the shell's code for Ctrl-C."""
 STOPPED = (EXIT_PREEMPTED, EXIT_INTERRUPTED)
 """The exit codes of a run stopped by a signal after saving."""
+
+
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+"""A disk (or the user's quota on it) is full: no retry of the write fixes it, only freeing space does."""
+
+
+def no_space_line(error: OSError) -> str:
+    """One line for a write that found its disk full: which file, and the fix."""
+    where = f"for {error.filename}" if error.filename else "on a disk this run writes to (its storage or log directory)"
+    fix = "free space there, or keep fewer checkpoints (checkpoint.keep_last); nothing committed is lost"
+    return f"no space left {where} ({error.strerror}): {fix}"
 
 
 def stop_code(signum: int) -> int:

@@ -36,7 +36,7 @@ from fsspec.implementations.local import LocalFileSystem
 from ftrain.ckpt import localfs, stores
 from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, client_errors, is_denied, is_transient
 from ftrain.ckpt.stores import AZURE_PROTOCOLS, GCS_PROTOCOLS, S3_PROTOCOLS
-from ftrain.errors import StorageError, StorageUnavailable, UserError
+from ftrain.errors import NO_SPACE, StorageError, StorageUnavailable, UserError, no_space_line
 from ftrain.redact import Url, display_url, scrub, secret_values, url_secrets
 
 log = logging.getLogger(__name__)
@@ -298,6 +298,8 @@ class Storage:
         except client_errors() as exc:
             if is_denied(exc):
                 raise self._access_error(exc) from None
+            if isinstance(exc, OSError) and exc.errno in NO_SPACE:  # waited for, as an outage: freeing space fixes it
+                raise StorageUnavailable(no_space_line(OSError(exc.errno, exc.strerror, self.where(rel)))) from None
             if is_transient(exc):
                 raise StorageUnavailable(
                     f"{what} {self.where(rel)} failed after {self.retries + 1} attempts: {self._scrub(exc)}"

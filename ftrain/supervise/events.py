@@ -30,13 +30,25 @@ class EventLog:
         """Nothing is created before the first record (bad input found meanwhile leaves no directory behind)."""
         self.path = path
         self.node = node
+        self.unwritable = False
+        """Whether the last record could not be written (said once until one is written again)."""
 
     def __call__(self, event: str, message: str = "", **fields) -> None:
         record = {"time": round(time.time(), 3), "event": event, **display_urls(fields)}  # json writes a Url raw
         if self.node is not None:
             record["node"] = self.node
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        with self.path.open("a") as file:
-            file.write(json.dumps(record) + "\n")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            with self.path.open("a") as file:
+                file.write(json.dumps(record) + "\n")
+        except OSError as error:  # a full disk must not end the supervisor (and its run): the line still goes out
+            if not self.unwritable:
+                print(
+                    f"ftrain supervise: cannot write {self.path} ({error}): decisions go to stderr only",
+                    file=sys.stderr,
+                )
+            self.unwritable = True
+        else:
+            self.unwritable = False
         if message:
             print(f"ftrain supervise: {message}", file=sys.stderr, flush=True)

@@ -39,7 +39,8 @@ EXIT_CODES = {
     EXIT_PEER_LOST: "several nodes: node 0's supervisor (c10d) or etcd unreachable for --rdzv-timeout seconds",
     EXIT_TOO_FEW_NODES: "elastic: fewer than MIN nodes joined within --rdzv-timeout seconds, or the nodes training "
     "did not take this one in (it came back late: it ends alone); nothing committed lost",
-    EXIT_STORAGE_WAIT: "the checkpoint storage did not answer for --storage-wait seconds; nothing committed lost",
+    EXIT_STORAGE_WAIT: "the checkpoint storage did not answer, or a disk of the run stayed full, for --storage-wait "
+    "seconds; nothing committed lost",
     EXIT_STORAGE_HELD: "another run holds the storage (its lease): nothing of that run touched; or it took the storage "
     "from this run (a newer lease generation) and this run committed nothing more",
     EXIT_INTERRUPTED: "interrupted (SIGINT, Ctrl-C): the workers saved; run the same command again to continue",

@@ -6,16 +6,20 @@ input. The supervisor then probes the storage itself, with backoff (a line when 
 ``--max-restarts`` nor the crash loop. After ``--storage-wait`` seconds it gives up with exit 7; nothing committed is
 lost. The workers get the same wait (``FTRAIN_STORAGE_WAIT``) for a save they must commit. Before its first look the
 supervisor has reached nothing: a storage that does not answer then is said to be maybe misnamed, and waited for
-5 minutes instead of an hour (``WAITS``).
+5 minutes instead of an hour (``WAITS``). A full local disk is waited for the same way (a worker that found it
+full ends with exit 7 too): the probe also asks for room for one more checkpoint on the storage's disk and a margin
+on the log directory's, so that a restart does not run into it again at once.
 """
 
 from __future__ import annotations
 
+import shutil
 import sys
 import time
 from collections.abc import Callable
+from pathlib import Path
 
-from ftrain.ckpt.format import verify_step
+from ftrain.ckpt.format import human_size, verify_step
 from ftrain.ckpt.retry import OUTAGE, WaitLines
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import StorageConfig
@@ -26,6 +30,8 @@ from ftrain.supervise.events import EventLog
 from ftrain.supervise.options import EXIT_STORAGE_WAIT
 from ftrain.supervise.outcome import Outcome
 
+SPACE_MARGIN = 1 << 20
+"""Bytes of free disk a run needs besides its next checkpoint: logs, heartbeats, the lease."""
 WAITS = (300.0, 3600.0)
 """``--storage-wait``'s default: for a storage that has not answered once since the command started (a wrong URL or
 endpoint is then likelier than an outage, and an hour is long to learn that), and for one that answered and went
@@ -40,10 +46,12 @@ class StorageWait:
         events: EventLog,
         sleep: Callable[[float], None],
         clock: Callable[[], float] = time.monotonic,
+        log_dir: Path | None = None,
     ) -> None:
         """``limit``: seconds to wait (None: ``WAITS``) by ``clock``; ``sleep``: the supervisor's sleep, which ends the
-        run on a signal."""
+        run on a signal; ``log_dir``: where the workers write their logs and heartbeats (its disk must have room)."""
         self.storage = storage
+        self.log_dir = log_dir
         self.explicit_limit = limit
         self.events = events
         self.sleep = sleep
@@ -78,13 +86,13 @@ class StorageWait:
             self._waiting(url, why, lines)
         while True:
             try:
-                problem = probe(self.storage.url, self.storage.options)
+                problem = probe(self.storage.url, self.storage.options, self.log_dir)
             except UserError as error:
                 return Outcome("usage", EXIT_USAGE, str(error))
             waited = self.clock() - started
             if problem is None:
                 if why is not None or tries:
-                    back = f"the storage answers again after {waited:.0f} s"
+                    back = f"the storage is usable again after {waited:.0f} s"
                     self.events("storage_back", back, waited=round(waited, 2))
                 self.reached = True
                 return None
@@ -100,7 +108,7 @@ class StorageWait:
             delay = OUTAGE.delay(tries)
             if lines.due():
                 print(
-                    f"ftrain supervise: storage {url} unreachable since {since} ({problem}); next try in {delay:.0f} s",
+                    f"ftrain supervise: storage {url} not usable since {since} ({problem}); next try in {delay:.0f} s",
                     file=sys.stderr,
                     flush=True,
                 )
@@ -111,6 +119,15 @@ class StorageWait:
             finally:
                 progress.clear()
             tries += 1
+
+    def disk_full(self) -> str | None:
+        """Why the local disks the run writes to lack room (``short_of_space``), or None: asked after a failed attempt,
+        whose workers may have been unable to say so (their error files are written to the same disk)."""
+        try:
+            storage = Storage.open(self.storage.url, self.storage.options, retries=0)
+            return short_of_space(storage, storage.list_dirs("checkpoints") if storage.is_local else [], self.log_dir)
+        except (StorageError, UserError):
+            return None
 
     def holds(self, step: int) -> bool:
         """Whether the storage holds ``step`` committed and intact (its files match its manifest's sizes and SHA-256,
@@ -134,11 +151,31 @@ class StorageWait:
         lines.due(always=True)
 
 
-def probe(url: str, options: dict | None = None) -> str | None:
-    """None if the storage at ``url`` answers (it opens, and its checkpoints can be listed), else why not, in one
-    line, for an infrastructure fault worth waiting for; UserError for one that waiting cannot fix."""
+def probe(url: str, options: dict | None = None, log_dir: Path | None = None) -> str | None:
+    """None if the storage at ``url`` answers (it opens, and its checkpoints can be listed) and the local disks the run
+    writes to have room (``short_of_space``), else why not, in one line, for an infrastructure fault worth waiting
+    for; UserError for one that waiting cannot fix."""
     try:
-        Storage.open(url, options, retries=0).list_dirs("checkpoints")
+        storage = Storage.open(url, options, retries=0)
+        return short_of_space(storage, storage.list_dirs("checkpoints"), log_dir)
     except StorageError as error:
         return str(error)
+
+
+def short_of_space(storage: Storage, steps: list[str], log_dir: Path | None) -> str | None:
+    """Why a run cannot go on for lack of local disk, or None: a local storage's disk needs room for one more
+    checkpoint (the largest of the newest three ``steps``) and ``SPACE_MARGIN``; the log directory's, the margin."""
+    needs: dict[Path, int] = {}
+    if storage.is_local:
+        sizes = (sum(storage.list_files(f"checkpoints/{step}").values()) for step in steps[-3:])
+        needs[Path(storage.root)] = max(sizes, default=0) + SPACE_MARGIN
+    if log_dir is not None:
+        needs.setdefault(log_dir, SPACE_MARGIN)
+    for path, need in needs.items():  # on one disk, the storage's need (the larger) covers the log directory's
+        free = shutil.disk_usage(next(parent for parent in (path, *path.parents) if parent.exists())).free
+        if free < need:
+            return (
+                f"no space left for {path}: {human_size(free)} free where the run needs {human_size(need)} (a "
+                f"checkpoint and its logs): free space there, or keep fewer checkpoints (checkpoint.keep_last)"
+            )
     return None

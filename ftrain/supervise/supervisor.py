@@ -130,7 +130,7 @@ class Supervisor:
         self.signals: list[int] = []
         self.policy = RestartPolicy(options)
         self.ledger = Ledger(options.nproc_per_node, self.events)
-        self.storage_wait = StorageWait(config.storage, options.storage_wait, self.events, self._sleep)
+        self.storage_wait = StorageWait(config.storage, options.storage_wait, self.events, self._sleep, log_dir=log_dir)
         self.last_step = config.iterations
         self.launcher = Launcher(options, log_dir / f"warm-pool{'-' + node_dir if node_dir else ''}.log")
         self.lease: Lease | None = None  # the storage's, held for the run (``run``)
@@ -173,7 +173,7 @@ class Supervisor:
                 if ending is not None:
                     raise _Stop(ending)
                 plan = self._next_plan(plan)
-                self.events("restart", f"attempt {plan.attempt}: the storage answers again", attempt=plan.attempt)
+                self.events("restart", f"attempt {plan.attempt}: the storage is usable again", attempt=plan.attempt)
                 continue
             delay = self.policy.judge(attempt)
             if isinstance(delay, Outcome):
@@ -363,6 +363,8 @@ class Supervisor:
         stopped = stop_code(self.signals[0]) if self.signals else None
         committed = attempt.committed if attempt.committed is not None else self.policy.best_committed
         outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
+        if outcome.event == "failed" and (full := self.storage_wait.disk_full()) is not None:
+            outcome = Outcome("storage_down", None, full)  # restarts would fail alike: wait for space instead
         if outcome.event == "too_few_nodes" and self._keeps_no_plan():
             outcome = not_admitted(committed)
         if moved and current.left is not None and outcome.failed:  # saved for a node that left: no failure

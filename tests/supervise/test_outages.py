@@ -9,12 +9,15 @@ iteration however fast the machine: about 60 of the 100 iterations pass before t
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -172,3 +175,76 @@ def test_a_failing_mount_is_waited_out(tmp_path, reference_state):
     names = [event["event"] for event in events(logs)]
     assert "storage_wait" in names and "storage_back" in names and names[-2:] == ["done", "summary"], names
     assert "not committed" in Path(f"{logs}.log").read_text()
+
+
+@contextlib.contextmanager
+def small_disk(mountpoint: Path, size: str) -> Iterator[Path]:
+    """A tmpfs of ``size`` at ``mountpoint``: a real file system that fills up; unmounted at the end. Skips where one
+    cannot be mounted (not root, no permission to mount)."""
+    mountpoint.mkdir()
+    if os.geteuid() != 0 or not shutil.which("mount"):
+        pytest.skip("mounting a tmpfs takes root and mount(8)")
+    mounted = subprocess.run(
+        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mountpoint)], capture_output=True
+    )
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.decode(errors='replace').strip()}")
+    try:
+        yield mountpoint
+    finally:
+        subprocess.run(["umount", "-l", str(mountpoint)], capture_output=True)
+
+
+def fill(disk: Path) -> Path:
+    """Fill ``disk`` to its last byte with one file, which the test deletes to give the space back."""
+    filler = disk / "filler"
+    with open(filler, "wb", buffering=0) as file, contextlib.suppress(OSError):
+        while True:
+            file.write(bytes(1 << 16))
+    assert shutil.disk_usage(disk).free == 0
+    return filler
+
+
+@pytest.mark.waits
+def test_a_full_disk_is_waited_out_and_the_run_ends_on_the_uninterrupted_bits(tmp_path, reference_state):
+    """The storage and its logs (the default layout) on a small disk, filled to its last byte at iteration 4 of 8
+    (``Hold``): the workers cannot write (their heartbeats, their error files neither) and end; the supervisor finds
+    the disk full and waits for space, where it restarted into the full disk until the crash loop ended the run. Once
+    the filler is deleted, the run goes on and ends on an uninterrupted run's bits."""
+    output, hold = tmp_path / "supervise.log", Hold(tmp_path, 4)
+    with small_disk(tmp_path / "disk", "8m") as disk:
+        filler = fill(disk)  # first, without a supervisor, on the full disk: one line, exit 7
+        refused = subprocess.run(
+            [sys.executable, "-m", "ftrain", "train", "configs/smoke.yaml", "--storage", str(disk / "alone")],
+            cwd=REPO,
+            env=child_env(),
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert refused.returncode == 7 and refused.stderr.startswith("ftrain: error: no space left"), refused.stderr
+        assert "Traceback" not in refused.stderr and "free space there" in refused.stderr
+        filler.unlink()
+
+        command = [sys.executable, "-m", "ftrain", "supervise", *OPTIONS, "configs/smoke.yaml"]
+        overrides = [hold.override, f"iterations={MOUNT_ITERATIONS}", "log.console=false", "dist_timeout=20"]
+        with output.open("ab") as log:
+            proc = launch(
+                [*command, "--storage", str(disk / "run"), *overrides],
+                cwd=REPO,
+                env=child_env({"PYTHONPATH": str(TESTS)}),
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        hold.held()
+        filler = fill(disk)
+        hold.release()
+        wait_for(lambda: "no space left for" in output.read_text(), "the supervisor waiting for space")
+        time.sleep(3)  # waiting, not restarting into the full disk
+        assert "restart 1" not in output.read_text() and proc.poll() is None, output.read_text()[-3000:]
+        filler.unlink()
+        assert finish(proc, timeout=300) == 0, output.read_text()[-3000:]
+        step, manifest = select_resume(Storage.open(str(disk / "run")), log=lambda line: None)
+        names = [event["event"] for event in events(disk / "run")]
+    assert step == MOUNT_ITERATIONS and manifest["state_sha256"] == reference_state(MOUNT_ITERATIONS)
+    assert "storage_back" in names and "crash_loop" not in names and names[-2:] == ["done", "summary"], names
