@@ -31,6 +31,8 @@ NOT_OURS = "pass a run's log directory, with the files ftrain wrote there"
 @dataclass
 class Plot:
     path: Path
+    title: str
+    """The figure's title: the run's name, its iterations, and what the marks mean."""
     panels: list[str]
     """The titles of the panels drawn."""
     restarts: list[int]
@@ -113,8 +115,8 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
         raise UserError(f"-o {output}: not a picture file matplotlib writes: end it in .png, .svg or .pdf")
     storage = Storage.open(str(run), options)
     columns, resumed, changed = read_metrics(run, options)
-    name = Path(run).resolve().name if storage.is_local else PurePosixPath(storage.url).name
-    path = Path(output) if output else Path(default_log_dir(str(run), name)) / "curves.png"
+    run_name = Path(run).resolve().name if storage.is_local else PurePosixPath(storage.url).name
+    path = Path(output) if output else Path(default_log_dir(str(run), run_name)) / "curves.png"
     check_writable(path, "-o")
     changes = sorted(changed)
     restarts = sorted(set(read_restarts(storage)) - set(changes))
@@ -130,7 +132,7 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
         (
             "Losses",
             "loss (symmetric log scale)",
-            {name: name.removeprefix("loss/") for name in columns if name.startswith("loss/")},
+            {column: column.removeprefix("loss/") for column in columns if column.startswith("loss/")},
         ),
         ("Throughput", "environment steps / s", {"steps_per_s": "all ranks"}),
     ]
@@ -138,10 +140,9 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     panels = [panel for panel in panels if panel[2]]
     figure, axes = plt.subplots(2, 2, figsize=(12, 8), squeeze=False)
     for ax, (title, unit, series) in zip(axes.flat, panels, strict=False):
-        for name, label in series.items():
-            values = columns[name]
-            points = [(x, y) for x, y in zip(iterations, values, strict=True) if not math.isnan(y)]
-            style = "o-" if name == "eval_return" else "-"
+        for column, label in series.items():
+            points = [(x, y) for x, y in zip(iterations, columns[column], strict=True) if not math.isnan(y)]
+            style = "o-" if column == "eval_return" else "-"
             ax.plot([x for x, _ in points], [y for _, y in points], style, label=label, markersize=3)
         if title == "Losses":
             ax.set_yscale("symlog", linthresh=1e-2)
@@ -164,13 +165,14 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     marks.append(_count(len(changes), "config change") + " (dash-dot)" if changes else "")
     marked = ", ".join(mark for mark in marks if mark)
     where = f", {marked}: at the step resumed from" if marked else ""
-    figure.suptitle(f"{name}: {int(iterations[-1])} iterations{where}")
+    title = f"{run_name}: {int(iterations[-1])} iterations{where}"
+    figure.suptitle(title)
     figure.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=100)
     plt.close(figure)
     print(f"wrote {path}")
-    return Plot(path, [title for title, _, _ in panels], restarts, resumes, changes)
+    return Plot(path, title, [panel for panel, _, _ in panels], restarts, resumes, changes)
 
 
 def _read(storage: Storage, name: str) -> str | None:

@@ -66,6 +66,7 @@ def test_files_of_older_versions_keep_the_last_row_of_each_iteration(resumed, tm
 def test_plot_marks_a_resume_that_was_no_restart(resumed, tmp_path) -> None:
     plot = plot_run(resumed, tmp_path / "curves.png")
     assert plot.panels == PANELS and (plot.restarts, plot.resumes) == ([], [4])
+    assert plot.title == "run: 8 iterations, 1 resume (dotted): at the step resumed from", plot.title
     assert png_size(plot.path) == (1200, 800)
     assert plot.path.stat().st_size > 30_000, "a PNG with four panels of curves and text"
 
