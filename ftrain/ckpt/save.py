@@ -53,7 +53,7 @@ from ftrain.config import CheckpointConfig
 UNLOADABLE_HINT = "hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
 
 
-class Result(str, enum.Enum):
+class Result(enum.StrEnum):
     """What became of one save (a string on the wire: rank 0 broadcasts it as JSON)."""
 
     COMMITTED = "committed"
