@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Sets up everything ftrain needs on a fresh Debian machine, idempotently, one line per step:
-#   - Debian's Mesa EGL libraries for headless MuJoCo rendering, etcd-server, and SLURM and munge for the SLURM tests
+#   - Debian's Mesa EGL and libOpenGL for headless MuJoCo rendering, python3-venv where the Python lacks ensurepip,
+#     etcd-server, and SLURM and munge for the SLURM tests
 #     (when run as root and missing; the SLURM tests start daemons of their own, with their own configuration);
 #   - a virtualenv in .venv with the CPU build of torch 2.13.0 installed FIRST (a bare torch requirement would
 #     pull a multi-GB CUDA build), then ftrain itself with its test, export, render, etcd and bench extras;
@@ -27,7 +28,7 @@ debian_packages() {
     say "warning: $* are missing; install them for $what" >&2
   fi
 }
-debian_packages "headless rendering: 'ftrain play --video'" libegl1 libegl-mesa0 libgl1-mesa-dri
+debian_packages "headless rendering: 'ftrain play --video'" libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0
 # For the tests only (launch/test.sh sets FTRAIN_TEST_DEPS=1), as they bring daemons and SLURM's own commands, which
 # a training node must not get by accident: etcd (3.4 in Debian 12, serving the v2 API torchrun's etcd-v2 rendezvous
 # speaks) and SLURM with munge for the private clusters of the tests (which skip without them). Never fatal.
@@ -38,9 +39,12 @@ if [[ ${FTRAIN_TEST_DEPS:-0} == 1 ]]; then
 fi
 
 python=${PYTHON:-python3}
-if [[ ! -x .venv/bin/python ]]; then
+if ! "$python" -c "import ensurepip, venv" 2>/dev/null; then  # Debian's python3 makes a virtualenv without pip
+  debian_packages "a virtualenv with pip for $python" python3-venv
+fi
+if ! .venv/bin/python -m pip --version >/dev/null 2>&1; then  # none yet, or one a failed run left without pip
   say "creating .venv with $("$python" --version)..."
-  "$python" -m venv .venv
+  "$python" -m venv --clear .venv
 fi
 
 # Azurite, the Azure Blob emulator that the abfs:// tests run against (they skip without it), for the tests only: in

@@ -323,7 +323,7 @@ def metrics_by_iteration(log_dir: str | Path) -> dict[int, dict[str, str]]:
 
 needs_egl = pytest.mark.skipif(
     ctypes.util.find_library("EGL") is None,
-    reason="headless rendering needs Mesa EGL (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri)",
+    reason="headless rendering needs Mesa EGL (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0)",
 )
 """For tests that render video (MUJOCO_GL=egl)."""
 

@@ -138,7 +138,7 @@ class _VideoWriter:
         except Exception as exc:  # no usable OpenGL: the error type depends on the backend and what is missing
             raise UserError(
                 f"headless rendering failed ({type(exc).__name__}: {exc}): install Debian's Mesa EGL "
-                "(apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri) and keep MUJOCO_GL=egl"
+                "(apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0) and keep MUJOCO_GL=egl"
             ) from None
         self.writer.append_data(frame)
         self.frames += 1
