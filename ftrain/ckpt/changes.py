@@ -26,6 +26,24 @@ def config_change(saved: dict, current: dict, saved_robot: dict | None, robot: d
     return "; ".join(parts) or None
 
 
+MODEL_FREE = ("obs_normalization_until", "final_noise_std")
+"""Policy keys that do not decide the models' tensors (when the normalizers freeze, where the action noise ends): a
+change of them is a config change, which ``allow_config_change`` lets through."""
+
+
+def model_change(saved: dict, current: dict) -> str | None:
+    """What differs in the environment and the policy keys that decide the models' tensors, as ``key old -> new``
+    (``saved``, ``current``: as for ``config_change``); None: the models load into each other."""
+    before, now = _model_keys(saved), _model_keys(current)
+    keys = sorted(key for key in before.keys() | now.keys() if before.get(key) != now.get(key))
+    return "; ".join(f"{key} {_text(before.get(key))} -> {_text(now.get(key))}" for key in keys) or None
+
+
+def _model_keys(config: dict) -> dict:
+    policy = {f"policy.{key}": value for key, value in dotted(config["policy"]).items() if key not in MODEL_FREE}
+    return {"env.id": config["env"]["id"], **policy}
+
+
 def changed_keys(saved: dict, current: dict) -> list[str]:
     """The training keys (dotted) whose values differ between two configs as dicts (``config_change``)."""
     before, now = dotted(training_part(saved)), dotted(training_part(current))

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 from typing import Protocol
 
 from ftrain.ckpt.arithmetic import change as arithmetic_change
-from ftrain.ckpt.changes import changed_keys, config_change, robot_change
+from ftrain.ckpt.changes import changed_keys, config_change, model_change, robot_change
 from ftrain.ckpt.format import (
     COMMON,
     INCOMPLETE,
@@ -394,11 +394,11 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
             "--storage"
         )
     saved = manifest["config"]  # another robot or model first: no count of environments mends that
-    if saved["env"]["id"] != config.env.id or _models(saved["policy"]) != _models(config.public_dict()["policy"]):
+    if changed := model_change(saved, config.public_dict()):
         raise UserError(
-            f"checkpoint step {step} holds a {saved['env']['id']} policy {saved['policy']}, the config asks for a "
-            f"{config.env.id} policy {config.public_dict()['policy']}: they cannot be loaded into each other (not "
-            "even with allow_config_change=true): use another --storage"
+            f"checkpoint step {step} holds another model than the config asks for ({changed}): they cannot be loaded "
+            "into each other (not even with allow_config_change=true): set the checkpoint's values, or use another "
+            "--storage"
         )
     saved_total = manifest["envs_per_rank"] * manifest["world_size"]
     if config.env.total_envs and saved_total != config.env.total_envs:
@@ -437,9 +437,3 @@ def _horizon_follows_length(saved: dict, config: Config) -> bool:
     horizons = (saved["algorithm"].get("schedule_iterations"), config.algorithm.schedule_iterations)
     lengthened = horizons == (saved.get("iterations"), config.iterations) and horizons[1] > horizons[0]
     return lengthened and changed_keys(saved, config.public_dict()) == ["algorithm.schedule_iterations"]
-
-
-def _models(policy: dict) -> dict:
-    """A config's ``policy`` as far as it decides the models' tensors (when the normalizers freeze and where the action
-    noise ends do not: a change of them is a config change, which ``allow_config_change`` lets through)."""
-    return {key: value for key, value in policy.items() if key not in ("obs_normalization_until", "final_noise_std")}

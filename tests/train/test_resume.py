@@ -152,7 +152,8 @@ def test_resume_refuses_other_env_count_config_and_format(tmp_path) -> None:
     # one rank each: test_console has the same env-count refusal under plain torchrun at 2 ranks, said once by rank 0
     for overrides, message in [
         (["iterations=4", "env.num_envs=3"], "set env.num_envs=4"),
-        (["iterations=4", "env.num_envs=3", "env.id=Hopper-v5"], "holds a HalfCheetah-v5 policy"),  # not num_envs
+        (["iterations=4", "env.num_envs=3", "env.id=Hopper-v5"], '(env.id "HalfCheetah-v5" -> "Hopper-v5")'),
+        (["iterations=4", "policy.hidden_dims=[32,32]"], "another model than the config asks for (policy.hidden_dims "),
         (["iterations=4", "algorithm.clip_param=0.1"], "pass allow_config_change=true"),
         (["iterations=4", "resume=maybe"], "resume=maybe: no verified checkpoint under maybe: pass a run's storage"),
     ]:
