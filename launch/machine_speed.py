@@ -8,6 +8,7 @@ iterations, a checkpoint). These machines differ 2-3x from day to day, so a suit
 
 from __future__ import annotations
 
+import argparse
 import os
 import resource
 import subprocess
@@ -37,6 +38,7 @@ def cold_smoke() -> tuple[float, float]:
 
 
 if __name__ == "__main__":
+    argparse.ArgumentParser(description=__doc__.split("\n\n")[0]).parse_args()  # --help says what it does; no options
     try:
         cpu, wall = cold_smoke()
     except subprocess.CalledProcessError as error:  # a line, not the end of the test run that prints it first
