@@ -333,8 +333,8 @@ def main(argv: list[str] | None = None) -> int:
         if error.errno not in NO_SPACE:
             errorfile.record_exception(error)
             raise
-        errorfile.report(no_space_line(error))  # the supervisor waits for space, as for a storage that went away
-        return EXIT_STORAGE_DOWN
+        errorfile.report(no_space_line(error))  # a failure: the supervisor waits if the run's disks are full
+        return EXIT_FAILED
     except Exception as error:  # a bug: it keeps its traceback, and torchrun and the supervisor learn what it was
         errorfile.record_exception(error)
         raise

@@ -6,13 +6,16 @@ input. The supervisor then probes the storage itself, with backoff (a line when 
 ``--max-restarts`` nor the crash loop. After ``--storage-wait`` seconds it gives up with exit 7; nothing committed is
 lost. The workers get the same wait (``FTRAIN_STORAGE_WAIT``) for a save they must commit. Before its first look the
 supervisor has reached nothing: a storage that does not answer then is said to be maybe misnamed, and waited for
-5 minutes instead of an hour (``WAITS``). A full local disk is waited for the same way (a worker that found it
-full ends with exit 7 too): the probe also asks for room for one more checkpoint on the storage's disk and a margin
-on the log directory's, so that a restart does not run into it again at once.
+5 minutes instead of an hour (``WAITS``). A full local disk is waited for the same way: a worker that finds it
+full ends with one line (exit 7 from the storage, 1 from another write), and after any failed attempt the supervisor
+asks the probe's question of the disks alone (``short_of_space``: room for one more checkpoint on the storage's disk
+and a margin on the log directory's), so that a restart does not run into the full disk at once.
 """
 
 from __future__ import annotations
 
+import contextlib
+import os
 import shutil
 import sys
 import time
@@ -23,7 +26,7 @@ from ftrain.ckpt.format import human_size, verify_step
 from ftrain.ckpt.retry import OUTAGE, WaitLines
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import StorageConfig
-from ftrain.errors import EXIT_USAGE, UserError
+from ftrain.errors import EXIT_USAGE, NO_SPACE, UserError
 from ftrain.progress import Progress, duration
 from ftrain.redact import Url
 from ftrain.supervise.events import EventLog
@@ -164,7 +167,8 @@ def probe(url: str, options: dict | None = None, log_dir: Path | None = None) ->
 
 def short_of_space(storage: Storage, steps: list[str], log_dir: Path | None) -> str | None:
     """Why a run cannot go on for lack of local disk, or None: a local storage's disk needs room for one more
-    checkpoint (the largest of the newest three ``steps``) and ``SPACE_MARGIN``; the log directory's, the margin."""
+    checkpoint (the largest of the newest three ``steps``) and ``SPACE_MARGIN``, the log directory's the margin, and a
+    write of the margin must succeed in each (a quota, or no inode left, shows only then)."""
     needs: dict[Path, int] = {}
     if storage.is_local:
         sizes = (sum(storage.list_files(f"checkpoints/{step}").values()) for step in steps[-3:])
@@ -172,10 +176,28 @@ def short_of_space(storage: Storage, steps: list[str], log_dir: Path | None) -> 
     if log_dir is not None:
         needs.setdefault(log_dir, SPACE_MARGIN)
     for path, need in needs.items():  # on one disk, the storage's need (the larger) covers the log directory's
-        free = shutil.disk_usage(next(parent for parent in (path, *path.parents) if parent.exists())).free
-        if free < need:
+        existing = next(parent for parent in (path, *path.parents) if parent.exists())
+        free = shutil.disk_usage(existing).free
+        short = (
+            f"{human_size(free)} free where the run needs {human_size(need)}" if free < need else _write_fails(existing)
+        )
+        if short:
             return (
-                f"no space left for {path}: {human_size(free)} free where the run needs {human_size(need)} (a "
-                f"checkpoint and its logs): free space there, or keep fewer checkpoints (checkpoint.keep_last)"
+                f"no space left for {path}: {short} (a checkpoint and its logs): free space there, or keep fewer "
+                "checkpoints (checkpoint.keep_last)"
             )
+    return None
+
+
+def _write_fails(directory: Path) -> str | None:
+    """How a write of ``SPACE_MARGIN`` bytes in ``directory`` fails for lack of space (None: it does not)."""
+    probe = directory / f".ftrain-space-probe-{os.getpid()}"
+    try:
+        with probe.open("wb") as file:
+            file.write(bytes(SPACE_MARGIN))
+    except OSError as error:
+        return f"a {human_size(SPACE_MARGIN)} write fails: {error.strerror}" if error.errno in NO_SPACE else None
+    finally:
+        with contextlib.suppress(OSError):
+            probe.unlink()
     return None

@@ -25,6 +25,7 @@ import pytest
 from ftrain.ckpt.steps import select_resume
 from ftrain.ckpt.storage import Storage
 from ftrain.heartbeat import read_heartbeats
+from ftrain.supervise.outage import short_of_space
 
 from failing_mount import failing_mount
 from helpers import (
@@ -178,15 +179,14 @@ def test_a_failing_mount_is_waited_out(tmp_path, reference_state):
 
 
 @contextlib.contextmanager
-def small_disk(mountpoint: Path, size: str) -> Iterator[Path]:
-    """A tmpfs of ``size`` at ``mountpoint``: a real file system that fills up; unmounted at the end. Skips where one
-    cannot be mounted (not root, no permission to mount)."""
+def small_disk(mountpoint: Path, size: str, inodes: int | None = None) -> Iterator[Path]:
+    """A tmpfs of ``size`` (and ``inodes``, if given) at ``mountpoint``: a real file system that fills up; unmounted at
+    the end. Skips where one cannot be mounted (not root, no permission to mount)."""
     mountpoint.mkdir()
     if os.geteuid() != 0 or not shutil.which("mount"):
         pytest.skip("mounting a tmpfs takes root and mount(8)")
-    mounted = subprocess.run(
-        ["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mountpoint)], capture_output=True
-    )
+    options = f"size={size}" + (f",nr_inodes={inodes}" if inodes else "")
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", options, "tmpfs", str(mountpoint)], capture_output=True)
     if mounted.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {mounted.stderr.decode(errors='replace').strip()}")
     try:
@@ -248,3 +248,21 @@ def test_a_full_disk_is_waited_out_and_the_run_ends_on_the_uninterrupted_bits(tm
         names = [event["event"] for event in events(disk / "run")]
     assert step == MOUNT_ITERATIONS and manifest["state_sha256"] == reference_state(MOUNT_ITERATIONS)
     assert "storage_back" in names and "crash_loop" not in names and names[-2:] == ["done", "summary"], names
+
+
+def test_a_disk_out_of_inodes_with_bytes_to_spare_is_full(tmp_path) -> None:
+    """Free bytes alone would let the supervisor restart into a disk that takes no new file (a quota does the same):
+    the probe writes, and only a disk that takes the write has room."""
+    with small_disk(tmp_path / "disk", "8m", inodes=32) as disk:
+        storage = Storage.open(str(disk / "run"))
+        assert short_of_space(storage, [], tmp_path / "logs") is None
+        files = 0
+        with contextlib.suppress(OSError):
+            while True:
+                (disk / f"empty-{files}").touch()
+                files += 1
+        print(f"the disk took {files} empty files, {shutil.disk_usage(disk).free} bytes left free")
+        assert shutil.disk_usage(disk).free > 7 << 20
+        assert "write fails: No space left on device" in short_of_space(storage, [], None)
+        (disk / "empty-0").unlink()
+        assert short_of_space(storage, [], None) is None
