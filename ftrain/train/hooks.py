@@ -11,6 +11,7 @@ from __future__ import annotations
 import collections
 import csv
 import importlib
+import io
 import math
 import os
 import statistics
@@ -258,22 +259,31 @@ class CsvHook(Hook):
         if not trainer.info.is_main:
             return
         if self.writer is None:
-            self._open(Path(trainer.config.log_dir) / METRICS_CSV, trainer.iteration - 1, metrics)
+            self._open(Path(trainer.config.log_dir) / METRICS_CSV, trainer.iteration - 1, metrics, trainer.log)
         resume = {"resumed_from": self.resumed_from or "", "config_change": self.config_change or ""}
         self.writer.writerow({"iteration": trainer.iteration, **metrics, **resume})
         self.resumed_from = self.config_change = None
         self.file.flush()
 
-    def _open(self, path: Path, kept: int, metrics: dict[str, float]) -> None:
+    def _open(self, path: Path, kept: int, metrics: dict[str, float], log: Callable[[str], None]) -> None:
         """Open ``path`` to append: rows past iteration ``kept`` go (a resumed run redoes them), and a file of an
-        older version gains the columns it lacks."""
+        older version gains the columns it lacks. Damage never stops a run: rows cut short (a crash, a power loss's
+        NUL bytes) are dropped, and a file that is not a metrics CSV is set aside (``.unreadable``) for a new one."""
         fields: list[str] = []
         rows: list[dict] = []
         if path.exists() and path.stat().st_size:
-            with path.open(newline="") as existing:
-                reader = csv.DictReader(existing)
+            try:
+                reader = csv.DictReader(io.StringIO(path.read_bytes().decode().replace("\0", ""), newline=""))
                 fields = list(reader.fieldnames or [])
-                rows = [row for row in reader if int(row["iteration"]) <= kept]
+                if "iteration" not in fields:
+                    raise ValueError("it has no iteration column")
+                whole = (row for row in reader if None not in row and None not in row.values())
+                rows = [row for row in whole if row["iteration"].isdigit() and int(row["iteration"]) <= kept]
+            except (UnicodeDecodeError, ValueError, csv.Error) as error:
+                aside = path.with_name(f"{path.name}.unreadable")
+                os.replace(path, aside)
+                log(f"{path} is not a metrics CSV ({error}): set aside as {aside.name}; a new one starts here")
+                fields, rows = [], []
         fields += [name for name in ["iteration", *metrics, *CSV_ONLY[1:]] if name not in fields]
         tmp = path.with_suffix(".csv.tmp")
         with tmp.open("w", newline="") as file:
