@@ -15,6 +15,7 @@ and a margin on the log directory's), so that a restart does not run into the fu
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import shutil
 import sys
@@ -172,7 +173,7 @@ def short_of_space(storage: Storage, steps: list[str], log_dir: Path | None) -> 
     needs: dict[Path, int] = {}
     if storage.is_local:
         sizes = (sum(storage.list_files(f"checkpoints/{step}").values()) for step in steps[-3:])
-        needs[Path(storage.root)] = max(sizes, default=0) + SPACE_MARGIN
+        needs[Path(storage.root) / "checkpoints"] = max(sizes, default=0) + SPACE_MARGIN
     if log_dir is not None:
         needs.setdefault(log_dir, SPACE_MARGIN)
     for path, need in needs.items():  # on one disk, the storage's need (the larger) covers the log directory's
@@ -190,12 +191,15 @@ def short_of_space(storage: Storage, steps: list[str], log_dir: Path | None) -> 
 
 
 def _write_fails(directory: Path) -> str | None:
-    """How a write of ``SPACE_MARGIN`` bytes in ``directory`` fails for lack of space (None: it does not)."""
+    """How a write of ``SPACE_MARGIN`` bytes in ``directory`` fails for lack of space (None: it does not); UserError
+    where it may not write at all (no waiting fixes that)."""
     probe = directory / f".ftrain-space-probe-{os.getpid()}"
     try:
         with probe.open("wb") as file:
             file.write(bytes(SPACE_MARGIN))
     except OSError as error:
+        if error.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+            raise UserError(f"cannot write in {directory} ({error.strerror}): check its permissions") from None
         return f"a {human_size(SPACE_MARGIN)} write fails: {error.strerror}" if error.errno in NO_SPACE else None
     finally:
         with contextlib.suppress(OSError):

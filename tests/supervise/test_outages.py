@@ -24,8 +24,9 @@ import pytest
 
 from ftrain.ckpt.steps import select_resume
 from ftrain.ckpt.storage import Storage
+from ftrain.errors import UserError
 from ftrain.heartbeat import read_heartbeats
-from ftrain.supervise.outage import short_of_space
+from ftrain.supervise.outage import probe, short_of_space
 
 from failing_mount import failing_mount
 from helpers import (
@@ -266,3 +267,17 @@ def test_a_disk_out_of_inodes_with_bytes_to_spare_is_full(tmp_path) -> None:
         assert "write fails: No space left on device" in short_of_space(storage, [], None)
         (disk / "empty-0").unlink()
         assert short_of_space(storage, [], None) is None
+
+
+def test_a_checkpoints_directory_that_takes_no_write_is_bad_input_not_an_outage(tmp_path) -> None:
+    """A storage that lists but cannot be written (here made immutable: root ignores modes) would pass a listing probe,
+    and the supervisor would restart into failing saves without end: the probe writes, and says so in one line."""
+    (tmp_path / "run" / "checkpoints").mkdir(parents=True)
+    if not shutil.which("chattr") or subprocess.run(["chattr", "+i", str(tmp_path / "run/checkpoints")]).returncode:
+        pytest.skip("chattr +i is not available here")
+    try:
+        with pytest.raises(UserError, match=r"cannot write in .*/run/checkpoints \(Operation not permitted\)"):
+            probe(str(tmp_path / "run"), None, tmp_path / "logs")
+    finally:
+        subprocess.run(["chattr", "-i", str(tmp_path / "run/checkpoints")])
+    assert probe(str(tmp_path / "run"), None, tmp_path / "logs") is None

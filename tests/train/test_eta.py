@@ -89,6 +89,7 @@ def test_a_metrics_file_of_an_older_version_gains_the_new_columns_and_loses_the_
         config=SimpleNamespace(log_dir=str(tmp_path)),
         checkpointer=SimpleNamespace(config_change="algorithm.gamma 0.99 -> 0.98"),
         iteration=2,
+        log=print,
     )
     hook = CsvHook()
     hook.on_start(trainer)
