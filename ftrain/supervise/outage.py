@@ -1,15 +1,14 @@
-"""Waiting out an unreachable checkpoint storage.
+"""Waiting out an unreachable checkpoint storage, or a full local disk.
 
 A worker that cannot reach the storage ends with exit 7 (``StorageUnavailable``): an infrastructure fault, not bad
-input. The supervisor then probes the storage itself, with backoff (a line when the wait starts, then every
-``WAIT_LINES`` seconds), and starts the workers again once it answers; such restarts count neither towards
-``--max-restarts`` nor the crash loop. After ``--storage-wait`` seconds it gives up with exit 7; nothing committed is
-lost. The workers get the same wait (``FTRAIN_STORAGE_WAIT``) for a save they must commit. Before its first look the
-supervisor has reached nothing: a storage that does not answer then is said to be maybe misnamed, and waited for
-5 minutes instead of an hour (``WAITS``). A full local disk is waited for the same way: a worker that finds it
-full ends with one line (exit 7 from the storage, 1 from another write), and after any failed attempt the supervisor
-asks the probe's question of the disks alone (``short_of_space``: room for one more checkpoint on the storage's disk
-and a margin on the log directory's), so that a restart does not run into the full disk at once.
+input. The supervisor then probes the storage itself, with backoff and a line every ``WAIT_LINES`` seconds, and
+restarts the workers once it answers; such restarts count neither towards ``--max-restarts`` nor the crash loop. After
+``--storage-wait`` seconds it gives up with exit 7; nothing committed is lost. A storage never reached since the command
+started may be misnamed: waited for 5 minutes, not an hour (``WAITS``). An attempt that finds it unusable again before
+training an iteration continues the same wait and backs off first (``AGAIN``), even where the probe passes (a storage
+that lists but refuses writes): never a restart loop. A full local disk is waited for alike: after any failed attempt
+the supervisor asks ``short_of_space`` (room for one more checkpoint and a margin), whose answer the workers could not
+write on that disk. Imports the storage layer and the standard library.
 """
 
 from __future__ import annotations
@@ -21,10 +20,11 @@ import shutil
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 from ftrain.ckpt.format import human_size, verify_step
-from ftrain.ckpt.retry import OUTAGE, WaitLines
+from ftrain.ckpt.retry import OUTAGE, Backoff, WaitLines
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import StorageConfig
 from ftrain.errors import EXIT_USAGE, NO_SPACE, UserError
@@ -40,6 +40,21 @@ WAITS = (300.0, 3600.0)
 """``--storage-wait``'s default: for a storage that has not answered once since the command started (a wrong URL or
 endpoint is then likelier than an outage, and an hour is long to learn that), and for one that answered and went
 away."""
+AGAIN = Backoff(1.0, 60.0)
+"""Before restarting into a storage that answers the probe but failed the last attempt too, before it trained an
+iteration: the probe tells nothing then, and each attempt costs a start-up."""
+
+
+@dataclass
+class _Outage:
+    started: float
+    """When the wait began, by the wait's clock."""
+    since: str
+    """The same, as a time of day for the console."""
+    tries: int = 0
+    """Probes that found it unusable."""
+    fruitless: int = 0
+    """Attempts since it began that found it unusable again before they trained an iteration."""
 
 
 class StorageWait:
@@ -62,6 +77,8 @@ class StorageWait:
         self.clock = clock
         self.reached = False
         """Whether the storage has answered since the command started (its lease was taken, or a probe answered)."""
+        self._outage: _Outage | None = None
+        """The last wait, which an attempt that ends on the storage again without training continues."""
 
     @property
     def limit(self) -> float:
@@ -79,12 +96,15 @@ class StorageWait:
                 ending = self(str(error))
         return end(ending)
 
-    def __call__(self, why: str | None) -> Outcome | None:
+    def __call__(self, why: str | None, again: bool = False) -> Outcome | None:
         """Probe until the storage answers (None), or the ending of the run: it did not within the limit, or what it
         answers no waiting fixes (a bucket gone, access denied). ``why``: what found it unreachable (None: nothing
-        yet, this is a first look)."""
+        yet, this is a first look); ``again``: the attempt since the last wait trained nothing before it found the
+        storage unusable too: the wait goes on from there, and backs off before the restart even if the probe passes."""
         url = self.storage.url  # a Url: printed and recorded without its credentials
-        started, since, tries, lines = self.clock(), time.strftime("%H:%M:%S"), 0, WaitLines(self.clock)
+        if not again or self._outage is None:
+            self._outage = _Outage(self.clock(), time.strftime("%H:%M:%S"))
+        outage, lines = self._outage, WaitLines(self.clock)
         progress = Progress(sys.stderr)  # on a terminal, while it sleeps between tries: how long it has waited
         if why is not None:
             self._waiting(url, why, lines)
@@ -93,26 +113,28 @@ class StorageWait:
                 problem = probe(self.storage.url, self.storage.options, self.log_dir)
             except UserError as error:
                 return Outcome("usage", EXIT_USAGE, str(error))
-            waited = self.clock() - started
-            if problem is None:
-                if why is not None or tries:
+            waited = self.clock() - outage.started
+            if problem is None and not again:
+                if why is not None or outage.tries:
                     back = f"the storage is usable again after {waited:.0f} s"
                     self.events("storage_back", back, waited=round(waited, 2))
                 self.reached = True
                 return None
-            if why is None and not tries:
+            if why is None and not outage.tries:
                 self._waiting(url, problem, lines)
             if waited > self.limit:
                 return Outcome(
                     "storage_down",
                     EXIT_STORAGE_WAIT,
-                    f"the storage {url} did not answer for {self.limit:g} s ({problem}); nothing committed is lost: "
-                    "run the same command again once it is back",
+                    f"the storage {url} was not usable for {self.limit:g} s ({problem or why}); nothing committed is "
+                    "lost: run the same command again once it is back",
                 )
-            delay = OUTAGE.delay(tries)
-            if lines.due():
+            delay = AGAIN.delay(outage.fruitless) if again else OUTAGE.delay(outage.tries)
+            if lines.due() or again:
+                problem = problem or "it answers, but the last attempt could not use it before training an iteration"
                 print(
-                    f"ftrain supervise: storage {url} not usable since {since} ({problem}); next try in {delay:.0f} s",
+                    f"ftrain supervise: storage {url} not usable since {outage.since} ({problem}); next try in "
+                    f"{delay:.0f} s",
                     file=sys.stderr,
                     flush=True,
                 )
@@ -122,7 +144,9 @@ class StorageWait:
                 self.sleep(delay)
             finally:
                 progress.clear()
-            tries += 1
+            outage.fruitless += again
+            outage.tries += not again
+            again = False
 
     def disk_full(self) -> str | None:
         """Why the local disks the run writes to lack room (``short_of_space``), or None: asked after a failed attempt,

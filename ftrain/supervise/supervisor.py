@@ -160,6 +160,7 @@ class Supervisor:
                 finished(self.last_step, f"nothing to train: pass iterations=N with N > {self.last_step} to train on")
             )
         plan = self._next_plan(None)
+        waited = False  # the last attempt ended on an unusable storage
         while True:
             attempt = self._launch(plan)
             outcome = self._watch(attempt)
@@ -169,12 +170,14 @@ class Supervisor:
             if not outcome.failed:
                 raise _Stop(outcome)
             if outcome.event == "storage_down":
-                ending = self.storage_wait(outcome.message)
+                ending = self.storage_wait(outcome.message, again=waited and not attempt.progressed)
                 if ending is not None:
                     raise _Stop(ending)
+                waited = True
                 plan = self._next_plan(plan)
                 self.events("restart", f"attempt {plan.attempt}: the storage is usable again", attempt=plan.attempt)
                 continue
+            waited = False
             delay = self.policy.judge(attempt)
             if isinstance(delay, Outcome):
                 raise _Stop(delay)

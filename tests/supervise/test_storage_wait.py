@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import os
 import pty
+import random
 import re
 import sys
 
@@ -51,3 +52,37 @@ def test_the_storage_holds_a_step_only_while_it_verifies(tmp_path) -> None:
     assert wait.holds(4) and not wait.holds(8)
     flip_shard_byte(storage, 4)
     assert not wait.holds(4)
+
+
+def test_attempts_that_find_the_storage_unusable_one_after_another_back_off_and_share_one_limit(tmp_path) -> None:
+    """A storage that answers the probe (it lists) but fails the workers before they train an iteration must not be
+    restarted into without end: each such attempt after the first backs off (1 s, doubling, at most 60) and their
+    time counts to one ``--storage-wait``, which an attempt that trained starts again. Random schedules of attempts
+    against a real local storage, time on a manual clock."""
+    rng = random.Random(52)
+    limit, checked = 200.0, 0
+    storage = StorageConfig(Url(str(tmp_path / "run")))
+    Storage.open(str(tmp_path / "run"))
+    for _ in range(60):
+        clock = ManualClock()
+        wait = StorageWait(storage, limit, EventLog(tmp_path / "events", 0), clock.sleep, clock=clock, log_dir=tmp_path)
+        began, fruitless = None, 0
+        for _ in range(rng.randint(1, 40)):
+            again = began is not None and rng.random() < 0.8  # the attempt since the last wait trained nothing
+            if not again:
+                began, fruitless = clock(), 0
+            before = clock()
+            outcome = wait("rank 0: the storage refused a request", again=again)
+            slept = clock() - before
+            checked += 1
+            if not again:
+                assert outcome is None and slept == 0  # it answers: restart at once, a wait of its own
+                continue
+            if before - began > limit:
+                assert outcome is not None and outcome.code == EXIT_STORAGE_WAIT and slept == 0
+                break
+            assert outcome is None
+            assert 0.75 * min(2**fruitless, 60) <= slept <= 1.25 * min(2**fruitless, 60)
+            fruitless += 1
+    print(f"{checked} waits checked")
+    assert checked > 300
