@@ -17,6 +17,7 @@ import json
 import math
 import os
 import tempfile
+import urllib.parse
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -363,9 +364,15 @@ LOCAL_PROTOCOLS = ("file://", "local://")
 
 
 def local_path(url: str) -> str:
-    """The path of a storage on this machine's file system (a plain path, ``file://`` or ``local://``), else ""."""
-    path = next((url.removeprefix(protocol) for protocol in LOCAL_PROTOCOLS if url.startswith(protocol)), url)
-    return path if "://" not in path else ""
+    """The path of a storage on this machine's file system, else "": a plain path as it is, a ``file://`` or
+    ``local://`` URL with its %-escapes decoded and ``localhost`` dropped, as RFC 8089 reads it (``file:///a%20b``
+    and ``file://localhost/a%20b`` are ``/a b``); fsspec would take both literally. ``file://runs/x`` stays
+    fsspec's relative path."""
+    protocol = next((protocol for protocol in LOCAL_PROTOCOLS if url.startswith(protocol)), "")
+    if not protocol:
+        return url if "://" not in url else ""
+    path = url.removeprefix(protocol)
+    return urllib.parse.unquote(path.removeprefix("localhost") if path.startswith("localhost/") else path)
 
 
 def local_directories(config: Config) -> dict[str, str]:

@@ -36,6 +36,7 @@ from fsspec.implementations.local import LocalFileSystem
 from ftrain.ckpt import localfs, stores
 from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, client_errors, is_denied, is_transient
 from ftrain.ckpt.stores import AZURE_PROTOCOLS, GCS_PROTOCOLS, S3_PROTOCOLS
+from ftrain.config import local_path
 from ftrain.errors import NO_SPACE, StorageError, StorageUnavailable, UserError, no_space_line
 from ftrain.redact import Url, display_url, scrub, secret_values, url_secrets
 
@@ -113,7 +114,7 @@ class Storage:
             ) from None
         except ImportError as exc:
             raise UserError(f"storage URL {shown!r} needs a package that is not installed: {exc}") from None
-        url = stores.prepare(protocol, url, options)
+        url = local_path(url) if protocol in ("file", "local") else stores.prepare(protocol, url, options)
         try:
             fs, root = fsspec.core.url_to_fs(url, **options)
         except Exception as exc:

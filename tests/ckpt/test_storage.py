@@ -4,6 +4,7 @@ import http.server
 import json
 import logging
 import os
+import random
 import re
 import socket
 import subprocess
@@ -11,7 +12,7 @@ import sys
 import textwrap
 import threading
 import time
-from urllib.parse import urlsplit
+from urllib.parse import quote, urlsplit
 
 import pytest
 
@@ -444,3 +445,35 @@ def test_a_gcs_storage_that_refuses_the_credentials_is_bad_input_told_in_one_lin
     assert run.returncode == EXIT_USAGE, run.stderr[-2000:]
     assert len(errors) == 1 and "access denied to gs://bucket/run" in errors[0], run.stderr[-2000:]
     assert "Traceback" not in run.stderr
+
+
+def test_a_file_url_is_read_as_rfc_8089_reads_it(tmp_path) -> None:
+    """``file:///a%20b`` and ``file://localhost/a%20b`` name the directory ``/a b`` (fsspec alone takes both
+    literally: a fresh run in another directory, next to the one to resume). Generated names, each written through
+    both URLs and found at the decoded path."""
+    draw = random.Random(8089)
+    alphabet = "ab z%#?é+&;"
+    checked, names = 0, set()
+    for number in range(60):
+        name = f"{number}-" + "".join(draw.choice(alphabet) for _ in range(draw.randint(1, 8)))
+        names.add(name)
+        for prefix in ("file://", "file://localhost", "local://"):
+            storage = Storage.open(prefix + quote(str(tmp_path / name)))
+            storage.write_replace(f"from-{len(prefix)}", b"x")
+            assert (tmp_path / name / f"from-{len(prefix)}").read_bytes() == b"x", (prefix, name)
+            checked += 1
+    print(f"{checked} file URLs checked")
+    assert set(os.listdir(tmp_path)) == names  # nothing written under a literal name or a "localhost" directory
+
+
+def test_a_run_started_on_a_file_url_resumes_from_its_plain_path(tmp_path) -> None:
+    run = tmp_path / "my run"
+    url = "file://" + quote(str(run))
+    first = subprocess.run(train_command(url, "iterations=2"), env=child_env(), capture_output=True, text=True)
+    assert first.returncode == 0, first.stderr[-2000:]
+    assert Storage.open(str(run)).list_dirs("checkpoints") == ["step-000000002"]
+    assert (run / "metrics.csv").exists()  # the logs went next to the checkpoints, in the same directory
+    second = subprocess.run(train_command(run, "iterations=3"), env=child_env(), capture_output=True, text=True)
+    assert second.returncode == 0, second.stderr[-2000:]
+    assert "resum" in (second.stdout + second.stderr).lower()
+    assert Storage.open(url).list_dirs("checkpoints")[-1] == "step-000000003"
