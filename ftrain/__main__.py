@@ -1,18 +1,23 @@
 """``python -m ftrain`` and ``torchrun -m ftrain``: a worker of a supervisor with a warm pool runs there (see
 ``ftrain/warm``). Every command ends without the interpreter's teardown (``ftrain/process.py``), as a fork of the pool
-does."""
+does. A Ctrl-C while it imports is one line (``errors.interrupted``), not a traceback."""
 
 import sys
 
-from ftrain.process import exit_fast
-from ftrain.proctitle import name_process, rank_role
-from ftrain.warm import handover
+from ftrain.errors import interrupted
 
-if sys.argv[1:2] == ["train"]:
-    name_process(rank_role("stand-in"))  # a worker forked by the pool names itself once it knows its run
-code = handover("train", sys.argv[1:]) if sys.argv[1:2] == ["train"] else None
-if code is None:
-    from ftrain.cli import main
+try:
+    from ftrain.process import exit_fast
+    from ftrain.proctitle import name_process, rank_role
+    from ftrain.warm import handover
 
-    code = main()
+    if sys.argv[1:2] == ["train"]:
+        name_process(rank_role("stand-in"))  # a worker forked by the pool names itself once it knows its run
+    code = handover("train", sys.argv[1:]) if sys.argv[1:2] == ["train"] else None
+    if code is None:
+        from ftrain.cli import main
+
+        code = main()
+except KeyboardInterrupt:
+    sys.exit(interrupted())
 exit_fast(code)

@@ -24,6 +24,7 @@ from ftrain.errors import (
     StorageError,
     StorageUnavailable,
     UserError,
+    interrupted,
     no_space_line,
 )
 from ftrain.lifeline import watch_launcher
@@ -322,6 +323,8 @@ def main(argv: list[str] | None = None) -> int:
     except StorageError as error:
         errorfile.report(str(error))
         return EXIT_FAILED
+    except KeyboardInterrupt:
+        return interrupted()
     except BrokenPipeError:
         if not _stdout_reader_gone():
             raise

@@ -6,6 +6,7 @@ bug and keeps its traceback.
 
 import errno
 import signal
+import sys
 
 EXIT_FAILED = 1
 """A storage operation failed for good (``StorageError``) outside training."""
@@ -37,6 +38,13 @@ def no_space_line(error: OSError) -> str:
     where = f"for {error.filename}" if error.filename else "on a disk this run writes to (its storage or log directory)"
     fix = "free space there, or keep fewer checkpoints (checkpoint.keep_last); nothing committed is lost"
     return f"no space left {where} ({error.strerror}): {fix}"
+
+
+def interrupted() -> int:
+    """A Ctrl-C that came before the command took SIGINT over (while it imports torch, or in a short command): one
+    line instead of a traceback, and the shell's code for Ctrl-C. A run saves from the moment it took it over."""
+    print("ftrain: interrupted (Ctrl-C)", file=sys.stderr, flush=True)
+    return EXIT_INTERRUPTED
 
 
 def stop_code(signum: int) -> int:

@@ -6,17 +6,21 @@ from __future__ import annotations
 
 import json
 import os
+import random
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 
+from ftrain.ckpt.steps import select_resume
+from ftrain.ckpt.storage import Storage
 from ftrain.heartbeat import ENV_DIR, read_heartbeats
 from ftrain.supervise.attempt import TORCHRUN
 
-from helpers import REPO, SMOKE, child_env, events, final_manifest, finish, launch, train_command, training
+from helpers import REPO, SMOKE, child_env, events, final_manifest, finish, launch, manifests, train_command, training
 
 pytestmark = pytest.mark.slow
 
@@ -89,3 +93,23 @@ def test_ftrain_supervise_exits_130_after_ctrl_c_with_the_real_trainer(tmp_path)
     # the workers got SIGTERM from the supervisor (a SIGINT would reach a warm worker twice), and name the user's Ctrl-C
     said = f"[ftrain] stopped by SIGINT to the supervisor (Ctrl-C), passed on as SIGTERM: saved step {step}, exiting "
     assert printed.count(said) == 1, printed
+
+
+def test_ctrl_c_at_any_moment_of_the_start_is_one_line_and_exit_130(tmp_path) -> None:
+    """While it imports torch and builds the run (seconds on a slow machine) a Ctrl-C is one line, not a traceback;
+    from the moment the trainer takes SIGINT over it saves first. Random moments over the whole start: exit 130
+    every time, no traceback, and whatever the storage holds verifies."""
+    draw = random.Random(130)
+    moments, saved = sorted(draw.uniform(0.05, 10.0) for _ in range(8)), 0
+    for moment in moments:
+        storage = tmp_path / f"run-{moment:.2f}"
+        proc = start([*train_command(storage, LONG), "log.console=true"], tmp_path / f"beats-{moment:.2f}")
+        time.sleep(moment)
+        proc.send_signal(signal.SIGINT)
+        output = proc.communicate(timeout=120)[0]
+        assert proc.returncode == 130, (moment, output[-2000:])
+        assert "Traceback" not in output, (moment, output[-2000:])
+        if committed := manifests(storage):  # the newest committed step is the one a resume takes: it verifies
+            assert select_resume(Storage.open(str(storage)), log=lambda line: None)[0] == max(committed), moment
+            saved += 1
+    print(f"{len(moments)} moments checked ({', '.join(f'{m:.2f}' for m in moments)} s), {saved} after a save")
