@@ -14,6 +14,7 @@ import importlib
 import io
 import math
 import os
+import shlex
 import statistics
 import time
 from collections.abc import Callable
@@ -194,11 +195,11 @@ class ConsoleHook(Hook):
         if not trainer.info.is_main:
             return
         storage, step = trainer.checkpointer.storage.url, trainer.checkpointer.committed_step
-        options = trainer.config.storage.options
+        options, argument = trainer.config.storage.options, shlex.quote(f"{storage}")  # f-string: no credential
         print(
             f"[ftrain] run saved in {storage}: newest step {step if step is not None else '- (none committed)'}; "
             f"logs in {trainer.config.log_dir}\n"
-            f"[ftrain] play it: ftrain play {storage}   export it: ftrain export {storage} --format onnx"
+            f"[ftrain] play it: ftrain play {argument}   export it: ftrain export {argument} --format onnx"
             f"{'   (with the storage options of this run: --storage-option KEY=VALUE)' if options else ''}",
             flush=True,
         )

@@ -6,6 +6,7 @@ import logging
 import os
 import random
 import re
+import shlex
 import socket
 import subprocess
 import sys
@@ -473,7 +474,10 @@ def test_a_run_started_on_a_file_url_resumes_from_its_plain_path(tmp_path) -> No
     assert first.returncode == 0, first.stderr[-2000:]
     assert Storage.open(str(run)).list_dirs("checkpoints") == ["step-000000002"]
     assert (run / "metrics.csv").exists()  # the logs went next to the checkpoints, in the same directory
-    second = subprocess.run(train_command(run, "iterations=3"), env=child_env(), capture_output=True, text=True)
+    command = train_command(run, "iterations=3", "log.console=true")
+    second = subprocess.run(command, env=child_env(), capture_output=True, text=True)
     assert second.returncode == 0, second.stderr[-2000:]
     assert "resum" in (second.stdout + second.stderr).lower()
+    hint = next(line for line in second.stdout.splitlines() if line.startswith("[ftrain] play it: "))
+    assert shlex.split(hint.removeprefix("[ftrain] play it: "))[:3] == ["ftrain", "play", str(run)], hint
     assert Storage.open(url).list_dirs("checkpoints")[-1] == "step-000000003"
