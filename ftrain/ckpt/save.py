@@ -145,6 +145,8 @@ class StepWriter:
         self._steps: dict[int, StepInfo] | None = None
         """Rank 0: the steps in storage, scanned at the first save and then kept up to date by this run's own saves
         and deletions, so that retention needs no listing after every commit."""
+        self._undeletable: dict[int, str] = {}
+        """Rank 0: steps retention could not delete, and why (said once, and once more when they go)."""
         self.storing = False
         """Whether this rank is busy with the storage for a save now (writing, or rank 0 committing), rather than
         encoding or waiting for its peers: a rank waiting for its save beats only then, so that a stopped peer reads as
@@ -338,9 +340,13 @@ class StepWriter:
             try:
                 delete_step(self.storage, step, self._steps[step].files)
             except Exception as exc:
-                self.log(f"retention: checkpoint step {step} could not be deleted (kept for now): {exc}")
+                if self._undeletable.get(step) != str(exc):  # said once, not at every commit while it lasts
+                    self.log(f"retention: checkpoint step {step} could not be deleted (kept, tried again): {exc}")
+                self._undeletable[step] = str(exc)
                 continue
             del self._steps[step]
+            if self._undeletable.pop(step, None) is not None:
+                self.log(f"retention: checkpoint step {step} deleted now")
 
 
 class BackgroundWriter:

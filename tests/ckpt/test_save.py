@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import threading
@@ -226,3 +227,31 @@ def test_a_best_metric_the_run_does_not_record_is_said_once_at_its_first_commit(
         )
         assert "use one of " in said[metric][0] and "mean_return" in said[metric][0]
     assert said["mean_return"] == []
+
+
+def test_a_step_retention_cannot_delete_is_said_once_and_again_when_it_goes(tmp_path) -> None:
+    """A step that cannot be deleted (here: immutable, as a snapshot-protected or read-only directory is) is kept
+    intact and tried again at every commit, in one line, not one per commit; a line says when it finally goes."""
+    storage = Storage.open(str(tmp_path / "run"))
+    lines: list[str] = []
+    writer = StepWriter(storage, CheckpointConfig(keep_last=1), RankInfo(0, 1, 0), None, lines.append)
+
+    def save(step: int):
+        state = {"common.pt": {"ftrain": {}, "actor_state_dict": {"weights": torch.full((4,), float(step))}}}
+        return writer.save(step, state, {"iteration": step}, False)
+
+    assert save(1).result is Result.COMMITTED
+    stuck = tmp_path / "run" / step_dir(1)
+    if not shutil.which("chattr") or subprocess.run(["chattr", "+i", str(stuck)], capture_output=True).returncode:
+        pytest.skip("chattr +i is not available here")
+    try:
+        for step in range(2, 7):
+            assert save(step).result is Result.COMMITTED
+    finally:
+        subprocess.run(["chattr", "-i", str(stuck)])
+    said = [line for line in lines if "could not be deleted" in line]
+    assert len(said) == 1 and said[0].startswith("retention: checkpoint step 1 could not be deleted"), lines
+    assert verify_step(storage, 1).ok and {info.step for info in scan(storage)} == {1, 6}
+    assert save(7).result is Result.COMMITTED
+    assert lines[-1] == "retention: checkpoint step 1 deleted now", lines
+    assert {info.step for info in scan(storage)} == {7}
