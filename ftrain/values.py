@@ -84,11 +84,15 @@ def build(cls: type, data: dict, prefix: str) -> Any:
             near = difflib.get_close_matches(str(key), names, n=1, cutoff=0.5)
             hint = f"did you mean {prefix}{near[0]}?" if near else f"valid keys: {', '.join(prefix + n for n in names)}"
             raise UserError(f"unknown config key {prefix}{key}: {hint}")
-        kwargs[key] = convert(hints[key], value, f"{prefix}{key}")
+        default = next(f.default for f in dataclasses.fields(cls) if f.name == key)
+        example = default if isinstance(default, (int, float)) and not isinstance(default, bool) else None
+        kwargs[key] = convert(hints[key], value, f"{prefix}{key}", example)
     return cls(**kwargs)
 
 
-def convert(kind: Any, value: Any, key: str) -> Any:
+def convert(kind: Any, value: Any, key: str, example: float | None = None) -> Any:
+    """``value`` as ``kind``, else UserError naming ``key``; ``example``: a value to show in it (the default)."""
+    e_g = f", e.g. {key}={example if example is not None else 100}"
     origin = typing.get_origin(kind)
     if dataclasses.is_dataclass(kind):
         return build(kind, value if value is not None else {}, f"{key}.")
@@ -109,7 +113,7 @@ def convert(kind: Any, value: Any, key: str) -> Any:
         return value
     if kind is int:
         if isinstance(value, bool) or not isinstance(value, int):
-            raise UserError(f"{key}={value!r} must be an integer")
+            raise UserError(f"{key}={value!r} must be an integer{e_g}")
         return value
     if kind is float:
         if isinstance(value, str):  # YAML 1.1 reads 3e-4 (no dot) as a string
@@ -118,7 +122,7 @@ def convert(kind: Any, value: Any, key: str) -> Any:
             except ValueError:
                 pass
         if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise UserError(f"{key}={value!r} must be a number")
+            raise UserError(f"{key}={value!r} must be a number{e_g}")
         return float(value)
     if kind in (str, Url):
         if value is None:

@@ -114,7 +114,7 @@ def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> 
         ([SMOKE, "env.id=CartPole-v1"], "env.id='CartPole-v1' is not a MuJoCo environment"),
         ([SMOKE, "env.id=BipedalWalker-v3"], "env.id='BipedalWalker-v3' is not a MuJoCo environment"),
         ([SMOKE, "env.id=HalfCheetah-v3"], "env.id='HalfCheetah-v3' is not a MuJoCo environment"),
-        ([SMOKE, "iterations=ten"], "iterations='ten' must be an integer"),
+        ([SMOKE, "iterations=ten"], "iterations='ten' must be an integer, e.g. iterations=300"),
         ([SMOKE, "env.num_envs=0"], "env.num_envs=0 must be at least 1"),
         ([SMOKE, "algorithm.learning_rate=-1"], "algorithm.learning_rate=-1.0 is out of range: use a positive rate"),
         ([SMOKE, "seed=-1"], "seed=-1 is out of range"),
