@@ -233,7 +233,8 @@ class Checkpointer:
             if lines.due():
                 self.log(
                     f"training held at step {trainer.iteration}: {iterations} iterations ({seconds:.0f} s) unsaved, "
-                    f"saves failing for {waited:.0f} s; next try in {delay:.1f} s"
+                    f"saves failing for {waited:.0f} s ({why}); next try in {delay:.1f} s, it goes on as soon as "
+                    f"one lands (at most {self.storage_wait:g} s)"
                 )
             self._pause(delay)
             tries += 1

@@ -281,8 +281,9 @@ def test_failed_saves_are_logged_training_goes_on_and_holds_past_the_unsaved_bou
         timeout=300,
     )
     assert failed.returncode == EXIT_STORAGE_DOWN, failed.stderr
-    held = re.search(r"training held at step (\d+): (\d+) iterations", failed.stdout)
+    held = re.search(r"training held at step (\d+): (\d+) iterations.* \((rank 0: .*)\); next try", failed.stdout)
     assert held and held[1] == held[2], failed.stdout  # nothing ever saved: every iteration unsaved
+    assert "does not exist: " in held[3] and "/blocked/checkpoints/step-" in held[3], "the hold says why"
     # past the bound of 3 at step 4; at 5 where a save's failure is learned an iteration later (saves run in the
     # background: a loaded machine)
     assert int(held[1]) in (4, 5), failed.stdout
