@@ -24,7 +24,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from ftrain.ckpt.format import human_size, verify_step
+from ftrain.ckpt.lineage import history
 from ftrain.ckpt.retry import OUTAGE, Backoff, WaitLines
+from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import StorageConfig
 from ftrain.errors import EXIT_USAGE, NO_SPACE, UserError
@@ -156,6 +158,16 @@ class StorageWait:
             return short_of_space(storage, storage.list_dirs("checkpoints") if storage.is_local else [], self.log_dir)
         except (StorageError, UserError):
             return None
+
+    def newest(self, known: int | None) -> int | None:
+        """The step a rerun resumes from (the head of the storage's history, its files checked by size), or
+        ``known`` (the workers' word) where the storage does not answer: their heartbeats may miss a commit made as
+        they were stopped."""
+        try:
+            line = history(scan(Storage.open(self.storage.url, self.storage.options, retries=0))).line
+        except (StorageError, UserError):
+            return known
+        return line[0] if line else None
 
     def holds(self, step: int) -> bool:
         """Whether the storage holds ``step`` committed and intact (its files match its manifest's sizes and SHA-256,

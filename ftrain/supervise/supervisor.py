@@ -364,7 +364,8 @@ class Supervisor:
         moved = current is not None and plan_key(current) != plan_key(attempt.plan)
         superseded = moved or (self.nodes.elastic and current is not None and current.final is None)  # see classify
         stopped = stop_code(self.signals[0]) if self.signals else None
-        committed = attempt.committed if attempt.committed is not None else self.policy.best_committed
+        known = attempt.committed if attempt.committed is not None else self.policy.best_committed
+        committed = self.storage_wait.newest(known)
         outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
         if outcome.event == "failed" and (full := self.storage_wait.disk_full()) is not None:
             outcome = Outcome("storage_down", None, full)  # restarts would fail alike: wait for space instead
