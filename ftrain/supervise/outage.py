@@ -18,6 +18,7 @@ import errno
 import os
 import shutil
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -42,6 +43,8 @@ WAITS = (300.0, 3600.0)
 """``--storage-wait``'s default: for a storage that has not answered once since the command started (a wrong URL or
 endpoint is then likelier than an outage, and an hour is long to learn that), and for one that answered and went
 away."""
+NEWEST_WITHIN = 5.0
+"""Seconds the run's ending waits for the storage to name its newest step."""
 AGAIN = Backoff(1.0, 60.0)
 """Before restarting into a storage that answers the probe but failed the last attempt too, before it trained an
 iteration: the probe tells nothing then, and each attempt costs a start-up."""
@@ -161,13 +164,20 @@ class StorageWait:
 
     def newest(self, known: int | None) -> int | None:
         """The step a rerun resumes from (the head of the storage's history, its files checked by size), or
-        ``known`` (the workers' word) where the storage does not answer: their heartbeats may miss a commit made as
-        they were stopped."""
-        try:
-            line = history(scan(Storage.open(self.storage.url, self.storage.options, retries=0))).line
-        except (StorageError, UserError):
+        ``known`` (the workers' word) where the storage does not answer within ``NEWEST_WITHIN``: their heartbeats
+        may miss a commit made as they were stopped, and a scheduler's grace after a stop is short."""
+        lines: list[list[int]] = []
+
+        def look() -> None:
+            with contextlib.suppress(StorageError, UserError):
+                lines.append(history(scan(Storage.open(self.storage.url, self.storage.options, retries=0))).line)
+
+        looking = threading.Thread(target=look, name="ftrain-newest-step", daemon=True)
+        looking.start()
+        looking.join(NEWEST_WITHIN)
+        if not lines:
             return known
-        return line[0] if line else None
+        return lines[0][0] if lines[0] else None
 
     def holds(self, step: int) -> bool:
         """Whether the storage holds ``step`` committed and intact (its files match its manifest's sizes and SHA-256,

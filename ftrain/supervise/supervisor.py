@@ -364,9 +364,11 @@ class Supervisor:
         moved = current is not None and plan_key(current) != plan_key(attempt.plan)
         superseded = moved or (self.nodes.elastic and current is not None and current.final is None)  # see classify
         stopped = stop_code(self.signals[0]) if self.signals else None
-        known = attempt.committed if attempt.committed is not None else self.policy.best_committed
-        committed = self.storage_wait.newest(known)
+        committed = attempt.committed if attempt.committed is not None else self.policy.best_committed
         outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
+        if not outcome.failed:  # the run ends: it names the step a rerun resumes from, which the storage knows best
+            committed = self.storage_wait.newest(committed)
+            outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
         if outcome.event == "failed" and (full := self.storage_wait.disk_full()) is not None:
             outcome = Outcome("storage_down", None, full)  # restarts would fail alike: wait for space instead
         if outcome.event == "too_few_nodes" and self._keeps_no_plan():
