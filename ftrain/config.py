@@ -365,14 +365,23 @@ LOCAL_PROTOCOLS = ("file://", "local://")
 
 def local_path(url: str) -> str:
     """The path of a storage on this machine's file system, else "": a plain path as it is, a ``file://`` or
-    ``local://`` URL with its %-escapes decoded and ``localhost`` dropped, as RFC 8089 reads it (``file:///a%20b``
-    and ``file://localhost/a%20b`` are ``/a b``); fsspec would take both literally. ``file://runs/x`` stays
-    fsspec's relative path."""
-    protocol = next((protocol for protocol in LOCAL_PROTOCOLS if url.startswith(protocol)), "")
-    if not protocol:
-        return url if "://" not in url else ""
-    path = url.removeprefix(protocol)
-    return urllib.parse.unquote(path.removeprefix("localhost") if path.startswith("localhost/") else path)
+    ``local://`` URL as RFC 8089 reads it (``file:///a%20b`` and ``file://localhost/a%20b`` are ``/a b``, where fsspec
+    takes both literally). UserError for a URL that names another host (``file://tmp/x``, one slash short: fsspec
+    would write a directory ``tmp`` here) and for a NUL byte, which no path holds."""
+    protocol = next((protocol for protocol in LOCAL_PROTOCOLS if url.lower().startswith(protocol)), "")
+    if protocol:
+        host, slash, rest = url[len(protocol) :].partition("/")
+        if host.lower() not in ("", "localhost"):
+            raise UserError(
+                f"storage URL {display_url(url)!r} names the host {host!r}: write {protocol}/{host}/{rest} (three "
+                f"slashes) for the absolute path /{host}/{rest}, or a plain path for a relative one"
+            )
+        path = slash + urllib.parse.unquote(rest)
+    else:
+        path = url if "://" not in url else ""
+    if "\0" in path:
+        raise UserError(f"storage {display_url(url)!r} holds a NUL byte, which no path can: fix the path")
+    return path
 
 
 def local_directories(config: Config) -> dict[str, str]:

@@ -97,7 +97,7 @@ class Storage:
             raise UserError(f"checkpoint.retries={retries} must be 0 or more")
         url, options = Url(url).reveal(), dict(options or {})  # the one place the credentials are read
         secrets = secret_values(options) + url_secrets(url) + [os.environ.get(name, "") for name in _SECRET_ENV]
-        protocol = url.split("://", 1)[0] if "://" in url else "file"
+        protocol = url.split("://", 1)[0].lower() if "://" in url else "file"
         shown = display_url(url)
         if not _PROTOCOL.match(protocol):
             raise UserError(f"storage URL {shown!r} is malformed: use a local path or protocol://location")

@@ -458,13 +458,34 @@ def test_a_file_url_is_read_as_rfc_8089_reads_it(tmp_path) -> None:
     for number in range(60):
         name = f"{number}-" + "".join(draw.choice(alphabet) for _ in range(draw.randint(1, 8)))
         names.add(name)
-        for prefix in ("file://", "file://localhost", "local://"):
+        for prefix in ("file://", "file://localhost", "local://", "FILE://"):
             storage = Storage.open(prefix + quote(str(tmp_path / name)))
             storage.write_replace(f"from-{len(prefix)}", b"x")
             assert (tmp_path / name / f"from-{len(prefix)}").read_bytes() == b"x", (prefix, name)
             checked += 1
     print(f"{checked} file URLs checked")
     assert set(os.listdir(tmp_path)) == names  # nothing written under a literal name or a "localhost" directory
+
+
+@pytest.mark.parametrize(
+    ("url", "line"),
+    [
+        ("file://tmp/x", "names the host 'tmp': write file:///tmp/x (three slashes) for the absolute path /tmp/x"),
+        ("file://otherhost/data/run", "names the host 'otherhost'"),
+        ("file:///tmp/a%00b", "holds a NUL byte, which no path can: fix the path"),
+    ],
+)
+def test_a_local_url_that_names_another_host_or_holds_a_nul_is_one_line_and_writes_nothing(tmp_path, url, line):
+    """``file://tmp/x`` is one slash short: fsspec would write a directory ``tmp`` in the current directory."""
+    result = subprocess.run(
+        [sys.executable, "-m", "ftrain", "ckpt", "ls", url],
+        cwd=tmp_path,
+        env=child_env(),
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == EXIT_USAGE and line in result.stderr and "Traceback" not in result.stderr, result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and os.listdir(tmp_path) == []
 
 
 def test_a_run_started_on_a_file_url_resumes_from_its_plain_path(tmp_path) -> None:
