@@ -301,6 +301,23 @@ def for_world(config: Config, world_size: int) -> Config:
     return resolved
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (plain YAML keeps the last without a word)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":  # ``<<: *base``: its keys may be given again
+                continue
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"the key {key!r} is given twice", key_node.start_mark
+                )
+            seen.add(key)
+        return super().construct_mapping(node, deep)
+
+
 def load_config(path: str | None, overrides: list[str] = (), storage: str | None = None) -> Config:
     """Read a YAML config (or the defaults when ``path`` is None), apply overrides, validate. ``iterations=N`` alone
     (no ``algorithm.schedule_iterations=``) sets a linear schedule's horizon to N."""
@@ -311,7 +328,11 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
             problem = "is a directory" if file.is_dir() else "does not exist"
             raise UserError(f"config file {path!r} {problem}: pass the path of a YAML file such as configs/smoke.yaml")
         try:
-            data = yaml.safe_load(file.read_text()) or {}
+            data = yaml.load(file.read_bytes().decode(), _UniqueKeyLoader) or {}
+        except UnicodeDecodeError as exc:
+            raise UserError(
+                f"config file {path!r} is not UTF-8 text (byte {exc.start}): save it as UTF-8 YAML"
+            ) from None
         except yaml.YAMLError as exc:
             mark = getattr(exc, "problem_mark", None)
             where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""

@@ -1,10 +1,12 @@
 """Config loading, overrides, and the one-line errors for bad input (exit code 2, no traceback)."""
 
+import re
 import subprocess
 import sys
 
 import pytest
 
+from ftrain.ckpt.lease import TTL_ENV, ttl_from_env
 from ftrain.config import for_world, load_config, local_directories
 from ftrain.errors import UserError
 from ftrain.train.lr_schedule import horizon_notice
@@ -129,6 +131,34 @@ def test_cli_bad_input_is_one_line_exit_2(args: list[str], message: str) -> None
     assert lines == [f"ftrain: error: {lines[0].removeprefix('ftrain: error: ')}"], result.stderr
     assert message in lines[0]
     assert "Traceback" not in result.stderr
+
+
+def test_a_config_file_not_in_utf8_or_with_a_key_given_twice_is_refused_in_one_line(tmp_path) -> None:
+    """Plain YAML keeps the last of two equal keys without a word (a merge's keys may be given again); a file in
+    another encoding was a UnicodeDecodeError traceback."""
+    cases = {
+        b"\xff\xfe\x00seed: 1\n": "is not UTF-8 text (byte 0): save it as UTF-8 YAML",
+        b"seed: 1\niterations: 3\nseed: 2\n": "at line 3, column 1 (the key 'seed' is given twice)",
+        b"env:\n  num_envs: 2\n  num_envs: 4\n": "at line 3, column 3 (the key 'num_envs' is given twice)",
+    }
+    for number, (text, line) in enumerate(cases.items()):
+        config = tmp_path / f"{number}.yaml"
+        config.write_bytes(text)
+        with pytest.raises(UserError, match=re.escape(line)):
+            load_config(str(config))
+    merged = tmp_path / "merged.yaml"
+    merged.write_text("base: &b {num_envs: 2, kwargs: {}}\nenv:\n  <<: *b\n  num_envs: 4\n")
+    with pytest.raises(UserError, match="unknown config key base"):  # read, and the merge's key overridden
+        load_config(str(merged))
+
+
+def test_the_lease_ttl_from_the_environment_must_be_a_positive_number(monkeypatch) -> None:
+    for text in ("abc", "0", "-5", "inf", "nan"):
+        monkeypatch.setenv(TTL_ENV, text)
+        with pytest.raises(UserError, match=f"^{TTL_ENV}='{text}' must be a positive number of seconds"):
+            ttl_from_env()
+    monkeypatch.setenv(TTL_ENV, "12.5")
+    assert ttl_from_env() == 12.5
 
 
 def test_an_empty_config_file_is_refused_unless_overrides_say_what_to_train(tmp_path) -> None:

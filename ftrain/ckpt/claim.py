@@ -11,7 +11,7 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-from ftrain.ckpt.lease import TTL, TTL_ENV, Lease, LeaseHeld
+from ftrain.ckpt.lease import Lease, LeaseHeld, ttl_from_env
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import Config
 from ftrain.errors import UserError
@@ -37,8 +37,7 @@ def storage_lease(
     ``Lease``."""
     retries = config.checkpoint.retries if retries is None else retries
     storage = Storage.open(config.storage.url, config.storage.options, retries=retries)
-    ttl = float(os.environ.get(TTL_ENV) or TTL)
-    return Lease(storage, run_id(secret, endpoint), log, ttl, config.storage.plain_writes, shared, follows)
+    return Lease(storage, run_id(secret, endpoint), log, ttl_from_env(), config.storage.plain_writes, shared, follows)
 
 
 class Claim:

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import json
+import math
 import os
 import threading
 import time
@@ -41,6 +42,20 @@ TTL_ENV = "FTRAIN_LEASE_TTL"
 """Seconds a lease lives after its last renewal, where ``TTL`` does not suit (a storage slow to answer)."""
 TTL = 60.0
 """Seconds a lease lives after its last renewal; renewed every third of that."""
+
+
+def ttl_from_env() -> float:
+    """``TTL``, or the seconds ``FTRAIN_LEASE_TTL`` sets: UserError for one that is not a positive number."""
+    text = os.environ.get(TTL_ENV)
+    if not text:
+        return TTL
+    try:
+        ttl = float(text)
+    except ValueError:
+        ttl = math.nan
+    if not (0 < ttl < math.inf):
+        raise UserError(f"{TTL_ENV}={text!r} must be a positive number of seconds, e.g. {TTL_ENV}={TTL:g}")
+    return ttl
 
 
 class LeaseHeld(Exception):
