@@ -216,23 +216,21 @@ def short_of_space(storage: Storage, steps: list[str], log_dir: Path | None) -> 
     """Why a run cannot go on for lack of local disk, or None: a local storage's disk needs room for one more
     checkpoint (the largest of the newest three ``steps``) and ``SPACE_MARGIN``, the log directory's the margin, and a
     write of the margin must succeed in each (a quota, or no inode left, shows only then)."""
-    needs: dict[Path, int] = {}
+    checkpoint = "a checkpoint and its logs): free space there, or keep fewer checkpoints (checkpoint.keep_last)"
+    needs: dict[Path, tuple[int, str]] = {}  # path: bytes it needs, and what for and the fix
     if storage.is_local:
         sizes = (sum(storage.list_files(f"checkpoints/{step}").values()) for step in steps[-3:])
-        needs[Path(storage.root) / "checkpoints"] = max(sizes, default=0) + SPACE_MARGIN
+        needs[Path(storage.root) / "checkpoints"] = (max(sizes, default=0) + SPACE_MARGIN, checkpoint)
     if log_dir is not None:
-        needs.setdefault(log_dir, SPACE_MARGIN)
-    for path, need in needs.items():  # on one disk, the storage's need (the larger) covers the log directory's
+        needs.setdefault(log_dir, (SPACE_MARGIN, "the run's logs and heartbeats): free space there"))
+    for path, (need, fix) in needs.items():  # on one disk, the storage's need (the larger) covers the log directory's
         existing = next(parent for parent in (path, *path.parents) if parent.exists())
         free = shutil.disk_usage(existing).free
         short = (
             f"{human_size(free)} free where the run needs {human_size(need)}" if free < need else _write_fails(existing)
         )
         if short:
-            return (
-                f"no space left for {path}: {short} (a checkpoint and its logs): free space there, or keep fewer "
-                "checkpoints (checkpoint.keep_last)"
-            )
+            return f"no space left for {path}: {short} ({fix}"
     return None
 
 

@@ -52,6 +52,11 @@ ENDINGS = {"usage": "bad input", "done": "training finished"}
 """How the summary names an ending whose event name is not plain words."""
 
 
+def newest_step(step: int | None) -> str:
+    """The newest committed step, in words: "newest step 40", or "no step committed yet"."""
+    return f"newest step {step}" if step is not None else "no step committed yet"
+
+
 def finished(step: int | None, how: str = "") -> Outcome:
     """Training finished at ``step`` (``how``: seen how, if not from this node's own workers)."""
     return Outcome("done", EXIT_DONE, f"training finished (step {step}{'; ' + how if how else ''})")
@@ -118,7 +123,7 @@ def classify(
     if stopped is not None:
         saved = bool(phases) and phases <= {"preempted", "done"}
         how = "the workers saved" if saved else "the workers did not all confirm a save"
-        return Outcome("preempted", stopped, f"preempted: {how} (newest step {committed})")
+        return Outcome("preempted", stopped, f"preempted: {how} ({newest_step(committed)})")
     if orphans:
         return Outcome("failed", None, cause)
     if code == 0:
@@ -126,13 +131,13 @@ def classify(
     if code in STOPPED and phases and phases <= {"preempted", "done"}:  # the workers were signalled, saved, exited
         if superseded:
             return Outcome("failed", None, "stopped by another node (it failed, or restarted for a node that joined)")
-        return Outcome("preempted", code, f"preempted: the workers saved step {committed}; rerun to continue")
+        return Outcome("preempted", code, f"preempted: the workers saved ({newest_step(committed)}); rerun to continue")
     if code == EXIT_RENDEZVOUS_TIMEOUT and culprit is None:
         return Outcome(
             "too_few_nodes",
             EXIT_TOO_FEW_NODES,
-            f"fewer nodes than the minimum joined within --rdzv-timeout; nothing committed is lost (newest step "
-            f"{committed}): start the missing nodes and run the same command again",
+            f"fewer nodes than the minimum joined within --rdzv-timeout; nothing committed is lost "
+            f"({newest_step(committed)}): start the missing nodes and run the same command again",
         )
     if culprit is not None and culprit[1].code == EXIT_STORAGE_DOWN:
         return Outcome("storage_down", None, f"rank {culprit[0]}: {culprit[1].error or 'the storage did not answer'}")

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from ftrain.supervise.attempt import Attempt
 from ftrain.supervise.options import EXIT_CRASH_LOOP, EXIT_MAX_RESTARTS, SupervisorOptions
-from ftrain.supervise.outcome import Outcome
+from ftrain.supervise.outcome import Outcome, newest_step
 
 
 class RestartPolicy:
@@ -37,8 +37,8 @@ class RestartPolicy:
             return Outcome(
                 "crash_loop",
                 EXIT_CRASH_LOOP,
-                f"crash loop: {self._no_commit} restarts in a row committed no new checkpoint (newest: step "
-                f"{self.best_committed}); fix the cause above and run the same command again",
+                f"crash loop: {self._no_commit} restarts in a row committed no new checkpoint "
+                f"({newest_step(self.best_committed)}); fix the cause above and run the same command again",
             )
         self.restarts += 1
         if not self._no_progress:

@@ -80,3 +80,11 @@ def test_workers_that_saved_and_stopped_unasked_are_preempted_unless_another_nod
     joined late, before this node's torchrun saw the new node): then a restart."""
     outcome = classify(143, "rank 0 exited with code 143", None, None, False, {"preempted"}, superseded, 40)
     assert (outcome.event, outcome.code) == (event, code), outcome
+
+
+@pytest.mark.parametrize(("committed", "words"), [(None, "no step committed yet"), (40, "newest step 40")])
+def test_an_ending_names_the_newest_step_in_words_also_when_there_is_none(committed, words) -> None:
+    """A stop before the first commit said "newest step None"."""
+    for code, stopped, phases in ((143, 143, {"rollout"}), (143, None, {"preempted"}), (6, None, set())):
+        outcome = classify(code, "", None, stopped, False, phases, False, committed)
+        assert f"({words})" in outcome.message and "None" not in outcome.message, outcome

@@ -269,6 +269,20 @@ def test_a_disk_out_of_inodes_with_bytes_to_spare_is_full(tmp_path) -> None:
         assert short_of_space(storage, [], None) is None
 
 
+def test_a_full_disk_is_named_with_the_fix_for_what_lies_on_it(tmp_path) -> None:
+    """Logs alone on a full disk: free space there (keeping fewer checkpoints would not help); the storage on it:
+    that, or keep fewer checkpoints."""
+    with small_disk(tmp_path / "disk", "2m") as disk:
+        fill(disk)
+        elsewhere = Storage.open(str(tmp_path / "run"))
+        logs = short_of_space(elsewhere, [], disk / "logs")
+        assert logs.startswith(f"no space left for {disk / 'logs'}: ") and logs.endswith(
+            "(the run's logs and heartbeats): free space there"
+        ), logs
+        on_disk = short_of_space(Storage.open(str(disk / "run")), [], disk / "run")
+        assert on_disk.endswith("free space there, or keep fewer checkpoints (checkpoint.keep_last)"), on_disk
+
+
 def test_a_checkpoints_directory_that_takes_no_write_is_bad_input_not_an_outage(tmp_path) -> None:
     """A storage that lists but cannot be written (here made immutable: root ignores modes) would pass a listing probe,
     and the supervisor would restart into failing saves without end: the probe writes, and says so in one line."""
