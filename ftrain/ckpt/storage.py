@@ -299,6 +299,10 @@ class Storage:
         except client_errors() as exc:
             if is_denied(exc):
                 raise self._access_error(exc) from None
+            if isinstance(exc, OSError) and exc.errno == errno.EROFS:  # as a denied write: no waiting fixes it
+                raise UserError(
+                    f"{what} {self.where(rel)} failed: read-only file system: pass a storage you can write to"
+                ) from None
             if isinstance(exc, OSError) and exc.errno in NO_SPACE:  # waited for, as an outage: freeing space fixes it
                 raise StorageUnavailable(no_space_line(OSError(exc.errno, exc.strerror, self.where(rel)))) from None
             if is_transient(exc):

@@ -24,13 +24,14 @@ import pytest
 
 from ftrain.ckpt.steps import select_resume
 from ftrain.ckpt.storage import Storage
-from ftrain.errors import UserError
+from ftrain.errors import EXIT_USAGE, UserError
 from ftrain.heartbeat import read_heartbeats
 from ftrain.supervise.outage import probe, short_of_space
 
 from failing_mount import failing_mount
 from helpers import (
     REPO,
+    SMOKE,
     TESTS,
     Hold,
     child_env,
@@ -38,6 +39,7 @@ from helpers import (
     finish,
     hooks_override,
     launch,
+    make_step,
     probe_hook,
     torchrun_pid,
     training,
@@ -281,6 +283,24 @@ def test_a_full_disk_is_named_with_the_fix_for_what_lies_on_it(tmp_path) -> None
         ), logs
         on_disk = short_of_space(Storage.open(str(disk / "run")), [], disk / "run")
         assert on_disk.endswith("free space there, or keep fewer checkpoints (checkpoint.keep_last)"), on_disk
+
+
+@pytest.mark.parametrize("command", ["train", "prune"])
+def test_a_read_only_storage_is_bad_input_in_one_line(tmp_path, command) -> None:
+    """A storage remounted read-only (as a disk is after errors) is bad input, as the supervisor's probe says (exit
+    2), not a raw EROFS (exit 1), for a run and for ``ckpt prune``, which takes the storage's lock."""
+    with small_disk(tmp_path / "disk", "1m") as disk:
+        make_step(Storage.open(str(disk)), 4)
+        subprocess.run(["mount", "-o", "remount,ro", str(disk)], check=True)
+        words = ["ckpt", "prune", str(disk)]
+        if command == "train":
+            words = ["train", SMOKE, "--storage", str(disk), "iterations=8", f"log_dir={tmp_path / 'logs'}"]
+        result = subprocess.run(
+            [sys.executable, "-m", "ftrain", *words], env=child_env(), capture_output=True, text=True
+        )
+    assert result.returncode == EXIT_USAGE, result.stderr
+    assert result.stderr.startswith("ftrain: error: lock ") and len(result.stderr.strip().splitlines()) == 1
+    assert "read-only file system: pass a storage you can write to" in result.stderr, result.stderr
 
 
 def test_a_checkpoints_directory_that_takes_no_write_is_bad_input_not_an_outage(tmp_path) -> None:
