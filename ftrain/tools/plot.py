@@ -15,6 +15,7 @@ import csv
 import io
 import json
 import math
+import sys
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
@@ -57,12 +58,15 @@ def read_metrics(
     rows: dict[int, dict[str, str]] = {}
     restarts: set[int] = set()
     changes: dict[int, str] = {}
-    previous = 0
+    previous = damaged = 0
     reader = csv.DictReader(io.StringIO(text, newline=""))
     try:
         if reader.fieldnames is not None and "iteration" not in reader.fieldnames:
             raise UserError(f"{path} has no iteration column (its columns: {', '.join(reader.fieldnames)}): {NOT_OURS}")
         for row in reader:
+            if None in row or None in row.values():  # more or fewer fields than the header: cut short, run together
+                damaged += 1
+                continue
             iteration = _whole(row, "iteration", f"{path} line {reader.line_num}")
             if iteration <= previous:
                 restarts.add(iteration - 1)
@@ -75,6 +79,8 @@ def read_metrics(
             rows[iteration] = row
     except csv.Error as error:
         raise UserError(f"{path} line {reader.line_num} is not CSV ({error}): {NOT_OURS}") from None
+    if damaged:  # as training's own reader of the file drops them (``CsvHook``)
+        print(f"ftrain plot: {path}: skipped {_count(damaged, 'row')} cut short or run together", file=sys.stderr)
     if not rows:
         raise UserError(f"{path} has no rows yet: plot the run after its first iteration")
     ordered = [rows[iteration] for iteration in sorted(rows)]

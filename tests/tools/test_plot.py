@@ -63,6 +63,19 @@ def test_files_of_older_versions_keep_the_last_row_of_each_iteration(resumed, tm
     assert resumed_from == [4] and changes == {}
 
 
+def test_rows_cut_short_or_run_together_are_skipped_and_counted(resumed, tmp_path, capsys) -> None:
+    """What a crash mid-write leaves (a row cut short, the next run's row glued to it), as training's own reader
+    of the file skips them; it was a traceback."""
+    lines = (resumed / "metrics.csv").read_text().splitlines(keepends=True)
+    run = tmp_path / "damaged"
+    run.mkdir()
+    glued = lines[3][: len(lines[3]) // 2] + lines[4]  # iteration 3 cut short, iteration 4 run into it
+    (run / "metrics.csv").write_text("".join([*lines[:3], glued, *lines[5:], "garbage,,,\n"]))
+    columns, _, _ = read_metrics(run)
+    assert columns["iteration"] == [1, 2, 5, 6, 7, 8]
+    assert capsys.readouterr().err == f"ftrain plot: {run / 'metrics.csv'}: skipped 2 rows cut short or run together\n"
+
+
 def test_plot_marks_a_resume_that_was_no_restart(resumed, tmp_path) -> None:
     plot = plot_run(resumed, tmp_path / "curves.png")
     assert plot.panels == PANELS and (plot.restarts, plot.resumes) == ([], [4])
