@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib.metadata
+import io
 import os
 import select
 import signal
@@ -310,6 +311,8 @@ def _command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    if isinstance(sys.stdout, io.TextIOWrapper):  # a path in ü on an ASCII terminal is \xfc, not a crash after training
+        sys.stdout.reconfigure(errors="backslashreplace")
     if argv[:1] == ["train"]:  # a worker of ``ftrain supervise``: the credentials come from the environment
         argv = ["train", *reveal_credentials(argv[1:], os.environ)]
     try:

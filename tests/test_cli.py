@@ -10,7 +10,7 @@ from collections.abc import Iterator
 
 from ftrain.cli import build_parser
 
-from helpers import REPO
+from helpers import REPO, child_env, train_command
 
 
 def ftrain(*args: str) -> subprocess.CompletedProcess:
@@ -130,3 +130,16 @@ def test_a_usage_error_shows_its_commands_usage_and_a_bare_word_is_told_as_an_ov
         assert (usage is None and len(lines) == 1) or lines[0].startswith(usage), (args, result.stderr)
     assert not (tmp_path / "run").exists()
     print(f"{len(cases)} usage errors checked")
+
+
+def test_a_path_the_terminal_cannot_encode_is_escaped_not_a_crash(tmp_path) -> None:
+    """On an ASCII stdout a storage named in ü was a UnicodeEncodeError after training, in every attempt of a
+    supervised run (a crash loop), and in ``ckpt show``."""
+    storage = tmp_path / "ü run"
+    env = child_env({"PYTHONIOENCODING": "ascii"})
+    trained = subprocess.run(train_command(storage, "iterations=2"), env=env, capture_output=True, text=True)
+    assert trained.returncode == 0, trained.stderr[-2000:]
+    shown = subprocess.run(
+        [sys.executable, "-m", "ftrain", "ckpt", "show", str(storage)], env=env, capture_output=True, text=True
+    )
+    assert shown.returncode == 0 and "\\xfc run" in shown.stdout, shown.stderr[-2000:]
