@@ -12,6 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ftrain.ckpt.lease import Lease, LeaseHeld, ttl_from_env
+from ftrain.ckpt.steps import check_not_a_checkpoints_directory
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import Config
 from ftrain.errors import UserError
@@ -37,6 +38,7 @@ def storage_lease(
     ``Lease``."""
     retries = config.checkpoint.retries if retries is None else retries
     storage = Storage.open(config.storage.url, config.storage.options, retries=retries)
+    check_not_a_checkpoints_directory(storage)
     return Lease(storage, run_id(secret, endpoint), log, ttl_from_env(), config.storage.plain_writes, shared, follows)
 
 

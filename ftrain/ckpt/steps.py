@@ -64,6 +64,17 @@ def _enclosing_step(url: str) -> tuple[str, str, str] | None:
     return None
 
 
+def check_not_a_checkpoints_directory(storage: Storage) -> None:
+    """UserError if ``storage`` holds step directories itself: it is the ``checkpoints/`` of a run (``--storage
+    <run>/checkpoints``), where a run would start fresh beside that run's steps."""
+    if steps := sorted(name for name in storage.list_dirs("") if STEP_DIR.match(name)):
+        raise UserError(
+            f"storage {storage.url} holds step directories itself ({', '.join(steps[-2:])}): it is the {CHECKPOINTS} "
+            "directory of a run, whose storage is the directory above it: pass that to resume it, or a directory "
+            "of its own"
+        )
+
+
 def check_storage_place(url: str) -> None:
     """UserError if ``url`` is or lies inside a step directory of a storage (``<run>/checkpoints/step-N``, one set
     aside under ``quarantine/``, a policy snapshot under ``policies/``): that run's retention and clean-up would

@@ -6,6 +6,7 @@ Lineage (``lineage.py``): what resume and ``ftrain ckpt verify`` make of forked 
 from __future__ import annotations
 
 import json
+import os
 import random
 import re
 import subprocess
@@ -276,3 +277,21 @@ def test_train_and_supervise_refuse_a_storage_inside_a_step_before_they_touch_it
     ], result.stderr
     assert sorted(path.name for path in inside.iterdir()) == before
     assert [info.status for info in scan(run, full=True)] == ["verified"]
+
+
+def test_a_runs_checkpoints_directory_passed_as_a_storage_is_refused_before_anything_is_written(tmp_path) -> None:
+    """``--storage <run>/checkpoints`` started a fresh run beside that run's steps (lease, logs, a nested
+    ``checkpoints/``); now one line, exit 2, and the directory as it was."""
+    run = tmp_path / "run"
+    for step in (2, 4):
+        make_step(Storage.open(str(run)), step)
+    before = sorted(os.listdir(run / "checkpoints"))
+    command = train_command(run / "checkpoints", "iterations=2", f"log_dir={tmp_path / 'logs'}")
+    result = subprocess.run(command, env=child_env(), capture_output=True, text=True)
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    assert result.stderr.strip() == (
+        f"ftrain: error: storage {run / 'checkpoints'} holds step directories itself (step-000000002, "
+        "step-000000004): it is the checkpoints directory of a run, whose storage is the directory above it: pass "
+        "that to resume it, or a directory of its own"
+    )
+    assert sorted(os.listdir(run / "checkpoints")) == before
