@@ -120,6 +120,7 @@ def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> 
         ([SMOKE, "env.num_envs=0"], "env.num_envs=0 must be at least 1"),
         ([SMOKE, "algorithm.learning_rate=-1"], "algorithm.learning_rate=-1.0 is out of range: use a positive rate"),
         ([SMOKE, "seed=-1"], "seed=-1 is out of range"),
+        ([SMOKE, "resume=/nonexistent/run"], "resume=/nonexistent/run: /nonexistent/run does not exist: pass a run's"),
     ],
 )
 def test_cli_bad_input_is_one_line_exit_2(args: list[str], message: str) -> None:
