@@ -7,6 +7,8 @@ Heavy modules (torch, rsl_rl, gymnasium) are imported inside the subcommand that
 from __future__ import annotations
 
 import argparse
+import codecs
+import contextlib
 import dataclasses
 import importlib.metadata
 import io
@@ -311,8 +313,7 @@ def _command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if isinstance(sys.stdout, io.TextIOWrapper):  # a path in ü on an ASCII terminal is \xfc, not a crash after training
-        sys.stdout.reconfigure(errors="backslashreplace")
+    _escape_what_stdout_cannot_encode()
     if argv[:1] == ["train"]:  # a worker of ``ftrain supervise``: the credentials come from the environment
         argv = ["train", *reveal_credentials(argv[1:], os.environ)]
     try:
@@ -444,6 +445,15 @@ def _run_config(args: argparse.Namespace) -> Config:
     if resume and not os.path.exists(resume):  # a remote one is looked up by the workers
         raise UserError(f"resume={config.resume}: {resume} does not exist: pass a run's storage or a step directory")
     return config
+
+
+def _escape_what_stdout_cannot_encode() -> None:
+    """On a stdout that is not UTF-8 (an ASCII terminal), a path in ü prints as \\xfc: not a UnicodeEncodeError after
+    training. A UTF-8 one is left as it is (a warm pool's worker may not reconfigure its inherited stdout)."""
+    stdout = sys.stdout
+    if isinstance(stdout, io.TextIOWrapper) and codecs.lookup(stdout.encoding).name != "utf-8":
+        with contextlib.suppress(OSError, ValueError):
+            stdout.reconfigure(errors="backslashreplace")
 
 
 def _stdout_reader_gone() -> bool:
