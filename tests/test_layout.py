@@ -12,7 +12,7 @@ from helpers import REPO
 
 PACKAGE = REPO / "ftrain"
 LAYERS = {
-    "__main__": {"cli", "warm", "proctitle", "process"},
+    "__main__": {"cli", "warm", "proctitle", "process", "errors"},
     "cli": {
         "supervise",
         "train",

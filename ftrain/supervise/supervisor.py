@@ -366,8 +366,8 @@ class Supervisor:
         stopped = stop_code(self.signals[0]) if self.signals else None
         committed = attempt.committed if attempt.committed is not None else self.policy.best_committed
         outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
-        if not outcome.failed:  # the run ends: it names the step a rerun resumes from, which the storage knows best
-            committed = self.storage_wait.newest(committed)
+        if not outcome.failed and not self._ends_alone(outcome):  # the run ends: the step a rerun resumes from, as
+            committed = self.storage_wait.newest(committed)  # the storage has it (others going on commit newer ones)
             outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
         if outcome.event == "failed" and (full := self.storage_wait.disk_full()) is not None:
             outcome = Outcome("storage_down", None, full)  # restarts would fail alike: wait for space instead

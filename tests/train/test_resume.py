@@ -155,7 +155,7 @@ def test_resume_refuses_other_env_count_config_and_format(tmp_path) -> None:
         (["iterations=4", "env.num_envs=3", "env.id=Hopper-v5"], '(env.id "HalfCheetah-v5" -> "Hopper-v5")'),
         (["iterations=4", "policy.hidden_dims=[32,32]"], "another model than the config asks for (policy.hidden_dims "),
         (["iterations=4", "algorithm.clip_param=0.1"], "pass allow_config_change=true"),
-        (["iterations=4", "resume=maybe"], "resume=maybe: no verified checkpoint under maybe: pass a run's storage"),
+        (["iterations=4", "resume=maybe"], "resume=maybe: maybe does not exist: pass a run's storage"),
     ]:
         result = subprocess.run(
             train_command(storage, *overrides), cwd=REPO, env=child_env(), capture_output=True, text=True

@@ -29,7 +29,9 @@ pytestmark = pytest.mark.slow
 LONG = "iterations=100000"
 
 
-def start(command: list[str], heartbeats: Path) -> subprocess.Popen:
+def start(command: list[str], heartbeats: Path, **popen: object) -> subprocess.Popen:
+    """``popen``: more of Popen's arguments. A test worker may ignore SIGINT (pytest-xdist's do), and a child keeps
+    that until it sets a handler of its own: one that sends SIGINT before the trainer does resets it first."""
     return launch(
         command,
         cwd=REPO,
@@ -38,6 +40,7 @@ def start(command: list[str], heartbeats: Path) -> subprocess.Popen:
         stderr=subprocess.STDOUT,
         text=True,
         start_new_session=True,
+        **popen,
     )
 
 
@@ -105,7 +108,8 @@ def test_ctrl_c_at_any_moment_of_the_start_is_one_line_and_exit_130(tmp_path) ->
     moments, saved = sorted(draw.uniform(0.05, 10.0) for _ in range(8)), 0
     for moment in moments:
         storage = tmp_path / f"run-{moment:.2f}"
-        proc = start([*train_command(storage, LONG), "log.console=true"], tmp_path / f"beats-{moment:.2f}")
+        command, beats = [*train_command(storage, LONG), "log.console=true"], tmp_path / f"beats-{moment:.2f}"
+        proc = start(command, beats, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         time.sleep(moment)
         proc.send_signal(signal.SIGINT)
         output = proc.communicate(timeout=120)[0]
