@@ -77,14 +77,15 @@ def build(cls: type, data: dict, prefix: str) -> Any:
     if not isinstance(data, dict):
         raise UserError(f"{prefix.rstrip('.') or 'config'} must be a mapping, got {data!r}")
     hints = typing.get_type_hints(cls)
-    names = [f.name for f in dataclasses.fields(cls)]
+    defaults = {f.name: f.default for f in dataclasses.fields(cls)}
+    names = list(defaults)
     kwargs = {}
     for key, value in data.items():
         if key not in names:
             near = difflib.get_close_matches(str(key), names, n=1, cutoff=0.5)
             hint = f"did you mean {prefix}{near[0]}?" if near else f"valid keys: {', '.join(prefix + n for n in names)}"
             raise UserError(f"unknown config key {prefix}{key}: {hint}")
-        default = next(f.default for f in dataclasses.fields(cls) if f.name == key)
+        default = defaults[key]
         example = default if isinstance(default, (int, float)) and not isinstance(default, bool) else None
         kwargs[key] = convert(hints[key], value, f"{prefix}{key}", example)
     return cls(**kwargs)
