@@ -10,9 +10,11 @@ import argparse
 import codecs
 import contextlib
 import dataclasses
+import difflib
 import importlib.metadata
 import io
 import os
+import re
 import select
 import signal
 import sys
@@ -47,6 +49,33 @@ OVERRIDES_HELP = (
 
 QUIET, VERBOSE = "log.console=false", "log.console_saves=every"
 """What ``-q`` and ``-v`` stand for: overrides, which reach every worker with the others."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """A usage error is one line, a UserError like every bad input (the error file of a worker says it too): what is
+    wrong, the option or command closest to a misspelt one, and the command's ``--help``; not argparse's usage block."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        raise UserError(f"{message}{_closest(self, message)}: see {self.prog} --help")
+
+
+def _closest(parser: argparse.ArgumentParser, message: str) -> str:
+    """`` (did you mean --storage?)`` for the first unrecognized option or invalid choice in argparse's ``message``,
+    where one of ``parser``'s is close; `` (one of: ...)`` for a missing command."""
+    commands = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+    if commands is not None and message.endswith(f"required: {commands.metavar}"):
+        return f" (one of: {', '.join(commands.choices)})"
+    if (choice := re.search(r"invalid choice: '([^']*)'", message)) is not None:
+        action = next((a for a in parser._actions if a.choices and choice[1] not in a.choices), None)
+        known, word = (list(action.choices) if action else []), choice[1]
+    elif (option := re.search(r"unrecognized arguments: (--?[^\s=]+)", message)) is not None:
+        listed = [a for a in parser._actions if a.help != argparse.SUPPRESS]  # not the underscore spellings
+        known, word = [o for a in listed for o in a.option_strings if o.startswith("--")], option[1]
+    else:
+        return ""
+    bare = {name.lstrip("-"): name for name in known}  # the dashes every option shares are no likeness
+    close = difflib.get_close_matches(word.lstrip("-"), bare, n=1)
+    return f" (did you mean {bare[close[0]]}?)" if close else ""
 
 
 def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -113,7 +142,7 @@ def build_parser() -> argparse.ArgumentParser:
     from ftrain.config import POLICY_FORMATS
     from ftrain.supervise.options import SupervisorOptions, exit_codes_help
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="ftrain", description="Distributed, fault-tolerant PPO training on CPU (torchrun + gloo + rsl-rl)."
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
@@ -284,8 +313,7 @@ def _version() -> str:
 
 def parse(argv: list[str]) -> argparse.Namespace:
     """``argv`` as ``ftrain`` reads it: overrides may come before or after options such as --storage, and
-    ``--storage-option``, ``-q`` and ``-v`` become overrides. A usage error exits 2 (argparse); a bad value is a
-    UserError."""
+    ``--storage-option``, ``-q`` and ``-v`` become overrides. A usage error or a bad value is a UserError."""
     parser = build_parser()
     args, extra = parser.parse_known_args(argv)
     unknown = [word for word in extra if word.startswith("-")]  # a bare word is an override, checked as one

@@ -355,6 +355,9 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
             raise UserError(f"override {item!r} is not key=value: write it like env.num_envs=8")
         set_dotted(data, key.strip(), parse_value(raw))
     if storage is not None:
+        given = [raw for key, _, raw in (item.partition("=") for item in overrides) if key.strip() == "storage.url"]
+        if given and parse_value(given[-1]) != storage:
+            raise UserError(f"--storage {storage} and storage.url={given[-1]} name two storages: pass one of them")
         set_dotted(data, "storage.url", storage)
     config = build(Config, data, prefix="")
     keys = {item.partition("=")[0].strip() for item in overrides} & {"iterations", "algorithm.schedule_iterations"}

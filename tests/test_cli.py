@@ -107,29 +107,68 @@ def test_torchruns_underscore_spellings_are_taken_and_a_split_list_override_says
     assert split.stderr == f"ftrain: error: {said}\n", split.stderr
 
 
-def test_a_usage_error_shows_its_commands_usage_and_a_bare_word_is_told_as_an_override(tmp_path) -> None:
-    cases = [  # (arguments, the usage line, the error line)
-        (["train"], "usage: ftrain train ", "ftrain train: error: the following arguments are required: config"),
-        (["train", "configs/smoke.yaml", "--bogus"], "usage: ftrain train ", "error: unrecognized arguments: --bogus"),
-        (["ckpt", "ls", str(tmp_path), "--bogus"], "usage: ftrain ckpt ls ", "ftrain ckpt ls: error: unrecognized"),
+def test_a_usage_error_is_one_line_naming_the_commands_help_and_a_bare_word_is_told_as_an_override(tmp_path) -> None:
+    cases = [  # (arguments, the error line)
+        (["train"], "ftrain: error: the following arguments are required: config: see ftrain train --help"),
+        (["ckpt"], "required: ACTION (one of: ls, verify, show, prune, unquarantine): see ftrain ckpt --help"),
+        (["train", "configs/smoke.yaml", "--bogus"], "unrecognized arguments: --bogus: see ftrain train --help"),
+        (["ckpt", "ls", str(tmp_path), "--stroage-option", "a=b"], "(did you mean --storage-option?): see ftrain ckpt"),
+        (["trian", "configs/smoke.yaml"], "invalid choice: 'trian' (choose from "),
+        (["train", "configs/smoke.yaml", "-q", "-v"], "argument -v/--verbose: not allowed with argument -q/--quiet: "),
         (
             ["supervise", "configs/smoke.yaml", "--storage", str(tmp_path / "run"), "iterations"],
-            None,
             "ftrain: error: override 'iterations' is not key=value: write it like env.num_envs=8",
         ),
         (
             ["train", str(tmp_path)],
-            None,
             f"ftrain: error: config file '{tmp_path}' is a directory: pass the path of a YAML file such as ",
         ),
     ]
-    for args, usage, error in cases:
+    for args, error in cases:
         result = ftrain(*args)
-        lines = result.stderr.strip().splitlines()
-        assert result.returncode == 2 and error in lines[-1], (args, result.stderr)
-        assert (usage is None and len(lines) == 1) or lines[0].startswith(usage), (args, result.stderr)
+        assert result.returncode == 2 and result.stderr.count("\n") == 1 and error in result.stderr, (args, result)
+    assert "(did you mean train?)" in ftrain("trian").stderr
     assert not (tmp_path / "run").exists()
-    print(f"{len(cases)} usage errors checked")
+    print(f"{len(cases) + 1} usage errors checked")
+
+
+def test_a_misspelt_option_or_choice_is_told_the_one_it_is_closest_to() -> None:
+    """Generated cases: every listed long option and every choice of every command, each with one of its letters
+    dropped (never the last: a prefix is argparse's abbreviation), is refused with the option or choice it came from."""
+    from ftrain.cli import parse
+    from ftrain.errors import UserError
+
+    checked = 0
+    for name, parser in parsers(build_parser()):
+        command, needed, words = name.split()[1:], [], []  # needed: what comes before an unknown option is told
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):  # a command misspelt, where the parser takes one
+                words += [([choice], choice) for choice in action.choices]
+            elif not action.option_strings and action.nargs != "*":
+                needed.append("x")
+            elif action.required:
+                needed += [action.option_strings[-1], next(iter(action.choices))]
+        if not words:  # a command that runs: its options and their choices misspelt
+            listed = [action for action in parser._actions if action.help != argparse.SUPPRESS]
+            words += [([*needed, o], o) for a in listed for o in a.option_strings if o.startswith("--")]
+            words += [([*needed, a.option_strings[-1], c], c) for a in listed if a.choices for c in a.choices]
+        known = [word[-1] for word, _ in words]
+        for word, meant in words:
+            for index in range(len(meant) - len(meant.lstrip("-")), len(meant) - 1):
+                typo = meant[:index] + meant[index + 1 :]
+                if len(meant.lstrip("-")) < 4 or any(other.startswith(typo) for other in known):
+                    continue  # too short to tell from another, or an abbreviation argparse takes
+                argv = [*command, *word[:-1], typo]
+                try:
+                    parse(argv)
+                except UserError as error:
+                    line = str(error)
+                    assert f"(did you mean {meant}?)" in line and f"see {name} --help" in line, (argv, line)
+                    checked += 1
+                else:
+                    raise AssertionError(f"{argv} was taken")
+    print(f"{checked} misspelt options and choices told the one they came from")
+    assert checked > 300
 
 
 def test_a_path_the_terminal_cannot_encode_is_escaped_not_a_crash(tmp_path) -> None:

@@ -26,6 +26,14 @@ def test_overrides_are_typed_and_dotted() -> None:
     assert config.log_dir == "runs/smoke"
 
 
+def test_storage_given_twice_differently_is_refused_and_alike_is_taken() -> None:
+    """``--storage A storage.url=B``: which one was meant is not for ftrain to pick (it took A, silently)."""
+    with pytest.raises(UserError, match=r"^--storage /tmp/a and storage.url=/tmp/b name two storages: pass one of"):
+        load_config(SMOKE, ["storage.url=/tmp/b"], storage="/tmp/a")
+    assert load_config(SMOKE, ["storage.url=/tmp/a"], storage="/tmp/a").storage.url == "/tmp/a"
+    assert load_config(SMOKE, ["storage.url=/tmp/b"]).storage.url == "/tmp/b"
+
+
 def test_storage_decides_log_dir() -> None:
     assert load_config(SMOKE, [], storage="s3://bucket/runs/x").log_dir == "runs/smoke/s3/bucket/runs/x"
     secret = load_config(SMOKE, [], storage="s3://AKIA1:S3CR3T@bucket/exp1/").log_dir

@@ -155,7 +155,7 @@ class SupervisorOptions:
 
     def __post_init__(self) -> None:
         """Every numeric option in its range, refused in one line as the options are built, before anything starts;
-        ``--node-rank`` against ``--nnodes``: ``parse_nodes``."""
+        a first back-off given above the longest; ``--node-rank`` against ``--nnodes``: ``parse_nodes``."""
         parse_hang_timeout(self.hang_timeout)
         inf = math.inf
         ranges = {  # option: (low, high, whether low itself is allowed, what to use)
@@ -166,7 +166,7 @@ class SupervisorOptions:
             "max_restarts": (0, inf, True, "0 (never restart) or more, e.g. 10"),
             "startup_grace": (0, inf, False, "a positive number of seconds, e.g. 300"),
             "backoff_max": (0, inf, True, "0 or more seconds, e.g. 60"),
-            "backoff_initial": (0, inf, True, "0 or more seconds (at most --backoff-max is waited), e.g. 1"),
+            "backoff_initial": (0, inf, True, "0 or more seconds, e.g. 1"),
             "crash_loop": (0, inf, True, "0 (never stop for a crash loop) or more restarts, e.g. 3"),
             "storage_wait": (0, inf, True, "0 (do not wait) or more seconds, e.g. 3600"),
             "stop_grace": (0, inf, False, "a positive number of seconds, e.g. 30"),
@@ -177,6 +177,11 @@ class SupervisorOptions:
                 continue
             if not math.isfinite(value) or not (low <= value <= high if closed else low < value <= high):
                 raise UserError(f"--{name.replace('_', '-')}={value} is out of range: use {what}")
+        if self.backoff_initial > self.backoff_max and self.backoff_initial != type(self).backoff_initial:
+            raise UserError(  # its default over a smaller --backoff-max is taken: --backoff-max 0 is no back-off
+                f"--backoff-initial={self.backoff_initial} is more than --backoff-max={self.backoff_max}: the first "
+                "back-off is at most the longest, raise --backoff-max or lower --backoff-initial"
+            )
 
 
 class Workers(enum.StrEnum):

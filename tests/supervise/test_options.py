@@ -76,11 +76,13 @@ def test_a_float_option_must_be_finite(name, value) -> None:
         check(**{name: value})
 
 
-def test_a_backoff_that_starts_above_its_most_is_taken() -> None:
+def test_a_first_backoff_given_above_the_longest_is_refused_and_the_default_one_is_not() -> None:
     """``--backoff-max 0`` alone means no back-off (restarts.py waits at most --backoff-max): the default initial
-    back-off must not refuse it."""
+    back-off must not refuse it; ``--backoff-initial 10 --backoff-max 5`` contradict each other."""
     check(backoff_max=0.0)
-    check(backoff_initial=10.0, backoff_max=5.0)
+    check(backoff_initial=5.0, backoff_max=5.0)
+    with pytest.raises(UserError, match=r"^--backoff-initial=10.0 is more than --backoff-max=5.0: the first back-off"):
+        check(backoff_initial=10.0, backoff_max=5.0)
 
 
 @pytest.mark.parametrize(

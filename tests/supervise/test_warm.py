@@ -62,14 +62,14 @@ def stand_in(pool: tuple, entry: str, argv: list[str], **popen: object) -> subpr
 @pytest.mark.slow  # a warm pool: imports torch, MuJoCo and rsl-rl
 def test_the_pool_runs_the_command_with_the_stand_ins_streams_directory_environment_and_exit_code(pool, tmp_path):
     """``ftrain --version`` exits 0 by SystemExit after printing to the stand-in's stdout; a usage error exits 2 with
-    argparse's line on the stand-in's stderr."""
+    its one line on the stand-in's stderr."""
     version = stand_in(pool, "train", ["--version"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=tmp_path)
     out, err = version.communicate(timeout=120)
     assert version.returncode == 0 and out.decode().startswith("ftrain "), (out, err)
 
     wrong = stand_in(pool, "train", ["train"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     out, err = wrong.communicate(timeout=60)
-    assert wrong.returncode == 2 and b"ftrain train: error: the following arguments are required: config" in err, (
+    assert wrong.returncode == 2 and b"error: the following arguments are required: config: see ftrain train" in err, (
         out,
         err,
     )
