@@ -5,9 +5,9 @@ Layout under a storage root::
     checkpoints/step-000000120/{common.pt, rank-00000.pt, ..., MANIFEST.json}
 
 A step is committed when its MANIFEST.json exists; the manifest is written last, with exclusive create, and
-lists every file with its size and SHA-256. Verified = the manifest parses and every listed file has its size
-and digest. Readers trust nothing else. Single process: ``manager.py`` does the collectives around these calls;
-``steps.py`` looks at whole storages, ``retention.py`` deletes.
+lists every file with its size and SHA-256, and its own digest. Verified = the manifest parses, matches its own
+digest, and every listed file has its size and digest. Readers trust nothing else. Single process: ``manager.py``
+does the collectives around these calls; ``steps.py`` looks at whole storages, ``retention.py`` deletes.
 """
 
 from __future__ import annotations
@@ -48,9 +48,13 @@ def is_timing(metric: str) -> bool:
     return metric.endswith("_time") or metric.startswith("time/")
 
 
+DIGEST = "manifest_sha256"
+"""The manifest's own SHA-256, of its other keys as canonical JSON (:func:`manifest_digest`): a manifest damaged where
+it still parses (a byte of a key or a number) is corrupt, not a step with other counters. Manifests of an ftrain
+before it have none and are taken as they are."""
 STEP_DIR = re.compile(r"^step-(\d+)$")
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
-_RESERVED = {"format_version", "step", "files"}
+_RESERVED = {"format_version", "step", "files", DIGEST}
 
 
 class CorruptCheckpoint(Exception):
@@ -217,6 +221,7 @@ def commit(storage: Storage, step: int, files: dict[str, FileEntry], meta: dict,
                 )
     manifest = {"format_version": FORMAT_VERSION, "step": step, "created": now()} | meta
     manifest["files"] = {name: {"size": e.size, "sha256": e.sha256} for name, e in sorted(files.items())}
+    manifest[DIGEST] = manifest_digest(json.loads(_manifest_text(manifest)))  # of what a reader will see
     data = _manifest_text(manifest).encode()
     storage.write_exclusive(f"{step_dir(step)}/{MANIFEST}", data, commit=True)
     return manifest
@@ -248,6 +253,8 @@ def read_manifest(storage: Storage, step: int) -> dict:
         raise CorruptCheckpoint(f"not valid JSON ({exc})") from None
     if not isinstance(manifest, dict):
         raise CorruptCheckpoint("not a JSON object")
+    if DIGEST in manifest and manifest[DIGEST] != manifest_digest(manifest):
+        raise CorruptCheckpoint("its content does not match its own digest (damaged after it was written)")
     if manifest.get("format_version") != FORMAT_VERSION:
         raise CorruptCheckpoint(f"format_version {manifest.get('format_version')!r} is not {FORMAT_VERSION}")
     if manifest.get("step") != step:
@@ -256,6 +263,13 @@ def read_manifest(storage: Storage, step: int) -> dict:
     if not isinstance(files, dict) or not all(_valid_entry(n, e) for n, e in files.items()):
         raise CorruptCheckpoint("'files' is not a mapping of file name to {size, sha256}")
     return manifest
+
+
+def manifest_digest(manifest: dict) -> str:
+    """SHA-256 of ``manifest`` without its ``DIGEST``, as canonical JSON (sorted keys; floats as ``repr``, which
+    reads back to the same float), so that it is the same computed from the manifest read back."""
+    rest = {key: value for key, value in manifest.items() if key != DIGEST}
+    return hashlib.sha256(json.dumps(rest, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
 def verify_step(storage: Storage, step: int, full: bool = True) -> Verification:

@@ -9,6 +9,7 @@ import torch
 from ftrain.ckpt.format import (
     CHECKPOINTS,
     CORRUPT,
+    DIGEST,
     FORMAT_VERSION,
     INCOMPLETE,
     MANIFEST,
@@ -93,12 +94,16 @@ def test_commit_refuses_a_file_that_is_not_there(storage):
     assert not storage.exists(step_path(5, MANIFEST))
 
 
-def edit_manifest(storage: Storage, step: int, edit) -> None:
+def edit_manifest(storage: Storage, step: int, edit, older: bool = False) -> None:
+    """Change a manifest as a hand or a bug would; ``older``: as an ftrain before manifests had their own digest."""
     manifest = json.loads(storage.read(step_path(step, MANIFEST)))
     edit(manifest)
+    if older:
+        del manifest[DIGEST]
     storage.write_replace(step_path(step, MANIFEST), json.dumps(manifest).encode())
 
 
+EDITED = "MANIFEST.json: unusable: its content does not match its own digest"
 CORRUPTIONS = {
     "flipped byte": (flip_shard_byte, "rank-00001.pt: sha256 mismatch"),
     "truncated shard": (truncate_shard, "rank-00001.pt: size mismatch"),
@@ -110,13 +115,52 @@ CORRUPTIONS = {
     ),
     "manifest size disagrees": (
         lambda s, step: edit_manifest(s, step, lambda m: m["files"]["rank-00001.pt"].update(size=1)),
+        EDITED,
+    ),
+    "manifest of another step": (lambda s, step: edit_manifest(s, step, lambda m: m.update(step=step + 1)), EDITED),
+    "manifest counters changed": (lambda s, step: edit_manifest(s, step, lambda m: m.update(world_size=3)), EDITED),
+    "older manifest size disagrees": (
+        lambda s, step: edit_manifest(s, step, lambda m: m["files"]["rank-00001.pt"].update(size=1), older=True),
         "rank-00001.pt: size mismatch",
     ),
-    "manifest of another step": (
-        lambda s, step: edit_manifest(s, step, lambda m: m.update(step=step + 1)),
+    "older manifest of another step": (
+        lambda s, step: edit_manifest(s, step, lambda m: m.update(step=step + 1), older=True),
         "MANIFEST.json: unusable: wrong step",
     ),
 }
+
+
+def test_a_manifest_damaged_anywhere_never_verifies_with_other_content(storage):
+    """Generated cases: one byte of a real manifest changed at 600 random places (a seeded draw), each on a fresh copy.
+    None verifies with content other than what was committed, whether the damage leaves JSON (a key, a number, a
+    digit of a digest) or not; the one that verifies is damage to the digest's own key, which leaves a manifest as an
+    ftrain before the digest wrote it, its content intact."""
+    import random
+
+    make_step(storage, 30)
+    original = storage.read(step_path(30, MANIFEST))
+    committed = read_manifest(storage, 30)
+    draw, still_json, intact = random.Random(30), 0, 0
+    for _ in range(600):
+        at = draw.randrange(len(original))
+        damaged = bytearray(original)
+        damaged[at] = draw.choice([b for b in b"0123456789abcdefXYZ_ .,:" if b != original[at]])
+        storage.write_replace(step_path(30, MANIFEST), bytes(damaged))
+        result = verify_step(storage, 30, full=False)
+        if result.ok:
+            near = {key for key in result.manifest if len(key) == len(DIGEST) and sum(map(str.__ne__, key, DIGEST)) < 2}
+            read = {key: value for key, value in result.manifest.items() if key not in near}  # the key damaged
+            assert read == {key: value for key, value in committed.items() if key != DIGEST}, damaged[at - 20 : at]
+            intact += 1
+        still_json += not result.ok and "not valid JSON" not in str(result.problems[0])
+    print(
+        f"600 damaged manifests: {600 - intact} refused ({still_json} of them still JSON), {intact} damaged in the "
+        "digest's key only and read with the content committed"
+    )
+    assert still_json > 300 and intact < 60  # the key is 17 bytes of about 580
+    storage.write_replace(step_path(30, MANIFEST), original)
+    edit_manifest(storage, 30, lambda m: None, older=True)
+    assert verify_step(storage, 30).ok
 
 
 @pytest.mark.parametrize("case", CORRUPTIONS)

@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from ftrain.ckpt.format import QUARANTINED
+from ftrain.ckpt.format import DIGEST, QUARANTINED
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.errors import EXIT_STORAGE_DOWN
 from ftrain.heartbeat import ENV_DIR, read_heartbeats
@@ -166,7 +166,8 @@ def test_resume_refuses_other_env_count_config_and_format(tmp_path) -> None:
     manifest_file = storage / "checkpoints/step-000000002/MANIFEST.json"
     current = manifest_file.read_text()
     for written, message in [(1, b"holds training state in format 1"), (3, b"in ftrain 0.1's packed format")]:
-        manifest_file.write_text(json.dumps({**json.loads(current), "state_format": written}))  # an older ftrain's
+        older = {key: value for key, value in json.loads(current).items() if key != DIGEST}  # an older ftrain's
+        manifest_file.write_text(json.dumps({**older, "state_format": written}))
         result = subprocess.run(train_command(storage, "iterations=4"), cwd=REPO, env=child_env(), capture_output=True)
         assert result.returncode == 2 and message in result.stderr
         assert not (storage / "checkpoints/step-000000002" / QUARANTINED).exists(), "refused, not quarantined"
@@ -320,6 +321,14 @@ def test_corrupt_newest_step_is_quarantined_kept_and_skipped(tmp_path) -> None:
     assert "checkpoint step 6 (quarantined) moved to" in result.stdout  # set aside intact, never deleted
     assert (storage / "quarantine/step-000000006" / QUARANTINED).exists()
     run_train(tmp_path / "reference", "iterations=6")
+    assert final_manifest(storage)["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
+
+    manifest = storage / "checkpoints/step-000000006/MANIFEST.json"  # damaged where it still reads as JSON
+    manifest.write_text(manifest.read_text().replace('"world_size": 1', '"wXrld_size": 1'))
+    result = run_train(storage, "iterations=8", "checkpoint.keep_last=5")
+    assert "skipping checkpoint step 6: corrupt, quarantined (MANIFEST.json: unusable: its content" in result.stdout
+    assert "resumed from step 4" in result.stdout
+    run_train(tmp_path / "reference", "iterations=8")
     assert final_manifest(storage)["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
 
 
