@@ -228,9 +228,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--force", action="store_true", help="prune even while a run holds the storage (it refuses by default)"
     )
     unquarantine = ckpt_commands.add_parser(
-        "unquarantine", help="lift the quarantine of one step if it verifies (exit 1 if it does not)"
+        "unquarantine",
+        help="lift the quarantine of one step if it verifies, or put a step set aside back where it may go (exit 1 "
+        "if it does not verify)",
     )
-    unquarantine.add_argument("url", help=step_url)
+    unquarantine.add_argument("url", help=f"{step_url}, or one set aside <root>/quarantine/step-N")
     _add_storage_options(unquarantine)
 
     bench = commands.add_parser("bench", help="throughput benchmark against rsl-rl and stable-baselines3")

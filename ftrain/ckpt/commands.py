@@ -2,7 +2,7 @@
 exit code.
 
 A URL is a run's storage root (the directory holding ``checkpoints/``) or one step directory
-(``<root>/checkpoints/step-000000120``). Bad input raises UserError. The commands that write (``prune``,
+(``<root>/checkpoints/step-000000120``; for ``unquarantine`` also one set aside, ``<root>/quarantine/step-...``). Bad input raises UserError. The commands that write (``prune``,
 ``unquarantine``) hold the storage's lease while they do (``as_lease_holder``): refused while a run holds it.
 """
 
@@ -36,9 +36,11 @@ from ftrain.ckpt.steps import (
     abandoned,
     part_of_a_storage,
     quarantine,
+    reinstate,
     scan,
     select_resume,
     set_aside,
+    set_aside_location,
     set_aside_steps,
     superseded_reason,
 )
@@ -282,7 +284,12 @@ def _prune(
 
 def unquarantine(url: str, options: dict | None = None) -> int:
     """Lift the quarantine of one step if all its files verify (full digests): 0 if lifted, 1 if it does not
-    verify (the step stays quarantined). As the holder of the storage's lease (``as_lease_holder``)."""
+    verify (the step stays quarantined). A step set aside under ``quarantine/`` goes back to ``checkpoints/`` where
+    it may (``steps.reinstate``). As the holder of the storage's lease (``as_lease_holder``)."""
+    if (aside := set_aside_location(url)) is not None:
+        root, directory = aside
+        storage = Storage.open(root, options)
+        return as_lease_holder(storage, "unquarantine", False, lambda held: _reinstate(held, directory))
     storage, step = _open(url, options)
     if step is None:
         raise UserError(
@@ -295,14 +302,28 @@ def _unquarantine(storage: Storage, step: int) -> int:
     info = next(info for info in scan(storage) if info.step == step)
     if info.status != QUARANTINE:
         raise UserError(f"{storage.where(step_dir(step))} is {info.status}, not quarantined: nothing to lift")
-    result = unquarantine_step(storage, step)
-    if not result.ok:
-        print(f"{storage.where(step_dir(step))} stays quarantined: it does not verify")
-        for problem in result.problems:
-            print(f"  {problem}")
-        return 1
-    print(f"{storage.where(step_dir(step))} verifies: quarantine lifted (was: {info.problems[0].reason})")
-    return 0
+    done = f"verifies: quarantine lifted (was: {info.problems[0].reason})"
+    return _told(unquarantine_step(storage, step), storage.where(step_dir(step)), "stays quarantined", done)
+
+
+def _reinstate(storage: Storage, directory: str) -> int:
+    where = storage.where(f"{ASIDE}/{directory}")
+    if directory not in storage.list_dirs(ASIDE):
+        raise UserError(f"{where} does not exist: see ftrain ckpt ls {storage.url}")
+    result = reinstate(storage, directory)
+    done = f"verifies and continues the storage's line: back at {storage.where(step_dir(result.step))}"
+    return _told(result, where, "stays set aside", done)
+
+
+def _told(result: Verification, where: str, stays: str, done: str) -> int:
+    """``unquarantine``'s outcome for a step at ``where``: 0 and ``done``, or 1 and why it ``stays``."""
+    if result.ok:
+        print(f"{where} {done}")
+        return 0
+    print(f"{where} {stays}: it does not verify")
+    for problem in result.problems:
+        print(f"  {problem}")
+    return 1
 
 
 def _open(url: str, options: dict | None) -> tuple[Storage, int | None]:

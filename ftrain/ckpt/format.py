@@ -244,9 +244,10 @@ def newest_generation(storage: Storage) -> int:
     return 0
 
 
-def read_manifest(storage: Storage, step: int) -> dict:
-    """The manifest of ``step``: FileNotFoundError if there is none, CorruptCheckpoint if it is not valid."""
-    data = storage.read(f"{step_dir(step)}/{MANIFEST}")
+def read_manifest(storage: Storage, step: int, directory: str | None = None) -> dict:
+    """The manifest of ``step``: FileNotFoundError if there is none, CorruptCheckpoint if it is not valid.
+    ``directory``: where the step lies, if not in its place under ``checkpoints/`` (set aside)."""
+    data = storage.read(f"{directory or step_dir(step)}/{MANIFEST}")
     try:
         manifest = json.loads(data)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:

@@ -2,10 +2,11 @@
 
 Rules (see ``format.py`` for what "verified" means): a committed step that fails verification (a missing or
 damaged file) is quarantined, never loaded, and never deleted except by an explicit ``ftrain ckpt prune
---drop-bad``; a run that needs its step number again sets it aside under ``quarantine/``. An incomplete step (no
-manifest) was abandoned and may be deleted. A step that verifies is never quarantined. No storage lies inside another
-storage's step directories, which its retention deletes (``check_storage_place``); a URL of a storage's part that
-holds no step is told what to pass instead (``part_of_a_storage``).
+--drop-bad``; a run that needs its step number again sets it aside under ``quarantine/`` (``reinstate`` puts it
+back where it still continues the storage's line). An incomplete step (no manifest) was abandoned and may be
+deleted. A step that verifies is never quarantined. No storage lies inside another storage's step directories,
+which its retention deletes (``check_storage_place``); a URL of a storage's part that holds no step is told what
+to pass instead (``part_of_a_storage``).
 """
 
 from __future__ import annotations
@@ -239,6 +240,37 @@ def set_aside(storage: Storage, info: StepInfo) -> str:
     return storage.where(target)
 
 
+def reinstate(storage: Storage, directory: str) -> Verification:
+    """Move a step set aside (``quarantine/<directory>``) back to its place under ``checkpoints/`` if its number is
+    free there, it continues the storage's line of descent (``lineage.py``: a step the run went on without stays
+    aside, where resume would set it aside again) and every file verifies (full digests). UserError where it may not
+    go back; the verification of the copy otherwise (not ok: the copy is deleted, the step stays aside)."""
+    step, source = int(STEP_DIR.match(directory.split(".")[0])[1]), f"{ASIDE}/{directory}"
+    try:
+        manifest = read_manifest(storage, step, source)
+    except FileNotFoundError:
+        raise UserError(f"{storage.where(source)} has no manifest (never committed): nothing to reinstate") from None
+    except CorruptCheckpoint as error:
+        return Verification(step, [Problem(MANIFEST, f"unusable: {error}")])
+    if storage.list_files(step_dir(step)):
+        raise UserError(
+            f"{storage.where(source)} cannot go back: {storage.where(step_dir(step))} holds the run's own step {step} "
+            "now, committed after it was set aside"
+        )
+    past = history([*scan(storage), StepInfo(step, VERIFIED, 0, manifest)])
+    if step not in past.line:
+        raise UserError(
+            f"{storage.where(source)} cannot go back: the run went on from an earlier step without it (its line of "
+            f"descent is steps {', '.join(map(str, past.line[:3]))}...), so resume would set it aside again"
+        )
+    for name in sorted(set(storage.list_files(source)) - {MANIFEST, QUARANTINED}):
+        storage.write_exclusive(f"{step_dir(step)}/{name}", storage.read(f"{source}/{name}"))
+    storage.write_exclusive(f"{step_dir(step)}/{MANIFEST}", storage.read(f"{source}/{MANIFEST}"), commit=True)
+    result = verify_step(storage, step, full=True)
+    storage.delete_tree(step_dir(step) if not result.ok else source)
+    return result
+
+
 def set_aside_steps(storage: Storage) -> list[tuple[str, str]]:
     """``(directory, quarantine reason)`` of every step set aside under ``quarantine/``."""
     return [(name, _quarantine_reason(storage, name, ASIDE)) for name in storage.list_dirs(ASIDE)]
@@ -258,8 +290,19 @@ def part_of_a_storage(storage: Storage) -> str | None:
         return f"that is the {CHECKPOINTS}/ directory of {parent}: pass {parent}"
     if (found := _enclosing_step(storage.url)) is not None and found[1] == ASIDE:
         root = found[2]
-        return f"that is a step set aside under {ASIDE}/, out of the history of {root}: see ftrain ckpt ls {root}"
+        return (
+            f"that is a step set aside under {ASIDE}/, out of the history of {root}: see ftrain ckpt ls {root}; "
+            f"ftrain ckpt unquarantine {found[0]} puts it back if it may go back"
+        )
     return None
+
+
+def set_aside_location(url: str) -> tuple[str, str] | None:
+    """``(storage root, directory under quarantine/)`` where ``url`` is a step set aside; else None."""
+    found = _enclosing_step(url)
+    if found is None or found[1] != ASIDE or found[0] != url.partition("?")[0].rstrip("/"):
+        return None
+    return found[2], found[0].rpartition("/")[2]
 
 
 def resolve_checkpoint_url(

@@ -152,11 +152,7 @@ def test_a_part_of_a_storage_that_holds_no_step_is_told_what_to_pass_instead(run
     cases = [
         (ckpt_commands.ls, f"{run}/checkpoints", f"that is the checkpoints/ directory of {run}: pass {run}"),
         (resolve_checkpoint_url, f"{run}/checkpoints/", f"that is the checkpoints/ directory of {run}: pass {run}"),
-        (
-            ckpt_commands.unquarantine,
-            set_aside,
-            f"set aside under quarantine/, out of the history of {run}: see ftrain",
-        ),
+        (ckpt_commands.show, set_aside, f"set aside under quarantine/, out of the history of {run}: see ftrain"),
     ]
     for command, url, fix in cases:
         with pytest.raises(UserError) as refused:
@@ -231,3 +227,75 @@ def test_verify_on_a_terminal_counts_the_steps_it_checks_and_clears_the_line_bef
     results = [line.split(":")[0] for line in stays if line.startswith("step ")]
     assert results == [f"step {step}" for step in (40, 30, 25, 20, 10)]  # each on a line of its own, the count wiped
     assert stays[-1] == "3 of 4 committed steps verified; 1 incomplete (never committed)"
+
+
+def test_a_step_set_aside_goes_back_only_where_it_continues_the_line_and_nothing_else_changes(tmp_path, capsys):
+    """Generated cases: 40 seeded schedules of runs on one storage, each resumed (``select_resume`` and
+    ``clear_newer``, what a run's start does) after 0-2 of its newest steps were damaged, committing 0-3 steps on.
+    Every step set aside is then repaired and put back with ``ftrain ckpt unquarantine``. Where it goes back
+    (exit 0) its files are the ones set aside, the storage holds one line with it on it and resume takes the line's
+    head; where it is refused (its number taken, or off the line), nothing in the storage changes."""
+    import hashlib
+    import random
+
+    from ftrain.ckpt.format import commit, encode, step_dir
+    from ftrain.ckpt.lineage import history
+    from ftrain.ckpt.steps import ASIDE, clear_newer, select_resume
+
+    outcomes = {"back": 0, "taken": 0, "off the line": 0}
+    for case in range(40):
+        draw, storage = random.Random(case), Storage.open(str(tmp_path / f"run-{case}"))
+        originals, parent, step = {}, None, 0
+        for generation in range(1, draw.randint(2, 4) + 1):
+            if generation > 1:  # a restart after damage to the newest steps
+                for info in scan(storage)[: draw.randint(0, 2)]:
+                    flip_shard_byte(storage, info.step)
+                selected = select_resume(storage, log=lambda line: None)
+                step, parent = (selected[0], selected[1]) if selected else (0, None)
+                clear_newer(storage, step, log=lambda line: None)
+            for _ in range(draw.randint(0 if generation > 1 else 1, 3)):
+                step += 2
+                data = encode({"generation": generation, "step": step})
+                files = {"common.pt": write_file(storage, step, "common.pt", data)}
+                shard = encode({"rank": 1, "rng": [generation, step] * 40})
+                files["rank-00001.pt"] = write_file(storage, step, "rank-00001.pt", shard)
+                digest = hashlib.sha256(data + shard).hexdigest()
+                link = {"step": parent["step"], "state_sha256": parent["state_sha256"]} if parent else None
+                meta = {"generation": generation, "parent": link, "state_sha256": digest}
+                parent = commit(storage, step, files, meta)
+                originals[digest] = shard
+        for directory in storage.list_dirs(ASIDE):
+            source = f"{ASIDE}/{directory}"
+            manifest = json.loads(storage.read(f"{source}/MANIFEST.json"))
+            storage.write_replace(f"{source}/rank-00001.pt", originals[manifest["state_sha256"]])  # repaired
+            before = tree(storage)
+            try:
+                code = ckpt_commands.unquarantine(storage.where(source))
+            except UserError as refused:
+                outcomes["taken" if "holds the run's own step" in str(refused) else "off the line"] += 1
+                assert tree(storage) == before, (case, directory, str(refused))
+                continue
+            assert code == 0 and "continues the storage's line" in capsys.readouterr().out, (case, directory)
+            back = manifest["step"]
+            assert {name: data for name, data in tree(storage).items() if name.startswith(step_dir(back))} == {
+                name.replace(source, step_dir(back)): data
+                for name, data in before.items()
+                if name.startswith(source + "/") and not name.endswith("QUARANTINED.json")
+            }
+            past = history(scan(storage, full=True))
+            assert back in past.line and not past.forks and not past.superseded, (case, directory, past)
+            assert select_resume(storage, log=lambda line: None)[0] == past.line[0]
+            outcomes["back"] += 1
+    print(f"40 schedules, steps set aside put back or refused: {outcomes}")
+    assert all(outcomes.values()), outcomes
+
+
+def tree(storage: Storage) -> dict[str, bytes]:
+    """Every file of a local storage and its bytes."""
+    root = storage.url
+    return {
+        os.path.relpath(os.path.join(top, name), root): open(os.path.join(top, name), "rb").read()
+        for top, _, names in os.walk(root)
+        for name in names
+        if not name.startswith("LEASE")
+    }
