@@ -114,7 +114,10 @@ class Storage:
             ) from None
         except ImportError as exc:
             raise UserError(f"storage URL {shown!r} needs a package that is not installed: {exc}") from None
-        url = local_path(url) if protocol in ("file", "local") else stores.prepare(protocol, url, options)
+        if protocol in ("file", "local"):  # named as the path it is (file:///a%41 is /aA), in every line
+            url = shown = local_path(url)
+        else:
+            url = stores.prepare(protocol, url, options)
         try:
             fs, root = fsspec.core.url_to_fs(url, **options)
         except Exception as exc:

@@ -451,7 +451,7 @@ def test_a_gcs_storage_that_refuses_the_credentials_is_bad_input_told_in_one_lin
 def test_a_file_url_is_read_as_rfc_8089_reads_it(tmp_path) -> None:
     """``file:///a%20b`` and ``file://localhost/a%20b`` name the directory ``/a b`` (fsspec alone takes both
     literally: a fresh run in another directory, next to the one to resume). Generated names, each written through
-    both URLs and found at the decoded path."""
+    four URL forms, found at the decoded path and named by it."""
     draw = random.Random(8089)
     alphabet = "ab z%#?é+&;"
     checked, names = 0, set()
@@ -460,6 +460,7 @@ def test_a_file_url_is_read_as_rfc_8089_reads_it(tmp_path) -> None:
         names.add(name)
         for prefix in ("file://", "file://localhost", "local://", "FILE://"):
             storage = Storage.open(prefix + quote(str(tmp_path / name)))
+            assert storage.url == str(tmp_path / name), (prefix, name)  # what every line names: the path itself
             storage.write_replace(f"from-{len(prefix)}", b"x")
             assert (tmp_path / name / f"from-{len(prefix)}").read_bytes() == b"x", (prefix, name)
             checked += 1
