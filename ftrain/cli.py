@@ -464,13 +464,16 @@ def _dispatch(args: argparse.Namespace) -> int:
 def _run_config(args: argparse.Namespace) -> Config:
     """The config of ``train`` and ``supervise``, validated before anything starts: its env id too, against
     gymnasium's registry (not in ``config.py``, which the supervisor imports and which stays free of gymnasium)."""
-    from ftrain.ckpt.steps import check_storage_place
+    from ftrain.ckpt.steps import check_not_a_checkpoints_directory, check_storage_place
+    from ftrain.ckpt.storage import Storage
     from ftrain.config import load_config, local_path
     from ftrain.train.env_ids import check_env_id
 
     config = load_config(args.config, args.overrides, args.storage)
     check_env_id(config.env)
     check_storage_place(config.storage.url)
+    if os.path.isdir(storage := local_path(config.storage.url)):  # before a supervisor writes its logs there
+        check_not_a_checkpoints_directory(Storage.open(storage))
     resume = local_path(config.resume) if config.resume not in ("auto", "never") else ""
     if resume and not os.path.exists(resume):  # a remote one is looked up by the workers
         raise UserError(f"resume={config.resume}: {resume} does not exist: pass a run's storage or a step directory")

@@ -2,8 +2,9 @@
 exit code.
 
 A URL is a run's storage root (the directory holding ``checkpoints/``) or one step directory
-(``<root>/checkpoints/step-000000120``; for ``unquarantine`` also one set aside, ``<root>/quarantine/step-...``). Bad input raises UserError. The commands that write (``prune``,
-``unquarantine``) hold the storage's lease while they do (``as_lease_holder``): refused while a run holds it.
+(``<root>/checkpoints/step-000000120``; for ``unquarantine`` also one set aside, ``<root>/quarantine/step-...``).
+Bad input raises UserError. The commands that write (``prune``, ``unquarantine``) hold the storage's lease while
+they do (``as_lease_holder``): refused while a run holds it.
 """
 
 from __future__ import annotations

@@ -286,12 +286,13 @@ def test_a_runs_checkpoints_directory_passed_as_a_storage_is_refused_before_anyt
     for step in (2, 4):
         make_step(Storage.open(str(run)), step)
     before = sorted(os.listdir(run / "checkpoints"))
-    command = train_command(run / "checkpoints", "iterations=2", f"log_dir={tmp_path / 'logs'}")
-    result = subprocess.run(command, env=child_env(), capture_output=True, text=True)
-    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
-    assert result.stderr.strip() == (
-        f"ftrain: error: storage {run / 'checkpoints'} holds step directories itself (step-000000002, "
-        "step-000000004): it is the checkpoints directory of a run, whose storage is the directory above it: pass "
-        "that to resume it, or a directory of its own"
-    )
-    assert sorted(os.listdir(run / "checkpoints")) == before
+    train = train_command(run / "checkpoints", "iterations=2", f"log_dir={tmp_path / 'logs'}")
+    for command in (train, supervise_command(run / "checkpoints")):  # the supervisor's logs go to the storage
+        result = subprocess.run(command, env=child_env(), capture_output=True, text=True)
+        assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+        assert result.stderr.strip() == (
+            f"ftrain: error: storage {run / 'checkpoints'} holds step directories itself (step-000000002, "
+            "step-000000004): it is the checkpoints directory of a run, whose storage is the directory above it: "
+            "pass that to resume it, or a directory of its own"
+        )
+        assert sorted(os.listdir(run / "checkpoints")) == before  # no lease, no log (the supervisor's warm pool)
