@@ -31,6 +31,8 @@ class Ledger:
         self.lost = 0
         self.downtime = 0.0
         self.pending: Failure | None = None
+        self.committed = 0
+        """The newest step the workers committed (0: none): what a failure never recovered from lost up to."""
         self.paused: Failure | None = None
         """When the workers last saved on request and stopped (an elastic regroup, or the end of an attempt)."""
         self.world: int | None = None
@@ -57,6 +59,7 @@ class Ledger:
             attempt.completed = max(attempt.completed, beat.iteration, beat.committed_step or 0)
             if beat.committed_step is not None:
                 attempt.committed = max(beat.committed_step, attempt.committed or 0)
+                self.committed = max(self.committed, beat.committed_step)
         if self.paused is None and any(beat.phase == Phase.PREEMPTED for beat in beats.values()):
             self.paused = Failure(now, attempt.completed)  # saved on request: torchrun regroups, or the attempt ends
         # a rank that is done or saved on request may be left over from an older world; but where every rank is,
@@ -104,8 +107,14 @@ class Ledger:
         self.world, self.nodes = attempt.world, nodes
         return regrouped
 
-    def summarize(self, ending: str, code: int, restarts: int) -> None:
-        """The ``summary`` event that closes the run (``ending``: its event): restarts, iterations lost, downtime."""
+    def summarize(self, ending: str, code: int, restarts: int, now: float) -> None:
+        """The ``summary`` event that closes the run (``ending``: its event): restarts, iterations lost, downtime. A
+        failure no attempt recovered from (the run stopped, or gave up, before one trained again) lost what it had
+        completed past the newest commit, and was down until ``now``."""
+        if (stop := self.pending) is not None:
+            self.lost += max(0, stop.completed - self.committed)
+            self.downtime += now - stop.detected
+            self.pending = None
         lost, downtime = self.lost, self.downtime
         self.events(
             "summary",

@@ -418,7 +418,7 @@ class Supervisor:
         if self.nodes.count > 1 and not self._ends_alone(ending):
             self._tell("finish", code=ending.code)
             self.link.settle(self.nodes.count, LINGER)
-        self.ledger.summarize(ending.event, ending.code, self.policy.restarts)
+        self.ledger.summarize(ending.event, ending.code, self.policy.restarts, time.monotonic())
         return ending.code
 
     def _ends_alone(self, ending: Outcome) -> bool:

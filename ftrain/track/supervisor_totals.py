@@ -26,7 +26,8 @@ class SupervisorTotals:
 
 
 def totals(lines: list[str]) -> dict[str, float]:
-    """Counted as the supervisor's own summary counts them: iterations lost and downtime of recoveries."""
+    """Counted as the supervisor's summary counts them while workers run: iterations lost and downtime of recoveries
+    (a failure never recovered from is counted by the summary as the run ends, when no worker charts)."""
     events = [event for event in map(_parse, lines) if event]
     recovered = [event for event in events if event.get("event") == "recovered"]
     return {

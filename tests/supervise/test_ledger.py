@@ -34,3 +34,54 @@ def test_ranks_done_in_an_older_world_do_not_stand_for_the_training_one(tmp_path
     }
     ledger.observe(attempt, beats, now=1.0)
     assert attempt.world == 1
+
+
+def test_iterations_lost_are_counted_whether_or_not_a_recovery_follows(tmp_path) -> None:
+    """Generated schedules (seeded): attempts of one rank train, commit every 2nd iteration, and fail; a restart may
+    fail again before it trains, and the run may end (a preemption, a crash loop) before any attempt recovers. The
+    summary's iterations lost is a simple model's: per failure, what was completed past the step the next training
+    attempt resumed from, or past the newest commit where none did. (It said 0 after a failure then a stop.)"""
+    import random
+
+    from ftrain.supervise.attempt import Attempt
+
+    checked = unrecovered = recoveries = 0
+    for case in range(60):
+        draw, logged = random.Random(case), []
+        ledger = Ledger(1, lambda name, message="", _into=logged, **fields: _into.append((name, fields)))
+        completed = committed = expected = 0
+        failure: int | None = None  # iterations completed when the pending failure happened
+        attempt_number, now = 0, 0.0
+        for _ in range(draw.randint(1, 6)):
+            attempt = Attempt(Plan(generation=1, attempt=attempt_number, port=None), ["true"], {}, "token", tmp_path)
+            attempt.proc.wait()
+            attempt_number += 1
+            base = committed
+            completed = base
+            beat = Heartbeat(0, 1, base, Phase.START, committed or None, base or None, 0, now)
+            ledger.observe(attempt, {0: beat}, now)
+            for _ in range(draw.choice([0, 0, 1, 3, 5])):  # 0: fails (or is stopped) again before it trains
+                completed += 1
+                committed = completed if completed % 2 == 0 else committed
+                now += 1.0
+                beat = Heartbeat(0, 1, completed, Phase.ROLLOUT, committed or None, base or None, completed, now)
+                ledger.observe(attempt, {0: beat}, now)
+                if failure is not None:  # the first iteration past the resumed step: recovered
+                    expected, failure = expected + max(0, failure - base), None
+            if draw.random() < 0.7:
+                ledger.failed(attempt.completed, now)
+                failure = max(failure or 0, completed)
+        now += 1.0
+        ledger.summarize("preempted", 143, attempt_number - 1, now)
+        if failure is not None:
+            expected += max(0, failure - committed)
+            unrecovered += 1
+        (summary,) = [fields for name, fields in logged if name == "summary"]
+        assert summary["iterations_lost"] == expected, (case, logged)
+        checked += 1
+        recoveries += sum(name == "recovered" for name, _ in logged)
+    print(
+        f"{checked} schedules: iterations lost as the model counts them ({recoveries} recoveries; {unrecovered} "
+        "runs ended before a recovery)"
+    )
+    assert unrecovered >= 10 and recoveries >= 10
