@@ -115,12 +115,49 @@ class Record:
 
     @classmethod
     def decode(cls, data: bytes) -> Record:
+        """The record in ``data``; ValueError, KeyError or TypeError where a field is missing, of another type or out
+        of range (a generation below 1 or a float would make every commit look superseded; a time past year 5000)."""
         body = json.loads(data)
         entries = tuple(
-            Entry(Process(h["host"], h["pid"], h["start"], h["boot"], h["pidns"]), h["renewed_at"], h.get("since", 0.0))
-            for h in body["holders"]
+            Entry(
+                Process(
+                    _typed(h["host"], str),
+                    _whole(h["pid"]),
+                    _whole(h["start"]),
+                    _typed(h["boot"], str),
+                    _typed(h["pidns"], str),
+                ),
+                _seconds(h["renewed_at"]),
+                _seconds(h.get("since", 0.0)),
+            )
+            for h in _typed(body["holders"], list)
         )
-        return cls(body["run_id"], body["generation"], body["ttl"], entries)
+        generation = _whole(body["generation"], low=1)
+        return cls(_typed(body["run_id"], str), generation, _seconds(body["ttl"], low=1e-3), entries)
+
+
+def _typed(value: object, kind: type) -> object:
+    if not isinstance(value, kind):
+        raise TypeError(f"{value!r} is not a {kind.__name__}")
+    return value
+
+
+def _whole(value: object, low: int = 0) -> int:
+    """An int (not a bool, not a float) of ``low`` or more, below 2**63."""
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value < 2**63:
+        raise ValueError(f"{value!r} is not a whole number of {low} or more")
+    return value
+
+
+def _seconds(value: object, low: float = 0.0) -> float:
+    """A number of seconds (epoch or a duration) from ``low`` to ``LATEST``: every time ``_when`` can print."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not low <= value <= LATEST:
+        raise ValueError(f"{value!r} is not a number of seconds from {low} to {LATEST:g}")
+    return float(value)
+
+
+LATEST = 1e11
+"""The latest time a lease may name (epoch seconds, the year 5138): a holder renewed later is a damaged record."""
 
 
 class Lease:

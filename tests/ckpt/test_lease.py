@@ -373,6 +373,53 @@ def test_an_unreadable_lease_is_bad_input_and_left_alone(storage):
     assert storage.read(LEASE) == b"{not json"
 
 
+def test_a_lease_with_any_field_damaged_is_bad_input_in_one_line_and_left_alone(tmp_path):
+    """Generated cases: every field of a real lease record (a holder's too) given each of a set of wrong values (another
+    type, a float where a whole number goes, out of range, missing): one line naming the file, the record untouched;
+    never a traceback, and never a generation below 1 or past a float's precision taken (every commit of the run
+    would be set aside as superseded at its next start)."""
+    storage = Storage.open(str(tmp_path / "run"))
+    lease = Lease(storage, "mine", print)
+    lease.hold()
+    lease.release()
+    good = json.loads(storage.read(LEASE))
+    good["holders"] = [{"host": "far", "pid": 7, "start": 1, "boot": "b", "pidns": "p", "renewed_at": 1.0e9}]
+    wrong = ["1", None, [], {}, True, -5, 0, 1.5, 1e300, float("nan"), 10**30, "x" * 3]
+    checked = 0
+    for path in [
+        *(k for k in good if k not in ("expires", "expires_at")),
+        *(f"holders.0.{k}" for k in good["holders"][0]),
+    ]:
+        for value in [*wrong, "missing"]:
+            record = json.loads(json.dumps(good))
+            *parents, key = path.split(".")
+            where = record
+            for part in parents:
+                where = where[int(part)] if part.isdigit() else where[part]
+            if value == "missing":
+                del where[key]
+            else:
+                where[key] = value
+            data = json.dumps(record).encode()
+            storage.write_replace(LEASE, data)
+            try:
+                Lease(storage, "mine", print).acquire()
+            except LeaseHeld:  # a record that reads: another run's, held
+                pass
+            except UserError as refused:
+                assert str(refused).endswith(
+                    "LEASE.json is not a lease ftrain can read: if no run uses this storage, delete that file"
+                ), (path, value, refused)
+                assert storage.read(LEASE) == data
+                checked += 1
+            else:  # taken: only values that are what the field holds
+                taken = Record.decode(storage.read(LEASE))
+                assert taken.generation >= 1 and isinstance(taken.generation, int), (path, value)
+                storage.write_replace(LEASE, json.dumps(good).encode())
+    print(f"{checked} damaged lease records refused in one line")
+    assert checked > 70
+
+
 def test_an_unsupervised_run_holds_its_log_directory_and_one_refused_there_gives_the_lease_back(tmp_path):
     """Rank 0 of a run without a supervisor holds its log directory as a supervisor does: a run told to log where
     another logs (another run's storage, say) is refused with one line before it writes anything, and the lease of its
