@@ -258,12 +258,45 @@ def read_manifest(storage: Storage, step: int, directory: str | None = None) -> 
         raise CorruptCheckpoint("its content does not match its own digest (damaged after it was written)")
     if manifest.get("format_version") != FORMAT_VERSION:
         raise CorruptCheckpoint(f"format_version {manifest.get('format_version')!r} is not {FORMAT_VERSION}")
+    for key, (valid, what) in _FIELDS.items():
+        if key in manifest and not valid(manifest[key]):
+            raise CorruptCheckpoint(f"{key!r} is {json.dumps(manifest[key])[:40]}, not {what}")
     if manifest.get("step") != step:
         raise CorruptCheckpoint(f"wrong step: says {manifest.get('step')!r}, directory is step {step}")
     files = manifest.get("files")
     if not isinstance(files, dict) or not all(_valid_entry(n, e) for n, e in files.items()):
         raise CorruptCheckpoint("'files' is not a mapping of file name to {size, sha256}")
     return manifest
+
+
+def _whole(value: object, low: int = 0) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+
+def _parent(value: object) -> bool:
+    return value is None or (
+        isinstance(value, dict) and _whole(value.get("step")) and isinstance(value.get("state_sha256", ""), str | None)
+    )
+
+
+_FIELDS = {
+    "step": (_whole, "a step number"),
+    "iteration": (_whole, "an iteration number"),
+    "world_size": (lambda v: _whole(v, 1), "a world size of 1 or more"),
+    "envs_per_rank": (lambda v: _whole(v, 1), "a number of environments of 1 or more"),
+    "state_format": (_whole, "a format number"),
+    "generation": (_whole, "a generation number"),
+    "attempt": (lambda v: v is None or _whole(v), "an attempt number"),
+    "parent": (_parent, "null or {step, state_sha256 or null}"),
+    "world_sizes": (
+        lambda v: isinstance(v, list) and all(isinstance(p, list) and len(p) == 2 and all(map(_whole, p)) for p in v),
+        "a list of [step, world size]",
+    ),
+    **{key: (lambda v: isinstance(v, str), "a string") for key in ("state_sha256", "run_id", "config_hash", "created")},
+    **{key: (lambda v: isinstance(v, dict), "a mapping") for key in ("config", "metrics", "robot", "arithmetic")},
+}
+"""The keys readers use, where a manifest has them (an older one may not): the type and range each must have. A
+manifest that differs was damaged (one from before ``DIGEST``, or with that key itself damaged) and is corrupt."""
 
 
 def manifest_digest(manifest: dict) -> str:

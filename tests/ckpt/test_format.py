@@ -163,6 +163,48 @@ def test_a_manifest_damaged_anywhere_never_verifies_with_other_content(storage):
     assert verify_step(storage, 30).ok
 
 
+def test_an_older_manifest_with_a_field_of_another_type_is_corrupt_and_resume_goes_on_from_the_step_before(tmp_path):
+    """Generated cases: a manifest without its digest (an ftrain's before it, or the digest's key itself damaged) with
+    one field a reader uses given a value of another type or range: resume quarantines it and goes on from the step
+    before, and ls, verify and the history read it without a traceback. (A generation of "x" was a ValueError in
+    verify, train and play; ``prune`` then kept only that step.)"""
+    from ftrain.ckpt import commands as ckpt_commands
+    from ftrain.ckpt.lineage import history
+
+    fields = {
+        "iteration": 30, "world_size": 2, "envs_per_rank": 4, "state_format": 4, "generation": 1, "attempt": 0,
+        "parent": {"step": 20, "state_sha256": "a" * 64}, "world_sizes": [[0, 2]], "state_sha256": "b" * 64,
+        "run_id": "r", "config_hash": "c", "config": {}, "metrics": {"mean_return": 1.0}, "robot": {}, "arithmetic": {},
+    }  # fmt: skip
+    number, string, mapping = ["x", -1, 1.5, True, None], [5, None, []], ["x", [], 5, None]
+    wrong = {
+        **dict.fromkeys(["iteration", "state_format", "generation"], number),
+        **{key: [0, "2", 2.0, None] for key in ["world_size", "envs_per_rank"]},
+        "attempt": ["0", -1, 1.5],
+        "parent": ["x", [], {"step": "20"}, {"state_sha256": "a" * 64}],
+        "world_sizes": ["x", [[0, "2"]], [0, 2], {}],
+        **dict.fromkeys(["state_sha256", "run_id", "config_hash"], string),
+        **dict.fromkeys(["config", "metrics", "robot", "arithmetic"], mapping),
+    }
+    assert wrong.keys() == fields.keys()
+    checked = 0
+    for key, values in wrong.items():
+        for value in values:
+            storage = Storage.open(str(tmp_path / f"run-{checked}"))
+            make_step(storage, 20)
+            manifest = make_step(storage, 30)
+            older = {**{k: v for k, v in manifest.items() if k != DIGEST}, **fields, key: value}
+            storage.write_replace(step_path(30, MANIFEST), json.dumps(older).encode())
+            assert [info.status for info in scan(storage)] == [CORRUPT, VERIFIED], (key, value)
+            history(scan(storage))
+            assert ckpt_commands.ls(storage.url) == 0 and ckpt_commands.verify(storage.url) == 1
+            assert select_resume(storage, log=lambda line: None)[0] == 20, (key, value)
+            assert storage.exists(step_path(30, QUARANTINED))
+            checked += 1
+    print(f"{checked} older manifests with a field damaged: corrupt, quarantined, resumed from the step before")
+    assert checked > 50
+
+
 @pytest.mark.parametrize("case", CORRUPTIONS)
 def test_damage_is_never_verified_and_the_reason_is_named(storage_url, case):
     storage = Storage.open(*storage_url)
