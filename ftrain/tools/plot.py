@@ -12,7 +12,6 @@ preemption or by hand) is a resume, and one that ``allow_config_change=true`` le
 from __future__ import annotations
 
 import csv
-import io
 import json
 import math
 import sys
@@ -22,11 +21,12 @@ from pathlib import Path, PurePosixPath
 from ftrain.ckpt.storage import Storage
 from ftrain.config import check_writable, default_log_dir
 from ftrain.errors import UserError
+from ftrain.train.hooks import damaged, metrics_rows
 
 METRICS = "metrics.csv"
 EVENTS = "events.jsonl"
 NOT_OURS = "pass a run's log directory, with the files ftrain wrote there"
-"""The fix for a metrics or events file that ftrain cannot have written (bytes that are not UTF-8, no iteration)."""
+"""The fix for a metrics file that ftrain cannot have written (no iteration column, no row that is whole)."""
 
 
 @dataclass
@@ -52,20 +52,20 @@ def read_metrics(
     with a changed config, with what changed. ``options``: fsspec storage options."""
     storage = Storage.open(str(run), options)
     path = storage.where(METRICS)
-    text = _read(storage, METRICS)
-    if text is None:
+    data = _read(storage, METRICS)
+    if data is None:
         raise UserError(f"{path} does not exist: pass a run's log directory (where training wrote {METRICS})")
     rows: dict[int, dict[str, str]] = {}
     restarts: set[int] = set()
     changes: dict[int, str] = {}
-    previous = damaged = 0
-    reader = csv.DictReader(io.StringIO(text, newline=""))
+    previous = skipped = 0
+    reader = metrics_rows(data)
     try:
         if reader.fieldnames is not None and "iteration" not in reader.fieldnames:
             raise UserError(f"{path} has no iteration column (its columns: {', '.join(reader.fieldnames)}): {NOT_OURS}")
         for row in reader:
-            if None in row or None in row.values():  # more or fewer fields than the header: cut short, run together
-                damaged += 1
+            if damaged(row):  # as training's own reader of the file drops them (``CsvHook``)
+                skipped += 1
                 continue
             iteration = _whole(row, "iteration", f"{path} line {reader.line_num}")
             if iteration <= previous:
@@ -79,10 +79,12 @@ def read_metrics(
             rows[iteration] = row
     except csv.Error as error:
         raise UserError(f"{path} line {reader.line_num} is not CSV ({error}): {NOT_OURS}") from None
-    if damaged:  # as training's own reader of the file drops them (``CsvHook``)
-        print(f"ftrain plot: {path}: skipped {_count(damaged, 'row')} cut short or run together", file=sys.stderr)
+    if not rows and skipped:
+        raise UserError(f"{path} holds no row but {_count(skipped, 'damaged one')}: {NOT_OURS}")
     if not rows:
         raise UserError(f"{path} has no rows yet: plot the run after its first iteration")
+    if skipped:
+        print(f"ftrain plot: {path}: skipped {_count(skipped, 'damaged row')}", file=sys.stderr)
     ordered = [rows[iteration] for iteration in sorted(rows)]
     columns = {name: [_number(row.get(name)) for row in ordered] for name in ordered[-1] if name != "config_change"}
     return columns, sorted(restarts), changes
@@ -91,15 +93,18 @@ def read_metrics(
 def read_restarts(storage: Storage) -> list[int]:
     """The supervisor's restarts, each at the step the attempt after it resumed from (0: from the start)."""
     steps, restarted = [], False
-    for line in (_read(storage, EVENTS) or "").splitlines():
+    for line in (_read(storage, EVENTS) or b"").decode(errors="replace").splitlines():
         try:
             event = json.loads(line)
         except json.JSONDecodeError:
             continue  # a line cut short by a crash of the supervisor itself
+        if not isinstance(event, dict):
+            continue  # not the supervisor's: a line damaged since
         if event.get("event") == "restart":
             restarted = True
         elif event.get("event") == "resumed" and restarted:
-            steps.append(event.get("step") or 0)
+            step = event.get("step")
+            steps.append(step if isinstance(step, int) and not isinstance(step, bool) else 0)
             restarted = False
     return sorted(steps)
 
@@ -181,14 +186,12 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     return Plot(path, title, [panel for panel, _, _ in panels], restarts, resumes, changes)
 
 
-def _read(storage: Storage, name: str) -> str | None:
-    """The text of ``name`` in ``storage``; None if it does not exist."""
+def _read(storage: Storage, name: str) -> bytes | None:
+    """The bytes of ``name`` in ``storage``; None if it does not exist."""
     try:
-        return storage.read(name).decode()
+        return storage.read(name)
     except FileNotFoundError:
         return None
-    except UnicodeDecodeError as error:
-        raise UserError(f"{storage.where(name)} is not text (byte {error.start} is not UTF-8): {NOT_OURS}") from None
 
 
 def _whole(row: dict[str, str | None], column: str, where: str) -> int:

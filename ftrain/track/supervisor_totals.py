@@ -33,9 +33,14 @@ def totals(lines: list[str]) -> dict[str, float]:
     return {
         "supervisor/restarts": sum(event.get("event") == "restart" for event in events),
         "supervisor/resizes": sum(event.get("event") == "resize" for event in events),
-        "supervisor/iterations_lost": sum(event.get("lost", 0) for event in recovered),
-        "supervisor/downtime": sum(event.get("downtime", 0.0) for event in recovered),
+        "supervisor/iterations_lost": sum(_number(event.get("lost")) for event in recovered),
+        "supervisor/downtime": sum(_number(event.get("downtime")) for event in recovered),
     }
+
+
+def _number(value: object) -> float:
+    """A count the supervisor wrote, or 0 for a value damaged since (a tracker must not fail on it)."""
+    return value if isinstance(value, int | float) and not isinstance(value, bool) else 0
 
 
 def _parse(line: str) -> dict:

@@ -25,6 +25,19 @@ from ftrain.ckpt.format import human_size, step_dir
 from ftrain.errors import UserError
 
 METRICS_CSV = "metrics.csv"
+
+
+def metrics_rows(data: bytes) -> csv.DictReader:
+    """The rows of a ``metrics.csv`` as its readers take it, damage and all: NUL bytes (a power loss) dropped, bytes
+    that are not UTF-8 read as U+FFFD, which marks their row ``damaged``."""
+    return csv.DictReader(io.StringIO(data.decode(errors="replace").replace("\0", ""), newline=""))
+
+
+def damaged(row: dict) -> bool:
+    """A row cut short or run together (more or fewer fields than the header), or with bytes that were not text."""
+    return None in row or None in row.values() or any("\ufffd" in value for value in row.values())
+
+
 """What ``CsvHook`` writes in the log directory, and ``read_metrics`` reads."""
 
 if TYPE_CHECKING:
@@ -269,18 +282,19 @@ class CsvHook(Hook):
     def _open(self, path: Path, kept: int, metrics: dict[str, float], log: Callable[[str], None]) -> None:
         """Open ``path`` to append: rows past iteration ``kept`` go (a resumed run redoes them), and a file of an
         older version gains the columns it lacks. Damage never stops a run: rows cut short (a crash, a power loss's
-        NUL bytes) are dropped, and a file that is not a metrics CSV is set aside (``.unreadable``) for a new one."""
+        NUL bytes) or holding bytes that are not text are dropped, and a file that is not a metrics CSV is set aside
+        (``.unreadable``) for a new one."""
         fields: list[str] = []
         rows: list[dict] = []
         if path.exists() and path.stat().st_size:
             try:
-                reader = csv.DictReader(io.StringIO(path.read_bytes().decode().replace("\0", ""), newline=""))
+                reader = metrics_rows(path.read_bytes())
                 fields = list(reader.fieldnames or [])
                 if "iteration" not in fields:
                     raise ValueError("it has no iteration column")
-                whole = (row for row in reader if None not in row and None not in row.values())
+                whole = (row for row in reader if not damaged(row))
                 rows = [row for row in whole if row["iteration"].isdigit() and int(row["iteration"]) <= kept]
-            except (UnicodeDecodeError, ValueError, csv.Error) as error:
+            except (ValueError, csv.Error) as error:
                 aside = path.with_name(f"{path.name}.unreadable")
                 os.replace(path, aside)
                 log(f"{path} is not a metrics CSV ({error}): set aside as {aside.name}; a new one starts here")

@@ -64,16 +64,17 @@ def test_files_of_older_versions_keep_the_last_row_of_each_iteration(resumed, tm
 
 
 def test_rows_cut_short_or_run_together_are_skipped_and_counted(resumed, tmp_path, capsys) -> None:
-    """What a crash mid-write leaves (a row cut short, the next run's row glued to it), as training's own reader
-    of the file skips them; it was a traceback."""
+    """What a crash mid-write leaves (a row cut short, the next run's row glued to it) and bytes that are not text,
+    as training's own reader of the file skips them; they were a traceback, and the bytes stopped the plot."""
     lines = (resumed / "metrics.csv").read_text().splitlines(keepends=True)
     run = tmp_path / "damaged"
     run.mkdir()
     glued = lines[3][: len(lines[3]) // 2] + lines[4]  # iteration 3 cut short, iteration 4 run into it
-    (run / "metrics.csv").write_text("".join([*lines[:3], glued, *lines[5:], "garbage,,,\n"]))
+    garbage = bytes(range(128, 256)) + b"\n"  # bytes that are not text, as the probe appended
+    (run / "metrics.csv").write_bytes("".join([*lines[:3], glued, *lines[5:], "garbage,,,\n"]).encode() + garbage)
     columns, _, _ = read_metrics(run)
     assert columns["iteration"] == [1, 2, 5, 6, 7, 8]
-    assert capsys.readouterr().err == f"ftrain plot: {run / 'metrics.csv'}: skipped 2 rows cut short or run together\n"
+    assert capsys.readouterr().err == f"ftrain plot: {run / 'metrics.csv'}: skipped 3 damaged rows\n"
 
 
 def test_plot_marks_a_resume_that_was_no_restart(resumed, tmp_path) -> None:
@@ -95,7 +96,8 @@ def test_plot_adds_the_supervisors_restarts(resumed, tmp_path) -> None:
     events("resumed", attempt=2, step=2)
     events("restart", attempt=3, restarts=2)
     events("resumed", attempt=3, step=None)  # a crash before the first checkpoint: restarted from the start
-    with (run / "events.jsonl").open("a") as file:
+    with (run / "events.jsonl").open("a") as file:  # damaged since: skipped, a step of another type as none
+        file.write('[1, 2]\nnull\n{"event": "restart"}\n{"event": "resumed", "step": "4"}\n')
         file.write('{"time": 1.0, "event": "resu')  # cut short when the supervisor itself was killed
     plot = plot_run(run)
     assert (plot.restarts, plot.resumes) == ([0, 2], [4])

@@ -33,7 +33,7 @@ def a_run(directory: Path, metrics: bytes) -> Path:
     ("metrics", "message"),
     [
         (b"a,b,c\n1,2,3\n", "metrics.csv has no iteration column (its columns: a, b, c): pass a run's log directory"),
-        (b"iteration,x\n1,\xff\xfe\n", "metrics.csv is not text (byte 14 is not UTF-8): pass a run's log directory"),
+        (b"iteration,x\n1,\xff\xfe\n", "metrics.csv holds no row but 1 damaged one: pass a run's log directory"),
         (b"iteration,x\n1,2\nzz,3\n", "metrics.csv line 3: iteration 'zz' is not a whole number: pass a run's log"),
         (b"iteration,resumed_from\n1,\n2,one\n", "metrics.csv line 3: resumed_from 'one' is not a whole number"),
     ],

@@ -265,3 +265,24 @@ def test_a_stuck_tracker_never_blocks_sending_and_a_full_queue_is_one_warning():
     tracker.answer.set()
     sender.close(finished=True)
     assert tracker.logged == list(range(1, QUEUE_ROWS + 1)) and len(lines) == 1
+
+
+def test_the_supervisors_totals_skip_event_lines_damaged_since() -> None:
+    """A line that is not an object, or a count of another type, counts as nothing: the tracker goes on (a string
+    count was a TypeError that switched W&B off for the run)."""
+    from ftrain.track.supervisor_totals import totals
+
+    lines = [
+        json.dumps({"event": "restart"}),
+        json.dumps({"event": "recovered", "lost": 3, "downtime": 1.5}),
+        json.dumps({"event": "recovered", "lost": "5", "downtime": None}),
+        "[1, 2]",
+        "null",
+        '{"event": "recov',
+    ]
+    assert totals(lines) == {
+        "supervisor/restarts": 1,
+        "supervisor/resizes": 0,
+        "supervisor/iterations_lost": 3,
+        "supervisor/downtime": 1.5,
+    }

@@ -119,21 +119,22 @@ def test_it_learns_inverted_pendulum_with_two_ranks(tmp_path, additions: list[st
 @pytest.mark.parametrize(
     "damage, after",
     [
-        (lambda text: text + "\0" * 200, [1, 2, 3, 4, 5, 6]),  # a power loss's NUL tail: every row stays
-        (lambda text: text[: text.rindex("\n", 0, -1) + 8], [1, 2, 3, 5, 6]),  # the last row cut short: it goes
-        (lambda text: "hello world\n1\n", [5, 6]),  # not a metrics CSV: set aside for a new one
+        (lambda data: data + b"\0" * 200, [1, 2, 3, 4, 5, 6]),  # a power loss's NUL tail: every row stays
+        (lambda data: data[: data.rindex(b"\n", 0, -1) + 8], [1, 2, 3, 5, 6]),  # the last row cut short: it goes
+        (lambda data: data + bytes(range(128, 256)) + b"\n", [1, 2, 3, 4, 5, 6]),  # bytes that are not text: dropped
+        (lambda data: b"hello world\n1\n", [5, 6]),  # not a metrics CSV: set aside for a new one
     ],
-    ids=["nul-tail", "cut-row", "not-metrics"],
+    ids=["nul-tail", "cut-row", "not-text", "not-metrics"],
 )
 def test_a_damaged_metrics_csv_never_stops_a_resume(tmp_path, damage, after) -> None:
     """The run resumes from step 4 (of 6) whatever became of its metrics.csv, and keeps every row that is whole."""
     run = tmp_path / "run"
     run_train(run, "iterations=4")
-    damaged = damage((run / "metrics.csv").read_text())
-    (run / "metrics.csv").write_text(damaged)
+    damaged = damage((run / "metrics.csv").read_bytes())
+    (run / "metrics.csv").write_bytes(damaged)
     resumed = run_train(run, "iterations=6")
     assert sorted(metrics_by_iteration(run)) == after
     assert all(None not in row.values() for row in csv.DictReader((run / "metrics.csv").open(newline="")))
     if after == [5, 6]:
         assert "set aside as metrics.csv.unreadable" in resumed.stdout + resumed.stderr
-        assert (run / "metrics.csv.unreadable").read_text() == damaged
+        assert (run / "metrics.csv.unreadable").read_bytes() == damaged
