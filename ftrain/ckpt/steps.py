@@ -315,7 +315,10 @@ def resolve_checkpoint_url(
     if step is None:
         selected = select_resume(storage, log, quarantine_bad=False)
         if selected is None:
-            fix = part_of_a_storage(storage) or "pass a run's storage or a step directory"
+            steps = storage.list_dirs(CHECKPOINTS)  # none verifies: ls tells why
+            fix = part_of_a_storage(storage) or (
+                f"see ftrain ckpt ls {storage.url}" if steps else "pass a run's storage or a step directory"
+            )
             raise UserError(f"no verified checkpoint under {storage.url}: {fix}")
         return storage, *selected
     result = verify_step(storage, step)

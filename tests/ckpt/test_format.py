@@ -291,8 +291,12 @@ def test_resolve_checkpoint_url(tmp_path):
     assert not storage.exists(step_path(30, QUARANTINED))  # resolving never writes
     with pytest.raises(UserError, match=r"step-000000030 does not verify .*sha256 mismatch"):
         resolve_checkpoint_url(f"{root}/checkpoints/step-000000030")
-    with pytest.raises(UserError, match="no verified checkpoint under"):
+    with pytest.raises(UserError, match=r"no verified checkpoint under .*: pass a run's storage or a step directory$"):
         resolve_checkpoint_url(str(tmp_path / "empty"))
+    for step in (10, 20):
+        flip_shard_byte(storage, step)
+    with pytest.raises(UserError, match=f"no verified checkpoint under {root}: see ftrain ckpt ls {root}$"):
+        resolve_checkpoint_url(root, log=lambda line: None)  # steps that do not verify: ls says why
 
 
 @pytest.mark.parametrize(
