@@ -17,7 +17,7 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-from ftrain.ckpt.format import MANIFEST, VERIFIED, FileEntry, commit, step_dir, write_file
+from ftrain.ckpt.format import CORRUPT, MANIFEST, VERIFIED, FileEntry, StepInfo, commit, step_dir, write_file
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage, StorageError
@@ -87,8 +87,13 @@ class Spool:
         same state. Unreachable storage: the spooled step must have been written for this holder of the storage's
         lease (the same run and generation), which has held it since, so nothing else can have committed to it.
         """
-        spooled = [info for info in scan(self.storage) if info.status == VERIFIED]
-        ours = [info for info in spooled if info.manifest.get(FIELD, {}).get("storage") == self.remote_url]
+        infos = scan(self.storage)
+        ours = [info for info in infos if info.status == VERIFIED and _storage_of(info) == self.remote_url]
+        newer_than = max(ours[0].step if ours else -1, remote[0] if remote is not None else -1)
+        damaged = [info for info in infos if info.status == CORRUPT and info.step > newer_than]
+        if damaged and _storage_of(damaged[0]) in (self.remote_url, None):  # None: its manifest does not read
+            problems = "; ".join(map(str, damaged[0].problems))
+            log(f"not resuming from spooled step {damaged[0].step} ({self.storage.url}): it is corrupt ({problems})")
         if not ours:
             return None
         newest = ours[0]
@@ -109,3 +114,8 @@ class Spool:
             log(f"not resuming from spooled step {newest.step} ({self.storage.url}): {why}")
             return None
         return newest.step, newest.manifest
+
+
+def _storage_of(info: StepInfo) -> str | None:
+    """The storage a spooled step was written for (None where its manifest does not read)."""
+    return (info.manifest or {}).get(FIELD, {}).get("storage")

@@ -72,3 +72,19 @@ def test_another_storages_steps_are_ignored_and_only_the_newest_steps_are_kept(t
     spool = spool_with(tmp_path, monkeypatch, {step: (str(step), None) for step in range(1, KEEP + 3)})
     assert sorted(int(name[5:]) for name in spool.storage.list_dirs("checkpoints")) == list(range(3, KEEP + 3))
     assert Spool(spool.storage, "s3://bucket/other").newest(None, True, print) is None
+
+
+def test_a_corrupt_spooled_step_newer_than_the_storages_is_told_not_skipped_in_silence(tmp_path, monkeypatch):
+    """The step before it (verified) is resumed from, and one line says why the newer one is not."""
+    spool = spool_with(tmp_path, monkeypatch, {30: ("c", 20), 40: ("d", 20)})
+    shard = tmp_path / "spool" / "checkpoints" / "step-000000040" / "common.pt"
+    shard.write_bytes(shard.read_bytes()[:-1])  # cut short
+    lines = []
+    assert spool.newest(remote_step(tmp_path, 20, "b"), True, lines.append)[0] == 30
+    assert lines == [
+        f"not resuming from spooled step 40 ({spool.storage.url}): it is corrupt (common.pt: size mismatch: "
+        "0 bytes, manifest says 1)"
+    ]
+    lines.clear()
+    assert spool.newest(remote_step(tmp_path, 50, "e"), True, lines.append) is None  # the storage has newer: no word
+    assert lines == []
