@@ -65,9 +65,9 @@ def _closest(parser: argparse.ArgumentParser, message: str) -> str:
     commands = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
     if commands is not None and message.endswith(f"required: {commands.metavar}"):
         return f" (one of: {', '.join(commands.choices)})"
-    if (choice := re.search(r"invalid choice: '([^']*)'", message)) is not None:
-        action = next((a for a in parser._actions if a.choices and choice[1] not in a.choices), None)
-        known, word = (list(action.choices) if action else []), choice[1]
+    if (choice := re.search(r"argument (\S+): invalid choice: '([^']*)'", message)) is not None:
+        names = {a.metavar or "/".join(a.option_strings) or a.dest: a for a in parser._actions}  # as argparse names it
+        known, word = list(getattr(names.get(choice[1]), "choices", None) or []), choice[2]
     elif (option := re.search(r"unrecognized arguments: (--?[^\s=]+)", message)) is not None:
         listed = [a for a in parser._actions if a.help != argparse.SUPPRESS]  # not the underscore spellings
         known, word = [o for a in listed for o in a.option_strings if o.startswith("--")], option[1]
