@@ -357,7 +357,8 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
     if storage is not None:
         given = [raw for key, _, raw in (item.partition("=") for item in overrides) if key.strip() == "storage.url"]
         if given and parse_value(given[-1]) != storage:
-            raise UserError(f"--storage {storage} and storage.url={given[-1]} name two storages: pass one of them")
+            shown = f"--storage {display_url(storage)} and storage.url={display_url(given[-1])}"
+            raise UserError(f"{shown} name two storages: pass one of them")
         set_dotted(data, "storage.url", storage)
     config = build(Config, data, prefix="")
     keys = {item.partition("=")[0].strip() for item in overrides} & {"iterations", "algorithm.schedule_iterations"}

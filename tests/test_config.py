@@ -27,11 +27,15 @@ def test_overrides_are_typed_and_dotted() -> None:
 
 
 def test_storage_given_twice_differently_is_refused_and_alike_is_taken() -> None:
-    """``--storage A storage.url=B``: which one was meant is not for ftrain to pick (it took A, silently)."""
+    """``--storage A storage.url=B``: which one was meant is not for ftrain to pick; the line names both without
+    credentials."""
     with pytest.raises(UserError, match=r"^--storage /tmp/a and storage.url=/tmp/b name two storages: pass one of"):
         load_config(SMOKE, ["storage.url=/tmp/b"], storage="/tmp/a")
     assert load_config(SMOKE, ["storage.url=/tmp/a"], storage="/tmp/a").storage.url == "/tmp/a"
     assert load_config(SMOKE, ["storage.url=/tmp/b"]).storage.url == "/tmp/b"
+    with pytest.raises(UserError) as refused:  # credentials in either: never printed
+        load_config(SMOKE, ["storage.url=s3://AKIA1:S3CR3T@b/x"], storage="s3://AKIA1:S3CR3T@b/y")
+    assert "S3CR3T" not in str(refused.value) and "AKIA1" not in str(refused.value), str(refused.value)
 
 
 def test_storage_decides_log_dir() -> None:
