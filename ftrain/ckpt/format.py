@@ -306,9 +306,10 @@ def manifest_digest(manifest: dict) -> str:
     return hashlib.sha256(json.dumps(rest, sort_keys=True, separators=(",", ":")).encode()).hexdigest()
 
 
-def verify_step(storage: Storage, step: int, full: bool = True) -> Verification:
-    """Check ``step`` against its manifest: sizes always, SHA-256 digests too when ``full``."""
-    return verify_listed(storage, step, storage.list_files(step_dir(step)), full)
+def verify_step(storage: Storage, step: int, full: bool = True, directory: str | None = None) -> Verification:
+    """Check ``step`` against its manifest: sizes always, SHA-256 digests too when ``full``. ``directory``: where the
+    step lies, if not in its place under ``checkpoints/`` (set aside)."""
+    return verify_listed(storage, step, storage.list_files(directory or step_dir(step)), full, directory)
 
 
 def read_verified(storage: Storage, step: int, name: str, manifest: dict) -> dict:
@@ -321,22 +322,24 @@ def read_verified(storage: Storage, step: int, name: str, manifest: dict) -> dic
         data = storage.read(f"{step_dir(step)}/{name}")
     except FileNotFoundError:
         raise CorruptCheckpoint(f"{where} is missing") from None
-    problem = _content_problem(name, data, entry)
+    problem = content_problem(name, data, entry)
     if problem:
         raise CorruptCheckpoint(f"{where}: {problem.reason}")
     return decode(data, where)
 
 
-def verify_listed(storage: Storage, step: int, present: dict[str, int], full: bool) -> Verification:
+def verify_listed(
+    storage: Storage, step: int, present: dict[str, int], full: bool, directory: str | None = None
+) -> Verification:
     """``verify_step`` with the directory's listing ``present`` (name -> size) already at hand. The manifest is read
     even where the listing lacks it: a listing can lag behind the files (a shared filesystem that caches directories,
     NFS across nodes; an fsspec listings cache), and a step taken for never committed may be deleted. A shard the
     listing lacks makes the step corrupt, which is set aside, never deleted."""
-    result = Verification(step)
+    result, directory = Verification(step), directory or step_dir(step)
     if MANIFEST not in present:
-        storage.forget_listing(step_dir(step))
+        storage.forget_listing(directory)
     try:
-        result.manifest = read_manifest(storage, step)
+        result.manifest = read_manifest(storage, step, directory)
     except FileNotFoundError:
         result.problems.append(NEVER_COMMITTED)
         return result
@@ -352,7 +355,7 @@ def verify_listed(storage: Storage, step: int, present: dict[str, int], full: bo
             )
         elif full:
             try:
-                problem = _content_problem(name, storage.read(f"{step_dir(step)}/{name}"), entry)
+                problem = content_problem(name, storage.read(f"{directory}/{name}"), entry)
             except FileNotFoundError:
                 problem = Problem(name, "missing")
             if problem:
@@ -360,7 +363,8 @@ def verify_listed(storage: Storage, step: int, present: dict[str, int], full: bo
     return result
 
 
-def _content_problem(name: str, data: bytes, entry: dict) -> Problem | None:
+def content_problem(name: str, data: bytes, entry: dict) -> Problem | None:
+    """What is wrong with ``data`` as the file ``name`` its manifest ``entry`` lists (size, SHA-256); None: nothing."""
     if len(data) != entry["size"]:
         return Problem(name, f"size mismatch: {len(data)} bytes, manifest says {entry['size']}")
     digest = hashlib.sha256(data).hexdigest()

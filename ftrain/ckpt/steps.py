@@ -30,6 +30,7 @@ from ftrain.ckpt.format import (
     Problem,
     StepInfo,
     Verification,
+    content_problem,
     now,
     parse_checkpoint_url,
     read_manifest,
@@ -241,33 +242,47 @@ def set_aside(storage: Storage, info: StepInfo) -> str:
 
 
 def reinstate(storage: Storage, directory: str) -> Verification:
-    """Move a step set aside (``quarantine/<directory>``) back to its place under ``checkpoints/`` if its number is
-    free there, it continues the storage's line of descent (``lineage.py``: a step the run went on without stays
-    aside, where resume would set it aside again) and every file verifies (full digests). UserError where it may not
-    go back; the verification of the copy otherwise (not ok: the copy is deleted, the step stays aside)."""
+    """Move a step set aside (``quarantine/<directory>``) back to its place under ``checkpoints/`` if every file it
+    lists verifies (full digests), its number is free there, and the storage's history with it keeps its line and
+    gains no step off it (``lineage.py``: a step the run went on without, or one of a line a person set aside with
+    ``--keep-line``, stays aside). UserError where it may not go back; its verification otherwise. Each file is
+    checked as it is copied, the manifest last (it commits the step; a file that does not verify: the copy goes,
+    nothing committed), then the set-aside step goes."""
     step, source = int(STEP_DIR.match(directory.split(".")[0])[1]), f"{ASIDE}/{directory}"
-    try:
-        manifest = read_manifest(storage, step, source)
-    except FileNotFoundError:
-        raise UserError(f"{storage.where(source)} has no manifest (never committed): nothing to reinstate") from None
-    except CorruptCheckpoint as error:
-        return Verification(step, [Problem(MANIFEST, f"unusable: {error}")])
-    if storage.list_files(step_dir(step)):
+    result = verify_step(storage, step, full=False, directory=source)  # the digests: as each file is copied
+    if result.never_committed:
+        raise UserError(f"{storage.where(source)} has no manifest (never committed): nothing to reinstate")
+    if not result.ok:
+        return result
+    if MANIFEST in (present := storage.list_files(step_dir(step))):
         raise UserError(
             f"{storage.where(source)} cannot go back: {storage.where(step_dir(step))} holds the run's own step {step} "
             "now, committed after it was set aside"
         )
-    past = history([*scan(storage), StepInfo(step, VERIFIED, 0, manifest)])
-    if step not in past.line:
+    if present:
         raise UserError(
-            f"{storage.where(source)} cannot go back: the run went on from an earlier step without it (its line of "
-            f"descent is steps {', '.join(map(str, past.line[:3]))}...), so resume would set it aside again"
+            f"{storage.where(source)} cannot go back: {storage.where(step_dir(step))} holds files of a step never "
+            f"committed (a save or a copy cut short): 'ftrain ckpt prune {storage.url}' deletes it once abandoned"
         )
-    for name in sorted(set(storage.list_files(source)) - {MANIFEST, QUARANTINED}):
-        storage.write_exclusive(f"{step_dir(step)}/{name}", storage.read(f"{source}/{name}"))
+    infos = scan(storage)
+    before, after = history(infos), history([*infos, StepInfo(step, VERIFIED, 0, result.manifest)])
+    if step not in after.line or not set(before.line) <= set(after.line) or after.forks != before.forks:
+        line = ", ".join(map(str, before.line[:3])) + (" ..." if len(before.line) > 3 else "")
+        raise UserError(
+            f"{storage.where(source)} cannot go back: it does not continue the storage's line of descent (steps "
+            f"{line or 'none'}), so resume would set it aside again"
+        )
+    for name, entry in result.manifest["files"].items():
+        data = storage.read(f"{source}/{name}")
+        if (problem := content_problem(name, data, entry)) is not None:
+            result.problems.append(problem)
+        else:
+            storage.write_exclusive(f"{step_dir(step)}/{name}", data)
+    if not result.ok:  # never committed: what was copied goes
+        storage.delete_tree(step_dir(step))
+        return result
     storage.write_exclusive(f"{step_dir(step)}/{MANIFEST}", storage.read(f"{source}/{MANIFEST}"), commit=True)
-    result = verify_step(storage, step, full=True)
-    storage.delete_tree(step_dir(step) if not result.ok else source)
+    storage.delete_tree(source)
     return result
 
 

@@ -10,7 +10,7 @@ import time
 import pytest
 
 from ftrain.ckpt import commands as ckpt_commands
-from ftrain.ckpt.format import read_manifest, write_file
+from ftrain.ckpt.format import encode, read_manifest, write_file
 from ftrain.ckpt.steps import ABANDONED_AFTER, resolve_checkpoint_url, scan
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
@@ -235,10 +235,9 @@ def test_a_step_set_aside_goes_back_only_where_it_continues_the_line_and_nothing
     Every step set aside is then repaired and put back with ``ftrain ckpt unquarantine``. Where it goes back
     (exit 0) its files are the ones set aside, the storage holds one line with it on it and resume takes the line's
     head; where it is refused (its number taken, or off the line), nothing in the storage changes."""
-    import hashlib
     import random
 
-    from ftrain.ckpt.format import commit, encode, step_dir
+    from ftrain.ckpt.format import step_dir
     from ftrain.ckpt.lineage import history
     from ftrain.ckpt.steps import ASIDE, clear_newer, select_resume
 
@@ -255,15 +254,8 @@ def test_a_step_set_aside_goes_back_only_where_it_continues_the_line_and_nothing
                 clear_newer(storage, step, log=lambda line: None)
             for _ in range(draw.randint(0 if generation > 1 else 1, 3)):
                 step += 2
-                data = encode({"generation": generation, "step": step})
-                files = {"common.pt": write_file(storage, step, "common.pt", data)}
-                shard = encode({"rank": 1, "rng": [generation, step] * 40})
-                files["rank-00001.pt"] = write_file(storage, step, "rank-00001.pt", shard)
-                digest = hashlib.sha256(data + shard).hexdigest()
-                link = {"step": parent["step"], "state_sha256": parent["state_sha256"]} if parent else None
-                meta = {"generation": generation, "parent": link, "state_sha256": digest}
-                parent = commit(storage, step, files, meta)
-                originals[digest] = shard
+                parent = commit_step(storage, step, generation, parent)
+                originals[parent["state_sha256"]] = shard_of(generation, step)
         for directory in storage.list_dirs(ASIDE):
             source = f"{ASIDE}/{directory}"
             manifest = json.loads(storage.read(f"{source}/MANIFEST.json"))
@@ -288,6 +280,64 @@ def test_a_step_set_aside_goes_back_only_where_it_continues_the_line_and_nothing
             outcomes["back"] += 1
     print(f"40 schedules, steps set aside put back or refused: {outcomes}")
     assert all(outcomes.values()), outcomes
+
+
+def test_a_step_set_aside_that_would_fork_the_storage_or_does_not_verify_stays_aside(tmp_path, capsys):
+    """The cases the schedules above do not reach: a step a person set aside with ``prune --keep-line`` (putting it
+    back would fork the storage again), one whose shard does not verify (exit 1, nothing copied), one without a
+    manifest, a directory that is not there, and a step number holding files of a save cut short. Each leaves the
+    storage as it was."""
+    from ftrain.ckpt.steps import ASIDE
+
+    storage = Storage.open(str(tmp_path / "run"))
+    ten = commit_step(storage, 10, 1, None)
+    commit_step(storage, 30, 1, commit_step(storage, 20, 1, ten))
+    commit_step(storage, 25, 1, ten)  # a second line from step 10: a fork
+    assert ckpt_commands.keep_line(storage.url, 25) == 0
+    assert sorted(storage.list_dirs(ASIDE)) == ["step-000000020", "step-000000030"]
+    flip_shard_byte(storage, 25)
+    assert ckpt_commands.prune(storage.url, keep_last=5) == 0  # nothing deleted: the corrupt step stays
+    os.makedirs(f"{storage.url}/{ASIDE}/step-000000040")  # set aside without a manifest
+    os.makedirs(f"{storage.url}/checkpoints/step-000000020")
+    with open(f"{storage.url}/checkpoints/step-000000020/common.pt", "wb") as half:
+        half.write(b"a save cut short")
+    refusals = [
+        ("step-000000030", "does not continue the storage's line of descent (steps 25, 10)"),
+        ("step-000000020", "holds files of a step never committed (a save or a copy cut short)"),
+        ("step-000000040", "has no manifest (never committed): nothing to reinstate"),
+        ("step-000000050", "does not exist: see ftrain ckpt ls"),
+    ]
+    for directory, why in refusals:
+        before = tree(storage)
+        with pytest.raises(UserError, match=re.escape(why)):
+            ckpt_commands.unquarantine(f"{storage.url}/{ASIDE}/{directory}")
+        assert tree(storage) == before, directory
+    os.remove(f"{storage.url}/checkpoints/step-000000020/common.pt")
+    os.rmdir(f"{storage.url}/checkpoints/step-000000020")
+    os.rename(f"{storage.url}/checkpoints/step-000000025", f"{storage.url}/{ASIDE}/step-000000025")  # shard damaged
+    before = tree(storage)
+    assert ckpt_commands.unquarantine(f"{storage.url}/{ASIDE}/step-000000025") == 1
+    assert "stays set aside: it does not verify" in capsys.readouterr().out
+    assert tree(storage) == before and not os.path.exists(f"{storage.url}/checkpoints/step-000000025")
+
+
+def shard_of(generation: int, step: int) -> bytes:
+    return encode({"rank": 1, "rng": [generation, step] * 40})
+
+
+def commit_step(storage: Storage, step: int, generation: int, parent: dict | None) -> dict:
+    """Commit a small step of ``generation`` continuing ``parent`` (a manifest, or None for a fresh start); its
+    manifest."""
+    import hashlib
+
+    from ftrain.ckpt.format import commit
+
+    data, shard = encode({"generation": generation, "step": step}), shard_of(generation, step)
+    files = {"common.pt": write_file(storage, step, "common.pt", data)}
+    files["rank-00001.pt"] = write_file(storage, step, "rank-00001.pt", shard)
+    link = {"step": parent["step"], "state_sha256": parent["state_sha256"]} if parent else None
+    meta = {"generation": generation, "parent": link, "state_sha256": hashlib.sha256(data + shard).hexdigest()}
+    return commit(storage, step, files, meta)
 
 
 def tree(storage: Storage) -> dict[str, bytes]:
