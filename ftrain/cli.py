@@ -66,7 +66,7 @@ def _closest(parser: argparse.ArgumentParser, message: str) -> str:
     if commands is not None and message.endswith(f"required: {commands.metavar}"):
         return f" (one of: {', '.join(commands.choices)})"
     if (choice := re.search(r"argument (\S+): invalid choice: '([^']*)'", message)) is not None:
-        names = {a.metavar or "/".join(a.option_strings) or a.dest: a for a in parser._actions}  # as argparse names it
+        names = {"/".join(a.option_strings) or a.metavar or a.dest: a for a in parser._actions}  # as argparse names it
         known, word = list(getattr(names.get(choice[1]), "choices", None) or []), choice[2]
     elif (option := re.search(r"unrecognized arguments: (--?[^\s=]+)", message)) is not None:
         listed = [a for a in parser._actions if a.help != argparse.SUPPRESS]  # not the underscore spellings
@@ -75,7 +75,14 @@ def _closest(parser: argparse.ArgumentParser, message: str) -> str:
         return ""
     bare = {name.lstrip("-"): name for name in known}  # the dashes every option shares are no likeness
     close = difflib.get_close_matches(word.lstrip("-"), bare, n=1)
-    return f" (did you mean {bare[close[0]]}?)" if close else ""
+    return f" (did you mean {bare[close[0]]}?)" if close and not _negates(word.lstrip("-"), close[0]) else ""
+
+
+def _negates(typed: str, known: str) -> bool:
+    """Whether one is the other with a negation before it (``--nodrop-bad``, ``--no-force``, ``quarantine`` for
+    ``unquarantine``): the opposite of what was typed is no suggestion."""
+    longer, shorter = (typed, known) if len(typed) > len(known) else (known, typed)
+    return longer.endswith(shorter) and longer[: -len(shorter)].rstrip("-_") in ("no", "not", "non", "un", "dont")
 
 
 def _add_run_arguments(parser: argparse.ArgumentParser) -> None:

@@ -355,8 +355,10 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
             raise UserError(f"override {item!r} is not key=value: write it like env.num_envs=8")
         set_dotted(data, key.strip(), parse_value(raw))
     if storage is not None:
+        if not storage.strip():
+            raise UserError("--storage is empty: pass a directory or a URL, or leave it out for runs/<name>")
         given = [raw for key, _, raw in (item.partition("=") for item in overrides) if key.strip() == "storage.url"]
-        if given and parse_value(given[-1]) != storage:
+        if given and parse_value(given[-1]) and not _same_storage(str(parse_value(given[-1])), storage):
             shown = f"--storage {display_url(storage)} and storage.url={display_url(given[-1])}"
             raise UserError(f"{shown} name two storages: pass one of them")
         set_dotted(data, "storage.url", storage)
@@ -407,6 +409,15 @@ def local_path(url: str) -> str:
     if "\0" in path:
         raise UserError(f"storage {display_url(url)!r} holds a NUL byte, which no path can: fix the path")
     return path
+
+
+def _same_storage(one: str, other: str) -> bool:
+    """Whether two spellings name one storage: the same local directory (``/x``, ``/x/``, ``file:///x``, ``/a/../x``),
+    else the same URL but for a trailing slash."""
+    here = [local_path(url) for url in (one, other)]
+    if all(here):
+        return os.path.normpath(os.path.abspath(here[0])) == os.path.normpath(os.path.abspath(here[1]))
+    return one.rstrip("/") == other.rstrip("/")
 
 
 def local_directories(config: Config) -> dict[str, str]:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import math
 import re
 import types
 import typing
@@ -40,10 +41,20 @@ class Amount:
         return seconds > self.seconds
 
 
+def is_whole(value: object, low: int = 0) -> bool:
+    """An int of ``low`` or more: not a bool (YAML's and JSON's true is no count) and not a float."""
+    return isinstance(value, int) and not isinstance(value, bool) and value >= low
+
+
+def is_number(value: object) -> bool:
+    """A finite int or float, not a bool: what a count or a measure read back from a file may be."""
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def parse_amount(key: str, value: object, auto: bool = False) -> Amount | None:
     """``value`` of config key ``key``: N iterations, or a duration ``"30s"``, ``"5m"``, ``"1h"``; ``"auto"`` (None)
     where ``auto`` is allowed. UserError otherwise."""
-    if isinstance(value, int) and not isinstance(value, bool) and value >= 1:
+    if is_whole(value, 1):
         return Amount(iterations=value)
     if auto and value == "auto":
         return None

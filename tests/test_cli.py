@@ -8,6 +8,8 @@ import subprocess
 import sys
 from collections.abc import Iterator
 
+import pytest
+
 from ftrain.cli import build_parser
 
 from helpers import REPO, child_env, train_command
@@ -167,6 +169,10 @@ def test_a_misspelt_option_or_choice_is_told_the_one_it_is_closest_to() -> None:
                     checked += 1
                 else:
                     raise AssertionError(f"{argv} was taken")
+    for argv in (["ckpt", "prune", "x", "--nodrop-bad"], ["ckpt", "prune", "x", "--no-force"], ["ckpt", "quarantine"]):
+        with pytest.raises(UserError) as refused:  # the opposite of what was typed is no suggestion
+            parse(argv)
+        assert "did you mean" not in str(refused.value), argv
     print(f"{checked} misspelt options and choices told the one they came from")
     assert checked > 300
 

@@ -33,6 +33,10 @@ def test_storage_given_twice_differently_is_refused_and_alike_is_taken() -> None
         load_config(SMOKE, ["storage.url=/tmp/b"], storage="/tmp/a")
     assert load_config(SMOKE, ["storage.url=/tmp/a"], storage="/tmp/a").storage.url == "/tmp/a"
     assert load_config(SMOKE, ["storage.url=/tmp/b"]).storage.url == "/tmp/b"
+    for spelling in ("/tmp/a/", "file:///tmp/a", "/tmp/x/../a", ""):  # one storage, spelt otherwise: taken
+        assert load_config(SMOKE, [f"storage.url={spelling}"], storage="/tmp/a").storage.url == "/tmp/a", spelling
+    with pytest.raises(UserError, match=r"^--storage is empty: pass a directory or a URL, or leave it out"):
+        load_config(SMOKE, [], storage="")
     with pytest.raises(UserError) as refused:  # credentials in either: never printed
         load_config(SMOKE, ["storage.url=s3://AKIA1:S3CR3T@b/x"], storage="s3://AKIA1:S3CR3T@b/y")
     assert "S3CR3T" not in str(refused.value) and "AKIA1" not in str(refused.value), str(refused.value)
@@ -165,10 +169,10 @@ def test_a_config_file_not_in_utf8_or_with_a_key_given_twice_is_refused_in_one_l
         load_config(str(merged))
 
 
-def test_the_lease_ttl_from_the_environment_must_be_a_positive_number(monkeypatch) -> None:
-    for text in ("abc", "0", "-5", "inf", "nan"):
+def test_the_lease_ttl_from_the_environment_must_be_a_number_of_seconds_a_lease_record_takes(monkeypatch) -> None:
+    for text in ("abc", "0", "-5", "inf", "nan", "0.0005", "1e12"):
         monkeypatch.setenv(TTL_ENV, text)
-        with pytest.raises(UserError, match=f"^{TTL_ENV}='{text}' must be a positive number of seconds"):
+        with pytest.raises(UserError, match=f"^{TTL_ENV}='{text}' must be a number of seconds from 0.001 to 1e"):
             ttl_from_env()
     monkeypatch.setenv(TTL_ENV, "12.5")
     assert ttl_from_env() == 12.5

@@ -29,7 +29,7 @@ LAYERS = {
         "proctitle",
         "process",
     },
-    "tools": {"train", "ckpt", "config", "errors", "progress"},
+    "tools": {"train", "ckpt", "config", "values", "errors", "progress"},
     "supervise": {
         "ckpt",
         "config",

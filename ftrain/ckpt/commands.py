@@ -10,7 +10,6 @@ they do (``as_lease_holder``): refused while a run holds it.
 from __future__ import annotations
 
 import json
-import math
 import secrets
 import sys
 import time
@@ -50,6 +49,7 @@ from ftrain.ckpt.storage import Storage
 from ftrain.config import CheckpointConfig
 from ftrain.errors import UserError
 from ftrain.progress import Progress
+from ftrain.values import is_number
 
 WIDTH = 100
 """Columns of ``ls``'s table: it fits a terminal."""
@@ -217,15 +217,17 @@ def keep_line(url: str, step: int, options: dict | None = None, force: bool = Fa
     return body(storage) if dry_run else as_lease_holder(storage, "prune --keep-line", force, body)
 
 
-def as_lease_holder(storage: Storage, command: str, force: bool, body: Callable[[Storage], int]) -> int:
+def as_lease_holder(storage: Storage, command: str, force: bool | None, body: Callable[[Storage], int]) -> int:
     """``body`` of the storage, with this command holding the storage's lease (``lease.py``) meanwhile: no run starts
     while it deletes, and each of its writes is checked (``fence.guarded``). Refused in one line, with
-    ``EXIT_STORAGE_HELD``, while another process holds it; ``force``: without the lease."""
+    ``EXIT_STORAGE_HELD``, while another process holds it; ``force``: without the lease (None: a command that has no
+    ``--force``)."""
     if force:
         return body(storage)
+    anyway = f" (or pass --force to {command} anyway)" if force is not None else ""
 
     def refused(line: str) -> None:
-        print(f"ftrain: error: ckpt {command} refused: {line} (or pass --force to {command} anyway)", file=sys.stderr)
+        print(f"ftrain: error: ckpt {command} refused: {line}{anyway}", file=sys.stderr)
 
     lease = Lease(storage, f"ftrain-ckpt-{secrets.token_hex(4)}", lambda line: print(line, file=sys.stderr))
     return lease.run(lambda held: body(guarded(storage)), refused)
@@ -290,13 +292,13 @@ def unquarantine(url: str, options: dict | None = None) -> int:
     if (aside := set_aside_location(url)) is not None:
         root, directory = aside
         storage = Storage.open(root, options)
-        return as_lease_holder(storage, "unquarantine", False, lambda held: _reinstate(held, directory))
+        return as_lease_holder(storage, "unquarantine", None, lambda held: _reinstate(held, directory))
     storage, step = _open(url, options)
     if step is None:
         raise UserError(
             f"unquarantine works on one step: pass {storage.url}/{CHECKPOINTS}/step-<N> (see ftrain ckpt ls)"
         )
-    return as_lease_holder(storage, "unquarantine", False, lambda held: _unquarantine(held, step))
+    return as_lease_holder(storage, "unquarantine", None, lambda held: _unquarantine(held, step))
 
 
 def _unquarantine(storage: Storage, step: int) -> int:
@@ -377,5 +379,4 @@ def _age(modified: float | None) -> str:
 
 def _number(value: object) -> str:
     """A metric for the table: a dash where there is none (not measured, or not recorded)."""
-    measured = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    return f"{value:,.2f}" if measured else "-"
+    return f"{value:,.2f}" if is_number(value) else "-"

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import StorageError, StorageUnavailable
+from ftrain.values import is_whole
 
 FORMAT_VERSION = 1
 STATE_FORMAT = 4
@@ -50,8 +51,8 @@ def is_timing(metric: str) -> bool:
 
 DIGEST = "manifest_sha256"
 """The manifest's own SHA-256, of its other keys as canonical JSON (:func:`manifest_digest`): a manifest damaged where
-it still parses (a byte of a key or a number) is corrupt, not a step with other counters. Manifests of an ftrain
-before it have none and are taken as they are."""
+it still parses (a byte of a key or a number) is corrupt, not a step with other counters. A manifest without it (an
+older ftrain's) verifies by its file list and the types of its fields (``_FIELDS``) alone."""
 STEP_DIR = re.compile(r"^step-(\d+)$")
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
 _RESERVED = {"format_version", "step", "files", DIGEST}
@@ -269,27 +270,26 @@ def read_manifest(storage: Storage, step: int, directory: str | None = None) -> 
     return manifest
 
 
-def _whole(value: object, low: int = 0) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool) and value >= low
-
-
 def _parent(value: object) -> bool:
     return value is None or (
-        isinstance(value, dict) and _whole(value.get("step")) and isinstance(value.get("state_sha256", ""), str | None)
+        isinstance(value, dict)
+        and is_whole(value.get("step"))
+        and isinstance(value.get("state_sha256", ""), str | None)
     )
 
 
 _FIELDS = {
-    "step": (_whole, "a step number"),
-    "iteration": (_whole, "an iteration number"),
-    "world_size": (lambda v: _whole(v, 1), "a world size of 1 or more"),
-    "envs_per_rank": (lambda v: _whole(v, 1), "a number of environments of 1 or more"),
-    "state_format": (_whole, "a format number"),
-    "generation": (_whole, "a generation number"),
-    "attempt": (lambda v: v is None or _whole(v), "an attempt number"),
+    "step": (is_whole, "a step number"),
+    "iteration": (is_whole, "an iteration number"),
+    "world_size": (lambda v: is_whole(v, 1), "a world size of 1 or more"),
+    "envs_per_rank": (lambda v: is_whole(v, 1), "a number of environments of 1 or more"),
+    "state_format": (is_whole, "a format number"),
+    "generation": (is_whole, "a generation number"),
+    "attempt": (lambda v: v is None or is_whole(v), "an attempt number"),
     "parent": (_parent, "null or {step, state_sha256 or null}"),
+    "origin": (lambda v: v is None or isinstance(v, dict), "null or a mapping"),
     "world_sizes": (
-        lambda v: isinstance(v, list) and all(isinstance(p, list) and len(p) == 2 and all(map(_whole, p)) for p in v),
+        lambda v: isinstance(v, list) and all(isinstance(p, list) and len(p) == 2 and all(map(is_whole, p)) for p in v),
         "a list of [step, world size]",
     ),
     **{key: (lambda v: isinstance(v, str), "a string") for key in ("state_sha256", "run_id", "config_hash", "created")},

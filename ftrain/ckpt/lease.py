@@ -34,6 +34,7 @@ from ftrain.ckpt.storage import Storage
 from ftrain.errors import EXIT_STORAGE_HELD, UserError
 from ftrain.identity import Identity, restore_environ, saved_environ
 from ftrain.procfs import Process
+from ftrain.values import is_number, is_whole
 
 LEASE = "LEASE.json"
 FENCE = "FENCE.json"
@@ -42,6 +43,11 @@ TTL_ENV = "FTRAIN_LEASE_TTL"
 """Seconds a lease lives after its last renewal, where ``TTL`` does not suit (a storage slow to answer)."""
 TTL = 60.0
 """Seconds a lease lives after its last renewal; renewed every third of that."""
+
+
+SHORTEST, LATEST = 1e-3, 1e11
+"""The shortest ttl a lease takes, and the latest time it may name (epoch seconds, the year 5138): a record out of
+those bounds is damaged; ``FTRAIN_LEASE_TTL`` is held to them too."""
 
 
 def ttl_from_env() -> float:
@@ -53,8 +59,10 @@ def ttl_from_env() -> float:
         ttl = float(text)
     except ValueError:
         ttl = math.nan
-    if not (0 < ttl < math.inf):
-        raise UserError(f"{TTL_ENV}={text!r} must be a positive number of seconds, e.g. {TTL_ENV}={TTL:g}")
+    if not (SHORTEST <= ttl <= LATEST):
+        raise UserError(
+            f"{TTL_ENV}={text!r} must be a number of seconds from {SHORTEST:g} to {LATEST:g}, e.g. {TTL_ENV}={TTL:g}"
+        )
     return ttl
 
 
@@ -133,7 +141,7 @@ class Record:
             for h in _typed(body["holders"], list)
         )
         generation = _whole(body["generation"], low=1)
-        return cls(_typed(body["run_id"], str), generation, _seconds(body["ttl"], low=1e-3), entries)
+        return cls(_typed(body["run_id"], str), generation, _seconds(body["ttl"], low=SHORTEST), entries)
 
 
 def _typed(value: object, kind: type) -> object:
@@ -144,20 +152,16 @@ def _typed(value: object, kind: type) -> object:
 
 def _whole(value: object, low: int = 0) -> int:
     """An int (not a bool, not a float) of ``low`` or more, below 2**63."""
-    if isinstance(value, bool) or not isinstance(value, int) or not low <= value < 2**63:
+    if not is_whole(value, low) or value >= 2**63:
         raise ValueError(f"{value!r} is not a whole number of {low} or more")
     return value
 
 
 def _seconds(value: object, low: float = 0.0) -> float:
     """A number of seconds (epoch or a duration) from ``low`` to ``LATEST``: every time ``_when`` can print."""
-    if isinstance(value, bool) or not isinstance(value, int | float) or not low <= value <= LATEST:
+    if not is_number(value) or not low <= value <= LATEST:
         raise ValueError(f"{value!r} is not a number of seconds from {low} to {LATEST:g}")
     return float(value)
-
-
-LATEST = 1e11
-"""The latest time a lease may name (epoch seconds, the year 5138): a holder renewed later is a damaged record."""
 
 
 class Lease:

@@ -90,8 +90,12 @@ class Spool:
         infos = scan(self.storage)
         ours = [info for info in infos if info.status == VERIFIED and _storage_of(info) == self.remote_url]
         newer_than = max(ours[0].step if ours else -1, remote[0] if remote is not None else -1)
-        damaged = [info for info in infos if info.status == CORRUPT and info.step > newer_than]
-        if damaged and _storage_of(damaged[0]) in (self.remote_url, None):  # None: its manifest does not read
+        damaged = [
+            info
+            for info in infos
+            if info.status == CORRUPT and info.step > newer_than and _storage_of(info) in (self.remote_url, None)
+        ]  # None: its manifest does not read
+        if damaged:
             problems = "; ".join(map(str, damaged[0].problems))
             log(f"not resuming from spooled step {damaged[0].step} ({self.storage.url}): it is corrupt ({problems})")
         if not ours:

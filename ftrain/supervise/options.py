@@ -60,6 +60,10 @@ def exit_codes_help() -> str:
     )
 
 
+BACKOFF_INITIAL = 1.0
+"""Seconds of the first back-off where ``--backoff-initial`` is not given."""
+
+
 @dataclass
 class SupervisorOptions:
     nproc_per_node: int = field(default=1, metadata={"help": "worker processes on this node"})
@@ -127,9 +131,12 @@ class SupervisorOptions:
             "its first iteration, or a phase not seen yet"
         },
     )
-    backoff_initial: float = field(
-        default=1.0,
-        metadata={"help": "seconds before restarting an attempt that completed no iteration (doubles each time)"},
+    backoff_initial: float | None = field(
+        default=None,
+        metadata={
+            "help": "seconds before restarting an attempt that completed no iteration (doubles each time); default 1, "
+            "at most --backoff-max"
+        },
     )
     backoff_max: float = field(default=60.0, metadata={"help": "longest back-off in seconds"})
     crash_loop: int = field(
@@ -173,12 +180,14 @@ class SupervisorOptions:
         }
         for name, (low, high, closed, what) in ranges.items():
             value = getattr(self, name)
-            if value is None:  # --storage-wait's default (outage.WAITS)
+            if value is None:  # --storage-wait's default (outage.WAITS), --backoff-initial's (below)
                 continue
             if not math.isfinite(value) or not (low <= value <= high if closed else low < value <= high):
                 raise UserError(f"--{name.replace('_', '-')}={value} is out of range: use {what}")
-        if self.backoff_initial > self.backoff_max and self.backoff_initial != type(self).backoff_initial:
-            raise UserError(  # its default over a smaller --backoff-max is taken: --backoff-max 0 is no back-off
+        if self.backoff_initial is None:  # not given: --backoff-max 0 alone is no back-off
+            self.backoff_initial = min(BACKOFF_INITIAL, self.backoff_max)
+        if self.backoff_initial > self.backoff_max:
+            raise UserError(
                 f"--backoff-initial={self.backoff_initial} is more than --backoff-max={self.backoff_max}: the first "
                 "back-off is at most the longest, raise --backoff-max or lower --backoff-initial"
             )

@@ -22,6 +22,7 @@ from ftrain.ckpt.storage import Storage
 from ftrain.config import check_writable, default_log_dir
 from ftrain.errors import UserError
 from ftrain.train.hooks import damaged, metrics_rows
+from ftrain.values import is_whole
 
 METRICS = "metrics.csv"
 EVENTS = "events.jsonl"
@@ -104,7 +105,7 @@ def read_restarts(storage: Storage) -> list[int]:
             restarted = True
         elif event.get("event") == "resumed" and restarted:
             step = event.get("step")
-            steps.append(step if isinstance(step, int) and not isinstance(step, bool) else 0)
+            steps.append(step if is_whole(step) else 0)
             restarted = False
     return sorted(steps)
 

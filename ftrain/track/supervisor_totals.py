@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from ftrain.values import is_number
+
 
 class SupervisorTotals:
     def __init__(self, log_dir: str) -> None:
@@ -33,14 +35,14 @@ def totals(lines: list[str]) -> dict[str, float]:
     return {
         "supervisor/restarts": sum(event.get("event") == "restart" for event in events),
         "supervisor/resizes": sum(event.get("event") == "resize" for event in events),
-        "supervisor/iterations_lost": sum(_number(event.get("lost")) for event in recovered),
-        "supervisor/downtime": sum(_number(event.get("downtime")) for event in recovered),
+        "supervisor/iterations_lost": sum(_counted(event.get("lost")) for event in recovered),
+        "supervisor/downtime": sum(_counted(event.get("downtime")) for event in recovered),
     }
 
 
-def _number(value: object) -> float:
-    """A count the supervisor wrote, or 0 for a value damaged since (a tracker must not fail on it)."""
-    return value if isinstance(value, int | float) and not isinstance(value, bool) else 0
+def _counted(value: object) -> float:
+    """What the supervisor wrote (iterations, seconds), or 0 for a value damaged since: a tracker must not fail."""
+    return value if is_number(value) else 0
 
 
 def _parse(line: str) -> dict:

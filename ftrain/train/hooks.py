@@ -25,6 +25,7 @@ from ftrain.ckpt.format import human_size, step_dir
 from ftrain.errors import UserError
 
 METRICS_CSV = "metrics.csv"
+"""What ``CsvHook`` writes in the log directory, and ``read_metrics`` reads."""
 
 
 def metrics_rows(data: bytes) -> csv.DictReader:
@@ -37,8 +38,6 @@ def damaged(row: dict) -> bool:
     """A row cut short or run together (more or fewer fields than the header), or with bytes that were not text."""
     return None in row or None in row.values() or any("\ufffd" in value for value in row.values())
 
-
-"""What ``CsvHook`` writes in the log directory, and ``read_metrics`` reads."""
 
 if TYPE_CHECKING:
     from ftrain.ckpt.manager import Checkpointer

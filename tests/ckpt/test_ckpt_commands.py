@@ -321,6 +321,25 @@ def test_a_step_set_aside_that_would_fork_the_storage_or_does_not_verify_stays_a
     assert tree(storage) == before and not os.path.exists(f"{storage.url}/checkpoints/step-000000025")
 
 
+def test_a_held_storage_refuses_unquarantine_without_offering_a_force_it_has_not(tmp_path, capsys):
+    from ftrain.ckpt.lease import Lease
+    from ftrain.errors import EXIT_STORAGE_HELD
+
+    storage = Storage.open(str(tmp_path / "run"))
+    make_step(storage, 10)
+    ckpt_commands.quarantine(storage, 10, "looked at by hand")
+    other = Lease(storage, "a-run", print)
+    other.hold()
+    try:
+        assert ckpt_commands.unquarantine(f"{storage.url}/checkpoints/step-000000010") == EXIT_STORAGE_HELD
+        assert ckpt_commands.prune(storage.url, keep_last=1) == EXIT_STORAGE_HELD
+    finally:
+        other.release()
+    unquarantine, prune = capsys.readouterr().err.strip().splitlines()[-2:]
+    assert unquarantine.startswith("ftrain: error: ckpt unquarantine refused: ") and "--force" not in unquarantine
+    assert prune.endswith("(or pass --force to prune anyway)")
+
+
 def shard_of(generation: int, step: int) -> bytes:
     return encode({"rank": 1, "rng": [generation, step] * 40})
 

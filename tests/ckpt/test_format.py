@@ -166,8 +166,7 @@ def test_a_manifest_damaged_anywhere_never_verifies_with_other_content(storage):
 def test_an_older_manifest_with_a_field_of_another_type_is_corrupt_and_resume_goes_on_from_the_step_before(tmp_path):
     """Generated cases: a manifest without its digest (an ftrain's before it, or the digest's key itself damaged) with
     one field a reader uses given a value of another type or range: resume quarantines it and goes on from the step
-    before, and ls, verify and the history read it without a traceback. (A generation of "x" was a ValueError in
-    verify, train and play; ``prune`` then kept only that step.)"""
+    before, and ls, verify and the history read it without a traceback."""
     from ftrain.ckpt import commands as ckpt_commands
     from ftrain.ckpt.lineage import history
 

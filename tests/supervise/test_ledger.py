@@ -40,7 +40,7 @@ def test_iterations_lost_are_counted_whether_or_not_a_recovery_follows(tmp_path)
     """Generated schedules (seeded): attempts of one rank train, commit every 2nd iteration, and fail; a restart may
     fail again before it trains, and the run may end (a preemption, a crash loop) before any attempt recovers. The
     summary's iterations lost is a simple model's: per failure, what was completed past the step the next training
-    attempt resumed from, or past the newest commit where none did. (It said 0 after a failure then a stop.)"""
+    attempt resumed from, or past the newest commit where none did."""
     import random
 
     from ftrain.supervise.attempt import Attempt

@@ -79,10 +79,12 @@ def test_a_float_option_must_be_finite(name, value) -> None:
 def test_a_first_backoff_given_above_the_longest_is_refused_and_the_default_one_is_not() -> None:
     """``--backoff-max 0`` alone means no back-off (restarts.py waits at most --backoff-max): the default initial
     back-off must not refuse it; ``--backoff-initial 10 --backoff-max 5`` contradict each other."""
-    check(backoff_max=0.0)
+    assert SupervisorOptions(backoff_max=0.0).backoff_initial == 0.0
+    assert SupervisorOptions().backoff_initial == 1.0
     check(backoff_initial=5.0, backoff_max=5.0)
-    with pytest.raises(UserError, match=r"^--backoff-initial=10.0 is more than --backoff-max=5.0: the first back-off"):
-        check(backoff_initial=10.0, backoff_max=5.0)
+    for initial, most in [(10.0, 5.0), (1.0, 0.5)]:  # given, even at its default: refused
+        with pytest.raises(UserError, match=rf"^--backoff-initial={initial} is more than --backoff-max={most}: the"):
+            check(backoff_initial=initial, backoff_max=most)
 
 
 @pytest.mark.parametrize(

@@ -268,8 +268,8 @@ def test_a_stuck_tracker_never_blocks_sending_and_a_full_queue_is_one_warning():
 
 
 def test_the_supervisors_totals_skip_event_lines_damaged_since() -> None:
-    """A line that is not an object, or a count of another type, counts as nothing: the tracker goes on (a string
-    count was a TypeError that switched W&B off for the run)."""
+    """A line that is not an object, or a count of another type, counts as nothing: the tracker, and W&B with it,
+    goes on."""
     from ftrain.track.supervisor_totals import totals
 
     lines = [
