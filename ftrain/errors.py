@@ -5,6 +5,7 @@ bug and keeps its traceback.
 """
 
 import errno
+import shlex
 import signal
 import sys
 
@@ -62,3 +63,8 @@ class StorageError(Exception):
 
 class StorageUnavailable(StorageError):
     """The storage did not answer, or answered busy, through every retry: wait for it (never bad input)."""
+
+
+def command(*words: object) -> str:
+    """A command line for a user to paste, each word shell-quoted where it needs to be (a path with a space)."""
+    return " ".join(shlex.quote(str(word)) for word in words)

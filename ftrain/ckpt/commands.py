@@ -47,7 +47,7 @@ from ftrain.ckpt.steps import (
 from ftrain.ckpt.steps import unquarantine as unquarantine_step
 from ftrain.ckpt.storage import Storage
 from ftrain.config import CheckpointConfig
-from ftrain.errors import UserError
+from ftrain.errors import UserError, command
 from ftrain.progress import Progress
 from ftrain.values import is_number
 
@@ -130,7 +130,7 @@ def show(url: str, options: dict | None = None, as_json: bool = False) -> int:
     if step is None:
         selected = select_resume(storage, log=lambda line: print(line, file=sys.stderr), quarantine_bad=False)
         if selected is None:
-            raise UserError(f"no verified checkpoint under {storage.url}: see ftrain ckpt ls {storage.url}")
+            raise UserError(f"no verified checkpoint under {storage.url}: see {_ls(storage)}")
         step, manifest = selected
         result = Verification(step, manifest=manifest)
     else:
@@ -252,9 +252,7 @@ def _prune(
             f"--best-metric {best_metric}: no step of {storage.url} records it; use one of {', '.join(recorded)}"
         )
     if missing := sorted(set(pinned) - {info.step for info in infos}):
-        raise UserError(
-            f"--pin {missing[0]}: {storage.url} holds no step {missing[0]}; see ftrain ckpt ls {storage.url}"
-        )
+        raise UserError(f"--pin {missing[0]}: {storage.url} holds no step {missing[0]}; see {_ls(storage)}")
     keep_last = own.keep_last if keep_last is None else keep_last
     keep_best = own.keep_best if keep_best is None else keep_best
     best_metric = own.best_metric if best_metric is None else best_metric
@@ -312,10 +310,14 @@ def _unquarantine(storage: Storage, step: int) -> int:
 def _reinstate(storage: Storage, directory: str) -> int:
     where = storage.where(f"{ASIDE}/{directory}")
     if directory not in storage.list_dirs(ASIDE):
-        raise UserError(f"{where} does not exist: see ftrain ckpt ls {storage.url}")
+        raise UserError(f"{where} does not exist: see {_ls(storage)}")
     result = reinstate(storage, directory)
     done = f"verifies and continues the storage's line: back at {storage.where(step_dir(result.step))}"
     return _told(result, where, "stays set aside", done)
+
+
+def _ls(storage: Storage) -> str:
+    return command("ftrain", "ckpt", "ls", storage.url)
 
 
 def _told(result: Verification, where: str, stays: str, done: str) -> int:
@@ -337,7 +339,7 @@ def _open(url: str, options: dict | None) -> tuple[Storage, int | None]:
         usual = "pass a run's storage (the directory holding checkpoints/) or one step directory"
         raise UserError(f"no checkpoints under {storage.url}: {part_of_a_storage(storage) or usual}")
     if step is not None and not storage.list_files(step_dir(step)):
-        raise UserError(f"{storage.where(step_dir(step))} does not exist: see ftrain ckpt ls {storage.url}")
+        raise UserError(f"{storage.where(step_dir(step))} does not exist: see {_ls(storage)}")
     return storage, step
 
 

@@ -20,7 +20,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass
 
 from ftrain.ckpt.format import VERIFIED, StepInfo
-from ftrain.errors import UserError
+from ftrain.errors import UserError, command
 
 
 @dataclass(frozen=True)
@@ -41,11 +41,11 @@ class History:
 
     def fork_message(self, url: str) -> str:
         """The one line that refuses a forked storage, and says how to keep one line."""
+        keep = command("ftrain", "ckpt", "prune", url, "--keep-line", "STEP")
         return (
             f"{url} holds two histories of generation {self.generation[0]}: steps {_steps(self.line)} and steps "
             f"{_steps(self.forks)} do not descend from each other (two processes wrote it as one run); keep one line "
-            f"with 'ftrain ckpt prune {url} --keep-line STEP' (the other's steps are set aside under quarantine/), "
-            "then start again"
+            f"with {keep} (the other's steps are set aside under quarantine/), then start again"
         )
 
 

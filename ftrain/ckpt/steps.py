@@ -41,7 +41,7 @@ from ftrain.ckpt.format import (
 from ftrain.ckpt.lineage import History, generation, history
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.storage import Storage
-from ftrain.errors import UserError
+from ftrain.errors import UserError, command
 from ftrain.redact import display_url
 
 ASIDE = "quarantine"
@@ -262,7 +262,8 @@ def reinstate(storage: Storage, directory: str) -> Verification:
     if present:
         raise UserError(
             f"{storage.where(source)} cannot go back: {storage.where(step_dir(step))} holds files of a step never "
-            f"committed (a save or a copy cut short): 'ftrain ckpt prune {storage.url}' deletes it once abandoned"
+            f"committed (a save or a copy cut short): {command('ftrain', 'ckpt', 'prune', storage.url)} deletes "
+            "it once abandoned"
         )
     infos = scan(storage)
     before, after = history(infos), history([*infos, StepInfo(step, VERIFIED, 0, result.manifest)])
@@ -304,10 +305,10 @@ def part_of_a_storage(storage: Storage) -> str | None:
     if last == CHECKPOINTS and not above_a_bucket and any(map(_STEP_NAME.match, storage.list_dirs(""))):
         return f"that is the {CHECKPOINTS}/ directory of {parent}: pass {parent}"
     if (found := _enclosing_step(storage.url)) is not None and found[1] == ASIDE:
-        root = found[2]
+        ls, back = command("ftrain", "ckpt", "ls", found[2]), command("ftrain", "ckpt", "unquarantine", found[0])
         return (
-            f"that is a step set aside under {ASIDE}/, out of the history of {root}: see ftrain ckpt ls {root}; "
-            f"ftrain ckpt unquarantine {found[0]} puts it back if it may go back"
+            f"that is a step set aside under {ASIDE}/, out of the history of {found[2]}: see {ls}; {back} puts it "
+            "back if it may go back"
         )
     return None
 
@@ -331,9 +332,8 @@ def resolve_checkpoint_url(
         selected = select_resume(storage, log, quarantine_bad=False)
         if selected is None:
             steps = storage.list_dirs(CHECKPOINTS)  # none verifies: ls tells why
-            fix = part_of_a_storage(storage) or (
-                f"see ftrain ckpt ls {storage.url}" if steps else "pass a run's storage or a step directory"
-            )
+            ls = f"see {command('ftrain', 'ckpt', 'ls', storage.url)}"
+            fix = part_of_a_storage(storage) or (ls if steps else "pass a run's storage or a step directory")
             raise UserError(f"no verified checkpoint under {storage.url}: {fix}")
         return storage, *selected
     result = verify_step(storage, step)

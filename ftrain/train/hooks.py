@@ -14,7 +14,6 @@ import importlib
 import io
 import math
 import os
-import shlex
 import statistics
 import time
 from collections.abc import Callable
@@ -22,7 +21,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from ftrain.ckpt.format import human_size, step_dir
-from ftrain.errors import UserError
+from ftrain.errors import UserError, command
 
 METRICS_CSV = "metrics.csv"
 """What ``CsvHook`` writes in the log directory, and ``read_metrics`` reads."""
@@ -207,11 +206,12 @@ class ConsoleHook(Hook):
         if not trainer.info.is_main:
             return
         storage, step = trainer.checkpointer.storage.url, trainer.checkpointer.committed_step
-        options, argument = trainer.config.storage.options, shlex.quote(f"{storage}")  # f-string: no credential
+        options = trainer.config.storage.options
         print(
             f"[ftrain] run saved in {storage}: newest step {step if step is not None else '- (none committed)'}; "
             f"logs in {trainer.config.log_dir}\n"
-            f"[ftrain] play it: ftrain play {argument}   export it: ftrain export {argument} --format onnx"
+            f"[ftrain] play it: {command('ftrain', 'play', storage)}   export it: "
+            f"{command('ftrain', 'export', storage, '--format', 'onnx')}"
             f"{'   (with the storage options of this run: --storage-option KEY=VALUE)' if options else ''}",
             flush=True,
         )

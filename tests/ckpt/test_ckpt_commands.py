@@ -368,3 +368,14 @@ def tree(storage: Storage) -> dict[str, bytes]:
         for name in names
         if not name.startswith("LEASE")
     }
+
+
+def test_a_command_a_line_offers_pastes_as_it_is_for_a_path_with_a_space(tmp_path):
+    import shlex
+
+    run = str(tmp_path / "my run")
+    make_step(Storage.open(run), 10)
+    with pytest.raises(UserError) as refused:
+        ckpt_commands.show(f"{run}/checkpoints/step-000000020")
+    hint = str(refused.value).rpartition("see ")[2]
+    assert shlex.split(hint) == ["ftrain", "ckpt", "ls", run], hint

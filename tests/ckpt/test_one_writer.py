@@ -183,7 +183,7 @@ def test_a_fork_of_one_generation_is_refused_until_one_line_is_kept(storage, whe
         select_resume(storage)
     message = str(refused.value)
     assert "holds two histories of generation 1: steps 30, 20, 10 and steps 25" in message
-    assert f"'ftrain ckpt prune {storage.url} --keep-line STEP'" in message and "\n" not in message
+    assert f"with ftrain ckpt prune {storage.url} --keep-line STEP (the" in message and "\n" not in message
     assert commands.verify(*where) == 1 and "FORKED: " in capsys.readouterr().out
     for name in (RUN_ID_ENV, GENERATION_ENV, ATTEMPT_ENV):
         monkeypatch.delenv(name, raising=False)
