@@ -411,13 +411,15 @@ def local_path(url: str) -> str:
     return path
 
 
+def storage_identity(url: str) -> str:
+    """Which storage a run lives in, as trackers may be told it: without credentials, a local path made absolute."""
+    return display_url(url) if "://" in url else os.path.abspath(url)
+
+
 def _same_storage(one: str, other: str) -> bool:
     """Whether two spellings name one storage: the same local directory (``/x``, ``/x/``, ``file:///x``, ``/a/../x``),
     else the same URL but for a trailing slash."""
-    here = [local_path(url) for url in (one, other)]
-    if all(here):
-        return os.path.normpath(os.path.abspath(here[0])) == os.path.normpath(os.path.abspath(here[1]))
-    return one.rstrip("/") == other.rstrip("/")
+    return len({storage_identity(local_path(url) or url).rstrip("/") for url in (one, other)}) == 1
 
 
 def local_directories(config: Config) -> dict[str, str]:

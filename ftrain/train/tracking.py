@@ -10,11 +10,9 @@ random stream the training uses (``uuid4`` reads the OS's entropy) or decides an
 
 from __future__ import annotations
 
-import os
 import uuid
 
-from ftrain.config import Config
-from ftrain.redact import display_url
+from ftrain.config import Config, storage_identity
 from ftrain.track.record import record_run, recorded_run
 from ftrain.track.run import trackers
 from ftrain.track.sender import RunInfo, Sender
@@ -67,8 +65,3 @@ class TrackingHook(Hook):
     def on_end(self, trainer: TrainerView) -> None:
         for sender in self.senders:
             sender.close(finished=trainer.iteration >= self.config.iterations)
-
-
-def storage_identity(url: str) -> str:
-    """Which storage a run lives in, as trackers may be told it: without credentials, a local path made absolute."""
-    return display_url(url) if "://" in url else os.path.abspath(url)
