@@ -10,7 +10,6 @@ import argparse
 import codecs
 import contextlib
 import dataclasses
-import difflib
 import importlib.metadata
 import io
 import os
@@ -58,10 +57,22 @@ class _Parser(argparse.ArgumentParser):
     def error(self, message: str) -> typing.NoReturn:
         raise UserError(f"{message}{_closest(self, message)}: see {self.prog} --help")
 
+    def _get_option_tuples(self, option_string: str) -> list:
+        """argparse's options that ``option_string`` abbreviates, one per option: ``--nproc`` abbreviates the two
+        spellings of --nproc-per-node, which is no ambiguity."""
+        tuples, seen = [], set()
+        for found in super()._get_option_tuples(option_string):
+            if found[0].dest not in seen:
+                seen.add(found[0].dest)
+                tuples.append(found)
+        return tuples
+
 
 def _closest(parser: argparse.ArgumentParser, message: str) -> str:
     """`` (did you mean --storage?)`` for the first unrecognized option or invalid choice in argparse's ``message``,
     where one of ``parser``'s is close; `` (one of: ...)`` for a missing command."""
+    from ftrain.values import closest
+
     commands = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
     if commands is not None and message.endswith(f"required: {commands.metavar}"):
         return f" (one of: {', '.join(commands.choices)})"
@@ -74,15 +85,8 @@ def _closest(parser: argparse.ArgumentParser, message: str) -> str:
     else:
         return ""
     bare = {name.lstrip("-"): name for name in known}  # the dashes every option shares are no likeness
-    close = difflib.get_close_matches(word.lstrip("-"), bare, n=1)
-    return f" (did you mean {bare[close[0]]}?)" if close and not _negates(word.lstrip("-"), close[0]) else ""
-
-
-def _negates(typed: str, known: str) -> bool:
-    """Whether one is the other with a negation before it (``--nodrop-bad``, ``--no-force``, ``quarantine`` for
-    ``unquarantine``): the opposite of what was typed is no suggestion."""
-    longer, shorter = (typed, known) if len(typed) > len(known) else (known, typed)
-    return longer.endswith(shorter) and longer[: -len(shorter)].rstrip("-_") in ("no", "not", "non", "un", "dont")
+    near = closest(word.lstrip("-"), bare)
+    return f" (did you mean {bare[near]}?)" if near else ""
 
 
 def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
@@ -324,7 +328,11 @@ def parse(argv: list[str]) -> argparse.Namespace:
     """``argv`` as ``ftrain`` reads it: overrides may come before or after options such as --storage, and
     ``--storage-option``, ``-q`` and ``-v`` become overrides. A usage error or a bad value is a UserError."""
     parser = build_parser()
-    args, extra = parser.parse_known_args(argv)
+    try:
+        args, extra = parser.parse_known_args(argv)
+    except UserError:
+        _refuse_option_before_command(parser, argv)
+        raise
     unknown = [word for word in extra if word.startswith("-")]  # a bare word is an override, checked as one
     if unknown or (extra and not hasattr(args, "overrides")):
         _command_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown or extra)}")
@@ -338,6 +346,31 @@ def parse(argv: list[str]) -> argparse.Namespace:
             *filter(None, [args.loudness]),
         ]
     return args
+
+
+def parsers(
+    parser: argparse.ArgumentParser, name: str = "ftrain"
+) -> typing.Iterator[tuple[str, argparse.ArgumentParser]]:
+    """``ftrain`` and every (sub)command's parser, with its command line."""
+    yield name, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for command, subparser in action.choices.items():
+                yield from parsers(subparser, f"{name} {command}")
+
+
+def _refuse_option_before_command(parser: argparse.ArgumentParser, argv: list[str]) -> None:
+    """A better line than argparse's where ``argv`` starts with an option ``ftrain`` itself has not (``ftrain
+    --storage X train ...`` is an invalid command X; ``ftrain --verison`` a missing command): where it goes, or its
+    misspelling."""
+    option = argv[0].partition("=")[0] if argv and argv[0].startswith("-") else ""
+    if not option or parser._get_option_tuples(option) or option in parser._option_string_actions:
+        return
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    command = next((word for word in argv if word in commands.choices), None)
+    if command is None or not any(p._get_option_tuples(option) for _, p in parsers(commands.choices[command])):
+        parser.error(f"unrecognized arguments: {option}")
+    raise UserError(f"{option} goes after the command: ftrain {command} ... {option} ...: see ftrain {command} --help")
 
 
 def _command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:

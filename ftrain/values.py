@@ -51,6 +51,29 @@ def is_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
+def closest(word: str, known: typing.Iterable[str], cutoff: float = 0.6) -> str | None:
+    """The one of ``known`` that ``word`` most likely misspells, for a "did you mean", else None. Case is no
+    difference (``ÖNNX``); a start of only one of them names it (``unq``); never the opposite of what was typed
+    (``nodrop-bad`` for ``drop-bad``, ``quarantine`` for ``unquarantine``), which may do the harm the user avoided."""
+    names = {name.casefold(): name for name in known}
+    typed = word.casefold()
+    starting = [folded for folded in names if typed and folded.startswith(typed)]
+    near = starting if len(starting) == 1 else difflib.get_close_matches(typed, names, n=1, cutoff=cutoff)
+    return names[near[0]] if near and not _negates(typed, near[0]) else None
+
+
+def did_you_mean(word: str, known: typing.Iterable[str]) -> str:
+    """`` (did you mean X?)`` where ``word`` is close to one X of ``known`` (``closest``), else nothing."""
+    near = closest(word, known)
+    return f" (did you mean {near}?)" if near else ""
+
+
+def _negates(typed: str, known: str) -> bool:
+    """Whether one is the other with a negation before it."""
+    longer, shorter = (typed, known) if len(typed) > len(known) else (known, typed)
+    return longer.endswith(shorter) and longer[: -len(shorter)].rstrip("-_") in ("no", "not", "non", "un", "dont")
+
+
 def parse_amount(key: str, value: object, auto: bool = False) -> Amount | None:
     """``value`` of config key ``key``: N iterations, or a duration ``"30s"``, ``"5m"``, ``"1h"``; ``"auto"`` (None)
     where ``auto`` is allowed. UserError otherwise."""
@@ -93,8 +116,8 @@ def build(cls: type, data: dict, prefix: str) -> Any:
     kwargs = {}
     for key, value in data.items():
         if key not in names:
-            near = difflib.get_close_matches(str(key), names, n=1, cutoff=0.5)
-            hint = f"did you mean {prefix}{near[0]}?" if near else f"valid keys: {', '.join(prefix + n for n in names)}"
+            near = closest(str(key), names, cutoff=0.5)
+            hint = f"did you mean {prefix}{near}?" if near else f"valid keys: {', '.join(prefix + n for n in names)}"
             raise UserError(f"unknown config key {prefix}{key}: {hint}")
         default = defaults[key]
         example = default if isinstance(default, (int, float)) and not isinstance(default, bool) else None

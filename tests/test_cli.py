@@ -4,28 +4,19 @@ from __future__ import annotations
 
 import argparse
 import importlib.metadata
+import re
 import subprocess
 import sys
-from collections.abc import Iterator
 
 import pytest
 
-from ftrain.cli import build_parser
+from ftrain.cli import build_parser, parsers
 
 from helpers import REPO, child_env, train_command
 
 
 def ftrain(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "ftrain", *args], cwd=REPO, capture_output=True, text=True, timeout=60)
-
-
-def parsers(parser: argparse.ArgumentParser, name: str = "ftrain") -> Iterator[tuple[str, argparse.ArgumentParser]]:
-    """``ftrain`` and every (sub)command's parser, with its command line."""
-    yield name, parser
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            for command, subparser in action.choices.items():
-                yield from parsers(subparser, f"{name} {command}")
 
 
 def test_every_option_command_and_argument_has_help() -> None:
@@ -156,10 +147,13 @@ def test_a_misspelt_option_or_choice_is_told_the_one_it_is_closest_to() -> None:
             words += [([*needed, a.option_strings[-1], c], c) for a in listed if a.choices for c in a.choices]
         known = [word[-1] for word, _ in words]
         for word, meant in words:
-            for index in range(len(meant) - len(meant.lstrip("-")), len(meant) - 1):
-                typo = meant[:index] + meant[index + 1 :]
-                if len(meant.lstrip("-")) < 4 or any(other.startswith(typo) for other in known):
-                    continue  # too short to tell from another, or an abbreviation argparse takes
+            bare = meant.lstrip("-")
+            dropped = [meant[:index] + meant[index + 1 :] for index in range(len(meant) - len(bare), len(meant) - 1)]
+            start = [] if meant.startswith("-") else [meant[:3]]  # argparse takes a start of an option, not of a word
+            for typo in [*dropped, meant.upper(), *start]:
+                shared = [other for other in known if other.lower().startswith(typo.lower())]
+                if len(bare) < 4 or (typo.startswith("-") and shared) or (typo in start and shared != [meant]):
+                    continue  # too short to tell from another, an abbreviation argparse takes, a start of two
                 argv = [*command, *word[:-1], typo]
                 try:
                     parse(argv)
@@ -174,7 +168,44 @@ def test_a_misspelt_option_or_choice_is_told_the_one_it_is_closest_to() -> None:
             parse(argv)
         assert "did you mean" not in str(refused.value), argv
     print(f"{checked} misspelt options and choices told the one they came from")
-    assert checked > 300
+    assert checked > 400
+
+
+def test_an_option_before_the_command_is_told_where_it_goes() -> None:
+    """Generated cases: every listed long option of every command given before it (``ftrain --storage X train``)
+    is told to go after the command, where argparse said the command was not one or was missing; an option
+    ``ftrain`` does not have, alone, is told the one it is closest to."""
+    from ftrain.cli import parse
+    from ftrain.errors import UserError
+
+    checked = 0
+    for name, parser in parsers(build_parser()):
+        command = name.split()[1:2]
+        listed = [a for a in parser._actions if a.help != argparse.SUPPRESS and a.option_strings]
+        for option in (o for a in listed for o in a.option_strings if o.startswith("--") and command):
+            if option in ("--help", "--version"):
+                continue
+            with pytest.raises(UserError) as refused:
+                parse([option, "x", *name.split()[1:], "x"])
+            assert str(refused.value).startswith(f"{option} goes after the command: ftrain {command[0]} "), option
+            checked += 1
+    for typed, line in [
+        ("--verison", "unrecognized arguments: --verison (did you mean --version?): see ftrain --help"),
+        ("--bogus", "unrecognized arguments: --bogus: see ftrain --help"),
+    ]:
+        with pytest.raises(UserError, match=f"^{re.escape(line)}$"):
+            parse([typed])
+        checked += 1
+    print(f"{checked} options before the command told where they go")
+    assert checked > 50
+
+
+def test_a_start_of_an_option_spelt_two_ways_is_that_option() -> None:
+    """argparse takes a start of an option; ``--nproc`` starts both spellings of --nproc-per-node, which is no
+    ambiguity (it was refused as one)."""
+    from ftrain.cli import parse
+
+    assert parse(["supervise", "configs/smoke.yaml", "--nproc", "3"]).nproc_per_node == 3
 
 
 def test_a_path_the_terminal_cannot_encode_is_escaped_not_a_crash(tmp_path) -> None:

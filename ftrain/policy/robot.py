@@ -16,7 +16,6 @@ is saved.
 
 from __future__ import annotations
 
-import difflib
 import hashlib
 import importlib
 import json
@@ -34,6 +33,7 @@ from ftrain.config import EnvConfig
 from ftrain.errors import UserError
 from ftrain.policy import mjcf
 from ftrain.policy.mujoco_warnings import route_mujoco_warnings
+from ftrain.values import closest
 
 GYMNASIUM_MUJOCO = "gymnasium.envs.mujoco"
 STATE_METHODS = ("ftrain_state", "ftrain_set_state")
@@ -110,9 +110,9 @@ def check_registered(env: EnvConfig, added: set[str]) -> None:
             f"env.id={env.id!r}: importing {', '.join(modules)} registered no environment {name!r} ({did}): use one "
             f"of those, or register it in the module (gymnasium.register(id={name!r}, entry_point=...))"
         )
-    near = difflib.get_close_matches(name, list(registry), n=1)
+    near = closest(name, registry)
     hint = (
-        f"did you mean {near[0]!r}?"
+        f"did you mean {near!r}?"
         if near
         else f"for an environment of your own, name its module: env.id=mymodule:{name}"
     )

@@ -23,6 +23,7 @@ from ftrain.errors import (
 )
 from ftrain.supervise.address import interface_of
 from ftrain.supervise.auth import load_secret
+from ftrain.values import did_you_mean
 
 EXIT_DONE = 0
 EXIT_CRASH_LOOP = 3
@@ -202,7 +203,7 @@ class Workers(enum.StrEnum):
 
 def parse_workers(value: str) -> Workers:
     if value not in tuple(Workers):
-        raise UserError(f"--workers={value!r} must be one of {', '.join(Workers)}")
+        raise UserError(f"--workers={value!r} must be one of {', '.join(Workers)}{did_you_mean(value, Workers)}")
     return Workers(value)
 
 
@@ -277,7 +278,10 @@ def parse_nodes(options: SupervisorOptions) -> Nodes:
     least, nnodes = int(least), int(most)
     backends = {backend.value: backend for backend in Backend}
     if options.rdzv_backend not in backends:
-        raise UserError(f"--rdzv-backend={options.rdzv_backend!r} must be one of {', '.join(backends)}")
+        raise UserError(
+            f"--rdzv-backend={options.rdzv_backend!r} must be one of {', '.join(backends)}"
+            f"{did_you_mean(options.rdzv_backend, backends)}"
+        )
     backend = backends[options.rdzv_backend]
     if backend is Backend.C10D and options.rdzv_conf:
         raise UserError("--rdzv-conf is for --rdzv-backend etcd-v2 (c10d takes no connection settings): drop it")
@@ -312,14 +316,16 @@ def parse_etcd_conf(text: str) -> tuple[tuple[str, str], ...]:
         allowed = ETCD_CONF.get(key)
         if allowed is None:
             raise UserError(
-                f"--rdzv-conf: {key!r} is not an etcd connection setting ({', '.join(ETCD_CONF)}); the rendezvous "
-                "timeouts come from --rejoin-timeout and --rdzv-timeout"
+                f"--rdzv-conf: {key!r} is not an etcd connection setting ({', '.join(ETCD_CONF)})"
+                f"{did_you_mean(key, ETCD_CONF)}; the rendezvous timeouts come from --rejoin-timeout and --rdzv-timeout"
             )
         if allowed is Path and not Path(value).is_file():
             raise UserError(f"--rdzv-conf: {key}={value!r} must name a readable file (a PEM certificate or key)")
         if allowed is int and not (value.isdecimal() and int(value) > 0):
             raise UserError(f"--rdzv-conf: {key}={value!r} must be a positive number of seconds")
         if isinstance(allowed, tuple) and value not in allowed:
-            raise UserError(f"--rdzv-conf: {key}={value!r} must be one of {', '.join(allowed)}")
+            raise UserError(
+                f"--rdzv-conf: {key}={value!r} must be one of {', '.join(allowed)}{did_you_mean(value, allowed)}"
+            )
         pairs.append((key, value))
     return tuple(pairs)

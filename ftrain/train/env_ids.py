@@ -8,12 +8,11 @@ supervisor has made once in a child (``ftrain.policy.env_check``), and each work
 
 from __future__ import annotations
 
-import difflib
-
 from gymnasium.envs.registration import registry
 
 from ftrain.config import EnvConfig
 from ftrain.errors import UserError
+from ftrain.values import closest
 
 MUJOCO_MODULES = "gymnasium.envs.mujoco."
 """Where the entry points of gymnasium's MuJoCo environments live (the -v2/-v3 ids point elsewhere: mujoco-py)."""
@@ -36,8 +35,8 @@ def check_env_id(env: EnvConfig) -> None:
     if env.id in supported:
         return
     if env.id not in registry:
-        near = difflib.get_close_matches(env.id, supported, n=1)
-        hint = f"did you mean {near[0]!r}?" if near else f"use one of {', '.join(supported)}"
+        near = closest(env.id, supported)
+        hint = f"did you mean {near!r}?" if near else f"use one of {', '.join(supported)}"
         raise UserError(
             f"env.id={env.id!r} is not a registered gymnasium environment: {hint} (an env of your own: "
             f"env.id=yourmodule:{env.id})"

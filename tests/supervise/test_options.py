@@ -12,7 +12,16 @@ import pytest
 from ftrain.cli import main
 from ftrain.errors import EXIT_USAGE, UserError
 from ftrain.supervise.auth import SECRET_ENV
-from ftrain.supervise.options import Nodes, SupervisorOptions, parse_nodes
+from ftrain.supervise.options import (
+    ETCD_CONF,
+    Backend,
+    Nodes,
+    SupervisorOptions,
+    Workers,
+    parse_etcd_conf,
+    parse_nodes,
+    parse_workers,
+)
 
 TINY = 0.001
 EDGES = [  # option, a value just outside its range, a value at its edge
@@ -119,6 +128,34 @@ def test_the_rendezvous_port_is_a_port(monkeypatch, port, taken) -> None:
         return
     with pytest.raises(UserError, match=r"^several nodes need --rdzv-endpoint=HOST:PORT \(PORT 1 to 65535\)"):
         check(nnodes="2", rdzv_endpoint=f"127.0.0.1:{port}")
+
+
+def typos(word: str) -> list[str]:
+    """``word`` with each of its letters dropped, and in capitals."""
+    return [*{word[:i] + word[i + 1 :] for i in range(len(word))} - {word}, word.upper()]
+
+
+def test_a_misspelt_word_an_option_takes_is_told_the_one_it_is_closest_to(monkeypatch) -> None:
+    """Generated cases: the words --workers, --rdzv-backend and --rdzv-conf take (checked after argparse, which only
+    reads them as text), each misspelt every way ``typos`` has, are refused with the word they came from."""
+    monkeypatch.setenv(SECRET_ENV, "a-secret-of-sixteen-or-more")
+    etcd = {**ETCD, "nnodes": "2"}
+    cases = [(typo, word, parse_workers) for word in Workers for typo in typos(word)]
+    cases += [
+        (typo, b.value, lambda t: check(**{**etcd, "rdzv_backend": t})) for b in Backend for typo in typos(b.value)
+    ]
+    cases += [(typo, key, lambda t: parse_etcd_conf(f"{t}=x")) for key in ETCD_CONF for typo in typos(key)]
+    cases += [(typo, v, lambda t: parse_etcd_conf(f"protocol={t}")) for v in ETCD_CONF["protocol"] for typo in typos(v)]
+    checked = 0
+    for typo, meant, parse in cases:
+        if typo in ("http", "https"):  # https less its s: the other word, taken
+            continue
+        with pytest.raises(UserError) as refused:
+            parse(typo)
+        assert f"(did you mean {meant}?)" in str(refused.value), (typo, str(refused.value))
+        checked += 1
+    print(f"{checked} misspelt option words told the one they came from")
+    assert checked > 70
 
 
 def test_the_command_refuses_it_in_one_line_before_it_starts_anything(monkeypatch, capsys, tmp_path) -> None:
