@@ -28,7 +28,7 @@ from ftrain.ckpt.format import (
     step_dir,
     verify_step,
 )
-from ftrain.ckpt.lease import Lease
+from ftrain.ckpt.lease import Lease, read_record
 from ftrain.ckpt.lineage import history
 from ftrain.ckpt.retention import Kept, delete_step, kept, retention_plan
 from ftrain.ckpt.steps import (
@@ -189,9 +189,7 @@ def prune(
     if step is not None:
         raise UserError(f"prune works on a run's storage, not one step: pass {storage.url}")
     rules = (keep_last, keep_best, best_metric, keep_every, pinned, drop_bad)
-    if dry_run:
-        return _prune(storage, *rules, dry_run=True)
-    return as_lease_holder(storage, "prune", force, lambda held: _prune(held, *rules, dry_run=False))
+    return as_lease_holder(storage, "prune", force, lambda held: _prune(held, *rules, dry_run=dry_run), dry_run)
 
 
 def keep_line(url: str, step: int, options: dict | None = None, force: bool = False, dry_run: bool = False) -> int:
@@ -214,15 +212,21 @@ def keep_line(url: str, step: int, options: dict | None = None, force: bool = Fa
         print(f"kept the line of step {step}: {len(past.line)} steps; {len(past.off_line())} {done}")
         return 0
 
-    return body(storage) if dry_run else as_lease_holder(storage, "prune --keep-line", force, body)
+    return as_lease_holder(storage, "prune --keep-line", force, body, dry_run)
 
 
-def as_lease_holder(storage: Storage, command: str, force: bool | None, body: Callable[[Storage], int]) -> int:
+def as_lease_holder(
+    storage: Storage, command: str, force: bool | None, body: Callable[[Storage], int], dry_run: bool = False
+) -> int:
     """``body`` of the storage, with this command holding the storage's lease (``lease.py``) meanwhile: no run starts
     while it deletes, and each of its writes is checked (``fence.guarded``). Refused in one line, with
     ``EXIT_STORAGE_HELD``, while another process holds it; ``force``: without the lease (None: a command that has no
-    ``--force``)."""
+    ``--force``). ``dry_run``: a ``body`` that only prints, without the lease, refused as the command would be where
+    the lease is damaged."""
     if force:
+        return body(storage)
+    if dry_run:
+        read_record(storage)  # a UserError naming what is damaged
         return body(storage)
     anyway = f" (or pass --force to {command} anyway)" if force is not None else ""
 

@@ -23,10 +23,12 @@ import datetime
 import json
 import math
 import os
+import reprlib
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from ftrain.ckpt import cas
 from ftrain.ckpt.format import newest_generation
@@ -123,44 +125,63 @@ class Record:
 
     @classmethod
     def decode(cls, data: bytes) -> Record:
-        """The record in ``data``; ValueError, KeyError or TypeError where a field is missing, of another type or out
-        of range (a generation below 1 or a float would make every commit look superseded; a time past year 5000)."""
-        body = json.loads(data)
-        entries = tuple(
-            Entry(
-                Process(
-                    _typed(h["host"], str),
-                    _whole(h["pid"]),
-                    _whole(h["start"]),
-                    _typed(h["boot"], str),
-                    _typed(h["pidns"], str),
-                ),
-                _seconds(h["renewed_at"]),
-                _seconds(h.get("since", 0.0)),
+        """The record in ``data``; ValueError naming the field that is missing, of another type or out of range (a
+        generation below 1 or a float would make every commit look superseded; a time past year 5000)."""
+        body = _typed(json.loads(data), dict)
+        holders = _field(body, "holders", lambda value: _typed(value, list))
+        entries = []
+        for index in range(len(holders)):
+            where = f"holders[{index}]."
+            holder = _field(holders, index, lambda value: _typed(value, dict), "holders")
+            entries.append(
+                Entry(
+                    Process(
+                        _field(holder, "host", lambda value: _typed(value, str), where),
+                        _field(holder, "pid", _whole, where),
+                        _field(holder, "start", _whole, where),
+                        _field(holder, "boot", lambda value: _typed(value, str), where),
+                        _field(holder, "pidns", lambda value: _typed(value, str), where),
+                    ),
+                    _field(holder, "renewed_at", _seconds, where),
+                    _field(holder, "since", _seconds, where, default=0.0),
+                )
             )
-            for h in _typed(body["holders"], list)
-        )
-        generation = _whole(body["generation"], low=1)
-        return cls(_typed(body["run_id"], str), generation, _seconds(body["ttl"], low=SHORTEST), entries)
+        generation = _field(body, "generation", lambda value: _whole(value, low=1))
+        ttl = _field(body, "ttl", lambda value: _seconds(value, low=SHORTEST))
+        return cls(_field(body, "run_id", lambda value: _typed(value, str)), generation, ttl, tuple(entries))
+
+
+def _field(data: dict | list, key: str | int, check: Callable[[Any], Any], where: str = "", default: Any = None) -> Any:
+    """``check(data[key])`` (of ``default`` if given and it is missing); ValueError naming the field (``where`` +
+    ``key``) if it is missing or ``check`` fails."""
+    name = f"{where}[{key}]" if isinstance(key, int) else f"{where}{key}"
+    try:
+        value = data[key] if default is None or key in data else default
+    except (KeyError, IndexError):
+        raise ValueError(f"{name} is missing") from None
+    try:
+        return check(value)
+    except (TypeError, ValueError) as wrong:
+        raise ValueError(f"{name}: {wrong}") from None
 
 
 def _typed(value: object, kind: type) -> object:
     if not isinstance(value, kind):
-        raise TypeError(f"{value!r} is not a {kind.__name__}")
+        raise TypeError(f"{reprlib.repr(value)} is not a {kind.__name__}")
     return value
 
 
 def _whole(value: object, low: int = 0) -> int:
     """An int (not a bool, not a float) of ``low`` or more, below 2**63."""
     if not is_whole(value, low) or value >= 2**63:
-        raise ValueError(f"{value!r} is not a whole number of {low} or more")
+        raise ValueError(f"{reprlib.repr(value)} is not a whole number of {low} or more")
     return value
 
 
 def _seconds(value: object, low: float = 0.0) -> float:
     """A number of seconds (epoch or a duration) from ``low`` to ``LATEST``: every time ``_when`` can print."""
     if not is_number(value) or not low <= value <= LATEST:
-        raise ValueError(f"{value!r} is not a number of seconds from {low} to {LATEST:g}")
+        raise ValueError(f"{reprlib.repr(value)} is not a number of seconds from {low} to {LATEST:g}")
     return float(value)
 
 
@@ -203,7 +224,9 @@ class Lease:
         self.lost: str | None = None
         """Why the storage is lost to another run, once it is (for good)."""
 
-    def acquire(self, advance: bool = False, expected: int | None = None) -> str | None:
+    def acquire(
+        self, advance: bool = False, expected: int | None = None, stop: threading.Event | None = None
+    ) -> str | None:
         """Take the lease, or, ``shared``, join this run's while another of its nodes holds it (the nodes of one run
         share a generation; ``advance``: the maker of a new plan, which takes the next one for them all, only from
         generation ``expected`` if given, else ``Advanced``); LeaseHeld if another run holds it, or another start of
@@ -215,9 +238,10 @@ class Lease:
         ones still have in flight is then refused at commit (``fence.Fence``). Shared, entries of other hosts that
         only look expired get a third of the ttl first: nodes cut off from the storage by an outage renew by then,
         and are joined. (A requeued job whose old processes on other hosts still renew joins them: SLURM kills
-        those.)"""
+        those.) ``stop``: a renewal, which gives up once it is set (a write refused because ``release`` dropped the
+        entry meanwhile must not write it back)."""
         looked = None
-        while True:
+        while stop is None or not stop.is_set():
             now = time.time()
             current = read_record(self.storage)
             record, version = current if current is not None else (None, None)
@@ -259,13 +283,14 @@ class Lease:
             self.generation = generation
             replaced = record is not None and bool(record.entries) and not joins and (not ours or bool(others))
             return self._taken_message(record) if replaced else None
+        return None
 
     def renew(self) -> str | None:
         """Renew this process's entry (``acquire``); once another run took it, a line saying so, once (``lost``)."""
         if self.lost is not None:
             return None
         try:
-            return self.acquire()
+            return self.acquire(stop=self._stop)
         except LeaseLost as lost:
             self.lost = str(lost)
             return self.lost
@@ -461,9 +486,11 @@ def read_record(storage: Storage) -> tuple[Record, str] | None:
         return None
     try:
         return Record.decode(current[0]), current[1]
-    except (ValueError, KeyError, TypeError):
+    except (ValueError, TypeError) as wrong:
+        reason = "not JSON" if isinstance(wrong, (json.JSONDecodeError, UnicodeDecodeError)) else str(wrong)
         raise UserError(
-            f"{storage.where(LEASE)} is not a lease ftrain can read: if no run uses this storage, delete that file"
+            f"{storage.where(LEASE)} is not a lease ftrain can read ({reason}): if no run uses this storage, delete "
+            "that file"
         ) from None
 
 

@@ -112,6 +112,24 @@ def test_prune(run, capsys):
     assert [info.step for info in scan(Storage.open(run))] == [40, 30]
 
 
+def test_a_dry_run_of_prune_on_a_damaged_lease_is_refused_as_prune_is(run, capsys):
+    """A dry run previews what prune does: where prune would refuse a damaged LEASE.json, the preview refuses too
+    (it went ahead, and the real prune then refused); --force previews without the lease."""
+    storage = Storage.open(run)
+    storage.write_replace("LEASE.json", b'{"run_id": "x", "generation": "1", "ttl": 60, "holders": []}')
+    before = sorted(storage.fs.find(storage.root))
+    for preview in (
+        lambda: ckpt_commands.prune(run, keep_last=1, dry_run=True),
+        lambda: ckpt_commands.keep_line(run, 30, dry_run=True),
+        lambda: ckpt_commands.prune(run, keep_last=1),
+    ):
+        with pytest.raises(UserError, match=r"LEASE.json is not a lease ftrain can read \(generation: '1' is not"):
+            preview()
+    assert ckpt_commands.prune(run, keep_last=1, dry_run=True, force=True) == 0
+    assert "would delete step 20" in capsys.readouterr().out
+    assert sorted(storage.fs.find(storage.root)) == before
+
+
 def test_prune_keeps_by_the_runs_own_settings_unless_told_otherwise_and_refuses_a_metric_no_step_records(
     tmp_path, capsys
 ):
