@@ -35,7 +35,7 @@ from helpers import (
 pytestmark = pytest.mark.slow
 
 CONFIG = "configs/smoke.yaml"
-OVERRIDES = ["iterations=100", "dist_timeout=10", "log.console=false"]
+OVERRIDES = ["iterations=100", "dist_timeout=30", "log.console=false"]  # longer than the hang timeout
 DEFAULTS = ["--nproc-per-node", "2", "--backoff-initial", "0.2", "--stop-grace", "20"]
 
 
@@ -69,7 +69,7 @@ def reference(reference_state) -> str:
 def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
     storage = tmp_path / "run"
     heartbeats = storage / "heartbeat"
-    proc = start(storage, "--hang-timeout", "3")
+    proc = start(storage, "--hang-timeout", "10")  # a loaded machine slows no phase that long; a SIGSTOP is found
 
     # 1. SIGKILL of one worker
     beats = training(heartbeats, 4)
@@ -133,7 +133,7 @@ def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
         "rank 1 killed by SIGKILL",
     ]
     hangs = [event for event in log if event["event"] == "hang"]
-    assert len(hangs) == 1 and hangs[0]["processes"]["0"] == "T" and hangs[0]["limit"] == 3
+    assert len(hangs) == 1 and hangs[0]["processes"]["0"] == "T" and hangs[0]["limit"] == 10
     preempted = [event for event in log if event["event"] == "preempted"]
     assert len(preempted) == 1
     resumed = [event["step"] for event in log if event["event"] == "resumed"]

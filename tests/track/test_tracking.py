@@ -149,8 +149,10 @@ def test_an_unreachable_tracker_costs_one_warning_never_stops_training_and_gets_
     assert final_manifest(tmp_path / "run")["step"] == 8
     warnings = [line for line in (result.stdout + result.stderr).splitlines() if "mlflow:" in line]
     assert len(warnings) == 1 and "did not answer" in warnings[0], warnings
-    assert took < 60, f"training took {took:.0f} s with an unreachable tracker"
+    start = time.monotonic()
     run_train(tmp_path / "plain", env=OFFLINE, cwd=tmp_path)  # the tracker changed nothing that was trained
+    plain = time.monotonic() - start
+    assert took < plain + 30, f"training took {took:.0f} s with an unreachable tracker, {plain:.0f} s without"
     assert final_manifest(tmp_path / "plain")["state_sha256"] == final_manifest(tmp_path / "run")["state_sha256"]
 
     uri = f"sqlite:///{tmp_path / 'mlflow.db'}"  # the tracker back: the run goes on, its first 8 rows sent from the CSV

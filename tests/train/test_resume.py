@@ -475,10 +475,10 @@ def test_storage_failing_at_resume_stops_every_rank_at_once_with_one_line(tmp_pa
     (storage / "checkpoints").symlink_to("checkpoints")  # listing it fails: a storage that is down
     started = time.monotonic()
     result = subprocess.run(
-        train_command(storage, "dist_timeout=120", ranks=2), cwd=REPO, env=child_env(), capture_output=True, text=True
+        train_command(storage, "dist_timeout=400", ranks=2), cwd=REPO, env=child_env(), capture_output=True, text=True
     )
     assert result.returncode != 0
-    assert time.monotonic() - started < 60, "the other rank must not wait out dist_timeout"
+    assert time.monotonic() - started < 200, "the other rank must not wait out dist_timeout"  # a cold start: < 60
     errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
     # the lease (reading the newest step's generation on a storage without a lease record), or the resume, finds it
     failed = ("failed while reading its newest step", "failed while choosing a step")
