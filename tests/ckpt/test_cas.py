@@ -40,6 +40,7 @@ from helpers import (
     free_port,
     gcs_options,
     train_command,
+    wait_for,
 )
 
 RACERS = 8
@@ -217,10 +218,13 @@ def test_a_local_wait_for_the_lock_is_told_naming_its_stopped_holder_and_ends_wh
     holder = subprocess.Popen([sys.executable, "-c", HOLD_LOCK, storage.url], env=child_env(), stdout=subprocess.PIPE)
     try:
         assert holder.stdout.readline() == b"held\n"
-        threading.Timer(2.0, os.kill, (holder.pid, signal.SIGCONT)).start()
-        began = time.monotonic()
-        cas.write(storage, "LEASE.json", b"mine", None)
-        assert time.monotonic() - began >= 1.5  # it waited for the holder to go on and let go
+        writer = threading.Thread(target=cas.write, args=(storage, "LEASE.json", b"mine", None))
+        writer.start()
+        wait_for(lambda: caplog.records, "the wait told", timeout=60)  # then the holder goes on and lets go
+        assert writer.is_alive() and not storage.exists("LEASE.json")  # it waits meanwhile
+        os.kill(holder.pid, signal.SIGCONT)
+        writer.join(timeout=60)
+        assert not writer.is_alive()
     finally:
         os.kill(holder.pid, signal.SIGCONT)
     assert holder.wait(timeout=30) == 0 and storage.read("LEASE.json") == b"mine"

@@ -174,10 +174,11 @@ def test_a_lease_of_another_host_holds_until_it_expires_by_the_storages_clock(st
         Lease(storage, "mine", print).acquire()
 
     # that host's clock is 5 minutes behind: its renewal looks expired here, but the storage wrote it just now
-    storage.write_replace(LEASE, foreign("far-run", time.time() - 300, ttl=3.0).encode())
+    storage.write_replace(LEASE, foreign("far-run", time.time() - 300, ttl=30.0).encode())  # 30: a slow storage too
     with pytest.raises(LeaseHeld, match="far-run, pid 4242 on host node-far-away") as refused:
         Lease(storage, "mine", print).acquire()
     assert "by its host's clock, but the storage's clock says it is still renewed" in str(refused.value)
+    storage.write_replace(LEASE, foreign("far-run", time.time() - 300, ttl=3.0).encode())
     time.sleep(4.5)  # no renewal for longer than its ttl, by the storage's clock (whole seconds on S3)
     taken = Lease(storage, "mine", print).acquire()
     assert taken is not None and "from run far-run" in taken and "expired at" in taken
@@ -379,6 +380,7 @@ def test_the_keeper_renews_and_outlives_a_failing_storage(tmp_path):
     wait_for(lambda: any("renewed the lease again after" in line for line in said), "the renewal back", timeout=10)
     assert record(storage).run_id == "mine"
     lease.release()
+    lease._thread.join(timeout=30)  # release waits a third of the ttl for a renewal in flight, not always enough here
     assert not lease._thread.is_alive() and record(storage).entries == ()
 
 

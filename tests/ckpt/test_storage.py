@@ -163,9 +163,12 @@ class FlakyProxy:
         """Set once a connection was dropped during an outage: the client has really seen it."""
         self.live: list[socket.socket] = []
         self.lose_responses = 0
+        self.back_after: int | None = None
         threading.Thread(target=self._accept, daemon=True).start()
 
-    def down(self) -> None:
+    def down(self, connections: int | None = None) -> None:
+        """Down until ``up`` is set again, or (``connections``) until it has dropped that many connections."""
+        self.back_after = connections
         self.up.clear()
         for sock in self.live:
             _cut(sock)
@@ -184,6 +187,9 @@ class FlakyProxy:
             if not self.up.is_set():
                 client.close()
                 self.refused.set()
+                self.back_after = None if self.back_after is None else self.back_after - 1
+                if self.back_after == 0:
+                    self.up.set()
                 continue
             upstream = socket.create_connection(self.target)
             self.live += [client, upstream]
@@ -223,14 +229,7 @@ def test_transient_outage_is_retried(flaky_s3, caplog):
     storage = Storage.open(url, {"endpoint_url": proxy.endpoint}, retries=6, base_delay=0.05)
     storage.write_exclusive("checkpoints/step-1/MANIFEST.json", b"{}")
     caplog.set_level(logging.WARNING, logger="ftrain.ckpt.storage")
-    proxy.down()
-
-    def outage_ends() -> None:  # after the client has hit it (a timer could fire before a slow machine reads)
-        proxy.refused.wait(30)
-        time.sleep(0.2)
-        proxy.up.set()
-
-    threading.Thread(target=outage_ends, daemon=True).start()
+    proxy.down(connections=2)  # the outage ends after the client has hit it twice, however slow the machine
     assert storage.read("checkpoints/step-1/MANIFEST.json") == b"{}"
     assert 1 <= len(caplog.records) <= 6
     assert "retry 1/6" in caplog.text and S3_SECRET not in caplog.text
