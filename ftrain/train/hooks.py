@@ -34,8 +34,12 @@ def metrics_rows(data: bytes) -> csv.DictReader:
 
 
 def damaged(row: dict) -> bool:
-    """A row cut short or run together (more or fewer fields than the header), or with bytes that were not text."""
-    return None in row or None in row.values() or any("\ufffd" in value for value in row.values())
+    """A row cut short or run together (more or fewer fields than the header), with bytes that were not text, or
+    whose iteration is not a whole number."""
+    if None in row or None in row.values() or any("\ufffd" in value for value in row.values()):
+        return True
+    iteration = row.get("iteration") or ""
+    return not (iteration.isascii() and iteration.isdigit())
 
 
 if TYPE_CHECKING:
@@ -292,7 +296,7 @@ class CsvHook(Hook):
                 if "iteration" not in fields:
                     raise ValueError("it has no iteration column")
                 whole = (row for row in reader if not damaged(row))
-                rows = [row for row in whole if row["iteration"].isdigit() and int(row["iteration"]) <= kept]
+                rows = [row for row in whole if int(row["iteration"]) <= kept]
             except (ValueError, csv.Error) as error:
                 aside = path.with_name(f"{path.name}.unreadable")
                 os.replace(path, aside)

@@ -65,16 +65,18 @@ def test_files_of_older_versions_keep_the_last_row_of_each_iteration(resumed, tm
 
 def test_rows_cut_short_or_run_together_are_skipped_and_counted(resumed, tmp_path, capsys) -> None:
     """What a crash mid-write leaves (a row cut short, the next run's row glued to it) and a row with bytes that are
-    not text are skipped and counted, as training's own reader of the file drops them."""
+    not text, and rows whose iteration is not a whole number are skipped and counted, as training's own reader of the
+    file drops them (a row's iteration refused the whole plot)."""
     lines = (resumed / "metrics.csv").read_text().splitlines(keepends=True)
     run = tmp_path / "damaged"
     run.mkdir()
     glued = lines[3][: len(lines[3]) // 2] + lines[4]  # iteration 3 cut short, iteration 4 run into it
-    text = "".join([*lines[:3], glued, *lines[5:], "garbage,,,\n"]).encode()
+    not_numbered = [f"{iteration}{lines[8][1:]}" for iteration in ("zz", "\u00b2", "", "-8", "8.0")]
+    text = "".join([*lines[:3], glued, *lines[5:], "garbage,,,\n", *not_numbered]).encode()
     (run / "metrics.csv").write_bytes(text.replace(b"\n5,", b"\n5,\xff\xfe", 1))  # row 5: bytes that are not text
     columns, _, _ = read_metrics(run)
     assert columns["iteration"] == [1, 2, 6, 7, 8]
-    assert capsys.readouterr().err == f"ftrain plot: {run / 'metrics.csv'}: skipped 3 damaged rows\n"
+    assert capsys.readouterr().err == f"ftrain plot: {run / 'metrics.csv'}: skipped 8 damaged rows\n"
 
 
 def test_plot_marks_a_resume_that_was_no_restart(resumed, tmp_path) -> None:

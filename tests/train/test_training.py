@@ -122,9 +122,10 @@ def test_it_learns_inverted_pendulum_with_two_ranks(tmp_path, additions: list[st
         (lambda data: data + b"\0" * 200, [1, 2, 3, 4, 5, 6]),  # a power loss's NUL tail: every row stays
         (lambda data: data[: data.rindex(b"\n", 0, -1) + 8], [1, 2, 3, 5, 6]),  # the last row cut short: it goes
         (lambda data: data.replace(b"\n3,", b"\n3,\xff", 1), [1, 2, 4, 5, 6]),  # bytes that are not text: row dropped
+        (lambda data: data.replace(b"\n2,", "\n\u00b2,".encode(), 1), [1, 3, 4, 5, 6]),  # "²": a digit to isdigit
         (lambda data: b"hello world\n1\n", [5, 6]),  # not a metrics CSV: set aside for a new one
     ],
-    ids=["nul-tail", "cut-row", "not-text", "not-metrics"],
+    ids=["nul-tail", "cut-row", "not-text", "not-a-number", "not-metrics"],
 )
 def test_a_damaged_metrics_csv_never_stops_a_resume(tmp_path, damage, after) -> None:
     """The run resumes from step 4 (of 6) whatever became of its metrics.csv, and keeps every row that is whole."""
