@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import os
 import re
 import time
 from dataclasses import dataclass, field
@@ -130,13 +131,22 @@ def step_dir(step: int) -> str:
 
 
 def parse_checkpoint_url(url: str) -> tuple[str, int | None]:
-    """Split the URL of one step (``<root>/checkpoints/step-000000120``) into root and step; else ``(url, None)``."""
-    head, _, last = url.rstrip("/").rpartition("/")
-    match = STEP_DIR.match(last)
-    if match is None or (head != CHECKPOINTS and not head.endswith("/" + CHECKPOINTS)):
-        return url, None
-    root = head[: -len(CHECKPOINTS)].rstrip("/") or ("/" if head.startswith("/") else ".")
-    return root, int(match[1])
+    """Split the URL of one step (``<root>/checkpoints/step-000000120``, or ``step-000000120`` in ``checkpoints/``)
+    into root and step; else ``(url, None)``."""
+    for spelt in spellings(url):
+        head, _, last = spelt.rstrip("/").rpartition("/")
+        match = STEP_DIR.match(last)
+        if match is not None and (head == CHECKPOINTS or head.endswith("/" + CHECKPOINTS)):
+            return head[: -len(CHECKPOINTS)].rstrip("/") or ("/" if head.startswith("/") else "."), int(match[1])
+    return url, None
+
+
+def spellings(url: str) -> list[str]:
+    """``url`` as given, then, for a relative local path, as an absolute one: a step named from inside the directory
+    that holds it (``step-000000120`` in ``checkpoints/``) is known by the names above it."""
+    if "://" in url or os.path.isabs(url):
+        return [url]
+    return [url, os.path.abspath(url)]
 
 
 def encode(state: dict) -> bytes:

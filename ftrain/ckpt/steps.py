@@ -34,6 +34,7 @@ from ftrain.ckpt.format import (
     now,
     parse_checkpoint_url,
     read_manifest,
+    spellings,
     step_dir,
     verify_listed,
     verify_step,
@@ -82,7 +83,7 @@ def check_storage_place(url: str) -> None:
     aside under ``quarantine/``, a policy snapshot under ``policies/``): that run's retention and clean-up would
     delete what a run there writes."""
     shown = display_url(url)
-    if (found := _enclosing_step(shown)) is not None:
+    if (found := next(filter(None, map(_enclosing_step, spellings(shown))), None)) is not None:
         step, parent, _ = found
         resume = f" (to train on from that step: resume={step})" if parent == CHECKPOINTS else ""
         raise UserError(
@@ -315,10 +316,11 @@ def part_of_a_storage(storage: Storage) -> str | None:
 
 def set_aside_location(url: str) -> tuple[str, str] | None:
     """``(storage root, directory under quarantine/)`` where ``url`` is a step set aside; else None."""
-    found = _enclosing_step(url)
-    if found is None or found[1] != ASIDE or found[0] != url.partition("?")[0].rstrip("/"):
-        return None
-    return found[2], found[0].rpartition("/")[2]
+    for spelt in spellings(url):
+        found = _enclosing_step(spelt)
+        if found is not None and found[1] == ASIDE and found[0] == spelt.partition("?")[0].rstrip("/"):
+            return found[2], found[0].rpartition("/")[2]
+    return None
 
 
 def resolve_checkpoint_url(

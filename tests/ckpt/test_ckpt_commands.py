@@ -247,6 +247,38 @@ def test_verify_on_a_terminal_counts_the_steps_it_checks_and_clears_the_line_bef
     assert stays[-1] == "3 of 4 committed steps verified; 1 incomplete (never committed)"
 
 
+def test_a_step_named_from_inside_its_storage_is_that_step(run, monkeypatch, capsys):
+    """Generated cases: each step of a storage (committed or set aside), named by its path relative to each directory
+    in and above the storage, is the step its full path names: ``ckpt show`` shows it, ``unquarantine`` finds the one
+    set aside, and a storage inside it is refused (named from inside ``checkpoints/``, a step was 'no checkpoints')."""
+    import shutil
+    from pathlib import Path
+
+    from ftrain.ckpt.format import parse_checkpoint_url
+    from ftrain.ckpt.steps import check_storage_place, set_aside_location
+
+    root = Path(run)
+    shutil.copytree(root / "checkpoints" / "step-000000030", root / "quarantine" / "step-000000030")
+    places = [root.parent, root, root / "checkpoints", root / "quarantine", root / "checkpoints" / "step-000000010"]
+    checked = 0
+    for cwd in places:
+        monkeypatch.chdir(cwd)
+        for parent, step in [("checkpoints", 10), ("checkpoints", 20), ("checkpoints", 30), ("quarantine", 30)]:
+            named = os.path.relpath(root / parent / f"step-{step:09d}", cwd)
+            if parent == "checkpoints":
+                found, number = parse_checkpoint_url(named)
+                assert (Path(found).resolve(), number) == (root, step), (cwd, named)
+                assert ckpt_commands.show(named) == 0 and f"step: {step}\n" in capsys.readouterr().out, (cwd, named)
+            else:
+                found, directory = set_aside_location(named)
+                assert (Path(found).resolve(), directory) == (root, "step-000000030"), (cwd, named)
+            with pytest.raises(UserError, match=" is inside "):
+                check_storage_place(os.path.join(named, "sub"))
+            checked += 1
+    print(f"{checked} steps named from inside their storage found")
+    assert checked == 20
+
+
 def test_a_step_set_aside_goes_back_only_where_it_continues_the_line_and_nothing_else_changes(tmp_path, capsys):
     """Generated cases: 40 seeded schedules of runs on one storage, each resumed (``select_resume`` and
     ``clear_newer``, what a run's start does) after 0-2 of its newest steps were damaged, committing 0-3 steps on.
