@@ -90,9 +90,10 @@ class Entry:
     """When this process took or joined the lease (epoch seconds, its host's clock): the holder's age, for humans."""
 
     def alive(self, ttl: float, now: float) -> bool:
-        """Seen running on this host, or (where that cannot be seen) renewed within ``ttl``."""
+        """Seen running on this host, or (where that cannot be seen) renewed within ``ttl``, by a clock no more than
+        ``ttl`` ahead of this host's (a renewal in the future tells nothing: the storage's clock decides, ``_live``)."""
         running = self.process.running()
-        return running if running is not None else now < self.renewed_at + ttl
+        return running if running is not None else now < self.renewed_at + ttl and self.renewed_at <= now + ttl
 
 
 @dataclass(frozen=True)
@@ -413,7 +414,12 @@ class Lease:
     def _held_message(self, record: Record, live: list[Entry]) -> str:
         holder = max(live, key=lambda e: e.renewed_at)
         ends, now = record.expires_at, time.time()
-        if ends < now and holder.process.running():  # not renewed, but alive here (stopped, say): never taken from it
+        if ends > now + 2 * record.ttl:  # renewed in this host's future: the storage's clock found it renewed
+            end = (
+                f"was renewed at {_when(ends - record.ttl)} by its host's clock, ahead of this one's; the storage's "
+                "clock says it is still renewed"
+            )
+        elif ends < now and holder.process.running():  # not renewed, but alive here (stopped, say): never taken from it
             end = f"ran out at {_when(ends)}, but its process still exists on this host and keeps it"
         elif ends < now:  # by its host's clock; the storage's own clock says it was renewed within its time to live
             end = f"ran out at {_when(ends)} by its host's clock, but the storage's clock says it is still renewed"
@@ -440,6 +446,11 @@ class Lease:
             ends = entry.renewed_at + record.ttl
             if ends < now:
                 return f"the lease of {entry.process.describe()} expired at {_when(ends)}"
+            if entry.renewed_at > now + record.ttl:
+                return (
+                    f"{entry.process.describe()} last renewed it at {_when(entry.renewed_at)} by its host's clock, "
+                    "ahead of this one's; by the storage's clock it expired"
+                )
             return f"{entry.process.describe()} held it until {_when(ends)}: if it still runs, it commits nothing more"
 
         holders = ", ".join(fate(entry) for entry in record.entries)

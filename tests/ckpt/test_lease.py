@@ -168,20 +168,25 @@ def test_of_processes_that_race_for_a_free_lease_exactly_one_wins(storage):
 
 
 @pytest.mark.waits
-def test_a_lease_of_another_host_holds_until_it_expires_by_the_storages_clock(storage):
+@pytest.mark.parametrize("skew", [-300.0, 3e9], ids=["behind", "ahead"])
+def test_a_lease_of_another_host_holds_until_it_expires_by_the_storages_clock(storage, skew):
+    """Another host's clock is 5 minutes behind, or a century ahead (or its record was edited so): its renewal's own
+    time says expired, or held for a century; the storage's clock decides: held while it was written within the ttl,
+    taken once it was not."""
     storage.write_replace(LEASE, foreign("far-run", time.time()).encode())
     with pytest.raises(LeaseHeld, match="far-run, pid 4242 on host node-far-away"):
         Lease(storage, "mine", print).acquire()
 
-    # that host's clock is 5 minutes behind: its renewal looks expired here, but the storage wrote it just now
-    storage.write_replace(LEASE, foreign("far-run", time.time() - 300, ttl=30.0).encode())  # 30: a slow storage too
+    storage.write_replace(LEASE, foreign("far-run", time.time() + skew, ttl=30.0).encode())  # 30: a slow storage too
     with pytest.raises(LeaseHeld, match="far-run, pid 4242 on host node-far-away") as refused:
         Lease(storage, "mine", print).acquire()
-    assert "by its host's clock, but the storage's clock says it is still renewed" in str(refused.value)
-    storage.write_replace(LEASE, foreign("far-run", time.time() - 300, ttl=3.0).encode())
+    said = "ahead of this one's; the storage's" if skew > 0 else "by its host's clock, but the storage's"
+    assert f"{said} clock says it is still renewed" in str(refused.value)
+    storage.write_replace(LEASE, foreign("far-run", time.time() + skew, ttl=3.0).encode())
     time.sleep(4.5)  # no renewal for longer than its ttl, by the storage's clock (whole seconds on S3)
     taken = Lease(storage, "mine", print).acquire()
-    assert taken is not None and "from run far-run" in taken and "expired at" in taken
+    said = "ahead of this one's; by the storage's clock it expired" if skew > 0 else "expired at"
+    assert taken is not None and "from run far-run" in taken and said in taken, taken
     assert record(storage).run_id == "mine" and record(storage).generation == 5
 
 
