@@ -250,7 +250,7 @@ def newest_generation(storage: Storage) -> int:
     for name in steps[:3]:  # a step cut short has no manifest
         try:
             return int(json.loads(storage.read(f"{CHECKPOINTS}/{name}/{MANIFEST}")).get("generation") or 0)
-        except (FileNotFoundError, ValueError, TypeError):
+        except (FileNotFoundError, ValueError, TypeError, RecursionError):
             continue
     return 0
 
@@ -263,6 +263,8 @@ def read_manifest(storage: Storage, step: int, directory: str | None = None) -> 
         manifest = json.loads(data)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise CorruptCheckpoint(f"not valid JSON ({exc})") from None
+    except RecursionError:  # arrays in arrays thousands deep: no manifest ftrain writes
+        raise CorruptCheckpoint("not valid JSON (nested too deep)") from None
     if not isinstance(manifest, dict):
         raise CorruptCheckpoint("not a JSON object")
     if DIGEST in manifest and manifest[DIGEST] != manifest_digest(manifest):

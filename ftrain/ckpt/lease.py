@@ -408,8 +408,8 @@ class Lease:
         unseen = [entry for entry in record.entries if entry.process.running() is not False]
         if live or not unseen:
             return live
-        age = cas.age(self.storage, LEASE)
-        return unseen if age is not None and age < record.ttl else []
+        age = cas.age(self.storage, LEASE)  # negative past the ttl: a time set ahead (a copy that kept it, a touch)
+        return unseen if age is not None and -record.ttl < age < record.ttl else []
 
     def _held_message(self, record: Record, live: list[Entry]) -> str:
         holder = max(live, key=lambda e: e.renewed_at)
@@ -463,7 +463,7 @@ def read_fence(current: tuple[bytes, str] | None) -> dict:
     edit, a truncated file, an older ftrain's), is ``{}``, and is written over."""
     try:
         record = json.loads(current[0]) if current is not None else {}
-    except ValueError:
+    except (ValueError, RecursionError):
         return {}
     valid = isinstance(record, dict) and all(type(record.get(key)) is int for key in ("generation", "attempt"))
     return record if valid else {}
@@ -497,8 +497,8 @@ def read_record(storage: Storage) -> tuple[Record, str] | None:
         return None
     try:
         return Record.decode(current[0]), current[1]
-    except (ValueError, TypeError) as wrong:
-        reason = "not JSON" if isinstance(wrong, (json.JSONDecodeError, UnicodeDecodeError)) else str(wrong)
+    except (ValueError, TypeError, RecursionError) as wrong:  # RecursionError: arrays in arrays thousands deep
+        reason = str(wrong) if type(wrong) in (ValueError, TypeError) else "not JSON"
         raise UserError(
             f"{storage.where(LEASE)} is not a lease ftrain can read ({reason}): if no run uses this storage, delete "
             "that file"

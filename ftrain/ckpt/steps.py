@@ -349,7 +349,7 @@ def _quarantine_reason(storage: Storage, step: int | str, parent: str = CHECKPOI
     directory = step_dir(step) if parent == CHECKPOINTS else f"{parent}/{step}"
     try:
         return str(json.loads(storage.read(f"{directory}/{QUARANTINED}"))["reason"])
-    except (FileNotFoundError, ValueError, TypeError, KeyError):
+    except (FileNotFoundError, ValueError, TypeError, KeyError, RecursionError):
         return "quarantined (marker unreadable)"
 
 

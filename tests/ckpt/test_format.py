@@ -113,6 +113,10 @@ CORRUPTIONS = {
         lambda s, step: s.write_replace(step_path(step, MANIFEST), b"\x00{garbage"),
         "MANIFEST.json: unusable: not valid JSON",
     ),
+    "manifest nested too deep": (  # parsing it was a RecursionError: a traceback in every reader
+        lambda s, step: s.write_replace(step_path(step, MANIFEST), b"[" * 5000 + b"]" * 5000),
+        "MANIFEST.json: unusable: not valid JSON (nested too deep)",
+    ),
     "manifest size disagrees": (
         lambda s, step: edit_manifest(s, step, lambda m: m["files"]["rank-00001.pt"].update(size=1)),
         EDITED,

@@ -190,6 +190,21 @@ def test_a_lease_of_another_host_holds_until_it_expires_by_the_storages_clock(st
     assert record(storage).run_id == "mine" and record(storage).generation == 5
 
 
+def test_a_lease_file_dated_in_the_storages_future_is_no_renewal(tmp_path):
+    """A storage copied with its times kept (``cp -a``, ``rsync -a``) from a host whose clock ran ahead, or a touch:
+    the lease file looks written years from now, which said 'still renewed' until then (no run could start)."""
+    storage = Storage.open(str(tmp_path / "run"))
+    storage.write_replace(LEASE, foreign("far-run", time.time() - 1000, ttl=30.0).encode())
+    ahead = time.time() + 10 * 365 * 86400
+    os.utime(tmp_path / "run" / LEASE, (ahead, ahead))
+    taken = Lease(storage, "mine", print).acquire()
+    assert taken is not None and "from run far-run" in taken and "expired at" in taken, taken
+    storage.write_replace(LEASE, foreign("far-run", time.time() - 1000, ttl=30.0).encode())
+    os.utime(tmp_path / "run" / LEASE, (time.time() + 5, time.time() + 5))  # a few seconds: another clock's skew
+    with pytest.raises(LeaseHeld, match="the storage's clock says it is still renewed"):
+        Lease(storage, "mine", print).acquire()
+
+
 def test_every_node_of_one_run_is_admitted_and_renews_its_own_entry(storage):
     storage.write_replace(LEASE, foreign("shared-run", time.time()).encode())
     lease = Lease(storage, "shared-run", print, shared=True)
@@ -414,13 +429,14 @@ def test_a_renewal_in_flight_when_the_lease_is_released_does_not_write_the_entry
     assert record(storage).entries == ()
 
 
-def test_an_unreadable_lease_is_bad_input_and_left_alone(storage):
-    storage.write_replace(LEASE, b"{not json")
+@pytest.mark.parametrize("data", [b"{not json", b"\xff\xfe", b"[" * 5000 + b"]" * 5000], ids=["cut", "bytes", "deep"])
+def test_an_unreadable_lease_is_bad_input_and_left_alone(storage, data):
+    storage.write_replace(LEASE, data)
     with pytest.raises(
         UserError, match=r"LEASE.json is not a lease ftrain can read \(not JSON\): if no run uses this storage"
     ):
         Lease(storage, "mine", print).acquire()
-    assert storage.read(LEASE) == b"{not json"
+    assert storage.read(LEASE) == data
 
 
 def test_a_lease_with_any_field_damaged_is_bad_input_in_one_line_and_left_alone(tmp_path):
