@@ -142,11 +142,12 @@ def parse_checkpoint_url(url: str) -> tuple[str, int | None]:
 
 
 def spellings(url: str) -> list[str]:
-    """``url`` as given, then, for a relative local path, as an absolute one: a step named from inside the directory
-    that holds it (``step-000000120`` in ``checkpoints/``) is known by the names above it."""
-    if "://" in url or os.path.isabs(url):
+    """``url`` as given, then, for a local path, the real one, absolute, through symbolic links and ``..``: a step
+    named from inside the directory that holds it (``step-000000120`` in ``checkpoints/``) is known by the names
+    above it, and a link into a step is that step."""
+    if "://" in url:
         return [url]
-    return [url, os.path.abspath(url)]
+    return list(dict.fromkeys([url, os.path.realpath(url)]))
 
 
 def encode(state: dict) -> bytes:

@@ -83,7 +83,7 @@ def check_storage_place(url: str) -> None:
     aside under ``quarantine/``, a policy snapshot under ``policies/``): that run's retention and clean-up would
     delete what a run there writes."""
     shown = display_url(url)
-    if (found := next(filter(None, map(_enclosing_step, spellings(shown))), None)) is not None:
+    if (found := _enclosing_step(spellings(shown)[-1])) is not None:  # where a local path really goes
         step, parent, _ = found
         resume = f" (to train on from that step: resume={step})" if parent == CHECKPOINTS else ""
         raise UserError(

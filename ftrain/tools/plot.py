@@ -68,11 +68,11 @@ def read_metrics(
             if damaged(row):  # as training's own reader of the file drops them (``CsvHook``)
                 skipped += 1
                 continue
-            iteration = _whole(row, "iteration", f"{path} line {reader.line_num}")
+            iteration = int(row["iteration"])  # a whole number: ``damaged`` says so
             if iteration <= previous:
                 restarts.add(iteration - 1)
             if row.get("resumed_from"):
-                resumed_from = _whole(row, "resumed_from", f"{path} line {reader.line_num}")
+                resumed_from = int(row["resumed_from"])
                 restarts.add(resumed_from)
                 if row.get("config_change"):
                     changes[resumed_from] = row["config_change"]
@@ -193,14 +193,6 @@ def _read(storage: Storage, name: str) -> bytes | None:
         return storage.read(name)
     except FileNotFoundError:
         return None
-
-
-def _whole(row: dict[str, str | None], column: str, where: str) -> int:
-    """``row[column]`` as an int; UserError naming ``where`` (the file and line) if it is not one."""
-    try:
-        return int(row[column] or "")
-    except ValueError:
-        raise UserError(f"{where}: {column} {row[column]!r} is not a whole number: {NOT_OURS}") from None
 
 
 def _count(n: int, noun: str) -> str:

@@ -35,11 +35,11 @@ def metrics_rows(data: bytes) -> csv.DictReader:
 
 def damaged(row: dict) -> bool:
     """A row cut short or run together (more or fewer fields than the header), with bytes that were not text, or
-    whose iteration is not a whole number."""
+    whose iteration, or step resumed from, is not a whole number."""
     if None in row or None in row.values() or any("\ufffd" in value for value in row.values()):
         return True
-    iteration = row.get("iteration") or ""
-    return not (iteration.isascii() and iteration.isdigit())
+    whole = [row.get("iteration") or "", *filter(None, [row.get("resumed_from")])]
+    return not all(text.isascii() and text.isdigit() for text in whole)
 
 
 if TYPE_CHECKING:

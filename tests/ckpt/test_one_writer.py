@@ -263,6 +263,23 @@ def test_generated_places_inside_a_step_are_refused_and_others_taken_with_no_cre
     assert 0 < refused < count
 
 
+def test_where_a_local_storage_really_goes_decides_not_its_spelling(tmp_path, monkeypatch) -> None:
+    """A symbolic link into a step is inside that step (a run trained into another run's step through one); a path
+    through a step and back out (``step-N/../..``) is the storage it reaches, not inside the step it names."""
+    run = tmp_path / "run"
+    make_step(Storage.open(str(run)), 4)
+    step = run / "checkpoints" / "step-000000004"
+    (tmp_path / "link").symlink_to(step)
+    (tmp_path / "to-run").symlink_to(run)
+    monkeypatch.chdir(tmp_path)
+    for refused in ("link", f"{tmp_path}/link/sub", "to-run/checkpoints/step-000000004", f"{step}/x/.."):
+        with pytest.raises(UserError, match=f" is inside {step}, a step of another run's storage"):
+            check_storage_place(refused)
+    for taken in (f"{step}/../..", "to-run", "link/../.."):
+        check_storage_place(taken)
+    print("7 spellings decided by where they go")
+
+
 @pytest.mark.parametrize("command", [train_command, supervise_command])
 def test_train_and_supervise_refuse_a_storage_inside_a_step_before_they_touch_it(tmp_path, command) -> None:
     run = Storage.open(str(tmp_path / "run"))
