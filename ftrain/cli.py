@@ -71,7 +71,7 @@ class _Parser(argparse.ArgumentParser):
 def _closest(parser: argparse.ArgumentParser, message: str) -> str:
     """`` (did you mean --storage?)`` for the first unrecognized option or invalid choice in argparse's ``message``,
     where one of ``parser``'s is close; `` (one of: ...)`` for a missing command."""
-    from ftrain.values import closest
+    from ftrain.errors import closest
 
     commands = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
     if commands is not None and message.endswith(f"required: {commands.metavar}"):
@@ -331,10 +331,11 @@ def parse(argv: list[str]) -> argparse.Namespace:
     try:
         args, extra = parser.parse_known_args(argv)
     except UserError:
-        _refuse_option_before_command(parser, argv)
+        _refuse_misplaced_option(parser, argv)
         raise
     unknown = [word for word in extra if word.startswith("-")]  # a bare word is an override, checked as one
     if unknown or (extra and not hasattr(args, "overrides")):
+        _refuse_misplaced_option(parser, argv)
         _command_parser(parser, args).error(f"unrecognized arguments: {' '.join(unknown or extra)}")
     if hasattr(args, "overrides"):
         from ftrain.values import storage_option_overrides
@@ -359,18 +360,31 @@ def parsers(
                 yield from parsers(subparser, f"{name} {command}")
 
 
-def _refuse_option_before_command(parser: argparse.ArgumentParser, argv: list[str]) -> None:
-    """A better line than argparse's where ``argv`` starts with an option ``ftrain`` itself has not (``ftrain
-    --storage X train ...`` is an invalid command X; ``ftrain --verison`` a missing command): where it goes, or its
-    misspelling."""
-    option = argv[0].partition("=")[0] if argv and argv[0].startswith("-") else ""
-    if not option or parser._get_option_tuples(option) or option in parser._option_string_actions:
+def _refuse_misplaced_option(parser: argparse.ArgumentParser, argv: list[str]) -> None:
+    """A better line than argparse's where an option comes before the command it belongs to (``ftrain --storage X
+    train ...`` was an invalid command X, ``ftrain --json ckpt show`` 'did you mean --json?'): where it goes; where
+    ``ftrain`` starts with an option no command has (``ftrain --verison``), the closest of its own."""
+    level, path, misplaced = parser, [], ""
+    for word in argv:
+        commands = next((a for a in level._actions if isinstance(a, argparse._SubParsersAction)), None)
+        if commands is None:
+            break  # the command reached: its options may come in any order from here
+        if word in commands.choices:
+            level, path = commands.choices[word], [*path, word]
+        elif word.startswith("-") and not misplaced and not _takes(level, option := word.partition("=")[0]):
+            misplaced = option
+    if not misplaced:
         return
-    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
-    command = next((word for word in argv if word in commands.choices), None)
-    if command is None or not any(p._get_option_tuples(option) for _, p in parsers(commands.choices[command])):
-        parser.error(f"unrecognized arguments: {option}")
-    raise UserError(f"{option} goes after the command: ftrain {command} ... {option} ...: see ftrain {command} --help")
+    if path and any(_takes(command, misplaced) for _, command in parsers(level)):
+        where = " ".join(["ftrain", *path])
+        raise UserError(f"{misplaced} goes after the command: {where} ... {misplaced} ...: see {where} --help")
+    if not path:
+        parser.error(f"unrecognized arguments: {misplaced}")
+
+
+def _takes(parser: argparse.ArgumentParser, option: str) -> bool:
+    """Whether ``parser`` has ``option``, or an option ``option`` starts (argparse's abbreviation)."""
+    return option in parser._option_string_actions or bool(parser._get_option_tuples(option))
 
 
 def _command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -> argparse.ArgumentParser:

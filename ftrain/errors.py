@@ -1,13 +1,17 @@
-"""The exception types that mean "the user gave us bad input" or "the storage failed", and the exit codes.
+"""The exception types that mean "the user gave us bad input" or "the storage failed", the exit codes, and what such a
+line is made of: a command it offers (``command``), the word a misspelling meant (``closest``, ``did_you_mean``).
 
 `cli.main` prints their message as a single line and exits with the code that goes with it; everything else is a
 bug and keeps its traceback.
 """
 
+import difflib
 import errno
+import re
 import shlex
 import signal
 import sys
+import typing
 
 EXIT_FAILED = 1
 """A storage operation failed for good (``StorageError``) outside training."""
@@ -68,3 +72,36 @@ class StorageUnavailable(StorageError):
 def command(*words: object) -> str:
     """A command line for a user to paste, each word shell-quoted where it needs to be (a path with a space)."""
     return " ".join(shlex.quote(str(word)) for word in words)
+
+
+def closest(word: str, known: typing.Iterable[str], cutoff: float = 0.6) -> str | None:
+    """The one of ``known`` that ``word`` most likely misspells, for a "did you mean", else None. Case is no
+    difference (``ÖNNX``); a start of only one of them names it (``unq``); never the opposite of what was typed
+    (``nodrop-bad`` for ``drop-bad``, ``quarantine`` for ``unquarantine``), which may do the harm the user avoided."""
+    names = {name.casefold(): name for name in known}
+    typed = word.casefold()
+    starting = [folded for folded in names if typed and folded.startswith(typed)]
+    if len(starting) > 1:
+        return None  # a start of several (``pl``: play, plot) names none of them
+    near = starting or difflib.get_close_matches(typed, names, n=1, cutoff=cutoff)
+    return names[near[0]] if near and not _negates(typed, near[0]) else None
+
+
+def did_you_mean(word: str, known: typing.Iterable[str]) -> str:
+    """`` (did you mean X?)`` where ``word`` is close to one X of ``known`` (``closest``), else nothing."""
+    near = closest(word, known)
+    return f" (did you mean {near}?)" if near else ""
+
+
+def _negates(typed: str, known: str) -> bool:
+    """Whether one is (close to) the other with a negation before it, however it is joined (``no_drop_bad``,
+    ``nodropbad``; ``quarantin`` for ``unquarantine``)."""
+    one, other = (re.sub("[-_]", "", word) for word in (typed, known))
+    return any(
+        negated.startswith(negation)
+        and not plain.startswith(negation)
+        and negated[len(negation) : len(negation) + 1] == plain[:1]  # ``noderank`` for ``oderank`` is a typo
+        and difflib.SequenceMatcher(None, negated[len(negation) :], plain).ratio() >= 0.8
+        for negated, plain in ((one, other), (other, one))
+        for negation in ("dont", "non", "not", "no", "un")
+    )

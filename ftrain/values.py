@@ -8,7 +8,6 @@ Torch-free, like the config: the supervisor validates a run's config before it l
 from __future__ import annotations
 
 import dataclasses
-import difflib
 import math
 import re
 import types
@@ -18,7 +17,7 @@ from typing import Any
 
 import yaml
 
-from ftrain.errors import UserError
+from ftrain.errors import UserError, closest
 from ftrain.redact import Url
 
 _DURATION = re.compile(r"^\s*(\d+(?:\.\d+)?)\s*(s|m|h)\s*$")
@@ -49,29 +48,6 @@ def is_whole(value: object, low: int = 0) -> bool:
 def is_number(value: object) -> bool:
     """A finite int or float, not a bool: what a count or a measure read back from a file may be."""
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def closest(word: str, known: typing.Iterable[str], cutoff: float = 0.6) -> str | None:
-    """The one of ``known`` that ``word`` most likely misspells, for a "did you mean", else None. Case is no
-    difference (``ÖNNX``); a start of only one of them names it (``unq``); never the opposite of what was typed
-    (``nodrop-bad`` for ``drop-bad``, ``quarantine`` for ``unquarantine``), which may do the harm the user avoided."""
-    names = {name.casefold(): name for name in known}
-    typed = word.casefold()
-    starting = [folded for folded in names if typed and folded.startswith(typed)]
-    near = starting if len(starting) == 1 else difflib.get_close_matches(typed, names, n=1, cutoff=cutoff)
-    return names[near[0]] if near and not _negates(typed, near[0]) else None
-
-
-def did_you_mean(word: str, known: typing.Iterable[str]) -> str:
-    """`` (did you mean X?)`` where ``word`` is close to one X of ``known`` (``closest``), else nothing."""
-    near = closest(word, known)
-    return f" (did you mean {near}?)" if near else ""
-
-
-def _negates(typed: str, known: str) -> bool:
-    """Whether one is the other with a negation before it."""
-    longer, shorter = (typed, known) if len(typed) > len(known) else (known, typed)
-    return longer.endswith(shorter) and longer[: -len(shorter)].rstrip("-_") in ("no", "not", "non", "un", "dont")
 
 
 def parse_amount(key: str, value: object, auto: bool = False) -> Amount | None:

@@ -163,8 +163,10 @@ def test_a_misspelt_option_or_choice_is_told_the_one_it_is_closest_to() -> None:
                     checked += 1
                 else:
                     raise AssertionError(f"{argv} was taken")
-    for argv in (["ckpt", "prune", "x", "--nodrop-bad"], ["ckpt", "prune", "x", "--no-force"], ["ckpt", "quarantine"]):
-        with pytest.raises(UserError) as refused:  # the opposite of what was typed is no suggestion
+    opposites = [["ckpt", "prune", "x", f"--{no}drop{joint}bad"] for no in ("no", "no-", "no_") for joint in "-_"]
+    opposites += [["ckpt", "prune", "x", "--nodropbad"], ["ckpt", "prune", "x", "--no-force"], ["ckpt", "quarantin"]]
+    for argv in [*opposites, ["ckpt", "quarantine"], ["pl"], ["ckpt", "prune", "x", "--keep"]]:
+        with pytest.raises(UserError) as refused:  # the opposite of what was typed, or one of several, is no suggestion
             parse(argv)
         assert "did you mean" not in str(refused.value), argv
     print(f"{checked} misspelt options and choices told the one they came from")
@@ -172,23 +174,30 @@ def test_a_misspelt_option_or_choice_is_told_the_one_it_is_closest_to() -> None:
 
 
 def test_an_option_before_the_command_is_told_where_it_goes() -> None:
-    """Generated cases: every listed long option of every command given before it (``ftrain --storage X train``)
-    is told to go after the command, where argparse said the command was not one or was missing; an option
+    """Generated cases: every listed option of every command (flags, ``--opt X``, ``--opt=X``) given before the
+    command, or between its words (``ftrain --json ckpt show``, ``ftrain ckpt --json show``), is told to go after the
+    command, where argparse said the command was not one, or a missing one, or suggested the option typed; an option
     ``ftrain`` does not have, alone, is told the one it is closest to."""
     from ftrain.cli import parse
     from ftrain.errors import UserError
 
     checked = 0
     for name, parser in parsers(build_parser()):
-        command = name.split()[1:2]
+        path = name.split()[1:]
+        if not path or any(isinstance(a, argparse._SubParsersAction) for a in parser._actions):
+            continue  # ftrain itself, or a command with commands under it
         listed = [a for a in parser._actions if a.help != argparse.SUPPRESS and a.option_strings]
-        for option in (o for a in listed for o in a.option_strings if o.startswith("--") and command):
-            if option in ("--help", "--version"):
-                continue
-            with pytest.raises(UserError) as refused:
-                parse([option, "x", *name.split()[1:], "x"])
-            assert str(refused.value).startswith(f"{option} goes after the command: ftrain {command[0]} "), option
-            checked += 1
+        for action in (a for a in listed if "--help" not in a.option_strings):
+            for option in action.option_strings:
+                forms = [[option]] if action.nargs == 0 else [[option, "x"], [f"{option}=x"]]
+                for form in forms:
+                    for place in range(len(path)):
+                        argv = [*path[:place], *form, *path[place:], "x"]
+                        with pytest.raises(UserError) as refused:
+                            parse(argv)
+                        told = f"{option} goes after the command: {name} ... {option} ...: see {name} --help"
+                        assert str(refused.value) == told, (argv, str(refused.value))
+                        checked += 1
     for typed, line in [
         ("--verison", "unrecognized arguments: --verison (did you mean --version?): see ftrain --help"),
         ("--bogus", "unrecognized arguments: --bogus: see ftrain --help"),
@@ -197,7 +206,7 @@ def test_an_option_before_the_command_is_told_where_it_goes() -> None:
             parse([typed])
         checked += 1
     print(f"{checked} options before the command told where they go")
-    assert checked > 50
+    assert checked > 100
 
 
 def test_a_start_of_an_option_spelt_two_ways_is_that_option() -> None:

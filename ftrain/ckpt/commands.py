@@ -28,7 +28,7 @@ from ftrain.ckpt.format import (
     step_dir,
     verify_step,
 )
-from ftrain.ckpt.lease import Lease, read_record
+from ftrain.ckpt.lease import Lease, LeaseHeld
 from ftrain.ckpt.lineage import history
 from ftrain.ckpt.retention import Kept, delete_step, kept, retention_plan
 from ftrain.ckpt.steps import (
@@ -47,7 +47,7 @@ from ftrain.ckpt.steps import (
 from ftrain.ckpt.steps import unquarantine as unquarantine_step
 from ftrain.ckpt.storage import Storage
 from ftrain.config import CheckpointConfig
-from ftrain.errors import UserError, command
+from ftrain.errors import EXIT_STORAGE_HELD, UserError, command
 from ftrain.progress import Progress
 from ftrain.values import is_number
 
@@ -221,12 +221,9 @@ def as_lease_holder(
     """``body`` of the storage, with this command holding the storage's lease (``lease.py``) meanwhile: no run starts
     while it deletes, and each of its writes is checked (``fence.guarded``). Refused in one line, with
     ``EXIT_STORAGE_HELD``, while another process holds it; ``force``: without the lease (None: a command that has no
-    ``--force``). ``dry_run``: a ``body`` that only prints, without the lease, refused as the command would be where
-    the lease is damaged."""
+    ``--force``). ``dry_run``: a ``body`` that only prints, without taking the lease, refused where the command would
+    be (another run holds the lease; a damaged one is a UserError)."""
     if force:
-        return body(storage)
-    if dry_run:
-        read_record(storage)  # a UserError naming what is damaged
         return body(storage)
     anyway = f" (or pass --force to {command} anyway)" if force is not None else ""
 
@@ -234,6 +231,13 @@ def as_lease_holder(
         print(f"ftrain: error: ckpt {command} refused: {line}{anyway}", file=sys.stderr)
 
     lease = Lease(storage, f"ftrain-ckpt-{secrets.token_hex(4)}", lambda line: print(line, file=sys.stderr))
+    if dry_run:
+        try:
+            lease.check()
+        except LeaseHeld as held:
+            refused(str(held))
+            return EXIT_STORAGE_HELD
+        return body(storage)
     return lease.run(lambda held: body(guarded(storage)), refused)
 
 

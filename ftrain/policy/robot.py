@@ -30,10 +30,9 @@ from gymnasium.envs.mujoco import MujocoEnv
 from gymnasium.envs.registration import registry
 
 from ftrain.config import EnvConfig
-from ftrain.errors import UserError
+from ftrain.errors import UserError, closest
 from ftrain.policy import mjcf
 from ftrain.policy.mujoco_warnings import route_mujoco_warnings
-from ftrain.values import closest
 
 GYMNASIUM_MUJOCO = "gymnasium.envs.mujoco"
 STATE_METHODS = ("ftrain_state", "ftrain_set_state")

@@ -20,10 +20,10 @@ from ftrain.errors import (
     EXIT_STORAGE_HELD,
     EXIT_USAGE,
     UserError,
+    did_you_mean,
 )
 from ftrain.supervise.address import interface_of
 from ftrain.supervise.auth import load_secret
-from ftrain.values import did_you_mean
 
 EXIT_DONE = 0
 EXIT_CRASH_LOOP = 3

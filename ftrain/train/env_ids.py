@@ -11,8 +11,7 @@ from __future__ import annotations
 from gymnasium.envs.registration import registry
 
 from ftrain.config import EnvConfig
-from ftrain.errors import UserError
-from ftrain.values import closest
+from ftrain.errors import UserError, closest
 
 MUJOCO_MODULES = "gymnasium.envs.mujoco."
 """Where the entry points of gymnasium's MuJoCo environments live (the -v2/-v3 ids point elsewhere: mujoco-py)."""

@@ -112,10 +112,24 @@ def test_prune(run, capsys):
     assert [info.step for info in scan(Storage.open(run))] == [40, 30]
 
 
-def test_a_dry_run_of_prune_on_a_damaged_lease_is_refused_as_prune_is(run, capsys):
-    """A dry run previews what prune does: where prune would refuse a damaged LEASE.json, the preview refuses too
-    (it went ahead, and the real prune then refused); --force previews without the lease."""
+def test_a_dry_run_of_prune_on_a_held_or_damaged_lease_is_refused_as_prune_is(run, capsys):
+    """A dry run previews what prune does: where prune would refuse a damaged LEASE.json or another run's live
+    lease, the preview refuses too (it went ahead, and the real prune then refused); --force previews without it."""
+    from ftrain.ckpt.lease import Entry, Record
+    from ftrain.errors import EXIT_STORAGE_HELD
+    from ftrain.procfs import Process
+
     storage = Storage.open(run)
+    far = Process("node-far-away", 4242, 123, "another-boot-id", "pid:[1]")
+    storage.write_replace("LEASE.json", Record("a-run", 3, 60.0, (Entry(far, time.time()),)).encode())
+    for preview in (
+        lambda: ckpt_commands.prune(run, keep_last=1, dry_run=True),
+        lambda: ckpt_commands.prune(run, keep_last=1),
+    ):
+        assert preview() == EXIT_STORAGE_HELD
+        captured = capsys.readouterr()
+        assert captured.out == "" and captured.err.startswith("ftrain: error: ckpt prune refused: storage "), captured
+        assert "held by another run (a-run, pid 4242 on host node-far-away" in captured.err, captured.err
     storage.write_replace("LEASE.json", b'{"run_id": "x", "generation": "1", "ttl": 60, "holders": []}')
     before = sorted(storage.fs.find(storage.root))
     for preview in (
