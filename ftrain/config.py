@@ -23,7 +23,7 @@ from pathlib import Path
 
 import yaml
 
-from ftrain.errors import UserError
+from ftrain.errors import UserError, did_you_mean
 from ftrain.redact import Url, display_url, display_urls, redact_options
 from ftrain.values import build, parse_amount, parse_value, set_dotted, storage_option_overrides
 
@@ -549,7 +549,10 @@ def validate(config: Config) -> None:
     }
     for key, (value, allowed) in choices.items():
         if value not in allowed:
-            raise UserError(f"{key}={value!r} is unknown: use {', '.join(allowed[:-1])} or {allowed[-1]}")
+            raise UserError(
+                f"{key}={value!r} is unknown{did_you_mean(str(value), allowed)}: use {', '.join(allowed[:-1])} or "
+                f"{allowed[-1]}"
+            )
     batch = config.env.num_envs * config.num_steps_per_env
     if config.algorithm.num_mini_batches > batch:
         raise UserError(

@@ -83,6 +83,8 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
         (["env.num_envs=-2"], "env.num_envs=-2 must be at least 1"),
         (["noequals"], "is not key=value"),
         (["policy.std_type=exp"], "policy.std_type='exp' is unknown: use scalar or log"),
+        (["policy.activation=Relu"], r"policy.activation='Relu' is unknown \(did you mean relu\?\): use elu, "),
+        (["algorithm.schedule=fixd"], r"algorithm.schedule='fixd' is unknown \(did you mean fixed\?\): use "),
         (["reward.clip=0"], "reward.clip=0.0 must be a positive number"),
         (["algorithm.gamma=1.5"], r"algorithm.gamma=1.5 is out of range: use a discount between 0 and 1"),
         (["algorithm.lam=2"], "algorithm.lam=2.0 is out of range: use a GAE lambda between 0 and 1"),

@@ -47,7 +47,7 @@ from ftrain.ckpt.steps import (
 from ftrain.ckpt.steps import unquarantine as unquarantine_step
 from ftrain.ckpt.storage import Storage
 from ftrain.config import CheckpointConfig
-from ftrain.errors import EXIT_STORAGE_HELD, UserError, command
+from ftrain.errors import EXIT_STORAGE_HELD, UserError, command, did_you_mean
 from ftrain.progress import Progress
 from ftrain.values import is_number
 
@@ -257,7 +257,8 @@ def _prune(
     recorded = sorted({name for info in infos if info.status == VERIFIED for name in _metrics(info)})
     if best_metric is not None and recorded and best_metric not in recorded:
         raise UserError(
-            f"--best-metric {best_metric}: no step of {storage.url} records it; use one of {', '.join(recorded)}"
+            f"--best-metric {best_metric}: no step of {storage.url} records it{did_you_mean(best_metric, recorded)}; "
+            f"use one of {', '.join(recorded)}"
         )
     if missing := sorted(set(pinned) - {info.step for info in infos}):
         raise UserError(f"--pin {missing[0]}: {storage.url} holds no step {missing[0]}; see {_ls(storage)}")

@@ -49,6 +49,7 @@ from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
 from ftrain.comm import group
 from ftrain.config import CheckpointConfig
+from ftrain.errors import did_you_mean
 
 UNLOADABLE_HINT = "hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
 
@@ -308,8 +309,9 @@ class StepWriter:
         self._best_metric_checked = True
         if self.policy.keep_best and self.policy.best_metric not in recorded:
             self.log(
-                f"checkpoint.best_metric={self.policy.best_metric} is not a metric of this run, so keep_best keeps no "
-                f"step by it: use one of {', '.join(sorted(recorded))}"
+                f"checkpoint.best_metric={self.policy.best_metric} is not a metric of this run"
+                f"{did_you_mean(self.policy.best_metric, recorded)}, so keep_best keeps no step by it: use one of "
+                f"{', '.join(sorted(recorded))}"
             )
 
     def _landed(self, storage: Storage, step: int, files: dict[str, FileEntry]) -> dict | None:

@@ -83,12 +83,13 @@ def check_storage_place(url: str) -> None:
     aside under ``quarantine/``, a policy snapshot under ``policies/``): that run's retention and clean-up would
     delete what a run there writes."""
     shown = display_url(url)
-    if (found := _enclosing_step(spellings(shown)[-1])) is not None:  # where a local path really goes
+    if (found := _enclosing_step(where := spellings(shown)[-1])) is not None:  # where a local path really goes
         step, parent, _ = found
         resume = f" (to train on from that step: resume={step})" if parent == CHECKPOINTS else ""
+        place = "is" if step == where.partition("?")[0].rstrip("/") else f"is inside {step},"
         raise UserError(
-            f"storage {shown} is inside {step}, a step of another run's storage, which that run may delete: pass a "
-            f"directory of its own{resume}"
+            f"storage {shown} {place} a step of another run's storage, which that run may delete: pass a directory of "
+            f"its own{resume}"
         )
 
 
@@ -300,17 +301,18 @@ def _aside_name(step: int, n: int) -> str:
 def part_of_a_storage(storage: Storage) -> str | None:
     """What to pass instead of ``storage``, which holds no step: where it is a run's ``checkpoints/`` directory (its
     listing holds steps) or a step set aside under ``quarantine/``, the line that refuses it says so; else None."""
-    head, _, last = storage.url.rstrip("/").rpartition("/")
-    parent = head or ("/" if storage.url.startswith("/") else ".")
-    above_a_bucket = parent.endswith(":/")  # nothing can lie above a bucket
-    if last == CHECKPOINTS and not above_a_bucket and any(map(_STEP_NAME.match, storage.list_dirs(""))):
-        return f"that is the {CHECKPOINTS}/ directory of {parent}: pass {parent}"
-    if (found := _enclosing_step(storage.url)) is not None and found[1] == ASIDE:
-        ls, back = command("ftrain", "ckpt", "ls", found[2]), command("ftrain", "ckpt", "unquarantine", found[0])
-        return (
-            f"that is a step set aside under {ASIDE}/, out of the history of {found[2]}: see {ls}; {back} puts it "
-            "back if it may go back"
-        )
+    for where in spellings(storage.url):  # as given, then where a local path really is (``.`` in checkpoints/)
+        head, _, last = where.rstrip("/").rpartition("/")
+        parent = head or ("/" if where.startswith("/") else ".")
+        above_a_bucket = parent.endswith(":/")  # nothing can lie above a bucket
+        if last == CHECKPOINTS and not above_a_bucket and any(map(_STEP_NAME.match, storage.list_dirs(""))):
+            return f"that is the {CHECKPOINTS}/ directory of {parent}: pass {parent}"
+        if (found := _enclosing_step(where)) is not None and found[1] == ASIDE:
+            ls, back = command("ftrain", "ckpt", "ls", found[2]), command("ftrain", "ckpt", "unquarantine", found[0])
+            return (
+                f"that is a step set aside under {ASIDE}/, out of the history of {found[2]}: see {ls}; {back} puts "
+                "it back if it may go back"
+            )
     return None
 
 

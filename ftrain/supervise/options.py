@@ -285,6 +285,7 @@ def parse_nodes(options: SupervisorOptions) -> Nodes:
     backend = backends[options.rdzv_backend]
     if backend is Backend.C10D and options.rdzv_conf:
         raise UserError("--rdzv-conf is for --rdzv-backend etcd-v2 (c10d takes no connection settings): drop it")
+    conf = parse_etcd_conf(options.rdzv_conf)  # checked on one node too, where it has no use: a typo is told now
     if (nnodes == 1 or backend is Backend.C10D) and options.node_rank >= nnodes:  # etcd-v2's nodes: not used
         ranks = "0 on one node" if nnodes == 1 else f"0 to {nnodes - 1}, one per node"
         raise UserError(f"--node-rank={options.node_rank} is out of range for --nnodes={options.nnodes}: use {ranks}")
@@ -298,7 +299,6 @@ def parse_nodes(options: SupervisorOptions) -> Nodes:
     if backend is Backend.ETCD:
         if not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]*", options.rdzv_id):
             raise UserError("--rdzv-backend etcd-v2 needs --rdzv-id=NAME (letters, digits, _.-), alike on every node")
-        conf = parse_etcd_conf(options.rdzv_conf)
         return Nodes(
             nnodes, least, (host, int(port)), backend=backend, run_id=options.rdzv_id, conf=conf, interface=interface
         )
@@ -322,7 +322,7 @@ def parse_etcd_conf(text: str) -> tuple[tuple[str, str], ...]:
         if allowed is Path and not Path(value).is_file():
             raise UserError(f"--rdzv-conf: {key}={value!r} must name a readable file (a PEM certificate or key)")
         if allowed is int and not (value.isdecimal() and int(value) > 0):
-            raise UserError(f"--rdzv-conf: {key}={value!r} must be a positive number of seconds")
+            raise UserError(f"--rdzv-conf: {key}={value!r} must be a positive whole number of seconds")
         if isinstance(allowed, tuple) and value not in allowed:
             raise UserError(
                 f"--rdzv-conf: {key}={value!r} must be one of {', '.join(allowed)}{did_you_mean(value, allowed)}"

@@ -151,7 +151,8 @@ def test_prune_keeps_by_the_runs_own_settings_unless_told_otherwise_and_refuses_
     own = {"checkpoint": {"keep_last": 3, "keep_best": 1, "best_metric": "eval_return", "pinned": [10]}}
     for step, score in ((10, 1.0), (20, 9.0), (30, 2.0), (40, 3.0), (50, 4.0)):
         make_step(Storage.open(url), step, metrics={"mean_return": float(step), "eval_return": score}, config=own)
-    with pytest.raises(UserError, match=r"--best-metric eval_retrun: no step .* use one of eval_return, mean_return"):
+    told = r"--best-metric eval_retrun: no step .* \(did you mean eval_return\?\); use one of eval_return, mean_return"
+    with pytest.raises(UserError, match=told):
         ckpt_commands.prune(url, keep_last=1, best_metric="eval_retrun")
     steps = lambda: [info.step for info in scan(Storage.open(url))]  # noqa: E731
     assert steps() == [50, 40, 30, 20, 10]  # refused: nothing deleted
@@ -289,6 +290,12 @@ def test_a_step_named_from_inside_its_storage_is_that_step(run, monkeypatch, cap
             with pytest.raises(UserError, match=" is inside "):
                 check_storage_place(os.path.join(named, "sub"))
             checked += 1
+    monkeypatch.chdir(root / "checkpoints")
+    with pytest.raises(UserError, match=f"that is the checkpoints/ directory of {root}: pass {root}$"):
+        ckpt_commands.ls(".")
+    monkeypatch.chdir(root / "quarantine")
+    with pytest.raises(UserError, match=f"set aside under quarantine/, out of the history of {root}: see "):
+        ckpt_commands.show("step-000000030")  # what to pass instead, as for its full path
     print(f"{checked} steps named from inside their storage found")
     assert checked == 20
 

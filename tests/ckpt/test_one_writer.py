@@ -229,7 +229,8 @@ def test_a_storage_inside_a_step_of_another_storage_is_refused(tmp_path, url, st
     with pytest.raises(UserError) as refused:
         check_storage_place(url.format(run=run))
     line = str(refused.value)
-    assert line.startswith(f"storage {url.format(run=run)} is inside {step.format(run=run)}, "), line
+    place = "is" if url == step else f"is inside {step.format(run=run)},"  # the step itself: named once
+    assert line.startswith(f"storage {url.format(run=run)} {place} a step of another run's storage"), line
     assert ("resume=" in line) == resumable, line
     named_alike = (f"{run}/checkpoints", f"{run}/steps/step-000000004", "s3://bucket/checkpoints/run")
     for own in (run, *named_alike, "s3://checkpoints/step-1", "memory://policies/step-3/run"):  # nothing above a bucket
@@ -273,7 +274,7 @@ def test_where_a_local_storage_really_goes_decides_not_its_spelling(tmp_path, mo
     (tmp_path / "to-run").symlink_to(run)
     monkeypatch.chdir(tmp_path)
     for refused in ("link", f"{tmp_path}/link/sub", "to-run/checkpoints/step-000000004", f"{step}/x/.."):
-        with pytest.raises(UserError, match=f" is inside {step}, a step of another run's storage"):
+        with pytest.raises(UserError, match=f" is (inside {re.escape(str(step))}, )?a step of another run's storage"):
             check_storage_place(refused)
     for taken in (f"{step}/../..", "to-run", "link/../.."):
         check_storage_place(taken)
@@ -289,7 +290,7 @@ def test_train_and_supervise_refuse_a_storage_inside_a_step_before_they_touch_it
     result = subprocess.run(command(inside), cwd=tmp_path, env=child_env(), capture_output=True, text=True, timeout=60)
     assert result.returncode == 2, result.stderr
     assert result.stderr.strip().splitlines() == [
-        f"ftrain: error: storage {inside} is inside {inside}, a step of another run's storage, which that run may "
+        f"ftrain: error: storage {inside} is a step of another run's storage, which that run may "
         f"delete: pass a directory of its own (to train on from that step: resume={inside})"
     ], result.stderr
     assert sorted(path.name for path in inside.iterdir()) == before

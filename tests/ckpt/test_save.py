@@ -221,11 +221,10 @@ def test_a_best_metric_the_run_does_not_record_is_said_once_at_its_first_commit(
         said[metric] = [line for line in capsys.readouterr().out.splitlines() if "checkpoint.best_metric=" in line]
     for metric in ("mean_retrun", "eval_return"):
         assert len(said[metric]) == 1, said
-        assert (
-            f"checkpoint.best_metric={metric} is not a metric of this run, so keep_best keeps no step"
-            in said[metric][0]
-        )
-        assert "use one of " in said[metric][0] and "mean_return" in said[metric][0]
+        line = said[metric][0]
+        assert f"checkpoint.best_metric={metric} is not a metric of this run" in line, line
+        assert ", so keep_best keeps no step by it: use one of " in line and "mean_return" in line, line
+    assert "this run (did you mean mean_return?), so" in said["mean_retrun"][0]
     assert said["mean_return"] == []
 
 

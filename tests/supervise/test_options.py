@@ -155,6 +155,8 @@ def test_a_misspelt_word_an_option_takes_is_told_the_one_it_is_closest_to(monkey
             parse(typo)
         assert f"(did you mean {meant}?)" in str(refused.value), (typo, str(refused.value))
         checked += 1
+    with pytest.raises(UserError, match=r"'protocl' is not an etcd connection setting .*\(did you mean protocol\?\)"):
+        check(rdzv_backend="etcd-v2", rdzv_conf="protocl=http")  # one node: no use for it, but a typo is told
     print(f"{checked} misspelt option words told the one they came from")
     assert checked > 70
 
