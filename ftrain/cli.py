@@ -373,17 +373,27 @@ def _refuse_misplaced_option(parser: argparse.ArgumentParser, argv: list[str]) -
             level, path = commands.choices[word], [*path, word]
         elif word.startswith("-") and not misplaced and not _takes(level, option := word.partition("=")[0]):
             misplaced = option
-    if not misplaced:
-        return
-    if path and any(_takes(command, misplaced) for _, command in parsers(level)):
+    if not misplaced or (any(isinstance(a, argparse._SubParsersAction) for a in level._actions) and path):
+        return  # nothing misplaced, or a command still to name (``ftrain ckpt --json``): argparse lists them
+    if path and _takes(level, misplaced):
         where = " ".join(["ftrain", *path])
         raise UserError(f"{misplaced} goes after the command: {where} ... {misplaced} ...: see {where} --help")
     if not path:
+        takers = [
+            name.split()[1] for name, command in parsers(parser) if name != "ftrain" and _takes(command, misplaced)
+        ]
+        if takers:
+            raise UserError(
+                f"{misplaced} goes after a command: ftrain COMMAND ... {misplaced} ... (it is an option of "
+                f"{', '.join(dict.fromkeys(takers))}): see ftrain COMMAND --help"
+            )
         parser.error(f"unrecognized arguments: {misplaced}")
 
 
 def _takes(parser: argparse.ArgumentParser, option: str) -> bool:
     """Whether ``parser`` has ``option``, or an option ``option`` starts (argparse's abbreviation)."""
+    if len(option) < 2:
+        return False  # ``-`` alone: a word (argparse's own look-up fails on it)
     return option in parser._option_string_actions or bool(parser._get_option_tuples(option))
 
 

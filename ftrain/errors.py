@@ -76,14 +76,18 @@ def command(*words: object) -> str:
 
 def closest(word: str, known: typing.Iterable[str], cutoff: float = 0.6) -> str | None:
     """The one of ``known`` that ``word`` most likely misspells, for a "did you mean", else None. Case is no
-    difference (``ÖNNX``); a start of only one of them names it (``unq``); never the opposite of what was typed
-    (``nodrop-bad`` for ``drop-bad``, ``quarantine`` for ``unquarantine``), which may do the harm the user avoided."""
+    difference (``ÖNNX``, ``HTTP``); a start of only one of them names it (``unq``), a start of two letters of several
+    none (``pl``: play, plot); never the opposite of what was typed (``nodrop-bad`` for ``drop-bad``, ``quarantine``
+    for ``unquarantine``), which may do the harm the user avoided."""
     names = {name.casefold(): name for name in known}
     typed = word.casefold()
     starting = [folded for folded in names if typed and folded.startswith(typed)]
-    if len(starting) > 1:
-        return None  # a start of several (``pl``: play, plot) names none of them
-    near = starting or difflib.get_close_matches(typed, names, n=1, cutoff=cutoff)
+    if typed in names or len(starting) == 1:
+        near = [typed if typed in names else starting[0]]
+    elif len(starting) > 1 and len(typed) < 3:
+        return None
+    else:
+        near = difflib.get_close_matches(typed, names, n=1, cutoff=cutoff)
     return names[near[0]] if near and not _negates(typed, near[0]) else None
 
 

@@ -268,3 +268,16 @@ def test_a_storage_or_log_dir_that_is_a_file_is_one_line_exit_2_and_the_file_is_
         assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
         assert result.stderr.count("\n") == 1 and message in result.stderr, result.stderr
     assert file.read_text() == "not a directory" and sorted(tmp_path.iterdir()) == [file]
+
+
+@pytest.mark.parametrize(
+    ("typed", "meant"), [("walker2d", "Walker2d-v5"), ("HalfCheetah", "HalfCheetah-v5"), ("hoper-v5", "Hopper-v5")]
+)
+def test_an_env_id_without_its_version_or_misspelt_is_told_the_one_meant(typed, meant) -> None:
+    """A start of several ids (each version of one env) is no reason to name none: difflib picks among them."""
+    from ftrain.config import EnvConfig
+    from ftrain.train.env_ids import check_env_id
+
+    told = f"env.id={typed!r} is not a registered gymnasium environment: did you mean {meant!r}"
+    with pytest.raises(UserError, match=re.escape(told)):
+        check_env_id(EnvConfig(id=typed))

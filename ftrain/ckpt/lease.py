@@ -275,6 +275,8 @@ class Lease:
             since = next((e.since for e in record.entries if e.process == self.process), now) if ours else now
             mine = Entry(self.process, now, since)
             new = Record(self.run_id, generation, self.ttl, (*(others if joins else ()), mine))
+            if stop is not None and stop.is_set():
+                return None  # released since this read, which may be the record after the drop: no write back
             try:
                 cas.write(self.storage, LEASE, new.encode(), version)
             except cas.Conflict:

@@ -12,6 +12,7 @@ to pass instead (``part_of_a_storage``).
 from __future__ import annotations
 
 import json
+import os
 import re
 import time
 from collections.abc import Callable
@@ -83,7 +84,12 @@ def check_storage_place(url: str) -> None:
     aside under ``quarantine/``, a policy snapshot under ``policies/``): that run's retention and clean-up would
     delete what a run there writes."""
     shown = display_url(url)
-    if (found := _enclosing_step(where := spellings(shown)[-1])) is not None:  # where a local path really goes
+    # by its name (``..`` resolved) and by where a local path really goes: a link into a step, or through a run's
+    # ``checkpoints/`` linked to another disk, is inside it as much as its name
+    names = [shown] if "://" in shown else [os.path.normpath(shown), os.path.realpath(shown)]
+    for where in names:
+        if (found := _enclosing_step(where)) is None:
+            continue
         step, parent, _ = found
         resume = f" (to train on from that step: resume={step})" if parent == CHECKPOINTS else ""
         place = "is" if step == where.partition("?")[0].rstrip("/") else f"is inside {step},"

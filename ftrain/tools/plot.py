@@ -97,8 +97,8 @@ def read_restarts(storage: Storage) -> list[int]:
     for line in (_read(storage, EVENTS) or b"").decode(errors="replace").splitlines():
         try:
             event = json.loads(line)
-        except json.JSONDecodeError:
-            continue  # a line cut short by a crash of the supervisor itself
+        except (json.JSONDecodeError, RecursionError):
+            continue  # a line cut short by a crash of the supervisor itself, or not the supervisor's
         if not isinstance(event, dict):
             continue  # not the supervisor's: a line damaged since
         if event.get("event") == "restart":

@@ -49,6 +49,6 @@ def _parse(line: str) -> dict:
     """A line being written may be incomplete: it counts once it is whole."""
     try:
         event = json.loads(line)
-    except ValueError:
+    except (ValueError, RecursionError):  # RecursionError: arrays nested thousands deep, no line the supervisor wrote
         return {}
     return event if isinstance(event, dict) else {}

@@ -14,6 +14,7 @@ import importlib
 import io
 import math
 import os
+import re
 import statistics
 import time
 from collections.abc import Callable
@@ -38,8 +39,8 @@ def damaged(row: dict) -> bool:
     whose iteration, or step resumed from, is not a whole number."""
     if None in row or None in row.values() or any("\ufffd" in value for value in row.values()):
         return True
-    whole = [row.get("iteration") or "", *filter(None, [row.get("resumed_from")])]
-    return not all(text.isascii() and text.isdigit() for text in whole)
+    numbers = [row.get("iteration") or "", *filter(None, [row.get("resumed_from")])]
+    return not all(re.fullmatch(r"[0-9]{1,18}", text) for text in numbers)  # 18 digits: what int() always takes
 
 
 if TYPE_CHECKING:

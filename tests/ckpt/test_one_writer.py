@@ -273,12 +273,19 @@ def test_where_a_local_storage_really_goes_decides_not_its_spelling(tmp_path, mo
     (tmp_path / "link").symlink_to(step)
     (tmp_path / "to-run").symlink_to(run)
     monkeypatch.chdir(tmp_path)
+    (tmp_path / "linked-run").mkdir()  # a run whose checkpoints/ is on another disk, linked
+    (tmp_path / "disk").mkdir()
+    (tmp_path / "disk" / "step-000000004").mkdir()
+    (tmp_path / "linked-run" / "checkpoints").symlink_to(tmp_path / "disk")
+    inside_by_name = "linked-run/checkpoints/step-000000004/new"
+    with pytest.raises(UserError, match=" is inside linked-run/checkpoints/step-000000004, a step of another run's"):
+        check_storage_place(inside_by_name)  # its real path names no checkpoints/ of linked-run: its name does
     for refused in ("link", f"{tmp_path}/link/sub", "to-run/checkpoints/step-000000004", f"{step}/x/.."):
         with pytest.raises(UserError, match=f" is (inside {re.escape(str(step))}, )?a step of another run's storage"):
             check_storage_place(refused)
     for taken in (f"{step}/../..", "to-run", "link/../.."):
         check_storage_place(taken)
-    print("7 spellings decided by where they go")
+    print("8 spellings decided by their name and where they go")
 
 
 @pytest.mark.parametrize("command", [train_command, supervise_command])

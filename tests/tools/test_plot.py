@@ -71,12 +71,12 @@ def test_rows_cut_short_or_run_together_are_skipped_and_counted(resumed, tmp_pat
     run = tmp_path / "damaged"
     run.mkdir()
     glued = lines[3][: len(lines[3]) // 2] + lines[4]  # iteration 3 cut short, iteration 4 run into it
-    not_numbered = [f"{iteration}{lines[8][1:]}" for iteration in ("zz", "\u00b2", "", "-8", "8.0")]
+    not_numbered = [f"{iteration}{lines[8][1:]}" for iteration in ("zz", "\u00b2", "", "-8", "8.0", "9" * 5000)]
     text = "".join([*lines[:3], glued, *lines[5:], "garbage,,,\n", *not_numbered]).encode()
     (run / "metrics.csv").write_bytes(text.replace(b"\n5,", b"\n5,\xff\xfe", 1))  # row 5: bytes that are not text
     columns, _, _ = read_metrics(run)
     assert columns["iteration"] == [1, 2, 6, 7, 8]
-    assert capsys.readouterr().err == f"ftrain plot: {run / 'metrics.csv'}: skipped 8 damaged rows\n"
+    assert capsys.readouterr().err == f"ftrain plot: {run / 'metrics.csv'}: skipped 9 damaged rows\n"
 
 
 def test_plot_marks_a_resume_that_was_no_restart(resumed, tmp_path) -> None:
@@ -99,7 +99,7 @@ def test_plot_adds_the_supervisors_restarts(resumed, tmp_path) -> None:
     events("restart", attempt=3, restarts=2)
     events("resumed", attempt=3, step=None)  # a crash before the first checkpoint: restarted from the start
     with (run / "events.jsonl").open("a") as file:  # damaged since: skipped, a step of another type as none
-        file.write('[1, 2]\nnull\n{"event": "restart"}\n{"event": "resumed", "step": "4"}\n')
+        file.write('[1, 2]\nnull\n{"event": "restart"}\n{"event": "resumed", "step": "4"}\n' + "[" * 5000 + "\n")
         file.write('{"time": 1.0, "event": "resu')  # cut short when the supervisor itself was killed
     plot = plot_run(run)
     assert (plot.restarts, plot.resumes) == ([0, 2], [4])
