@@ -47,7 +47,7 @@ from ftrain.ckpt.steps import (
 from ftrain.ckpt.steps import unquarantine as unquarantine_step
 from ftrain.ckpt.storage import Storage
 from ftrain.config import CheckpointConfig
-from ftrain.errors import EXIT_STORAGE_HELD, UserError, command, did_you_mean
+from ftrain.errors import EXIT_STORAGE_HELD, StorageError, UserError, command, did_you_mean
 from ftrain.progress import Progress
 from ftrain.values import is_number
 
@@ -237,6 +237,8 @@ def as_lease_holder(
         except LeaseHeld as held:
             refused(str(held))
             return EXIT_STORAGE_HELD
+        except (OSError, StorageError):  # the storage's clock asks for a write (a read-only mount): the prune tells
+            pass
         return body(storage)
     return lease.run(lambda held: body(guarded(storage)), refused)
 

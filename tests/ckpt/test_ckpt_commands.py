@@ -130,6 +130,17 @@ def test_a_dry_run_of_prune_on_a_held_or_damaged_lease_is_refused_as_prune_is(ru
         captured = capsys.readouterr()
         assert captured.out == "" and captured.err.startswith("ftrain: error: ckpt prune refused: storage "), captured
         assert "held by another run (a-run, pid 4242 on host node-far-away" in captured.err, captured.err
+    stale = Record("a-run", 3, 60.0, (Entry(far, time.time() - 600),))  # expired by its time: the storage's clock asked
+    storage.write_replace("LEASE.json", stale.encode())
+    os.utime(storage.fs._strip_protocol(f"{run}/LEASE.json"), (time.time() - 600, time.time() - 600))
+
+    def read_only(path: str, data: bytes) -> None:  # a read-only mount: the clock file cannot be written
+        raise OSError(30, "Read-only file system", path)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Storage, "write_replace", lambda self, rel, data: read_only(rel, data))
+        assert ckpt_commands.prune(run, keep_last=1, dry_run=True) == 0  # previews; it wrote nothing
+    assert "would delete step 20" in capsys.readouterr().out
     storage.write_replace("LEASE.json", b'{"run_id": "x", "generation": "1", "ttl": 60, "holders": []}')
     before = sorted(storage.fs.find(storage.root))
     for preview in (
