@@ -36,6 +36,7 @@ def start(command: list[str], heartbeats: Path, **popen: object) -> subprocess.P
         command,
         cwd=REPO,
         env=child_env({ENV_DIR: str(heartbeats)}),
+        stdin=subprocess.DEVNULL,  # not the test worker's (pytest-xdist's channel): once a traceback here read from it
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
