@@ -142,12 +142,12 @@ def parse_checkpoint_url(url: str) -> tuple[str, int | None]:
 
 
 def spellings(url: str) -> list[str]:
-    """``url`` as given, then, for a local path, the real one, absolute, through symbolic links and ``..``: a step
-    named from inside the directory that holds it (``step-000000120`` in ``checkpoints/``) is known by the names
-    above it, and a link into a step is that step."""
+    """``url``; for a local path, by its name (``..`` resolved), then the real one, absolute, through symbolic links:
+    a step named from inside the directory that holds it (``step-000000120`` in ``checkpoints/``) is known by the
+    names above it, a link into a step is that step, and so is a path through a run's linked ``checkpoints/``."""
     if "://" in url:
         return [url]
-    return list(dict.fromkeys([url, os.path.realpath(url)]))
+    return list(dict.fromkeys([os.path.normpath(url), os.path.realpath(url)]))
 
 
 def encode(state: dict) -> bytes:

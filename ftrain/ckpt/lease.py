@@ -137,11 +137,11 @@ class Record:
             entries.append(
                 Entry(
                     Process(
-                        _field(holder, "host", lambda value: _typed(value, str), where),
+                        _field(holder, "host", _text, where),
                         _field(holder, "pid", _whole, where),
                         _field(holder, "start", _whole, where),
-                        _field(holder, "boot", lambda value: _typed(value, str), where),
-                        _field(holder, "pidns", lambda value: _typed(value, str), where),
+                        _field(holder, "boot", _text, where),
+                        _field(holder, "pidns", _text, where),
                     ),
                     _field(holder, "renewed_at", _seconds, where),
                     _field(holder, "since", _seconds, where, default=0.0),
@@ -149,7 +149,7 @@ class Record:
             )
         generation = _field(body, "generation", lambda value: _whole(value, low=1))
         ttl = _field(body, "ttl", lambda value: _seconds(value, low=SHORTEST))
-        return cls(_field(body, "run_id", lambda value: _typed(value, str)), generation, ttl, tuple(entries))
+        return cls(_field(body, "run_id", _text), generation, ttl, tuple(entries))
 
 
 def _field(data: dict | list, key: str | int, check: Callable[[Any], Any], where: str = "", default: Any = None) -> Any:
@@ -170,6 +170,10 @@ def _typed(value: object, kind: type) -> object:
     if not isinstance(value, kind):
         raise TypeError(f"{reprlib.repr(value)} is not a {kind.__name__}")
     return value
+
+
+def _text(value: object) -> str:
+    return _typed(value, str)
 
 
 def _whole(value: object, low: int = 0) -> int:
@@ -500,7 +504,8 @@ def read_record(storage: Storage) -> tuple[Record, str] | None:
     try:
         return Record.decode(current[0]), current[1]
     except (ValueError, TypeError, RecursionError) as wrong:  # RecursionError: arrays in arrays thousands deep
-        reason = str(wrong) if type(wrong) in (ValueError, TypeError) else "not JSON"
+        unparsed = isinstance(wrong, (json.JSONDecodeError, UnicodeDecodeError, RecursionError))
+        reason = "not JSON" if unparsed else str(wrong)
         raise UserError(
             f"{storage.where(LEASE)} is not a lease ftrain can read ({reason}): if no run uses this storage, delete "
             "that file"

@@ -12,7 +12,6 @@ to pass instead (``part_of_a_storage``).
 from __future__ import annotations
 
 import json
-import os
 import re
 import time
 from collections.abc import Callable
@@ -84,10 +83,7 @@ def check_storage_place(url: str) -> None:
     aside under ``quarantine/``, a policy snapshot under ``policies/``): that run's retention and clean-up would
     delete what a run there writes."""
     shown = display_url(url)
-    # by its name (``..`` resolved) and by where a local path really goes: a link into a step, or through a run's
-    # ``checkpoints/`` linked to another disk, is inside it as much as its name
-    names = [shown] if "://" in shown else [os.path.normpath(shown), os.path.realpath(shown)]
-    for where in names:
+    for where in spellings(shown):
         if (found := _enclosing_step(where)) is None:
             continue
         step, parent, _ = found
