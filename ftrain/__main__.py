@@ -4,7 +4,7 @@ does. A Ctrl-C while it imports is one line (``errors.interrupted``), not a trac
 
 import sys
 
-from ftrain.errors import interrupted
+from ftrain.errors import by_ctrl_c, interrupted
 
 try:
     from ftrain.process import exit_fast
@@ -18,6 +18,8 @@ try:
         from ftrain.cli import main
 
         code = main()
-except KeyboardInterrupt:
+except (KeyboardInterrupt, Exception) as error:
+    if not by_ctrl_c(error):
+        raise
     sys.exit(interrupted())
 exit_fast(code)

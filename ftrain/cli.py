@@ -28,6 +28,7 @@ from ftrain.errors import (
     StorageError,
     StorageUnavailable,
     UserError,
+    by_ctrl_c,
     interrupted,
     no_space_line,
 )
@@ -437,6 +438,8 @@ def main(argv: list[str] | None = None) -> int:
         errorfile.report(no_space_line(error))  # a failure: the supervisor waits if the run's disks are full
         return EXIT_FAILED
     except Exception as error:  # a bug: it keeps its traceback, and torchrun and the supervisor learn what it was
+        if by_ctrl_c(error):
+            return interrupted()
         errorfile.record_exception(error)
         raise
 

@@ -52,6 +52,18 @@ def interrupted() -> int:
     return EXIT_INTERRUPTED
 
 
+def by_ctrl_c(error: BaseException) -> bool:
+    """Whether a Ctrl-C caused ``error``: one inside a compiled module's import (MuJoCo's, through pybind11) comes back
+    as an ImportError whose cause is the KeyboardInterrupt, and the importer may wrap that again."""
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return False
+
+
 def stop_code(signum: int) -> int:
     """The exit code after a stop by ``signum``: 128 + the signal, as a shell reports it (130 for Ctrl-C)."""
     return EXIT_INTERRUPTED if signum == signal.SIGINT else EXIT_PREEMPTED
