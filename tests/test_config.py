@@ -127,6 +127,8 @@ def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> 
         ([SMOKE, "algorithm.learning_rat=3e-4"], "unknown config key algorithm.learning_rat: did you mean algorithm."),
         ([SMOKE, "env.id=NoSuchEnv-v0"], "env.id='NoSuchEnv-v0' is not a registered gymnasium environment"),
         ([SMOKE, "env.id=HalfCheeta-v5"], "did you mean 'HalfCheetah-v5'"),
+        ([SMOKE, "env.id="], "env.id='' is not a registered gymnasium environment: use one of Ant-v4, "),
+        ([SMOKE, "env.id="], "(an env of your own: env.id=yourmodule:EnvId)"),
         (
             [SMOKE, "env.id=Pendulum-v1"],
             "env.id='Pendulum-v1' is not a MuJoCo environment: ftrain trains environments whose core is a MujocoEnv",

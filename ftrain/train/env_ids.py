@@ -38,7 +38,7 @@ def check_env_id(env: EnvConfig) -> None:
         hint = f"did you mean {near!r}?" if near else f"use one of {', '.join(supported)}"
         raise UserError(
             f"env.id={env.id!r} is not a registered gymnasium environment: {hint} (an env of your own: "
-            f"env.id=yourmodule:{env.id})"
+            f"env.id=yourmodule:{env.id or 'EnvId'})"
         )
     raise UserError(
         f"env.id={env.id!r} is not a MuJoCo environment: ftrain trains environments whose core is a MujocoEnv, "
