@@ -49,3 +49,35 @@ def test_an_exit_by_signal_ends_by_it_and_imports_leave_a_disabled_collector_dis
     result = run_child("gc-off", "signal")
     assert result.returncode == -signal.SIGINT, result.stderr.decode()
     assert b"python line" in result.stdout and b"C line" in result.stdout
+
+
+def test_a_ctrl_c_during_the_imports_is_raised_once_they_are_done_and_only_then() -> None:
+    """Raised inside an import, a KeyboardInterrupt can come out as the library's ImportError or be swallowed by an
+    optional import's ``except ImportError``: a real SIGINT inside the block reaches the code after it, once; the
+    handler before is back, and one installed by the code (the trainer's) is left alone."""
+    child = textwrap.dedent(
+        """
+        import os, signal, time
+        from ftrain.process import imports
+
+        try:
+            with imports():
+                os.kill(os.getpid(), signal.SIGINT)
+                try:
+                    time.sleep(0.2)  # where a library's import would run on
+                except ImportError:  # as an optional import's guard
+                    print("swallowed")
+                print("imports done")
+        except KeyboardInterrupt:
+            print("interrupted after them")
+        print(signal.getsignal(signal.SIGINT) is signal.default_int_handler)
+        signal.signal(signal.SIGINT, lambda signum, frame: print("own handler"))
+        with imports():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.2)
+        print("no hold over a handler of the code's")
+        """
+    )
+    result = subprocess.run([sys.executable, "-c", child], cwd=REPO, env=child_env(), capture_output=True, text=True)
+    said = ["imports done", "interrupted after them", "True", "own handler", "no hold over a handler of the code's"]
+    assert result.stdout.splitlines() == said, result.stderr
