@@ -59,14 +59,14 @@ def read_metrics(
     rows: dict[int, dict[str, str]] = {}
     restarts: set[int] = set()
     changes: dict[int, str] = {}
-    previous = skipped = 0
+    previous, skipped = 0, []
     reader = metrics_rows(data)
     try:
         if reader.fieldnames is not None and "iteration" not in reader.fieldnames:
             raise UserError(f"{path} has no iteration column (its columns: {', '.join(reader.fieldnames)}): {NOT_OURS}")
         for row in reader:
             if damaged(row):  # as training's own reader of the file drops them (``CsvHook``)
-                skipped += 1
+                skipped.append(reader.line_num)  # the line it ends on
                 continue
             iteration = int(row["iteration"])  # a whole number: ``damaged`` says so
             if iteration <= previous:
@@ -81,11 +81,13 @@ def read_metrics(
     except csv.Error as error:
         raise UserError(f"{path} line {reader.line_num} is not CSV ({error}): {NOT_OURS}") from None
     if not rows and skipped:
-        raise UserError(f"{path} holds no row but {_count(skipped, 'damaged one')}: {NOT_OURS}")
+        raise UserError(f"{path} holds no row but {_count(len(skipped), 'damaged one')}: {NOT_OURS}")
     if not rows:
         raise UserError(f"{path} has no rows yet: plot the run after its first iteration")
     if skipped:
-        print(f"ftrain plot: {path}: skipped {_count(skipped, 'damaged row')}", file=sys.stderr)
+        print(
+            f"ftrain plot: {path}: skipped {_count(len(skipped), 'damaged row')} ({_lines(skipped)})", file=sys.stderr
+        )
     ordered = [rows[iteration] for iteration in sorted(rows)]
     columns = {name: [_number(row.get(name)) for row in ordered] for name in ordered[-1] if name != "config_change"}
     return columns, sorted(restarts), changes
@@ -197,6 +199,12 @@ def _read(storage: Storage, name: str) -> bytes | None:
 
 def _count(n: int, noun: str) -> str:
     return f"{n} {noun}{'s' * (n != 1)}"
+
+
+def _lines(numbers: list[int], shown: int = 5) -> str:
+    """Where in the file, for a reader to look: the first few line numbers."""
+    more = f" and {len(numbers) - shown} more" if len(numbers) > shown else ""
+    return f"line{'s' * (len(numbers) != 1)} {', '.join(map(str, numbers[:shown]))}{more}"
 
 
 def _number(text: str | None) -> float:

@@ -76,7 +76,10 @@ def test_rows_cut_short_or_run_together_are_skipped_and_counted(resumed, tmp_pat
     (run / "metrics.csv").write_bytes(text.replace(b"\n5,", b"\n5,\xff\xfe", 1))  # row 5: bytes that are not text
     columns, _, _ = read_metrics(run)
     assert columns["iteration"] == [1, 2, 6, 7, 8]
-    assert capsys.readouterr().err == f"ftrain plot: {run / 'metrics.csv'}: skipped 9 damaged rows\n"
+    assert (
+        capsys.readouterr().err
+        == f"ftrain plot: {run / 'metrics.csv'}: skipped 9 damaged rows (lines 4, 5, 9, 10, 11 and 4 more)\n"
+    )
 
 
 def test_plot_marks_a_resume_that_was_no_restart(resumed, tmp_path) -> None:
