@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import contextlib
 import errno
-import os
 import shutil
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -237,15 +237,12 @@ def short_of_space(storage: Storage, steps: list[str], log_dir: Path | None) -> 
 def _write_fails(directory: Path) -> str | None:
     """How a write of ``SPACE_MARGIN`` bytes in ``directory`` fails for lack of space (None: it does not); UserError
     where it may not write at all (no waiting fixes that)."""
-    probe = directory / f".ftrain-space-probe-{os.getpid()}"
-    try:
-        with probe.open("wb") as file:
+    try:  # a file without a name (O_TMPFILE; else unlinked at once): a process killed here leaves nothing behind
+        with tempfile.TemporaryFile(dir=directory, prefix=".ftrain-space-probe-") as file:
             file.write(bytes(SPACE_MARGIN))
+            file.flush()
     except OSError as error:
         if error.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
             raise UserError(f"cannot write in {directory} ({error.strerror}): check its permissions") from None
         return f"a {human_size(SPACE_MARGIN)} write fails: {error.strerror}" if error.errno in NO_SPACE else None
-    finally:
-        with contextlib.suppress(OSError):
-            probe.unlink()
     return None

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import random
 import re
 import shutil
 import signal
@@ -269,6 +270,23 @@ def test_a_disk_out_of_inodes_with_bytes_to_spare_is_full(tmp_path) -> None:
         assert "write fails: No space left on device" in short_of_space(storage, [], None)
         (disk / "empty-0").unlink()
         assert short_of_space(storage, [], None) is None
+
+
+def test_the_space_probe_leaves_no_file_behind_when_its_process_is_killed(tmp_path) -> None:
+    """The supervisor writes a probe into the run's disks while it waits: killed then (SIGKILL, at random moments of
+    a loop of probes), it leaves no probe file in the user's directory."""
+    probing = "import sys\nfrom pathlib import Path\nfrom ftrain.supervise.outage import _write_fails\n"
+    probing += "print('probing', flush=True)\nwhile True:\n    _write_fails(Path(sys.argv[1]))\n"
+    draw, kills = random.Random(9), 6
+    for _ in range(kills):
+        child = subprocess.Popen(
+            [sys.executable, "-c", probing, str(tmp_path)], env=child_env(), stdout=subprocess.PIPE
+        )
+        assert child.stdout.readline() == b"probing\n"
+        time.sleep(draw.uniform(0.05, 0.3))
+        child.kill()
+        child.wait()
+    assert list(tmp_path.iterdir()) == [], f"left after {kills} kills"
 
 
 def test_a_full_disk_is_named_with_the_fix_for_what_lies_on_it(tmp_path) -> None:
