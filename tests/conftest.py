@@ -53,16 +53,22 @@ LANES_OF_THEIR_OWN = ("cluster", "slurm", "scale")
 LONGEST_FIRST = (
     "test_readme.py",
     "cluster/test_slurm.py",
+    "train/test_world_size.py",
     "train/test_resume.py",
     "supervise/test_elastic.py",
+    "supervise/test_supervisor.py",
     "train/test_user_env.py",
     "cluster/test_netns.py",
     "supervise/test_outages.py",
+    "supervise/test_one_run.py",
+    "train/test_training.py",
+    "train/test_stop_codes.py",
+    "comm/test_host_first.py",
     "train/test_distillation.py",
     "ckpt/test_one_history.py",
 )
-"""The files that take longest (``--durations``), run first: xdist hands out a file at a time, and a long file taken
-last keeps one worker busy while the other has nothing left to do."""
+"""The files that take longest (their wall time in ``FTRAIN_TEST_CPU_LOG``), run first: xdist hands out a file at a
+time, and a long file taken last keeps one worker busy while the others have nothing left to do."""
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
