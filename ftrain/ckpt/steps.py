@@ -15,6 +15,7 @@ import json
 import re
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 from ftrain.ckpt.format import (
     CHECKPOINTS,
@@ -42,6 +43,7 @@ from ftrain.ckpt.format import (
 from ftrain.ckpt.lineage import History, generation, history
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.storage import Storage
+from ftrain.config import check_writable
 from ftrain.errors import UserError, command
 from ftrain.redact import display_url
 
@@ -83,16 +85,36 @@ def check_storage_place(url: str) -> None:
     aside under ``quarantine/``, a policy snapshot under ``policies/``): that run's retention and clean-up would
     delete what a run there writes."""
     shown = display_url(url)
-    for where in spellings(shown):
-        if (found := _enclosing_step(where)) is None:
-            continue
-        step, parent, _ = found
-        resume = f" (to train on from that step: resume={step})" if parent == CHECKPOINTS else ""
-        place = "is" if step == where.partition("?")[0].rstrip("/") else f"is inside {step},"
+    if (found := _enclosing_step_of_any(shown)) is None:
+        return
+    where, step, parent = found
+    resume = f" (to train on from that step: resume={step})" if parent == CHECKPOINTS else ""
+    place = "is" if step == where.partition("?")[0].rstrip("/") else f"is inside {step},"
+    raise UserError(
+        f"storage {shown} {place} a step of another run's storage, which that run may delete: pass a directory of "
+        f"its own{resume}"
+    )
+
+
+def check_output(path: Path, option: str) -> None:
+    """UserError unless the file a command writes (``option``: the flag that chose ``path``) can be written and lies
+    outside every step directory of a storage: there it would replace a committed file of the same name (``export -o
+    .../common.pt``) or go when retention deletes the step."""
+    if (found := _enclosing_step_of_any(str(path))) is not None:
         raise UserError(
-            f"storage {shown} {place} a step of another run's storage, which that run may delete: pass a directory of "
-            f"its own{resume}"
+            f"{option} {path} lies inside {found[1]}, a step of a run's storage: a file written there replaces the "
+            f"step's own or is deleted with it: pass {option} a path outside the storage's steps"
         )
+    check_writable(path, option)
+
+
+def _enclosing_step_of_any(url: str) -> tuple[str, str, str] | None:
+    """The first spelling of ``url`` (``format.spellings``) that lies inside a step directory, that step and its
+    parent's name; None where no spelling does."""
+    for where in spellings(url):
+        if (found := _enclosing_step(where)) is not None:
+            return where, found[0], found[1]
+    return None
 
 
 def scan(storage: Storage, full: bool = False) -> list[StepInfo]:

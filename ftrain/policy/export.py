@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ftrain.config import POLICY_FORMATS, check_writable, default_log_dir
+from ftrain.ckpt.steps import check_output
+from ftrain.config import POLICY_FORMATS, default_log_dir
 from ftrain.errors import UserError
 from ftrain.policy.load import METADATA, Policy, policy_from_file, torchscript_deprecation_ignored
 from ftrain.policy.robot import make_env
@@ -148,7 +149,7 @@ def export(policy: Policy, fmt: str, path: str | Path | None = None) -> Path:
     run = policy.source.rstrip("/").rsplit("/", 2)[0]  # the source is <run>/checkpoints/step-N or <run>/policies/...
     name = f"{policy.config.name}-step-{policy.step}{SUFFIXES[fmt]}"
     path = output_path(fmt, path, Path(default_log_dir(run, policy.config.name)) / "exports", name)
-    check_writable(path, "-o")
+    check_output(path, "-o")
     progress = Progress()
     progress.show("export: playing the policy's episodes that the export is checked on...")
     try:

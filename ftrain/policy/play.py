@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ftrain.config import SEEDS, check_writable
+from ftrain.ckpt.steps import check_output
+from ftrain.config import SEEDS
 from ftrain.errors import UserError
 from ftrain.policy.load import Policy
 from ftrain.policy.robot import make_env
@@ -36,7 +37,7 @@ def check_play_options(episodes: int, seed: int, video: str | Path | None) -> No
     if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
         raise UserError(f"video {str(video)!r} must end in {' or '.join(VIDEO_SUFFIXES)}")
     if video is not None:
-        check_writable(Path(video), "--video")
+        check_output(Path(video), "--video")
 
 
 def play(

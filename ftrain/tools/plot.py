@@ -18,8 +18,9 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
+from ftrain.ckpt.steps import check_output
 from ftrain.ckpt.storage import Storage
-from ftrain.config import check_writable, default_log_dir
+from ftrain.config import default_log_dir
 from ftrain.errors import UserError
 from ftrain.train.hooks import damaged, metrics_rows
 from ftrain.values import is_whole
@@ -131,7 +132,7 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     columns, resumed, changed = read_metrics(run, options)
     run_name = Path(run).resolve().name if storage.is_local else PurePosixPath(storage.url).name
     path = Path(output) if output else Path(default_log_dir(str(run), run_name)) / "curves.png"
-    check_writable(path, "-o")
+    check_output(path, "-o")
     changes = sorted(changed)
     restarts = sorted(set(read_restarts(storage)) - set(changes))
     resumes = sorted(set(resumed) - set(restarts) - set(changes))

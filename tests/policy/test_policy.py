@@ -238,3 +238,39 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
     assert load_policy(str(tmp_path / f"smoke-step-{load_policy(str(trained)).step}.pt")).step > 0
     with pytest.raises(UserError, match="unknown policy format 'tflite': use torchscript or onnx"):
         export(load_policy(str(trained)), "tflite")  # the CLI's --format choices refuse it before (tests/test_cli.py)
+
+
+def test_no_output_lands_inside_a_step_of_a_storage(trained, tmp_path, capsys) -> None:
+    """export's ``-o``, play's ``--video`` and plot's ``-o`` inside a step directory (one of ``checkpoints/``, one
+    set aside under ``quarantine/``, a policy snapshot under ``policies/``), named as a shard of it, as the step
+    itself, through ``..`` or through a link: one line, exit 2, and every byte of the storage as it was. A torchscript
+    export to ``.../common.pt`` replaced the newest step's shard and exited 0."""
+    run = tmp_path / "run"
+    shutil.copytree(trained, run)
+    newest = run / "checkpoints" / "step-000000004"
+    for parent in ("quarantine", "policies"):
+        shutil.copytree(newest, run / parent / "step-000000004")
+    (tmp_path / "link").symlink_to(newest)
+    before = {path: path.read_bytes() for path in sorted(run.rglob("*")) if path.is_file()}
+    places = []
+    for parent in ("checkpoints", "quarantine", "policies"):
+        step = run / parent / "step-000000004"
+        places += [step / "common.pt", step / "rank-00000.pt", step, step / "sub" / "x.pt"]
+    places += [run / "checkpoints" / ".." / "checkpoints" / "step-000000004" / "common.pt", tmp_path / "link" / "x.pt"]
+    named = lambda place, suffix: place.with_suffix(suffix) if place.suffix else place / f"x{suffix}"  # noqa: E731
+    commands = {
+        "export -o": lambda place: ["export", str(trained), "--format", "torchscript", "-o", str(place)],
+        "play --video": lambda place: ["play", str(trained), "--video", str(named(place, ".mp4"))],
+        "plot -o": lambda place: ["plot", str(trained), "-o", str(place if place.is_dir() else named(place, ".png"))],
+    }
+    checked = 0
+    for option, argv in commands.items():
+        for place in places:
+            assert main(argv(place)) == 2, (option, place)
+            err = capsys.readouterr().err
+            assert err.count("\n") == 1 and "a step of a run's storage" in err, (option, place, err)
+            checked += 1
+    after = {path: path.read_bytes() for path in sorted(run.rglob("*")) if path.is_file()}
+    assert after == before, "nothing in the storage written, nothing added"
+    print(f"{checked} outputs inside a step refused, the storage untouched")
+    assert main(["export", str(trained), "--format", "torchscript", "-o", str(run / "policy.pt")]) == 0  # beside them
