@@ -11,6 +11,7 @@ import re
 import shlex
 import signal
 import sys
+import time
 import typing
 
 EXIT_FAILED = 1
@@ -62,6 +63,26 @@ def by_ctrl_c(error: BaseException) -> bool:
         seen.add(id(error))
         error = error.__cause__ or error.__context__
     return False
+
+
+ONE_STOP = 0.5
+"""Seconds within which a stop signal of the same number is the same stop delivered again (``Deliveries``)."""
+
+
+class Deliveries:
+    """Tells a stop signal sent again from one stop delivered twice: ``timeout`` passes its signal to the command
+    and then to the command's whole process group, a kill of a job's processes may reach one twice; a second Ctrl-C
+    by hand comes later. A signal of the number of the one before, within ``ONE_STOP`` seconds, is that one again."""
+
+    def __init__(self) -> None:
+        self._last: tuple[int, float] | None = None
+
+    def new(self, signum: int) -> bool:
+        """Whether ``signum``, just received, is a stop of its own."""
+        now = time.monotonic()
+        again = self._last is not None and self._last[0] == signum and now - self._last[1] < ONE_STOP
+        self._last = (signum, now)
+        return not again
 
 
 def stop_code(signum: int) -> int:

@@ -57,7 +57,8 @@ def exit_codes_help() -> str:
     codes = "\n".join(f"  {code:>3}  {meaning}" for code, meaning in EXIT_CODES.items())
     return (
         "SIGTERM or SIGINT (Ctrl-C) to the supervisor makes the workers save at the next iteration boundary\n"
-        "and exit; the supervisor then exits 143 or 130. A second signal stops them at once.\n\nexit codes:\n" + codes
+        "and exit; the supervisor then exits 143 or 130. A second signal, half a second or more after the first,\n"
+        "stops them at once.\n\nexit codes:\n" + codes
     )
 
 

@@ -28,7 +28,7 @@ from ftrain.ckpt import cas
 from ftrain.ckpt.lease import Lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config, for_world, make_local_directories
-from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, UserError, stop_code
+from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, Deliveries, UserError, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.log_dir_lock import claim_log_dir
 from ftrain.redact import hide_credentials, redact_command
@@ -128,6 +128,7 @@ class Supervisor:
         self.attempt_logs = log_dir / "torchrun" / node_dir
         self.hangs = HangWatch(hang_timeout, options.startup_grace, options.nproc_per_node)
         self.signals: list[int] = []
+        self.deliveries = Deliveries()  # one stop delivered twice (``timeout``) is no second stop, which kills at once
         self.policy = RestartPolicy(options)
         self.ledger = Ledger(options.nproc_per_node, self.events)
         self.storage_wait = StorageWait(config.storage, options.storage_wait, self.events, self._sleep, log_dir=log_dir)
@@ -136,7 +137,8 @@ class Supervisor:
         self.lease: Lease | None = None  # the storage's, held for the run (``run``)
 
     def on_signal(self, number: int, frame: object) -> None:
-        self.signals.append(number)
+        if self.deliveries.new(number):
+            self.signals.append(number)
 
     def waiting_stopped(self) -> bool:
         """Whether the main thread should stop waiting for the storage's lock: a signal came before the run held the

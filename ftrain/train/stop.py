@@ -1,12 +1,14 @@
 """A stop asked for by a signal: SIGTERM or SIGINT sets a request that the training loop acts on at its next
 iteration boundary (the ranks agree, save, and exit 128 + the signal).
 
-May import: the standard library only.
+May import: the standard library and ``ftrain.errors``.
 """
 
 from __future__ import annotations
 
 import signal
+
+from ftrain.errors import Deliveries
 
 
 class StopRequest:
@@ -14,12 +16,14 @@ class StopRequest:
     signal, so that scripts and schedulers tell a stop from the end of training).
 
     Installed before anything slow starts, so an early signal is not lost. Repeated SIGTERMs are one request (a
-    scheduler and torchrun may both forward it); a second SIGINT (Ctrl-C twice) stops at once.
+    scheduler and torchrun may both forward it); a second SIGINT (Ctrl-C twice) stops at once, one delivered twice
+    (``errors.Deliveries``: ``timeout -s INT``) does not.
     """
 
     def __init__(self) -> None:
         self.signal: int | None = None
         """The first stop signal this rank received."""
+        self.deliveries = Deliveries()
 
     @property
     def requested(self) -> bool:
@@ -30,6 +34,8 @@ class StopRequest:
         signal.signal(signal.SIGINT, self._handle)
 
     def _handle(self, signum: int, frame: object) -> None:
+        if not self.deliveries.new(signum):
+            return
         if self.requested and signum == signal.SIGINT:
             signal.signal(signal.SIGINT, signal.SIG_DFL)
             raise KeyboardInterrupt
