@@ -259,7 +259,10 @@ def newest_generation(storage: Storage) -> int:
 def read_manifest(storage: Storage, step: int, directory: str | None = None) -> dict:
     """The manifest of ``step``: FileNotFoundError if there is none, CorruptCheckpoint if it is not valid.
     ``directory``: where the step lies, if not in its place under ``checkpoints/`` (set aside)."""
-    data = storage.read(f"{directory or step_dir(step)}/{MANIFEST}")
+    try:
+        data = storage.read(f"{directory or step_dir(step)}/{MANIFEST}")
+    except IsADirectoryError:
+        raise CorruptCheckpoint("a directory, not a file") from None
     try:
         manifest = json.loads(data)
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:

@@ -297,6 +297,8 @@ class Storage:
             raise FileNotFoundError(errno.ENOENT, "does not exist", self.where(rel)) from None
         except FileExistsError:
             raise FileExistsError(errno.EEXIST, "already exists", self.where(rel)) from None
+        except IsADirectoryError:  # a directory where a file belongs: the caller tells what that file was
+            raise IsADirectoryError(errno.EISDIR, "is a directory", self.where(rel)) from None
         except (PermissionError, NoCredentialsError) as exc:
             raise self._access_error(exc) from None
         except client_errors() as exc:

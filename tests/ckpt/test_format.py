@@ -224,6 +224,23 @@ def test_damage_is_never_verified_and_the_reason_is_named(storage_url, case):
             read_verified(storage, 30, "rank-00001.pt", manifest)
 
 
+@pytest.mark.parametrize("name", [MANIFEST, "rank-00001.pt"])
+def test_a_directory_where_a_file_of_a_step_belongs_is_damage_and_resume_goes_on_from_the_step_before(tmp_path, name):
+    """A local step with a directory in the place of its manifest or of a shard (a hand, a sync tool, a restore) is
+    corrupt, named, and skipped: reading the manifest was "IsADirectoryError" in every command, and the supervisor
+    crash-looped with "no step committed yet" beside two verified steps."""
+    storage = Storage.open(str(tmp_path / "run"))
+    make_step(storage, 10)
+    make_step(storage, 20)
+    place = tmp_path / "run" / step_path(20, name)
+    place.unlink()
+    place.mkdir()
+    reason = f"{name}: unusable: a directory, not a file" if name == MANIFEST else f"{name}: missing"
+    assert [str(problem) for problem in verify_step(storage, 20).problems] == [reason]
+    assert [(info.step, info.status) for info in scan(storage, full=True)] == [(20, CORRUPT), (10, VERIFIED)]
+    assert select_resume(storage, log=lambda line: None)[0] == 10
+
+
 def test_the_cheap_scan_checks_sizes_the_full_one_digests(storage):
     make_step(storage, 10)
     make_step(storage, 20)
