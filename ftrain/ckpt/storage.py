@@ -27,6 +27,7 @@ import os
 import re
 import time
 from collections.abc import Callable, Iterable
+from pathlib import Path
 from typing import Any, TypeVar
 
 import fsspec
@@ -37,7 +38,7 @@ from ftrain.ckpt import localfs, stores
 from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, client_errors, is_denied, is_transient
 from ftrain.ckpt.stores import AZURE_PROTOCOLS, GCS_PROTOCOLS, S3_PROTOCOLS
 from ftrain.config import local_path
-from ftrain.errors import NO_SPACE, StorageError, StorageUnavailable, UserError, no_space_line
+from ftrain.errors import NO_SPACE, FileInTheWay, StorageError, StorageUnavailable, UserError, no_space_line
 from ftrain.redact import Url, display_url, scrub, secret_values, url_secrets
 
 log = logging.getLogger(__name__)
@@ -293,10 +294,16 @@ class Storage:
         """``fn(*args, **kwargs)`` with retries; failures become StorageError or UserError with scrubbed text."""
         try:
             return self._retry(what, rel, fn, *args, **kwargs)
-        except (FileNotFoundError, NotADirectoryError):  # a path below a plain file does not exist either
+        except (FileNotFoundError, NotADirectoryError, FileExistsError) as exc:
+            if what in ("create", "write") and (blocking := self._file_in_the_way(rel)) is not None:
+                raise FileInTheWay(
+                    f"cannot {what} {self.where(rel)}: {blocking} is a file where ftrain needs a directory: move it "
+                    "out of the storage"
+                ) from None
+            if isinstance(exc, FileExistsError):
+                raise FileExistsError(errno.EEXIST, "already exists", self.where(rel)) from None
+            # a path below a plain file does not exist either
             raise FileNotFoundError(errno.ENOENT, "does not exist", self.where(rel)) from None
-        except FileExistsError:
-            raise FileExistsError(errno.EEXIST, "already exists", self.where(rel)) from None
         except IsADirectoryError:  # a directory where a file belongs: the caller tells what that file was
             raise IsADirectoryError(errno.EISDIR, "is a directory", self.where(rel)) from None
         except (PermissionError, NoCredentialsError) as exc:
@@ -315,6 +322,17 @@ class Storage:
                     f"{what} {self.where(rel)} failed after {self.retries + 1} attempts: {self._scrub(exc)}"
                 ) from None
             raise StorageError(f"{what} {self.where(rel)} failed: {self._scrub(exc)}") from None
+
+    def _file_in_the_way(self, rel: str) -> str | None:
+        """On a local storage, the file that stands where a directory above ``rel`` belongs (a stray file named as a
+        step), which no waiting removes; None elsewhere."""
+        if not self.is_local:
+            return None
+        root = Path(self._path(""))
+        for parent in reversed(Path(self._path(rel)).parents):
+            if (parent == root or root in parent.parents) and parent.exists() and not parent.is_dir():
+                return str(parent)
+        return None
 
     def _retry(self, what: str, rel: str, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         attempt = 0

@@ -41,7 +41,9 @@ from helpers import (
     hooks_override,
     launch,
     make_step,
+    manifests,
     probe_hook,
+    supervise_command,
     torchrun_pid,
     training,
     wait_for,
@@ -319,6 +321,29 @@ def test_a_read_only_storage_is_bad_input_in_one_line(tmp_path, command) -> None
     assert result.returncode == EXIT_USAGE, result.stderr
     assert result.stderr.startswith("ftrain: error: lock ") and len(result.stderr.strip().splitlines()) == 1
     assert "read-only file system: pass a storage you can write to" in result.stderr, result.stderr
+
+
+def test_a_file_where_a_step_directory_belongs_stops_the_run_in_one_line_not_an_outage(tmp_path) -> None:
+    """A stray file named as a step the run will save (``checkpoints/step-000000006``): the save of that step was
+    "does not exist", taken for an outage, and held training for the storage wait (an hour), saying "run the same
+    command again once it is back". Now both ranks stop at that save with one line naming the file (exit 2), the
+    supervisor does not restart into it, the steps before are intact and the file is left as it was."""
+    storage = tmp_path / "run"
+    (storage / "checkpoints").mkdir(parents=True)
+    stray = storage / "checkpoints" / "step-000000006"
+    stray.write_text("notes\n")
+    result = subprocess.run(
+        supervise_command(storage, "iterations=12", "checkpoint.interval=2"),
+        env=child_env(),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert result.returncode == EXIT_USAGE, result.stderr[-2000:]
+    told = f"{stray} is a file where ftrain needs a directory: move it out of the storage"
+    assert told in result.stdout + result.stderr and "Traceback" not in result.stderr, result.stderr[-2000:]
+    assert "held" not in result.stdout and "restart" not in result.stdout.replace("0 restarts", ""), result.stdout
+    assert sorted(manifests(storage)) == [2, 4] and stray.read_text() == "notes\n"
 
 
 def test_a_checkpoints_directory_that_takes_no_write_is_bad_input_not_an_outage(tmp_path) -> None:
