@@ -17,6 +17,7 @@ import json
 import math
 import os
 import tempfile
+import typing
 import urllib.parse
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -353,7 +354,7 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
             if "=[" in before and "]" not in before:  # key=[64, 64] unquoted: the shell made two words of it
                 raise UserError(f"override {before} {item} has a space: quote it as one word, '{before} {item}'")
             raise UserError(f"override {item!r} is not key=value: write it like env.num_envs=8")
-        set_dotted(data, key.strip(), parse_value(raw))
+        _override(data, key.strip(), parse_value(raw), item)
     if storage is not None:
         if not storage.strip():
             raise UserError("--storage is empty: pass a directory or a URL, or leave it out for runs/<name>")
@@ -452,6 +453,24 @@ def blocking_file(path: str) -> str | None:
     while not os.path.lexists(path) and os.path.dirname(path) != path:
         path = os.path.dirname(path)
     return path if os.path.exists(path) and not os.path.isdir(path) else None
+
+
+def _override(data: dict, key: str, value: object, item: str) -> None:
+    """Set ``key`` to ``value`` in the config's ``data``; a section (``env``) takes a mapping, merged into what the
+    file set there (``env={num_envs: 8}`` keeps the file's ``env.id``); anything else set on a section is refused:
+    ``env=null`` replaced the file's whole section with the defaults."""
+    section: object = Config
+    for part in key.split("."):
+        names = {field.name for field in dataclasses.fields(section)} if dataclasses.is_dataclass(section) else set()
+        section = typing.get_type_hints(section)[part] if part in names else None
+    if not dataclasses.is_dataclass(section):
+        set_dotted(data, key, value)  # a value, or a key ``build`` names as unknown
+        return
+    if not isinstance(value, dict):
+        example = dataclasses.fields(section)[0].name
+        raise UserError(f"override {item}: {key} is a section, not a value: set its keys, e.g. {key}.{example}=...")
+    for name, inner in value.items():
+        _override(data, f"{key}.{name}", inner, item)
 
 
 def check_writable(path: Path, option: str) -> None:

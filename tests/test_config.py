@@ -1,13 +1,15 @@
 """Config loading, overrides, and the one-line errors for bad input (exit code 2, no traceback)."""
 
+import dataclasses
 import re
 import subprocess
 import sys
+import typing
 
 import pytest
 
 from ftrain.ckpt.lease import TTL_ENV, ttl_from_env
-from ftrain.config import for_world, load_config, local_directories
+from ftrain.config import Config, for_world, load_config, local_directories
 from ftrain.errors import UserError
 from ftrain.train.lr_schedule import horizon_notice
 
@@ -283,3 +285,35 @@ def test_an_env_id_without_its_version_or_misspelt_is_told_the_one_meant(typed, 
     told = f"env.id={typed!r} is not a registered gymnasium environment: did you mean {meant!r}"
     with pytest.raises(UserError, match=re.escape(told)):
         check_env_id(EnvConfig(id=typed))
+
+
+def test_a_section_set_whole_by_an_override_merges_a_mapping_and_refuses_anything_else() -> None:
+    """Every section of the config at any depth (generated from ``Config``): ``S=null`` replaced what the file set
+    there with the defaults without a word; now a value is refused in one line naming the section and one of its keys,
+    and a mapping (``S={}``, ``S={key: value}``) merges into the file's section."""
+
+    def sections(kind: type, prefix: str = "") -> list[tuple[str, type]]:
+        found = []
+        for name, hint in typing.get_type_hints(kind).items():
+            if dataclasses.is_dataclass(hint):
+                found += [(prefix + name, hint), *sections(hint, f"{prefix}{name}.")]
+        return found
+
+    plain = load_config(SMOKE, [])
+    checked = 0
+    for section, kind in sections(Config):
+        for value in ("null", "5", "[1]", "text"):
+            with pytest.raises(UserError, match=rf"^override {re.escape(section)}={re.escape(value)}: {section} is a"):
+                load_config(SMOKE, [f"{section}={value}"])
+            checked += 1
+        assert load_config(SMOKE, [f"{section}={{}}"]) == plain, section
+        key = dataclasses.fields(kind)[0].name
+        here = plain
+        for part in [*section.split("."), key]:
+            here = getattr(here, part)
+        if isinstance(here, (int, float, str)) and not isinstance(here, bool):
+            assert load_config(SMOKE, [f"{section}={{{key}: {here!r}}}"]) == plain, section
+        checked += 1
+    print(f"{checked} overrides of {checked // 5} sections checked")
+    assert checked >= 5 * 8
+    assert load_config(SMOKE, ["env={num_envs: 8}"]).env.id == plain.env.id  # the file's other keys stay
