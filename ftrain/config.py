@@ -369,6 +369,11 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
         config.algorithm.schedule_iterations = config.iterations
     if not config.name:
         config.name = Path(path).stem if path else "run"
+    if config.name in (".", "..") or any(mark in config.name for mark in ("/", "\\", "\0")):
+        raise UserError(
+            f"name={config.name!r} names a directory of runs/ (runs/<name>): give one word without '/' or '..', "
+            "e.g. name=my-run, and --storage for a place of your choosing"
+        )
     if not config.storage.url:
         config.storage.url = Url(f"runs/{config.name}")
     if not config.log_dir:

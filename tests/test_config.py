@@ -107,6 +107,9 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
         (["seed=-1"], "seed=-1 is out of range: use a seed from 0 to 4294967295"),
         (["teacher=runs/t"], "teacher=runs/t is for distillation: set algorithm.class_name=Distillation"),
         (["seed=4294967296"], "seed=4294967296 is out of range"),
+        (["name=../../elsewhere"], r"name='../../elsewhere' names a directory of runs/ \(runs/<name>\): give one word"),
+        (["name=/tmp/x"], "name='/tmp/x' names a directory of runs/"),
+        (["name=.."], "name='..' names a directory of runs/"),
         (
             ["eval.seed=4294967295", "eval.episodes=2"],
             "eval.seed=4294967295 is out of range: use a seed from 0 to 4294967294",
