@@ -491,6 +491,13 @@ def _dispatch(args: argparse.Namespace) -> int:
         if args.ckpt_command == "unquarantine":
             return ckpt_commands.unquarantine(args.url, options)
         if args.keep_line is not None:
+            rules = {"--keep-last": args.keep_last, "--keep-best": args.keep_best, "--best-metric": args.best_metric}
+            rules |= {"--keep-every": args.keep_every, "--pin": args.pin or None, "--drop-bad": args.drop_bad or None}
+            if given := [option for option, value in rules.items() if value is not None]:
+                raise UserError(
+                    f"--keep-line keeps one line of descent instead of the retention rules: {', '.join(given)} would "
+                    "do nothing beside it: run the two as two commands"
+                )
             return ckpt_commands.keep_line(args.url, args.keep_line, options, force=args.force, dry_run=args.dry_run)
         return ckpt_commands.prune(
             args.url,

@@ -10,9 +10,10 @@ import sys
 
 import pytest
 
-from ftrain.cli import build_parser, parsers
+from ftrain.ckpt.storage import Storage
+from ftrain.cli import build_parser, main, parsers
 
-from helpers import REPO, child_env, train_command
+from helpers import REPO, child_env, make_step, train_command
 
 
 def ftrain(*args: str) -> subprocess.CompletedProcess:
@@ -233,3 +234,30 @@ def test_a_path_the_terminal_cannot_encode_is_escaped_not_a_crash(tmp_path) -> N
         [sys.executable, "-m", "ftrain", "ckpt", "show", str(storage)], env=env, capture_output=True, text=True
     )
     assert shown.returncode == 0 and "\\xfc run" in shown.stdout, shown.stderr[-2000:]
+
+
+KEEP_LINE_BESIDE = [
+    ["--keep-last", "1"],
+    ["--keep-best", "2"],
+    ["--best-metric", "eval_return"],
+    ["--keep-every", "5"],
+    ["--pin", "4"],
+    ["--drop-bad"],
+    ["--keep-last", "1", "--pin", "2", "--drop-bad"],
+]
+
+
+@pytest.mark.parametrize("rules", KEEP_LINE_BESIDE)
+def test_keep_line_beside_retention_rules_is_refused_in_one_line(tmp_path, capsys, rules: list[str]) -> None:
+    """``prune --keep-line S`` replaces the retention rules: given beside it they did nothing, without a word."""
+
+    make_step(Storage.open(str(tmp_path / "run")), 4)
+    before = sorted(path.relative_to(tmp_path) for path in tmp_path.rglob("*"))
+    assert main(["ckpt", "prune", str(tmp_path / "run"), "--keep-line", "4", *rules]) == 2
+    err = capsys.readouterr().err
+    named = [word for word in rules if word.startswith("--")]
+    assert err.count("\n") == 1 and "would do nothing beside it: run the two as two commands" in err, err
+    assert f"instead of the retention rules: {', '.join(named)} would" in err, err
+    assert sorted(path.relative_to(tmp_path) for path in tmp_path.rglob("*")) == before
+    assert main(["ckpt", "prune", str(tmp_path / "run"), "--keep-line", "4", "--dry-run"]) == 0
+    assert "would keep the line of step 4: 1 steps; 0 would set aside" in capsys.readouterr().out
