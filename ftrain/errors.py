@@ -102,11 +102,6 @@ class StorageUnavailable(StorageError):
     """The storage did not answer, or answered busy, through every retry: wait for it (never bad input)."""
 
 
-class FileInTheWay(UserError):
-    """A file of someone else's stands where the storage needs a directory (a stray file named as a step): no retry
-    or wait removes it, so a save that meets it stops the run (exit 2) instead of holding it."""
-
-
 def command(*words: object) -> str:
     """A command line for a user to paste, each word shell-quoted where it needs to be (a path with a space)."""
     return " ".join(shlex.quote(str(word)) for word in words)

@@ -276,8 +276,6 @@ class Checkpointer:
             raise LeaseLost(detail)
         if outcome.result in (Result.UNLOADABLE, Result.FENCED):
             raise CheckpointError(detail)
-        if outcome.result is Result.REFUSED:
-            raise UserError(detail)
         if outcome.result is Result.SPOOLED:
             return
         if outcome.result is Result.COMMITTED:

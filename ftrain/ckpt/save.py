@@ -49,7 +49,7 @@ from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
 from ftrain.comm import group
 from ftrain.config import CheckpointConfig
-from ftrain.errors import FileInTheWay, did_you_mean
+from ftrain.errors import did_you_mean
 
 UNLOADABLE_HINT = "hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
 
@@ -69,8 +69,6 @@ class Result(enum.StrEnum):
     """Another run, or this run started again, has taken the storage's lease (``lease.py``): exit 8."""
     SPOOLED = "spooled"
     """Written to the spool alone, as asked (while the storage is down): the storage has not changed."""
-    REFUSED = "refused"
-    """A write met what no retry fixes (``errors.FileInTheWay``): training stops with that one line (exit 2)."""
 
 
 class Target(enum.Enum):
@@ -169,7 +167,7 @@ class StepWriter:
     ) -> Outcome:
         """Write this rank's ``files`` (name to state) of ``step`` to the spool if there is one, then to ``target``;
         ``meta`` (rank 0) goes into the manifest."""
-        report = {"entries": {}, "fields": {}, "error": None, "unloadable": False, "fenced": None, "refused": False}
+        report = {"entries": {}, "fields": {}, "error": None, "unloadable": False, "fenced": None}
         encoded = {}
         try:
             encoded, report["fields"] = self._encode(files, check_loadable)
@@ -188,8 +186,6 @@ class StepWriter:
                 report["entries"] = self._write(functools.partial(write_file, storage), step, encoded)
         except (LeaseLost, Fenced) as exc:  # the holder's check refused this rank's write: nothing was written
             report["error"], report["fenced"] = f"rank {self.info.rank}: {exc}", [type(exc).__name__, str(exc)]
-        except FileInTheWay as exc:
-            report["error"], report["refused"] = str(exc), True
         except Exception as exc:  # any storage failure: reported, agreed on, never fatal by itself
             report["error"] = f"rank {self.info.rank}: {exc}"
         finally:
@@ -271,8 +267,6 @@ class StepWriter:
         errors = [report["error"] for report in reports if report["error"]]
         if any(report["unloadable"] for report in reports):
             return (Result.UNLOADABLE, step, "; ".join(errors))
-        if refused := [report["error"] for report in reports if report["refused"]]:
-            return (Result.REFUSED, step, refused[0])
         if fenced := next((report["fenced"] for report in reports if report["fenced"]), None):
             self.log(f"checkpoint step {step} refused: {fenced[1]}")
             return (Result.LEASE_LOST if fenced[0] == LeaseLost.__name__ else Result.FENCED, step, fenced[1])

@@ -38,7 +38,7 @@ from ftrain.ckpt import localfs, stores
 from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, client_errors, is_denied, is_transient
 from ftrain.ckpt.stores import AZURE_PROTOCOLS, GCS_PROTOCOLS, S3_PROTOCOLS
 from ftrain.config import local_path
-from ftrain.errors import NO_SPACE, FileInTheWay, StorageError, StorageUnavailable, UserError, no_space_line
+from ftrain.errors import NO_SPACE, StorageError, StorageUnavailable, UserError, no_space_line
 from ftrain.redact import Url, display_url, scrub, secret_values, url_secrets
 
 log = logging.getLogger(__name__)
@@ -296,7 +296,7 @@ class Storage:
             return self._retry(what, rel, fn, *args, **kwargs)
         except (FileNotFoundError, NotADirectoryError, FileExistsError) as exc:
             if what in ("create", "write") and (blocking := self._file_in_the_way(rel)) is not None:
-                raise FileInTheWay(
+                raise UserError(
                     f"cannot {what} {self.where(rel)}: {blocking} is a file where ftrain needs a directory: move it "
                     "out of the storage"
                 ) from None

@@ -284,7 +284,8 @@ def test_failed_saves_are_logged_training_goes_on_and_holds_past_the_unsaved_bou
     assert failed.returncode == EXIT_STORAGE_DOWN, failed.stderr
     held = re.search(r"training held at step (\d+): (\d+) iterations.* \((rank 0: .*)\); next try", failed.stdout)
     assert held and held[1] == held[2], failed.stdout  # nothing ever saved: every iteration unsaved
-    assert "does not exist: " in held[3] and "/blocked/checkpoints/step-" in held[3], "the hold says why"
+    said = f"{blocked / 'checkpoints'} is a file where ftrain needs a directory: move it out of the storage"
+    assert said in held[3] and "/blocked/checkpoints/step-" in held[3], "the hold says why, and the fix"
     # past the bound of 3 at step 4; at 5 where a save's failure is learned an iteration later (saves run in the
     # background: a loaded machine)
     assert int(held[1]) in (4, 5), failed.stdout
