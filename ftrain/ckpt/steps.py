@@ -359,11 +359,16 @@ def resolve_checkpoint_url(
     if step is None:
         selected = select_resume(storage, log, quarantine_bad=False)
         if selected is None:
+            if storage.is_local and not storage.exists(""):
+                raise UserError(f"{storage.url} does not exist: pass a run's storage or a step directory")
             steps = storage.list_dirs(CHECKPOINTS)  # none verifies: ls tells why
             ls = f"see {command('ftrain', 'ckpt', 'ls', storage.url)}"
             fix = part_of_a_storage(storage) or (ls if steps else "pass a run's storage or a step directory")
             raise UserError(f"no verified checkpoint under {storage.url}: {fix}")
         return storage, *selected
+    if not storage.list_files(step_dir(step)):  # moved to quarantine/, deleted, or never there
+        ls = command("ftrain", "ckpt", "ls", storage.url)
+        raise UserError(f"checkpoint {storage.where(step_dir(step))} does not exist: see {ls}")
     result = verify_step(storage, step)
     if not result.ok:
         problems = "; ".join(str(p) for p in result.problems)

@@ -311,6 +311,11 @@ def test_resolve_checkpoint_url(tmp_path):
     assert not storage.exists(step_path(30, QUARANTINED))  # resolving never writes
     with pytest.raises(UserError, match=r"step-000000030 does not verify .*sha256 mismatch"):
         resolve_checkpoint_url(f"{root}/checkpoints/step-000000030")
+    with pytest.raises(UserError, match=r"checkpoint .*step-000000040 does not exist: see ftrain ckpt ls .*run$"):
+        resolve_checkpoint_url(f"{root}/checkpoints/step-000000040")  # moved to quarantine/, or never there
+    with pytest.raises(UserError, match=r"nowhere does not exist: pass a run's storage or a step directory$"):
+        resolve_checkpoint_url(str(tmp_path / "nowhere"))
+    (tmp_path / "empty").mkdir()
     with pytest.raises(UserError, match=r"no verified checkpoint under .*: pass a run's storage or a step directory$"):
         resolve_checkpoint_url(str(tmp_path / "empty"))
     for step in (10, 20):

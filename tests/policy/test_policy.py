@@ -192,6 +192,7 @@ def test_a_corrupt_newest_step_is_skipped_and_a_corrupt_step_refused(trained, tm
 def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> None:
     notes = tmp_path / "notes.txt"
     notes.write_text("not a policy\n")
+    (tmp_path / "empty").mkdir()
     exported = tmp_path / "policy.onnx"
     assert main(["export", str(trained), "--format", "onnx", "-o", str(exported)]) == 0
     anonymous = onnx.load(exported)
@@ -202,7 +203,8 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
         "a text file": (["play", str(notes)], "is neither a TorchScript nor an ONNX file"),
         "a checkpoint file": (["play", str(Path(step_url(trained, 2)) / "common.pt")], "is not a TorchScript policy"),
         "an ONNX model of someone else": (["play", str(tmp_path / "anonymous.onnx")], "not an ftrain policy"),
-        "a step that does not exist": (["play", step_url(trained, 3)], "does not verify"),
+        "a step that does not exist": (["play", step_url(trained, 3)], "step-000000003 does not exist: see ftrain"),
+        "a path that does not exist": (["play", str(tmp_path / "nowhere")], "nowhere does not exist: pass a run's"),
         "an unknown video format": (["play", str(trained), "--video", "out.avi"], "must end in .mp4 or .gif"),
         "no episodes": (["play", str(trained), "--episodes", "0"], "play at least 1 episode"),
         "a seed gymnasium refuses": (["play", str(trained), "--seed", "-1"], "--seed -1 is out of range: use a seed"),
