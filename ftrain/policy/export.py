@@ -37,9 +37,10 @@ def check_format(fmt: str) -> None:
 
 
 def output_path(fmt: str, path: str | Path | None, directory: Path, name: str) -> Path:
-    """Where ``export`` writes: ``path``, or ``name`` in it where it is a directory (in ``directory`` where None).
-    UserError for a file whose suffix is not the format's: ``-o README.md`` would write over a file of another kind."""
-    if path is None or Path(path).is_dir():
+    """Where ``export`` writes: ``path``, or ``name`` in it where it is a directory or ends in ``/`` (one to make; in
+    ``directory`` where None). UserError for a file whose suffix is not the format's: ``-o README.md`` would write over
+    a file of another kind."""
+    if path is None or Path(path).is_dir() or str(path).endswith("/"):
         return Path(path or directory) / name
     suffix = SUFFIXES[fmt]
     if Path(path).suffix != suffix:

@@ -238,6 +238,8 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
     assert notes.read_text() == "not a policy\n"  # not written over
     assert main(["export", str(trained), "--format", "torchscript", "-o", str(tmp_path)]) == 0  # a directory: into it
     assert load_policy(str(tmp_path / f"smoke-step-{load_policy(str(trained)).step}.pt")).step > 0
+    assert main(["export", str(trained), "--format", "onnx", "-o", f"{tmp_path / 'new'}/"]) == 0  # a directory to make
+    assert [path.name for path in (tmp_path / "new").iterdir()] == [f"smoke-step-{load_policy(str(trained)).step}.onnx"]
     with pytest.raises(UserError, match="unknown policy format 'tflite': use torchscript or onnx"):
         export(load_policy(str(trained)), "tflite")  # the CLI's --format choices refuse it before (tests/test_cli.py)
 
