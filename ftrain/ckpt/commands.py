@@ -42,6 +42,7 @@ from ftrain.ckpt.steps import (
     set_aside,
     set_aside_location,
     set_aside_steps,
+    step_files,
     superseded_reason,
 )
 from ftrain.ckpt.steps import unquarantine as unquarantine_step
@@ -350,8 +351,8 @@ def _open(url: str, options: dict | None) -> tuple[Storage, int | None]:
     if step is None and not storage.list_dirs(CHECKPOINTS):
         usual = "pass a run's storage (the directory holding checkpoints/) or one step directory"
         raise UserError(f"no checkpoints under {storage.url}: {part_of_a_storage(storage) or usual}")
-    if step is not None and not storage.list_files(step_dir(step)):
-        raise UserError(f"{storage.where(step_dir(step))} does not exist: see {_ls(storage)}")
+    if step is not None:
+        step_files(storage, step)
     return storage, step
 
 

@@ -349,6 +349,15 @@ def set_aside_location(url: str) -> tuple[str, str] | None:
     return None
 
 
+def step_files(storage: Storage, step: int) -> dict[str, int]:
+    """The files of ``step``'s directory (name: size); UserError where it has none: moved to ``quarantine/``,
+    deleted, or never there."""
+    if not (present := storage.list_files(step_dir(step))):
+        ls = command("ftrain", "ckpt", "ls", storage.url)
+        raise UserError(f"checkpoint {storage.where(step_dir(step))} does not exist: see {ls}")
+    return present
+
+
 def resolve_checkpoint_url(
     url: str, options: dict | None = None, log: Callable[[str], None] = print
 ) -> tuple[Storage, int, dict]:
@@ -366,10 +375,7 @@ def resolve_checkpoint_url(
             fix = part_of_a_storage(storage) or (ls if steps else "pass a run's storage or a step directory")
             raise UserError(f"no verified checkpoint under {storage.url}: {fix}")
         return storage, *selected
-    if not storage.list_files(step_dir(step)):  # moved to quarantine/, deleted, or never there
-        ls = command("ftrain", "ckpt", "ls", storage.url)
-        raise UserError(f"checkpoint {storage.where(step_dir(step))} does not exist: see {ls}")
-    result = verify_step(storage, step)
+    result = verify_listed(storage, step, step_files(storage, step), full=True)
     if not result.ok:
         problems = "; ".join(str(p) for p in result.problems)
         raise UserError(f"checkpoint {storage.where(step_dir(step))} does not verify ({problems}): pick another step")

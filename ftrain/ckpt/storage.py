@@ -27,7 +27,6 @@ import os
 import re
 import time
 from collections.abc import Callable, Iterable
-from pathlib import Path
 from typing import Any, TypeVar
 
 import fsspec
@@ -37,7 +36,7 @@ from fsspec.implementations.local import LocalFileSystem
 from ftrain.ckpt import localfs, stores
 from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, client_errors, is_denied, is_transient
 from ftrain.ckpt.stores import AZURE_PROTOCOLS, GCS_PROTOCOLS, S3_PROTOCOLS
-from ftrain.config import local_path
+from ftrain.config import blocking_file, local_path
 from ftrain.errors import NO_SPACE, StorageError, StorageUnavailable, UserError, no_space_line
 from ftrain.redact import Url, display_url, scrub, secret_values, url_secrets
 
@@ -326,13 +325,7 @@ class Storage:
     def _file_in_the_way(self, rel: str) -> str | None:
         """On a local storage, the file that stands where a directory above ``rel`` belongs (a stray file named as a
         step), which no waiting removes; None elsewhere."""
-        if not self.is_local:
-            return None
-        root = Path(self._path(""))
-        for parent in reversed(Path(self._path(rel)).parents):
-            if (parent == root or root in parent.parents) and parent.exists() and not parent.is_dir():
-                return str(parent)
-        return None
+        return blocking_file(os.path.dirname(self._path(rel))) if self.is_local else None
 
     def _retry(self, what: str, rel: str, fn: Callable[..., T], *args: Any, **kwargs: Any) -> T:
         attempt = 0
