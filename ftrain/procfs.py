@@ -40,6 +40,39 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def resident_bytes() -> int:
+    """This process's resident memory now (``/proc/self/statm``)."""
+    return int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+
+
+def available_memory() -> int | None:
+    """The bytes of memory this process can still take: the machine's ``MemAvailable``, or less where a cgroup (v2) of
+    this process, a container's or a job's, has its limit nearer; None where ``/proc/meminfo`` does not say."""
+    try:
+        meminfo = Path("/proc/meminfo").read_text()
+    except OSError:
+        return None
+    found = [int(line.split()[1]) * 1024 for line in meminfo.splitlines() if line.startswith("MemAvailable:")]
+    if not found:
+        return None
+    room = [found[0]]
+    try:
+        group = Path("/proc/self/cgroup").read_text().partition("0::")[2].split("\n")[0]
+    except OSError:
+        group = ""
+    cgroup = Path("/sys/fs/cgroup") / group.strip("/")
+    for directory in (cgroup, *cgroup.parents) if group else ():
+        try:
+            limit, used = (directory / "memory.max").read_text().strip(), (directory / "memory.current").read_text()
+        except OSError:
+            continue
+        if limit != "max":
+            room.append(int(limit) - int(used))
+        if directory == Path("/sys/fs/cgroup"):
+            break
+    return max(0, min(room))
+
+
 def read(pid: int, name: str) -> bytes:
     """``/proc/<pid>/<name>`` (``cmdline``, ``environ``, ...); empty once the process is gone or if it is not ours."""
     try:

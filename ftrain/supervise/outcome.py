@@ -123,6 +123,7 @@ def classify(
     if stopped is not None:
         saved = bool(phases) and phases <= {"preempted", "done"}
         how = "the workers saved" if saved else "the workers did not all confirm a save"
+        how = how if phases else "the workers stopped before training began"  # not one heartbeat: nothing to save
         return Outcome("preempted", stopped, f"preempted: {how} ({newest_step(committed)})")
     if orphans:
         return Outcome("failed", None, cause)

@@ -10,6 +10,7 @@ buffers; and the Python state of a user's env that offers ``ftrain_state()``/``f
 
 from __future__ import annotations
 
+import typing
 from functools import cached_property
 
 import gymnasium as gym
@@ -38,10 +39,20 @@ class MujocoVecEnv(VecEnv):
     """
 
     def __init__(
-        self, env_id: str, num_envs: int, seed: int, kwargs: dict | None = None, imports: list[str] = ()
+        self,
+        env_id: str,
+        num_envs: int,
+        seed: int,
+        kwargs: dict | None = None,
+        imports: list[str] = (),
+        built: typing.Callable[[int], None] = lambda count: None,
     ) -> None:
+        """``built``: called with the count after each sub-env is made (``ftrain.train.env_build.BuildWatch``)."""
         self.env_config = EnvConfig(id=env_id, imports=list(imports), num_envs=num_envs, kwargs=dict(kwargs or {}))
-        made = [robot.make_env(self.env_config) for _ in range(num_envs)]
+        made = []
+        for _ in range(num_envs):
+            made.append(robot.make_env(self.env_config))
+            built(len(made))
         self.envs = SyncVectorEnv([lambda env=env: env for env in made], autoreset_mode=AutoresetMode.SAME_STEP)
         self.env_id = env_id
         self.num_envs = num_envs

@@ -11,6 +11,15 @@ import signal
 from ftrain.errors import Deliveries
 
 
+class StoppedAtStart(Exception):
+    """A stop request came while the run was starting, before it trained anything: nothing to save, every rank exits
+    with the stop's code at once."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
 class StopRequest:
     """SIGTERM or SIGINT: stop at the next iteration boundary (the ranks agree, save, and exit 143 or 130, 128 + the
     signal, so that scripts and schedulers tell a stop from the end of training).
@@ -32,6 +41,12 @@ class StopRequest:
     def install(self) -> None:
         signal.signal(signal.SIGTERM, self._handle)
         signal.signal(signal.SIGINT, self._handle)
+
+    def exiting(self) -> None:
+        """Saved, or nothing to save, and about to exit with the stop's code: once a rank has exited with it, torchrun
+        SIGTERMs the others, and a SIGTERM while Python shuts down (its handlers gone) would kill a rank and read as
+        a failure."""
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
     def _handle(self, signum: int, frame: object) -> None:
         if not self.deliveries.new(signum):

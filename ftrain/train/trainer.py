@@ -33,6 +33,7 @@ from ftrain.policy.model import action_std
 from ftrain.policy.noise_ceiling import build_noise_ceiling
 from ftrain.policy.robot import unsaved_state_notice
 from ftrain.train import topology
+from ftrain.train.env_build import BuildEnded, BuildWatch, agree
 from ftrain.train.envs import MujocoVecEnv, take_rows
 from ftrain.train.evaluation import EvalHook
 from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
@@ -41,7 +42,7 @@ from ftrain.train.phases import Phases
 from ftrain.train.ppo import build_algorithm, load_learned_state
 from ftrain.train.reward_norm import build_reward_normalizer
 from ftrain.train.snapshot_hook import PolicySnapshotHook
-from ftrain.train.stop import StopRequest
+from ftrain.train.stop import StoppedAtStart, StopRequest
 from ftrain.train.tracking import TrackingHook
 
 EXIT_CHECKPOINT = 1
@@ -83,7 +84,7 @@ class Trainer:
         torch.set_num_threads(config.torch_threads)
         group.seed_all(config.seed)  # identical model initialisation on every rank
         env_seed = self._env_seed()
-        self.env = MujocoVecEnv(config.env.id, config.env.num_envs, env_seed, config.env.kwargs, config.env.imports)
+        self.env = self._build_env(env_seed)
         if notice := unsaved_state_notice(self.env.robot):
             self.log(notice)
         self.phases = Phases()
@@ -116,6 +117,21 @@ class Trainer:
         self._votes = Votes(None, False, False, False)
         self._config_json = json.dumps(config.public_dict())
         """The config as saved in common.pt: one string, made once (the manifest has it as a mapping)."""
+
+    def _build_env(self, seed: int) -> MujocoVecEnv:
+        """This rank's environments; every rank raises UserError if they would not fit in memory, or StoppedAtStart
+        if a stop came while they were built (``ftrain.train.env_build``)."""
+        env = self.config.env
+        setting = ("env.total_envs", env.total_envs) if env.total_envs else ("env.num_envs", env.num_envs)
+        ranks_here = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
+        watch = BuildWatch(env.num_envs, setting, ranks_here, lambda: self.stop.signal, self.log)
+        built = ended = None
+        try:
+            built = MujocoVecEnv(env.id, env.num_envs, seed, env.kwargs, env.imports, built=watch)
+        except BuildEnded as end:
+            ended = end
+        agree(ended, self.info)
+        return built
 
     def log(self, message: str, every_rank: bool = False) -> None:
         """A line of the run's log: from rank 0, or, for what each rank must be seen to agree on, from every rank."""
@@ -248,12 +264,11 @@ class Trainer:
                 self.checkpointer.save(self, wait=stop, hold=hold, store=self._votes.store)
                 self.heartbeat.committed_step = self.checkpointer.committed_step
             if stop:
-                name, code = signal.Signals(self._votes.stop).name, stop_code(self._votes.stop)
-                name = read_stop_reason(os.environ.get(ENV_DIR)) or name  # what the user sent, if a supervisor's stop
-                self.log(f"stopped by {name}: saved step {self.iteration}, exiting with code {code}")
-                # saved: once a rank has exited with the stop code, torchrun SIGTERMs the others, and a SIGTERM while
-                # Python shuts down (its handlers are gone by then) would kill this rank and read as a failure
-                signal.signal(signal.SIGTERM, signal.SIG_IGN)
+                code = stop_code(self._votes.stop)
+                self.log(
+                    f"stopped by {_stop_name(self._votes.stop)}: saved step {self.iteration}, exiting with code {code}"
+                )
+                self.stop.exiting()
                 break
         self.checkpointer.close()
         self.heartbeat.committed_step = self.checkpointer.committed_step
@@ -394,6 +409,11 @@ def train(config: Config) -> int:
         claimed = claim(config, info.is_main, lambda outcome: group.broadcast_object(outcome, info), _say)
         trainer = Trainer(config, info, stop, lambda: claimed.lost)
         return trainer.run()
+    except StoppedAtStart as stopped:
+        if info.is_main:
+            _say(f"stopped by {_stop_name(stopped.signum)} while starting, before any training: nothing to save")
+        stop.exiting()
+        return stop_code(stopped.signum)
     except LeaseHeld as held:  # another run holds the storage, or took it: nothing more of it touched
         errorfile.report(str(held))
         return EXIT_STORAGE_HELD
@@ -409,6 +429,11 @@ def train(config: Config) -> int:
         if claimed is not None:
             claimed.release()
         group.shutdown()
+
+
+def _stop_name(signum: int) -> str:
+    """The signal's name, or what the user sent where a supervisor stops the run for them."""
+    return read_stop_reason(os.environ.get(ENV_DIR)) or signal.Signals(signum).name
 
 
 def _say(line: str) -> None:
