@@ -12,6 +12,7 @@ import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ftrain import procfs
 from ftrain.errors import (
     EXIT_INTERRUPTED,
     EXIT_PREEMPTED,
@@ -63,6 +64,9 @@ def exit_codes_help() -> str:
 
 
 BACKOFF_INITIAL = 1.0
+WORKER_MEMORY = 50 * 10**6
+"""The least memory a worker takes of its own, forked from the warm pool (its stand-in, gloo's buffers, the model,
+a few environments): more workers than the machine has memory available for are refused before any starts."""
 """Seconds of the first back-off where ``--backoff-initial`` is not given."""
 
 
@@ -186,6 +190,14 @@ class SupervisorOptions:
                 continue
             if not math.isfinite(value) or not (low <= value <= high if closed else low < value <= high):
                 raise UserError(f"--{name.replace('_', '-')}={value} is out of range: use {what}")
+        available = procfs.available_memory()
+        if available is not None and self.nproc_per_node * WORKER_MEMORY > available:
+            raise UserError(
+                f"--nproc-per-node={self.nproc_per_node}: that many workers need at least "
+                f"{self.nproc_per_node * WORKER_MEMORY / 1e9:.1f} GB of memory ({WORKER_MEMORY // 10**6} MB each), and "
+                f"this machine has {available / 1e9:.1f} GB available: use --nproc-per-node="
+                f"{max(available // WORKER_MEMORY, 1)} or fewer"
+            )
         if self.backoff_initial is None:  # not given: --backoff-max 0 alone is no back-off
             self.backoff_initial = min(BACKOFF_INITIAL, self.backoff_max)
         if self.backoff_initial > self.backoff_max:

@@ -4,16 +4,19 @@ value and what to use, before anything starts (``SupervisorOptions`` as it is bu
 from __future__ import annotations
 
 import math
+import re
 import typing
 from dataclasses import fields
 
 import pytest
 
+from ftrain import procfs
 from ftrain.cli import main
 from ftrain.errors import EXIT_USAGE, UserError
 from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.options import (
     ETCD_CONF,
+    WORKER_MEMORY,
     Backend,
     Nodes,
     SupervisorOptions,
@@ -22,6 +25,8 @@ from ftrain.supervise.options import (
     parse_nodes,
     parse_workers,
 )
+
+from helpers import SMOKE
 
 TINY = 0.001
 EDGES = [  # option, a value just outside its range, a value at its edge
@@ -167,4 +172,20 @@ def test_the_command_refuses_it_in_one_line_before_it_starts_anything(monkeypatc
     assert main(["supervise", "--startup-grace", "-1", "configs/smoke.yaml", "--storage", str(storage)]) == EXIT_USAGE
     said = "--startup-grace=-1.0 is out of range: use a positive number of seconds, e.g. 300"
     assert capsys.readouterr().err == f"ftrain: error: {said}\n"
+    assert not storage.exists()
+
+
+def test_more_workers_than_the_memory_holds_are_refused_with_a_number_that_fits(tmp_path, capsys) -> None:
+    """A probe's ``--nproc-per-node 5000`` on a 2-core machine started 430 processes and took 7 GB in 20 s before
+    anything could say no. Now ``--nproc-per-node`` is weighed against the memory available at the start: refused in
+    one line with a value that fits (taken), nothing started, nothing written."""
+    too_many = 2 * procfs.available_memory() // WORKER_MEMORY
+    with pytest.raises(UserError, match=rf"^--nproc-per-node={too_many}: that many workers need at least ") as error:
+        check(nproc_per_node=too_many)
+    suggested = int(re.search(r"use --nproc-per-node=(\d+) or fewer$", str(error.value))[1])
+    assert too_many // 3 < suggested < too_many // 2 + 1
+    check(nproc_per_node=suggested * 9 // 10)  # the memory available moves a little between two looks
+    storage = tmp_path / "run"
+    assert main(["supervise", f"--nproc-per-node={too_many}", SMOKE, "--storage", str(storage)]) == EXIT_USAGE
+    assert capsys.readouterr().err.startswith(f"ftrain: error: --nproc-per-node={too_many}: that many workers")
     assert not storage.exists()
