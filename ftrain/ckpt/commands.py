@@ -34,6 +34,7 @@ from ftrain.ckpt.retention import Kept, delete_step, kept, retention_plan
 from ftrain.ckpt.steps import (
     ASIDE,
     abandoned,
+    aside_step,
     part_of_a_storage,
     quarantine,
     reinstate,
@@ -89,7 +90,10 @@ def verify(url: str, options: dict | None = None) -> int:
     """Verify every committed step (or the one step) with full digests: 1 if any does not verify, naming each
     failure, else 0. A step without a manifest was never committed (a save cut short): it is told with its age,
     and fails nothing (``resume`` skips it, retention deletes it). A run's storage must also hold one history
-    (``lineage.py``): superseded steps are named, a fork is named and fails (1)."""
+    (``lineage.py``): superseded steps are named, a fork is named and fails (1). A step set aside under
+    ``quarantine/`` is verified where it lies (``_verify_aside``)."""
+    if (aside := set_aside_location(url)) is not None:
+        return _verify_aside(Storage.open(aside[0], options), aside[1])
     storage, step = _open(url, options)
     progress = Progress()
     progress.show("ckpt verify: reading the steps' manifests...")
@@ -123,6 +127,19 @@ def verify(url: str, options: dict | None = None) -> int:
     never = f"; {incomplete} incomplete (never committed)" if incomplete else ""
     print(f"{len(committed) - failed} of {len(committed)} committed steps verified{never}")
     return 1 if failed or (past is not None and past.forks) else 0
+
+
+def _verify_aside(storage: Storage, directory: str) -> int:
+    """A step set aside, verified with full digests where it lies, nothing moved: a repair is checked before
+    ``unquarantine``, which also asks whether the step may go back (its place free, the storage's line kept)."""
+    where = _aside(storage, directory)
+    result = verify_step(storage, aside_step(directory), full=True, directory=f"{ASIDE}/{directory}")
+    print(f"{where}: {'ok' if result.ok else 'FAILED'}")
+    for problem in result.problems:
+        print(f"  {problem}")
+    if result.ok:
+        print(f"to put it back: {command('ftrain', 'ckpt', 'unquarantine', where)}")
+    return 0 if result.ok else 1
 
 
 def show(url: str, options: dict | None = None, as_json: bool = False) -> int:
@@ -321,12 +338,18 @@ def _unquarantine(storage: Storage, step: int) -> int:
 
 
 def _reinstate(storage: Storage, directory: str) -> int:
-    where = storage.where(f"{ASIDE}/{directory}")
-    if directory not in storage.list_dirs(ASIDE):
-        raise UserError(f"{where} does not exist: see {_ls(storage)}")
+    where = _aside(storage, directory)
     result = reinstate(storage, directory)
     done = f"verifies and continues the storage's line: back at {storage.where(step_dir(result.step))}"
     return _told(result, where, "stays set aside", done)
+
+
+def _aside(storage: Storage, directory: str) -> str:
+    """Where the step set aside as ``directory`` lies, as the user names it; UserError if it is not there."""
+    where = storage.where(f"{ASIDE}/{directory}")
+    if directory not in storage.list_dirs(ASIDE):
+        raise UserError(f"{where} does not exist: see {_ls(storage)}")
+    return where
 
 
 def _ls(storage: Storage) -> str:

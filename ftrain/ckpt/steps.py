@@ -267,6 +267,11 @@ def set_aside(storage: Storage, info: StepInfo) -> str:
     return storage.where(target)
 
 
+def aside_step(directory: str) -> int:
+    """The step number of a directory set aside under ``quarantine/`` (``step-000000120``, or ``.2`` after it)."""
+    return int(STEP_DIR.match(directory.split(".")[0])[1])
+
+
 def reinstate(storage: Storage, directory: str) -> Verification:
     """Move a step set aside (``quarantine/<directory>``) back to its place under ``checkpoints/`` if every file it
     lists verifies (full digests), its number is free there, and the storage's history with it keeps its line and
@@ -274,7 +279,7 @@ def reinstate(storage: Storage, directory: str) -> Verification:
     ``--keep-line``, stays aside). UserError where it may not go back; its verification otherwise. Each file is
     checked as it is copied, the manifest last (it commits the step; a file that does not verify: the copy goes,
     nothing committed), then the set-aside step goes."""
-    step, source = int(STEP_DIR.match(directory.split(".")[0])[1]), f"{ASIDE}/{directory}"
+    step, source = aside_step(directory), f"{ASIDE}/{directory}"
     result = verify_step(storage, step, full=False, directory=source)  # the digests: as each file is copied
     if result.never_committed:
         raise UserError(f"{storage.where(source)} has no manifest (never committed): nothing to reinstate")

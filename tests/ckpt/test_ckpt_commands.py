@@ -343,6 +343,9 @@ def test_a_step_set_aside_goes_back_only_where_it_continues_the_line_and_nothing
             manifest = json.loads(storage.read(f"{source}/MANIFEST.json"))
             storage.write_replace(f"{source}/rank-00001.pt", originals[manifest["state_sha256"]])  # repaired
             before = tree(storage)
+            assert ckpt_commands.verify(storage.where(source)) == 0, (case, directory)  # the repair, checked in place
+            assert f"to put it back: ftrain ckpt unquarantine {storage.where(source)}" in capsys.readouterr().out
+            assert tree(storage) == before, (case, directory)
             try:
                 code = ckpt_commands.unquarantine(storage.where(source))
             except UserError as refused:
@@ -389,6 +392,8 @@ def test_a_step_set_aside_that_would_fork_the_storage_or_does_not_verify_stays_a
         ("step-000000040", "has no manifest (never committed): nothing to reinstate"),
         ("step-000000050", "does not exist: see ftrain ckpt ls"),
     ]
+    with pytest.raises(UserError, match=r"step-000000050 does not exist: see ftrain ckpt ls"):
+        ckpt_commands.verify(f"{storage.url}/{ASIDE}/step-000000050")
     for directory, why in refusals:
         before = tree(storage)
         with pytest.raises(UserError, match=re.escape(why)):
@@ -398,6 +403,8 @@ def test_a_step_set_aside_that_would_fork_the_storage_or_does_not_verify_stays_a
     os.rmdir(f"{storage.url}/checkpoints/step-000000020")
     os.rename(f"{storage.url}/checkpoints/step-000000025", f"{storage.url}/{ASIDE}/step-000000025")  # shard damaged
     before = tree(storage)
+    assert ckpt_commands.verify(f"{storage.url}/{ASIDE}/step-000000025") == 1
+    assert re.search(r"step-000000025: FAILED\n  rank-00001.pt: .*sha256", capsys.readouterr().out)
     assert ckpt_commands.unquarantine(f"{storage.url}/{ASIDE}/step-000000025") == 1
     assert "stays set aside: it does not verify" in capsys.readouterr().out
     assert tree(storage) == before and not os.path.exists(f"{storage.url}/checkpoints/step-000000025")
