@@ -203,7 +203,7 @@ def prune(
     for name, value in {"keep-last": keep_last, "keep-best": keep_best, "keep-every": keep_every}.items():
         if value is not None and value < 0:
             raise UserError(f"--{name}={value} must be 0 or more")
-    storage, step = _open(url, options)
+    storage, step = _open(url, options, one_step=False)
     if step is not None:
         raise UserError(f"prune works on a run's storage, not one step: pass {storage.url}")
     rules = (keep_last, keep_best, best_metric, keep_every, pinned, drop_bad)
@@ -213,7 +213,7 @@ def prune(
 def keep_line(url: str, step: int, options: dict | None = None, force: bool = False, dry_run: bool = False) -> int:
     """Keep the line of descent that ends at ``step`` (``lineage.py``): every verified step off it is set aside under
     ``quarantine/`` (nothing is deleted), so that the storage holds one history again (``dry_run``: only print)."""
-    storage, _ = _open(url, options)
+    storage, _ = _open(url, options, one_step=False)
 
     def body(held: Storage) -> int:
         infos = scan(held)
@@ -367,12 +367,15 @@ def _told(result: Verification, where: str, stays: str, done: str) -> int:
     return 1
 
 
-def _open(url: str, options: dict | None) -> tuple[Storage, int | None]:
-    """The storage and, for the URL of one step, the step; UserError if no checkpoint is there."""
+def _open(url: str, options: dict | None, one_step: bool = True) -> tuple[Storage, int | None]:
+    """The storage and, for the URL of one step, the step; UserError if no checkpoint is there (``one_step``: the
+    command takes one step too, and the line says so)."""
     root, step = parse_checkpoint_url(url)
     storage = Storage.open(root, options)
     if step is None and not storage.list_dirs(CHECKPOINTS):
-        usual = "pass a run's storage (the directory holding checkpoints/) or one step directory"
+        usual = f"pass a run's storage (the directory holding {CHECKPOINTS}/){' or one step directory' * one_step}"
+        if storage.is_local and not storage.exists(""):
+            raise UserError(f"{storage.url} does not exist: {usual}")
         raise UserError(f"no checkpoints under {storage.url}: {part_of_a_storage(storage) or usual}")
     if step is not None:
         step_files(storage, step)

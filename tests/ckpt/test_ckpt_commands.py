@@ -216,9 +216,31 @@ def test_a_part_of_a_storage_that_holds_no_step_is_told_what_to_pass_instead(run
     )
 
 
+def test_a_path_without_checkpoints_is_told_what_the_command_takes(tmp_path):
+    """Every ckpt command on a path that does not exist and on a directory without checkpoints: one line that says
+    which, and what to pass: a step directory only to the commands that take one (``prune nonexist`` suggested a
+    step directory, which prune then refused). Nothing is created."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    commands = {
+        ckpt_commands.ls: True,
+        ckpt_commands.verify: True,
+        ckpt_commands.show: True,
+        ckpt_commands.unquarantine: True,
+        lambda url: ckpt_commands.prune(url, keep_last=1): False,
+        lambda url: ckpt_commands.keep_line(url, 10): False,
+    }
+    for command, takes_a_step in commands.items():
+        for path, said in [(tmp_path / "nothing", "does not exist"), (empty, "no checkpoints under")]:
+            with pytest.raises(UserError) as refused:
+                command(str(path))
+            line = str(refused.value)
+            assert said in line and str(path) in line, line
+            assert line.endswith("(the directory holding checkpoints/)" + " or one step directory" * takes_a_step), line
+    assert sorted(tmp_path.iterdir()) == [empty] and not list(empty.iterdir())
+
+
 def test_bad_input_is_a_user_error(run, tmp_path):
-    with pytest.raises(UserError, match="no checkpoints under"):
-        ckpt_commands.ls(str(tmp_path / "nothing"))
     with pytest.raises(UserError, match="step-000000099 does not exist"):
         ckpt_commands.verify(f"{run}/checkpoints/step-000000099")
     with pytest.raises(UserError, match="not one step"):
