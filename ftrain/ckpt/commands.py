@@ -132,7 +132,8 @@ def verify(url: str, options: dict | None = None) -> int:
 def _verify_aside(storage: Storage, directory: str) -> int:
     """A step set aside, verified with full digests where it lies, nothing moved: a repair is checked before
     ``unquarantine``, which also asks whether the step may go back (its place free, the storage's line kept)."""
-    where = _aside(storage, directory)
+    directory = _aside(storage, directory)
+    where = storage.where(f"{ASIDE}/{directory}")
     result = verify_step(storage, aside_step(directory), full=True, directory=f"{ASIDE}/{directory}")
     print(f"{where}: {'ok' if result.ok else 'FAILED'}")
     for problem in result.problems:
@@ -338,18 +339,21 @@ def _unquarantine(storage: Storage, step: int) -> int:
 
 
 def _reinstate(storage: Storage, directory: str) -> int:
-    where = _aside(storage, directory)
+    directory = _aside(storage, directory)
+    where = storage.where(f"{ASIDE}/{directory}")
     result = reinstate(storage, directory)
     done = f"verifies and continues the storage's line: back at {storage.where(step_dir(result.step))}"
     return _told(result, where, "stays set aside", done)
 
 
 def _aside(storage: Storage, directory: str) -> str:
-    """Where the step set aside as ``directory`` lies, as the user names it; UserError if it is not there."""
-    where = storage.where(f"{ASIDE}/{directory}")
-    if directory not in storage.list_dirs(ASIDE):
-        raise UserError(f"{where} does not exist: see {_ls(storage)}")
-    return where
+    """The name under ``quarantine/`` of the step set aside as ``directory``, its number written short or in full
+    (``step-4`` is ``step-000000004``, as in ``checkpoints/``); UserError if it is not there."""
+    again = directory.partition(".")[2]
+    full = f"step-{aside_step(directory):09d}{'.' * bool(again)}{again}"
+    if full not in storage.list_dirs(ASIDE):
+        raise UserError(f"{storage.where(f'{ASIDE}/{directory}')} does not exist: see {_ls(storage)}")
+    return full
 
 
 def _ls(storage: Storage) -> str:
