@@ -364,6 +364,8 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
             raise UserError(f"{shown} name two storages: pass one of them")
         set_dotted(data, "storage.url", storage)
     config = build(Config, data, prefix="")
+    config.storage.url, config.log_dir = Url(expand_home(config.storage.url)), expand_home(config.log_dir)
+    config.resume = Url(expand_home(config.resume))
     keys = {item.partition("=")[0].strip() for item in overrides} & {"iterations", "algorithm.schedule_iterations"}
     if config.algorithm.schedule == "linear" and keys == {"iterations"}:
         config.algorithm.schedule_iterations = config.iterations
@@ -394,6 +396,12 @@ def config_from_dict(data: dict) -> Config:
 
 LOCAL_PROTOCOLS = ("file://", "local://")
 """fsspec's names of this machine's file system."""
+
+
+def expand_home(path: str) -> str:
+    """A local path written with ``~`` (in a config file, or quoted on the command line) as the shell would expand
+    it: fsspec expands it for the checkpoints, so the logs, the locks and the messages must too."""
+    return os.path.expanduser(path) if path.startswith("~") and "://" not in path else path
 
 
 def local_path(url: str) -> str:

@@ -13,7 +13,7 @@ from ftrain.config import Config, for_world, load_config, local_directories
 from ftrain.errors import UserError
 from ftrain.train.lr_schedule import horizon_notice
 
-from helpers import REPO, SMOKE
+from helpers import REPO, SMOKE, child_env
 
 LINEAR = ["algorithm.schedule=linear", "algorithm.schedule_iterations=8"]
 
@@ -320,3 +320,32 @@ def test_a_section_set_whole_by_an_override_merges_a_mapping_and_refuses_anythin
     print(f"{checked} overrides of {checked // 5} sections checked")
     assert checked >= 5 * 8
     assert load_config(SMOKE, ["env={num_envs: 8}"]).env.id == plain.env.id  # the file's other keys stay
+
+
+@pytest.mark.slow  # trains
+def test_a_path_written_with_a_tilde_is_the_home_directory_for_checkpoints_logs_and_plot(tmp_path) -> None:
+    """A quoted ``~`` (or one in a config file) went to fsspec, which expands it, for the checkpoints, and to the log
+    directory as a directory named ``~`` under the working one: a run in two places, and ``plot`` found nothing. Now
+    every spelling (``--storage``, ``storage.url``, ``log_dir``, ``resume``) is the home directory's, as a shell's."""
+    home, elsewhere = tmp_path / "home", tmp_path / "cwd"
+    home.mkdir(), elsewhere.mkdir()
+    env = child_env({"HOME": str(home)})
+    spellings = {
+        "storage": ["--storage", "~/one"],
+        "storage.url": ["storage.url=~/two"],
+        "log_dir": ["--storage", str(home / "three"), "log_dir=~/three-logs"],
+    }
+    for name, words in spellings.items():
+        command = [sys.executable, "-m", "ftrain", "train", SMOKE, *words, "iterations=2", "log.console=false"]
+        done = subprocess.run(command, cwd=elsewhere, env=env, capture_output=True, text=True)
+        assert done.returncode == 0, (name, done.stderr[-2000:])
+        assert "~" not in done.stdout, (name, done.stdout)
+    assert not list(elsewhere.iterdir())
+    assert {path.name for path in (home / "one").iterdir()} >= {"checkpoints", "metrics.csv", "config.yaml"}
+    assert (home / "two" / "metrics.csv").exists() and (home / "three-logs" / "metrics.csv").exists()
+    resumed = [sys.executable, "-m", "ftrain", "train", SMOKE, "--storage", "~/four", "resume=~/one", "iterations=3"]
+    done = subprocess.run([*resumed, "log.console=false"], cwd=elsewhere, env=env, capture_output=True, text=True)
+    assert done.returncode == 0 and f"from step 2 ({home / 'one'})" in done.stdout, done.stdout + done.stderr[-2000:]
+    plot = [sys.executable, "-m", "ftrain", "plot", "~/one", "-o", str(tmp_path / "curves.png")]
+    assert subprocess.run(plot, cwd=elsewhere, env=env, capture_output=True).returncode == 0
+    assert (tmp_path / "curves.png").stat().st_size > 0 and not list(elsewhere.iterdir())

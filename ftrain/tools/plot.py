@@ -20,7 +20,7 @@ from pathlib import Path, PurePosixPath
 
 from ftrain.ckpt.steps import check_output
 from ftrain.ckpt.storage import Storage
-from ftrain.config import default_log_dir
+from ftrain.config import default_log_dir, expand_home
 from ftrain.errors import UserError
 from ftrain.train.hooks import damaged, metrics_rows
 from ftrain.values import is_whole
@@ -123,6 +123,7 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     import matplotlib.pyplot as plt
     from matplotlib.backend_bases import FigureCanvasBase
 
+    run = expand_home(str(run))
     if output is not None and Path(output).is_dir():
         output = Path(output) / "curves.png"
     kinds = {"", *FigureCanvasBase.get_supported_filetypes()}  # no suffix: matplotlib writes a .png
