@@ -18,6 +18,7 @@ from collections.abc import Callable, Iterable
 from ftrain.ckpt.fence import guarded
 from ftrain.ckpt.format import (
     CHECKPOINTS,
+    CORRUPT,
     INCOMPLETE,
     QUARANTINE,
     VERIFIED,
@@ -28,7 +29,7 @@ from ftrain.ckpt.format import (
     step_dir,
     verify_step,
 )
-from ftrain.ckpt.lease import Lease, LeaseHeld
+from ftrain.ckpt.lease import Lease, LeaseHeld, read_record
 from ftrain.ckpt.lineage import history
 from ftrain.ckpt.retention import Kept, delete_step, kept, retention_plan
 from ftrain.ckpt.steps import (
@@ -83,6 +84,8 @@ def ls(url: str, options: dict | None = None) -> int:
     if step is None:
         for directory, reason in set_aside_steps(storage):
             print(_fit(f"set aside: {storage.where(f'{ASIDE}/{directory}')} ({reason})"))
+    if any(info.status == INCOMPLETE for info in every) and (holder := _saving_now(storage)):
+        print(holder)
     return 0
 
 
@@ -124,6 +127,8 @@ def verify(url: str, options: dict | None = None) -> int:
         else:
             print(f"one history: {len(past.line)} steps on one line of descent, {len(past.superseded)} superseded")
     incomplete = len(infos) - len(committed)
+    if incomplete and (holder := _saving_now(storage)):
+        print(holder)
     never = f"; {incomplete} incomplete (never committed)" if incomplete else ""
     print(f"{len(committed) - failed} of {len(committed)} committed steps verified{never}")
     return 1 if failed or (past is not None and past.forks) else 0
@@ -309,8 +314,15 @@ def _prune(
             print(f"{'would delete' if dry_run else 'deleting'} {ASIDE}/{directory} (set aside: {reason})")
             if not dry_run:
                 storage.delete_tree(f"{ASIDE}/{directory}")
-    kept = [str(info.step) for info in infos if info.step not in doomed]
-    print(f"{'would keep' if dry_run else 'kept'} {len(kept)} steps: {', '.join(kept) or '-'}")
+    kept = [info for info in infos if info.step not in doomed]
+    good = [str(info.step) for info in kept if info.status == VERIFIED]
+    line = f"{'would keep' if dry_run else 'kept'} {len(good)} verified step{'s' * (len(good) != 1)}: "
+    line += ", ".join(good) or "-"
+    for status in (INCOMPLETE, CORRUPT, QUARANTINE):
+        if steps := [str(info.step) for info in kept if info.status == status]:
+            fix = " (maybe a save in flight)" if status == INCOMPLETE else " (--drop-bad deletes these)"
+            line += f"; {len(steps)} {status} left: {', '.join(steps)}{fix}"
+    print(line)
     return 0
 
 
@@ -354,6 +366,20 @@ def _aside(storage: Storage, directory: str) -> str:
     if full not in storage.list_dirs(ASIDE):
         raise UserError(f"{storage.where(f'{ASIDE}/{directory}')} does not exist: see {_ls(storage)}")
     return full
+
+
+def _saving_now(storage: Storage) -> str | None:
+    """A line naming the run that holds the storage now, if one does: its newest incomplete step may be a save in
+    flight, not one cut short."""
+    try:
+        found = read_record(storage)
+    except UserError:
+        return None
+    live = found[0].live(time.time()) if found else []
+    if not live:
+        return None
+    holder = max(live, key=lambda entry: entry.renewed_at).process.describe()
+    return f"run {found[0].run_id} ({holder}) holds this storage now: an incomplete step may be its save in flight"
 
 
 def _ls(storage: Storage) -> str:

@@ -50,7 +50,7 @@ from ftrain.ckpt.steps import clear_newer, quarantine, resolve_checkpoint_url, s
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.comm import group
 from ftrain.config import Config
-from ftrain.errors import UserError
+from ftrain.errors import UserError, command
 from ftrain.redact import display_url
 
 ORIGIN = "origin"
@@ -303,9 +303,10 @@ def _decide(
         bad = sorted(step.step for step in scan(storage) if step.status != INCOMPLETE)
         if bad:
             raise UserError(
-                f"no checkpoint in {storage.url} verifies, and steps {bad} are corrupt: inspect them (ftrain "
-                f"ckpt ls {storage.url}), then remove them (ftrain ckpt prune --drop-bad) to start over, or "
-                "use another --storage"
+                f"no checkpoint in {storage.url} verifies, and steps {bad} are corrupt: inspect them "
+                f"({command('ftrain', 'ckpt', 'ls', storage.url)}), then remove them "
+                f"({command('ftrain', 'ckpt', 'prune', storage.url, '--drop-bad')}) to start over, or use another "
+                "--storage"
             )
         clear_newer(storage, 0, log)
         return {"kind": "fresh", "why": f"no verified checkpoint in {storage.url}: starting fresh"}

@@ -101,7 +101,10 @@ def test_prune(run, capsys):
         "would delete step 20 (verified, outside retention)" in out
         and "would delete step 10 (verified, outside retention)" in out
     )
-    assert out.splitlines()[-1] == "would keep 3 steps: 40, 30, 25"
+    assert out.splitlines()[-1] == (  # by status: a probe read corrupt and incomplete steps as kept
+        "would keep 1 verified step: 30; 1 incomplete left: 40 (maybe a save in flight); 1 corrupt left: 25 "
+        "(--drop-bad deletes these)"
+    )
     assert len(scan(Storage.open(run))) == 5
 
     assert ckpt_commands.prune(run, keep_last=1, pinned=[10]) == 0
@@ -491,3 +494,45 @@ def test_a_command_a_line_offers_pastes_as_it_is_for_a_path_with_a_space(tmp_pat
         ckpt_commands.show(f"{run}/checkpoints/step-000000020")
     hint = str(refused.value).rpartition("see ")[2]
     assert shlex.split(hint) == ["ftrain", "ckpt", "ls", run], hint
+
+
+def test_a_storage_whose_every_step_is_corrupt_names_commands_that_run_as_written(tmp_path, capsys):
+    """A start on a storage where no step verifies refuses, and names the commands that inspect and remove the
+    corrupt steps: each runs as written (the prune it named lacked the storage, and argparse refused it), and the
+    next start begins afresh."""
+    from ftrain.ckpt.resume import decide
+    from ftrain.cli import main
+    from ftrain.config import load_config
+
+    storage = Storage.open(str(tmp_path / "my run"))
+    for step in (10, 20):
+        make_step(storage, step)
+        flip_shard_byte(storage, step)
+    config = load_config(None, [f"storage.url={storage.url}"])
+    refused = decide(config, storage, log=print)
+    assert refused["kind"] == "usage", refused
+    named = re.findall(r"\((ftrain ckpt [^)]*)\)", refused["why"])
+    assert [shlex.split(line)[:3] for line in named] == [["ftrain", "ckpt", "ls"], ["ftrain", "ckpt", "prune"]]
+    for line in named:
+        assert main(shlex.split(line)[1:]) == 0, line
+    pruned = capsys.readouterr().out
+    assert "deleting step 20" in pruned and "deleting step 10" in pruned, pruned
+    assert decide(config, storage, log=print)["kind"] == "fresh"
+
+
+def test_an_incomplete_step_of_a_storage_held_now_is_said_to_be_maybe_a_save_in_flight(run, capsys):
+    """ls and verify beside a live run called its save in flight 'never committed': where the storage's lease is
+    held now (by this process here: it is alive), they name the holder; without one, or with an expired one, not."""
+    from ftrain.ckpt.lease import Entry, Record
+    from ftrain.procfs import Process
+
+    storage = Storage.open(run)
+    said = "holds this storage now: an incomplete step may be its save in flight"
+    for lease, held in [(None, False), (time.time() - 3600, False), (time.time(), True)]:
+        if lease is not None:
+            far = Process("node-far-away", 4242, 123, "another-boot-id", "pid:[1]")  # alive by its renewals only
+            storage.write_replace("LEASE.json", Record("live-run", 3, 60.0, (Entry(far, lease),)).encode())
+        for command in (ckpt_commands.ls, ckpt_commands.verify):
+            command(run)
+            out = capsys.readouterr().out
+            assert (f"run live-run (pid 4242 on host node-far-away) {said}" in out) == held, (lease, out)
