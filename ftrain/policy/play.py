@@ -69,6 +69,7 @@ def play(
         progress.episode_ended()
         print(f"episode {index}: return {episode.ret:.2f}, length {episode.length}", flush=True)
 
+    results = None
     try:
         act = lambda obs: policy.act(obs, deterministic)  # noqa: E731
         results = rollout(env, act, episodes, seed, on_observation=observed, on_episode=finished)
@@ -76,7 +77,7 @@ def play(
         progress.progress.clear()
         env.close()
         if writer is not None:
-            writer.close()
+            writer.close(keep=results is not None)
     returns = [episode.ret for episode in results]
     print(f"mean return over {episodes} episodes: {np.mean(returns):.2f} (std {np.std(returns):.2f})")
     frames = 0 if writer is None else writer.frames
@@ -117,19 +118,22 @@ class _PlayProgress:
 
 
 class _VideoWriter:
-    """Renders the environment at every observation and streams the frames to an mp4 (ffmpeg) or a gif."""
+    """Renders the environment at every observation and streams the frames to an mp4 (ffmpeg) or a gif, in a file
+    of its own beside ``path`` that becomes ``path`` once every episode is in: a play stopped part way (Ctrl-C, an
+    error) leaves no video cut short, and whatever ``path`` held before."""
 
     def __init__(self, path: Path, env) -> None:
         import imageio.v2 as imageio
 
         self.env = env
         self.path = path
+        self.partial = path.with_name(f".{path.stem}.{os.getpid()}.partial{path.suffix}")
         self.fps = float(env.metadata.get("render_fps", 30))
         path.parent.mkdir(parents=True, exist_ok=True)
         if path.suffix.lower() == ".gif":
-            self.writer = imageio.get_writer(path, mode="I", duration=1000 / self.fps, loop=0)
+            self.writer = imageio.get_writer(self.partial, mode="I", duration=1000 / self.fps, loop=0)
         else:
-            self.writer = imageio.get_writer(path, fps=self.fps)
+            self.writer = imageio.get_writer(self.partial, fps=self.fps)
         self.frames = 0
         self.size = (0, 0)
 
@@ -145,5 +149,15 @@ class _VideoWriter:
         self.frames += 1
         self.size = frame.shape[:2]
 
-    def close(self) -> None:
-        self.writer.close()
+    def close(self, keep: bool) -> None:
+        """``keep``: every episode is in, the video goes to its path; else it goes."""
+        try:
+            self.writer.close()
+        except BaseException:
+            keep = False
+            raise
+        finally:
+            if keep:
+                os.replace(self.partial, self.path)
+            else:
+                self.partial.unlink(missing_ok=True)

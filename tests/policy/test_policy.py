@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import re
 import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -23,7 +24,18 @@ from ftrain.policy.load import load_policy
 from ftrain.policy.model import ClippedNormalization
 from ftrain.policy.play import play
 
-from helpers import final_manifest, flip_byte, needs_egl, on_a_terminal, run_train
+from helpers import (
+    REPO,
+    child_env,
+    final_manifest,
+    finish,
+    flip_byte,
+    launch,
+    needs_egl,
+    on_a_terminal,
+    run_train,
+    wait_for,
+)
 
 pytestmark = pytest.mark.slow  # every test plays or exports a policy trained first
 
@@ -278,3 +290,30 @@ def test_no_output_lands_inside_a_step_of_a_storage(trained, tmp_path, capsys) -
     assert after == before, "nothing in the storage written, nothing added"
     print(f"{checked} outputs inside a step refused, the storage untouched")
     assert main(["export", str(trained), "--format", "torchscript", "-o", str(run / "policy.pt")]) == 0  # beside them
+
+
+@needs_egl
+@pytest.mark.parametrize("stop", [signal.SIGINT, signal.SIGTERM], ids=["ctrl-c", "sigterm"])
+def test_a_play_stopped_part_way_leaves_no_video_cut_short_and_the_one_before_whole(trained, tmp_path, stop) -> None:
+    """A probe's Ctrl-C during ``play --video`` left a video of 46 frames, less than one episode, without a word,
+    in the place of the one there before. The frames go to a file of their own until every episode is in: stopped
+    after its first episode, the play ends with the stop's line and code, and the path holds what it held."""
+    video, output = tmp_path / "cheetah.mp4", tmp_path / "output.txt"
+    video.write_bytes(b"the video of an earlier play")
+    command = [sys.executable, "-m", "ftrain", "play", str(trained), "--episodes", "500", "--video", str(video)]
+    with output.open("w") as sink:
+        proc = launch(
+            command,
+            cwd=REPO,
+            env=child_env(),
+            stdout=sink,
+            stderr=subprocess.STDOUT,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # pytest-xdist's workers ignore it
+        )
+    wait_for(lambda: "episode 1: return" in output.read_text(), "the first episode")
+    proc.send_signal(stop)
+    assert finish(proc, timeout=60) == 128 + stop, output.read_text()[-2000:]
+    said = "ftrain: interrupted (Ctrl-C)" if stop == signal.SIGINT else "ftrain: stopped by SIGTERM"
+    assert output.read_text().endswith(f"{said}\n") and "Traceback" not in output.read_text()
+    assert video.read_bytes() == b"the video of an earlier play"
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["cheetah.mp4", "output.txt"]
