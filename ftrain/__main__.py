@@ -1,11 +1,12 @@
 """``python -m ftrain`` and ``torchrun -m ftrain``: a worker of a supervisor with a warm pool runs there (see
 ``ftrain/warm``). Every command ends without the interpreter's teardown (``ftrain/process.py``), as a fork of the pool
-does. A Ctrl-C while it imports is one line (``errors.interrupted``), not a traceback."""
+does. A Ctrl-C or SIGTERM while it imports is one line (``errors.stopped``), not a traceback or a silent death."""
 
 import sys
 
-from ftrain.errors import by_ctrl_c, interrupted
+from ftrain.errors import Terminated, stop_on_sigterm, stop_signal, stopped
 
+stop_on_sigterm()
 try:
     from ftrain.process import exit_fast
     from ftrain.proctitle import name_process, rank_role
@@ -18,8 +19,8 @@ try:
         from ftrain.cli import main
 
         code = main()
-except (KeyboardInterrupt, Exception) as error:
-    if not by_ctrl_c(error):
+except (KeyboardInterrupt, Terminated, Exception) as error:
+    if (signum := stop_signal(error)) is None:
         raise
-    sys.exit(interrupted())
+    sys.exit(stopped(signum))
 exit_fast(code)

@@ -27,10 +27,12 @@ from ftrain.errors import (
     NO_SPACE,
     StorageError,
     StorageUnavailable,
+    Terminated,
     UserError,
-    by_ctrl_c,
-    interrupted,
     no_space_line,
+    stop_on_sigterm,
+    stop_signal,
+    stopped,
 )
 from ftrain.lifeline import watch_launcher
 from ftrain.process import imports
@@ -408,6 +410,7 @@ def _command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    stop_on_sigterm()
     _escape_what_stdout_cannot_encode()
     if argv[:1] == ["train"]:  # a worker of ``ftrain supervise``: the credentials come from the environment
         argv = ["train", *reveal_credentials(argv[1:], os.environ)]
@@ -422,8 +425,8 @@ def main(argv: list[str] | None = None) -> int:
     except StorageError as error:
         errorfile.report(str(error))
         return EXIT_FAILED
-    except KeyboardInterrupt:
-        return interrupted()
+    except (KeyboardInterrupt, Terminated) as stop:
+        return stopped(stop_signal(stop))
     except BrokenPipeError:
         if not _stdout_reader_gone():
             raise
@@ -438,8 +441,8 @@ def main(argv: list[str] | None = None) -> int:
         errorfile.report(no_space_line(error))  # a failure: the supervisor waits if the run's disks are full
         return EXIT_FAILED
     except Exception as error:  # a bug: it keeps its traceback, and torchrun and the supervisor learn what it was
-        if by_ctrl_c(error):
-            return interrupted()
+        if (signum := stop_signal(error)) is not None:
+            return stopped(signum)
         errorfile.record_exception(error)
         raise
 

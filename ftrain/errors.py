@@ -7,10 +7,12 @@ bug and keeps its traceback.
 
 import difflib
 import errno
+import os
 import re
 import shlex
 import signal
 import sys
+import threading
 import time
 import typing
 
@@ -46,23 +48,47 @@ def no_space_line(error: OSError) -> str:
     return f"no space left {where} ({error.strerror}): {fix}"
 
 
-def interrupted() -> int:
-    """A Ctrl-C that came before the command took SIGINT over (while it imports torch, or in a short command): one
-    line instead of a traceback, and the shell's code for Ctrl-C. A run saves from the moment it took it over."""
-    print("ftrain: interrupted (Ctrl-C)", file=sys.stderr, flush=True)
-    return EXIT_INTERRUPTED
+class Terminated(BaseException):
+    """SIGTERM before the command took it over (``stop_on_sigterm``): a BaseException, as KeyboardInterrupt, so that
+    no ``except Exception`` on the way swallows it."""
 
 
-def by_ctrl_c(error: BaseException) -> bool:
-    """Whether a Ctrl-C caused ``error``: one inside a compiled module's import (MuJoCo's, through pybind11) comes back
-    as an ImportError whose cause is the KeyboardInterrupt, and the importer may wrap that again."""
+def stop_on_sigterm() -> None:
+    """From the start of a command until it takes SIGTERM over (a run's stop request, the supervisor's), a SIGTERM
+    ends it as a Ctrl-C does, in one line (``stopped``) with 143, where it died without a word. Left alone where the
+    process inherited another disposition (ignored, say)."""
+    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
+        signal.signal(signal.SIGTERM, raise_terminated)
+
+
+def raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated
+
+
+def stopped(signum: int) -> int:
+    """A stop that came before the command took its signal over (while it imports torch, or in a short command): one
+    line instead of a traceback or a silent death, and the shell's code, 128 + the signal. A run saves from the
+    moment it took them over. Of a launcher's workers, rank 0 alone says it, as the run's other lines: torchrun stops
+    the others with SIGTERM once one has ended."""
+    said = "interrupted (Ctrl-C)" if signum == signal.SIGINT else f"stopped by {signal.Signals(signum).name}"
+    if os.environ.get("RANK", "0") == "0":
+        print(f"ftrain: {said}", file=sys.stderr, flush=True)
+    return 128 + signum
+
+
+def stop_signal(error: BaseException) -> int | None:
+    """The stop signal that caused ``error``, if one did (SIGINT: a KeyboardInterrupt, SIGTERM: ``Terminated``): one
+    inside a compiled module's import (MuJoCo's, through pybind11) comes back as an ImportError whose cause it is, and
+    the importer may wrap that again."""
     seen = set()
     while error is not None and id(error) not in seen:
         if isinstance(error, KeyboardInterrupt):
-            return True
+            return signal.SIGINT
+        if isinstance(error, Terminated):
+            return signal.SIGTERM
         seen.add(id(error))
         error = error.__cause__ or error.__context__
-    return False
+    return None
 
 
 ONE_STOP = 0.5

@@ -3,10 +3,10 @@ MuJoCo and into tearing down what they made (docs/speed.md, "Start-up and exit",
 
 Owns ``imports()``, around the heavy imports: Python's cyclic collector off while they run, then what they made
 frozen (``gc.freeze``), so later collections skip it and a fork of the warm pool does not copy its pages, and a
-Ctrl-C held until they are done; and ``exit_fast``, which ends a process as multiprocessing ends its children,
-without the interpreter's teardown.
+Ctrl-C or SIGTERM held until they are done; and ``exit_fast``, which ends a process as multiprocessing ends its
+children, without the interpreter's teardown.
 Promises: nothing that is trained depends on when the collector runs; an exit flushes what Python and C printed.
-Imports the standard library only.
+Imports the standard library and ``ftrain.errors``.
 """
 
 from __future__ import annotations
@@ -22,28 +22,32 @@ import threading
 from collections.abc import Iterator
 from typing import NoReturn
 
+from ftrain.errors import raise_terminated
+
 
 @contextlib.contextmanager
 def imports() -> Iterator[None]:
     """Around the imports of the heavy libraries: without the cyclic garbage collector, then what they made frozen.
-    A Ctrl-C meanwhile raises its KeyboardInterrupt once they are done: raised inside a library's import, it may come
-    out as that library's ImportError, or be swallowed by an ``except ImportError`` of an optional one."""
+    A Ctrl-C or SIGTERM meanwhile raises its exception once they are done (``errors.stop_signal``): raised inside a
+    library's import, it may come out as that library's ImportError, or be swallowed by an ``except ImportError`` of
+    an optional one."""
     enabled, held = gc.isenabled(), []
     gc.disable()
-    hold = threading.current_thread() is threading.main_thread()
-    hold = hold and signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    if hold:
-        signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    ours = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: raise_terminated}
+    main = threading.current_thread() is threading.main_thread()
+    holding = {number: handler for number, handler in ours.items() if main and signal.getsignal(number) == handler}
+    for number in holding:
+        signal.signal(number, lambda signum, frame: held.append(signum))
     try:
         yield
     finally:
         gc.freeze()
         if enabled:
             gc.enable()
-        if hold:
-            signal.signal(signal.SIGINT, signal.default_int_handler)
+        for number, handler in holding.items():
+            signal.signal(number, handler)
     if held:
-        raise KeyboardInterrupt
+        holding[held[0]](held[0], None)
 
 
 def exit_fast(code: int | None, died_of: int | None = None) -> NoReturn:

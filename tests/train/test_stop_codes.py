@@ -140,25 +140,31 @@ def test_a_stop_delivered_again_at_once_is_one_stop_that_saves(tmp_path, supervi
     assert said in printed, printed[-2000:]
 
 
-def test_ctrl_c_at_any_moment_of_the_start_is_one_line_and_exit_130(tmp_path) -> None:
-    """While it imports torch and builds the run (seconds on a slow machine) a Ctrl-C is one line, not a traceback;
-    from the moment the trainer takes SIGINT over it saves first. Random moments over the whole start: exit 130
-    every time, no traceback, and whatever the storage holds verifies."""
+def test_a_stop_at_any_moment_of_the_start_is_one_line_and_its_exit_code(tmp_path) -> None:
+    """While it imports torch and builds the run (seconds on a slow machine) a Ctrl-C or SIGTERM is one line, not a
+    traceback (Ctrl-C) or a silent death (SIGTERM, a probe's); from the moment the trainer takes them over it saves
+    first. Random moments over the whole start, a random signal each: 128 + the signal every time, no traceback, a
+    line that says the stop, and whatever the storage holds verifies."""
     draw = random.Random(130)
-    moments, saved = sorted(draw.uniform(0.05, 10.0) for _ in range(8)), 0
+    moments, saved, checked = sorted(draw.uniform(0.05, 10.0) for _ in range(8)), 0, []
     for moment in moments:
+        stop = draw.choice([signal.SIGINT, signal.SIGTERM])
+        checked.append(f"{stop.name} at {moment:.2f} s")
         storage = tmp_path / f"run-{moment:.2f}"
         command, beats = [*train_command(storage, LONG), "log.console=true"], tmp_path / f"beats-{moment:.2f}"
         proc = start(command, beats, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         time.sleep(moment)
-        proc.send_signal(signal.SIGINT)
+        proc.send_signal(stop)
         output = proc.communicate(timeout=120)[0]
-        assert proc.returncode == 130, (moment, output[-2000:])
+        assert proc.returncode == 128 + stop, (moment, stop, output[-2000:])
         assert "Traceback" not in output, (moment, output[-2000:])
+        said = ["ftrain: interrupted (Ctrl-C)" if stop == signal.SIGINT else "ftrain: stopped by SIGTERM"]
+        said += [f"stopped by {stop.name} while starting", f"stopped by {stop.name}: saved step"]
+        assert any(line in output for line in said), (moment, stop, output[-2000:])
         if committed := manifests(storage):  # the newest committed step is the one a resume takes: it verifies
             assert select_resume(Storage.open(str(storage)), log=lambda line: None)[0] == max(committed), moment
             saved += 1
-    print(f"{len(moments)} moments checked ({', '.join(f'{m:.2f}' for m in moments)} s), {saved} after a save")
+    print(f"{len(checked)} stops checked ({', '.join(checked)}), {saved} after a save")
 
 
 CTRL_C_INSIDE_MUJOCOS_IMPORT = """
@@ -186,10 +192,9 @@ def test_ctrl_c_inside_a_compiled_modules_import_is_the_same_one_line(tmp_path) 
     proc = start(command, tmp_path / "beats", preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     output = proc.communicate(timeout=120)[0]
     assert (proc.returncode, output) == (130, "ftrain: interrupted (Ctrl-C)\n")
-    chain = "while error:\n  print(type(error).__name__, by_ctrl_c(error))\n  error = error.__cause__\n"
-    wrapped = (
-        "from ftrain.errors import by_ctrl_c\ntry:\n import gymnasium.envs.mujoco\nexcept Exception as e:\n error = e\n"
-    )
+    chain = "while error:\n  print(type(error).__name__, stop_signal(error) == 2)\n  error = error.__cause__\n"
+    wrapped = "from ftrain.errors import stop_signal\n"
+    wrapped += "try:\n import gymnasium.envs.mujoco\nexcept Exception as e:\n error = e\n"
     wrapped += chain + "try:\n import no_such_module_here\nexcept Exception as e:\n error = e\n" + chain
     told = subprocess.run(
         [sys.executable, "-c", CTRL_C_INSIDE_MUJOCOS_IMPORT + wrapped], capture_output=True, text=True
