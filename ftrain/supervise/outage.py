@@ -132,7 +132,7 @@ class StorageWait:
                     "storage_down",
                     EXIT_STORAGE_WAIT,
                     f"the storage {url} was not usable for {self.limit:g} s ({problem or why}); nothing committed is "
-                    "lost: run the same command again once it is back",
+                    "lost: run the same command again once it is usable again",
                 )
             delay = AGAIN.delay(outage.fruitless) if again else OUTAGE.delay(outage.tries)
             if lines.due() or again:
