@@ -62,6 +62,7 @@ def c10d(node: int, endpoint: str) -> list[str]:
     return ["--node-rank", str(node), "--rdzv-endpoint", endpoint]
 
 
+@pytest.mark.waits  # paced iterations (0.15 s each) and the nodes' timeouts: 40% of it on the CPU
 def test_three_nodes_shrink_to_two_when_one_is_lost_and_grow_back_when_it_returns(tmp_path) -> None:
     storage, endpoint, iterations = tmp_path / "run", f"127.0.0.1:{free_port()}", 260
     nodes = [start_node(storage, node, "2:3", c10d(node, endpoint), f"iterations={iterations}") for node in range(3)]
@@ -85,6 +86,7 @@ def test_three_nodes_shrink_to_two_when_one_is_lost_and_grow_back_when_it_return
     assert verify_cli(storage) == 0
 
 
+@pytest.mark.waits  # paced, held, and a 5 s rendezvous timeout: 45% of it on the CPU
 def test_a_node_back_late_and_not_taken_in_ends_alone_and_the_others_train_on(tmp_path) -> None:
     """c10d, 2:3 nodes: nodes 0 and 1 train at world 2 and hold (``HoldHook``); node 2 starts with a 5 s
     ``--rdzv-timeout``, and the agents, whose workers hold, cannot take it in before it times out. Node 2 ends alone
@@ -354,6 +356,7 @@ def test_a_late_node_grows_torchruns_world_only_without_the_shared_agent_store(t
     assert bool(grew) is not share_store, (first.read_text(errors="replace"), second.read_text(errors="replace"))
 
 
+@pytest.mark.waits  # a stalled store host: 30% of it on the CPU
 def test_a_late_node_is_let_in_after_the_rendezvous_host_stalled_for_seconds(tmp_path) -> None:
     """Node 0's torchrun hosts the rendezvous store, so every keep-alive goes through it: stalled for 5 s (SIGSTOP, as
     a loaded machine stalls it), every node's last keep-alive looks older than a short window to the first to look

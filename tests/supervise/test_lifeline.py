@@ -61,6 +61,7 @@ def test_torchrun_ties_itself_to_its_parent_only():
 
 
 @pytest.mark.slow
+@pytest.mark.waits  # waits for the orphans to notice: under 10% of it on the CPU
 def test_a_sigkilled_supervisor_leaves_no_process_of_its_run(tmp_path):
     """One worker is stopped (SIGSTOP) first: no thread of its own can end it, its siblings must."""
     run = tmp_path / "run"

@@ -515,6 +515,7 @@ def continue_supervisor_first(supervisor: int, below: list[int]) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.waits  # stopped processes and their grace: under 40% of it on the CPU
 def test_a_supervisor_stopped_with_its_workers_blames_nobody(tmp_path):
     """The whole tree stopped (a job suspended, a VM paused) for longer than the hang limit, then continued, the
     supervisor 0.5 s before its workers: it did not watch while stopped, so nothing hung; the run goes on with no
@@ -540,6 +541,7 @@ def test_a_supervisor_stopped_with_its_workers_blames_nobody(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.waits  # stopped processes and their grace: under 40% of it on the CPU
 def test_a_supervisor_stopped_during_a_stop_still_gives_its_workers_their_grace_to_save(tmp_path):
     """SIGTERM reached the supervisor, then the whole tree was stopped for longer than ``--stop-grace`` before the
     workers could save (a job suspended mid-preemption), and continued, the supervisor first: the grace did not run
