@@ -44,7 +44,7 @@ LAYERS = {
         "log_dir_lock",
         "warm",
     },
-    "train": {"policy", "ckpt", "comm", "config", "errors", "errorfile", "heartbeat", "track", "redact"},
+    "train": {"policy", "ckpt", "comm", "config", "errors", "errorfile", "heartbeat", "track", "redact", "procfs"},
     "track": {"config", "values", "errors", "redact"},
     "policy": {"ckpt", "config", "errors", "progress"},
     "ckpt": {
@@ -75,7 +75,7 @@ LAYERS = {
     "progress": set(),
     "errors": set(),
     "proctitle": set(),
-    "process": set(),
+    "process": {"errors"},
 }
 """What each package (or top-level module) of ftrain may import from the others."""
 LAZY_IMPORTS_ALLOWED = {"ftrain.cli", "ftrain.tools.bench"}
