@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import random
 import re
-import resource
 import signal
 import subprocess
+import sys
 import time
 
 import pytest
@@ -55,6 +55,15 @@ def test_a_build_is_refused_exactly_when_it_would_not_fit_and_the_value_it_sugge
     print(f"500 generated cases (seed {seed}): {refused} refused, each suggestion fits")
 
 
+PEAK_MEMORY = """
+import resource, subprocess, sys
+code = subprocess.run(sys.argv[1:]).returncode
+print(f"peak kB: {resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}", file=sys.stderr)
+sys.exit(code)
+"""
+"""Runs the command after it and prints, last, the most memory it held (of this process's children: that one)."""
+
+
 def too_many_environments(ranks_here: int) -> int:
     """Ten times what fits in the memory this machine has now, at about 1 MB per environment."""
     return 10 * procfs.available_memory() // (10**6 * ranks_here)
@@ -66,15 +75,14 @@ def test_environments_that_would_not_fit_are_refused_before_they_take_the_memory
     the setting and a value that fits, exit 2, under 2 GB of memory ever taken, nothing written as a step; under the
     supervisor (two ranks, ``env.total_envs``) not restarted, as any bad input."""
     num_envs = too_many_environments(1)
-    command = [*train_command(tmp_path / "run", f"env.num_envs={num_envs}")]
+    command = [sys.executable, "-c", PEAK_MEMORY, *train_command(tmp_path / "run", f"env.num_envs={num_envs}")]
     done = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
+    said, _, peak = done.stderr.rpartition("peak kB: ")
     assert done.returncode == 2, done.stderr[-2000:]
     line = f"ftrain: error: env.num_envs={num_envs}: its environments need about "
-    assert done.stderr.startswith(line) and done.stderr.count("\n") == 1, done.stderr[-2000:]
-    assert re.search(
-        r"\(\d+\.\d MB each, 1 rank\), and this machine has .* use env.num_envs=\d+ or fewer$", done.stderr
-    )
-    assert resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss < 2 * 1024**2, "kB: the build stopped early"
+    assert said.startswith(line) and said.count("\n") == 1, done.stderr[-2000:]
+    assert re.search(r"\(\d+\.\d MB each, 1 rank\), and this machine has .* use env.num_envs=\d+ or fewer\n$", said)
+    assert int(peak) < 2 * 1024**2, f"{peak} kB: the build went on"
     assert not manifests(tmp_path / "run")
 
     total = 2 * too_many_environments(2)
