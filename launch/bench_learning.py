@@ -48,9 +48,6 @@ sys.path.insert(0, str(REPO))
 from machine_speed import cold_smoke  # noqa: E402
 
 from ftrain.config import EnvConfig, load_config  # noqa: E402
-from ftrain.policy.load import load_policy  # noqa: E402
-from ftrain.policy.robot import make_env  # noqa: E402
-from ftrain.policy.rollout import rollout  # noqa: E402
 from ftrain.tools.zoo import ZOO, zoo_ppo  # noqa: E402
 from ftrain.train.hooks import Hook  # noqa: E402
 
@@ -132,6 +129,9 @@ def load_average() -> float:
 
 def evaluate(act, env_config: EnvConfig, seed: int = EVAL_SEED) -> list[float]:
     """The returns of ``EPISODES`` deterministic episodes seeded ``seed``, ``seed + 1``, ..."""
+    from ftrain.policy.robot import make_env  # torch and MuJoCo: not before the arguments are checked
+    from ftrain.policy.rollout import rollout
+
     envs = [make_env(env_config) for _ in range(EPISODES)]
     try:
         return [episode.ret for episode in rollout(envs, act, EPISODES, seed)]
@@ -177,6 +177,8 @@ def run_ftrain(
     run.eval_seconds = run.curve[-1][3] if run.curve else 0.0
     run.seconds = wall - run.eval_seconds
     if not reached:
+        from ftrain.policy.load import load_policy  # torch: not before the arguments are checked
+
         policy = load_policy(str(storage))
         run.episodes = evaluate(policy.act, policy.config.env, policy.config.eval.seed)
         run.final_return = statistics.fmean(run.episodes)
