@@ -23,7 +23,8 @@ SHARE = 0.8
 """Of the memory available at the start, what the environments may take: the rest is for the model, the rollout
 buffers and the evaluation's environments."""
 SAY_AFTER_S = 10.0
-"""A build expected to take longer says so, once."""
+SAY_FROM = 1000
+"""A build expected to take over ``SAY_AFTER_S`` seconds, or of ``SAY_FROM`` environments or more, says so, once."""
 
 
 class BuildEnded(Exception):
@@ -63,7 +64,7 @@ class BuildWatch:
             per_env = max(procfs.resident_bytes() - memory, 0) / SAMPLE
             self._check_memory(per_env, procfs.available_memory())
             seconds = (time.perf_counter() - started) / SAMPLE * (self.total - built)
-            if seconds > SAY_AFTER_S:
+            if seconds > SAY_AFTER_S or self.total >= SAY_FROM:
                 self.log(f"building {self.total:,} environments per rank: about {seconds:.0f} s")
 
     def _check_memory(self, per_env: float, available: int | None) -> None:

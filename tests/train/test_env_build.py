@@ -111,7 +111,7 @@ def test_a_stop_while_the_environments_are_built_ends_the_run_at_once(tmp_path, 
     trainer existed). Now the build ends at the next environment and every rank exits with the stop's code: sent at a
     random moment of the build (printed), the run ends within seconds, with nothing to save and nothing saved."""
     storage, output = tmp_path / "run", tmp_path / "output.txt"
-    slow_build = "env.num_envs=5000"  # 15-25 s to build: long enough to say so
+    slow_build = "env.num_envs=5000"  # said (SAY_FROM), and seconds to build: a stop comes while it builds
     command = supervise_command(storage, slow_build) if supervised else train_command(storage, slow_build)
     with output.open("w") as sink:
         proc = launch(command, cwd=REPO, env=child_env(), stdout=sink, stderr=subprocess.STDOUT, start_new_session=True)
