@@ -70,7 +70,7 @@ def run(argv: list[str]) -> int:
         stopped = codes.pop() if len(codes) == 1 and codes <= set(STOPPED) else None
         if failures_path is None:
             if stopped is not None:
-                print(f"torchrun: the workers saved and exited {stopped} (stopped by a signal)", file=sys.stderr)
+                print(f"torchrun: the workers stopped by a signal, exit {stopped}", file=sys.stderr)
                 return stopped
             explained = _explained(failed)
             if explained is None:

@@ -1,10 +1,10 @@
 """Building a rank's environments, the one step of a start whose time and memory grow with the input
 (``env.num_envs``, and the ranks on one machine): a build that would not fit in the memory the machine has left is
-refused after its first environments, before it takes the machine down; a stop request ends it (nothing is trained
-yet, nothing to save); a long one says how long it will take. The ranks then agree (``agree``), so that every rank
-refuses or stops alike, not one while the others wait for it.
+refused after its first environments, before it takes the machine down; a long one says how long it will take. The
+ranks then agree (``agree``), so that every rank refuses alike, not one while the others wait for it. (A stop while
+it builds ends the process at once: ``ftrain.train.stop``.)
 
-May import: the standard library, ``ftrain.errors``, ``ftrain.procfs``, ``ftrain.comm.group``, ``ftrain.train.stop``.
+May import: the standard library, ``ftrain.errors``, ``ftrain.procfs``, ``ftrain.comm.group``.
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ import typing
 from ftrain import procfs
 from ftrain.comm import group
 from ftrain.errors import UserError
-from ftrain.train.stop import StoppedAtStart
 
 SAMPLE = 16
 """Environments built (after the first, which loads the model) before the memory and time of one are measured."""
@@ -27,16 +26,12 @@ SAY_FROM = 1000
 """A build expected to take over ``SAY_AFTER_S`` seconds, or of ``SAY_FROM`` environments or more, says so, once."""
 
 
-class BuildEnded(Exception):
-    """The build ended early: ``signum`` a stop request's signal, or ``refusal`` why it does not fit."""
-
-    def __init__(self, signum: int | None = None, refusal: str | None = None) -> None:
-        super().__init__(signum, refusal)
-        self.signum, self.refusal = signum, refusal
+class TooLarge(Exception):
+    """The environments would not fit in memory: the message says so, with a value that fits."""
 
 
 class BuildWatch:
-    """Called with the number built after each environment (``MujocoVecEnv``'s ``built``); raises ``BuildEnded``.
+    """Called with the number built after each environment (``MujocoVecEnv``'s ``built``); raises ``TooLarge``.
 
     ``total``: the environments of this rank; ``setting``: the config key and value the user gave for them
     (``env.num_envs=200000``, or ``env.total_envs``, shared by the ranks); ``ranks_here``: the ranks building on this
@@ -47,16 +42,12 @@ class BuildWatch:
         total: int,
         setting: tuple[str, int],
         ranks_here: int,
-        stop_signal: typing.Callable[[], int | None],
         log: typing.Callable[[str], None],
     ) -> None:
-        self.total, self.setting, self.ranks_here = total, setting, ranks_here
-        self.stop_signal, self.log = stop_signal, log
+        self.total, self.setting, self.ranks_here, self.log = total, setting, ranks_here, log
         self._after_first: tuple[int, float] = (0, 0.0)
 
     def __call__(self, built: int) -> None:
-        if signum := self.stop_signal():
-            raise BuildEnded(signum=signum)
         if built == 1:
             self._after_first = (procfs.resident_bytes(), time.perf_counter())
         elif built == 1 + SAMPLE and built < self.total:
@@ -74,19 +65,16 @@ class BuildWatch:
         name, value = self.setting
         fits = int(SHARE * available / (per_env * self.ranks_here) * value / self.total)
         ranks = f"{self.ranks_here} ranks on this machine" if self.ranks_here > 1 else "1 rank"
-        raise BuildEnded(
-            refusal=f"{name}={value}: its environments need about {_gb(need)} of memory ({per_env / 1e6:.1f} MB "
-            f"each, {ranks}), and this machine has {_gb(available)} available: use {name}={max(fits, 1)} or fewer"
+        raise TooLarge(
+            f"{name}={value}: its environments need about {_gb(need)} of memory ({per_env / 1e6:.1f} MB each, "
+            f"{ranks}), and this machine has {_gb(available)} available: use {name}={max(fits, 1)} or fewer"
         )
 
 
-def agree(ended: BuildEnded | None, info: group.RankInfo) -> None:
-    """Every rank, after its build: raise what any rank's build ended with, a refusal (UserError) before a stop."""
-    every = group.all_gather_object((ended.signum, ended.refusal) if ended else (None, None), info)
-    if refusal := next((refusal for _, refusal in every if refusal), None):
+def agree(refused: TooLarge | None, info: group.RankInfo) -> None:
+    """Every rank, after its build: UserError if any rank's build was refused."""
+    if refusal := next(filter(None, group.all_gather_object(refused and str(refused), info)), None):
         raise UserError(refusal)
-    if signum := next((signum for signum, _ in every if signum), None):
-        raise StoppedAtStart(signum)
 
 
 def _gb(size: float) -> str:

@@ -33,7 +33,7 @@ from ftrain.policy.model import action_std
 from ftrain.policy.noise_ceiling import build_noise_ceiling
 from ftrain.policy.robot import unsaved_state_notice
 from ftrain.train import topology
-from ftrain.train.env_build import BuildEnded, BuildWatch, agree
+from ftrain.train.env_build import BuildWatch, TooLarge, agree
 from ftrain.train.envs import MujocoVecEnv, take_rows
 from ftrain.train.evaluation import EvalHook
 from ftrain.train.hooks import ConsoleHook, CsvHook, Hook, Hooks, TensorBoardHook, load_hook
@@ -42,7 +42,7 @@ from ftrain.train.phases import Phases
 from ftrain.train.ppo import build_algorithm, load_learned_state
 from ftrain.train.reward_norm import build_reward_normalizer
 from ftrain.train.snapshot_hook import PolicySnapshotHook
-from ftrain.train.stop import StoppedAtStart, StopRequest
+from ftrain.train.stop import StopRequest
 from ftrain.train.tracking import TrackingHook
 
 EXIT_CHECKPOINT = 1
@@ -119,18 +119,18 @@ class Trainer:
         """The config as saved in common.pt: one string, made once (the manifest has it as a mapping)."""
 
     def _build_env(self, seed: int) -> MujocoVecEnv:
-        """This rank's environments; every rank raises UserError if they would not fit in memory, or StoppedAtStart
-        if a stop came while they were built (``ftrain.train.env_build``)."""
+        """This rank's environments; every rank raises UserError if they would not fit in memory
+        (``ftrain.train.env_build``)."""
         env = self.config.env
         setting = ("env.total_envs", env.total_envs) if env.total_envs else ("env.num_envs", env.num_envs)
         ranks_here = int(os.environ.get("LOCAL_WORLD_SIZE", "1"))
-        watch = BuildWatch(env.num_envs, setting, ranks_here, lambda: self.stop.signal, self.log)
-        built = ended = None
+        watch = BuildWatch(env.num_envs, setting, ranks_here, self.log)
+        built = refused = None
         try:
             built = MujocoVecEnv(env.id, env.num_envs, seed, env.kwargs, env.imports, built=watch)
-        except BuildEnded as end:
-            ended = end
-        agree(ended, self.info)
+        except TooLarge as too_large:
+            refused = too_large
+        agree(refused, self.info)
         return built
 
     def log(self, message: str, every_rank: bool = False) -> None:
@@ -235,6 +235,7 @@ class Trainer:
     # --- loop --------------------------------------------------------------------------------------------------
 
     def run(self) -> int:
+        self.stop.training()
         self.heartbeat.beat("start", 0)
         resumed = self.checkpointer.restore(self)
         if resumed is None and self.info.distributed:
@@ -402,18 +403,13 @@ def train(config: Config) -> int:
     (``ftrain.ckpt.lease``: rank 0 holds it for the run, or its supervisor does), or took it from this run (at the
     next iteration boundary after rank 0's renewal finds it)."""
     stop = StopRequest()
-    stop.install()
+    stop.install(_stopped_while_starting)
     info = group.init(config.dist_timeout)
     trainer = claimed = None
     try:
         claimed = claim(config, info.is_main, lambda outcome: group.broadcast_object(outcome, info), _say)
         trainer = Trainer(config, info, stop, lambda: claimed.lost)
         return trainer.run()
-    except StoppedAtStart as stopped:
-        if info.is_main:
-            _say(f"stopped by {_stop_name(stopped.signum)} while starting, before any training: nothing to save")
-        stop.exiting()
-        return stop_code(stopped.signum)
     except LeaseHeld as held:  # another run holds the storage, or took it: nothing more of it touched
         errorfile.report(str(held))
         return EXIT_STORAGE_HELD
@@ -429,6 +425,11 @@ def train(config: Config) -> int:
         if claimed is not None:
             claimed.release()
         group.shutdown()
+
+
+def _stopped_while_starting(signum: int) -> None:
+    if os.environ.get("RANK", "0") == "0":  # the other ranks' stop is rank 0's, or torchrun's after one rank ended
+        _say(f"stopped by {_stop_name(signum)} while starting, before any training: nothing to save")
 
 
 def _stop_name(signum: int) -> str:

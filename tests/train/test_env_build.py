@@ -4,6 +4,7 @@ builds ends the run at once with the stop's code. Real processes, real MuJoCo, r
 
 from __future__ import annotations
 
+import os
 import random
 import re
 import signal
@@ -14,17 +15,17 @@ import time
 import pytest
 
 from ftrain import procfs
-from ftrain.train.env_build import SHARE, BuildEnded, BuildWatch
+from ftrain.train.env_build import SHARE, BuildWatch, TooLarge
 
 from helpers import REPO, child_env, events, finish, launch, manifests, supervise_command, train_command, wait_for
 
 
 def refusal(per_env: float, available: int, total: int, setting: tuple[str, int], ranks_here: int) -> str | None:
-    watch = BuildWatch(total, setting, ranks_here, lambda: None, print)
+    watch = BuildWatch(total, setting, ranks_here, print)
     try:
         watch._check_memory(per_env, available)
-    except BuildEnded as ended:
-        return ended.refusal
+    except TooLarge as refused:
+        return str(refused)
     return None
 
 
@@ -128,3 +129,36 @@ def test_a_stop_while_the_environments_are_built_ends_the_run_at_once(tmp_path, 
     if supervised:
         assert "preempted: the workers stopped before training began (no step committed yet)" in printed, printed
     print(f"stopped {moment:.2f} s into the build")
+
+
+@pytest.mark.slow
+def test_a_stop_to_one_rank_while_starting_ends_every_rank_at_once(tmp_path) -> None:
+    """A probe's SIGTERM to rank 1 of two while they started: rank 1 ended, and rank 0, waiting in C for it (a
+    collective, a rendezvous), left torchrun's SIGTERM unanswered until its SIGKILL 30 s later, and torchrun ended 1
+    with a traceback. Now a stop before training ends a rank at once whatever it waits in: here within 20 s (about
+    3 s measured), with the stop's code and rank 0's line."""
+    output = tmp_path / "output.txt"
+    command = [
+        sys.executable,
+        "-m",
+        "ftrain.torchrun",
+        *train_command(tmp_path / "run", "env.num_envs=3000", ranks=2)[3:],
+    ]
+    with output.open("w") as sink:
+        proc = launch(command, cwd=REPO, env=child_env(), stdout=sink, stderr=subprocess.STDOUT, start_new_session=True)
+    wait_for(lambda: "environments per rank: about" in output.read_text(), "the build's line")
+
+    def rank_1() -> int | None:
+        found = [pid for pid in procfs.descendants(proc.pid) if b"rank 1/2 worker" in procfs.read(pid, "cmdline")]
+        return found[0] if found else None
+
+    worker = wait_for(rank_1, "rank 1's worker")
+    signalled = time.monotonic()
+    os.kill(worker, signal.SIGTERM)
+    assert finish(proc, timeout=60, output=output) == 143, output.read_text()[-2000:]
+    ended = time.monotonic() - signalled
+    printed = output.read_text()
+    assert ended < 20, f"{ended:.1f} s: a rank waited for torchrun's SIGKILL\n{printed[-2000:]}"
+    assert "stopped by SIGTERM while starting, before any training: nothing to save" in printed, printed[-2000:]
+    assert "Traceback" not in printed and not manifests(tmp_path / "run"), printed[-2000:]
+    print(f"every rank ended {ended:.1f} s after rank 1's SIGTERM")
