@@ -455,10 +455,10 @@ def _dispatch(args: argparse.Namespace) -> int:
         from ftrain.config import make_local_directories
 
         with imports():
-            from ftrain.policy.robot import make_env
+            from ftrain.policy.robot import check_env
             from ftrain.train.trainer import train
 
-        make_env(config.env).close()  # the user's module, id, model and spaces: refused here, before any rendezvous
+        check_env(config.env)  # the user's module, id, model, spaces and values: refused here, before any rendezvous
         make_local_directories(config)
 
         return train(config)
@@ -469,7 +469,7 @@ def _dispatch(args: argparse.Namespace) -> int:
         options = SupervisorOptions(**{f.name: getattr(args, f.name) for f in dataclasses.fields(SupervisorOptions)})
         train_args = [args.config, *(["--storage", args.storage] if args.storage is not None else []), *args.overrides]
         config = _run_config(args)
-        if ":" in config.env.id or config.env.imports:  # the user's env: checked in a child, before anything starts
+        if ":" in config.env.id or config.env.imports or config.env.kwargs:  # checked in a child, before anything
             from ftrain.policy.env_check import check_in_child
 
             check_in_child(config.env)

@@ -1,9 +1,11 @@
-"""The check of an env of the user's own that ``ftrain supervise`` makes before it launches or creates anything.
+"""The check of an env that ``ftrain supervise`` makes before it launches or creates anything: of the user's own, or
+of gymnasium's with ``env.kwargs``.
 
-``python -m ftrain.policy.robot ENV_JSON`` makes the env once (``robot.make_env``: the module imported, the id
-registered, the model compiled, the spaces flat) and closes it; a UserError is its one line and exit code 2. It runs
-in a child so that the supervisor stays free of MuJoCo and of the user's module, whose import may do anything, and
-a bad env is refused before any worker starts or any log directory is made.
+``python -m ftrain.policy.robot ENV_JSON`` makes the env once (``robot.check_env``: the module imported, the id
+registered, the model compiled, the spaces flat, a first reset and step taken with its ``kwargs``) and closes it; a
+UserError is its one line and exit code 2. It runs in a child so that the supervisor stays free of MuJoCo and of the
+user's module, whose import may do anything, and a bad env is refused before any worker starts or any log directory
+is made.
 """
 
 from __future__ import annotations

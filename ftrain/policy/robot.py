@@ -69,6 +69,23 @@ def make_env(env: EnvConfig, render: bool = False) -> gym.Env:
     return made
 
 
+def check_env(env: EnvConfig) -> None:
+    """UserError if ``env`` cannot be trained: ``make_env``'s checks, then a first reset and step, where a value of
+    ``env.kwargs`` that the constructor takes but the physics or the reward cannot use (a string for a number) would
+    otherwise crash every worker, and every restart."""
+    made = make_env(env)
+    try:
+        space = made.action_space
+        made.reset(seed=0)
+        made.step(np.clip(np.zeros(space.shape, dtype=space.dtype), space.low, space.high))
+    except Exception as error:  # the user's env and values: bad input, said in one line
+        raise UserError(
+            f"env.id={env.id!r} fails on its first reset or step: {error_line(error)}: fix env.kwargs or the env"
+        ) from None
+    finally:
+        made.close()
+
+
 def import_env_modules(env: EnvConfig) -> set[str]:
     """Import the modules ``env`` names (``env.imports``, the module of a ``module:EnvId`` id), from the working
     directory or the installed packages, as ``python -m`` would; the ids their imports registered."""
@@ -262,7 +279,7 @@ def _fingerprint(value: object, depth: int = 0) -> object:
 
 if __name__ == "__main__":  # the supervisor's check of an env of the user's own (``ftrain.policy.env_check``)
     try:
-        make_env(EnvConfig(**json.loads(sys.argv[1]))).close()
+        check_env(EnvConfig(**json.loads(sys.argv[1])))
     except UserError as error:
         print(error, file=sys.stderr)
         sys.exit(2)

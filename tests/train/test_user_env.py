@@ -155,6 +155,10 @@ BAD_INPUT = [
         "'stiffnes' Element 'joint', line 5)",
     ),
     (["env.id=userbot:DictArm-v0"], "has the observation space Dict('angles': Box("),
+    (  # taken by the constructor, fails in the reward: a probe's traceback, and a crash loop under the supervisor
+        ["env.id=HalfCheetah-v5", "env.kwargs={forward_reward_weight: abc}"],
+        "env.id='HalfCheetah-v5' fails on its first reset or step: TypeError: can't multiply sequence by non-int",
+    ),
 ]
 
 
@@ -171,6 +175,7 @@ def test_bad_input_is_one_line_exit_2_and_nothing_started_or_made_under_supervis
     # the supervisor checks the user's env in a child before it starts anything (about a second): every case; the
     # workers check it again, which plain torchrun relies on: every other case (each is a torchrun and a worker)
     jobs = [(case, True) for case in range(len(BAD_INPUT))] + [(case, False) for case in range(0, len(BAD_INPUT), 2)]
+    jobs += [(len(BAD_INPUT) - 1, False)] if len(BAD_INPUT) % 2 == 0 else []  # the first step's check, too
     with ThreadPoolExecutor(max_workers=2) as pool:
         runs = list(pool.map(lambda job: launch(*job), jobs))
     for case, supervised, result in runs:
