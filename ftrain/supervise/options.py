@@ -227,7 +227,7 @@ def parse_hang_timeout(value: str) -> float | None:
         seconds = float(value)
     except ValueError:
         seconds = -1.0
-    if not seconds > 0:
+    if not 0 < seconds < math.inf:  # inf, 1e400: no hang would ever be caught, without a word
         raise UserError(f"--hang-timeout={value!r} must be auto or a positive number of seconds")
     return seconds
 

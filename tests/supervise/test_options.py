@@ -189,3 +189,11 @@ def test_more_workers_than_the_memory_holds_are_refused_with_a_number_that_fits(
     assert main(["supervise", f"--nproc-per-node={too_many}", SMOKE, "--storage", str(storage)]) == EXIT_USAGE
     assert capsys.readouterr().err.startswith(f"ftrain: error: --nproc-per-node={too_many}: that many workers")
     assert not storage.exists()
+
+
+@pytest.mark.parametrize("value", ["inf", "1e400", "Infinity", "nan", "-5", "abc"])
+def test_a_hang_timeout_that_would_never_catch_a_hang_is_refused(value) -> None:
+    """A probe's ``--hang-timeout inf`` (and ``1e400``, which float reads as inf) turned hang detection off without a
+    word, where 0 and nan were refused."""
+    with pytest.raises(UserError, match=rf"^--hang-timeout='{value}' must be auto or a positive number of seconds$"):
+        check(hang_timeout=value)
