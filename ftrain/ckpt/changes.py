@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import json
 
-from ftrain.config import training_part
+from ftrain.config import KEYS_ADDED_LATER, Config, training_part
 from ftrain.values import dotted
 
 
@@ -19,7 +19,7 @@ def config_change(saved: dict, current: dict, saved_robot: dict | None, robot: d
 
     ``saved``: a manifest's ``config`` (``public_dict``), ``current``: this run's ``public_dict``; ``saved_robot``,
     ``robot``: their robots' identities (``ftrain.policy.robot.identity``; None: not known)."""
-    before, now = dotted(training_part(saved)), dotted(training_part(current))
+    before, now = _training_keys(saved), _training_keys(current)
     parts = [f"{key} {_text(before.get(key))} -> {_text(now.get(key))}" for key in changed_keys(saved, current)]
     if changed := robot_change(saved_robot, robot):
         parts.append(f"robot: {changed}")
@@ -46,8 +46,21 @@ def _model_keys(config: dict) -> dict:
 
 def changed_keys(saved: dict, current: dict) -> list[str]:
     """The training keys (dotted) whose values differ between two configs as dicts (``config_change``)."""
-    before, now = dotted(training_part(saved)), dotted(training_part(current))
+    before, now = _training_keys(saved), _training_keys(current)
     return [key for key in sorted(before.keys() | now.keys()) if before.get(key) != now.get(key)]
+
+
+def _training_keys(config: dict) -> dict:
+    """``training_part`` dotted, with the keys it leaves out at their defaults (``KEYS_ADDED_LATER``) back at them: a
+    section set now beside one left at its defaults then differs in the key set, not in every key ("reward.clip
+    (unset) -> 10.0" named a key nobody changed)."""
+    defaults = dotted(Config().to_dict())
+    added = {key: value for key, value in defaults.items() if any(_under(key, later) for later in KEYS_ADDED_LATER)}
+    return {**added, **dotted(training_part(config))}
+
+
+def _under(key: str, prefix: str) -> bool:
+    return key == prefix or key.startswith(f"{prefix}.")
 
 
 def robot_change(saved: dict | None, current: dict | None) -> str | None:
