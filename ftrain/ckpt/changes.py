@@ -8,6 +8,7 @@ change, not a plain resume.
 
 from __future__ import annotations
 
+import functools
 import json
 
 from ftrain.config import KEYS_ADDED_LATER, Config, training_part
@@ -20,7 +21,7 @@ def config_change(saved: dict, current: dict, saved_robot: dict | None, robot: d
     ``saved``: a manifest's ``config`` (``public_dict``), ``current``: this run's ``public_dict``; ``saved_robot``,
     ``robot``: their robots' identities (``ftrain.policy.robot.identity``; None: not known)."""
     before, now = _training_keys(saved), _training_keys(current)
-    parts = [f"{key} {_text(before.get(key))} -> {_text(now.get(key))}" for key in changed_keys(saved, current)]
+    parts = [f"{key} {_text(before.get(key))} -> {_text(now.get(key))}" for key in _differing(before, now)]
     if changed := robot_change(saved_robot, robot):
         parts.append(f"robot: {changed}")
     return "; ".join(parts) or None
@@ -46,7 +47,10 @@ def _model_keys(config: dict) -> dict:
 
 def changed_keys(saved: dict, current: dict) -> list[str]:
     """The training keys (dotted) whose values differ between two configs as dicts (``config_change``)."""
-    before, now = _training_keys(saved), _training_keys(current)
+    return _differing(_training_keys(saved), _training_keys(current))
+
+
+def _differing(before: dict, now: dict) -> list[str]:
     return [key for key in sorted(before.keys() | now.keys()) if before.get(key) != now.get(key)]
 
 
@@ -54,13 +58,13 @@ def _training_keys(config: dict) -> dict:
     """``training_part`` dotted, with the keys it leaves out at their defaults (``KEYS_ADDED_LATER``) back at them: a
     section set now beside one left at its defaults then differs in the key set, not in every key ("reward.clip
     (unset) -> 10.0" named a key nobody changed)."""
-    defaults = dotted(Config().to_dict())
-    added = {key: value for key, value in defaults.items() if any(_under(key, later) for later in KEYS_ADDED_LATER)}
-    return {**added, **dotted(training_part(config))}
+    return {**_added_later_defaults(), **dotted(training_part(config))}
 
 
-def _under(key: str, prefix: str) -> bool:
-    return key == prefix or key.startswith(f"{prefix}.")
+@functools.cache
+def _added_later_defaults() -> dict:
+    later = tuple(KEYS_ADDED_LATER) + tuple(f"{key}." for key in KEYS_ADDED_LATER)
+    return {key: value for key, value in dotted(Config().to_dict()).items() if key in later or key.startswith(later)}
 
 
 def robot_change(saved: dict | None, current: dict | None) -> str | None:

@@ -36,6 +36,7 @@ from ftrain.ckpt.steps import (
     ASIDE,
     abandoned,
     aside_step,
+    check_exists,
     part_of_a_storage,
     quarantine,
     reinstate,
@@ -404,8 +405,7 @@ def _open(url: str, options: dict | None, one_step: bool = True) -> tuple[Storag
     storage = Storage.open(root, options)
     if step is None and not storage.list_dirs(CHECKPOINTS):
         usual = f"pass a run's storage (the directory holding {CHECKPOINTS}/){' or one step directory' * one_step}"
-        if storage.is_local and not storage.exists(""):
-            raise UserError(f"{storage.url} does not exist: {usual}")
+        check_exists(storage, usual)
         raise UserError(f"no checkpoints under {storage.url}: {part_of_a_storage(storage) or usual}")
     if step is not None:
         step_files(storage, step)

@@ -354,6 +354,12 @@ def set_aside_location(url: str) -> tuple[str, str] | None:
     return None
 
 
+def check_exists(storage: Storage, instead: str) -> None:
+    """UserError where ``storage`` is a local directory that is not there, with what to pass ``instead``."""
+    if storage.is_local and not storage.exists(""):
+        raise UserError(f"{storage.url} does not exist: {instead}")
+
+
 def step_files(storage: Storage, step: int) -> dict[str, int]:
     """The files of ``step``'s directory (name: size); UserError where it has none: moved to ``quarantine/``,
     deleted, or never there."""
@@ -373,8 +379,7 @@ def resolve_checkpoint_url(
     if step is None:
         selected = select_resume(storage, log, quarantine_bad=False)
         if selected is None:
-            if storage.is_local and not storage.exists(""):
-                raise UserError(f"{storage.url} does not exist: pass a run's storage or a step directory")
+            check_exists(storage, "pass a run's storage or a step directory")
             steps = storage.list_dirs(CHECKPOINTS)  # none verifies: ls tells why
             ls = f"see {command('ftrain', 'ckpt', 'ls', storage.url)}"
             fix = part_of_a_storage(storage) or (ls if steps else "pass a run's storage or a step directory")
