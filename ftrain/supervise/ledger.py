@@ -32,7 +32,9 @@ class Ledger:
         self.downtime = 0.0
         self.pending: Failure | None = None
         self.committed = 0
-        """The newest step the workers committed (0: none): what a failure never recovered from lost up to."""
+        """The newest step committed (0: none): what a failure never recovered from lost up to."""
+        self.last: Attempt | None = None
+        """The newest attempt observed: a stop that ended it without a save lost what it completed past its commits."""
         self.paused: Failure | None = None
         """When the workers last saved on request and stopped (an elastic regroup, or the end of an attempt)."""
         self.world: int | None = None
@@ -54,6 +56,7 @@ class Ledger:
         within the attempt (a node joined an elastic run)."""
         if not beats:
             return False
+        self.last = attempt
         for beat in beats.values():
             # a checkpoint/done/preempted beat keeps the iteration of the rollout; its committed step may be newer
             attempt.completed = max(attempt.completed, beat.iteration, beat.committed_step or 0)
@@ -107,14 +110,22 @@ class Ledger:
         self.world, self.nodes = attempt.world, nodes
         return regrouped
 
+    def seen_commit(self, step: int | None) -> None:
+        """``step`` is committed (read from the storage: the workers' last heartbeats may miss a commit made as they
+        were stopped)."""
+        self.committed = max(self.committed, step or 0)
+
     def summarize(self, ending: str, code: int, restarts: int, now: float) -> None:
         """The ``summary`` event that closes the run (``ending``: its event): restarts, iterations lost, downtime. A
         failure no attempt recovered from (the run stopped, or gave up, before one trained again) lost what it had
-        completed past the newest commit, and was down until ``now``."""
+        completed past the newest commit, and was down until ``now``; so did a last attempt stopped without a save (a
+        second signal, or ``--stop-grace`` running out)."""
         if (stop := self.pending) is not None:
             self.lost += max(0, stop.completed - self.committed)
             self.downtime += now - stop.detected
             self.pending = None
+        elif (last := self.last) is not None:
+            self.lost += max(0, last.completed - max(self.committed, last.resumed or 0))
         lost, downtime = self.lost, self.downtime
         self.events(
             "summary",

@@ -370,6 +370,7 @@ class Supervisor:
         outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
         if not outcome.failed and not self._ends_alone(outcome):  # the run ends: the step a rerun resumes from, as
             committed = self.storage_wait.newest(committed)  # the storage has it (others going on commit newer ones)
+            self.ledger.seen_commit(committed)
             outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
         if outcome.event == "failed" and (full := self.storage_wait.disk_full()) is not None:
             outcome = Outcome("storage_down", None, full)  # restarts would fail alike: wait for space instead

@@ -38,14 +38,15 @@ def test_ranks_done_in_an_older_world_do_not_stand_for_the_training_one(tmp_path
 
 def test_iterations_lost_are_counted_whether_or_not_a_recovery_follows(tmp_path) -> None:
     """Generated schedules (seeded): attempts of one rank train, commit every 2nd iteration, and fail; a restart may
-    fail again before it trains, and the run may end (a preemption, a crash loop) before any attempt recovers. The
-    summary's iterations lost is a simple model's: per failure, what was completed past the step the next training
-    attempt resumed from, or past the newest commit where none did."""
+    fail again before it trains, and the run may end (a preemption, a crash loop) before any attempt recovers, or
+    with a stop of the last attempt that did not save (a second signal). The summary's iterations lost is a simple
+    model's: per failure, what was completed past the step the next training attempt resumed from, or past the newest
+    commit where none did; and what the last attempt completed past the newest commit when it was stopped."""
     import random
 
     from ftrain.supervise.attempt import Attempt
 
-    checked = unrecovered = recoveries = 0
+    checked = unrecovered = recoveries = unsaved = 0
     for case in range(60):
         draw, logged = random.Random(case), []
         ledger = Ledger(1, lambda name, message="", _into=logged, **fields: _into.append((name, fields)))
@@ -76,12 +77,15 @@ def test_iterations_lost_are_counted_whether_or_not_a_recovery_follows(tmp_path)
         if failure is not None:
             expected += max(0, failure - committed)
             unrecovered += 1
+        else:  # stopped: a save would have committed ``completed``; an odd one was not saved
+            expected += completed - committed
+            unsaved += completed > committed
         (summary,) = [fields for name, fields in logged if name == "summary"]
         assert summary["iterations_lost"] == expected, (case, logged)
         checked += 1
         recoveries += sum(name == "recovered" for name, _ in logged)
     print(
         f"{checked} schedules: iterations lost as the model counts them ({recoveries} recoveries; {unrecovered} "
-        "runs ended before a recovery)"
+        f"runs ended before a recovery; {unsaved} stopped without a save)"
     )
-    assert unrecovered >= 10 and recoveries >= 10
+    assert unrecovered >= 10 and recoveries >= 10 and unsaved >= 5

@@ -566,6 +566,29 @@ def test_a_supervisor_stopped_during_a_stop_still_gives_its_workers_their_grace_
 
 
 @pytest.mark.slow
+def test_a_second_stop_signal_ends_without_a_save_and_the_summary_counts_what_it_lost(tmp_path):
+    """The workers cannot save (stopped), SIGTERM then SIGTERM again a second later (Ctrl-C twice): the supervisor kills
+    them, exits 143, says they did not confirm a save, and the summary counts as lost the iterations they had
+    completed past the newest step (not 0: a rerun redoes them)."""
+    proc = start_supervisor(tmp_path)
+    run = tmp_path / "run"
+    training(run / "heartbeat", 6, [0, 1])
+    for pid in procfs.descendants(proc.pid):
+        os.kill(pid, signal.SIGSTOP)
+    completed = max(beat.iteration for beat in read_heartbeats(run / "heartbeat").values())
+    proc.send_signal(signal.SIGTERM)
+    wait_for(lambda: "preempt" in names(run), "the supervisor asking its workers to save")
+    time.sleep(1.0)  # past the half second within which a signal again is the same stop
+    proc.send_signal(signal.SIGTERM)
+    assert finish(proc) == 143
+    log = events(run)
+    (exit_event,) = [event for event in log if event["event"] == "exit"]
+    assert log[-2]["event"] == "preempted" and "preempted" not in exit_event["phases"], log
+    newest = final_manifest(run)["step"]
+    assert newest < completed and log[-1]["iterations_lost"] == completed - newest, (completed, newest, log[-1])
+
+
+@pytest.mark.slow
 def test_a_stop_signal_saves_and_the_same_command_continues(tmp_path):
     """SIGTERM (a scheduler) exits 143, SIGINT (Ctrl-C) 130: the shell's 128 + signal. Each time the same command
     goes on from the step saved on the stop."""
@@ -579,6 +602,7 @@ def test_a_stop_signal_saves_and_the_same_command_continues(tmp_path):
         assert preempted["phases"] == ["preempted"]
         saved, before = final_manifest(run)["step"], saved
         assert before + 4 <= saved < ITERATIONS
+        assert events(run)[-1]["iterations_lost"] == 0  # saved: nothing to redo
     assert finish(start_supervisor(tmp_path)) == options.EXIT_DONE
     assert_finished(run)
     resumed = [event["step"] for event in events(run) if event["event"] == "resumed"]
