@@ -103,6 +103,8 @@ def test_supervised_crashes_are_one_cause_line_each(tmp_path) -> None:
     assert "ftrain supervise: attempt 1: rank 0 killed by SIGKILL" in lines, text
     exits = [event for event in events(storage) if event["event"] == "exit"]
     assert exits[0]["cause"].startswith("rank 1 exited with code 1: RuntimeError: probe crash after iteration 3")
+    where = exits[0]["cause"].split(" (traceback in ")[1].rstrip(")")  # the attempt's stderr.log, which holds it
+    assert "Traceback" in Path(where).read_text() and "probe crash after iteration 3" in Path(where).read_text()
     assert exits[1]["cause"] == "rank 0 killed by SIGKILL"
     assert events(storage)[-1]["restarts"] == 2
 

@@ -32,7 +32,7 @@ from ftrain.heartbeat import ENV_DIR, NODE_ENV, STOP_FILE, TOKEN_ENV, read_heart
 from ftrain.lifeline import SUPERVISOR_ENV, supervisor_env
 from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.options import SupervisorOptions, Workers, parse_workers
-from ftrain.supervise.outcome import WorkerFailure, blame
+from ftrain.supervise.outcome import FINAL_FIRST, WorkerFailure, blame
 from ftrain.supervise.plan import Plan
 from ftrain.warm import LISTENER_ENV, POOL_ENV, address
 
@@ -288,14 +288,18 @@ class Attempt:
 
     def cause(self, code: int) -> str:
         """What ended the attempt, in one line: the worker to blame and what it recorded, else torchrun; where the
-        output is when nothing was recorded."""
+        output is when nothing was recorded, or when what was recorded is an error's last line (its traceback is
+        there; an exit that names its cause, bad input or the storage, has none)."""
         culprit = self.culprit()
         output = self.log_dir / OUTPUT
         if culprit is not None:
             rank, failure = culprit
             if failure.code < 0:
                 return f"rank {rank} killed by {signal_name(-failure.code)}"
-            return f"rank {rank} exited with code {failure.code}: {failure.error or f'see {output}'}"
+            if failure.error is None:
+                return f"rank {rank} exited with code {failure.code}: see {output}"
+            traceback = f" (traceback in {output})" if failure.code not in FINAL_FIRST else ""
+            return f"rank {rank} exited with code {failure.code}: {failure.error}{traceback}"
         if code < 0:
             return f"torchrun killed by {signal_name(-code)}"
         return f"torchrun exited with code {code}: see {output}"
