@@ -1,7 +1,8 @@
 """What a run will run, said once at its start: its ranks and hosts, how the update is shared between them (split by
 model, or data-parallel and why), how the ranks meet, and the global batch. Rank 0 prints it as one line, and the
-trainer writes it to ``<log_dir>/run.json``, next to ``config.yaml``, once the run has a step to start from (a start
-refused as bad input leaves the run's files as they were)."""
+trainer writes it to ``<log_dir>/run.json``, next to ``config.yaml``, once the run has a step to start from and one
+to train (a start refused as bad input, or one that finds the run at its last step, leaves the run's files as they
+were)."""
 
 from __future__ import annotations
 

@@ -251,7 +251,8 @@ class Trainer:
             self.checkpointer.save(self, hold=True)  # the last step came from the spool: the storage must have it
         committed = self.checkpointer.committed_step
         self.heartbeat.committed_step = resumed if committed is None else committed
-        self._write_resolved_config()
+        if self.iteration < self.config.iterations:  # a start that trains nothing leaves the trained run's record
+            self._write_resolved_config()
         self.alg.train_mode()
         self.hooks.call("on_start", self)
         self.heartbeat.beat("start", self.iteration)
@@ -367,7 +368,7 @@ class Trainer:
         }
 
     def _write_resolved_config(self) -> None:
-        """``config.yaml`` and ``run.json``: what this run is, once it has a step to start from."""
+        """``config.yaml`` and ``run.json``: what this run is, once it has a step to start from and one to train."""
         if self.info.is_main:
             log_dir = Path(self.config.log_dir)
             log_dir.mkdir(parents=True, exist_ok=True)

@@ -115,6 +115,7 @@ def test_verify_tells_a_save_cut_short_from_a_committed_step_that_does_not_verif
 
     done = run_train(storage, "iterations=2", "log.console=true")  # resumes from step 2: 4 is corrupt, 6 incomplete
     assert "nothing to train: the run is already at step 2, asked for iterations=2 (pass iterations=N" in done.stdout
+    assert "iterations: 6\n" in (storage / "config.yaml").read_text()  # the trained run's, not the idle start's
 
 
 def test_plot_reads_a_log_directory_on_s3(s3_run, tmp_path) -> None:
