@@ -321,6 +321,25 @@ def metrics_by_iteration(log_dir: str | Path) -> dict[int, dict[str, str]]:
     return {it: {k: v for k, v in row.items() if not k.startswith(NOT_LEARNED)} for it, row in rows.items()}
 
 
+def tensorboard_by_iteration(log_dir: str | Path) -> dict[int, dict[str, float]]:
+    """What TensorBoard shows of ``<log_dir>/tensorboard``, read by its own reader (which drops the points a resumed run
+    purged), by iteration: the learned scalars, as ``metrics_by_iteration`` has the learned columns. A step that the
+    reader holds twice for one tag fails the test."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    reader = EventAccumulator(str(Path(log_dir) / "tensorboard"), size_guidance={"scalars": 0})  # 0: keep every point
+    reader.Reload()
+    rows: dict[int, dict[str, float]] = {}
+    for tag in reader.Tags()["scalars"]:
+        if tag.startswith(NOT_LEARNED):
+            continue
+        points = reader.Scalars(tag)
+        assert len({point.step for point in points}) == len(points), f"{tag}: {[point.step for point in points]}"
+        for point in points:
+            rows.setdefault(point.step, {})[tag] = point.value
+    return rows
+
+
 needs_egl = pytest.mark.skipif(
     ctypes.util.find_library("EGL") is None,
     reason="headless rendering needs Mesa EGL (apt-get install libegl1 libegl-mesa0 libgl1-mesa-dri libopengl0)",

@@ -38,6 +38,7 @@ from helpers import (
     probe_hook,
     run_train,
     start_train,
+    tensorboard_by_iteration,
     train_command,
     wait_for,
 )
@@ -83,6 +84,7 @@ def test_killed_anywhere_resumes_bit_for_bit(tmp_path, env_id: str, ranks: int) 
     overrides += ["reward.normalize=true", "policy.std_type=log", "algorithm.reshuffle_each_epoch=true"]
     overrides += ["algorithm.schedule=linear", "algorithm.schedule_iterations=12"]  # as the shipped configs train
     overrides += ["policy.final_noise_std=0.2"]  # the noise's ceiling, a function of the iteration, set on resume too
+    overrides += ["log.tensorboard=true"]  # each point of the killed runs' iterations once, their redone ones replaced
     said = run_train(tmp_path / "reference", *overrides, ranks=ranks).stdout
     assert said.count("algorithm.schedule_iterations=12 but iterations=10") == 1, said  # rank 0 says it, once
     reference = final_manifest(tmp_path / "reference")
@@ -97,6 +99,8 @@ def test_killed_anywhere_resumes_bit_for_bit(tmp_path, env_id: str, ranks: int) 
 
     assert final_manifest(run)["state_sha256"] == reference["state_sha256"]
     assert metrics_by_iteration(run) == metrics_by_iteration(tmp_path / "reference")
+    shown = tensorboard_by_iteration(run)
+    assert sorted(shown) == list(range(1, 11)) and shown == tensorboard_by_iteration(tmp_path / "reference")
 
 
 def test_a_run_started_from_another_runs_step_goes_on_from_its_own_and_refuses_another_history(tmp_path) -> None:
