@@ -12,6 +12,7 @@ preemption or by hand) is a resume, and one that ``allow_config_change=true`` le
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 import math
 import sys
@@ -44,6 +45,9 @@ class Plot:
     """The steps of the other resumes."""
     changes: list[int]
     """The steps resumed from with a changed config (``allow_config_change=true``)."""
+    missing: list[tuple[int, int]]
+    """The iterations (first, last) that ``metrics.csv`` has no rows for (a start with ``log.csv=false``, rows lost):
+    the curves break there rather than draw a line across."""
 
 
 def read_metrics(
@@ -138,6 +142,14 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     restarts = sorted(set(read_restarts(storage)) - set(changes))
     resumes = sorted(set(resumed) - set(restarts) - set(changes))
     iterations = columns.pop("iteration")
+    missing = gaps(iterations)
+    if missing:
+        spans = ", ".join(f"{first}-{last}" if last > first else f"{first}" for first, last in missing)
+        print(
+            f"ftrain plot: {storage.where(METRICS)} has no rows for iterations {spans} (logged with log.csv=false, or "
+            "lost): the curves break there",
+            file=sys.stderr,
+        )
     panels = [
         (
             "Episode return",
@@ -157,9 +169,8 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     figure, axes = plt.subplots(2, 2, figsize=(12, 8), squeeze=False)
     for ax, (title, unit, series) in zip(axes.flat, panels, strict=False):
         for column, label in series.items():
-            points = [(x, y) for x, y in zip(iterations, columns[column], strict=True) if not math.isnan(y)]
-            style = "o-" if column == "eval_return" else "-"
-            ax.plot([x for x, _ in points], [y for _, y in points], style, label=label, markersize=3)
+            xs, ys = curve(iterations, columns[column], missing)
+            ax.plot(xs, ys, "o-" if column == "eval_return" else "-", label=label, markersize=3)
         if title == "Losses":
             ax.set_yscale("symlog", linthresh=1e-2)
         for index, step in enumerate(restarts):
@@ -188,7 +199,23 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     figure.savefig(path, dpi=100)
     plt.close(figure)
     print(f"wrote {path}")
-    return Plot(path, title, [panel for panel, _, _ in panels], restarts, resumes, changes)
+    return Plot(path, title, [panel for panel, _, _ in panels], restarts, resumes, changes, missing)
+
+
+def gaps(iterations: list[float]) -> list[tuple[int, int]]:
+    """The runs of iterations (first, last) missing between the first and last of ``iterations`` (sorted)."""
+    return [(int(a) + 1, int(b) - 1) for a, b in itertools.pairwise(iterations) if b - a > 1]
+
+
+def curve(
+    iterations: list[float], values: list[float], missing: list[tuple[int, int]]
+) -> tuple[list[float], list[float]]:
+    """One curve's points: the iterations with a value (an evaluation's column has one every few rows, joined by a
+    line), and a NaN at each run of ``missing`` iterations, where matplotlib breaks the line."""
+    points = [(x, y) for x, y in zip(iterations, values, strict=True) if not math.isnan(y)]
+    points += [(first, math.nan) for first, _ in missing]
+    points.sort(key=lambda point: point[0])
+    return [x for x, _ in points], [y for _, y in points]
 
 
 def _read(storage: Storage, name: str) -> bytes | None:

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import csv
+import itertools
+import math
+import random
 import shutil
 import struct
 from pathlib import Path
@@ -11,7 +14,7 @@ import pytest
 
 from ftrain.cli import main
 from ftrain.supervise.events import EventLog
-from ftrain.tools.plot import plot_run, read_metrics
+from ftrain.tools.plot import curve, gaps, plot_run, read_metrics
 
 from helpers import run_train
 
@@ -88,6 +91,42 @@ def test_plot_marks_a_resume_that_was_no_restart(resumed, tmp_path) -> None:
     assert plot.title == "run: 8 iterations, 1 resume (dotted): at the step resumed from", plot.title
     assert png_size(plot.path) == (1200, 800)
     assert plot.path.stat().st_size > 30_000, "a PNG with four panels of curves and text"
+
+
+def test_iterations_missing_from_the_file_break_the_curves_and_are_named(resumed, tmp_path, capsys) -> None:
+    """Iterations 3-4 and 7 have no rows (a start with log.csv=false): one line names them, and no curve is drawn
+    across them."""
+    lines = (resumed / "metrics.csv").read_text().splitlines(keepends=True)
+    run = tmp_path / "gaps"
+    run.mkdir()
+    (run / "metrics.csv").write_text("".join([*lines[:3], *lines[5:7], lines[8]]))
+    plot = plot_run(run, tmp_path / "curves.png")
+    assert plot.missing == [(3, 4), (7, 7)]
+    assert f"{run / 'metrics.csv'} has no rows for iterations 3-4, 7 (logged with log.csv=false, or lost)" in (
+        capsys.readouterr().err
+    )
+
+
+def test_a_curve_never_joins_two_points_across_a_missing_iteration() -> None:
+    """Generated files (seeded): which iterations have rows, and which rows have a value in the column (an
+    evaluation's, every few rows): every value is drawn, and the line between two drawn points spans no iteration
+    the file lacks."""
+    checked = broken = 0
+    for case in range(300):
+        draw = random.Random(case)
+        iterations = sorted(draw.sample(range(1, 40), draw.randint(1, 30)))
+        values = [math.nan if draw.random() < 0.4 else float(x) for x in iterations]
+        xs, ys = curve(iterations, values, gaps(iterations))
+        drawn = [x for x, y in zip(xs, ys, strict=True) if not math.isnan(y)]
+        assert drawn == [x for x, v in zip(iterations, values, strict=True) if not math.isnan(v)]
+        present = set(iterations)
+        for (x0, y0), (x1, y1) in itertools.pairwise(zip(xs, ys, strict=True)):
+            if not (math.isnan(y0) or math.isnan(y1)):  # a line is drawn between them
+                assert all(x in present for x in range(int(x0), int(x1) + 1)), (case, iterations, x0, x1)
+        checked += 1
+        broken += bool(gaps(iterations))
+    print(f"{checked} generated curves ({broken} with iterations missing): no line across a missing iteration")
+    assert broken >= 100
 
 
 def test_plot_adds_the_supervisors_restarts(resumed, tmp_path) -> None:
