@@ -515,15 +515,20 @@ def _dispatch(args: argparse.Namespace) -> int:
             force=args.force,
         )
     if args.command == "play":
+        from ftrain.policy.options import check_play_options
+
+        check_play_options(args.episodes, args.seed, args.video)  # before torch's imports
         with imports():
             from ftrain.policy.load import load_policy
-            from ftrain.policy.play import check_play_options, play
+            from ftrain.policy.play import play
 
-        check_play_options(args.episodes, args.seed, args.video)
         policy = load_policy(args.url, options, log=_stderr)
         play(policy, args.episodes, deterministic=not args.stochastic, video=args.video, seed=args.seed)
         return 0
     if args.command == "export":
+        from ftrain.policy.options import check_export_options
+
+        check_export_options(args.format, args.output)  # before torch's imports and the policy's download
         with imports():
             from ftrain.policy.export import export
             from ftrain.policy.load import load_policy

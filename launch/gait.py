@@ -18,16 +18,16 @@ import statistics
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-
-import numpy as np
+from typing import TYPE_CHECKING
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from ftrain.config import EnvConfig
 from ftrain.errors import UserError
-from ftrain.policy.load import load_policy
-from ftrain.policy.robot import make_env
-from ftrain.policy.rollout import Act, rollout
+from ftrain.policy.options import check_play_options
+
+if TYPE_CHECKING:
+    from ftrain.policy.rollout import Act
 
 PITCH_JOINT = "rooty"
 """The torso's pitch hinge, third joint of gymnasium's planar runners (after ``rootx`` and ``rootz``)."""
@@ -45,6 +45,9 @@ class Gait:
 def gait(act: Act, env_config: EnvConfig, episodes: int, seed: int) -> list[Gait]:
     """``episodes`` deterministic episodes of ``act`` seeded ``seed``, ``seed + 1``, ...; UserError if the environment
     is not a planar runner."""
+    from ftrain.policy.robot import make_env  # torch and MuJoCo: after the arguments are read
+    from ftrain.policy.rollout import rollout
+
     env = make_env(env_config)
     try:
         data, model = env.unwrapped.data, env.unwrapped.model
@@ -57,7 +60,7 @@ def gait(act: Act, env_config: EnvConfig, episodes: int, seed: int) -> list[Gait
         pitches: list[float] = []
         gaits: list[Gait] = []
 
-        def observe(_obs: np.ndarray) -> None:
+        def observe(_obs) -> None:
             speeds.append(float(data.qvel[0]))
             pitches.append(abs(float(data.qpos[2])))
 
@@ -78,6 +81,9 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=10)
     args = parser.parse_args()
     try:
+        check_play_options(args.episodes, 0, None)
+        from ftrain.policy.load import load_policy
+
         policy = load_policy(args.storage)
         gaits = gait(policy.act, policy.config.env, args.episodes, policy.config.eval.seed)
     except UserError as error:

@@ -15,14 +15,14 @@ import numpy as np
 import torch
 
 from ftrain.ckpt.steps import check_output
-from ftrain.config import POLICY_FORMATS, default_log_dir
+from ftrain.config import default_log_dir
 from ftrain.errors import UserError
 from ftrain.policy.load import METADATA, Policy, policy_from_file, torchscript_deprecation_ignored
+from ftrain.policy.options import SUFFIXES, check_export_options
 from ftrain.policy.robot import make_env
 from ftrain.policy.rollout import rollout
 from ftrain.progress import Progress
 
-SUFFIXES = {"torchscript": ".pt", "onnx": ".onnx"}
 TOLERANCE = 1e-5
 """Largest difference (absolute and relative) allowed between an export's actions and the actor's."""
 
@@ -31,31 +31,19 @@ class ExportMismatch(RuntimeError):
     """An exported policy does not reproduce the actor it was exported from (a bug, never bad input)."""
 
 
-def check_format(fmt: str) -> None:
-    if fmt not in POLICY_FORMATS:
-        raise UserError(f"unknown policy format {fmt!r}: use {' or '.join(POLICY_FORMATS)}")
-
-
 def output_path(fmt: str, path: str | Path | None, directory: Path, name: str) -> Path:
     """Where ``export`` writes: ``path``, or ``name`` in it where it is a directory or ends in ``/`` (one to make; in
-    ``directory`` where None). UserError for a file whose suffix is not the format's: ``-o README.md`` would write over
-    a file of another kind."""
+    ``directory`` where None)."""
+    check_export_options(fmt, path)
     if path is None or Path(path).is_dir() or str(path).endswith("/"):
         return Path(path or directory) / name
-    suffix = SUFFIXES[fmt]
-    if Path(path).suffix != suffix:
-        other = next(other for other in POLICY_FORMATS if other != fmt)
-        raise UserError(
-            f"-o {path}: {fmt} policy files end in {suffix}: use -o {Path(path).with_suffix(suffix)}, a directory, "
-            f"or --format {other} for a {SUFFIXES[other]} file"
-        )
     return Path(path)
 
 
 def encode(policy: Policy, fmt: str, observations: torch.Tensor) -> bytes:
     """``policy`` as a self-contained ``fmt`` file, verified: loaded back and run on ``observations [N, obs_dim]``,
     its actions must match the actor's deterministic ones (ExportMismatch otherwise)."""
-    check_format(fmt)
+    check_export_options(fmt, None)
     if policy.exported is not None:
         raise UserError(
             f"{policy.source} is an exported {policy.exported} policy: export from a checkpoint, a run's storage "
@@ -146,7 +134,7 @@ def export(policy: Policy, fmt: str, path: str | Path | None = None) -> Path:
     """Write ``policy`` as a verified ``fmt`` file to ``path`` and say so on stdout. By default next to the run, in
     ``<run>/exports/<run name>-step-<N>.pt``/``.onnx`` (for a run on S3, in its local log directory ``runs/<name>``),
     not in the working directory."""
-    check_format(fmt)
+    check_export_options(fmt, None)
     run = policy.source.rstrip("/").rsplit("/", 2)[0]  # the source is <run>/checkpoints/step-N or <run>/policies/...
     name = f"{policy.config.name}-step-{policy.step}{SUFFIXES[fmt]}"
     path = output_path(fmt, path, Path(default_log_dir(run, policy.config.name)) / "exports", name)

@@ -9,15 +9,12 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ftrain.ckpt.steps import check_output
-from ftrain.config import SEEDS
 from ftrain.errors import UserError
 from ftrain.policy.load import Policy
+from ftrain.policy.options import check_play_options
 from ftrain.policy.robot import make_env
 from ftrain.policy.rollout import Episode, rollout
 from ftrain.progress import Progress
-
-VIDEO_SUFFIXES = (".mp4", ".gif")
 
 
 @dataclass
@@ -26,18 +23,6 @@ class PlayResult:
     lengths: list[int]
     frames: int
     """Video frames written: one per observation, ``sum(length + 1)`` (0 without a video)."""
-
-
-def check_play_options(episodes: int, seed: int, video: str | Path | None) -> None:
-    """UserError for options of ``play`` it cannot take: before a policy is loaded (from a remote storage, maybe)."""
-    if episodes < 1:
-        raise UserError(f"--episodes {episodes}: play at least 1 episode")
-    if not 0 <= seed <= SEEDS - episodes:  # the episodes take the seeds seed to seed + episodes - 1
-        raise UserError(f"--seed {seed} is out of range: use a seed from 0 to {SEEDS - episodes}")
-    if video is not None and Path(video).suffix.lower() not in VIDEO_SUFFIXES:
-        raise UserError(f"video {str(video)!r} must end in {' or '.join(VIDEO_SUFFIXES)}")
-    if video is not None:
-        check_output(Path(video), "--video")
 
 
 def play(

@@ -3,7 +3,10 @@ come before the policy is touched (a stand-in that has only what naming the expo
 
 from __future__ import annotations
 
+import json
 import re
+import subprocess
+import sys
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -14,6 +17,8 @@ from ftrain.errors import UserError
 from ftrain.policy import export as export_module
 from ftrain.policy.export import export
 from ftrain.policy.play import play
+
+from helpers import child_env
 
 UNWRITABLE = {
     "a directory that takes no new files": (
@@ -89,3 +94,35 @@ def test_play_refuses_before_it_makes_an_env(kwargs: dict, message: str) -> None
     with pytest.raises(UserError) as refused:
         play(object(), **kwargs)  # type: ignore[arg-type]  # touched only after the checks
     assert message in str(refused.value)
+
+
+def test_the_commands_refuse_their_options_before_torch_is_imported_or_the_policy_looked_up(tmp_path) -> None:
+    """``ftrain play`` and ``export`` with options they cannot take, on a URL that does not exist: the option's line
+    (not the URL's), exit 2, and torch never imported (its import is seconds; a remote policy's download more)."""
+    missing = str(tmp_path / "no-run")
+    cases = {
+        "--episodes 0: play at least 1 episode": ["play", missing, "--episodes", "0"],
+        "--seed -1 is out of range": ["play", missing, "--seed", "-1"],
+        "video 'x.avi' must end in .mp4 or .gif": ["play", missing, "--video", "x.avi"],
+        "-o x.txt: onnx policy files end in .onnx": ["export", missing, "--format", "onnx", "-o", "x.txt"],
+        "cannot write /proc/x.pt": ["export", missing, "--format", "torchscript", "-o", "/proc/x.pt"],
+    }
+    script = (
+        "import json, sys\nfrom ftrain.cli import main\n"
+        "codes = [main(argv) for argv in json.loads(sys.argv[1])]\n"
+        "print(json.dumps([codes, 'torch' in sys.modules]))"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", script, json.dumps(list(cases.values()))],
+        cwd=tmp_path,
+        env=child_env(),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    codes, torch_imported = json.loads(result.stdout.splitlines()[-1])
+    lines = result.stderr.splitlines()
+    assert codes == [2] * len(cases) and not torch_imported, result.stderr
+    assert len(lines) == len(cases), lines
+    for expected, line in zip(cases, lines, strict=True):
+        assert line.startswith("ftrain: error: ") and expected in line, line
