@@ -36,6 +36,12 @@ def report(message: str) -> None:
     _write(message, line, reported=True)
 
 
+def record_stop(message: str) -> None:
+    """A stop that ends the worker before it trained: the line and its time go into the error file, so that of ranks
+    ending alike the one stopped first is named (the others were stopped because it ended)."""
+    _write(message, message)
+
+
 def record_exception(error: BaseException) -> None:
     """An exception about to end the worker: its one-line summary and its traceback go into the error file."""
     _write(f"{type(error).__name__}: {error}", traceback.format_exc())

@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 from ftrain import errorfile, procfs
+from ftrain.errors import STOPPED
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, STOP_FILE, TOKEN_ENV, read_heartbeats
 from ftrain.lifeline import SUPERVISOR_ENV, supervisor_env
 from ftrain.supervise.auth import SECRET_ENV
@@ -289,7 +290,7 @@ class Attempt:
     def cause(self, code: int) -> str:
         """What ended the attempt, in one line: the worker to blame and what it recorded, else torchrun; where the
         output is when nothing was recorded, or when what was recorded is an error's last line (its traceback is
-        there; an exit that names its cause, bad input or the storage, has none)."""
+        there; an exit that names its cause, bad input, the storage or a stop, has none)."""
         culprit = self.culprit()
         output = self.log_dir / OUTPUT
         if culprit is not None:
@@ -298,7 +299,7 @@ class Attempt:
                 return f"rank {rank} killed by {signal_name(-failure.code)}"
             if failure.error is None:
                 return f"rank {rank} exited with code {failure.code}: see {output}"
-            traceback = f" (traceback in {output})" if failure.code not in FINAL_FIRST else ""
+            traceback = f" (traceback in {output})" if failure.code not in (*FINAL_FIRST, *STOPPED) else ""
             return f"rank {rank} exited with code {failure.code}: {failure.error}{traceback}"
         if code < 0:
             return f"torchrun killed by {signal_name(-code)}"

@@ -162,3 +162,22 @@ def test_a_stop_to_one_rank_while_starting_ends_every_rank_at_once(tmp_path) -> 
     assert "stopped by SIGTERM while starting, before any training: nothing to save" in printed, printed[-2000:]
     assert "Traceback" not in printed and not manifests(tmp_path / "run"), printed[-2000:]
     print(f"every rank ended {ended:.1f} s after rank 1's SIGTERM")
+
+
+def test_a_stop_to_one_supervised_rank_while_starting_is_blamed_on_that_rank(tmp_path) -> None:
+    """A probe's SIGTERM to rank 1's stand-in while the supervised ranks built their environments: both ended with
+    143 (rank 0 stopped by torchrun after rank 1 ended), and the supervisor's cause named rank 0, the lowest of two
+    alike. A rank stopped while starting records its stop with the time: the first to stop is named."""
+    storage = tmp_path / "run"
+    output = tmp_path / "output.txt"
+    with output.open("w") as sink:
+        command = supervise_command(storage, "env.num_envs=3000")
+        command[5:5] = ["--max-restarts", "0"]  # after --nproc-per-node: the rank's failure ends the run
+        proc = launch(command, cwd=REPO, env=child_env(), stdout=sink, stderr=subprocess.STDOUT)
+    wait_for(lambda: "environments per rank: about" in output.read_text(), "the build's line")
+    (stand_in,) = [pid for pid in procfs.descendants(proc.pid) if b"rank 1/2 stand-in" in procfs.read(pid, "cmdline")]
+    os.kill(stand_in, signal.SIGTERM)
+    finish(proc, timeout=120, output=output)
+    (exit_event,) = [event for event in events(storage) if event["event"] == "exit"]
+    assert exit_event["cause"].startswith("rank 1 exited with code 143: stopped by SIGTERM while starting"), exit_event
+    assert "traceback in" not in exit_event["cause"], exit_event
