@@ -59,15 +59,15 @@ def exit_codes_help() -> str:
     return (
         "SIGTERM or SIGINT (Ctrl-C) to the supervisor makes the workers save at the next iteration boundary\n"
         "and exit; the supervisor then exits 143 or 130. A second signal, half a second or more after the first,\n"
-        "stops them at once.\n\nexit codes:\n" + codes
+        "stops them at once, without a save (the summary counts the iterations lost).\n\nexit codes:\n" + codes
     )
 
 
 BACKOFF_INITIAL = 1.0
+"""Seconds of the first back-off where ``--backoff-initial`` is not given."""
 WORKER_MEMORY = 50 * 10**6
 """The least memory a worker takes of its own, forked from the warm pool (its stand-in, gloo's buffers, the model,
 a few environments): more workers than the machine has memory available for are refused before any starts."""
-"""Seconds of the first back-off where ``--backoff-initial`` is not given."""
 
 
 @dataclass
