@@ -10,6 +10,7 @@ import argparse
 import codecs
 import contextlib
 import dataclasses
+import glob
 import importlib.metadata
 import io
 import os
@@ -557,7 +558,9 @@ def _run_config(args: argparse.Namespace) -> Config:
     if os.path.isdir(storage := local_path(config.storage.url)):  # before a supervisor writes its logs there
         check_not_a_checkpoints_directory(Storage.open(storage))
     resume = local_path(config.resume) if config.resume not in ("auto", "never") else ""
-    if resume and not os.path.exists(resume):  # a remote one is looked up by the workers
+    fresh = storage and not glob.glob(os.path.join(glob.escape(storage), "checkpoints", "step-*"))
+    if resume and fresh and not os.path.exists(resume):  # else the workers decide: a remote one they look up, and a
+        # storage whose history goes on from that step does not need it (its source may have deleted it since)
         raise UserError(f"resume={config.resume}: {resume} does not exist: pass a run's storage or a step directory")
     return config
 

@@ -107,7 +107,9 @@ def test_a_run_started_from_another_runs_step_goes_on_from_its_own_and_refuses_a
     """``resume=URL`` names where a storage's history starts. Killed before and after its first commit, the same
     command again (what a supervisor's restart runs) goes on from its own newest step, and ends bit for bit where an
     undisturbed run ends; the same URL into a storage that holds another history is refused in one line, untouched, and
-    so is an earlier step of a storage into itself, with a line that says its history goes on past that step."""
+    so is an earlier step of a storage into itself, with a line that says its history goes on past that step. The
+    same command goes on also once the source has deleted that step (its retention): the storage's own steps are what
+    it resumes from."""
     run_train(tmp_path / "source", "iterations=4")
     start = f"resume={tmp_path / 'source' / 'checkpoints' / 'step-000000004'}"
     overrides = ["iterations=10", "checkpoint.interval=2", start]
@@ -116,7 +118,10 @@ def test_a_run_started_from_another_runs_step_goes_on_from_its_own_and_refuses_a
     for phase, iteration, async_save in [("rollout", 5, True), ("update", 8, True)]:
         kill_during(run, phase, iteration, [*overrides, f"checkpoint.async_save={str(async_save).lower()}"], ranks=1)
     assert manifests(run), "a kill after the run's first commit"
+    origin = tmp_path / "source" / "checkpoints" / "step-000000004"
+    origin.rename(origin.with_name("pruned"))  # as the source's retention deletes it
     result = run_train(run, *overrides, supervised=True)
+    origin.with_name("pruned").rename(origin)
     assert f"resume={start.removeprefix('resume=')}: the history of {run} goes on from that step" in result.stdout
     assert final_manifest(run)["state_sha256"] == final_manifest(tmp_path / "reference")["state_sha256"]
     assert metrics_by_iteration(run) == metrics_by_iteration(tmp_path / "reference")
