@@ -404,6 +404,13 @@ def expand_home(path: str) -> str:
     return os.path.expanduser(path) if path.startswith("~") and "://" not in path else path
 
 
+def storage_key(url: str) -> str:
+    """One string for a storage however it is spelt: a local one's real path (relative, ``file://``, through links),
+    else its URL without credentials or a trailing slash."""
+    path = local_path(url)
+    return os.path.realpath(path) if path else display_url(url).rstrip("/")
+
+
 def local_path(url: str) -> str:
     """The path of a storage on this machine's file system, else "": a plain path as it is, a ``file://`` or
     ``local://`` URL as RFC 8089 reads it (``file:///a%20b`` and ``file://localhost/a%20b`` are ``/a b``, where fsspec

@@ -8,6 +8,8 @@ workers, so the run's holder, its supervisor or else an unsupervised run's rank 
 refused with one line. It is taken after the storage's lease: a second run on the same local storage (its log
 directory too) hears of the lease, which names the run. Several nodes of one run on one host share the directory: each
 holds ``run-node-N.lock`` alone and ``run.lock`` shared, so a run on one node and a run on several exclude each other.
+A log directory also belongs to one storage, which ``storage.txt`` names: a run on another storage, even after the
+first has ended, is refused rather than let rewrite its records.
 Imports: errors.
 """
 
@@ -22,12 +24,16 @@ from pathlib import Path
 
 from ftrain.errors import UserError
 
+STORAGE_FILE = "storage.txt"
+"""In a log directory: the storage whose run it holds the records of (``storage_key``)."""
+
 
 @contextlib.contextmanager
-def claim_log_dir(log_dir: Path, node: int | None, holder: str) -> Iterator[None]:
+def claim_log_dir(log_dir: Path, node: int | None, holder: str, storage: str) -> Iterator[None]:
     """Hold ``log_dir`` for this run (``node``: this node's number on several nodes, else None; ``holder``: what
-    holds it, e.g. "supervisor", shown to a run refused) for the ``with`` block; UserError naming the holder and the
-    way out if another run holds it.
+    holds it, e.g. "supervisor", shown to a run refused; ``storage``: the run's storage, ``storage_key``) for the
+    ``with`` block; UserError naming the holder and the way out if another run holds it, or the other storage if it
+    holds another storage's records.
 
     A run on one node holds ``run.lock`` alone; each node of a run on several holds ``run-node-N.lock`` alone and
     ``run.lock`` shared with the other nodes, so that neither kind of run starts beside the other."""
@@ -38,7 +44,32 @@ def claim_log_dir(log_dir: Path, node: int | None, holder: str) -> Iterator[None
         else:
             _hold(held, log_dir, "run.lock", fcntl.LOCK_SH, None)
             _hold(held, log_dir, f"run-node-{node}.lock", fcntl.LOCK_EX, holder)
+        _belongs(log_dir, storage)
         yield
+
+
+def _belongs(log_dir: Path, storage: str) -> None:
+    """Record that ``log_dir`` holds the records of ``storage``; UserError if it holds another storage's. A local
+    storage's own directory, its default log directory, is its own whatever it was called before (moved)."""
+    record = log_dir / STORAGE_FILE
+    try:
+        other = record.read_text().strip()
+    except FileNotFoundError:
+        other = ""  # a new log directory, or one of an ftrain that kept no record: this run's from now on
+    except OSError as error:
+        raise _cannot_hold(log_dir, record, error) from None
+    if other in ("", storage) or os.path.realpath(log_dir) == storage:
+        if other != storage:
+            with contextlib.suppress(OSError):  # a directory it cannot write is said when a record is written
+                tmp = record.with_name(f".{STORAGE_FILE}.{os.getpid()}")
+                tmp.write_text(storage + "\n")
+                os.replace(tmp, record)
+        return
+    raise UserError(
+        f"log directory {log_dir} holds the records of the run on {other} (its metrics.csv, config.yaml): give the "
+        f"run on {storage} a log directory of its own with log_dir=DIR (if that storage has moved to {storage}, delete "
+        f"{record} first)"
+    )
 
 
 def _hold(held: contextlib.ExitStack, log_dir: Path, name: str, mode: int, holder: str | None) -> None:

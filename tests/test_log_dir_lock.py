@@ -9,9 +9,12 @@ import re
 
 import pytest
 
+from ftrain.config import storage_key
 from ftrain.errors import UserError
-from ftrain.log_dir_lock import claim_log_dir
+from ftrain.log_dir_lock import STORAGE_FILE, claim_log_dir
 
+STORAGE = "/a/run"
+"""The storage of the runs that claim (``storage_key``)."""
 NODES = (None, 0, 1, 2)
 """Who claims: a run on one node (None), or node N of a run on several."""
 
@@ -48,7 +51,7 @@ def test_random_claims_and_releases_follow_the_rule_and_refusals_name_the_live_h
             stack = contextlib.ExitStack()
             claims += 1
             try:
-                stack.enter_context(claim_log_dir(log_dir, node, name))
+                stack.enter_context(claim_log_dir(log_dir, node, name, STORAGE))
             except UserError as refused:
                 refusals += 1
                 assert not admitted(held, node), (schedule, step, held, node)
@@ -69,5 +72,36 @@ def test_a_lock_file_that_cannot_be_taken_is_one_line(tmp_path):
     (tmp_path / "run.lock").mkdir()  # not a file: as a lock on a file system without locks, or not ours to write
     for node in (None, 0):
         refused = pytest.raises(UserError, match=rf"^log directory {tmp_path} cannot be held \({tmp_path}/run.lock: ")
-        with refused, claim_log_dir(tmp_path, node, "supervisor"):
+        with refused, claim_log_dir(tmp_path, node, "supervisor", STORAGE):
             pass
+
+
+def test_a_log_directory_holds_one_storages_records_however_that_storage_is_spelt(tmp_path, monkeypatch):
+    """A log directory taken by a run keeps to its storage: every spelling of it is admitted (relative, with a
+    trailing slash, ``file://``, through a link), another storage is refused with one line naming both, even after
+    the first run ended, and nothing is written; a local storage's own directory stays its own after a move."""
+    storage, other = tmp_path / "run", tmp_path / "other"
+    storage.mkdir()
+    (tmp_path / "link").symlink_to(storage)
+    logs = tmp_path / "logs"
+    monkeypatch.chdir(tmp_path)
+    spellings = ["run", "run/", f"{storage}/", f"file://{storage}", "link", "./link/"]
+    for spelling in random.Random(0).sample(spellings, len(spellings)):
+        with claim_log_dir(logs, None, "supervisor", storage_key(spelling)):
+            pass
+    assert (logs / STORAGE_FILE).read_text() == f"{storage}\n"
+    for node in (None, 1):
+        with pytest.raises(UserError) as refused, claim_log_dir(logs, node, "supervisor", storage_key(str(other))):
+            pass
+        assert str(refused.value) == (
+            f"log directory {logs} holds the records of the run on {storage} (its metrics.csv, config.yaml): give the "
+            f"run on {other} a log directory of its own with log_dir=DIR (if that storage has moved to {other}, delete "
+            f"{logs / STORAGE_FILE} first)"
+        )
+    assert (logs / STORAGE_FILE).read_text() == f"{storage}\n"
+    with claim_log_dir(storage, None, "supervisor", storage_key(str(storage))):  # its default log directory
+        pass
+    storage.rename(other)  # moved: its own directory is still its own
+    with claim_log_dir(other, None, "supervisor", storage_key(str(other))):
+        pass
+    assert (other / STORAGE_FILE).read_text() == f"{other}\n"

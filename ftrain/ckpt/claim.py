@@ -14,7 +14,7 @@ from pathlib import Path
 from ftrain.ckpt.lease import Lease, LeaseHeld, ttl_from_env
 from ftrain.ckpt.steps import check_not_a_checkpoints_directory
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
-from ftrain.config import Config
+from ftrain.config import Config, storage_key
 from ftrain.errors import UserError
 from ftrain.heartbeat import TOKEN_ENV
 from ftrain.identity import Identity, restore_environ, run_id, saved_environ
@@ -84,7 +84,9 @@ def claim(
                 held.callback(lease.release)  # at the run's end, or at once if what follows fails
                 if taken:
                     log(taken)
-                held.enter_context(claim_log_dir(Path(config.log_dir), None, "ftrain train"))
+                held.enter_context(
+                    claim_log_dir(Path(config.log_dir), None, "ftrain train", storage_key(config.storage.url))
+                )
             identity = Identity.from_env()
             outcome = [None, identity.env() if identity is not None else {}]
         except Exception as error:

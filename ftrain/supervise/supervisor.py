@@ -27,7 +27,7 @@ from ftrain import procfs
 from ftrain.ckpt import cas
 from ftrain.ckpt.lease import Lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
-from ftrain.config import Config, for_world, make_local_directories
+from ftrain.config import Config, for_world, make_local_directories, storage_key
 from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, Deliveries, UserError, stop_code
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.log_dir_lock import claim_log_dir
@@ -81,7 +81,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
 
     def claimed(held: Lease) -> int:  # with the storage's lease, the log directory too (claim.py)
         supervisor.storage_wait.reached = True
-        with claim_log_dir(Path(config.log_dir), supervisor.events.node, "supervisor"):
+        with claim_log_dir(Path(config.log_dir), supervisor.events.node, "supervisor", storage_key(config.storage.url)):
             return supervisor.run(held)
 
     try:  # the lease is taken before anything is launched: an unreachable storage is waited out then too

@@ -491,7 +491,8 @@ def test_a_lease_with_any_field_damaged_is_bad_input_in_one_line_and_left_alone(
 def test_an_unsupervised_run_holds_its_log_directory_and_one_refused_there_gives_the_lease_back(tmp_path):
     """Rank 0 of a run without a supervisor holds its log directory as a supervisor does: a run told to log where
     another logs (another run's storage, say) is refused with one line before it writes anything, and the lease of its
-    own storage it had just taken goes back, so that the same command starts at once once the directory is free."""
+    own storage it had just taken goes back; once the directory is free, the run of its storage starts there at once,
+    and a run on another storage is still refused: the directory holds the first one's records."""
     logs = tmp_path / "logs"
 
     def config_of(storage: str) -> Config:
@@ -506,12 +507,15 @@ def test_an_unsupervised_run_holds_its_log_directory_and_one_refused_there_gives
             f"{socket.gethostname()}): stop that run, or give this one a log directory of its own with log_dir=DIR"
         )
         assert Record.decode(Storage.open(str(tmp_path / "second")).read(LEASE)).entries == ()  # given back
-        assert sorted(path.name for path in logs.iterdir()) == ["run.lock"]  # nothing of the second run's
-        with pytest.raises(UserError, match="in use by another run"), claim_log_dir(logs, None, "supervisor"):
+        assert sorted(path.name for path in logs.iterdir()) == ["run.lock", "storage.txt"]  # nothing of the second's
+        with pytest.raises(UserError, match="in use by another run"), claim_log_dir(logs, None, "supervisor", "x"):
             pass  # the supervisor of a run on the same log directory is refused alike
     finally:
         first.release()
-    claim(config_of("second"), True, lambda outcome: outcome, print).release()
+    claim(config_of("first"), True, lambda outcome: outcome, print).release()
+    with pytest.raises(UserError, match=f"^log directory {logs} holds the records of the run on {tmp_path / 'first'} "):
+        claim(config_of("second"), True, lambda outcome: outcome, print)
+    assert Record.decode(Storage.open(str(tmp_path / "second")).read(LEASE)).entries == ()  # given back
     (logs / "run.lock").unlink()
     (logs / "run.lock").mkdir()  # a lock that cannot be taken at all (not ours to write, a file system without locks)
     with pytest.raises(UserError, match=rf"^log directory {logs} cannot be held \({logs}/run.lock: Is a directory\)"):

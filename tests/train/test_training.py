@@ -4,12 +4,22 @@ from __future__ import annotations
 
 import csv
 import json
+import subprocess
 
 import pytest
 
 from ftrain.train.phases import PHASES
 
-from helpers import TESTS, final_manifest, hooks_override, metrics_by_iteration, probe_hook, run_train
+from helpers import (
+    TESTS,
+    child_env,
+    final_manifest,
+    hooks_override,
+    metrics_by_iteration,
+    probe_hook,
+    run_train,
+    train_command,
+)
 
 PROBES = {"PYTHONPATH": str(TESTS)}
 
@@ -53,6 +63,15 @@ def test_single_process_and_outputs(tmp_path) -> None:
     assert "HalfCheetah-v5" in (run / "config.yaml").read_text()
     assert sorted(metrics_by_iteration(run)) == list(range(1, 9))
     assert list((run / "tensorboard").glob("events.out.tfevents.*"))
+
+    records = lambda: {path: path.read_bytes() for path in run.glob("*.*") if path.suffix != ".lock"}  # noqa: E731
+    kept = records()
+    command = train_command(tmp_path / "other", f"log_dir={run}")  # another storage's run told to log here, later
+    other = subprocess.run(command, cwd=tmp_path, env=child_env(), capture_output=True, text=True)
+    assert other.returncode == 2 and other.stderr.count("\n") == 1, other.stderr
+    assert f"log directory {run} holds the records of the run on {run} " in other.stderr, other.stderr
+    assert records() == kept and kept[run / "storage.txt"] == f"{run}\n".encode()
+    assert not (tmp_path / "other" / "checkpoints").exists()
 
 
 @pytest.mark.slow
