@@ -161,7 +161,9 @@ def restore(
             f"{'deleted from the spool' if spooled else 'quarantined'}, the next start falls back to an older step"
         )
     log(f"resumed from step {step} ({decision['where']}), iteration {trainer.iteration}")
-    change = config_change(manifest["config"], config.public_dict(), manifest.get("robot"), robot)
+    saved = manifest["config"]
+    current = {**config.public_dict(), "teacher": saved.get("teacher")}  # the student keeps its teacher (load_state)
+    change = config_change(saved, current, manifest.get("robot"), robot)
     if change:  # only allow_config_change, or a horizon that follows the run's length, lets a change this far
         why = "allow_config_change=true" if config.allow_config_change else "the learning rate follows iterations"
         log(f"changed since step {step} ({why}): {change}")
@@ -419,8 +421,8 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
             f"checkpoint step {step} was trained with another robot: {changed}: restore it, or pass "
             "allow_config_change=true to go on with the robot as it is now"
         )
-    lengthened = _horizon_follows_length(manifest["config"], config)
-    if manifest["config_hash"] != config.training_hash(robot) and not config.allow_config_change and not lengthened:
+    taken = _taken_as_it_is(manifest["config"], config)
+    if manifest["config_hash"] != config.training_hash(robot) and not config.allow_config_change and not taken:
         keys = config_change(manifest["config"], config.public_dict(), None, None)
         raise UserError(
             f"checkpoint step {step} was trained with a different config "
@@ -429,12 +431,16 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
         )
 
 
-def _horizon_follows_length(saved: dict, config: Config) -> bool:
-    """Whether the one change since ``saved`` (a manifest's config) is a linear schedule's horizon that follows the
-    run's length on both sides (``iterations=N`` alone sets it to N: ``load_config``): a run started short and
-    lengthened, whose rate then falls to zero at the new end."""
+def _taken_as_it_is(saved: dict, config: Config) -> bool:
+    """Whether every change since ``saved`` (a manifest's config) is one a resume takes without
+    ``allow_config_change``: the teacher's URL (another spelling, or another teacher: a student keeps the teacher it
+    started with, whose weights its checkpoint holds, and says so: ``Trainer.load_state``), and a linear schedule's
+    horizon that follows the run's length on both sides (``iterations=N`` alone sets it to N: ``load_config``): a run
+    started short and lengthened, whose rate then falls to zero at the new end."""
+    changed = set(changed_keys(saved, config.public_dict())) - {"teacher"}
+    if changed != {"algorithm.schedule_iterations"}:
+        return not changed
     if saved["algorithm"].get("schedule") != "linear" or config.algorithm.schedule != "linear":
         return False
     horizons = (saved["algorithm"].get("schedule_iterations"), config.algorithm.schedule_iterations)
-    lengthened = horizons == (saved.get("iterations"), config.iterations) and horizons[1] > horizons[0]
-    return lengthened and changed_keys(saved, config.public_dict()) == ["algorithm.schedule_iterations"]
+    return horizons == (saved.get("iterations"), config.iterations) and horizons[1] > horizons[0]

@@ -45,8 +45,10 @@ def test_student_learns_from_teacher_and_resumes_exactly(tmp_path) -> None:
 
     resumed = tmp_path / "resumed"
     run_train(resumed, f"teacher={teacher}", "iterations=8", *SMALL, ranks=2, config=DISTILL, supervised=True)
-    result = run_train(resumed, f"teacher={teacher}", "iterations=12", *SMALL, ranks=2, config=DISTILL, supervised=True)
-    assert "resumed from step 8" in result.stdout
+    respelt = "teacher=teacher/"  # the same teacher, spelt relative to tmp_path: no config change
+    options = {"ranks": 2, "config": DISTILL, "supervised": True, "cwd": tmp_path}
+    result = run_train(resumed, respelt, "iterations=12", *SMALL, **options)
+    assert "resumed from step 8" in result.stdout and "changed since step" not in result.stdout, result.stdout
     assert final_manifest(resumed)["state_sha256"] == manifest["state_sha256"]
 
 
