@@ -10,6 +10,7 @@ import ctypes.util
 import http.client
 import http.server
 import json
+import math
 import os
 import pty
 import shutil
@@ -323,8 +324,8 @@ def metrics_by_iteration(log_dir: str | Path) -> dict[int, dict[str, str]]:
 
 def tensorboard_by_iteration(log_dir: str | Path) -> dict[int, dict[str, float]]:
     """What TensorBoard shows of ``<log_dir>/tensorboard``, read by its own reader (which drops the points a resumed run
-    purged), by iteration: the learned scalars, as ``metrics_by_iteration`` has the learned columns. A step that the
-    reader holds twice for one tag fails the test."""
+    purged), by iteration: the learned scalars, as ``metrics_by_iteration`` has the learned columns (NaN, no episode
+    finished yet, as None). A step that the reader holds twice for one tag fails the test."""
     from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
     reader = EventAccumulator(str(Path(log_dir) / "tensorboard"), size_guidance={"scalars": 0})  # 0: keep every point
@@ -336,7 +337,7 @@ def tensorboard_by_iteration(log_dir: str | Path) -> dict[int, dict[str, float]]
         points = reader.Scalars(tag)
         assert len({point.step for point in points}) == len(points), f"{tag}: {[point.step for point in points]}"
         for point in points:
-            rows.setdefault(point.step, {})[tag] = point.value
+            rows.setdefault(point.step, {})[tag] = None if math.isnan(point.value) else point.value  # NaN != NaN
     return rows
 
 
