@@ -14,6 +14,7 @@ import signal
 import sys
 import threading
 import time
+import traceback
 import typing
 
 EXIT_FAILED = 1
@@ -168,3 +169,19 @@ def _negates(typed: str, known: str) -> bool:
         for negated, plain in ((one, other), (other, one))
         for negation in ("dont", "non", "not", "no", "un")
     )
+
+
+def error_line(error: BaseException) -> str:
+    """An exception in one line, with where it was raised: ``Type: message (file, line N)``."""
+    text = " ".join(f"{type(error).__name__}: {error}".split())
+    frames = traceback.extract_tb(error.__traceback__)
+    if frames and not isinstance(error, SyntaxError) and not frames[-1].filename.startswith("<"):
+        # a SyntaxError names its file and line itself; importlib's own frames (<frozen ...>) tell nothing
+        text += f" ({short_path(frames[-1].filename)}, line {frames[-1].lineno})"
+    return text
+
+
+def short_path(path: str) -> str:
+    """``path`` relative to the working directory where it lies below it, else as it is."""
+    relative = os.path.relpath(path)
+    return path if relative.startswith("..") else relative

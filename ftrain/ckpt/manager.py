@@ -276,7 +276,9 @@ class Checkpointer:
         self.schedule.settled(step, outcome.result is Result.COMMITTED, blocked + outcome.cpu_s)
         if outcome.result is Result.LEASE_LOST:
             raise LeaseLost(detail)
-        if outcome.result in (Result.UNLOADABLE, Result.FENCED):
+        if outcome.result is Result.UNLOADABLE:  # a hook's or metric's state: the user's to fix, a restart saves alike
+            raise UserError(detail)
+        if outcome.result is Result.FENCED:
             raise CheckpointError(detail)
         if outcome.result is Result.SPOOLED:
             return

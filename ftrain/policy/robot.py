@@ -30,7 +30,7 @@ from gymnasium.envs.mujoco import MujocoEnv
 from gymnasium.envs.registration import registry
 
 from ftrain.config import EnvConfig
-from ftrain.errors import UserError, closest
+from ftrain.errors import UserError, closest, error_line, short_path
 from ftrain.policy import mjcf
 from ftrain.policy.mujoco_warnings import route_mujoco_warnings
 
@@ -184,22 +184,12 @@ def class_name(cls: type) -> str:
     return f"{cls.__module__}:{cls.__qualname__}"
 
 
-def error_line(error: BaseException) -> str:
-    """An exception in one line, with where it was raised: ``Type: message (file, line N)``."""
-    text = " ".join(f"{type(error).__name__}: {error}".split())
-    frames = traceback.extract_tb(error.__traceback__)
-    if frames and not isinstance(error, SyntaxError) and not frames[-1].filename.startswith("<"):
-        # a SyntaxError names its file and line itself; importlib's own frames (<frozen ...>) tell nothing
-        text += f" ({_short_path(frames[-1].filename)}, line {frames[-1].lineno})"
-    return text
-
-
 def _construction_error(env_id: str, error: Exception) -> str:
     """Why ``gym.make(env_id)`` failed, in one line."""
     model = _model_path(error)
     if isinstance(error, ValueError) and model is not None:  # MuJoCo's compiler refused the model
         message = " ".join(str(error).split())
-        return f"env.id={env_id!r}: its MuJoCo model {_short_path(model)} does not compile ({message}): fix the XML"
+        return f"env.id={env_id!r}: its MuJoCo model {short_path(model)} does not compile ({message}): fix the XML"
     if isinstance(error, TypeError) and "unexpected keyword argument" in str(error):
         return f"env.kwargs for {env_id!r} are not accepted: {' '.join(str(error).split())}"
     if isinstance(error, OSError) and "does not exist" in str(error):  # MujocoEnv: the model file is not there
@@ -213,11 +203,6 @@ def _model_path(error: BaseException) -> str | None:
         if frame.f_code.co_name == "_initialize_simulation" and isinstance(frame.f_locals.get("self"), MujocoEnv):
             return frame.f_locals["self"].fullpath
     return None
-
-
-def _short_path(path: str) -> str:
-    relative = os.path.relpath(path)
-    return path if relative.startswith("..") else relative
 
 
 def _entry_module(env_id: str) -> str:

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from ftrain.ckpt.format import human_size, step_dir
-from ftrain.errors import UserError, command
+from ftrain.errors import UserError, command, error_line
 
 METRICS_CSV = "metrics.csv"
 """What ``CsvHook`` writes in the log directory, and ``read_metrics`` reads."""
@@ -348,10 +348,14 @@ def load_hook(target: str, kwargs: dict) -> Hook:
         cls = getattr(importlib.import_module(module_name), class_name)
     except (ImportError, AttributeError) as error:
         raise UserError(f"hook target {target!r} cannot be imported ({error}): fix the import path") from None
+    except Exception as error:  # the module itself raised: the user's code, which a restart would run alike
+        raise UserError(f"hook target {target!r} cannot be imported: {error_line(error)}: fix the module") from None
     try:
         hook = cls(**kwargs)
     except TypeError as error:
         raise UserError(f"hook {target!r} rejects its kwargs: {error}") from None
+    except Exception as error:
+        raise UserError(f"hook {target!r} cannot be made: {error_line(error)}: fix the hook or its kwargs") from None
     if not isinstance(hook, Hook):
         raise UserError(f"hook {target!r} is not a subclass of ftrain.train.hooks.Hook")
     return hook

@@ -439,10 +439,12 @@ def test_a_failed_final_save_holds_and_a_stop_ends_the_hold_as_an_error_not_succ
 
 
 def test_state_that_would_not_load_back_is_refused_at_the_first_save(tmp_path) -> None:
+    """A hook's state that is not plain data is bad input (exit 2: a supervisor does not restart what would save
+    alike), in one line, and nothing is committed."""
     hook = hooks_override(probe_hook("NumpyStateHook", path=tmp_path))
     env = child_env({"PYTHONPATH": str(TESTS)})
     result = subprocess.run(train_command(tmp_path / "run", hook), cwd=REPO, env=env, capture_output=True, text=True)
-    assert result.returncode == 1
+    assert result.returncode == 2
     errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
     assert len(errors) == 1 and "hooks and metrics must keep plain data" in errors[0], result.stderr
     assert manifests(tmp_path / "run") == {}

@@ -1,0 +1,64 @@
+"""A user's hook that cannot be had, whatever the reason (the import, the module, the class, its kwargs, its
+constructor): one line naming the hook and the fix, where it raised when its own code did, and never a traceback or
+an exit that a supervisor would take for a crash and restart."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from ftrain.errors import UserError
+from ftrain.train.hooks import load_hook
+
+MODULE = """
+from ftrain.train.hooks import Hook
+
+
+class Fine(Hook):
+    def __init__(self, every=1):
+        self.every = every
+
+
+class Raising(Hook):
+    def __init__(self, **kwargs):
+        raise ValueError("bad hook arg")
+
+
+class NotAHook:
+    pass
+"""
+
+
+@pytest.mark.parametrize(
+    ("target", "kwargs", "expected"),
+    [
+        ("userhooks_absent:Fine", {}, "hook target 'userhooks_absent:Fine' cannot be imported (No module named"),
+        ("userhooks:Missing", {}, "hook target 'userhooks:Missing' cannot be imported (module 'userhooks' has no"),
+        (
+            "userhooks_broken:Fine",
+            {},
+            "hook target 'userhooks_broken:Fine' cannot be imported: ZeroDivisionError: float division by zero "
+            "(userhooks_broken.py, line 2): fix the module",
+        ),
+        ("userhooks:Fine", {"evry": 2}, "hook 'userhooks:Fine' rejects its kwargs: "),
+        (
+            "userhooks:Raising",
+            {},
+            "hook 'userhooks:Raising' cannot be made: ValueError: bad hook arg (userhooks.py, line 12): fix the hook "
+            "or its kwargs",
+        ),
+        ("userhooks:NotAHook", {}, "hook 'userhooks:NotAHook' is not a subclass of ftrain.train.hooks.Hook"),
+    ],
+)
+def test_a_hook_that_cannot_be_had_is_one_line_naming_it(tmp_path, monkeypatch, target, kwargs, expected) -> None:
+    (tmp_path / "userhooks.py").write_text(MODULE)
+    (tmp_path / "userhooks_broken.py").write_text("import math\nmath.pi / 0\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.chdir(tmp_path)  # where the file is named from
+    for name in ("userhooks", "userhooks_broken"):  # this test's files, not another case's imported before
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    with pytest.raises(UserError) as refused:
+        load_hook(target, kwargs)
+    assert str(refused.value).startswith(expected) and "\n" not in str(refused.value), str(refused.value)
+    assert isinstance(load_hook("userhooks:Fine", {"every": 3}), object)
