@@ -185,3 +185,22 @@ def short_path(path: str) -> str:
     """``path`` relative to the working directory where it lies below it, else as it is."""
     relative = os.path.relpath(path)
     return path if relative.startswith("..") else relative
+
+
+SIZE_MISMATCH = re.compile(
+    r"size mismatch for ([\w.]+): copying a param with shape torch\.Size\(\[([\d, ]*)\]\) from checkpoint, the shape "
+    r"in current model is torch\.Size\(\[([\d, ]*)\]\)"
+)
+"""torch's words for a tensor of a checkpoint whose shape is not the model's (``load_state_dict``)."""
+
+
+def load_error_line(error: BaseException) -> str:
+    """Why a checkpoint's state did not load into a model, in one line: the first tensor whose shape differs (the
+    environment's observations or actions changed, say) and how many more do, else the error's first 300 characters
+    (torch's account of a shape lists every tensor, pages of it)."""
+    found = SIZE_MISMATCH.findall(str(error))
+    if not found:
+        return f"{type(error).__name__}: {' '.join(str(error).split())[:300]}"
+    key, saved, now = found[0]
+    more = f", and {len(found) - 1} more tensors" if len(found) > 1 else ""
+    return f"{key} is [{saved}] in the checkpoint but [{now}] in the model built now{more}"

@@ -50,7 +50,7 @@ from ftrain.ckpt.steps import clear_newer, quarantine, resolve_checkpoint_url, s
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.comm import group
 from ftrain.config import Config
-from ftrain.errors import UserError, command
+from ftrain.errors import UserError, command, load_error_line
 from ftrain.redact import display_url
 
 ORIGIN = "origin"
@@ -226,7 +226,7 @@ def _load(
     try:
         trainer.load_state(common, shard)
     except Exception as exc:
-        return ["fit", f"rank {rank}: {type(exc).__name__}: {' '.join(str(exc).split())[:300]}"]
+        return ["fit", f"rank {rank}: {load_error_line(exc)}"]
     return None
 
 

@@ -35,7 +35,7 @@ from ftrain.ckpt.format import (
 from ftrain.ckpt.steps import resolve_checkpoint_url
 from ftrain.ckpt.storage import Storage
 from ftrain.config import Config, config_from_dict
-from ftrain.errors import UserError
+from ftrain.errors import UserError, load_error_line
 from ftrain.policy import snapshots
 from ftrain.policy.model import OBS_GROUP, actor_actions, build_actor
 from ftrain.policy.noise_ceiling import build_noise_ceiling
@@ -60,6 +60,8 @@ class Policy:
     """The checkpoint's (or snapshot's) ``state_sha256``; for an exported file, the file's SHA-256."""
     exported: str | None = None
     """The format of the exported file it was loaded from; None when ``actor`` is the rsl-rl model."""
+    obs_dim: int | None = None
+    """The observations an exported file takes (its metadata); None for the rsl-rl model, which checks them itself."""
 
     def act(self, obs: torch.Tensor, deterministic: bool = True) -> torch.Tensor:
         """Actions for observations ``[N, obs_dim]``; an exported policy has only its deterministic ones."""
@@ -90,7 +92,7 @@ def load_policy(url: str, options: dict | None = None, log: Callable[[str], None
         raise UserError(f"{url} does not verify ({exc}): pick another step") from None
     config = config_from_dict(manifest["config"])
     source = storage.where(step_dir(step))
-    actor = _actor(config, state)
+    actor = _actor(config, state, source)
     if (ceiling := build_noise_ceiling(config)) is not None:  # --stochastic samples with the noise of its step
         ceiling.apply(actor.distribution, step)
     return Policy(actor, config, source, step, manifest, manifest["state_sha256"])
@@ -113,16 +115,36 @@ def _policy_file(url: str, options: dict | None) -> tuple[bytes, str] | None:
     return (storage.read(""), storage.url) if storage.fs.isfile(storage.root) else None
 
 
-def _actor(config: Config, state: dict) -> torch.nn.Module:
-    """The actor of ``config`` with the learned ``state``; the environment tells its observation and action shapes."""
+def _actor(config: Config, state: dict, source: str) -> torch.nn.Module:
+    """The actor of ``config`` with the learned ``state`` (of ``source``); the environment tells its observation and
+    action shapes. UserError if they are not those it was trained on (the env's code, model or kwargs changed)."""
     env = make_env(config.env)
     try:
         obs = TensorDict({OBS_GROUP: torch.zeros(1, *env.observation_space.shape)}, batch_size=[1])
         actor = build_actor(config, obs, env.action_space.shape[0])
     finally:
         env.close()
-    actor.load_state_dict(state)
+    try:
+        actor.load_state_dict(state)
+    except RuntimeError as error:
+        mismatch = load_error_line(error)
+        raise UserError(
+            f"{source} does not fit env.id={config.env.id} as it is now: {mismatch}: {CHANGED_ENV}"
+        ) from None
     return actor.eval()
+
+
+def check_fits(policy: Policy, env) -> None:
+    """UserError if ``env`` observes otherwise than ``policy`` was trained to (an exported file records its size)."""
+    size = env.observation_space.shape[0]
+    if policy.obs_dim is not None and policy.obs_dim != size:
+        raise UserError(
+            f"{policy.source} does not fit env.id={policy.config.env.id} as it is now: it takes {policy.obs_dim} "
+            f"observations, the env gives {size}: {CHANGED_ENV}"
+        )
+
+
+CHANGED_ENV = "the env's code, model file or env.kwargs changed since it was trained: use the env it was trained on"
 
 
 def policy_from_file(data: bytes, where: str) -> Policy:
@@ -152,7 +174,8 @@ def policy_from_file(data: bytes, where: str) -> Policy:
         actor = _OnnxActor(data)
     meta = json.loads(metadata)
     config = config_from_dict(meta["config"])
-    return Policy(actor, config, where, meta["step"], None, hashlib.sha256(data).hexdigest(), exported=fmt)
+    digest = hashlib.sha256(data).hexdigest()
+    return Policy(actor, config, where, meta["step"], None, digest, exported=fmt, obs_dim=meta.get("obs_dim"))
 
 
 @contextlib.contextmanager

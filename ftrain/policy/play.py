@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from ftrain.errors import UserError
-from ftrain.policy.load import Policy
+from ftrain.policy.load import Policy, check_fits
 from ftrain.policy.options import check_play_options
 from ftrain.policy.robot import make_env
 from ftrain.policy.rollout import Episode, rollout
@@ -42,6 +42,7 @@ def play(
     print(f"playing {policy.source} (step {policy.step}, {policy.config.env.id}) with {mode}")
     torch.manual_seed(seed)
     env = make_env(policy.config.env, render=video is not None)
+    check_fits(policy, env)
     writer = None if video is None else _VideoWriter(Path(video), env)
     progress = _PlayProgress(episodes, env.spec.max_episode_steps if env.spec else None, writer)
 

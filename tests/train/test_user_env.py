@@ -101,6 +101,20 @@ def test_own_robot_trains_supervised_resumes_bit_for_bit_after_sigkill_plays_and
     ftrain(work, "export", str(run), "--format", "torchscript", "-o", "arm.pt")
     assert "mean return over 1 episodes" in ftrain(work, "play", "arm.pt").stdout
 
+    # the robot's code changed since: one more observation; its policies no longer fit, in one line each
+    code = work / "userbot" / "envs.py"
+    edited = code.read_text().replace("(6,), np.float64)\n        super()", "(7,), np.float64)\n        super()")
+    code.write_text(edited.replace("self.data.qvel, self.target])", "self.data.qvel, self.target, [0.0]])"))
+    fix = "the env's code, model file or env.kwargs changed since it was trained: use the env it was trained on"
+    for policy, why in (
+        (str(run), "obs_normalizer._mean is [1, 6] in the checkpoint but [1, 7] in the model built now, and "),
+        ("arm.pt", "it takes 6 observations, the env gives 7"),
+    ):
+        refused = subprocess.run([str(FTRAIN_SCRIPT), "play", policy], cwd=work, env=child_env(), capture_output=True)
+        line = refused.stderr.decode()
+        assert refused.returncode == 2 and line.count("\n") == 1 and why in line and line.endswith(f"{fix}\n"), line
+        assert "does not fit env.id=userbot:MemoryArm-v0 as it is now: " in line, line
+
 
 def _in_phase(heartbeats: Path, phase: str, iteration: int) -> bool:
     beat = read_heartbeats(heartbeats).get(0)
