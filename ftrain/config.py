@@ -635,12 +635,25 @@ def validate(config: Config) -> None:
             raise UserError(
                 f"{key} is set but {module} is not installed: pip install 'ftrain[{module}]', or unset {key}"
             )
-    for hook in config.hooks:
+    project = config.log.wandb.project or config.name  # the run's name where no project is set
+    forbidden = " ".join(sorted(set(project) & set(WANDB_PROJECT_FORBIDS)))
+    if config.log.wandb.enabled and (forbidden or len(project) > 128):
+        key = "log.wandb.project" if config.log.wandb.project else "name"
+        raise UserError(
+            f"{key}={project!r} is no W&B project name ({forbidden or f'{len(project)} characters'}): set "
+            f"log.wandb.project to at most 128 characters without {' '.join(WANDB_PROJECT_FORBIDS)}"
+        )
+    for number, hook in enumerate(config.hooks):
         if ":" not in hook.target:
             raise UserError(f"hook target {hook.target!r} must be an import path like package.module:Class")
+        if hook.every < 1:
+            raise UserError(f"hooks[{number}].every={hook.every} must be at least 1 (its hook runs every N iterations)")
 
 
 WANDB_MODES = ("", "online", "offline", "disabled")
+WANDB_PROJECT_FORBIDS = "/\\#?%:"
+"""The characters W&B refuses in a project's name, which it also keeps to 128 characters (``wandb_settings``,
+``validate_project``): found by ``wandb.init``, after training has started, it would leave the run untracked."""
 
 ACTIVATIONS = ("elu", "selu", "relu", "crelu", "lrelu", "tanh", "sigmoid", "softplus", "gelu", "swish", "mish")
 ACTIVATIONS += ("identity",)  # rsl-rl's names (resolve_nn_activation)

@@ -117,6 +117,15 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
         (["policy.hidden_dims=[]"], r"policy.hidden_dims=\[\] must list one or more layer widths of at least 1"),
         (["policy.hidden_dims=[64, 0]"], r"policy.hidden_dims=\[64, 0\] must list"),
         (["policy.hidden_dims=[-5]"], r"policy.hidden_dims=\[-5\] must list"),
+        (["hooks=[{target: 'a:B', every: 0}]"], r"^hooks\[0\].every=0 must be at least 1 \(its hook runs every N "),
+        (["hooks=[{target: 'a:B'}, {target: 'a:C', every: -3}]"], r"^hooks\[1\].every=-3 must be at least 1"),
+        (
+            ["log.wandb.mode=offline", "log.wandb.project=a/b"],
+            r"^log.wandb.project='a/b' is no W&B project name \(/\): set log.wandb.project to at most 128 characters "
+            r"without / \\ # \? % :$",
+        ),
+        (["log.wandb.mode=offline", "name=x#?"], r"^name='x#\?' is no W&B project name \(# \?\): set log.wandb.proj"),
+        (["log.wandb.mode=offline", f"log.wandb.project={'p' * 129}"], r"is no W&B project name \(129 characters\)"),
     ],
 )
 def test_bad_overrides_raise_user_errors(overrides: list[str], message: str) -> None:
