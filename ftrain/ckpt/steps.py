@@ -329,13 +329,19 @@ def _aside_name(step: int, n: int) -> str:
 
 def part_of_a_storage(storage: Storage) -> str | None:
     """What to pass instead of ``storage``, which holds no step: where it is a run's ``checkpoints/`` directory (its
-    listing holds steps) or a step set aside under ``quarantine/``, the line that refuses it says so; else None."""
+    listing holds steps), a step set aside under ``quarantine/``, a policy snapshot or a file, the line that refuses
+    it says so; else None."""
+    if storage.fs.isfile(storage.root):  # an exported policy, a manifest: a file, where a directory is asked for
+        return "that is a file: pass the directory of a run's storage or of one of its steps"
     for where in spellings(storage.url):  # as given, then where a local path really is (``.`` in checkpoints/)
         head, _, last = where.rstrip("/").rpartition("/")
         parent = head or ("/" if where.startswith("/") else ".")
         above_a_bucket = parent.endswith(":/")  # nothing can lie above a bucket
         if last == CHECKPOINTS and not above_a_bucket and any(map(_STEP_NAME.match, storage.list_dirs(""))):
             return f"that is the {CHECKPOINTS}/ directory of {parent}: pass {parent}"
+        if _STEP_NAME.match(last) and head.rpartition("/")[2] == POLICIES:
+            run = head.rpartition("/")[0] or "."
+            return f"that is a policy snapshot of {run} (ftrain play and export take it): pass {run} for checkpoints"
         if (found := _enclosing_step(where)) is not None and found[1] == ASIDE:
             ls, back = command("ftrain", "ckpt", "ls", found[2]), command("ftrain", "ckpt", "unquarantine", found[0])
             return (

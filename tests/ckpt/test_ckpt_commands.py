@@ -6,6 +6,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -193,13 +194,23 @@ def test_prune_keeps_an_incomplete_step_written_lately_and_deletes_it_once_aband
 
 
 def test_a_part_of_a_storage_that_holds_no_step_is_told_what_to_pass_instead(run, monkeypatch):
-    """A run's checkpoints/ directory, or a step set aside under quarantine/, as the URL of a command that reads."""
+    """A run's checkpoints/ directory, a step set aside under quarantine/, a policy snapshot or a file (an exported
+    policy, a manifest) as the URL of a command that reads."""
     set_aside = f"{run}/quarantine/step-000000030.1"
     os.makedirs(set_aside)
+    snapshot = f"{run}/policies/step-000000030"
+    os.makedirs(snapshot)
+    Path(f"{run}/policy.onnx").write_bytes(b"an exported policy")
+    snapshot_fix = f"that is a policy snapshot of {run} (ftrain play and export take it): pass {run} for checkpoints"
+    file_fix = "that is a file: pass the directory of a run's storage or of one of its steps"
     cases = [
         (ckpt_commands.ls, f"{run}/checkpoints", f"that is the checkpoints/ directory of {run}: pass {run}"),
         (resolve_checkpoint_url, f"{run}/checkpoints/", f"that is the checkpoints/ directory of {run}: pass {run}"),
         (ckpt_commands.show, set_aside, f"set aside under quarantine/, out of the history of {run}: see ftrain"),
+        (ckpt_commands.show, snapshot, snapshot_fix),
+        (ckpt_commands.verify, f"{snapshot}/", snapshot_fix),
+        (ckpt_commands.show, f"{run}/policy.onnx", file_fix),
+        (ckpt_commands.show, f"{run}/checkpoints/step-000000030/MANIFEST.json", file_fix),
     ]
     for command, url, fix in cases:
         with pytest.raises(UserError) as refused:
