@@ -277,7 +277,7 @@ def test_a_storage_or_log_dir_that_is_a_file_is_one_line_exit_2_and_the_file_is_
         (["train", SMOKE, "--storage", str(file)], f"storage {file} is not a directory: pass a directory path"),
         (["supervise", SMOKE, "--storage", str(file / "run")], f"storage {file / 'run'} is not a directory ({file} is"),
         (["train", SMOKE, "--storage", str(tmp_path / "run"), f"log_dir={file}"], f"log_dir {file} is not a directory"),
-        (["ckpt", "ls", str(file)], f"no checkpoints under {file}: pass a run's storage"),
+        (["ckpt", "ls", str(file)], f"{file} is a file: pass a run's storage (the directory holding checkpoints/)"),
     ]
     for args, message in cases:
         result = subprocess.run([sys.executable, "-m", "ftrain", *args], cwd=REPO, capture_output=True, text=True)

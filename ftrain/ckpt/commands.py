@@ -406,6 +406,8 @@ def _open(url: str, options: dict | None, one_step: bool = True) -> tuple[Storag
     if step is None and not storage.list_dirs(CHECKPOINTS):
         usual = f"pass a run's storage (the directory holding {CHECKPOINTS}/){' or one step directory' * one_step}"
         check_exists(storage, usual)
+        if storage.fs.isfile(storage.root):  # an exported policy, a manifest
+            raise UserError(f"{storage.url} is a file: {usual}")
         raise UserError(f"no checkpoints under {storage.url}: {part_of_a_storage(storage) or usual}")
     if step is not None:
         step_files(storage, step)

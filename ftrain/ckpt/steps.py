@@ -329,10 +329,8 @@ def _aside_name(step: int, n: int) -> str:
 
 def part_of_a_storage(storage: Storage) -> str | None:
     """What to pass instead of ``storage``, which holds no step: where it is a run's ``checkpoints/`` directory (its
-    listing holds steps), a step set aside under ``quarantine/``, a policy snapshot or a file, the line that refuses
-    it says so; else None."""
-    if storage.fs.isfile(storage.root):  # an exported policy, a manifest: a file, where a directory is asked for
-        return "that is a file: pass the directory of a run's storage or of one of its steps"
+    listing holds steps), a step set aside under ``quarantine/`` or a policy snapshot, the line that refuses it says
+    so; else None."""
     for where in spellings(storage.url):  # as given, then where a local path really is (``.`` in checkpoints/)
         head, _, last = where.rstrip("/").rpartition("/")
         parent = head or ("/" if where.startswith("/") else ".")

@@ -202,7 +202,7 @@ def test_a_part_of_a_storage_that_holds_no_step_is_told_what_to_pass_instead(run
     os.makedirs(snapshot)
     Path(f"{run}/policy.onnx").write_bytes(b"an exported policy")
     snapshot_fix = f"that is a policy snapshot of {run} (ftrain play and export take it): pass {run} for checkpoints"
-    file_fix = "that is a file: pass the directory of a run's storage or of one of its steps"
+    file_fix = "is a file: pass a run's storage (the directory holding checkpoints/) or one step directory"
     cases = [
         (ckpt_commands.ls, f"{run}/checkpoints", f"that is the checkpoints/ directory of {run}: pass {run}"),
         (resolve_checkpoint_url, f"{run}/checkpoints/", f"that is the checkpoints/ directory of {run}: pass {run}"),
