@@ -71,16 +71,24 @@ class Policy:
             return self.actor(obs)
 
 
-def load_policy(url: str, options: dict | None = None, log: Callable[[str], None] = lambda line: None) -> Policy:
+def load_policy(
+    url: str,
+    options: dict | None = None,
+    log: Callable[[str], None] = lambda line: None,
+    not_a_file: str | None = None,
+) -> Policy:
     """The policy at ``url`` (see the module docstring); UserError if nothing verified or no policy is there.
 
-    ``options`` are fsspec storage options; ``log`` hears about newer checkpoints skipped because they do not verify.
+    ``options`` are fsspec storage options; ``log`` hears about newer checkpoints skipped because they do not verify;
+    ``not_a_file``: where a file (an exported policy) will not do, why and what to pass instead.
     """
     try:
         if snapshots.parse_snapshot_url(url) is not None:
             storage, step, manifest = snapshots.open_snapshot(url, options)
             state = read_verified(storage, step, snapshots.ACTOR, manifest)
         elif (file := _policy_file(url, options)) is not None:
+            if not_a_file is not None:
+                raise UserError(f"{file[1]} is a file: {not_a_file}")
             return policy_from_file(*file)
         else:
             storage, step, manifest = resolve_checkpoint_url(url, options, log)

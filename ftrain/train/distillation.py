@@ -12,11 +12,16 @@ from ftrain.policy.load import load_policy
 from ftrain.policy.model import build_actor
 from ftrain.train.envs import MujocoVecEnv
 
+WHOLE_TEACHER = (
+    "a teacher is the checkpoint or policy snapshot of a run (distillation needs its actor's weights): pass that"
+)
+"""Why an exported policy file, or any other file, is no teacher."""
+
 
 def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Distillation:
     """rsl-rl's Distillation: a student like a PPO actor learns to imitate the teacher loaded from
     ``config.teacher`` (any ftrain checkpoint URL, verified by its manifest; architecture from its own config)."""
-    teacher = load_policy(config.teacher, config.storage.options)
+    teacher = load_policy(config.teacher, config.storage.options, not_a_file=WHOLE_TEACHER)
     _check_teacher_fits(config, env, teacher)
     obs = env.get_observations()
     student = build_actor(config, obs, env.num_actions, obs_set="student")
@@ -39,11 +44,6 @@ def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Dis
 
 
 def _check_teacher_fits(config: Config, env: MujocoVecEnv, teacher) -> None:
-    if teacher.exported is not None:
-        raise UserError(
-            f"teacher {teacher.source} is an exported {teacher.exported} file: pass the checkpoint or policy "
-            "snapshot it came from (distillation needs the actor's weights)"
-        )
     teacher_obs = teacher.actor.obs_dim
     teacher_actions = teacher.actor.distribution.output_dim if teacher.actor.distribution else None
     if teacher.config.env.id != config.env.id or teacher_obs != env.num_obs or teacher_actions != env.num_actions:

@@ -62,3 +62,11 @@ def test_teacher_from_another_environment_is_one_clear_error(tmp_path) -> None:
     assert len(errors) == 1 and "Traceback" not in result.stderr
     assert "trained on Hopper-v5 (observations 11, actions 3)" in errors[0]
     assert "student trains on HalfCheetah-v5 (observations 17, actions 6)" in errors[0]
+
+    shard = teacher / "checkpoints" / "step-000000002" / "common.pt"  # a file of a checkpoint, not the checkpoint
+    command = train_command(tmp_path / "student", f"teacher={shard}", *SMALL, config=DISTILL)
+    result = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and result.stderr == (
+        f"ftrain: error: {shard} is a file: a teacher is the checkpoint or policy snapshot of a run (distillation "
+        "needs its actor's weights): pass that\n"
+    ), result.stderr
