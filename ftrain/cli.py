@@ -10,7 +10,6 @@ import argparse
 import codecs
 import contextlib
 import dataclasses
-import glob
 import importlib.metadata
 import io
 import os
@@ -547,6 +546,7 @@ def _dispatch(args: argparse.Namespace) -> int:
 def _run_config(args: argparse.Namespace) -> Config:
     """The config of ``train`` and ``supervise``, validated before anything starts: its env id too, against
     gymnasium's registry (not in ``config.py``, which the supervisor imports and which stays free of gymnasium)."""
+    from ftrain.ckpt.format import CHECKPOINTS
     from ftrain.ckpt.steps import check_not_a_checkpoints_directory, check_storage_place
     from ftrain.ckpt.storage import Storage
     from ftrain.config import load_config, local_path
@@ -555,12 +555,14 @@ def _run_config(args: argparse.Namespace) -> Config:
     config = load_config(args.config, args.overrides, args.storage)
     check_env_id(config.env)
     check_storage_place(config.storage.url)
-    if os.path.isdir(storage := local_path(config.storage.url)):  # before a supervisor writes its logs there
-        check_not_a_checkpoints_directory(Storage.open(storage))
+    fresh = bool(storage := local_path(config.storage.url))  # no steps of its own (a remote one: its workers look)
+    if os.path.isdir(storage):  # before a supervisor writes its logs there
+        opened = Storage.open(storage)
+        check_not_a_checkpoints_directory(opened)
+        fresh = not opened.list_dirs(CHECKPOINTS)
     resume = local_path(config.resume) if config.resume not in ("auto", "never") else ""
-    fresh = storage and not glob.glob(os.path.join(glob.escape(storage), "checkpoints", "step-*"))
-    if resume and fresh and not os.path.exists(resume):  # else the workers decide: a remote one they look up, and a
-        # storage whose history goes on from that step does not need it (its source may have deleted it since)
+    if resume and fresh and not os.path.exists(resume):  # a storage with steps of its own goes on from them, and
+        # does not need the step it started from (its source may have deleted it since): its workers decide
         raise UserError(f"resume={config.resume}: {resume} does not exist: pass a run's storage or a step directory")
     return config
 

@@ -63,8 +63,12 @@ def _training_keys(config: dict) -> dict:
 
 @functools.cache
 def _added_later_defaults() -> dict:
-    later = tuple(KEYS_ADDED_LATER) + tuple(f"{key}." for key in KEYS_ADDED_LATER)
-    return {key: value for key, value in dotted(Config().to_dict()).items() if key in later or key.startswith(later)}
+    within = tuple(f"{key}." for key in KEYS_ADDED_LATER)  # the leaves of a section added later
+    return {
+        key: value
+        for key, value in dotted(Config().to_dict()).items()
+        if key in KEYS_ADDED_LATER or key.startswith(within)
+    }
 
 
 def robot_change(saved: dict | None, current: dict | None) -> str | None:

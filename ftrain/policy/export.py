@@ -18,7 +18,7 @@ from ftrain.ckpt.steps import check_output
 from ftrain.config import default_log_dir
 from ftrain.errors import UserError
 from ftrain.policy.load import METADATA, Policy, policy_from_file, torchscript_deprecation_ignored
-from ftrain.policy.options import SUFFIXES, check_export_options
+from ftrain.policy.options import SUFFIXES, check_export_options, names_a_directory
 from ftrain.policy.robot import make_env
 from ftrain.policy.rollout import rollout
 from ftrain.progress import Progress
@@ -31,11 +31,10 @@ class ExportMismatch(RuntimeError):
     """An exported policy does not reproduce the actor it was exported from (a bug, never bad input)."""
 
 
-def output_path(fmt: str, path: str | Path | None, directory: Path, name: str) -> Path:
-    """Where ``export`` writes: ``path``, or ``name`` in it where it is a directory or ends in ``/`` (one to make; in
-    ``directory`` where None)."""
-    check_export_options(fmt, path)
-    if path is None or Path(path).is_dir() or str(path).endswith("/"):
+def output_path(path: str | Path | None, directory: Path, name: str) -> Path:
+    """Where ``export`` writes: ``path``, or ``name`` in it where it names a directory (in ``directory`` where
+    None)."""
+    if path is None or names_a_directory(path):
         return Path(path or directory) / name
     return Path(path)
 
@@ -134,10 +133,10 @@ def export(policy: Policy, fmt: str, path: str | Path | None = None) -> Path:
     """Write ``policy`` as a verified ``fmt`` file to ``path`` and say so on stdout. By default next to the run, in
     ``<run>/exports/<run name>-step-<N>.pt``/``.onnx`` (for a run on S3, in its local log directory ``runs/<name>``),
     not in the working directory."""
-    check_export_options(fmt, None)
+    check_export_options(fmt, path)
     run = policy.source.rstrip("/").rsplit("/", 2)[0]  # the source is <run>/checkpoints/step-N or <run>/policies/...
     name = f"{policy.config.name}-step-{policy.step}{SUFFIXES[fmt]}"
-    path = output_path(fmt, path, Path(default_log_dir(run, policy.config.name)) / "exports", name)
+    path = output_path(path, Path(default_log_dir(run, policy.config.name)) / "exports", name)
     check_output(path, "-o")
     progress = Progress()
     progress.show("export: playing the policy's episodes that the export is checked on...")

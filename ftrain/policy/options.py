@@ -34,7 +34,7 @@ def check_export_options(fmt: str, path: str | Path | None) -> None:
     a directory, where the file's name comes from the policy, is checked once that is known)."""
     if fmt not in POLICY_FORMATS:
         raise UserError(f"unknown policy format {fmt!r}: use {' or '.join(POLICY_FORMATS)}")
-    if path is None or Path(path).is_dir() or str(path).endswith("/"):
+    if path is None or names_a_directory(path):
         return
     if Path(path).suffix != SUFFIXES[fmt]:  # ``-o README.md`` would write over a file of another kind
         other = next(other for other in POLICY_FORMATS if other != fmt)
@@ -43,3 +43,8 @@ def check_export_options(fmt: str, path: str | Path | None) -> None:
             f"a directory, or --format {other} for a {SUFFIXES[other]} file"
         )
     check_output(Path(path), "-o")
+
+
+def names_a_directory(path: str | Path) -> bool:
+    """Whether ``-o`` names where the export goes (a directory, or one to make: it ends in ``/``), not its file."""
+    return Path(path).is_dir() or str(path).endswith("/")

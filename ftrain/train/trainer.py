@@ -242,16 +242,16 @@ class Trainer:
             self.alg.broadcast_parameters()
         self.heartbeat.resumed_step = resumed
         self.heartbeat.config_change = self.checkpointer.config_change
-        if self.iteration >= self.config.iterations:
+        if idle := self.iteration >= self.config.iterations:
             self.log(
                 f"nothing to train: the run is already at step {self.iteration}, asked for iterations="
                 f"{self.config.iterations} (pass iterations=N with N > {self.iteration} to train on)"
             )
-        if self.iteration >= self.config.iterations and self.checkpointer.committed_step != self.iteration:
-            self.checkpointer.save(self, hold=True)  # the last step came from the spool: the storage must have it
+            if self.checkpointer.committed_step != self.iteration:  # it came from the spool: the storage must have it
+                self.checkpointer.save(self, hold=True)
         committed = self.checkpointer.committed_step
         self.heartbeat.committed_step = resumed if committed is None else committed
-        if self.iteration < self.config.iterations:  # a start that trains nothing leaves the trained run's record
+        if not idle:  # a start that trains nothing leaves the trained run's record as it was
             self._write_resolved_config()
         self.alg.train_mode()
         self.hooks.call("on_start", self)
