@@ -555,14 +555,11 @@ def _run_config(args: argparse.Namespace) -> Config:
     config = load_config(args.config, args.overrides, args.storage)
     check_env_id(config.env)
     check_storage_place(config.storage.url)
-    fresh = bool(storage := local_path(config.storage.url))  # no steps of its own (a remote one: its workers look)
-    if os.path.isdir(storage):  # before a supervisor writes its logs there
-        opened = Storage.open(storage)
-        check_not_a_checkpoints_directory(opened)
-        fresh = not opened.list_dirs(CHECKPOINTS)
+    if os.path.isdir(storage := local_path(config.storage.url)):  # before a supervisor writes its logs there
+        check_not_a_checkpoints_directory(Storage.open(storage))
     resume = local_path(config.resume) if config.resume not in ("auto", "never") else ""
-    if resume and fresh and not os.path.exists(resume):  # a storage with steps of its own goes on from them, and
-        # does not need the step it started from (its source may have deleted it since): its workers decide
+    own = os.path.isdir(os.path.join(storage, CHECKPOINTS))  # steps of its own: it goes on from them, and needs not
+    if resume and storage and not own and not os.path.exists(resume):  # the step it began at (maybe deleted since)
         raise UserError(f"resume={config.resume}: {resume} does not exist: pass a run's storage or a step directory")
     return config
 
