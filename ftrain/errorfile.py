@@ -42,6 +42,21 @@ def record_stop(message: str) -> None:
     _write(message, message)
 
 
+def says_its_stop() -> bool:
+    """Whether this worker prints the line of a stop that ends it before it trained: rank 0 alone (the others'
+    stop is the same one, or torchrun's after one rank ended), and not when a worker of the same launcher has already
+    explained its failure: torchrun stopped this one because that one ended, and that worker's line is the run's
+    one line. torchrun gives each worker ``<log dir>/<run id>/attempt_<n>/<local rank>/error.json``; the file of a
+    worker that explained its failure is there before torchrun, seeing it end, stops the others."""
+    if os.environ.get("RANK", "0") != "0":
+        return False
+    mine = os.environ.get(ENV)
+    if not mine:
+        return True
+    mine = Path(mine)
+    return not any(reported(_read(other)) for other in mine.parent.parent.glob(f"*/{mine.name}") if other != mine)
+
+
 def record_exception(error: BaseException) -> None:
     """An exception about to end the worker: its one-line summary and its traceback go into the error file."""
     _write(f"{type(error).__name__}: {error}", traceback.format_exc())
@@ -68,6 +83,13 @@ def recorded_at(data: object) -> float:
     failure that caused it: the earliest record names the cause."""
     value = _extra_info(data).get(RECORDED_AT)
     return float(value) if isinstance(value, int | float) else math.inf
+
+
+def _read(path: Path) -> object:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
 
 
 def _extra_info(data: object) -> dict:

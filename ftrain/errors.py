@@ -17,6 +17,8 @@ import time
 import traceback
 import typing
 
+from ftrain import errorfile
+
 EXIT_FAILED = 1
 """A storage operation failed for good (``StorageError``) outside training."""
 EXIT_USAGE = 2
@@ -69,10 +71,9 @@ def raise_terminated(signum: int, frame: object) -> None:
 def stopped(signum: int) -> int:
     """A stop that came before the command took its signal over (while it imports torch, or in a short command): one
     line instead of a traceback or a silent death, and the shell's code, 128 + the signal. A run saves from the
-    moment it took them over. Of a launcher's workers, rank 0 alone says it, as the run's other lines: torchrun stops
-    the others with SIGTERM once one has ended."""
+    moment it took them over. Of a launcher's workers, rank 0 alone says it (``errorfile.says_its_stop``)."""
     said = "interrupted (Ctrl-C)" if signum == signal.SIGINT else f"stopped by {signal.Signals(signum).name}"
-    if os.environ.get("RANK", "0") == "0":
+    if errorfile.says_its_stop():
         print(f"ftrain: {said}", file=sys.stderr, flush=True)
     return 128 + signum
 

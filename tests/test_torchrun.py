@@ -17,8 +17,23 @@ from helpers import REPO, SMOKE, TESTS, child_env, hooks_override, probe_hook
 TYPO = "ftrain: error: unknown config key iteratons: did you mean iterations?"
 
 
-def ftrun(tmp_path, *overrides: str) -> subprocess.CompletedProcess:
-    command = [sys.executable, "-m", TORCHRUN, "--standalone", "--nproc-per-node=2", "-m", "ftrain", "train", SMOKE]
+SLOW_RANK_0 = """
+import importlib.abc, os, runpy, sys, time
+
+class SlowCli(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name == "ftrain.cli":
+            time.sleep(120)
+
+if os.environ["RANK"] == "0":
+    sys.meta_path.insert(0, SlowCli())
+runpy.run_module("ftrain", run_name="__main__", alter_sys=True)
+"""
+"""``python -m ftrain`` whose rank 0 is still importing when the others have read their input: a loaded machine."""
+
+
+def ftrun(tmp_path, *overrides: str, worker: tuple[str, ...] = ("-m", "ftrain")) -> subprocess.CompletedProcess:
+    command = [sys.executable, "-m", TORCHRUN, "--standalone", "--nproc-per-node=2", *worker, "train", SMOKE]
     return subprocess.run(
         [*command, "--storage", str(tmp_path / "run"), "log.console=false", *overrides],
         cwd=REPO,
@@ -47,6 +62,16 @@ def test_the_error_file_tells_a_failure_the_worker_explained_from_a_crash(tmp_pa
 @pytest.mark.slow
 def test_a_typo_under_ftrains_torchrun_is_one_line_and_exit_2(tmp_path) -> None:
     result = ftrun(tmp_path, "iteratons=3")
+    assert result.returncode == 2
+    assert (result.stdout + result.stderr).splitlines() == [TYPO]
+
+
+def test_a_typo_found_while_rank_0_still_imports_is_the_one_line(tmp_path) -> None:
+    """torchrun stops rank 0 once rank 1 has refused the typo and ended: rank 0's stop is not news (CI saw "ftrain:
+    stopped by SIGTERM" before the typo's line)."""
+    script = tmp_path / "slow_rank_0.py"
+    script.write_text(SLOW_RANK_0)
+    result = ftrun(tmp_path, "iteratons=3", worker=(str(script),))
     assert result.returncode == 2
     assert (result.stdout + result.stderr).splitlines() == [TYPO]
 

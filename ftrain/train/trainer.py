@@ -431,7 +431,7 @@ def train(config: Config) -> int:
 def _stopped_while_starting(signum: int) -> None:
     line = f"stopped by {_stop_name(signum)} while starting, before any training: nothing to save"
     errorfile.record_stop(line)
-    if os.environ.get("RANK", "0") == "0":  # the other ranks' stop is rank 0's, or torchrun's after one rank ended
+    if errorfile.says_its_stop():
         _say(line)
 
 
