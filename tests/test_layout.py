@@ -73,7 +73,7 @@ LAYERS = {
     "errorfile": set(),
     "redact": set(),
     "progress": set(),
-    "errors": set(),
+    "errors": {"errorfile"},
     "proctitle": set(),
     "process": {"errors"},
 }
