@@ -8,8 +8,8 @@ workers, so the run's holder, its supervisor or else an unsupervised run's rank 
 refused with one line. It is taken after the storage's lease: a second run on the same local storage (its log
 directory too) hears of the lease, which names the run. Several nodes of one run on one host share the directory: each
 holds ``run-node-N.lock`` alone and ``run.lock`` shared, so a run on one node and a run on several exclude each other.
-A log directory also belongs to one storage, which ``storage.txt`` names: a run on another storage, even after the
-first has ended, is refused rather than let rewrite its records.
+A log directory also belongs to one storage, which ``storage.txt`` names: once it holds that storage's records, a run
+on another storage, even after the first has ended, is refused rather than let rewrite them.
 Imports: errors.
 """
 
@@ -26,6 +26,9 @@ from ftrain.errors import UserError
 
 STORAGE_FILE = "storage.txt"
 """In a log directory: the storage whose run it holds the records of (``storage_key``)."""
+RECORDS = ("metrics.csv", "config.yaml", "run.json", "events.jsonl")
+"""What a run records in its log directory: a directory with none of them belongs to no storage yet (a run refused
+before it trained, say)."""
 
 
 @contextlib.contextmanager
@@ -50,7 +53,8 @@ def claim_log_dir(log_dir: Path, node: int | None, holder: str, storage: str) ->
 
 def _belongs(log_dir: Path, storage: str) -> None:
     """Record that ``log_dir`` holds the records of ``storage``; UserError if it holds another storage's. A local
-    storage's own directory, its default log directory, is its own whatever it was called before (moved)."""
+    storage's own directory, its default log directory, is its own whatever it was called before (moved), and a
+    directory without records is anyone's."""
     record = log_dir / STORAGE_FILE
     try:
         other = record.read_text().strip()
@@ -58,7 +62,8 @@ def _belongs(log_dir: Path, storage: str) -> None:
         other = ""  # a new log directory, or one of an ftrain that kept no record: this run's from now on
     except OSError as error:
         raise _cannot_hold(log_dir, record, error) from None
-    if other in ("", storage) or os.path.realpath(log_dir) == storage:
+    held = [name for name in RECORDS if (log_dir / name).exists()]
+    if other in ("", storage) or not held or os.path.realpath(log_dir) == storage:
         if other != storage:
             with contextlib.suppress(OSError):  # a directory it cannot write is said when a record is written
                 tmp = record.with_name(f".{STORAGE_FILE}.{os.getpid()}")
@@ -66,7 +71,7 @@ def _belongs(log_dir: Path, storage: str) -> None:
                 os.replace(tmp, record)
         return
     raise UserError(
-        f"log directory {log_dir} holds the records of the run on {other} (its metrics.csv, config.yaml): give the "
+        f"log directory {log_dir} holds the records of the run on {other} (its {', '.join(held)}): give the "
         f"run on {storage} a log directory of its own with log_dir=DIR (if that storage has moved to {storage}, delete "
         f"{record} first)"
     )

@@ -78,8 +78,10 @@ def test_a_lock_file_that_cannot_be_taken_is_one_line(tmp_path):
 
 def test_a_log_directory_holds_one_storages_records_however_that_storage_is_spelt(tmp_path, monkeypatch):
     """A log directory taken by a run keeps to its storage: every spelling of it is admitted (relative, with a
-    trailing slash, ``file://``, through a link), another storage is refused with one line naming both, even after
-    the first run ended, and nothing is written; a local storage's own directory stays its own after a move."""
+    trailing slash, ``file://``, through a link), another storage is refused with one line naming both and the
+    records, even after the first run ended, and nothing is written; until the directory holds records, another
+    storage may take it (a run refused before it trained); a local storage's own directory stays its own after a
+    move."""
     storage, other = tmp_path / "run", tmp_path / "other"
     storage.mkdir()
     (tmp_path / "link").symlink_to(storage)
@@ -90,6 +92,11 @@ def test_a_log_directory_holds_one_storages_records_however_that_storage_is_spel
         with claim_log_dir(logs, None, "supervisor", storage_key(spelling)):
             pass
     assert (logs / STORAGE_FILE).read_text() == f"{storage}\n"
+    with claim_log_dir(logs, None, "supervisor", storage_key(str(other))):  # no records yet: anyone's
+        pass
+    with claim_log_dir(logs, None, "supervisor", storage_key(str(storage))):  # and the first run's again
+        for record in ("metrics.csv", "config.yaml"):
+            (logs / record).write_text("its records\n")
     for node in (None, 1):
         with pytest.raises(UserError) as refused, claim_log_dir(logs, node, "supervisor", storage_key(str(other))):
             pass

@@ -513,6 +513,7 @@ def test_an_unsupervised_run_holds_its_log_directory_and_one_refused_there_gives
     finally:
         first.release()
     claim(config_of("first"), True, lambda outcome: outcome, print).release()
+    (logs / "metrics.csv").write_text("iteration\n")  # the first run's records
     with pytest.raises(UserError, match=f"^log directory {logs} holds the records of the run on {tmp_path / 'first'} "):
         claim(config_of("second"), True, lambda outcome: outcome, print)
     assert Record.decode(Storage.open(str(tmp_path / "second")).read(LEASE)).entries == ()  # given back

@@ -73,6 +73,12 @@ def test_single_process_and_outputs(tmp_path) -> None:
     assert records() == kept and kept[run / "storage.txt"] == f"{run}\n".encode()
     assert not (tmp_path / "other" / "checkpoints").exists()
 
+    logs = tmp_path / "refused-logs"  # a run refused before it trained (a changed config) leaves its log_dir anyone's
+    changed = subprocess.run(train_command(run, "seed=3", f"log_dir={logs}"), env=child_env(), capture_output=True)
+    assert changed.returncode == 2 and b"different config" in changed.stderr, changed.stderr
+    third = subprocess.run(train_command(tmp_path / "third", "iterations=1", f"log_dir={logs}"), env=child_env())
+    assert third.returncode == 0 and (logs / "storage.txt").read_text() == f"{tmp_path / 'third'}\n"
+
 
 @pytest.mark.slow
 def test_hook_state_survives_resume(tmp_path) -> None:
