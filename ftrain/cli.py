@@ -302,7 +302,9 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument("run", help="the run's log directory (holds metrics.csv): a local path or an fsspec URL")
     _add_storage_options(plot)
     plot.add_argument(
-        "-o", "--output", help="picture to write (.png, .svg, .pdf...), or a directory (default: <run>/curves.png)"
+        "-o",
+        "--output",
+        help="picture to write (.png, .svg, .pdf; .png if none), or a directory (default: <run>/curves.png)",
     )
     _describe(parser)
     return parser

@@ -128,10 +128,13 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     from matplotlib.backend_bases import FigureCanvasBase
 
     run = expand_home(str(run))
+    if Path(run).name == METRICS and Path(run).is_file():  # the file itself, for the directory that holds it
+        run = str(Path(run).parent)
     if output is not None and Path(output).is_dir():
         output = Path(output) / "curves.png"
-    kinds = {"", *FigureCanvasBase.get_supported_filetypes()}  # no suffix: matplotlib writes a .png
-    if output is not None and Path(output).suffix.lstrip(".").lower() not in kinds:
+    elif output is not None and not Path(output).suffix:  # what matplotlib writes, and what is said, named alike
+        output = Path(output).with_name(Path(output).name + ".png")
+    if output is not None and Path(output).suffix.lstrip(".").lower() not in FigureCanvasBase.get_supported_filetypes():
         raise UserError(f"-o {output}: not a picture file matplotlib writes: end it in .png, .svg or .pdf")
     storage = Storage.open(str(run), options)
     columns, resumed, changed = read_metrics(run, options)
