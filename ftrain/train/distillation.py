@@ -21,7 +21,10 @@ WHOLE_TEACHER = (
 def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Distillation:
     """rsl-rl's Distillation: a student like a PPO actor learns to imitate the teacher loaded from
     ``config.teacher`` (any ftrain checkpoint URL, verified by its manifest; architecture from its own config)."""
-    teacher = load_policy(config.teacher, config.storage.options, not_a_file=WHOLE_TEACHER)
+    try:
+        teacher = load_policy(config.teacher, config.storage.options, not_a_file=WHOLE_TEACHER)
+    except UserError as error:  # which setting named it: a distillation config's teacher may not be the user's own
+        raise UserError(f"teacher={config.teacher}: {error}") from None
     _check_teacher_fits(config, env, teacher)
     obs = env.get_observations()
     student = build_actor(config, obs, env.num_actions, obs_set="student")

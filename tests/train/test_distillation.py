@@ -67,6 +67,11 @@ def test_teacher_from_another_environment_is_one_clear_error(tmp_path) -> None:
     command = train_command(tmp_path / "student", f"teacher={shard}", *SMALL, config=DISTILL)
     result = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and result.stderr == (
-        f"ftrain: error: {shard} is a file: a teacher is the checkpoint or policy snapshot of a run (distillation "
-        "needs its actor's weights): pass that\n"
+        f"ftrain: error: teacher={shard}: {shard} is a file: a teacher is the checkpoint or policy snapshot of a run "
+        "(distillation needs its actor's weights): pass that\n"
     ), result.stderr
+
+    missing = tmp_path / "no-such-run"
+    command = train_command(tmp_path / "student", f"teacher={missing}", *SMALL, config=DISTILL)
+    result = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and result.stderr.startswith(f"ftrain: error: teacher={missing}: {missing} does not")
