@@ -98,9 +98,6 @@ class Trainer:
         self.noise_ceiling = build_noise_ceiling(config)
         if notice := horizon_notice(config.algorithm, config.iterations):
             self.log(notice)
-        if hasattr(self.alg, "teacher_identity"):  # which teacher a distillation learns from, at once
-            teacher = self.alg.teacher_identity
-            self.log(f"teacher: {teacher['source']} (step {teacher['step']}, state_sha256 {teacher['digest'][:16]})")
         group.seed_all(group.rank_seed(config.seed, info.rank))  # what else draws (the action noise and the
         # sample orders come from the algorithm's shared generator: the same on every rank)
         self.hooks = build_hooks(config)
@@ -199,8 +196,8 @@ class Trainer:
         if "teacher" in own:  # the teacher's weights come from the checkpoint: so does its identity
             if own["teacher"]["digest"] != self.alg.teacher_identity["digest"]:
                 self.log(
-                    f"teacher {self.config.teacher} has changed since this run started: keeping the teacher "
-                    f"it started with ({own['teacher']['source']}, step {own['teacher']['step']})"
+                    f"teacher={self.config.teacher} is not the teacher this run started with: it keeps that one, "
+                    "from its checkpoint"
                 )
             self.alg.teacher_identity = own["teacher"]
         if hasattr(self.alg, "shared_generator"):  # (absent: a checkpoint of before the shared stream)
@@ -238,6 +235,9 @@ class Trainer:
         self.stop.training()
         self.heartbeat.beat("start", 0)
         resumed = self.checkpointer.restore(self)
+        if hasattr(self.alg, "teacher_identity"):  # which teacher a distillation learns from: a resumed one, its own
+            teacher = self.alg.teacher_identity
+            self.log(f"teacher: {teacher['source']} (step {teacher['step']}, state_sha256 {teacher['digest'][:16]})")
         if resumed is None and self.info.distributed:
             self.alg.broadcast_parameters()
         self.heartbeat.resumed_step = resumed

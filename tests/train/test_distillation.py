@@ -51,6 +51,16 @@ def test_student_learns_from_teacher_and_resumes_exactly(tmp_path) -> None:
     assert "resumed from step 8" in result.stdout and "changed since step" not in result.stdout, result.stdout
     assert final_manifest(resumed)["state_sha256"] == manifest["state_sha256"]
 
+    other = tmp_path / "other-teacher"  # another teacher named at a resume: the run keeps its own, and says which
+    run_train(other, "iterations=2")
+    result = run_train(resumed, f"teacher={other}", "iterations=13", *SMALL, **options)
+    said = [line for line in result.stdout.splitlines() if "teacher" in line]
+    assert said == [
+        f"[ftrain] teacher={other} is not the teacher this run started with: it keeps that one, from its checkpoint",
+        f"[ftrain] teacher: {source} (step 12, state_sha256 {teacher_manifest['state_sha256'][:16]})",
+    ], result.stdout
+    assert final_manifest(resumed)["teacher"] == manifest["teacher"]
+
 
 def test_teacher_from_another_environment_is_one_clear_error(tmp_path) -> None:
     teacher = tmp_path / "hopper"
