@@ -135,6 +135,11 @@ def command(*words: object) -> str:
     return " ".join(shlex.quote(str(word)) for word in words)
 
 
+def counted(n: int, noun: str) -> str:
+    """``n`` and the noun, plural unless one: "1 restart", "0 iterations"."""
+    return f"{n} {noun}{'s' * (n != 1)}"
+
+
 def closest(word: str, known: typing.Iterable[str], cutoff: float = 0.6) -> str | None:
     """The one of ``known`` that ``word`` most likely misspells, for a "did you mean", else None. Case is no
     difference (``ÖNNX``, ``HTTP``); a start of only one of them names it (``unq``), a start of two letters of several

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from ftrain.errors import UserError
+from ftrain.errors import UserError, counted
 from ftrain.policy.load import Policy, check_fits
 from ftrain.policy.options import check_play_options
 from ftrain.policy.robot import make_env
@@ -65,7 +65,7 @@ def play(
         if writer is not None:
             writer.close(keep=results is not None)
     returns = [episode.ret for episode in results]
-    print(f"mean return over {episodes} episodes: {np.mean(returns):.2f} (std {np.std(returns):.2f})")
+    print(f"mean return over {counted(episodes, 'episode')}: {np.mean(returns):.2f} (std {np.std(returns):.2f})")
     frames = 0 if writer is None else writer.frames
     if writer is not None:
         height, width = writer.size

@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from ftrain.errors import counted
 from ftrain.heartbeat import Heartbeat, Phase
 from ftrain.supervise.attempt import Attempt
 from ftrain.supervise.hang import QUIET_PHASES
@@ -97,8 +98,8 @@ class Ledger:
             start = "the start (no checkpoint yet)" if attempt.resumed is None else f"step {attempt.resumed}"
             self.events(
                 "recovered",
-                f"attempt {attempt.plan.attempt}: recovered from {start} ({lost} iterations lost, {downtime:.1f} s "
-                "down)",
+                f"attempt {attempt.plan.attempt}: recovered from {start} ({counted(lost, 'iteration')} lost, "
+                f"{downtime:.1f} s down)",
                 attempt=attempt.plan.attempt,
                 step=attempt.resumed,
                 lost=lost,
@@ -129,7 +130,8 @@ class Ledger:
         lost, downtime = self.lost, self.downtime
         self.events(
             "summary",
-            f"{in_words(ending)} (exit {code}): {restarts} restarts, {lost} iterations lost, {downtime:.1f} s downtime",
+            f"{in_words(ending)} (exit {code}): {counted(restarts, 'restart')}, {counted(lost, 'iteration')} lost, "
+            f"{downtime:.1f} s downtime",
             code=code,
             restarts=restarts,
             iterations_lost=lost,
@@ -146,7 +148,7 @@ class Ledger:
         self.events(
             "resize",
             f"attempt {attempt.plan.attempt}: world {self.world} -> {attempt.world} ranks ({why}), resumed from step "
-            f"{attempt.resumed}: {downtime:.1f} s down, {lost} iterations lost",
+            f"{attempt.resumed}: {downtime:.1f} s down, {counted(lost, 'iteration')} lost",
             attempt=attempt.plan.attempt,
             old_world=self.world,
             new_world=attempt.world,

@@ -22,7 +22,7 @@ from pathlib import Path, PurePosixPath
 from ftrain.ckpt.steps import check_output
 from ftrain.ckpt.storage import Storage
 from ftrain.config import default_log_dir, expand_home
-from ftrain.errors import UserError
+from ftrain.errors import UserError, counted
 from ftrain.train.hooks import damaged, metrics_rows
 from ftrain.values import is_whole
 
@@ -86,12 +86,12 @@ def read_metrics(
     except csv.Error as error:
         raise UserError(f"{path} line {reader.line_num} is not CSV ({error}): {NOT_OURS}") from None
     if not rows and skipped:
-        raise UserError(f"{path} holds no row but {_count(len(skipped), 'damaged one')}: {NOT_OURS}")
+        raise UserError(f"{path} holds no row but {counted(len(skipped), 'damaged one')}: {NOT_OURS}")
     if not rows:
         raise UserError(f"{path} has no rows yet: plot the run after its first iteration")
     if skipped:
         print(
-            f"ftrain plot: {path}: skipped {_count(len(skipped), 'damaged row')} ({_lines(skipped)})", file=sys.stderr
+            f"ftrain plot: {path}: skipped {counted(len(skipped), 'damaged row')} ({_lines(skipped)})", file=sys.stderr
         )
     ordered = [rows[iteration] for iteration in sorted(rows)]
     columns = {name: [_number(row.get(name)) for row in ordered] for name in ordered[-1] if name != "config_change"}
@@ -190,9 +190,9 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
         ax.legend(fontsize="small")
     for ax in axes.flat[len(panels) :]:
         ax.set_visible(False)
-    marks = [_count(len(restarts), "restart") + " (dashed)" if restarts else ""]
-    marks.append(_count(len(resumes), "resume") + " (dotted)" if resumes else "")
-    marks.append(_count(len(changes), "config change") + " (dash-dot)" if changes else "")
+    marks = [counted(len(restarts), "restart") + " (dashed)" if restarts else ""]
+    marks.append(counted(len(resumes), "resume") + " (dotted)" if resumes else "")
+    marks.append(counted(len(changes), "config change") + " (dash-dot)" if changes else "")
     marked = ", ".join(mark for mark in marks if mark)
     where = f", {marked}: at the step resumed from" if marked else ""
     title = f"{run_name}: {int(iterations[-1])} iterations{where}"
@@ -227,10 +227,6 @@ def _read(storage: Storage, name: str) -> bytes | None:
         return storage.read(name)
     except FileNotFoundError:
         return None
-
-
-def _count(n: int, noun: str) -> str:
-    return f"{n} {noun}{'s' * (n != 1)}"
 
 
 def _lines(numbers: list[int], shown: int = 5) -> str:

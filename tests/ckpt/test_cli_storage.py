@@ -61,7 +61,7 @@ def test_ckpt_play_and_export_read_s3_with_credentials_only_in_storage_options(s
     assert shown.returncode == 0 and "step: 2" in shown.stdout
     played = ftrain("play", url, "--episodes", "1", *options)
     assert played.returncode == 0, played.stderr
-    assert "mean return over 1 episodes" in played.stdout
+    assert "mean return over 1 episode:" in played.stdout
     exported = ftrain("export", url, "--format", "onnx", "-o", str(tmp_path / "p.onnx"), *options)
     assert exported.returncode == 0, exported.stderr
     assert "its actions match the actor's" in exported.stdout and (tmp_path / "p.onnx").stat().st_size > 0

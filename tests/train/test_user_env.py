@@ -99,7 +99,7 @@ def test_own_robot_trains_supervised_resumes_bit_for_bit_after_sigkill_plays_and
     assert "episode 2: return" in played and "(102 frames of" in played  # 2 x (50 steps + 1): smoke.yaml's limit
     assert (work / "arm.gif").stat().st_size > 0
     ftrain(work, "export", str(run), "--format", "torchscript", "-o", "arm.pt")
-    assert "mean return over 1 episodes" in ftrain(work, "play", "arm.pt").stdout
+    assert "mean return over 1 episode:" in ftrain(work, "play", "arm.pt").stdout
 
     # the robot's code changed since: one more observation; its policies no longer fit, in one line each
     code = work / "userbot" / "envs.py"
