@@ -47,7 +47,7 @@ from ftrain.supervise.options import (
     parse_nodes,
 )
 from ftrain.supervise.outage import StorageWait
-from ftrain.supervise.outcome import Outcome, classify, finished, not_admitted, peer_ended
+from ftrain.supervise.outcome import Outcome, classify, finished, newest_step, not_admitted, peer_ended
 from ftrain.supervise.plan import Plan, plan_key
 from ftrain.supervise.restarts import RestartPolicy
 
@@ -204,7 +204,10 @@ class Supervisor:
         """The run's ending after a stop signal that came while no workers ran (recorded as a ``preempt``)."""
         self.events("preempt", signal=signal_name(self.signals[0]))
         code = stop_code(self.signals[0])
-        return Outcome("preempted", code, "stopped by a signal while no workers ran; rerun to continue")
+        newest = newest_step(self.storage_wait.newest(self.policy.best_committed))  # as every other stop says it
+        return Outcome(
+            "preempted", code, f"preempted: stopped by a signal while no workers ran ({newest}); rerun to continue"
+        )
 
     def _next_plan(self, previous: Plan | None) -> Plan:
         """The next attempt to run (on several nodes: once node 0 has moved on from ``previous``, or ended the run)."""
