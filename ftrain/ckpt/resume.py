@@ -186,7 +186,8 @@ def resize_line(old: int, new: int, step: int, config: Config) -> str:
             f"{config.env.num_envs} per rank by global index; the global batch stays {total * config.num_steps_per_env}"
             " per iteration"
         )
-    kept = _ranks(0, min(old, new)) + (" keeps its" if min(old, new) == 1 else " keep their")
+    staying = min(old, new)
+    kept = _ranks(0, staying) + (" keeps its" if staying == 1 else " keep their")
     parts = [f"resized from {old} to {new} ranks at step {step}: {kept} environments"]
     if new > old:
         parts.append(f"{_ranks(old, new)} start with fresh ones (seeded from seed {config.seed}, rank, step {step})")
