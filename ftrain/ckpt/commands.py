@@ -26,6 +26,7 @@ from ftrain.ckpt.format import (
     Verification,
     human_size,
     parse_checkpoint_url,
+    shown,
     step_dir,
     verify_step,
 )
@@ -51,7 +52,7 @@ from ftrain.ckpt.steps import (
 from ftrain.ckpt.steps import unquarantine as unquarantine_step
 from ftrain.ckpt.storage import Storage
 from ftrain.config import CheckpointConfig
-from ftrain.errors import EXIT_STORAGE_HELD, StorageError, UserError, command, did_you_mean
+from ftrain.errors import EXIT_STORAGE_HELD, StorageError, UserError, command, counted, did_you_mean
 from ftrain.progress import Progress
 from ftrain.values import is_number
 
@@ -78,8 +79,7 @@ def ls(url: str, options: dict | None = None) -> int:
         created = str((info.manifest or {}).get("created") or "-").replace("T", " ")[:16]
         returns = [_number(info.metrics.get(name)) for name in METRICS]
         why = ", ".join(reason.value for reason in marks.get(info.step, []) if reason is not Kept.LAST)
-        status = "committed" if info.status == VERIFIED else info.status  # by sizes: ``verify`` reads the digests
-        print(row.format(info.step, status, human_size(info.size), created, *returns, why).rstrip())
+        print(row.format(info.step, shown(info.status), human_size(info.size), created, *returns, why).rstrip())
         for problem in info.problems:
             print(_fit(f"{'':>11}{problem}"))
     if step is None:
@@ -304,7 +304,7 @@ def _prune(
             print(f"keeping step {info.step} (incomplete, last written {written}: maybe a save in flight)")
             doomed.discard(info.step)
         elif info.step in doomed:
-            why = {VERIFIED: "verified, outside retention", INCOMPLETE: "abandoned, never committed"}.get(
+            why = {VERIFIED: "committed, outside retention", INCOMPLETE: "abandoned, never committed"}.get(
                 info.status, info.status
             )
             print(f"{'would delete' if dry_run else 'deleting'} step {info.step} ({why})")
@@ -317,7 +317,7 @@ def _prune(
                 storage.delete_tree(f"{ASIDE}/{directory}")
     kept = [info for info in infos if info.step not in doomed]
     good = [str(info.step) for info in kept if info.status == VERIFIED]
-    line = f"{'would keep' if dry_run else 'kept'} {len(good)} verified step{'s' * (len(good) != 1)}: "
+    line = f"{'would keep' if dry_run else 'kept'} {counted(len(good), 'committed step')}: "
     line += ", ".join(good) or "-"
     for status in (INCOMPLETE, CORRUPT, QUARANTINE):
         if steps := [str(info.step) for info in kept if info.status == status]:
@@ -346,7 +346,7 @@ def unquarantine(url: str, options: dict | None = None) -> int:
 def _unquarantine(storage: Storage, step: int) -> int:
     info = next(info for info in scan(storage) if info.step == step)
     if info.status != QUARANTINE:
-        raise UserError(f"{storage.where(step_dir(step))} is {info.status}, not quarantined: nothing to lift")
+        raise UserError(f"{storage.where(step_dir(step))} is {shown(info.status)}, not quarantined: nothing to lift")
     done = f"verifies: quarantine lifted (was: {info.problems[0].reason})"
     return _told(unquarantine_step(storage, step), storage.where(step_dir(step)), "stays quarantined", done)
 

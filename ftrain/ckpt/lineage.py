@@ -95,7 +95,7 @@ def _find(verified: list[StepInfo], step: int) -> StepInfo:
         if info.step == step:
             return info
     steps = _steps(info.step for info in verified)
-    raise UserError(f"step {step} is not a verified step of this storage: pick one of {steps}")
+    raise UserError(f"step {step} is not a committed step of this storage: pick one of {steps}")
 
 
 def _steps(steps: Iterable[int]) -> str:

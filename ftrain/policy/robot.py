@@ -62,7 +62,7 @@ def make_env(env: EnvConfig, render: bool = False) -> gym.Env:
     except Exception as error:  # the user's constructor and model: bad input, said in one line
         raise UserError(_construction_error(env.id, error)) from None
     try:
-        check_trainable(env.id, made)
+        check_trainable(env, made)
     except UserError:
         made.close()
         raise
@@ -135,9 +135,21 @@ def check_registered(env: EnvConfig, added: set[str]) -> None:
     raise UserError(f"env.id={env.id!r} is not a registered gymnasium environment: {hint}")
 
 
-def check_trainable(env_id: str, env: gym.Env) -> None:
-    """UserError unless ``env``'s core is a MujocoEnv with flat Box observation and action spaces."""
-    core = env.unwrapped
+def check_trainable(config: EnvConfig, env: gym.Env) -> None:
+    """UserError unless ``env``'s core is a MujocoEnv with flat Box observation and action spaces, and its episodes
+    end at a time limit: an episode that never ends (HalfCheetah falls on no step) is never evaluated nor played."""
+    env_id, core = config.id, env.unwrapped
+    if env.spec is None or env.spec.max_episode_steps is None:
+        given = config.kwargs.get("max_episode_steps")
+        why = (
+            f"env.kwargs max_episode_steps={given} leaves env.id={env_id!r} without a time limit"
+            if given is not None
+            else f"env.id={env_id!r} has no time limit (registered without max_episode_steps)"
+        )
+        raise UserError(
+            f"{why}: an episode may never end, and then is never evaluated nor played: set one, e.g. "
+            "env.kwargs={max_episode_steps: 1000}"
+        )
     if not isinstance(core, MujocoEnv):
         raise UserError(
             f"env.id={env_id!r} is a {class_name(type(core))}, not a gymnasium.envs.mujoco.MujocoEnv: ftrain trains "

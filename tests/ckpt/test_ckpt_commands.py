@@ -82,6 +82,20 @@ def test_verify_a_run_and_single_steps(run, capsys):
     assert "checkpoints/step-000000020/rank-00001.pt: sha256 mismatch" in capsys.readouterr().out
 
 
+def test_a_committed_step_whose_hash_fails_is_committed_to_every_command_not_verified(run, capsys):
+    """``verify`` reads the SHA-256s, the other commands a step's manifest and sizes: a bit-rotted step that ``verify``
+    fails is "committed" to them, never "verified" (a probe read "is verified, not quarantined" beside FAILED)."""
+    flip_shard_byte(Storage.open(run), 30)
+    assert ckpt_commands.verify(f"{run}/checkpoints/step-000000030") == 1
+    assert "step 30: FAILED" in capsys.readouterr().out
+    assert ckpt_commands.ls(run) == 0
+    assert lines_by_step(capsys.readouterr().out)[30].split()[1] == "committed"
+    with pytest.raises(UserError, match=r"step-000000030 is committed, not quarantined: nothing to lift$"):
+        ckpt_commands.unquarantine(f"{run}/checkpoints/step-000000030")
+    with pytest.raises(UserError, match=r"^step 99 is not a committed step of this storage: pick one of 30, 20, 10$"):
+        ckpt_commands.keep_line(run, 99)
+
+
 def test_show(run, capsys):
     assert ckpt_commands.show(f"{run}/checkpoints/step-000000020") == 0
     out = capsys.readouterr().out
@@ -99,17 +113,17 @@ def test_prune(run, capsys):
     assert ckpt_commands.prune(run, keep_last=1, dry_run=True) == 0
     out = capsys.readouterr().out
     assert (
-        "would delete step 20 (verified, outside retention)" in out
-        and "would delete step 10 (verified, outside retention)" in out
+        "would delete step 20 (committed, outside retention)" in out
+        and "would delete step 10 (committed, outside retention)" in out
     )
     assert out.splitlines()[-1] == (  # by status: a probe read corrupt and incomplete steps as kept
-        "would keep 1 verified step: 30; 1 incomplete left: 40 (maybe a save in flight); 1 corrupt left: 25 "
+        "would keep 1 committed step: 30; 1 incomplete left: 40 (maybe a save in flight); 1 corrupt left: 25 "
         "(--drop-bad deletes these)"
     )
     assert len(scan(Storage.open(run))) == 5
 
     assert ckpt_commands.prune(run, keep_last=1, pinned=[10]) == 0
-    assert "deleting step 20 (verified, outside retention)" in capsys.readouterr().out
+    assert "deleting step 20 (committed, outside retention)" in capsys.readouterr().out
     assert [info.step for info in scan(Storage.open(run))] == [40, 30, 25, 10]
 
     assert ckpt_commands.prune(run, keep_last=1, drop_bad=True) == 0

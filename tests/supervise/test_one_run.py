@@ -406,7 +406,7 @@ def test_ckpt_prune_on_a_live_runs_storage_is_refused_and_deletes_nothing_unless
     assert finish(first) == 0
     # the run gone, prune holds the lease itself (no best step kept: which is best differs with the CPU's kernels)
     after = subprocess.run([*prune, "--keep-best", "0"], cwd=REPO, env=child_env(), capture_output=True, text=True)
-    assert after.returncode == 0 and "kept 1 verified step: 8" in after.stdout, after.stdout + after.stderr
+    assert after.returncode == 0 and "kept 1 committed step: 8" in after.stdout, after.stdout + after.stderr
 
 
 def test_an_unsupervised_run_whose_lease_another_run_took_stops_at_once_with_exit_8(tmp_path) -> None:

@@ -169,6 +169,11 @@ BAD_INPUT = [
         "'stiffnes' Element 'joint', line 5)",
     ),
     (["env.id=userbot:DictArm-v0"], "has the observation space Dict('angles': Box("),
+    (["env.id=userbot:EndlessArm-v0"], "env.id='EndlessArm-v0' has no time limit (registered without max_episode"),
+    (
+        ["env.id=HalfCheetah-v5", "env.kwargs={max_episode_steps: -1}"],  # gymnasium's "no TimeLimit wrapper"
+        "env.kwargs max_episode_steps=-1 leaves env.id='HalfCheetah-v5' without a time limit: an episode may never end",
+    ),
     (  # taken by the constructor, fails in the reward: a probe's traceback, and a crash loop under the supervisor
         ["env.id=HalfCheetah-v5", "env.kwargs={forward_reward_weight: abc}"],
         "env.id='HalfCheetah-v5' fails on its first reset or step: TypeError: can't multiply sequence by non-int",
