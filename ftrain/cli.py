@@ -191,9 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
     ls.add_argument("url", help=f"{storage_url}, or {step_url}")
     _add_storage_options(ls)
     verify = ckpt_commands.add_parser(
-        "verify", help="verify every file of a storage or of one step (exit 1 on failure)"
+        "verify", help="verify every file of a storage (policy snapshots too) or of one step (exit 1 on failure)"
     )
-    verify.add_argument("url", help=f"{storage_url}, or {step_url}")
+    verify.add_argument("url", help=f"{storage_url}, {step_url}, or one policy snapshot <root>/policies/step-N")
     _add_storage_options(verify)
     show = ckpt_commands.add_parser("show", help="print the manifest of one step (default: newest verified)")
     show.add_argument("url", help=f"{step_url}, or {newest}")
@@ -489,8 +489,15 @@ def _dispatch(args: argparse.Namespace) -> int:
 
         if args.ckpt_command == "ls":
             return ckpt_commands.ls(args.url, options)
-        if args.ckpt_command == "verify":
-            return ckpt_commands.verify(args.url, options)
+        if args.ckpt_command == "verify":  # the checkpoints, then the policy snapshots, which are verified alike
+            from ftrain.ckpt.format import parse_checkpoint_url
+            from ftrain.policy import snapshots
+
+            if snapshots.parse_snapshot_url(args.url) is not None:
+                return snapshots.verify(args.url, options)
+            checkpoints = ckpt_commands.verify(args.url, options)
+            whole = parse_checkpoint_url(args.url)[1] is None
+            return max(checkpoints, snapshots.verify(args.url, options) if whole else 0)
         if args.ckpt_command == "show":
             return ckpt_commands.show(args.url, options, as_json=args.json)
         if args.ckpt_command == "unquarantine":

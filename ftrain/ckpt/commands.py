@@ -126,12 +126,13 @@ def verify(url: str, options: dict | None = None) -> int:
         if past.forks:
             print(f"FORKED: {past.fork_message(storage.url)}")
         else:
-            print(f"one history: {len(past.line)} steps on one line of descent, {len(past.superseded)} superseded")
+            line = f"{counted(len(past.line), 'step')} on one line of descent, {len(past.superseded)} superseded"
+            print(f"one history: {line}")
     incomplete = len(infos) - len(committed)
     if incomplete and (holder := _saving_now(storage)):
         print(holder)
     never = f"; {incomplete} incomplete (never committed)" if incomplete else ""
-    print(f"{len(committed) - failed} of {len(committed)} committed steps verified{never}")
+    print(f"{len(committed) - failed} of {counted(len(committed), 'committed step')} verified{never}")
     return 1 if failed or (past is not None and past.forks) else 0
 
 

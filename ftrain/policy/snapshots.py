@@ -16,11 +16,11 @@ Snapshots have their own retention (``snapshots.keep_last``), independent of the
 
 from __future__ import annotations
 
-from ftrain.ckpt.format import CHECKPOINTS, POLICIES, parse_checkpoint_url, step_dir, verify_step
+from ftrain.ckpt.format import CHECKPOINTS, INCOMPLETE, POLICIES, parse_checkpoint_url, step_dir, verify_step
 from ftrain.ckpt.retention import delete_step, retention_plan
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
-from ftrain.errors import UserError
+from ftrain.errors import UserError, counted
 
 ACTOR = "actor.pt"
 LINEAGE = "lineage.json"
@@ -81,6 +81,30 @@ def open_snapshot(url: str, options: dict | None = None) -> tuple[PoliciesView, 
             f"policy snapshot {storage.where(step_dir(step))} does not verify ({problems}): pick another step"
         )
     return storage, step, result.manifest
+
+
+def verify(url: str, options: dict | None = None) -> int:
+    """``ftrain ckpt verify`` of a snapshot (its URL), or of every snapshot of a run's storage: each file's size and
+    SHA-256 against the manifest, a line per snapshot; 1 if one fails. A storage without snapshots prints nothing."""
+    root, only = parse_snapshot_url(url) or (parse_checkpoint_url(url)[0], None)
+    storage = PoliciesView(Storage.open(root, options))
+    infos = [info for info in scan(storage) if only is None or info.step == only]
+    if only is not None and not infos:
+        raise UserError(f"policy snapshot {storage.where(step_dir(only))} does not exist: see {storage.where()}")
+    failed = 0
+    for info in infos:
+        if info.status == INCOMPLETE:  # a snapshot cut short: never trusted, deleted by the snapshots' retention
+            print(f"policy snapshot {info.step}: incomplete (never committed: no manifest)")
+            continue
+        result = verify_step(storage, info.step, full=True)
+        print(f"policy snapshot {info.step}: {'ok' if result.ok else 'FAILED'}")
+        for problem in result.problems:
+            print(f"  {_policies(step_dir(info.step))}/{problem}")
+        failed += not result.ok
+    committed = sum(info.status != INCOMPLETE for info in infos)
+    if infos:
+        print(f"{committed - failed} of {counted(committed, 'committed policy snapshot')} verified")
+    return 1 if failed else 0
 
 
 def prune(storage: PoliciesView, keep_last: int) -> None:

@@ -75,7 +75,7 @@ def test_verify_a_run_and_single_steps(run, capsys):
     assert out.splitlines()[-1] == "3 of 4 committed steps verified; 1 incomplete (never committed)"
 
     assert ckpt_commands.verify(f"{run}/checkpoints/step-000000020") == 0
-    assert capsys.readouterr().out.splitlines() == ["step 20: ok", "1 of 1 committed steps verified"]
+    assert capsys.readouterr().out.splitlines() == ["step 20: ok", "1 of 1 committed step verified"]
 
     flip_shard_byte(Storage.open(run), 20)
     assert ckpt_commands.verify(f"{run}/checkpoints/step-000000020") == 1

@@ -116,6 +116,22 @@ def test_snapshots_are_verified_with_their_own_retention(runs, capsys) -> None:
     onnx_file.write_bytes(bytes(data))
     with pytest.raises(UserError, match=r"policy snapshot .*step-000000006 does not verify \(policy.onnx: sha256"):
         load_policy(snapshot_url(run, 6))
+    capsys.readouterr()
+    assert main(["ckpt", "verify", str(run)]) == 1  # the checkpoints, then the snapshots: verified alike
+    out = capsys.readouterr().out.splitlines()
+    assert out[:3] == [
+        "step 8: ok",
+        "one history: 1 step on one line of descent, 0 superseded",
+        "1 of 1 committed step verified",
+    ]
+    assert out[3:5] == ["policy snapshot 8: ok", "policy snapshot 6: FAILED"], out  # newest first, as ckpt ls
+    assert out[5].startswith("  policies/step-000000006/policy.onnx: sha256 mismatch: "), out
+    assert out[6:] == ["1 of 2 committed policy snapshots verified"], out
+    assert main(["ckpt", "verify", snapshot_url(run, 8)]) == 0
+    assert capsys.readouterr().out.splitlines() == [
+        "policy snapshot 8: ok",
+        "1 of 1 committed policy snapshot verified",
+    ]
 
 
 def test_a_resumed_run_redoes_the_snapshots_past_its_checkpoint(runs, tmp_path) -> None:
