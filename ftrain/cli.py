@@ -37,7 +37,7 @@ from ftrain.errors import (
 from ftrain.lifeline import watch_launcher
 from ftrain.process import imports
 from ftrain.proctitle import name_process, rank_role
-from ftrain.redact import reveal_credentials
+from ftrain.redact import display_url, reveal_credentials
 
 if typing.TYPE_CHECKING:
     from ftrain.config import Config
@@ -92,9 +92,26 @@ def _closest(parser: argparse.ArgumentParser, message: str) -> str:
     return f" (did you mean {bare[near]}?)" if near else ""
 
 
+class _OneStorage(argparse.Action):
+    """``--storage`` given twice with two values is refused, as ``--storage A storage.url=B`` is: taking the last
+    would train into, or resume from, a storage the user may not have meant."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, value: object, option=None):
+        if (before := getattr(namespace, self.dest, None)) is not None and before != value:
+            raise UserError(
+                f"--storage {display_url(before)} and --storage {display_url(value)} name two storages: "
+                "pass one of them"
+            )
+        setattr(namespace, self.dest, value)
+
+
 def _add_run_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("config", help="YAML config file, e.g. configs/halfcheetah.yaml")
-    parser.add_argument("--storage", help="where checkpoints go: a local path (default runs/<name>), file://, s3://...")
+    parser.add_argument(
+        "--storage",
+        action=_OneStorage,
+        help="where checkpoints go: a local path (default runs/<name>), file://, s3://...",
+    )
     _add_storage_options(parser)
     loudness = parser.add_mutually_exclusive_group()
     loudness.add_argument(

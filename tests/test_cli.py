@@ -260,4 +260,18 @@ def test_keep_line_beside_retention_rules_is_refused_in_one_line(tmp_path, capsy
     assert f"instead of the retention rules: {', '.join(named)} would" in err, err
     assert sorted(path.relative_to(tmp_path) for path in tmp_path.rglob("*")) == before
     assert main(["ckpt", "prune", str(tmp_path / "run"), "--keep-line", "4", "--dry-run"]) == 0
-    assert "would keep the line of step 4: 1 steps; 0 would set aside" in capsys.readouterr().out
+    assert "would keep the line of step 4: 1 step; 0 would set aside" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("command", ["train", "supervise"])
+def test_storage_given_twice_is_refused_unless_it_is_the_same_one(tmp_path, capsys, command: str) -> None:
+    """argparse takes the last of a repeated option: a run would go to one storage while the user meant the other, as
+    ``--storage A storage.url=B`` (refused in the config). Its credentials stay out of the line."""
+    first, second = str(tmp_path / "a"), "s3://KEY:SECRET@bucket/run"
+    assert main([command, "configs/halfcheetah.yaml", "--storage", first, "--storage", second]) == 2
+    err = capsys.readouterr().err
+    assert (
+        err == f"ftrain: error: --storage {first} and --storage s3://bucket/run name two storages: pass one of them\n"
+    )
+    assert build_parser().parse_args([command, "x.yaml", "--storage", first, "--storage", first]).storage == first
+    assert not (tmp_path / "a").exists()

@@ -236,7 +236,7 @@ def keep_line(url: str, step: int, options: dict | None = None, force: bool = Fa
             print(f"step {info.step}: set aside to {set_aside(held, info)}")
         done = "would set aside" if dry_run else "set aside"
         kept = "would keep" if dry_run else "kept"
-        print(f"{kept} the line of step {step}: {len(past.line)} steps; {len(past.off_line())} {done}")
+        print(f"{kept} the line of step {step}: {counted(len(past.line), 'step')}; {len(past.off_line())} {done}")
         return 0
 
     return as_lease_holder(storage, "prune --keep-line", force, body, dry_run)
