@@ -64,6 +64,12 @@ def stop_on_sigterm() -> None:
         signal.signal(signal.SIGTERM, raise_terminated)
 
 
+def stop_signals() -> tuple[int, ...]:
+    """The stop signals a run takes over: SIGTERM, and SIGINT unless it was ignored when this process started (the
+    background job of a script, whose Ctrl-C is for the script's foreground): it stays ignored, as Python leaves it."""
+    return (signal.SIGTERM,) + ((signal.SIGINT,) if signal.getsignal(signal.SIGINT) != signal.SIG_IGN else ())
+
+
 def raise_terminated(signum: int, frame: object) -> None:
     raise Terminated
 

@@ -8,7 +8,8 @@ Owns the run's state machine on this node, attempt after attempt:
   answer (exit 7: waited for, ``outage.py``), a lease lost to a newer generation (``Lease.lost``: exit 8);
 - recover: SIGKILL to a doomed or hung group, SIGTERM then SIGKILL to orphans, back-off and restart
   (``restarts.py``); a worker that refused its input (exit 2) is not restarted;
-- preemption: SIGTERM or SIGINT is passed on as SIGTERM (save at the next iteration boundary), exit 143 or 130.
+- preemption: SIGTERM or SIGINT is passed on as SIGTERM (save at the next iteration boundary), exit 143 or 130 (a
+  SIGINT ignored at start, a script's background job, stays ignored: ``errors.stop_signals``).
 Every decision is a line and an ``events.jsonl`` record (``events.py``); exit codes: ``options.py``; one supervisor
 per log directory: ``ftrain.log_dir_lock``. Torch-free: config, heartbeat, the storage lease and the standard library.
 """
@@ -28,7 +29,7 @@ from ftrain.ckpt import cas
 from ftrain.ckpt.lease import Lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config, for_world, make_local_directories, storage_key
-from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, Deliveries, UserError, stop_code
+from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, Deliveries, UserError, stop_code, stop_signals
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.log_dir_lock import claim_log_dir
 from ftrain.redact import hide_credentials, redact_command
@@ -73,7 +74,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
         print(f"ftrain supervise: error: {error}", file=sys.stderr)
         return EXIT_PEER_LOST
-    for sig in (signal.SIGTERM, signal.SIGINT):  # to the end of the process: a signal once the run has ended (SLURM's
+    for sig in stop_signals():  # to the end of the process: a signal once the run has ended (SLURM's
         signal.signal(sig, supervisor.on_signal)  # time limit as the job finishes) changes nothing, its exit code stays
     cas.stop_waiting_when(supervisor.waiting_stopped)
     log = lambda line: supervisor.events("lease", line, detail=line)  # noqa: E731

@@ -14,7 +14,7 @@ import sys
 import threading
 import typing
 
-from ftrain.errors import Deliveries, stop_code
+from ftrain.errors import Deliveries, stop_code, stop_signals
 
 
 class StopRequest:
@@ -38,13 +38,13 @@ class StopRequest:
         return self.signal is not None
 
     def install(self, at_start: typing.Callable[[int], None] = lambda signum: None) -> None:
-        """Take SIGTERM and SIGINT over, and until ``training()``, end this process at once on either, after
-        ``at_start(signum)`` (its line): a Python handler runs only between the main thread's bytecodes, and a
-        rendezvous or a collective that waits for a rank that is gone keeps it in C for its whole timeout (torchrun's
-        SIGTERM went unanswered until its SIGKILL, 30 s later). A thread reads the numbers Python's own C-level
-        handler writes to its wakeup pipe as the signal comes."""
-        signal.signal(signal.SIGTERM, self._handle)
-        signal.signal(signal.SIGINT, self._handle)
+        """Take SIGTERM and SIGINT over (``errors.stop_signals``: an ignored SIGINT stays so), and until ``training()``,
+        end this process at once on either, after ``at_start(signum)`` (its line): a Python handler runs only between
+        the main thread's bytecodes, and a rendezvous or a collective that waits for a rank that is gone keeps it in C
+        for its whole timeout (torchrun's SIGTERM went unanswered until its SIGKILL, 30 s later). A thread reads the
+        numbers Python's own C-level handler writes to its wakeup pipe as the signal comes."""
+        for number in stop_signals():
+            signal.signal(number, self._handle)
         read, write = os.pipe()
         os.set_blocking(write, False)
         signal.set_wakeup_fd(write, warn_on_full_buffer=False)

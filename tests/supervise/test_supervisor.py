@@ -172,9 +172,10 @@ def start_supervisor(
     env: dict | None = None,
     iterations: int = 0,
     dist_timeout: int = 10,
+    prefix: list[str] = (),
 ) -> subprocess.Popen:
     """The stand-in under ``ftrain supervise`` (2 ranks); ``env``: more environment, ``iterations``: instead of
-    ``ITERATIONS``."""
+    ``ITERATIONS``, ``prefix``: the command that starts it."""
     env = {
         **os.environ,
         "PYTHONPATH": os.pathsep.join([str(HERE), str(TESTS), str(REPO), str(REPO / "launch")]),  # helpers: launch/ too
@@ -182,7 +183,17 @@ def start_supervisor(
         "FAKE_FAULT": fault,
         **(env or {}),
     }
-    command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", "--backoff-initial", "0.2"]
+    command = [
+        *prefix,
+        sys.executable,
+        "-m",
+        "ftrain",
+        "supervise",
+        "--nproc-per-node",
+        "2",
+        "--backoff-initial",
+        "0.2",
+    ]
     command += [*options, str(write_config(tmp_path, dist_timeout)), "--storage", str(tmp_path / run)]
     return launch([*command, *([f"iterations={iterations}"] if iterations else [])], cwd=REPO, env=env)
 
@@ -607,6 +618,20 @@ def test_a_stop_signal_saves_and_the_same_command_continues(tmp_path):
     assert_finished(run)
     resumed = [event["step"] for event in events(run) if event["event"] == "resumed"]
     assert resumed[1:] == [before, saved]  # nothing lost: each rerun starts where the stopped run saved
+
+
+def test_a_sigint_ignored_at_start_stays_ignored_and_sigterm_still_saves(tmp_path):
+    """A script's background job starts with SIGINT ignored (POSIX), so that a Ctrl-C at the terminal stops the
+    script's foreground, not the job: the supervisor leaves it so (it took SIGINT over and stopped the run)."""
+    run = tmp_path / "run"
+    proc = start_supervisor(tmp_path, iterations=200, prefix=["sh", "-c", 'trap "" INT; exec "$@"', "sh"])
+    training(run / "heartbeat", 2, [0])
+    proc.send_signal(signal.SIGINT)
+    training(run / "heartbeat", 6, [0])  # trains on
+    assert proc.poll() is None and "preempt" not in [event["event"] for event in events(run)]
+    proc.send_signal(signal.SIGTERM)
+    assert finish(proc) == 143
+    assert 6 <= final_manifest(run)["step"] < 200
 
 
 @pytest.mark.slow

@@ -237,3 +237,19 @@ def test_the_supervisors_closing_line_names_the_step_a_rerun_resumes_from(tmp_pa
         newest = select_resume(Storage.open(str(storage)), log=lambda line: None)[0]
         assert closing == [str(newest)], (schedule, closing, newest)
     print(f"{len(schedules)} schedules checked: {', '.join(schedules)}")
+
+
+AS_A_BACKGROUND_JOB = ["sh", "-c", 'trap "" INT; exec "$@"', "sh"]
+"""The prefix that starts a command as a script's background job does (POSIX): with SIGINT ignored."""
+
+
+def test_a_sigint_ignored_at_start_stays_ignored_and_sigterm_is_taken_over() -> None:
+    """A script's background job starts with SIGINT ignored, so that a Ctrl-C at the terminal stops the script's
+    foreground, not the job; Python leaves it so, and so does a run's stop request (it took SIGINT over)."""
+    probe = (
+        "import signal; from ftrain.train.stop import StopRequest; StopRequest().install(); "
+        "print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN, signal.getsignal(signal.SIGTERM) is signal.SIG_DFL)"
+    )
+    for prefix, ignored in ((AS_A_BACKGROUND_JOB, "True"), ([], "False")):
+        done = subprocess.run([*prefix, sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
+        assert done.stdout.split() == [ignored, "False"], done.stdout + done.stderr
