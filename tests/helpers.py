@@ -140,6 +140,10 @@ LAUNCHED: list[subprocess.Popen] = []
 """Supervisors the tests started; conftest stops any still running after each test."""
 
 
+AS_A_BACKGROUND_JOB = ["sh", "-c", 'trap "" INT; exec "$@"', "sh"]
+"""The prefix that starts a command as a script starts its background job (POSIX): with SIGINT ignored."""
+
+
 def launch(command: list[str], **popen: object) -> subprocess.Popen:
     """Start a long-lived process (a supervisor) that must not outlive the test that started it."""
     LAUNCHED.append(subprocess.Popen(command, **popen))

@@ -41,6 +41,7 @@ from ftrain.supervise.supervisor import Supervisor
 from ftrain.supervise.supervisor import _Stop as Stop
 
 from helpers import (
+    AS_A_BACKGROUND_JOB,
     REPO,
     TESTS,
     ManualClock,
@@ -183,19 +184,9 @@ def start_supervisor(
         "FAKE_FAULT": fault,
         **(env or {}),
     }
-    command = [
-        *prefix,
-        sys.executable,
-        "-m",
-        "ftrain",
-        "supervise",
-        "--nproc-per-node",
-        "2",
-        "--backoff-initial",
-        "0.2",
-    ]
+    command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", "--backoff-initial", "0.2"]
     command += [*options, str(write_config(tmp_path, dist_timeout)), "--storage", str(tmp_path / run)]
-    return launch([*command, *([f"iterations={iterations}"] if iterations else [])], cwd=REPO, env=env)
+    return launch([*prefix, *command, *([f"iterations={iterations}"] if iterations else [])], cwd=REPO, env=env)
 
 
 def start_nodes(
@@ -624,7 +615,7 @@ def test_a_sigint_ignored_at_start_stays_ignored_and_sigterm_still_saves(tmp_pat
     """A script's background job starts with SIGINT ignored (POSIX), so that a Ctrl-C at the terminal stops the
     script's foreground, not the job: the supervisor leaves it so (it took SIGINT over and stopped the run)."""
     run = tmp_path / "run"
-    proc = start_supervisor(tmp_path, iterations=200, prefix=["sh", "-c", 'trap "" INT; exec "$@"', "sh"])
+    proc = start_supervisor(tmp_path, iterations=200, prefix=AS_A_BACKGROUND_JOB)
     training(run / "heartbeat", 2, [0])
     proc.send_signal(signal.SIGINT)
     training(run / "heartbeat", 6, [0])  # trains on

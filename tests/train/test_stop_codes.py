@@ -23,6 +23,7 @@ from ftrain.heartbeat import ENV_DIR, read_heartbeats
 from ftrain.supervise.attempt import TORCHRUN
 
 from helpers import (
+    AS_A_BACKGROUND_JOB,
     REPO,
     SMOKE,
     child_env,
@@ -237,10 +238,6 @@ def test_the_supervisors_closing_line_names_the_step_a_rerun_resumes_from(tmp_pa
         newest = select_resume(Storage.open(str(storage)), log=lambda line: None)[0]
         assert closing == [str(newest)], (schedule, closing, newest)
     print(f"{len(schedules)} schedules checked: {', '.join(schedules)}")
-
-
-AS_A_BACKGROUND_JOB = ["sh", "-c", 'trap "" INT; exec "$@"', "sh"]
-"""The prefix that starts a command as a script's background job does (POSIX): with SIGINT ignored."""
 
 
 def test_a_sigint_ignored_at_start_stays_ignored_and_sigterm_is_taken_over() -> None:
