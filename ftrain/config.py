@@ -252,6 +252,15 @@ class Config:
         data["storage"]["options"] = redact_options(self.storage.options)
         return data
 
+    def saved_dict(self) -> dict:
+        """``public_dict`` with its local paths made absolute (the storage, the log directory, a ``resume`` step, the
+        teacher): the run's ``config.yaml``, which continues the run from any working directory."""
+        data = self.public_dict()
+        data["storage"]["url"], data["log_dir"] = _absolute(data["storage"]["url"]), _absolute(data["log_dir"])
+        data["teacher"] = _absolute(data["teacher"])
+        data["resume"] = data["resume"] if data["resume"] in ("auto", "never") else _absolute(data["resume"])
+        return data
+
     def training_hash(self, robot: dict | None = None) -> str:
         """Digest of everything that decides what is trained (``training_part``), with the identity of the ``robot``
         trained (``ftrain.policy.robot.identity``: its env class and model files) unless that is gymnasium's own, so
@@ -432,9 +441,14 @@ def local_path(url: str) -> str:
     return path
 
 
+def _absolute(url: str) -> str:
+    """A plain local path made absolute; a URL (``file://`` ones are absolute already) or "" as it is."""
+    return os.path.abspath(url) if url and "://" not in url else url
+
+
 def storage_identity(url: str) -> str:
     """Which storage a run lives in, as trackers may be told it: without credentials, a local path made absolute."""
-    return display_url(url) if "://" in url else os.path.abspath(url)
+    return display_url(_absolute(url) or os.getcwd())
 
 
 def _same_storage(one: str, other: str) -> bool:

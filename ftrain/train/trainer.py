@@ -372,7 +372,7 @@ class Trainer:
         if self.info.is_main:
             log_dir = Path(self.config.log_dir)
             log_dir.mkdir(parents=True, exist_ok=True)
-            (log_dir / "config.yaml").write_text(yaml.safe_dump(self.config.public_dict(), sort_keys=False))
+            (log_dir / "config.yaml").write_text(yaml.safe_dump(self.config.saved_dict(), sort_keys=False))
             topology.write(log_dir, self.run_description)
 
 

@@ -5,12 +5,15 @@ from __future__ import annotations
 import csv
 import json
 import subprocess
+import sys
 
 import pytest
+import yaml
 
 from ftrain.train.phases import PHASES
 
 from helpers import (
+    SMOKE,
     TESTS,
     child_env,
     final_manifest,
@@ -44,6 +47,24 @@ def test_ranks_agree_after_every_iteration_and_the_seed_decides(tmp_path, refere
     assert final_manifest(tmp_path / "a")["state_sha256"] == same["state_sha256"]
     assert other["state_sha256"] != same["state_sha256"]
     assert metrics_by_iteration(tmp_path / "a") == metrics_by_iteration(reference_run(8))
+
+
+@pytest.mark.slow
+def test_a_runs_config_yaml_continues_it_from_any_directory(tmp_path) -> None:
+    """The saved ``config.yaml`` names the run's local paths absolute: a storage typed relative (``./run//``) named
+    another directory from elsewhere, where ``ftrain train <run>/config.yaml`` started a fresh run instead."""
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    train = [sys.executable, "-m", "ftrain", "train"]
+    for config, cwd, iterations in ((SMOKE, tmp_path, 2), (str(tmp_path / "run" / "config.yaml"), elsewhere, 4)):
+        storage = ["--storage", "./run//"] if cwd == tmp_path else []
+        command = [*train, config, *storage, f"iterations={iterations}", "log.console=false"]
+        done = subprocess.run(command, cwd=cwd, env=child_env(), capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stdout + done.stderr
+    assert "resumed from step 2" in done.stdout, done.stdout
+    saved = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())
+    assert saved["storage"]["url"] == saved["log_dir"] == str(tmp_path / "run") and saved["iterations"] == 4
+    assert final_manifest(tmp_path / "run")["step"] == 4 and not any(elsewhere.iterdir())
 
 
 @pytest.mark.slow
