@@ -93,15 +93,17 @@ def _closest(parser: argparse.ArgumentParser, message: str) -> str:
 
 
 class _OneStorage(argparse.Action):
-    """``--storage`` given twice with two values is refused, as ``--storage A storage.url=B`` is: taking the last
+    """``--storage`` given twice for two storages is refused, as ``--storage A storage.url=B`` is: taking the last
     would train into, or resume from, a storage the user may not have meant."""
 
-    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, value: object, option=None):
-        if (before := getattr(namespace, self.dest, None)) is not None and before != value:
-            raise UserError(
-                f"--storage {display_url(before)} and --storage {display_url(value)} name two storages: "
-                "pass one of them"
-            )
+    def __call__(
+        self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, value: str, option: str | None = None
+    ) -> None:
+        from ftrain.config import same_storage
+
+        if (before := getattr(namespace, self.dest, None)) is not None and not same_storage(before, value):
+            shown = f"--storage {display_url(before)} and --storage {display_url(value)}"
+            raise UserError(f"{shown} name two storages: pass one of them")
         setattr(namespace, self.dest, value)
 
 

@@ -253,12 +253,12 @@ class Config:
         return data
 
     def saved_dict(self) -> dict:
-        """``public_dict`` with its local paths made absolute (the storage, the log directory, a ``resume`` step, the
-        teacher): the run's ``config.yaml``, which continues the run from any working directory."""
+        """``public_dict`` with the local paths a run opens made absolute (its storage, log directory and teacher):
+        the run's ``config.yaml``, which continues the run from any working directory. ``resume`` stays as typed: the
+        run's manifests name their origin so, and a run that has its own history no longer opens it."""
         data = self.public_dict()
-        data["storage"]["url"], data["log_dir"] = _absolute(data["storage"]["url"]), _absolute(data["log_dir"])
-        data["teacher"] = _absolute(data["teacher"])
-        data["resume"] = data["resume"] if data["resume"] in ("auto", "never") else _absolute(data["resume"])
+        for section, key in ((data["storage"], "url"), (data, "log_dir"), (data, "teacher")):
+            section[key] = _absolute(section[key])
         return data
 
     def training_hash(self, robot: dict | None = None) -> str:
@@ -368,7 +368,7 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
         if not storage.strip():
             raise UserError("--storage is empty: pass a directory or a URL, or leave it out for runs/<name>")
         given = [raw for key, _, raw in (item.partition("=") for item in overrides) if key.strip() == "storage.url"]
-        if given and parse_value(given[-1]) and not _same_storage(str(parse_value(given[-1])), storage):
+        if given and parse_value(given[-1]) and not same_storage(str(parse_value(given[-1])), storage):
             shown = f"--storage {display_url(storage)} and storage.url={display_url(given[-1])}"
             raise UserError(f"{shown} name two storages: pass one of them")
         set_dotted(data, "storage.url", storage)
@@ -442,8 +442,9 @@ def local_path(url: str) -> str:
 
 
 def _absolute(url: str) -> str:
-    """A plain local path made absolute; a URL (``file://`` ones are absolute already) or "" as it is."""
-    return os.path.abspath(url) if url and "://" not in url else url
+    """A plain local path made absolute (``~`` expanded); a URL (``file://`` ones are absolute already) or "" as it
+    is."""
+    return os.path.abspath(expand_home(url)) if url and "://" not in url else url
 
 
 def storage_identity(url: str) -> str:
@@ -451,7 +452,7 @@ def storage_identity(url: str) -> str:
     return display_url(_absolute(url) or os.getcwd())
 
 
-def _same_storage(one: str, other: str) -> bool:
+def same_storage(one: str, other: str) -> bool:
     """Whether two spellings name one storage: the same local directory (``/x``, ``/x/``, ``file:///x``, ``/a/../x``),
     else the same URL but for a trailing slash."""
     return len({storage_identity(local_path(url) or url).rstrip("/") for url in (one, other)}) == 1

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import threading
 import time
 from pathlib import Path
@@ -187,3 +188,15 @@ class HoldCommitHook(Hook):
         while not self.release.exists():
             trainer.heartbeat.beat(Phase.UPDATE)
             time.sleep(0.2)
+
+
+class SigintHook(Hook):
+    """After the first iteration, each rank appends to ``path`` whether it ignores SIGINT or has taken it over."""
+
+    def __init__(self, path: str) -> None:
+        self.path = Path(path)
+
+    def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        if trainer.iteration == 1:
+            with self.path.open("a") as file:
+                file.write("ignored\n" if signal.getsignal(signal.SIGINT) == signal.SIG_IGN else "taken\n")

@@ -358,3 +358,27 @@ def test_a_path_written_with_a_tilde_is_the_home_directory_for_checkpoints_logs_
     plot = [sys.executable, "-m", "ftrain", "plot", "~/one", "-o", str(tmp_path / "curves.png")]
     assert subprocess.run(plot, cwd=elsewhere, env=env, capture_output=True).returncode == 0
     assert (tmp_path / "curves.png").stat().st_size > 0 and not list(elsewhere.iterdir())
+
+
+@pytest.mark.parametrize(
+    ("given", "saved", "log_dir"),
+    [
+        ("./run//", "{cwd}/run", "{cwd}/run"),
+        ("~/runs/a", "{home}/runs/a", "{home}/runs/a"),
+        ("../b/./c", "{parent}/b/c", "{parent}/b/c"),
+        ("file:///abs/x", "file:///abs/x", "/abs/x"),  # local: logs where it is
+        ("s3://KEY:SECRET@bucket/x", "s3://bucket/x", "{cwd}/runs/run/s3/bucket/x"),  # runs/<name>/...
+    ],
+)
+def test_a_runs_saved_config_names_its_local_paths_absolute(tmp_path, monkeypatch, given, saved, log_dir) -> None:
+    """``config.yaml`` continues the run from any directory: the storage, the log directory and the teacher that a
+    relative path named from the run's working directory are absolute in it, a URL stays as it is (without its
+    credentials), and ``resume`` stays as typed (the run's manifests name their origin so)."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    paths = {"cwd": tmp_path, "home": tmp_path / "home", "parent": tmp_path.parent}
+    config = load_config(None, [f"teacher={given}", "algorithm.class_name=Distillation", "resume=../r/step-4"], given)
+    data = config.saved_dict()
+    expected = saved.format(**paths)
+    assert (data["storage"]["url"], data["teacher"], data["resume"]) == (expected, expected, "../r/step-4")
+    assert data["log_dir"] == log_dir.format(**paths)

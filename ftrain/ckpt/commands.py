@@ -104,20 +104,7 @@ def verify(url: str, options: dict | None = None) -> int:
     infos = [info for info in scan(storage) if step is None or info.step == step]
     progress.clear()
     committed = [info.step for info in infos if info.status != INCOMPLETE]
-    failed = 0
-    for info in infos:
-        if info.status == INCOMPLETE:
-            age = _age(storage.modified(step_dir(info.step)))
-            print(f"step {info.step}: incomplete (never committed: no manifest; last written {age})")
-            continue
-        done = committed.index(info.step)
-        progress.count("ckpt verify", done, len(committed), "steps", f" (step {info.step}: {human_size(info.size)})")
-        result = verify_step(storage, info.step, full=True)
-        progress.clear()
-        print(f"step {info.step}: {'ok' if result.ok else 'FAILED'}")
-        for problem in result.problems:
-            print(f"  {step_dir(info.step)}/{problem}")
-        failed += not result.ok
+    failed = verify_each(storage, infos)
     past = history(infos) if step is None else None
     if past is not None:
         for info in infos:
@@ -134,6 +121,29 @@ def verify(url: str, options: dict | None = None) -> int:
     never = f"; {incomplete} incomplete (never committed)" if incomplete else ""
     print(f"{len(committed) - failed} of {counted(len(committed), 'committed step')} verified{never}")
     return 1 if failed or (past is not None and past.forks) else 0
+
+
+def verify_each(storage: Storage, infos: list[StepInfo], noun: str = "step", top: str = CHECKPOINTS) -> int:
+    """``verify``'s line for each of ``infos``: a committed step checked with full digests, its problems named under
+    ``top`` (the directory of the steps), a step without a manifest told with its age; how many failed. Policy
+    snapshots (``noun``, ``top``) are verified alike, through ftrain.policy.snapshots' view of ``policies/``."""
+    progress, committed, failed = Progress(), [info.step for info in infos if info.status != INCOMPLETE], 0
+    for info in infos:
+        if info.status == INCOMPLETE:
+            age = _age(storage.modified(step_dir(info.step)))
+            print(f"{noun} {info.step}: incomplete (never committed: no manifest; last written {age})")
+            continue
+        done = committed.index(info.step)
+        progress.count(
+            "ckpt verify", done, len(committed), f"{noun}s", f" ({noun} {info.step}: {human_size(info.size)})"
+        )
+        result = verify_step(storage, info.step, full=True)
+        progress.clear()
+        print(f"{noun} {info.step}: {'ok' if result.ok else 'FAILED'}")
+        for problem in result.problems:
+            print(f"  {top}/{step_dir(info.step).partition('/')[2]}/{problem}")
+        failed += not result.ok
+    return failed
 
 
 def _verify_aside(storage: Storage, directory: str) -> int:

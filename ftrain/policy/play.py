@@ -44,7 +44,7 @@ def play(
     env = make_env(policy.config.env, render=video is not None)
     check_fits(policy, env)
     writer = None if video is None else _VideoWriter(Path(video), env)
-    progress = _PlayProgress(episodes, env.spec.max_episode_steps if env.spec else None, writer)
+    progress = _PlayProgress(episodes, env.spec.max_episode_steps, writer)  # set: robot.check_trainable
 
     def observed(obs: np.ndarray) -> None:
         if writer is not None:
@@ -77,7 +77,7 @@ class _PlayProgress:
     """The live line of a play on a terminal: steps (video frames) so far, of at most what the episodes' step limit
     allows, with an ETA; an episode that ends early brings the end nearer."""
 
-    def __init__(self, episodes: int, limit: int | None, writer: _VideoWriter | None) -> None:
+    def __init__(self, episodes: int, limit: int, writer: _VideoWriter | None) -> None:
         self.progress = Progress()
         self.episodes = episodes
         self.limit = limit
@@ -91,11 +91,8 @@ class _PlayProgress:
     def observed(self) -> None:
         self.seen += 1
         episode = f" (episode {min(self.ended + 1, self.episodes)} of {self.episodes})"
-        if self.limit:
-            total = self._ended_at + (self.episodes - self.ended) * (self.limit + 1)
-            self.progress.count(self.label, self.seen, total, self.unit, episode)
-        elif self.seen % 25 == 0:
-            self.progress.show(f"{self.label}: {self.seen:,} {self.unit}{episode}")
+        total = self._ended_at + (self.episodes - self.ended) * (self.limit + 1)
+        self.progress.count(self.label, self.seen, total, self.unit, episode)
 
     def episode_ended(self) -> None:
         self.ended += 1

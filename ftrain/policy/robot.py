@@ -139,17 +139,6 @@ def check_trainable(config: EnvConfig, env: gym.Env) -> None:
     """UserError unless ``env``'s core is a MujocoEnv with flat Box observation and action spaces, and its episodes
     end at a time limit: an episode that never ends (HalfCheetah falls on no step) is never evaluated nor played."""
     env_id, core = config.id, env.unwrapped
-    if env.spec is None or env.spec.max_episode_steps is None:
-        given = config.kwargs.get("max_episode_steps")
-        why = (
-            f"env.kwargs max_episode_steps={given} leaves env.id={env_id!r} without a time limit"
-            if given is not None
-            else f"env.id={env_id!r} has no time limit (registered without max_episode_steps)"
-        )
-        raise UserError(
-            f"{why}: an episode may never end, and then is never evaluated nor played: set one, e.g. "
-            "env.kwargs={max_episode_steps: 1000}"
-        )
     if not isinstance(core, MujocoEnv):
         raise UserError(
             f"env.id={env_id!r} is a {class_name(type(core))}, not a gymnasium.envs.mujoco.MujocoEnv: ftrain trains "
@@ -161,6 +150,17 @@ def check_trainable(config: EnvConfig, env: gym.Env) -> None:
                 f"env.id={env_id!r} has the {what} space {space}: ftrain trains a flat Box (one vector of numbers) "
                 f"of each: flatten it (gymnasium.spaces.flatten_space) or make it continuous"
             )
+    if env.spec is None or env.spec.max_episode_steps is None:
+        given = config.kwargs.get("max_episode_steps")
+        why = (
+            f"env.kwargs max_episode_steps={given} leaves env.id={env_id!r} without a time limit"
+            if given is not None
+            else f"env.id={env_id!r} has no time limit (gymnasium's max_episode_steps, of its registration)"
+        )
+        raise UserError(
+            f"{why}: an episode may never end, and then is never evaluated nor played: set one, e.g. "
+            "env.kwargs={max_episode_steps: 1000}"
+        )
 
 
 def identity(env: EnvConfig, core: MujocoEnv) -> dict:

@@ -16,6 +16,7 @@ Snapshots have their own retention (``snapshots.keep_last``), independent of the
 
 from __future__ import annotations
 
+from ftrain.ckpt.commands import verify_each
 from ftrain.ckpt.format import CHECKPOINTS, INCOMPLETE, POLICIES, parse_checkpoint_url, step_dir, verify_step
 from ftrain.ckpt.retention import delete_step, retention_plan
 from ftrain.ckpt.steps import scan
@@ -51,6 +52,9 @@ class PoliciesView:
 
     def delete_tree(self, rel: str) -> None:
         self.storage.delete_tree(_policies(rel))
+
+    def modified(self, rel: str) -> float | None:
+        return self.storage.modified(_policies(rel))
 
     def where(self, rel: str = "") -> str:
         return self.storage.where(_policies(rel))
@@ -91,18 +95,8 @@ def verify(url: str, options: dict | None = None) -> int:
     infos = [info for info in scan(storage) if only is None or info.step == only]
     if only is not None and not infos:
         raise UserError(f"policy snapshot {storage.where(step_dir(only))} does not exist: see {storage.where()}")
-    failed = 0
-    for info in infos:
-        if info.status == INCOMPLETE:  # a snapshot cut short: never trusted, deleted by the snapshots' retention
-            print(f"policy snapshot {info.step}: incomplete (never committed: no manifest)")
-            continue
-        result = verify_step(storage, info.step, full=True)
-        print(f"policy snapshot {info.step}: {'ok' if result.ok else 'FAILED'}")
-        for problem in result.problems:
-            print(f"  {_policies(step_dir(info.step))}/{problem}")
-        failed += not result.ok
-    committed = sum(info.status != INCOMPLETE for info in infos)
-    if infos:
+    failed = verify_each(storage, infos, "policy snapshot", POLICIES)
+    if committed := sum(info.status != INCOMPLETE for info in infos):
         print(f"{committed - failed} of {counted(committed, 'committed policy snapshot')} verified")
     return 1 if failed else 0
 

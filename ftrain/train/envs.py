@@ -57,7 +57,7 @@ class MujocoVecEnv(VecEnv):
         self.env_id = env_id
         self.num_envs = num_envs
         self.num_actions = int(np.prod(self.envs.single_action_space.shape))
-        self.max_episode_length = self.envs.envs[0].spec.max_episode_steps or 0
+        self.max_episode_length = self.envs.envs[0].spec.max_episode_steps  # set: robot.check_trainable
         self.device = "cpu"
         self.cfg = {"env_id": env_id, "num_envs": num_envs}
         self._low = self.envs.single_action_space.low

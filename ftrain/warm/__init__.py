@@ -116,7 +116,8 @@ def handover(entry: str, argv: list[str]) -> int | None:
         with contextlib.suppress(ProcessLookupError):  # it has ended: its status is on the way
             os.killpg(worker[0], number)  # its group, as torchrun signals a worker's (the fork leads its own)
 
-    previous = {number: signal.signal(number, forward) for number in FORWARDED}
+    taken = [number for number in FORWARDED if signal.getsignal(number) != signal.SIG_IGN]  # ignored: as a cold one
+    previous = {number: signal.signal(number, forward) for number in taken}
     request = {"secret": secret, "entry": entry, "argv": argv, "sys_argv": sys.argv, "env": dict(os.environ)}
     try:
         send_message(connection, {**request, "cwd": os.getcwd(), "umask": _umask()}, STREAMS)

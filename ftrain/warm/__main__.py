@@ -32,17 +32,20 @@ TORCHRUN = "torchrun"
 """The entry of torchrun's stand-in."""
 REQUEST_TIMEOUT = 10.0
 """Seconds a stand-in has to send its request once connected: one that stalls must not stall the pool."""
-STOP_SIGNALS = {signal.SIGTERM: signal.SIG_DFL, signal.SIGINT: signal.default_int_handler}
-"""What the pool ignores, and the handlers a fork gets back (Python's at start): a stop that reaches every process of
-a run (SLURM signals every process of a job step) is for the workers, which save; the pool ends only with its
+STOP_SIGNALS = (signal.SIGTERM, signal.SIGINT)
+"""What the pool ignores, and a fork gets back as the pool started with them (Python's at start: a SIGINT ignored since
+the supervisor started, a script's background job, stays ignored in the workers too): a stop that reaches every process
+of a run (SLURM signals every process of a job step) is for the workers, which save; the pool ends only with its
 supervisor (``close``, or ``die_with_supervisor``), and its forks with it, so a pool that died of it would take the
 workers down before their save."""
 
 
 class Pool:
-    def __init__(self, listener: socket.socket, secret: str) -> None:
+    def __init__(self, listener: socket.socket, secret: str, started_with: dict) -> None:
         self.listener = listener
         self.secret = secret
+        self.started_with = started_with
+        """Stop signal -> the handler the pool started with, which each fork gets back."""
         self.forks: dict[int, socket.socket | None] = {}
         """Forked process -> its stand-in's connection (None once the stand-in is gone)."""
         self.wakeup, wakeup_write = socket.socketpair()
@@ -102,7 +105,7 @@ class Pool:
         stand-in learns its pid only then: a signal passed on to its process group reaches it, and is not ignored."""
         signal.set_wakeup_fd(-1)
         signal.signal(signal.SIGCHLD, signal.SIG_DFL)
-        for number, handler in STOP_SIGNALS.items():  # as in a process just started
+        for number, handler in self.started_with.items():  # as in a process just started
             signal.signal(number, handler)
         for end in [*self.sockets, *filter(None, self.forks.values())]:
             end.close()
@@ -151,8 +154,7 @@ class Pool:
 def serve() -> NoReturn:
     die_with_supervisor()
     name_process(f"warm pool of supervisor {os.getppid()}")
-    for number in STOP_SIGNALS:
-        signal.signal(number, signal.SIG_IGN)
+    started_with = {number: signal.signal(number, signal.SIG_IGN) for number in STOP_SIGNALS}
     fd, _, secret = os.environ[LISTENER_ENV].partition(":")
     listener = socket.socket(fileno=int(fd))
     del os.environ[LISTENER_ENV]
@@ -161,7 +163,7 @@ def serve() -> NoReturn:
         for name in PRELOAD:
             importlib.import_module(name)
     _forget_exit_functions()
-    request = Pool(listener, secret).serve()
+    request = Pool(listener, secret, started_with).serve()
     try:
         code = entries[request["entry"]](request["argv"])
     except SystemExit as stop:

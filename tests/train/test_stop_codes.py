@@ -26,13 +26,16 @@ from helpers import (
     AS_A_BACKGROUND_JOB,
     REPO,
     SMOKE,
+    TESTS,
     child_env,
     events,
     final_manifest,
     finish,
+    hooks_override,
     launch,
     manifests,
     metrics_by_iteration,
+    probe_hook,
     supervise_command,
     train_command,
     training,
@@ -240,13 +243,28 @@ def test_the_supervisors_closing_line_names_the_step_a_rerun_resumes_from(tmp_pa
     print(f"{len(schedules)} schedules checked: {', '.join(schedules)}")
 
 
-def test_a_sigint_ignored_at_start_stays_ignored_and_sigterm_is_taken_over() -> None:
+def test_a_sigint_ignored_at_start_stays_ignored_and_sigterm_is_taken_over(tmp_path) -> None:
     """A script's background job starts with SIGINT ignored, so that a Ctrl-C at the terminal stops the script's
-    foreground, not the job; Python leaves it so, and so does a run's stop request (it took SIGINT over)."""
+    foreground, not the job; Python leaves it so, and so do a run's stop request (it took SIGINT over) and the workers
+    the supervisor forks from its warm pool (they got Python's start-up handler back)."""
     probe = (
         "import signal; from ftrain.train.stop import StopRequest; StopRequest().install(); "
         "print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN, signal.getsignal(signal.SIGTERM) is signal.SIG_DFL)"
     )
+    as_from_a_terminal = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731 (pytest may be a background job)
     for prefix, ignored in ((AS_A_BACKGROUND_JOB, "True"), ([], "False")):
-        done = subprocess.run([*prefix, sys.executable, "-c", probe], capture_output=True, text=True, timeout=60)
+        done = subprocess.run(
+            [*prefix, sys.executable, "-c", probe],
+            capture_output=True,
+            text=True,
+            timeout=60,
+            preexec_fn=as_from_a_terminal,
+        )
         assert done.stdout.split() == [ignored, "False"], done.stdout + done.stderr
+    said = tmp_path / "sigint.txt"
+    hook = hooks_override(probe_hook("SigintHook", path=said))
+    command = [*AS_A_BACKGROUND_JOB, *supervise_command(tmp_path / "run", "iterations=1", hook)]
+    done = subprocess.run(
+        command, cwd=REPO, env=child_env({"PYTHONPATH": str(TESTS)}), capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0 and said.read_text() == "ignored\n" * 2, done.stderr + said.read_text()

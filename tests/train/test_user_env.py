@@ -169,7 +169,10 @@ BAD_INPUT = [
         "'stiffnes' Element 'joint', line 5)",
     ),
     (["env.id=userbot:DictArm-v0"], "has the observation space Dict('angles': Box("),
-    (["env.id=userbot:EndlessArm-v0"], "env.id='EndlessArm-v0' has no time limit (registered without max_episode"),
+    (  # the smoke config's env.kwargs set one: cleared
+        ["env.id=userbot:EndlessArm-v0", "env.kwargs={}"],
+        "env.id='userbot:EndlessArm-v0' has no time limit (gymnasium's max_episode_steps, of its registration)",
+    ),
     (
         ["env.id=HalfCheetah-v5", "env.kwargs={max_episode_steps: -1}"],  # gymnasium's "no TimeLimit wrapper"
         "env.kwargs max_episode_steps=-1 leaves env.id='HalfCheetah-v5' without a time limit: an episode may never end",
