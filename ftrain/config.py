@@ -48,7 +48,8 @@ class EnvConfig:
     environments, and a resume at another world size hands every environment on by its global index: the same
     training continues (docs/checkpoints.md, "Resume and resize")."""
     kwargs: dict = field(default_factory=dict)
-    """Passed to ``gymnasium.make_vec`` (e.g. ``max_episode_steps``)."""
+    """Passed to ``gymnasium.make`` for each environment (e.g. ``max_episode_steps``, which must be set somewhere:
+    ``ftrain.policy.robot.check_trainable``)."""
 
 
 @dataclass
