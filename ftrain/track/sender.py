@@ -10,6 +10,7 @@ from __future__ import annotations
 import atexit
 import queue
 import threading
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Protocol
@@ -17,7 +18,9 @@ from typing import Protocol
 QUEUE_ROWS = 1000
 """Rows waiting for a tracker before new ones are dropped (with one warning)."""
 CLOSE_SECONDS = 10.0
-"""How long the end of a run waits for a tracker to take what is queued."""
+"""How long the end of a run waits for a tracker that takes nothing of what is queued: one that still takes rows (a
+slow one, resending a run's rows on a busy machine) is waited for, up to ``CLOSE_AT_MOST``."""
+CLOSE_AT_MOST = 60.0
 GOES_ON = "training goes on without it"
 
 
@@ -67,6 +70,8 @@ class Sender:
         self._rows: queue.Queue[tuple[int, dict[str, float]]] = queue.Queue(QUEUE_ROWS)
         self._closing = threading.Event()
         self._finished = False
+        self._sent = 0
+        """Rows the tracker has taken: a close waits while it grows."""
         self._thread = threading.Thread(target=self._run, name=f"ftrain-{tracker.name}", daemon=True)
         self._thread.start()
         atexit.register(self.close, False)  # a worker ending on an error still hands over what is queued
@@ -79,13 +84,22 @@ class Sender:
             self.warn(f"it is {QUEUE_ROWS} iterations behind: dropping iterations from {step} on; {GOES_ON}")
 
     def close(self, finished: bool) -> None:
-        """Let the thread send what is queued and end the tracker's run, for at most ``CLOSE_SECONDS``."""
+        """Let the thread send what is queued and end the tracker's run, while it takes rows (``CLOSE_SECONDS``)."""
         atexit.unregister(self.close)
         self._finished = finished
         self._closing.set()
-        self._thread.join(CLOSE_SECONDS)
+        end, answering = time.monotonic() + CLOSE_AT_MOST, True
+        while self._thread.is_alive() and answering and time.monotonic() < end:
+            sent = self._sent
+            self._thread.join(min(CLOSE_SECONDS, end - time.monotonic()))
+            answering = self._sent != sent
         if self._thread.is_alive():
-            self.warn(f"did not answer within {CLOSE_SECONDS:g} s of the end: {self._rows.qsize()} iterations not sent")
+            late = (
+                f"still sending {CLOSE_AT_MOST:g} s after"
+                if answering
+                else f"did not answer within {CLOSE_SECONDS:g} s of"
+            )
+            self.warn(f"{late} the end: {self._rows.qsize()} iterations not sent")
 
     def warn(self, problem: str) -> None:
         """One line per tracker and process, the first problem: the rest would only repeat it."""
@@ -98,6 +112,7 @@ class Sender:
             last = self.tracker.open()
             for step, values in self.earlier(last):
                 self.tracker.log(step, {**values, **self.extra()})
+                self._sent += 1
             while not (self._closing.is_set() and self._rows.empty()):
                 try:
                     step, values = self._rows.get(timeout=0.1)
@@ -105,6 +120,7 @@ class Sender:
                     continue
                 if step > last:
                     self.tracker.log(step, {**values, **self.extra()})
+                    self._sent += 1
             self.tracker.close(self._finished)
         except Exception as error:  # any failure of the tracker: training does not depend on it
             self.warn(f"failed ({type(error).__name__}: {_first_line(error)}); {GOES_ON}")

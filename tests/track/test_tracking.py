@@ -20,6 +20,7 @@ from mlflow.tracking import MlflowClient
 from ftrain.config import load_config
 from ftrain.errors import UserError
 from ftrain.supervise.options import EXIT_DONE
+from ftrain.track import sender as sender_module
 from ftrain.track.sender import GOES_ON, QUEUE_ROWS, Sender
 from ftrain.track.wandb_log import records
 from ftrain.train.hooks import CSV_ONLY
@@ -267,6 +268,46 @@ def test_a_stuck_tracker_never_blocks_sending_and_a_full_queue_is_one_warning():
     tracker.answer.set()
     sender.close(finished=True)
     assert tracker.logged == list(range(1, QUEUE_ROWS + 1)) and len(lines) == 1
+
+
+class Slow(Stuck):
+    """A tracker that answers, slowly: each row takes ``seconds``."""
+
+    name = "slow"
+
+    def __init__(self, seconds: float) -> None:
+        super().__init__()
+        self.seconds = seconds
+        self.answer.set()
+
+    def log(self, step: int, values: dict[str, float]) -> None:
+        time.sleep(self.seconds)
+        super().log(step, values)
+
+
+def test_the_end_waits_for_a_slow_tracker_while_it_takes_rows_and_not_for_one_that_stopped(monkeypatch):
+    """A tracker resending a run's rows on a busy machine took longer than the end's wait, which left the rows after
+    the first few unsent (the unreachable-tracker test, in a full suite on a slowed machine): the end waits while rows
+    go, up to ``CLOSE_AT_MOST``, and gives up ``CLOSE_SECONDS`` after the last one."""
+    monkeypatch.setattr(sender_module, "CLOSE_SECONDS", 0.3)
+    monkeypatch.setattr(sender_module, "CLOSE_AT_MOST", 3.0)
+    for tracker, rows, said in (
+        (Slow(0.05), 20, None),  # 1 s in all, 0.3 s holds 6 rows: every row
+        (Slow(0.5), 20, "slow: did not answer within 0.3 s of the end: "),  # a row per 0.5 s: stopped by the first wait
+        (Slow(0.1), 60, "slow: still sending 3 s after the end: "),  # 6 s in all: stopped by the bound
+    ):
+        lines: list[str] = []
+        sender = Sender(tracker, lambda last: [], dict, lines.append)
+        for step in range(1, rows + 1):
+            sender.send(step, {"x": float(step)})
+        sender.close(finished=True)
+        if said is None:
+            assert lines == [] and tracker.logged == list(range(1, rows + 1))
+            continue
+        assert len(lines) == 1 and lines[0].startswith(said) and lines[0].endswith(" iterations not sent"), lines
+        unsent = int(lines[0][len(said) :].split()[0])  # the row in flight is neither sent nor queued
+        assert unsent + len(tracker.logged) in (rows - 1, rows), (lines, tracker.logged)
+        assert len(tracker.logged) < 2 if tracker.seconds == 0.5 else len(tracker.logged) > 10, tracker.logged
 
 
 def test_the_supervisors_totals_skip_event_lines_damaged_since() -> None:
