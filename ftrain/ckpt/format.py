@@ -138,14 +138,15 @@ def step_dir(step: int) -> str:
     return f"{CHECKPOINTS}/step-{step:09d}"
 
 
-def parse_checkpoint_url(url: str) -> tuple[str, int | None]:
+def parse_checkpoint_url(url: str, directory: str = CHECKPOINTS) -> tuple[str, int | None]:
     """Split the URL of one step (``<root>/checkpoints/step-000000120``, or ``step-000000120`` in ``checkpoints/``)
-    into root and step; else ``(url, None)``."""
+    into root and step; else ``(url, None)``. ``directory``: the one that holds the steps (``policies`` for a policy
+    snapshot's)."""
     for spelt in spellings(url):
         head, _, last = spelt.rstrip("/").rpartition("/")
         match = STEP_DIR.match(last)
-        if match is not None and (head == CHECKPOINTS or head.endswith("/" + CHECKPOINTS)):
-            return head[: -len(CHECKPOINTS)].rstrip("/") or ("/" if head.startswith("/") else "."), int(match[1])
+        if match is not None and (head == directory or head.endswith("/" + directory)):
+            return head[: -len(directory)].rstrip("/") or ("/" if head.startswith("/") else "."), int(match[1])
     return url, None
 
 

@@ -66,11 +66,9 @@ def _policies(rel: str) -> str:
 
 
 def parse_snapshot_url(url: str) -> tuple[str, int] | None:
-    """Root and step of a snapshot URL ``<root>/policies/step-000000120``; None for any other URL."""
-    head, _, last = url.rstrip("/").rpartition("/")
-    if head.rpartition("/")[2] != POLICIES:
-        return None
-    root, step = parse_checkpoint_url(f"{head[: -len(POLICIES)]}{CHECKPOINTS}/{last}")
+    """Root and step of a snapshot URL ``<root>/policies/step-000000120`` (or ``step-000000120`` in ``policies/``, as
+    a checkpoint's); None for any other URL."""
+    root, step = parse_checkpoint_url(url, POLICIES)
     return None if step is None else (root, step)
 
 
