@@ -65,8 +65,9 @@ def stop_on_sigterm() -> None:
 
 
 def stop_signals() -> tuple[int, ...]:
-    """The stop signals a run takes over: SIGTERM, and SIGINT unless it was ignored when this process started (the
-    background job of a script, whose Ctrl-C is for the script's foreground): it stays ignored, as Python leaves it."""
+    """The stop signals a run takes over: SIGTERM, and SIGINT unless it is ignored, which nothing but the process's
+    start does (the background job of a script, whose Ctrl-C is for the script's foreground): it stays so, as Python
+    leaves it."""
     return (signal.SIGTERM,) + ((signal.SIGINT,) if signal.getsignal(signal.SIGINT) != signal.SIG_IGN else ())
 
 
