@@ -40,16 +40,14 @@ QUARANTINED = "QUARANTINED.json"
 COMMON = "common.pt"
 """The state every rank shares (models, optimizer, counters, hooks), written once."""
 VERIFIED, INCOMPLETE, CORRUPT, QUARANTINE = "verified", "incomplete", "corrupt", "quarantined"
+UNSETTLED = "unsettled"
+"""A writer's own step whose commit failed and whose manifest it could not look at: never deleted by its retention."""
 
 
 def shown(status: str) -> str:
     """A step's status as the commands print it: a scan checks a verified step's manifest and file sizes, not its
     SHA-256s (``ftrain ckpt verify`` reads those), so to a user it is ``committed``."""
     return "committed" if status == VERIFIED else status
-
-
-UNSETTLED = "unsettled"
-"""A writer's own step whose commit failed and whose manifest it could not look at: never deleted by its retention."""
 
 
 def is_timing(metric: str) -> bool:

@@ -111,19 +111,21 @@ class Sender:
         try:
             last = self.tracker.open()
             for step, values in self.earlier(last):
-                self.tracker.log(step, {**values, **self.extra()})
-                self._sent += 1
+                self._log(step, values)
             while not (self._closing.is_set() and self._rows.empty()):
                 try:
                     step, values = self._rows.get(timeout=0.1)
                 except queue.Empty:
                     continue
                 if step > last:
-                    self.tracker.log(step, {**values, **self.extra()})
-                    self._sent += 1
+                    self._log(step, values)
             self.tracker.close(self._finished)
         except Exception as error:  # any failure of the tracker: training does not depend on it
             self.warn(f"failed ({type(error).__name__}: {_first_line(error)}); {GOES_ON}")
+
+    def _log(self, step: int, values: dict[str, float]) -> None:
+        self.tracker.log(step, {**values, **self.extra()})
+        self._sent += 1
 
 
 def _first_line(error: Exception, limit: int = 300) -> str:
