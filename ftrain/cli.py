@@ -102,7 +102,7 @@ class _OneStorage(argparse.Action):
         from ftrain.config import same_storage
 
         if (before := getattr(namespace, self.dest, None)) is not None and not same_storage(before, value):
-            shown = f"--storage {display_url(before)} and --storage {display_url(value)}"
+            shown = " and ".join(f"--storage {display_url(url) or repr('')}" for url in (before, value))
             raise UserError(f"{shown} name two storages: pass one of them")
         setattr(namespace, self.dest, value)
 
@@ -473,16 +473,18 @@ def _dispatch(args: argparse.Namespace) -> int:
         config = _run_config(args)
         name_process(rank_role("worker"), config.name)
         watch_launcher()
-        from ftrain.config import make_local_directories
+        from ftrain.config import make_local_directories, remove_if_empty
 
         with imports():
             from ftrain.policy.robot import check_env
             from ftrain.train.trainer import train
 
         check_env(config.env)  # the user's module, id, model, spaces and values: refused here, before any rendezvous
-        make_local_directories(config)
-
-        return train(config)
+        made = make_local_directories(config)
+        try:
+            return train(config)
+        finally:
+            remove_if_empty(made)
     if args.command == "supervise":
         from ftrain.supervise.options import SupervisorOptions
         from ftrain.supervise.supervisor import supervise

@@ -8,6 +8,7 @@ errors, redact.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
 import errno
@@ -469,17 +470,34 @@ CANNOT_BE_MADE = (errno.ENOENT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EN
 """What ``mkdir`` answers for a path that will never be made as it is: the user's to fix, not an outage."""
 
 
-def make_local_directories(config: Config) -> None:
+def make_local_directories(config: Config) -> list[str]:
     """The run's local directories, made once its config and env passed their checks: one that cannot be made (a
     read-only mount, /proc, no permission) is one line here, not a traceback from the first write. A mount that fails
-    otherwise (EIO, a stale handle) is an outage, which the storage's own calls wait out."""
+    otherwise (EIO, a stale handle) is an outage, which the storage's own calls wait out. Returns the directories it
+    made, deepest first, for ``remove_if_empty``."""
+    made = []
     for what, path in local_directories(config).items():
+        missing = []
+        for directory in (full := Path(os.path.abspath(path)), *full.parents):
+            if os.path.lexists(directory):
+                break
+            missing.append(str(directory))
         try:
             os.makedirs(path, exist_ok=True)
         except OSError as error:
             if error.errno in CANNOT_BE_MADE:
                 fix = "pass a directory you can write"
                 raise UserError(f"{what} {path} cannot be made ({error.strerror}): {fix}") from None
+        made.extend(missing)
+    return made
+
+
+def remove_if_empty(directories: list[str]) -> None:
+    """Remove those of ``directories`` (deepest first) that are still empty: a run refused before it wrote anything
+    (another run holds its storage) leaves no directory behind. ``rmdir`` removes nothing else."""
+    for directory in directories:
+        with contextlib.suppress(OSError):
+            os.rmdir(directory)
 
 
 def blocking_file(path: str) -> str | None:

@@ -273,5 +273,10 @@ def test_storage_given_twice_is_refused_unless_it_is_the_same_one(tmp_path, caps
     assert (
         err == f"ftrain: error: --storage {first} and --storage s3://bucket/run name two storages: pass one of them\n"
     )
+    assert main([command, "configs/halfcheetah.yaml", "--storage", "", "--storage", first]) == 2
+    assert (
+        capsys.readouterr().err
+        == f"ftrain: error: --storage '' and --storage {first} name two storages: pass one of them\n"
+    )
     again = [command, "x.yaml", "--storage", first, "--storage", f"file://{first}/"]  # one storage, spelt two ways
     assert build_parser().parse_args(again).storage == f"file://{first}/"

@@ -100,7 +100,7 @@ def test_a_second_run_beside_a_supervised_one_is_refused_and_the_first_ends_as_a
     plain = intrude(train_command(storage, *OVERRIDES))
     again = {RUN_ID_ENV: "job-1"}
     supervise_again = intrude(supervise_command(storage, f"log_dir={tmp_path / 'again'}"), env=again)
-    plain_again = intrude(train_command(storage, *OVERRIDES), env=again)
+    plain_again = intrude(train_command(storage, *OVERRIDES, f"log_dir={tmp_path / 'plain' / 'logs'}"), env=again)
     for proc in (supervise, plain, supervise_again, plain_again):
         assert proc.wait(timeout=120) == EXIT_STORAGE_HELD
     assert first.poll() is None
@@ -113,6 +113,7 @@ def test_a_second_run_beside_a_supervised_one_is_refused_and_the_first_ends_as_a
         line, output = refused(proc, [first.pid], by="another start of run job-1")
         assert line.startswith(f"{program}: error: storage ") and output == line + "\n", output
     assert not (tmp_path / "again" / "events.jsonl").exists()
+    assert not (tmp_path / "plain").exists()  # the log directory it made for itself, removed when it was refused
 
     hold.release()
     assert finish(first) == 0
