@@ -6,6 +6,7 @@ import fcntl
 import os
 import resource
 import shutil
+import signal
 import time
 import uuid
 from collections.abc import Callable, Iterator
@@ -38,6 +39,13 @@ from s3_outage import S3Server, free_port, start_moto, stop
 os.environ.setdefault("GCSFS_EXPERIMENTAL_ZB_HNS_SUPPORT", "false")
 """gcsfs (2025.10 on) probes each bucket over gRPC for a zonal layout, by default: an emulator has no gRPC endpoint,
 and each probe would wait a minute. Set before gcsfs is imported, here and in every child (``gcs_server``)."""
+
+# The tests of Ctrl-C start their processes as a terminal's foreground job does, with SIGINT's default action. A process
+# started with SIGINT ignored keeps it ignored (ftrain.errors.stop_signals), as the shell asks of a background job, so
+# a suite started as one (nohup, `&` in a script) restores it for the processes it starts; the tests of a background
+# job start theirs with helpers.AS_A_BACKGROUND_JOB.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 # --- Lanes: the fast lane (-m "not slow") has no servers and no multi-process runs ---
 
