@@ -110,12 +110,22 @@ def test_every_ftrain_command_of_the_docs_parses_its_config_loads_and_its_script
     assert checked >= 20, f"only {checked} ftrain commands found in the docs"
 
 
+def anchors(page: Path) -> set[str]:
+    """The anchors GitHub makes of a page's headings: lower case, punctuation dropped, spaces as hyphens."""
+    headings = re.findall(r"^#+ (.+)$", re.sub(r"```.*?```", "", page.read_text(), flags=re.S), flags=re.M)
+    return {re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-") for heading in headings}
+
+
 def test_every_link_of_the_readme_and_the_docs_leads_somewhere() -> None:
-    relative = re.compile(r"\]\(([^)#:\s]+)(?:#[^)]*)?\)")  # a link or image, not a URL; the anchor dropped
-    links = [(page, target) for page in DOCS for target in relative.findall(page.read_text())]
-    missing = [f"{page.name} -> {target}" for page, target in links if not (page.parent / target).exists()]
+    relative = re.compile(r"\]\(([^)#:\s]*)(?:#([^)\s]*))?\)")  # a link or image, not a URL; its anchor if any
+    links = [(page, target, anchor) for page in DOCS for target, anchor in relative.findall(page.read_text())]
+    missing = [f"{page.name} -> {target}" for page, target, _ in links if not (page.parent / target).exists()]
     assert not missing and len(links) >= 10, missing  # pages, images and files, relative to the page
-    pages = {target.split("/")[-1] for page, target in links if page.name == "README.md" and target.endswith(".md")}
+    sections = [(page.parent / target if target else page, anchor) for page, target, anchor in links if anchor]
+    astray = [f"{page.name}#{anchor}" for page, anchor in sections if anchor not in anchors(page.resolve())]
+    assert not astray and len(sections) >= 10, f"links to no heading of their page: {astray}"
+    print(f"{len(links)} links, {len(sections)} of them to a heading, all found")
+    pages = {target.split("/")[-1] for page, target, _ in links if page.name == "README.md" and target.endswith(".md")}
     assert pages == {page.name for page in DOCS[1:]}, "the README links every page of docs/"
 
 
