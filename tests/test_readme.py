@@ -130,6 +130,20 @@ def test_every_link_of_the_readme_and_the_docs_leads_somewhere() -> None:
 
 
 @pytest.mark.slow
+def test_the_main_job_trains_where_storage_says(tmp_path) -> None:
+    """``launch/run.sh --storage X`` trains in X, not in its default runs/halfcheetah (its header's example). It runs
+    the set-up first, so only where this checkout's .venv is set up (as ``launch/test.sh`` leaves it)."""
+    if not list((REPO / ".venv").glob(".ftrain-setup-*")):
+        pytest.skip("this checkout has no .venv set up by launch/setup.sh")
+    storage = tmp_path / "hc"
+    overrides = ["iterations=2", "checkpoint.interval=1", *SMOKE_SIZED]
+    command = ["bash", "launch/run.sh", "--storage", str(storage), f"log_dir={tmp_path / 'logs'}", *overrides]
+    result = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr[-3000:]
+    assert (storage / "checkpoints/step-000000002/MANIFEST.json").exists(), result.stdout[-2000:]
+
+
+@pytest.mark.slow
 def test_every_line_of_using_it_works_as_written(tmp_path) -> None:
     lines = using_it()
     assert any(line.startswith("ftrain ckpt show") for line in lines), "no README block found"
