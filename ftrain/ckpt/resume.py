@@ -423,26 +423,30 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
             f"checkpoint step {step} was trained with another robot: {changed}: restore it, or pass "
             "allow_config_change=true to go on with the robot as it is now"
         )
-    taken = _taken_as_it_is(manifest["config"], config)
+    taken = _taken_as_it_is(manifest["config"], config, step)
     if manifest["config_hash"] != config.training_hash(robot) and not config.allow_config_change and not taken:
         keys = config_change(manifest["config"], config.public_dict(), None, None)
+        if config.algorithm.schedule_iterations == config.iterations and "algorithm.schedule_iterations" in keys:
+            keys += f", which iterations={config.iterations} sets"
         raise UserError(
             f"checkpoint step {step} was trained with a different config "
             f"({keys or 'hash ' + manifest['config_hash'] + ', now ' + config.training_hash(robot)}): restore the "
-            "config, or pass allow_config_change=true"
+            "config, pass allow_config_change=true, or start a new run in another --storage"
         )
 
 
-def _taken_as_it_is(saved: dict, config: Config) -> bool:
-    """Whether every change since ``saved`` (a manifest's config) is one a resume takes without
+def _taken_as_it_is(saved: dict, config: Config, step: int) -> bool:
+    """Whether every change since ``saved`` (a manifest's config, at ``step``) is one a resume takes without
     ``allow_config_change``: the teacher's URL (another spelling, or another teacher: a student keeps the teacher it
     started with, whose weights its checkpoint holds, and says so: ``Trainer.load_state``), and a linear schedule's
     horizon that follows the run's length on both sides (``iterations=N`` alone sets it to N: ``load_config``): a run
-    started short and lengthened, whose rate then falls to zero at the new end."""
+    started short and lengthened, whose rate then falls to zero at the new end, or asked for no more than it has
+    trained, which trains nothing (the trainer says so)."""
     changed = set(changed_keys(saved, config.public_dict())) - {"teacher"}
     if changed != {"algorithm.schedule_iterations"}:
         return not changed
     if saved["algorithm"].get("schedule") != "linear" or config.algorithm.schedule != "linear":
         return False
     horizons = (saved["algorithm"].get("schedule_iterations"), config.algorithm.schedule_iterations)
-    return horizons == (saved.get("iterations"), config.iterations) and horizons[1] > horizons[0]
+    follows = horizons == (saved.get("iterations"), config.iterations)
+    return follows and (horizons[1] > horizons[0] or config.iterations <= step)
