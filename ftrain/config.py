@@ -187,7 +187,8 @@ class LogConfig:
 @dataclass
 class EvalConfig:
     every: int = 0
-    """Evaluate every N iterations on rank 0 (0: never); the mean return becomes metric ``eval_return``."""
+    """Evaluate every N iterations and at the run's last (0: never); the mean return becomes metric ``eval_return``,
+    so that the final step's is there to compare with a benchmark's and to rank for keep-best."""
     episodes: int = 5
     seed: int = 10_000
     """Evaluation episodes are seeded ``seed``, ``seed + 1``, ...: the same episodes every time."""

@@ -22,9 +22,9 @@ from ftrain.train.hooks import Hook, TrainerView
 
 
 class EvalHook(Hook):
-    """Every ``eval.every`` iterations: ``eval.episodes`` deterministic episodes with fixed seeds, shared by the ranks
-    (a block of consecutive episodes each, all at once in as many environments, one batched forward pass per step),
-    so evaluating takes both cores instead of leaving one rank waiting for rank 0.
+    """Every ``eval.every`` iterations and at the run's last: ``eval.episodes`` deterministic episodes with fixed
+    seeds, shared by the ranks (a block of consecutive episodes each, all at once in as many environments, one batched
+    forward pass per step), so evaluating takes both cores instead of leaving one rank waiting for rank 0.
 
     Their mean return becomes ``metrics["eval_return"]``, which the logging hooks after this one write and the
     checkpoint manifest stores (so keep-best retention can rank by it), and the seconds the evaluation took
@@ -38,7 +38,7 @@ class EvalHook(Hook):
         self.envs: list[gym.Env] = []
 
     def after_iteration(self, trainer: TrainerView, metrics: dict[str, float]) -> None:
-        if trainer.iteration % self.config.every:
+        if trainer.iteration % self.config.every and trainer.iteration != trainer.config.iterations:
             metrics["eval_return"] = metrics["eval_time"] = math.nan
             return
         trainer.heartbeat.beat(Phase.EVALUATE, trainer.iteration)  # a phase of its own for the supervisor's timing

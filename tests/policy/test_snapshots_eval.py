@@ -23,7 +23,7 @@ from ftrain.train.evaluation import episode_share
 
 from helpers import final_manifest, manifests, metrics_by_iteration, run_train
 
-EVAL = ("eval.every=2", "eval.episodes=3", "checkpoint.best_metric=eval_return", "checkpoint.keep_last=1")
+EVAL = ("eval.every=3", "eval.episodes=3", "checkpoint.best_metric=eval_return", "checkpoint.keep_last=1")
 SNAPSHOTS = ("snapshots.every=2", "snapshots.keep_last=2")
 FILES = {"policy.pt", "policy.onnx", "actor.pt", "lineage.json"}
 RANKS = 2
@@ -61,13 +61,13 @@ def test_evaluation_and_snapshots_leave_training_unchanged(runs) -> None:
     assert evaluated == metrics_by_iteration(runs / "plain")
 
 
-def test_eval_return_every_n_iterations_feeds_keep_best(runs) -> None:
+def test_eval_return_every_n_iterations_and_at_the_end_feeds_keep_best(runs) -> None:
     run = runs / "eval"
     scores = {it: float(row["eval_return"]) for it, row in metrics_by_iteration(run).items()}
-    assert [it for it, score in scores.items() if not math.isnan(score)] == [2, 4, 6, 8]
+    assert [it for it, score in scores.items() if not math.isnan(score)] == [3, 6, 8]  # every 3, and the last
     eval_times = {it: float(row["eval_time"]) for it, row in metrics_by_iteration(run).items()}
-    assert [it for it, seconds in eval_times.items() if seconds > 0] == [2, 4, 6, 8]
-    best = max((2, 4, 6, 8), key=scores.get)
+    assert [it for it, seconds in eval_times.items() if seconds > 0] == [3, 6, 8]
+    best = max((6, 8), key=scores.get)  # of the steps saved (every 2) and evaluated
     kept = manifests(run)
     assert set(kept) == {8, best}, "keep_last=1 and keep_best=1 by eval_return"
     for step, manifest in kept.items():
