@@ -39,7 +39,8 @@ def play(
     mode = "deterministic (mean) actions" if deterministic else "sampled actions"
     if policy.exported is not None:
         mode += f" (an exported {policy.exported} policy has no others)"
-    print(f"playing {policy.source} (step {policy.step}, {policy.config.env.id}) with {mode}")
+    rendered = "" if video is None else f", drawing every frame into {video} (far slower than playing alone)"
+    print(f"playing {policy.source} (step {policy.step}, {policy.config.env.id}) with {mode}{rendered}", flush=True)
     torch.manual_seed(seed)
     env = make_env(policy.config.env, render=video is not None)
     check_fits(policy, env)
