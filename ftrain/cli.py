@@ -141,15 +141,18 @@ def _add_storage_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_dataclass_arguments(parser: argparse.ArgumentParser, options_class: type) -> None:
-    """One ``--flag`` per dataclass field, typed by its default, documented by its ``help`` metadata and default; its
-    underscore spelling (``--nproc_per_node``, which torchrun takes too) is taken, unlisted."""
+    """One ``--flag`` per dataclass field, typed by its default, documented by its ``help`` metadata and default (or,
+    with ``unset`` metadata, None where not given, and ``unset`` says what that means); its underscore spelling
+    (``--nproc_per_node``, which torchrun takes too) is taken, unlisted."""
     hints = typing.get_type_hints(options_class)
     for field in dataclasses.fields(options_class):
         flag = "--" + field.name.replace("_", "-")
         kind = next((arg for arg in typing.get_args(hints[field.name]) if arg is not type(None)), hints[field.name])
         kind = kind if kind in (int, float) else str  # ``float | None``: a float, None where the help says why
-        help_text = field.metadata["help"] + (" (default: %(default)s)" if field.default not in ("", None) else "")
-        parser.add_argument(flag, dest=field.name, type=kind, default=field.default, help=help_text)
+        default = None if "unset" in field.metadata else field.default
+        shown = field.metadata.get("unset", "%(default)s" if field.default not in ("", None) else None)
+        help_text = field.metadata["help"] + (f" (default: {shown})" if shown else "")
+        parser.add_argument(flag, dest=field.name, type=kind, default=default, help=help_text)
         if "_" in field.name:
             hidden = {"type": kind, "default": argparse.SUPPRESS, "help": argparse.SUPPRESS}
             parser.add_argument("--" + field.name, dest=field.name, **hidden)

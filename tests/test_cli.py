@@ -93,7 +93,7 @@ def test_torchruns_underscore_spellings_are_taken_and_a_split_list_override_says
 
     args = parse(["supervise", "--nproc_per_node", "2", "--max_restarts", "5", "configs/smoke.yaml"])
     assert (args.nproc_per_node, args.max_restarts) == (2, 5)
-    assert parse(["supervise", "configs/smoke.yaml"]).nproc_per_node == 1  # the unlisted spelling keeps the default
+    assert parse(["supervise", "configs/smoke.yaml"]).nproc_per_node is None  # not given: from the storage
     assert "--nproc_per_node" not in ftrain("supervise", "--help").stdout
     split = ftrain("train", "configs/smoke.yaml", "policy.hidden_dims=[64,", "64]")
     assert split.returncode == 2 and "Traceback" not in split.stderr

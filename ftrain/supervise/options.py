@@ -72,7 +72,14 @@ a few environments): more workers than the machine has memory available for are 
 
 @dataclass
 class SupervisorOptions:
-    nproc_per_node: int = field(default=1, metadata={"help": "worker processes on this node"})
+    nproc_per_node: int | None = field(
+        default=1,
+        metadata={
+            "help": "worker processes on this node",
+            "unset": "on one node, as many as the run's newest checkpoint was trained with, else 1",
+        },
+    )
+    """None (the command line without --nproc-per-node): ``supervise`` sets it from the storage (``with_nproc``)."""
     nnodes: str = field(
         default="1",
         metadata={"help": "number of nodes, or MIN:MAX to go on with fewer (elastic); the same command on every node"},
@@ -191,7 +198,7 @@ class SupervisorOptions:
             if not math.isfinite(value) or not (low <= value <= high if closed else low < value <= high):
                 raise UserError(f"--{name.replace('_', '-')}={value} is out of range: use {what}")
         available = procfs.available_memory()
-        if available is not None and self.nproc_per_node * WORKER_MEMORY > available:
+        if available is not None and (self.nproc_per_node or 0) * WORKER_MEMORY > available:
             raise UserError(
                 f"--nproc-per-node={self.nproc_per_node}: that many workers need at least "
                 f"{self.nproc_per_node * WORKER_MEMORY / 1e9:.1f} GB of memory ({WORKER_MEMORY // 10**6} MB each), and "

@@ -24,7 +24,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from ftrain.ckpt.format import human_size, verify_step
+from ftrain.ckpt.format import StepInfo, human_size, verify_step
 from ftrain.ckpt.lineage import history
 from ftrain.ckpt.retry import OUTAGE, Backoff, WaitLines
 from ftrain.ckpt.steps import scan
@@ -44,7 +44,7 @@ WAITS = (300.0, 3600.0)
 endpoint is then likelier than an outage, and an hour is long to learn that), and for one that answered and went
 away."""
 NEWEST_WITHIN = 5.0
-"""Seconds the run's ending waits for the storage to name its newest step."""
+"""Seconds the run's start (its world size) and its ending wait for the storage to name its newest step."""
 AGAIN = Backoff(1.0, 60.0)
 """Before restarting into a storage that answers the probe but failed the last attempt too, before it trained an
 iteration: the probe tells nothing then, and each attempt costs a start-up."""
@@ -163,21 +163,11 @@ class StorageWait:
             return None
 
     def newest(self, known: int | None) -> int | None:
-        """The step a rerun resumes from (the head of the storage's history, its files checked by size), or
-        ``known`` (the workers' word) where the storage does not answer within ``NEWEST_WITHIN``: their heartbeats
-        may miss a commit made as they were stopped, and a scheduler's grace after a stop is short."""
-        lines: list[list[int]] = []
-
-        def look() -> None:
-            with contextlib.suppress(StorageError, UserError):
-                lines.append(history(scan(Storage.open(self.storage.url, self.storage.options, retries=0))).line)
-
-        looking = threading.Thread(target=look, name="ftrain-newest-step", daemon=True)
-        looking.start()
-        looking.join(NEWEST_WITHIN)
-        if not lines:
-            return known
-        return lines[0][0] if lines[0] else None
+        """The step a rerun resumes from, or ``known`` (the workers' word) where the storage does not answer within
+        ``NEWEST_WITHIN``: their heartbeats may miss a commit made as they were stopped, and a scheduler's grace
+        after a stop is short."""
+        answered, head = head_of(self.storage)
+        return head.step if head is not None else None if answered else known
 
     def holds(self, step: int) -> bool:
         """Whether the storage holds ``step`` committed and intact (its files match its manifest's sizes and SHA-256,
@@ -199,6 +189,23 @@ class StorageWait:
             )
         self.events("storage_wait", line, storage=url, cause=why)
         lines.due(always=True)
+
+
+def head_of(storage: StorageConfig) -> tuple[bool, StepInfo | None]:
+    """Whether the storage answered within ``NEWEST_WITHIN`` seconds, and the step a rerun resumes from: the head of
+    its history, its files checked by size (None: no step)."""
+    heads: list[StepInfo | None] = []
+
+    def look() -> None:
+        with contextlib.suppress(StorageError, UserError):
+            infos = scan(Storage.open(storage.url, storage.options, retries=0))
+            line = history(infos).line
+            heads.append(next((info for info in infos if line and info.step == line[0]), None))
+
+    looking = threading.Thread(target=look, name="ftrain-newest-step", daemon=True)
+    looking.start()
+    looking.join(NEWEST_WITHIN)
+    return bool(heads), heads[0] if heads else None
 
 
 def probe(url: str, options: dict | None = None, log_dir: Path | None = None) -> str | None:

@@ -17,6 +17,7 @@ per log directory: ``ftrain.log_dir_lock``. Torch-free: config, heartbeat, the s
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import os
 import signal
 import sys
@@ -47,7 +48,7 @@ from ftrain.supervise.options import (
     parse_hang_timeout,
     parse_nodes,
 )
-from ftrain.supervise.outage import StorageWait
+from ftrain.supervise.outage import StorageWait, head_of
 from ftrain.supervise.outcome import Outcome, classify, finished, newest_step, not_admitted, peer_ended
 from ftrain.supervise.plan import Plan, plan_key
 from ftrain.supervise.restarts import RestartPolicy
@@ -67,6 +68,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     (config file, ``--storage``, overrides), which every worker gets."""
     hang_timeout = parse_hang_timeout(options.hang_timeout)
     nodes = parse_nodes(options)
+    options, chosen = with_nproc(options, nodes, config)
     if not nodes.elastic:  # env.total_envs shared by this world's ranks: refused here, not by every worker
         for_world(config, nodes.count * options.nproc_per_node)
     try:
@@ -74,6 +76,8 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
         print(f"ftrain supervise: error: {error}", file=sys.stderr)
         return EXIT_PEER_LOST
+    if chosen:
+        supervisor.events("world", chosen)
     for sig in stop_signals():  # to the end of the process: a signal once the run has ended (SLURM's
         signal.signal(sig, supervisor.on_signal)  # time limit as the job finishes) changes nothing, its exit code stays
     cas.stop_waiting_when(supervisor.waiting_stopped)
@@ -94,6 +98,20 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
         return supervisor.end(supervisor.stopped_without_workers())
     finally:
         supervisor.close()
+
+
+def with_nproc(options: SupervisorOptions, nodes: Nodes, config: Config) -> tuple[SupervisorOptions, str]:
+    """``options`` with ``--nproc-per-node`` where the command line left it out: on one node, the world size of the
+    step the run resumes from, so that resuming with the command that started it minus that flag trains on as
+    before instead of resizing; else 1. And the line that says so, where it is not 1."""
+    if options.nproc_per_node is not None:
+        return options, ""
+    head = head_of(config.storage)[1] if nodes.count == 1 and not nodes.elastic else None
+    world = int((head.manifest or {}).get("world_size", 1)) if head is not None else 1
+    said = (
+        f"{world} worker processes, as step {head.step} was trained (--nproc-per-node N to resize)" if world > 1 else ""
+    )
+    return dataclasses.replace(options, nproc_per_node=world), said
 
 
 class _Stop(Exception):  # the run ends, wherever the supervisor was: ``supervise`` records it

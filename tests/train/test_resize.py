@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import csv
 import random
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
-from helpers import final_manifest, manifests, run_train
+from helpers import REPO, child_env, final_manifest, manifests, run_train
 
 pytestmark = pytest.mark.slow
 
@@ -121,3 +123,27 @@ def test_with_total_envs_any_resize_schedule_between_one_and_two_ranks_trains_bi
         assert manifest["state_sha256"] == expected, f"schedule {schedules[-1]} (seed {seed})"
         assert "every environment goes on" in outputs[1]
     print(f"{len(schedules)} resize schedules (world size, to step), seed {seed}, ended as one rank's: {schedules}")
+
+
+def test_supervise_without_nproc_per_node_resumes_at_the_world_size_it_was_trained_at(tmp_path, reference_state):
+    """The command that started a 2-rank run, less ``--nproc-per-node``, goes on at 2 ranks (bit for bit, as if never
+    stopped), and says so; the flag given resizes as before. A fresh storage starts at 1 rank."""
+    storage = tmp_path / "run"
+    run_train(storage, "iterations=4", ranks=2, supervised=True)
+    command = [sys.executable, "-m", "ftrain", "supervise", "configs/smoke.yaml", "--storage", str(storage)]
+    again = subprocess.run([*command, "iterations=8"], cwd=REPO, env=child_env(), capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "2 worker processes, as step 4 was trained (--nproc-per-node N to resize)" in again.stderr, again.stderr
+    assert "resized" not in again.stdout + again.stderr
+    assert final_manifest(storage)["state_sha256"] == reference_state(8)
+    resized = run_train(storage, "iterations=10", ranks=1, supervised=True)  # --nproc-per-node=1, given
+    assert "resized from 2 to 1 ranks at step 8" in resized.stdout
+    fresh = subprocess.run(
+        [*command[:-1], str(tmp_path / "fresh"), "iterations=1"],
+        cwd=REPO,
+        env=child_env(),
+        capture_output=True,
+        text=True,
+    )
+    assert fresh.returncode == 0 and "worker processes" not in fresh.stderr, fresh.stderr[-3000:]
+    assert final_manifest(tmp_path / "fresh")["world_size"] == 1
