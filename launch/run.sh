@@ -6,6 +6,6 @@ cd "$(dirname "$0")/.."
 bash launch/setup.sh
 storage=(--storage runs/halfcheetah)
 for argument in "$@"; do
-    case "$argument" in --storage | --storage=*) storage=() ;; esac
+    case "$argument" in --storage | --storage=* | storage.url=*) storage=() ;; esac
 done
 exec .venv/bin/ftrain supervise --nproc-per-node 2 configs/halfcheetah.yaml ${storage[@]+"${storage[@]}"} "$@"

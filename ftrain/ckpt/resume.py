@@ -294,7 +294,7 @@ def _decide(
     spooled = _spooled(spool, found, reachable, log) if spool is not None else None
     if spooled is not None:
         step, manifest = spooled
-        check_compatible(config, step, manifest, robot)
+        check_compatible(config, step, manifest, robot, in_place=False)
         if reachable:
             clear_newer(storage, step, log)
         committed = found[0] if found else manifest[SPOOL_FIELD]["base"]
@@ -337,7 +337,7 @@ def _from_url(
             raise UserError(f"resume={shown}: {error}") from None
         digest = manifest.get("state_sha256")
         if found is None:
-            check_compatible(config, step, manifest, robot)
+            check_compatible(config, step, manifest, robot, in_place=False)
             clear_newer(storage, step, log)
             url = parse_checkpoint_url(config.resume)[0]
             started = {ORIGIN: {"url": shown, "step": step, "state_sha256": digest}}
@@ -382,9 +382,12 @@ def _resume(
     }
 
 
-def check_compatible(config: Config, step: int, manifest: dict, robot: dict | None = None) -> None:
+def check_compatible(
+    config: Config, step: int, manifest: dict, robot: dict | None = None, in_place: bool = True
+) -> None:
     """UserError unless ``step`` (by its manifest) can continue as this run (at any world size), training ``robot``
-    (``ftrain.policy.robot.identity``; None: not checked)."""
+    (``ftrain.policy.robot.identity``; None: not checked). ``in_place``: the step lies in this storage as it is (not
+    in the spool nor another storage, from which even a start that trains nothing writes it, with this config)."""
     written = manifest.get("state_format", 1)
     if written in PACKED_STATE_FORMATS:
         raise UserError(
@@ -423,10 +426,11 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
             f"checkpoint step {step} was trained with another robot: {changed}: restore it, or pass "
             "allow_config_change=true to go on with the robot as it is now"
         )
-    taken = _taken_as_it_is(manifest["config"], config, step)
+    taken = _taken_as_it_is(manifest["config"], config, step if in_place else None)
     if manifest["config_hash"] != config.training_hash(robot) and not config.allow_config_change and not taken:
         keys = config_change(manifest["config"], config.public_dict(), None, None)
-        if config.algorithm.schedule_iterations == config.iterations and "algorithm.schedule_iterations" in keys:
+        alone = keys.startswith("algorithm.schedule_iterations ") and ";" not in keys
+        if alone and config.algorithm.schedule_iterations == config.iterations:
             keys += f", which iterations={config.iterations} sets"
         raise UserError(
             f"checkpoint step {step} was trained with a different config "
@@ -435,13 +439,13 @@ def check_compatible(config: Config, step: int, manifest: dict, robot: dict | No
         )
 
 
-def _taken_as_it_is(saved: dict, config: Config, step: int) -> bool:
-    """Whether every change since ``saved`` (a manifest's config, at ``step``) is one a resume takes without
-    ``allow_config_change``: the teacher's URL (another spelling, or another teacher: a student keeps the teacher it
-    started with, whose weights its checkpoint holds, and says so: ``Trainer.load_state``), and a linear schedule's
-    horizon that follows the run's length on both sides (``iterations=N`` alone sets it to N: ``load_config``): a run
-    started short and lengthened, whose rate then falls to zero at the new end, or asked for no more than it has
-    trained, which trains nothing (the trainer says so)."""
+def _taken_as_it_is(saved: dict, config: Config, step: int | None) -> bool:
+    """Whether every change since ``saved`` (a manifest's config, at ``step``, None where a start writes it anew) is one
+    a resume takes without ``allow_config_change``: the teacher's URL (another spelling, or another teacher: a student
+    keeps the teacher it started with, whose weights its checkpoint holds, and says so: ``Trainer.load_state``), and a
+    linear schedule's horizon that follows the run's length on both sides (``iterations=N`` alone sets it to N:
+    ``load_config``): a run started short and lengthened, whose rate then falls to zero at the new end, or asked for no
+    more than it has trained, which trains nothing (the trainer says so)."""
     changed = set(changed_keys(saved, config.public_dict())) - {"teacher"}
     if changed != {"algorithm.schedule_iterations"}:
         return not changed
@@ -449,4 +453,4 @@ def _taken_as_it_is(saved: dict, config: Config, step: int) -> bool:
         return False
     horizons = (saved["algorithm"].get("schedule_iterations"), config.algorithm.schedule_iterations)
     follows = horizons == (saved.get("iterations"), config.iterations)
-    return follows and (horizons[1] > horizons[0] or config.iterations <= step)
+    return follows and (horizons[1] > horizons[0] or (step is not None and config.iterations <= step))

@@ -1,16 +1,16 @@
 """``events.jsonl``: one JSON line per supervisor decision, the ones with a message printed as well.
 
-Record. One JSON line per decision in ``<log_dir>/events.jsonl``: ``start``, ``resumed``, ``worker_died``,
-``exit``, ``hang``, ``superseded``, ``regroup`` (etcd-v2, elastic: another node left, preempted; this node's
-workers saved and it goes on without it), ``restart``, ``recovered``, ``storage_wait`` and ``storage_back`` (an
-unreachable storage waited out: why, how long), ``resize`` (the world size changed: old and new
-world and nodes, why, the step resumed from, iterations lost, downtime), ``preempt``, ``refused`` (node 0: a
-connection that brought no signed request), ``undead`` (a process of an ended attempt outlives its SIGKILL: the
-next attempt waits), ``absent`` (the supervisor itself did not run for a while: stopped, suspended), ``lease`` (the
-storage's lease taken over from a run that is gone, lost to another run, or not renewed: ``detail``), and the
-ending (``done``, ``preempted``, ``crash_loop``, ``max_restarts``, ``usage``, ``peer_lost``, ``peer_ended``,
-``too_few_nodes``, ``not_admitted`` (elastic: this node alone found no worker group), ``storage_down``), then
-``summary`` (restarts, iterations lost, downtime).
+Record. One JSON line per decision in ``<log_dir>/events.jsonl``: ``start``, ``resumed``, ``worker_died``, ``exit``,
+``world`` (how many workers, where ``--nproc-per-node`` was left out), ``hang``, ``superseded``, ``regroup`` (etcd-v2,
+elastic: another node left, preempted; this node's workers saved and it goes on without it), ``restart``,
+``recovered``, ``storage_wait`` and ``storage_back`` (an unreachable storage waited out: why, how long), ``resize``
+(the world size changed: old and new world and nodes, why, the step resumed from, iterations lost, downtime),
+``preempt``, ``refused`` (node 0: a connection that brought no signed request), ``undead`` (a process of an ended
+attempt outlives its SIGKILL: the next attempt waits), ``absent`` (the supervisor itself did not run for a while:
+stopped, suspended), ``lease`` (the storage's lease taken over from a run that is gone, lost to another run, or not
+renewed: ``detail``), and the ending (``done``, ``preempted``, ``crash_loop``, ``max_restarts``, ``usage``,
+``peer_lost``, ``peer_ended``, ``too_few_nodes``, ``not_admitted`` (elastic: this node alone found no worker group),
+``storage_down``), then ``summary`` (restarts, iterations lost, downtime).
 """
 
 from __future__ import annotations

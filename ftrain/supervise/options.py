@@ -193,7 +193,7 @@ class SupervisorOptions:
         }
         for name, (low, high, closed, what) in ranges.items():
             value = getattr(self, name)
-            if value is None:  # --storage-wait's default (outage.WAITS), --backoff-initial's (below)
+            if value is None:  # the defaults of --storage-wait (outage.WAITS), --backoff-initial, --nproc-per-node
                 continue
             if not math.isfinite(value) or not (low <= value <= high if closed else low < value <= high):
                 raise UserError(f"--{name.replace('_', '-')}={value} is out of range: use {what}")

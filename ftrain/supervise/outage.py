@@ -23,19 +23,22 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 from ftrain.ckpt.format import StepInfo, human_size, verify_step
 from ftrain.ckpt.lineage import history
 from ftrain.ckpt.retry import OUTAGE, Backoff, WaitLines
-from ftrain.ckpt.steps import scan
+from ftrain.ckpt.steps import resolve_checkpoint_url, scan
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
-from ftrain.config import StorageConfig
+from ftrain.config import AUTO, Config, StorageConfig
 from ftrain.errors import EXIT_USAGE, NO_SPACE, UserError
 from ftrain.progress import Progress, duration
 from ftrain.redact import Url
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.options import EXIT_STORAGE_WAIT
 from ftrain.supervise.outcome import Outcome
+
+T = TypeVar("T")
 
 SPACE_MARGIN = 1 << 20
 """Bytes of free disk a run needs besides its next checkpoint: logs, heartbeats, the lease."""
@@ -167,7 +170,9 @@ class StorageWait:
         ``NEWEST_WITHIN``: their heartbeats may miss a commit made as they were stopped, and a scheduler's grace
         after a stop is short."""
         answered, head = head_of(self.storage)
-        return head.step if head is not None else None if answered else known
+        if not answered:
+            return known
+        return head.step if head is not None else None
 
     def holds(self, step: int) -> bool:
         """Whether the storage holds ``step`` committed and intact (its files match its manifest's sizes and SHA-256,
@@ -194,18 +199,42 @@ class StorageWait:
 def head_of(storage: StorageConfig) -> tuple[bool, StepInfo | None]:
     """Whether the storage answered within ``NEWEST_WITHIN`` seconds, and the step a rerun resumes from: the head of
     its history, its files checked by size (None: no step)."""
-    heads: list[StepInfo | None] = []
+    return _within(lambda: _head(storage))
 
-    def look() -> None:
+
+def start_of(config: Config) -> tuple[bool, tuple[int, dict] | None]:
+    """Whether the storage answered within ``NEWEST_WITHIN`` seconds, and (step, manifest) of the step a start
+    resumes from: the head of the storage's history, else ``resume=``'s step (None: a fresh start)."""
+
+    def look() -> tuple[int, dict] | None:
+        if (head := _head(config.storage)) is not None:
+            return head.step, head.manifest or {}
+        if config.resume == AUTO:
+            return None
+        _, step, manifest = resolve_checkpoint_url(config.resume, config.storage.options, log=lambda line: None)
+        return step, manifest
+
+    return _within(look)
+
+
+def _head(storage: StorageConfig) -> StepInfo | None:
+    infos = scan(Storage.open(storage.url, storage.options, retries=0))
+    line = history(infos).line
+    return next((info for info in infos if line and info.step == line[0]), None)
+
+
+def _within(look: Callable[[], T]) -> tuple[bool, T | None]:
+    """``look()`` in a thread, waited for ``NEWEST_WITHIN`` seconds at most: whether it answered, and what."""
+    answers: list[T] = []
+
+    def answer() -> None:
         with contextlib.suppress(StorageError, UserError):
-            infos = scan(Storage.open(storage.url, storage.options, retries=0))
-            line = history(infos).line
-            heads.append(next((info for info in infos if line and info.step == line[0]), None))
+            answers.append(look())
 
-    looking = threading.Thread(target=look, name="ftrain-newest-step", daemon=True)
+    looking = threading.Thread(target=answer, name="ftrain-newest-step", daemon=True)
     looking.start()
     looking.join(NEWEST_WITHIN)
-    return bool(heads), heads[0] if heads else None
+    return bool(answers), answers[0] if answers else None
 
 
 def probe(url: str, options: dict | None = None, log_dir: Path | None = None) -> str | None:

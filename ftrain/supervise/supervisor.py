@@ -48,7 +48,7 @@ from ftrain.supervise.options import (
     parse_hang_timeout,
     parse_nodes,
 )
-from ftrain.supervise.outage import StorageWait, head_of
+from ftrain.supervise.outage import NEWEST_WITHIN, StorageWait, start_of
 from ftrain.supervise.outcome import Outcome, classify, finished, newest_step, not_admitted, peer_ended
 from ftrain.supervise.plan import Plan, plan_key
 from ftrain.supervise.restarts import RestartPolicy
@@ -102,16 +102,28 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
 
 def with_nproc(options: SupervisorOptions, nodes: Nodes, config: Config) -> tuple[SupervisorOptions, str]:
     """``options`` with ``--nproc-per-node`` where the command line left it out: on one node, the world size of the
-    step the run resumes from, so that resuming with the command that started it minus that flag trains on as
-    before instead of resizing; else 1. And the line that says so, where it is not 1."""
+    step the run resumes from, so that the command that started it, less that flag, trains on as before instead of
+    resizing; else 1. And the line that says why, where it is not 1 or where the storage did not tell."""
     if options.nproc_per_node is not None:
         return options, ""
-    head = head_of(config.storage)[1] if nodes.count == 1 and not nodes.elastic else None
-    world = int((head.manifest or {}).get("world_size", 1)) if head is not None else 1
-    said = (
-        f"{world} worker processes, as step {head.step} was trained (--nproc-per-node N to resize)" if world > 1 else ""
-    )
-    return dataclasses.replace(options, nproc_per_node=world), said
+    world, why = 1, ""
+    if nodes.count == 1:
+        world, why = _trained_world(config)
+    return dataclasses.replace(options, nproc_per_node=world), why
+
+
+def _trained_world(config: Config) -> tuple[int, str]:
+    choose = "--nproc-per-node N to choose"
+    answered, start = start_of(config)
+    if not answered:
+        return 1, f"the storage did not say within {NEWEST_WITHIN:g} s how many ranks its run has: 1 worker ({choose})"
+    if start is None:
+        return 1, ""
+    step, manifest = start
+    world, cpus = int(manifest.get("world_size", 1)), os.cpu_count() or 1
+    if world > cpus:
+        return 1, f"step {step} was trained at {world} ranks, more than this node's {cpus} CPUs: 1 worker ({choose})"
+    return world, f"{world} workers, as step {step} was trained (--nproc-per-node N to resize)" if world > 1 else ""
 
 
 class _Stop(Exception):  # the run ends, wherever the supervisor was: ``supervise`` records it

@@ -13,7 +13,11 @@ from pathlib import Path
 
 import pytest
 
-from helpers import REPO, child_env, final_manifest, manifests, run_train
+from ftrain.config import load_config
+from ftrain.supervise.options import SupervisorOptions, parse_nodes
+from ftrain.supervise.supervisor import with_nproc
+
+from helpers import REPO, child_env, final_manifest, free_port, manifests, run_train
 
 pytestmark = pytest.mark.slow
 
@@ -133,7 +137,7 @@ def test_supervise_without_nproc_per_node_resumes_at_the_world_size_it_was_train
     command = [sys.executable, "-m", "ftrain", "supervise", "configs/smoke.yaml", "--storage", str(storage)]
     again = subprocess.run([*command, "iterations=8"], cwd=REPO, env=child_env(), capture_output=True, text=True)
     assert again.returncode == 0, again.stderr[-3000:]
-    assert "2 worker processes, as step 4 was trained (--nproc-per-node N to resize)" in again.stderr, again.stderr
+    assert "2 workers, as step 4 was trained (--nproc-per-node N to resize)" in again.stderr, again.stderr
     assert "resized" not in again.stdout + again.stderr
     assert final_manifest(storage)["state_sha256"] == reference_state(8)
     resized = run_train(storage, "iterations=10", ranks=1, supervised=True)  # --nproc-per-node=1, given
@@ -145,5 +149,40 @@ def test_supervise_without_nproc_per_node_resumes_at_the_world_size_it_was_train
         capture_output=True,
         text=True,
     )
-    assert fresh.returncode == 0 and "worker processes" not in fresh.stderr, fresh.stderr[-3000:]
+    assert fresh.returncode == 0 and "workers" not in fresh.stderr, fresh.stderr[-3000:]
     assert final_manifest(tmp_path / "fresh")["world_size"] == 1
+
+
+def test_the_workers_a_supervisor_starts_without_nproc_per_node(tmp_path, two_rank_step, monkeypatch) -> None:
+    """What ``with_nproc`` reads, from real storages: the storage's own newest step, else ``resume=``'s step; 1 on a
+    fresh storage, on a storage that does not answer (and it says so), and for a step trained at more ranks than this
+    node has CPUs (and it says so)."""
+
+    def chosen(storage: str, *overrides: str, options: dict | None = None) -> tuple[int, str]:
+        config = load_config(str(REPO / "configs/smoke.yaml"), list(overrides), storage)
+        config.storage.options = options or {}
+        unset = SupervisorOptions(nproc_per_node=None)
+        resolved, said = with_nproc(unset, parse_nodes(unset), config)
+        return resolved.nproc_per_node, said
+
+    trained = str(Path(two_rank_step).parents[1])
+    cases = {
+        "a fresh storage": (chosen(str(tmp_path / "fresh")), (1, "")),
+        "the run's own storage": (
+            chosen(trained),
+            (2, "2 workers, as step 4 was trained (--nproc-per-node N to resize)"),
+        ),
+        "resume= into a fresh one": (chosen(str(tmp_path / "new"), f"resume={two_rank_step}")[0], 2),
+    }
+    down = chosen("s3://bucket/run", options={"endpoint_url": f"http://127.0.0.1:{free_port()}"})
+    cases["a storage that does not answer"] = (down[0], 1)
+    assert "the storage did not say within 5 s how many ranks its run has: 1 worker" in down[1], down
+    monkeypatch.setattr("os.cpu_count", lambda: 1)
+    small = chosen(trained)
+    cases["more ranks than CPUs"] = (
+        small,
+        (1, "step 4 was trained at 2 ranks, more than this node's 1 CPUs: 1 worker (--nproc-per-node N to choose)"),
+    )
+    for case, (got, expected) in cases.items():
+        assert got == expected, f"{case}: {got}"
+    print(f"{len(cases)} cases of the workers chosen without --nproc-per-node")

@@ -209,7 +209,8 @@ def test_a_run_lengthened_goes_on_with_its_learning_rate_falling_to_the_new_end_
 ) -> None:
     """``iterations=N`` alone sets a linear schedule's horizon to N: a short run lengthened goes on (one line says
     so), at the rate a run of the new length has there; one asked for no more than it has trained trains nothing and
-    says so; a horizon set apart from the length, or a run shortened before its end, is a config change."""
+    says so, unless its step comes from elsewhere; a horizon set apart from the length, or a run shortened before its
+    end, is a config change."""
     linear = "algorithm.schedule=linear"
     run_train(tmp_path / "run", "iterations=2", linear)
     lengthened = run_train(tmp_path / "run", "iterations=4", linear).stdout
@@ -218,13 +219,17 @@ def test_a_run_lengthened_goes_on_with_its_learning_rate_falling_to_the_new_end_
     run_train(tmp_path / "alone", "iterations=4", linear)
     rates = [metrics_by_iteration(tmp_path / name)[3]["learning_rate"] for name in ("run", "alone")]
     assert rates[0] == rates[1] and float(rates[0]) > 0, rates
+    record = [tmp_path / "run" / name for name in ("checkpoints/step-000000004/MANIFEST.json", "metrics.csv")]
+    before = [path.read_bytes() for path in record]
     idle = run_train(tmp_path / "run", "iterations=3", linear).stdout  # the run is at step 4 already
     assert "nothing to train: the run is already at step 4, asked for iterations=3" in idle, idle
+    assert [path.read_bytes() for path in record] == before, "a start that trains nothing writes nothing"
     run_train(tmp_path / "unfinished", "iterations=2", linear, "algorithm.schedule_iterations=4")
     cases = (  # a horizon set apart from the length; a run shortened before its end
         ("run", ["iterations=6", "algorithm.schedule_iterations=5"], "4 -> 5"),
         ("unfinished", ["iterations=3"], "4 -> 3, which iterations=3 sets"),
-    )
+        ("elsewhere", ["iterations=3", f"resume={tmp_path / 'run'}"], "4 -> 3, which iterations=3 sets"),
+    )  # a step another storage (or the spool) hands on is written here under this config: no lower length
     for name, overrides, change in cases:
         command = train_command(tmp_path / name, *overrides, linear)
         refused = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True)
