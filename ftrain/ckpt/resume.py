@@ -429,8 +429,8 @@ def check_compatible(
     taken = _taken_as_it_is(manifest["config"], config, step if in_place else None)
     if manifest["config_hash"] != config.training_hash(robot) and not config.allow_config_change and not taken:
         keys = config_change(manifest["config"], config.public_dict(), None, None)
-        alone = keys.startswith("algorithm.schedule_iterations ") and ";" not in keys
-        if alone and config.algorithm.schedule_iterations == config.iterations:
+        horizon_alone = set(changed_keys(manifest["config"], config.public_dict())) == {"algorithm.schedule_iterations"}
+        if horizon_alone and config.algorithm.schedule_iterations == config.iterations:
             keys += f", which iterations={config.iterations} sets"
         raise UserError(
             f"checkpoint step {step} was trained with a different config "
