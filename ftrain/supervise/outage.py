@@ -8,7 +8,8 @@ started may be misnamed: waited for 5 minutes, not an hour (``WAITS``). An attem
 training an iteration continues the same wait and backs off first (``AGAIN``), even where the probe passes (a storage
 that lists but refuses writes): never a restart loop. A full local disk is waited for alike: after any failed attempt
 the supervisor asks ``short_of_space`` (room for one more checkpoint and a margin), whose answer the workers could not
-write on that disk. Imports the storage layer and the standard library.
+write on that disk. The supervisor's own looks at the storage's head (``head_of``, ``start_of``: the step a start or a
+rerun resumes from) wait at most ``NEWEST_WITHIN`` seconds. Imports the storage layer and the standard library.
 """
 
 from __future__ import annotations
