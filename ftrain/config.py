@@ -378,9 +378,12 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
     config = build(Config, data, prefix="")
     config.storage.url, config.log_dir = Url(expand_home(config.storage.url)), expand_home(config.log_dir)
     config.resume = Url(expand_home(config.resume))
-    keys = {item.partition("=")[0].strip() for item in overrides} & {"iterations", "algorithm.schedule_iterations"}
-    if config.algorithm.schedule == "linear" and keys == {"iterations"}:
+    given = {item.partition("=")[0].strip() for item in overrides}
+    if config.algorithm.schedule == "linear" and (given & {"iterations", "algorithm.schedule_iterations"}) == {
+        "iterations"
+    }:
         config.algorithm.schedule_iterations = config.iterations
+    _count_envs_as_given(config, given)
     if not config.name:
         config.name = Path(path).stem if path else "run"
     if config.name in (".", "..") or any(mark in config.name for mark in ("/", "\\", "\0")):
@@ -394,6 +397,19 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
         config.log_dir = default_log_dir(config.storage.url, config.name)
     validate(config)
     return config
+
+
+def _count_envs_as_given(config: Config, given: set[str]) -> None:
+    """An ``env.num_envs=N`` override counts environments per rank, as its name says, over a file's
+    ``env.total_envs`` (the shipped configs count them for the whole run); both overridden at once is refused."""
+    if "env.num_envs" not in given or not config.env.total_envs:
+        return
+    if "env.total_envs" in given:
+        raise UserError(
+            f"env.num_envs={config.env.num_envs} (per rank) and env.total_envs={config.env.total_envs} (in all) "
+            "both count the environments: give one of them"
+        )
+    config.env.total_envs = 0
 
 
 def storage_options(words: list[str]) -> dict:
@@ -627,11 +643,12 @@ def validate(config: Config) -> None:
                 f"{key}={value!r} is unknown{did_you_mean(str(value), allowed)}: use {', '.join(allowed[:-1])} or "
                 f"{allowed[-1]}"
             )
-    batch = config.env.num_envs * config.num_steps_per_env
+    envs = ("env.total_envs", config.env.total_envs) if config.env.total_envs else ("env.num_envs", config.env.num_envs)
+    batch = envs[1] * config.num_steps_per_env
     if config.algorithm.num_mini_batches > batch:
         raise UserError(
             f"algorithm.num_mini_batches={config.algorithm.num_mini_batches} is more than the {batch} samples of a "
-            f"rollout (env.num_envs x num_steps_per_env): use at most {batch}"
+            f"rollout ({envs[0]} x num_steps_per_env): use at most {batch}"
         )
     if not config.snapshots.formats or set(config.snapshots.formats) - set(POLICY_FORMATS):
         raise UserError(f"snapshots.formats={config.snapshots.formats} is not a list of torchscript and/or onnx")

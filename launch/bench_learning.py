@@ -1,4 +1,4 @@
-"""Learning benchmark: every seed of the shipped configs on HalfCheetah, Hopper, Walker2d and Ant (v5) at 2 ranks,
+"""Learning benchmark: every seed of the shipped configs on HalfCheetah, Hopper, Walker2d and Ant (v5) as shipped,
 with stable-baselines3 PPO (the RL Zoo's tuned hyperparameters) side by side on this machine if asked.
 
     .venv/bin/python launch/bench_learning.py [--envs halfcheetah hopper] [--seeds 1 2 3 4 5] [--steps 1000000]
@@ -47,7 +47,7 @@ sys.path.insert(0, str(REPO))
 
 from machine_speed import cold_smoke  # noqa: E402
 
-from ftrain.config import EnvConfig, load_config  # noqa: E402
+from ftrain.config import EnvConfig, for_world, load_config  # noqa: E402
 from ftrain.tools.zoo import ZOO, zoo_ppo  # noqa: E402
 from ftrain.train.hooks import Hook  # noqa: E402
 
@@ -146,7 +146,7 @@ def run_ftrain(
     """``configs/<name>.yaml`` for ``steps`` environment steps at ``ranks`` ranks, or until an evaluation returns
     ``stop_at`` or more (then stopped by SIGTERM, and the final policy not evaluated again)."""
     config_path = REPO / "configs" / f"{name}.yaml"
-    config = load_config(str(config_path), overrides)
+    config = for_world(load_config(str(config_path), overrides), ranks)
     per_iteration = ranks * config.env.num_envs * config.num_steps_per_env
     iterations = math.ceil(steps / per_iteration)
     digest = hashlib.sha256(" ".join(overrides).encode()).hexdigest()[:8]

@@ -4,7 +4,7 @@ case of ``--cases`` (ranks x environments per rank), against what the machine al
     .venv/bin/python launch/bench_time_to_target.py [--cases 1x32 2x16 2x16:dp] [--seeds 1 2 3] [--target 5000]
         [--config halfcheetah] [--set KEY=VALUE ...]
 
-The shipped ``configs/halfcheetah.yaml`` is tuned at 2 ranks x 16 environments: 512 environment steps per iteration,
+The shipped ``configs/halfcheetah.yaml`` shares 32 environments among the ranks: 512 environment steps per iteration,
 10 epochs of 4 minibatches. The cases (default: the config's global batch at 1 rank, and at 2 ranks split and
 data-parallel: ``1x32 2x16 2x16:dp``) keep that global batch, so the learning per environment step is the same, and
 only the time it takes can differ:
@@ -172,7 +172,7 @@ def main() -> int:
         if item.partition("=")[0].startswith(OWN_KEYS):
             parser.error(f"--set {item}: the benchmark sets {item.partition('=')[0]} itself (cases, seeds, runs)")
     config = load_config(str(config_path))
-    tuned = 2 * config.env.num_envs  # the config's global batch, in environments: tuned at 2 ranks
+    tuned = config.env.total_envs or 2 * config.env.num_envs  # the config's global batch, in environments
     cases = args.cases or [Case(1, tuned, False), Case(2, tuned // 2, False), Case(2, tuned // 2, True)]
     names = [str(case) for case in cases]
     horizon = args.schedule_steps or config.algorithm.schedule_iterations * tuned * config.num_steps_per_env

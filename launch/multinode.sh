@@ -11,8 +11,9 @@
 # Node 0 must live.
 #
 # Or through an etcd server outside the nodes (no special node: any node may be lost; see docs/clusters.md):
-#   ETCD=10.0.0.9:2379 RUN_ID=hc-1 NNODES=2:4 bash launch/multinode.sh configs/halfcheetah.yaml --storage s3://bucket/runs/hc
-# the same line on every node, no rank, no secret. Start etcd first (etcd 3.4 or 3.5, v2 API on), e.g. Debian's:
+#   ETCD=10.0.0.9:2379 RUN_ID=hc-1 NNODES=2:4 bash launch/multinode.sh configs/halfcheetah.yaml env.num_envs=4 --storage s3://bucket/runs/hc
+# the same line on every node, no rank, no secret (env.num_envs counts per rank: the config's 32 environments in all
+# are not shared by every world from 2 to 4 nodes, and the supervisor refuses them). Start etcd first (etcd 3.4 or 3.5, v2 API on), e.g. Debian's:
 #   etcd --enable-v2 --data-dir /var/lib/ftrain-etcd --listen-client-urls http://10.0.0.9:2379 --advertise-client-urls http://10.0.0.9:2379
 # ETCD_CONF passes etcd's TLS settings as files: protocol=https,ca_cert=FILE,ssl_cert=FILE,ssl_cert_key=FILE.
 #

@@ -1,6 +1,7 @@
 """Config loading, overrides, and the one-line errors for bad input (exit code 2, no traceback)."""
 
 import dataclasses
+import os
 import re
 import subprocess
 import sys
@@ -11,6 +12,8 @@ import pytest
 from ftrain.ckpt.lease import TTL_ENV, ttl_from_env
 from ftrain.config import Config, for_world, load_config, local_directories
 from ftrain.errors import UserError
+from ftrain.supervise.options import Nodes
+from ftrain.supervise.supervisor import refuse_unshared_envs
 from ftrain.train.lr_schedule import horizon_notice
 
 from helpers import REPO, SMOKE, child_env
@@ -238,10 +241,29 @@ def test_an_iterations_override_scales_a_linear_schedule_to_the_run_and_nothing_
 def test_total_envs_are_shared_evenly_by_the_ranks_or_refused_in_one_line() -> None:
     config = load_config(SMOKE, ["env.total_envs=12"])
     assert [for_world(config, world).env.num_envs for world in (1, 2, 3, 4, 6)] == [12, 6, 4, 3, 2]
-    assert config.training_hash() == load_config(SMOKE, ["env.total_envs=12", "env.num_envs=3"]).training_hash()
+    assert config.training_hash() == for_world(config, 4).training_hash()  # the share per rank is not trained
     assert for_world(load_config(SMOKE), 4).env.num_envs == 4  # without it: env.num_envs per rank, as configured
     with pytest.raises(UserError, match=r"^env.total_envs=12 cannot be shared evenly by 5 ranks: use a multiple of 5"):
         for_world(config, 5)
+
+
+SHIPPED_PPO = ["ant", "halfcheetah", "halfcheetah_large", "hopper", "reach", "walker2d"]
+
+
+@pytest.mark.parametrize("name", SHIPPED_PPO)
+def test_a_shipped_config_trains_one_global_batch_at_every_world_size_that_divides_it(name) -> None:
+    """The world size is not a hyperparameter of the shipped configs: they count the run's environments, so 1 rank
+    and N ranks roll out the same environments (tests/train/test_world_size.py trains them); an ``env.num_envs=N``
+    override counts per rank, as its name says, and both counts at once are refused."""
+    config = load_config(str(REPO / "configs" / f"{name}.yaml"))
+    total = config.env.total_envs
+    worlds = [world for world in range(1, total + 1) if total % world == 0]
+    assert len(worlds) >= 5 and all(for_world(config, world).env.num_envs * world == total for world in worlds)
+    per_rank = load_config(str(REPO / "configs" / f"{name}.yaml"), ["env.num_envs=4"])
+    assert (per_rank.env.total_envs, for_world(per_rank, 3).env.num_envs) == (0, 4)
+    with pytest.raises(UserError, match=r"^env.num_envs=4 \(per rank\) and env.total_envs=8 \(in all\) both count"):
+        load_config(str(REPO / "configs" / f"{name}.yaml"), ["env.num_envs=4", "env.total_envs=8"])
+    print(f"{name}: env.total_envs={total} shared evenly at {len(worlds)} world sizes {worlds}")
 
 
 def test_a_storage_or_log_dir_that_cannot_be_made_is_one_line_exit_2(tmp_path) -> None:
@@ -268,6 +290,16 @@ def test_supervise_refuses_total_envs_its_world_cannot_share_before_it_launches_
     refused = "env.total_envs=5 cannot be shared evenly by 2 ranks: use a multiple of 2, or a number of ranks that"
     assert result.stderr == f"ftrain: error: {refused} divides 5\n"
     assert not storage.exists() and list(tmp_path.iterdir()) == []  # no storage, no log directory
+    elastic = ["--nnodes", "2:4", "--nproc-per-node", "8", "--rdzv-endpoint", "127.0.0.1:9", "configs/ant.yaml"]
+    env = {**os.environ, "FTRAIN_RDZV_SECRET": "a" * 32}  # every world from 2 to 4 nodes, before anything starts
+    args = ["supervise", *elastic, "--storage", str(storage)]
+    result = subprocess.run([sys.executable, "-m", "ftrain", *args], cwd=REPO, env=env, capture_output=True, text=True)
+    refused = "env.total_envs=32 cannot be shared evenly by the 24 ranks of 3 nodes (--nnodes 2:4, 8 per node): set a"
+    assert result.returncode == 2 and result.stderr.startswith(f"ftrain: error: {refused}"), result.stderr
+    assert result.stderr.endswith("(env.total_envs=96), or env.num_envs=N to count per rank\n") and not storage.exists()
+    per_rank = load_config(str(REPO / "configs" / "ant.yaml"), ["env.num_envs=4"])
+    refuse_unshared_envs(per_rank, Nodes(count=4, least=2), 8)  # counted per rank: every world takes it
+    refuse_unshared_envs(load_config(str(REPO / "configs" / "ant.yaml"), ["env.total_envs=96"]), Nodes(4, 2), 8)
 
 
 def test_a_storage_or_log_dir_that_is_a_file_is_one_line_exit_2_and_the_file_is_left_alone(tmp_path) -> None:

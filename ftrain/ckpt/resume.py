@@ -164,8 +164,10 @@ def restore(
     saved = manifest["config"]
     current = {**config.public_dict(), "teacher": saved.get("teacher")}  # the student keeps its teacher (load_state)
     change = config_change(saved, current, manifest.get("robot"), robot)
-    if change:  # only allow_config_change, or a horizon that follows the run's length, lets a change this far
+    if change:  # allow_config_change, a horizon that follows the run's length or the same environments counted anew
         why = "allow_config_change=true" if config.allow_config_change else "the learning rate follows iterations"
+        if not config.allow_config_change and set(changed_keys(saved, current)) <= ENV_COUNTS:
+            why = "the same environments, counted per rank or in all"
         log(f"changed since step {step} ({why}): {change}")
     if moved := arithmetic_change(manifest.get("arithmetic"), arithmetic or []):
         log(f"step {step} was trained on other arithmetic ({moved}): the run continues, not bit for bit")
@@ -439,14 +441,20 @@ def check_compatible(
         )
 
 
+ENV_COUNTS = {"env.num_envs", "env.total_envs"}
+"""The two ways to count a run's environments (per rank, in all): ``check_compatible`` compares the counts."""
+
+
 def _taken_as_it_is(saved: dict, config: Config, step: int | None) -> bool:
     """Whether every change since ``saved`` (a manifest's config, at ``step``, None where a start writes it anew) is one
     a resume takes without ``allow_config_change``: the teacher's URL (another spelling, or another teacher: a student
     keeps the teacher it started with, whose weights its checkpoint holds, and says so: ``Trainer.load_state``), and a
     linear schedule's horizon that follows the run's length on both sides (``iterations=N`` alone sets it to N:
     ``load_config``): a run started short and lengthened, whose rate then falls to zero at the new end, or asked for no
-    more than it has trained, which trains nothing (the trainer says so)."""
-    changed = set(changed_keys(saved, config.public_dict())) - {"teacher"}
+    more than it has trained, which trains nothing (the trainer says so). The environments counted per rank then and
+    for the whole run now, or the other way round, are the same environments: ``check_compatible`` has compared their
+    counts before."""
+    changed = set(changed_keys(saved, config.public_dict())) - {"teacher", *ENV_COUNTS}
     if changed != {"algorithm.schedule_iterations"}:
         return not changed
     if saved["algorithm"].get("schedule") != "linear" or config.algorithm.schedule != "linear":

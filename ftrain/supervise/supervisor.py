@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import os
 import signal
 import sys
@@ -61,6 +62,22 @@ LINGER = 30.0
 """Seconds node 0 keeps answering after the end, until every node has learnt the outcome."""
 
 
+def refuse_unshared_envs(config: Config, nodes: Nodes, nproc: int) -> None:
+    """``env.total_envs`` shared by every world the run may train at (each node count from ``--nnodes`` MIN to MAX):
+    refused here, before anything starts, not by every worker of an odd world in the middle of the run."""
+    worlds = [count * nproc for count in range(nodes.least, nodes.count + 1)]
+    if not nodes.elastic or not config.env.total_envs:
+        for_world(config, worlds[-1])
+        return
+    odd = [world for world in worlds if config.env.total_envs % world]
+    if odd:
+        raise UserError(
+            f"env.total_envs={config.env.total_envs} cannot be shared evenly by the {odd[0]} ranks of "
+            f"{odd[0] // nproc} nodes (--nnodes {nodes.least}:{nodes.count}, {nproc} per node): set a total that "
+            f"every world divides (env.total_envs={math.lcm(*worlds)}), or env.num_envs=N to count per rank"
+        )
+
+
 def supervise(options: SupervisorOptions, config: Config, train_args: list[str]) -> int:
     """Run training under supervision until it finishes or gives up; returns the exit code (see module doc).
 
@@ -69,8 +86,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     hang_timeout = parse_hang_timeout(options.hang_timeout)
     nodes = parse_nodes(options)
     options, chosen = with_nproc(options, nodes, config)
-    if not nodes.elastic:  # env.total_envs shared by this world's ranks: refused here, not by every worker
-        for_world(config, nodes.count * options.nproc_per_node)
+    refuse_unshared_envs(config, nodes, options.nproc_per_node)
     try:
         supervisor = Supervisor(options, nodes, hang_timeout, train_args, config)
     except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout

@@ -108,7 +108,9 @@ inferences whose rows do not depend on the batch's size), so resizes between the
 
 def test_with_total_envs_any_resize_schedule_between_one_and_two_ranks_trains_bit_for_bit(tmp_path) -> None:
     """Random schedules of world sizes (1 or 2) and resize steps, ``env.total_envs`` fixed: every environment goes on
-    by its global index, so each schedule ends with the state of the run that was never resized."""
+    by its global index, so each schedule ends with the state of the run that was never resized. The first leg may
+    count the same environments per rank (``env.num_envs``, as the shipped configs did before they counted them in
+    all): the next leg takes its step without ``allow_config_change``."""
     reference = tmp_path / "reference"
     run_train(reference, "iterations=8", *EXACT, ranks=1)
     expected = final_manifest(reference)["state_sha256"]
@@ -119,14 +121,17 @@ def test_with_total_envs_any_resize_schedule_between_one_and_two_ranks_trains_bi
         steps = sorted(draw.sample(range(1, 8), 2))
         first = draw.choice([1, 2])
         sizes = [first, 3 - first, draw.choice([1, 2])]  # at least one resize
+        per_rank = number == 0  # one schedule of each counting, every run
         storage, outputs = tmp_path / f"schedule-{number}", []
-        for size, step in zip(sizes, [*steps, 8], strict=True):
-            outputs.append(run_train(storage, f"iterations={step}", *EXACT, ranks=size).stdout)
+        for leg, (size, step) in enumerate(zip(sizes, [*steps, 8], strict=True)):
+            counted = [f"env.num_envs={8 // size}", *EXACT[1:]] if per_rank and leg == 0 else EXACT
+            outputs.append(run_train(storage, f"iterations={step}", *counted, ranks=size).stdout)
         manifest = final_manifest(storage)
-        schedules.append(list(zip(sizes, [*steps, 8], strict=True)))
+        schedules.append([*zip(sizes, [*steps, 8], strict=True), "per rank first" if per_rank else "in all"])
         assert manifest["state_sha256"] == expected, f"schedule {schedules[-1]} (seed {seed})"
         assert "every environment goes on" in outputs[1]
-    print(f"{len(schedules)} resize schedules (world size, to step), seed {seed}, ended as one rank's: {schedules}")
+        assert ("the same environments, counted per rank or in all" in outputs[1]) == per_rank, outputs[1]
+    print(f"{len(schedules)} resize schedules ((ranks, to step), counting), seed {seed}, all as one rank: {schedules}")
 
 
 def test_supervise_without_nproc_per_node_resumes_at_the_world_size_it_was_trained_at(tmp_path, reference_state):

@@ -1,6 +1,7 @@
 """Run under torchrun at W ranks (or alone, W = 1): each case of CASES (a JSON file) whose ``worlds`` hold W trains
 its iterations from a fresh start, through the real training loop (``Trainer``: rollout, reward normalisation, update,
-metrics) without checkpoints, with its ``total_envs`` shared by the W ranks (or ``envs`` on each rank). Rank 0 saves
+metrics) without checkpoints, with its ``total_envs`` shared by the W ranks (``envs`` on each rank; neither: the
+config's own count, as users run it). Rank 0 saves
 what each case learned, with the collectives' fallbacks, to ``OUT/<case>.w<W>.pt``."""
 
 from __future__ import annotations
@@ -25,8 +26,9 @@ def main(cases_file: str, out: str) -> None:
     for name, case in cases.items():
         if info.world_size not in case["worlds"]:
             continue
-        envs = case.get("envs") or case["total_envs"] // info.world_size
-        overrides = [*case["overrides"], *QUIET, f"env.num_envs={envs}", f"iterations={case['iterations']}"]
+        overrides = [*case["overrides"], *QUIET, f"iterations={case['iterations']}"]
+        if "envs" in case or "total_envs" in case:
+            overrides.append(f"env.num_envs={case.get('envs') or case['total_envs'] // info.world_size}")
         storage = f"{out}/storage-{name}-w{info.world_size}"
         config = load_config(case["config"], overrides, storage=storage)
         trainer = Trainer(config, info)
