@@ -27,7 +27,7 @@ import yaml
 
 from ftrain.errors import UserError, did_you_mean
 from ftrain.redact import Url, display_url, display_urls, redact_options
-from ftrain.values import build, parse_amount, parse_value, set_dotted, storage_option_overrides
+from ftrain.values import build, dotted, parse_amount, parse_value, set_dotted, storage_option_overrides
 
 POLICY_FORMATS = ("torchscript", "onnx")
 """The file formats a policy is exported and snapshotted in."""
@@ -307,7 +307,7 @@ def for_world(config: Config, world_size: int) -> Config:
     if total % world_size:
         raise UserError(
             f"env.total_envs={total} cannot be shared evenly by {world_size} ranks: use a multiple of {world_size}, "
-            f"or a number of ranks that divides {total}"
+            f"a number of ranks that divides {total}, or env.num_envs=N to count per rank"
         )
     resolved = copy.deepcopy(config)
     resolved.env.num_envs = total // world_size
@@ -378,7 +378,10 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
     config = build(Config, data, prefix="")
     config.storage.url, config.log_dir = Url(expand_home(config.storage.url)), expand_home(config.log_dir)
     config.resume = Url(expand_home(config.resume))
-    given = {item.partition("=")[0].strip() for item in overrides}
+    given = set()  # the dotted keys set on the command line, a section's mapping (env={num_envs: 8}) by its keys
+    for key, _, raw in (item.partition("=") for item in overrides):
+        value = parse_value(raw)
+        given |= set(dotted(value, f"{key.strip()}.")) if isinstance(value, dict) else {key.strip()}
     if config.algorithm.schedule == "linear" and (given & {"iterations", "algorithm.schedule_iterations"}) == {
         "iterations"
     }:

@@ -48,6 +48,7 @@ sys.path.insert(0, str(REPO))
 from machine_speed import cold_smoke  # noqa: E402
 
 from ftrain.config import EnvConfig, for_world, load_config  # noqa: E402
+from ftrain.errors import UserError  # noqa: E402
 from ftrain.tools.zoo import ZOO, zoo_ppo  # noqa: E402
 from ftrain.train.hooks import Hook  # noqa: E402
 
@@ -480,6 +481,11 @@ def main() -> None:
         parser.error(f"--seeds {' '.join(map(str, args.seeds))}: each seed once (a seed's runs share one storage)")
     if args.ranks < 1 or args.parallel < 1:
         parser.error(f"--ranks {args.ranks} --parallel {args.parallel}: both at least 1")
+    for name in args.envs:  # each config as these ranks run it, before any run: a count they cannot share is refused
+        try:
+            for_world(load_config(str(REPO / "configs" / f"{name}.yaml"), args.set), args.ranks)
+        except UserError as error:
+            parser.error(f"--envs {name} --ranks {args.ranks}: {error}")
     if args.parallel > 1:
         print(f"--parallel {args.parallel}: runs share the machine; compare their returns and steps, not their times")
     work = args.out / "runs"

@@ -59,6 +59,7 @@ OWN_KEYS = (
     "log",
     "checkpoint.",
     "env.num_envs",
+    "env.total_envs",
     "algorithm.num_mini_batches",
     "algorithm.schedule_iterations",
 )

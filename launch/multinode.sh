@@ -18,7 +18,8 @@
 # ETCD_CONF passes etcd's TLS settings as files: protocol=https,ca_cert=FILE,ssl_cert=FILE,ssl_cert_key=FILE.
 #
 # Storage must be shared by all nodes (s3://, or a shared filesystem). NPROC_PER_NODE defaults to the node's CPU
-# count. Extra arguments go to `ftrain supervise`. NNODES=MIN:MAX (e.g. 2:4) trains elastically on as many nodes as
+# count; the shipped configs count their environments in all (configs/halfcheetah.yaml: 32), which the ranks must
+# divide: add env.num_envs=N to count them per rank instead. Extra arguments go to `ftrain supervise`. NNODES=MIN:MAX (e.g. 2:4) trains elastically on as many nodes as
 # there are (see docs/clusters.md); with c10d NODE_RANK then only needs to be 0 on the node at HEAD and distinct
 # elsewhere. After SIGTERM every node exits 143 once the workers have saved: run the same commands again to continue.
 set -euo pipefail

@@ -253,16 +253,20 @@ SHIPPED_PPO = ["ant", "halfcheetah", "halfcheetah_large", "hopper", "reach", "wa
 @pytest.mark.parametrize("name", SHIPPED_PPO)
 def test_a_shipped_config_trains_one_global_batch_at_every_world_size_that_divides_it(name) -> None:
     """The world size is not a hyperparameter of the shipped configs: they count the run's environments, so 1 rank
-    and N ranks roll out the same environments (tests/train/test_world_size.py trains them); an ``env.num_envs=N``
-    override counts per rank, as its name says, and both counts at once are refused."""
+    and N ranks roll out the same environments (tests/train/test_world_size.py trains HalfCheetah's at 1, 2, 4 and 8
+    ranks against one rank, and every shipped config at 4 and 8); an ``env.num_envs=N`` override counts per rank, as
+    its name says, a section's mapping too, and both counts at once are refused."""
     config = load_config(str(REPO / "configs" / f"{name}.yaml"))
     total = config.env.total_envs
     worlds = [world for world in range(1, total + 1) if total % world == 0]
     assert len(worlds) >= 5 and all(for_world(config, world).env.num_envs * world == total for world in worlds)
     per_rank = load_config(str(REPO / "configs" / f"{name}.yaml"), ["env.num_envs=4"])
     assert (per_rank.env.total_envs, for_world(per_rank, 3).env.num_envs) == (0, 4)
-    with pytest.raises(UserError, match=r"^env.num_envs=4 \(per rank\) and env.total_envs=8 \(in all\) both count"):
-        load_config(str(REPO / "configs" / f"{name}.yaml"), ["env.num_envs=4", "env.total_envs=8"])
+    section = load_config(str(REPO / "configs" / f"{name}.yaml"), ["env={num_envs: 4}"])  # a section's keys count
+    assert (section.env.total_envs, for_world(section, 3).env.num_envs) == (0, 4)
+    for both in (["env.num_envs=4", "env.total_envs=8"], ["env={total_envs: 8}", "env.num_envs=4"]):
+        with pytest.raises(UserError, match=r"^env.num_envs=4 \(per rank\) and env.total_envs=8 \(in all\) both"):
+            load_config(str(REPO / "configs" / f"{name}.yaml"), both)
     print(f"{name}: env.total_envs={total} shared evenly at {len(worlds)} world sizes {worlds}")
 
 
@@ -287,8 +291,8 @@ def test_supervise_refuses_total_envs_its_world_cannot_share_before_it_launches_
     args = ["supervise", "--nproc-per-node", "2", SMOKE, "--storage", str(storage), "env.total_envs=5"]
     result = subprocess.run([sys.executable, "-m", "ftrain", *args], cwd=tmp_path, capture_output=True, text=True)
     assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
-    refused = "env.total_envs=5 cannot be shared evenly by 2 ranks: use a multiple of 2, or a number of ranks that"
-    assert result.stderr == f"ftrain: error: {refused} divides 5\n"
+    refused = "env.total_envs=5 cannot be shared evenly by 2 ranks: use a multiple of 2, a number of ranks that"
+    assert result.stderr == f"ftrain: error: {refused} divides 5, or env.num_envs=N to count per rank\n"
     assert not storage.exists() and list(tmp_path.iterdir()) == []  # no storage, no log directory
     elastic = ["--nnodes", "2:4", "--nproc-per-node", "8", "--rdzv-endpoint", "127.0.0.1:9", "configs/ant.yaml"]
     env = {**os.environ, "FTRAIN_RDZV_SECRET": "a" * 32}  # every world from 2 to 4 nodes, before anything starts
@@ -300,6 +304,8 @@ def test_supervise_refuses_total_envs_its_world_cannot_share_before_it_launches_
     per_rank = load_config(str(REPO / "configs" / "ant.yaml"), ["env.num_envs=4"])
     refuse_unshared_envs(per_rank, Nodes(count=4, least=2), 8)  # counted per rank: every world takes it
     refuse_unshared_envs(load_config(str(REPO / "configs" / "ant.yaml"), ["env.total_envs=96"]), Nodes(4, 2), 8)
+    with pytest.raises(UserError, match=r"set a total that every world divides, or env.num_envs=N"):  # lcm 5,765,760
+        refuse_unshared_envs(load_config(str(REPO / "configs" / "ant.yaml")), Nodes(16, 2), 8)
 
 
 def test_a_storage_or_log_dir_that_is_a_file_is_one_line_exit_2_and_the_file_is_left_alone(tmp_path) -> None:

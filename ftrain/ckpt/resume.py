@@ -119,7 +119,7 @@ def restore(
     storage, the ``spool`` or another run's storage (``resume=URL``); ``down``: why the storage did not answer when it
     was opened just now (it is not asked again); ``arithmetic``: every rank's (``arithmetic.describe``), to say
     whether the run continues bit for bit."""
-    decision = decide(config, storage, log, robot, spool, down) if info.is_main else None
+    decision = decide(config, storage, log, info.world_size, robot, spool, down) if info.is_main else None
     decision = group.broadcast_object(decision, info)
     if decision["kind"] == "usage":
         raise UserError(decision["why"])
@@ -238,6 +238,7 @@ def decide(
     config: Config,
     storage: Storage,
     log: Callable[[str], None],
+    world_size: int,
     robot: dict | None = None,
     spool: Spool | None = None,
     down: StorageUnavailable | None = None,
@@ -246,7 +247,7 @@ def decide(
     other ranks). A start that does not resume from the spool empties it: it only ever holds the history of this
     start."""
     try:
-        decision = _decide(config, storage, log, robot, spool, down)
+        decision = _decide(config, storage, log, world_size, robot, spool, down)
     except UserError as error:
         decision = {"kind": "usage", "why": str(error)}
     except LeaseHeld as error:  # the holder's check refused a clean-up: another run holds the storage now
@@ -267,6 +268,7 @@ def _decide(
     config: Config,
     storage: Storage,
     log: Callable[[str], None],
+    world_size: int,
     robot: dict | None,
     spool: Spool | None,
     down: StorageUnavailable | None,
@@ -283,7 +285,7 @@ def _decide(
         clear_newer(storage, 0, log)
         return {"kind": "fresh", "why": "resume=never: starting fresh"}
     found = select_resume(storage, log=log) if resume != "auto" else None
-    if resume != "auto" and (started := _from_url(config, storage, found, log, robot)) is not None:
+    if resume != "auto" and (started := _from_url(config, storage, found, log, world_size, robot)) is not None:
         return started
     try:
         if down is None and found is None:
@@ -296,7 +298,7 @@ def _decide(
     spooled = _spooled(spool, found, reachable, log) if spool is not None else None
     if spooled is not None:
         step, manifest = spooled
-        check_compatible(config, step, manifest, robot, in_place=False)
+        check_compatible(config, step, manifest, world_size, robot, in_place=False)
         if reachable:
             clear_newer(storage, step, log)
         committed = found[0] if found else manifest[SPOOL_FIELD]["base"]
@@ -317,13 +319,18 @@ def _decide(
         clear_newer(storage, 0, log)
         return {"kind": "fresh", "why": f"no verified checkpoint in {storage.url}: starting fresh"}
     step, manifest = found
-    check_compatible(config, step, manifest, robot)
+    check_compatible(config, step, manifest, world_size, robot)
     clear_newer(storage, step, log)
     return _resume(step, manifest, url=None, where="this storage", committed=step)
 
 
 def _from_url(
-    config: Config, storage: Storage, found: tuple[int, dict] | None, log: Callable[[str], None], robot: dict | None
+    config: Config,
+    storage: Storage,
+    found: tuple[int, dict] | None,
+    log: Callable[[str], None],
+    world_size: int,
+    robot: dict | None,
 ) -> dict | None:
     """``resume=URL``: the start of this storage's history from that step (of another run's storage, or of this
     one). Its manifests name that step as their ``origin``; where this storage's history already goes on from it (the
@@ -339,7 +346,7 @@ def _from_url(
             raise UserError(f"resume={shown}: {error}") from None
         digest = manifest.get("state_sha256")
         if found is None:
-            check_compatible(config, step, manifest, robot, in_place=False)
+            check_compatible(config, step, manifest, world_size, robot, in_place=False)
             clear_newer(storage, step, log)
             url = parse_checkpoint_url(config.resume)[0]
             started = {ORIGIN: {"url": shown, "step": step, "state_sha256": digest}}
@@ -385,9 +392,9 @@ def _resume(
 
 
 def check_compatible(
-    config: Config, step: int, manifest: dict, robot: dict | None = None, in_place: bool = True
+    config: Config, step: int, manifest: dict, world_size: int, robot: dict | None = None, in_place: bool = True
 ) -> None:
-    """UserError unless ``step`` (by its manifest) can continue as this run (at any world size), training ``robot``
+    """UserError unless ``step`` (by its manifest) can continue as this run at ``world_size`` ranks, training ``robot``
     (``ftrain.policy.robot.identity``; None: not checked). ``in_place``: the step lies in this storage as it is (not
     in the spool nor another storage, from which even a start that trains nothing writes it, with this config)."""
     written = manifest.get("state_format", 1)
@@ -410,18 +417,7 @@ def check_compatible(
             "into each other (not even with allow_config_change=true): set the checkpoint's values, or use another "
             "--storage"
         )
-    saved_total = manifest["envs_per_rank"] * manifest["world_size"]
-    if config.env.total_envs and saved_total != config.env.total_envs:
-        raise UserError(
-            f"checkpoint step {step} has {saved_total} environments in all ({manifest['world_size']} ranks x "
-            f"{manifest['envs_per_rank']}), the config has env.total_envs={config.env.total_envs}: set "
-            f"env.total_envs={saved_total}"
-        )
-    if not config.env.total_envs and manifest["envs_per_rank"] != config.env.num_envs:
-        raise UserError(
-            f"checkpoint step {step} has env.num_envs={manifest['envs_per_rank']} per rank, the config has "
-            f"{config.env.num_envs}: set env.num_envs={manifest['envs_per_rank']}"
-        )
+    _check_env_counts(config, step, manifest, world_size)
     changed = robot_change(manifest.get("robot"), robot)
     if changed and not config.allow_config_change:
         raise UserError(
@@ -442,7 +438,35 @@ def check_compatible(
 
 
 ENV_COUNTS = {"env.num_envs", "env.total_envs"}
-"""The two ways to count a run's environments (per rank, in all): ``check_compatible`` compares the counts."""
+"""The two ways to count a run's environments (per rank, in all): ``_check_env_counts`` compares the counts."""
+
+
+def _check_env_counts(config: Config, step: int, manifest: dict, world_size: int) -> None:
+    """UserError unless the config at ``world_size`` ranks goes on with the environments of ``step``. Counted per rank
+    then and now: the same number per rank (the global batch follows the world size). Counted in all then or now: the
+    same number in all, counted in all now where the world size changes (only that hands every environment on by its
+    global index)."""
+    per_rank, saved_world = manifest["envs_per_rank"], manifest["world_size"]
+    saved_total, in_all = per_rank * saved_world, bool(config.env.total_envs)
+    if not in_all and not manifest["config"]["env"].get("total_envs"):
+        if per_rank != config.env.num_envs:
+            raise UserError(
+                f"checkpoint step {step} has env.num_envs={per_rank} per rank, the config has {config.env.num_envs}: "
+                f"set env.num_envs={per_rank}"
+            )
+        return
+    total = config.env.total_envs or config.env.num_envs * world_size
+    if total == saved_total and (in_all or world_size == saved_world):
+        return
+    has = f"checkpoint step {step} has {saved_total} environments in all ({saved_world} ranks x {per_rank})"
+    if in_all:
+        raise UserError(f"{has}, the config has env.total_envs={total}: set env.total_envs={saved_total}")
+    ranks = f"{world_size} rank{'s' * (world_size != 1)}"
+    resize = ", and a resize hands them on only counted in all" if total == saved_total else ""
+    raise UserError(
+        f"{has}, the config counts env.num_envs={config.env.num_envs} per rank at {ranks}{resize}: set "
+        f"env.total_envs={saved_total} instead of env.num_envs"
+    )
 
 
 def _taken_as_it_is(saved: dict, config: Config, step: int | None) -> bool:
@@ -451,9 +475,8 @@ def _taken_as_it_is(saved: dict, config: Config, step: int | None) -> bool:
     keeps the teacher it started with, whose weights its checkpoint holds, and says so: ``Trainer.load_state``), and a
     linear schedule's horizon that follows the run's length on both sides (``iterations=N`` alone sets it to N:
     ``load_config``): a run started short and lengthened, whose rate then falls to zero at the new end, or asked for no
-    more than it has trained, which trains nothing (the trainer says so). The environments counted per rank then and
-    for the whole run now, or the other way round, are the same environments: ``check_compatible`` has compared their
-    counts before."""
+    more than it has trained, which trains nothing (the trainer says so). A count of the environments per rank where
+    it was in all, or the other way round: ``_check_env_counts`` has let only the same environments through."""
     changed = set(changed_keys(saved, config.public_dict())) - {"teacher", *ENV_COUNTS}
     if changed != {"algorithm.schedule_iterations"}:
         return not changed

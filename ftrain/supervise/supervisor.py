@@ -71,10 +71,12 @@ def refuse_unshared_envs(config: Config, nodes: Nodes, nproc: int) -> None:
         return
     odd = [world for world in worlds if config.env.total_envs % world]
     if odd:
+        fits = math.lcm(*worlds)  # named where it is a size a run might take
+        named = f" (env.total_envs={fits})" if fits <= 8 * worlds[-1] else ""
         raise UserError(
             f"env.total_envs={config.env.total_envs} cannot be shared evenly by the {odd[0]} ranks of "
             f"{odd[0] // nproc} nodes (--nnodes {nodes.least}:{nodes.count}, {nproc} per node): set a total that "
-            f"every world divides (env.total_envs={math.lcm(*worlds)}), or env.num_envs=N to count per rank"
+            f"every world divides{named}, or env.num_envs=N to count per rank"
         )
 
 

@@ -534,7 +534,7 @@ def test_a_storage_whose_every_step_is_corrupt_names_commands_that_run_as_writte
         make_step(storage, step)
         flip_shard_byte(storage, step)
     config = load_config(None, [f"storage.url={storage.url}"])
-    refused = decide(config, storage, log=print)
+    refused = decide(config, storage, print, 1)
     assert refused["kind"] == "usage", refused
     named = re.findall(r"\((ftrain ckpt [^)]*)\)", refused["why"])
     assert [shlex.split(line)[:3] for line in named] == [["ftrain", "ckpt", "ls"], ["ftrain", "ckpt", "prune"]]
@@ -542,7 +542,7 @@ def test_a_storage_whose_every_step_is_corrupt_names_commands_that_run_as_writte
         assert main(shlex.split(line)[1:]) == 0, line
     pruned = capsys.readouterr().out
     assert "deleting step 20" in pruned and "deleting step 10" in pruned, pruned
-    assert decide(config, storage, log=print)["kind"] == "fresh"
+    assert decide(config, storage, print, 1)["kind"] == "fresh"
 
 
 def test_an_incomplete_step_of_a_storage_held_now_is_said_to_be_maybe_a_save_in_flight(run, capsys):

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import csv
 import random
+import re
 import subprocess
 import sys
 from collections.abc import Callable
@@ -13,11 +14,13 @@ from pathlib import Path
 
 import pytest
 
+from ftrain.ckpt.resume import check_compatible
 from ftrain.config import load_config
+from ftrain.errors import UserError
 from ftrain.supervise.options import SupervisorOptions, parse_nodes
 from ftrain.supervise.supervisor import with_nproc
 
-from helpers import REPO, child_env, final_manifest, free_port, manifests, run_train
+from helpers import REPO, SMOKE, child_env, final_manifest, free_port, manifests, run_train
 
 pytestmark = pytest.mark.slow
 
@@ -132,6 +135,27 @@ def test_with_total_envs_any_resize_schedule_between_one_and_two_ranks_trains_bi
         assert "every environment goes on" in outputs[1]
         assert ("the same environments, counted per rank or in all" in outputs[1]) == per_rank, outputs[1]
     print(f"{len(schedules)} resize schedules ((ranks, to step), counting), seed {seed}, all as one rank: {schedules}")
+
+
+def test_a_run_counted_in_all_goes_on_counted_per_rank_only_with_the_same_environments(tmp_path) -> None:
+    """The other way round: a step counted in all (``env.total_envs``) goes on under ``env.num_envs`` only at its
+    world size with as many per rank (bit for bit); another total, or the same total at another world size (where only
+    a count in all hands the environments on), is refused with the count to set."""
+    storage, reference = tmp_path / "run", tmp_path / "reference"
+    run_train(storage, "iterations=4", *EXACT, ranks=2)
+    manifest = final_manifest(storage)
+    refusals = {
+        1: "(2 ranks x 4), the config counts env.num_envs=8 per rank at 1 rank, and a resize hands them on",
+        2: ("(2 ranks x 4), the config counts env.num_envs=8 per rank at 2 ranks: set env.total_envs=8 instead"),
+    }
+    for world, refusal in refusals.items():
+        config = load_config(SMOKE, ["env.num_envs=8", EXACT[1]])
+        with pytest.raises(UserError, match=re.escape(f"checkpoint step 4 has 8 environments in all {refusal}")):
+            check_compatible(config, 4, manifest, world)
+    went_on = run_train(storage, "iterations=8", "env.num_envs=4", EXACT[1], ranks=2)
+    assert "the same environments, counted per rank or in all" in went_on.stdout, went_on.stdout
+    run_train(reference, "iterations=8", *EXACT, ranks=1)
+    assert final_manifest(storage)["state_sha256"] == final_manifest(reference)["state_sha256"]
 
 
 def test_supervise_without_nproc_per_node_resumes_at_the_world_size_it_was_trained_at(tmp_path, reference_state):

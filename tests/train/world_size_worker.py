@@ -1,7 +1,7 @@
 """Run under torchrun at W ranks (or alone, W = 1): each case of CASES (a JSON file) whose ``worlds`` hold W trains
 its iterations from a fresh start, through the real training loop (``Trainer``: rollout, reward normalisation, update,
-metrics) without checkpoints, with its ``total_envs`` shared by the W ranks (``envs`` on each rank; neither: the
-config's own count, as users run it). Rank 0 saves
+metrics) without checkpoints, with its ``total_envs`` shared by the W ranks (none: the config's own count, as users
+run it). Rank 0 saves
 what each case learned, with the collectives' fallbacks, to ``OUT/<case>.w<W>.pt``."""
 
 from __future__ import annotations
@@ -27,8 +27,8 @@ def main(cases_file: str, out: str) -> None:
         if info.world_size not in case["worlds"]:
             continue
         overrides = [*case["overrides"], *QUIET, f"iterations={case['iterations']}"]
-        if "envs" in case or "total_envs" in case:
-            overrides.append(f"env.num_envs={case.get('envs') or case['total_envs'] // info.world_size}")
+        if "total_envs" in case:
+            overrides.append(f"env.total_envs={case['total_envs']}")
         storage = f"{out}/storage-{name}-w{info.world_size}"
         config = load_config(case["config"], overrides, storage=storage)
         trainer = Trainer(config, info)
