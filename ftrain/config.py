@@ -52,6 +52,10 @@ class EnvConfig:
     """Passed to ``gymnasium.make`` for each environment (e.g. ``max_episode_steps``, which must be set somewhere:
     ``ftrain.policy.robot.check_trainable``)."""
 
+    def in_all(self, world_size: int) -> int:
+        """The environments of all ``world_size`` ranks together, however they are counted."""
+        return self.total_envs or self.num_envs * world_size
+
 
 @dataclass
 class PolicyConfig:
@@ -360,13 +364,16 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
                 f"config file {path!r} is empty: give it keys (configs/smoke.yaml shows them), or pass key=value "
                 "overrides to train the defaults with them"
             )
+    keys_given = set()  # the dotted keys set on the command line, a section's mapping (env={num_envs: 8}) by its keys
     for before, item in zip(["", *overrides], overrides, strict=False):
         key, sep, raw = item.partition("=")
         if not sep or not key:
             if "=[" in before and "]" not in before:  # key=[64, 64] unquoted: the shell made two words of it
                 raise UserError(f"override {before} {item} has a space: quote it as one word, '{before} {item}'")
             raise UserError(f"override {item!r} is not key=value: write it like env.num_envs=8")
-        _override(data, key.strip(), parse_value(raw), item)
+        value = parse_value(raw)
+        _override(data, key.strip(), value, item)
+        keys_given |= set(dotted(value, f"{key.strip()}.")) if isinstance(value, dict) else {key.strip()}
     if storage is not None:
         if not storage.strip():
             raise UserError("--storage is empty: pass a directory or a URL, or leave it out for runs/<name>")
@@ -378,15 +385,10 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
     config = build(Config, data, prefix="")
     config.storage.url, config.log_dir = Url(expand_home(config.storage.url)), expand_home(config.log_dir)
     config.resume = Url(expand_home(config.resume))
-    given = set()  # the dotted keys set on the command line, a section's mapping (env={num_envs: 8}) by its keys
-    for key, _, raw in (item.partition("=") for item in overrides):
-        value = parse_value(raw)
-        given |= set(dotted(value, f"{key.strip()}.")) if isinstance(value, dict) else {key.strip()}
-    if config.algorithm.schedule == "linear" and (given & {"iterations", "algorithm.schedule_iterations"}) == {
-        "iterations"
-    }:
+    horizon_keys = keys_given & {"iterations", "algorithm.schedule_iterations"}
+    if config.algorithm.schedule == "linear" and horizon_keys == {"iterations"}:
         config.algorithm.schedule_iterations = config.iterations
-    _count_envs_as_given(config, given)
+    _count_envs_as_given(config, keys_given)
     if not config.name:
         config.name = Path(path).stem if path else "run"
     if config.name in (".", "..") or any(mark in config.name for mark in ("/", "\\", "\0")):
@@ -646,12 +648,12 @@ def validate(config: Config) -> None:
                 f"{key}={value!r} is unknown{did_you_mean(str(value), allowed)}: use {', '.join(allowed[:-1])} or "
                 f"{allowed[-1]}"
             )
-    envs = ("env.total_envs", config.env.total_envs) if config.env.total_envs else ("env.num_envs", config.env.num_envs)
-    batch = envs[1] * config.num_steps_per_env
+    batch = config.env.in_all(1) * config.num_steps_per_env
     if config.algorithm.num_mini_batches > batch:
+        counted = "env.total_envs" if config.env.total_envs else "env.num_envs"
         raise UserError(
             f"algorithm.num_mini_batches={config.algorithm.num_mini_batches} is more than the {batch} samples of a "
-            f"rollout ({envs[0]} x num_steps_per_env): use at most {batch}"
+            f"rollout ({counted} x num_steps_per_env): use at most {batch}"
         )
     if not config.snapshots.formats or set(config.snapshots.formats) - set(POLICY_FORMATS):
         raise UserError(f"snapshots.formats={config.snapshots.formats} is not a list of torchscript and/or onnx")

@@ -148,7 +148,7 @@ def run_ftrain(
     ``stop_at`` or more (then stopped by SIGTERM, and the final policy not evaluated again)."""
     config_path = REPO / "configs" / f"{name}.yaml"
     config = for_world(load_config(str(config_path), overrides), ranks)
-    per_iteration = ranks * config.env.num_envs * config.num_steps_per_env
+    per_iteration = config.env.in_all(ranks) * config.num_steps_per_env
     iterations = math.ceil(steps / per_iteration)
     digest = hashlib.sha256(" ".join(overrides).encode()).hexdigest()[:8]
     tag = f"{name}-{ranks}x{config.env.num_envs}-{digest}-seed{seed}"  # each case a storage and a curve of its own

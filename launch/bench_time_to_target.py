@@ -173,7 +173,7 @@ def main() -> int:
         if item.partition("=")[0].startswith(OWN_KEYS):
             parser.error(f"--set {item}: the benchmark sets {item.partition('=')[0]} itself (cases, seeds, runs)")
     config = load_config(str(config_path))
-    tuned = config.env.total_envs or 2 * config.env.num_envs  # the config's global batch, in environments
+    tuned = config.env.in_all(2)  # the config's global batch, in environments (per-rank counts: tuned at 2 ranks)
     cases = args.cases or [Case(1, tuned, False), Case(2, tuned // 2, False), Case(2, tuned // 2, True)]
     names = [str(case) for case in cases]
     horizon = args.schedule_steps or config.algorithm.schedule_iterations * tuned * config.num_steps_per_env

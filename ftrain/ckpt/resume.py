@@ -455,7 +455,7 @@ def _check_env_counts(config: Config, step: int, manifest: dict, world_size: int
                 f"set env.num_envs={per_rank}"
             )
         return
-    total = config.env.total_envs or config.env.num_envs * world_size
+    total = config.env.in_all(world_size)
     if total == saved_total and (in_all or world_size == saved_world):
         return
     has = f"checkpoint step {step} has {saved_total} environments in all ({saved_world} ranks x {per_rank})"
