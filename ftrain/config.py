@@ -303,6 +303,38 @@ KEYS_ADDED_LATER += ("env.total_envs", "policy.obs_normalization_until", "policy
 """Training keys newer than the first checkpoints: hashed only when not at their defaults, so older runs resume."""
 
 
+ELASTIC_NODES_ENV = "FTRAIN_ELASTIC_NODES"
+"""``MIN:MAX``: the node counts of an elastic launch, which ftrun (``ftrain/torchrun.py``) tells its workers, so that a
+total some world of the launch cannot share is refused at the start, not at that world in the middle of the run."""
+
+
+def for_elastic(config: Config, least: int, most: int, per_node: int) -> None:
+    """UserError unless every world an elastic run may train at (``least`` to ``most`` nodes of ``per_node`` ranks)
+    shares ``env.total_envs`` evenly: asked before training, by the supervisor and by ftrun's workers."""
+    worlds = [count * per_node for count in range(least, most + 1)]
+    if least == most or not config.env.total_envs:
+        for_world(config, worlds[-1])
+        return
+    odd = [world for world in worlds if config.env.total_envs % world]
+    if odd:
+        fits = math.lcm(*worlds)  # named where it is a size a run might take
+        named = f" (env.total_envs={fits})" if fits <= 8 * worlds[-1] else ""
+        raise UserError(
+            f"env.total_envs={config.env.total_envs} cannot be shared evenly by the {odd[0]} ranks of "
+            f"{odd[0] // per_node} nodes (--nnodes {least}:{most}, {per_node} per node): set a total that "
+            f"every world divides{named}, or env.num_envs=N to count per rank"
+        )
+
+
+def for_launch(config: Config, world_size: int, environ: typing.Mapping[str, str] = os.environ) -> Config:
+    """``config`` as this world's ranks run it (``for_world``); refused at once where the launch is elastic (ftrun's
+    ``ELASTIC_NODES_ENV``) and one of its worlds could not share the environments."""
+    least, _, most = environ.get(ELASTIC_NODES_ENV, "").partition(":")
+    if least.isdigit() and most.isdigit():
+        for_elastic(config, int(least), int(most), int(environ.get("LOCAL_WORLD_SIZE", world_size)))
+    return for_world(config, world_size)
+
+
 def for_world(config: Config, world_size: int) -> Config:
     """``config`` as ``world_size`` ranks run it: with ``env.total_envs``, that many environments shared evenly."""
     total = config.env.total_envs

@@ -6,8 +6,10 @@ and exit 1; when every worker that ended exited 130 or 143 (they were stopped an
 a script tells a stop from a failure, which plain ``torchrun`` (exit 1 for both) does not let it. Where a worker
 explained its failure itself (bad input, a storage that does not answer: ``errorfile.report``) and that was the first
 failure, it exits with the worker's code after that one line (printed by rank 0, else here), without torchrun's
-report of the failure or its log lines about it; a crash keeps torchrun's report, with the worker's traceback. This is
-what the docs show for a run without a supervisor; ``ftrun`` is the same command.
+report of the failure or its log lines about it; a crash keeps torchrun's report, with the worker's traceback. An
+elastic launch (``--nnodes MIN:MAX``) tells its workers MIN and MAX (``config.ELASTIC_NODES_ENV``), so that they refuse
+at the start a total of environments that a world of the launch could not share. This is what the docs show for a run
+without a supervisor; ``ftrun`` is the same command.
 
 ``ftrain supervise`` runs it with ``--failures=FILE``: instead of raising ChildFailedError (a traceback and a text
 report on stderr), it writes torchrun's own account of every failed worker to FILE, as JSON ``{global rank:
@@ -23,14 +25,17 @@ import json
 import logging
 import os
 import sys
+import typing
 from pathlib import Path
 
 from torch.distributed.elastic.multiprocessing.api import SignalException
 from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
 from torch.distributed.elastic.rendezvous.api import RendezvousTimeoutError
+from torch.distributed.run import get_args_parser, parse_min_max_nnodes
 from torch.distributed.run import main as torchrun
 
 from ftrain import errorfile
+from ftrain.config import ELASTIC_NODES_ENV
 from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, STOPPED
 from ftrain.lifeline import die_with_supervisor
 from ftrain.proctitle import name_process
@@ -63,6 +68,7 @@ def run(argv: list[str]) -> int:
     arguments = argv[1:] if failures_path is not None else argv
     if failures_path is None:
         _quiet_torchrun()
+    _tell_workers_the_nodes(arguments)
     try:
         torchrun(arguments)
     except ChildFailedError as failed:
@@ -106,6 +112,25 @@ def _explained(failed: ChildFailedError) -> int | None:
     if not (errorfile.reported(said) and errorfile.message(said) == line):
         print(f"ftrain: error: {line}", file=sys.stderr, flush=True)
     return failed.failures[first].exitcode
+
+
+def _tell_workers_the_nodes(arguments: list[str]) -> None:
+    """An elastic launch's ``--nnodes MIN:MAX`` in the workers' environment (``ELASTIC_NODES_ENV``): a world size of
+    the launch that cannot share the run's environments is refused at the start (``config.for_launch``)."""
+    parser = get_args_parser()
+    parser.error = _unparsed  # torchrun itself says what is wrong with its arguments
+    try:
+        least, most = parse_min_max_nnodes(parser.parse_args(arguments).nnodes)
+    except (RuntimeError, ValueError):
+        return
+    if least < most:
+        os.environ[ELASTIC_NODES_ENV] = f"{least}:{most}"
+    else:
+        os.environ.pop(ELASTIC_NODES_ENV, None)
+
+
+def _unparsed(message: str) -> typing.NoReturn:
+    raise ValueError(message)
 
 
 def _quiet_torchrun() -> None:

@@ -1,7 +1,9 @@
 """Config loading, overrides, and the one-line errors for bad input (exit code 2, no traceback)."""
 
 import dataclasses
+import math
 import os
+import random
 import re
 import subprocess
 import sys
@@ -10,10 +12,8 @@ import typing
 import pytest
 
 from ftrain.ckpt.lease import TTL_ENV, ttl_from_env
-from ftrain.config import Config, for_world, load_config, local_directories
+from ftrain.config import ELASTIC_NODES_ENV, Config, for_elastic, for_launch, for_world, load_config, local_directories
 from ftrain.errors import UserError
-from ftrain.supervise.options import Nodes
-from ftrain.supervise.supervisor import refuse_unshared_envs
 from ftrain.train.lr_schedule import horizon_notice
 
 from helpers import REPO, SMOKE, child_env
@@ -247,6 +247,35 @@ def test_total_envs_are_shared_evenly_by_the_ranks_or_refused_in_one_line() -> N
         for_world(config, 5)
 
 
+def test_an_elastic_launch_takes_a_total_only_where_every_world_it_may_resize_to_shares_it() -> None:
+    """Generated launches (MIN:MAX nodes of N ranks, as ftrun tells its workers): a total is taken where every world
+    from MIN to MAX nodes divides it, else refused at the start, naming the first world that does not; a total counted
+    per rank, or a launch that is not elastic, only at its own world."""
+    rng = random.Random(52)
+    checked = refused = 0
+    for _ in range(400):
+        least, per_node = rng.randint(1, 4), rng.randint(1, 8)
+        most = least + rng.randint(0, 3)
+        shared = math.lcm(*(nodes * per_node for nodes in range(least, most + 1)))  # half the totals: a multiple
+        total = rng.choice([rng.randint(1, 96), shared * rng.randint(1, 3)])
+        environ = {ELASTIC_NODES_ENV: f"{least}:{most}", "LOCAL_WORLD_SIZE": str(per_node)}
+        world = rng.randint(least, most) * per_node
+        config = load_config(SMOKE, [f"env.total_envs={total}"])
+        odd = [nodes * per_node for nodes in range(least, most + 1) if total % (nodes * per_node)]
+        if odd:
+            first_odd = rf"^env.total_envs={total} cannot be shared evenly by (the )?{odd[0]} "
+            with pytest.raises(UserError, match=first_odd):
+                for_launch(config, world, environ)
+            refused += 1
+        else:
+            assert for_launch(config, world, environ).env.num_envs * world == total
+        assert for_launch(load_config(SMOKE), world, environ).env.num_envs == load_config(SMOKE).env.num_envs
+        checked += 1
+    assert for_launch(load_config(SMOKE, ["env.total_envs=6"]), 2, {}).env.num_envs == 3  # not elastic: 4 not asked
+    print(f"{checked} elastic launches checked, {refused} refused")
+    assert 50 < refused < checked - 50
+
+
 SHIPPED_PPO = ["ant", "halfcheetah", "halfcheetah_large", "hopper", "reach", "walker2d"]
 
 
@@ -302,10 +331,10 @@ def test_supervise_refuses_total_envs_its_world_cannot_share_before_it_launches_
     assert result.returncode == 2 and result.stderr.startswith(f"ftrain: error: {refused}"), result.stderr
     assert result.stderr.endswith("(env.total_envs=96), or env.num_envs=N to count per rank\n") and not storage.exists()
     per_rank = load_config(str(REPO / "configs" / "ant.yaml"), ["env.num_envs=4"])
-    refuse_unshared_envs(per_rank, Nodes(count=4, least=2), 8)  # counted per rank: every world takes it
-    refuse_unshared_envs(load_config(str(REPO / "configs" / "ant.yaml"), ["env.total_envs=96"]), Nodes(4, 2), 8)
+    for_elastic(per_rank, 2, 4, 8)  # counted per rank: every world takes it
+    for_elastic(load_config(str(REPO / "configs" / "ant.yaml"), ["env.total_envs=96"]), 2, 4, 8)
     with pytest.raises(UserError, match=r"set a total that every world divides, or env.num_envs=N"):  # lcm 5,765,760
-        refuse_unshared_envs(load_config(str(REPO / "configs" / "ant.yaml")), Nodes(16, 2), 8)
+        for_elastic(load_config(str(REPO / "configs" / "ant.yaml")), 2, 16, 8)
 
 
 def test_a_storage_or_log_dir_that_is_a_file_is_one_line_exit_2_and_the_file_is_left_alone(tmp_path) -> None:

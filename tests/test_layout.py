@@ -61,7 +61,7 @@ LAYERS = {
         "redact",
     },
     "comm": {"errors", "procfs"},
-    "torchrun": {"errors", "errorfile", "lifeline", "proctitle"},
+    "torchrun": {"config", "errors", "errorfile", "lifeline", "proctitle"},
     "config": {"values", "errors", "redact"},
     "values": {"errors", "redact"},
     "heartbeat": set(),

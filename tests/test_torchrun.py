@@ -4,6 +4,7 @@ torchrun's report. Real torchrun, real workers."""
 from __future__ import annotations
 
 import json
+import socket
 import subprocess
 import sys
 
@@ -32,8 +33,10 @@ runpy.run_module("ftrain", run_name="__main__", alter_sys=True)
 """``python -m ftrain`` whose rank 0 is still importing when the others have read their input: a loaded machine."""
 
 
-def ftrun(tmp_path, *overrides: str, worker: tuple[str, ...] = ("-m", "ftrain")) -> subprocess.CompletedProcess:
-    command = [sys.executable, "-m", TORCHRUN, "--standalone", "--nproc-per-node=2", *worker, "train", SMOKE]
+def ftrun(
+    tmp_path, *overrides: str, worker: tuple[str, ...] = ("-m", "ftrain"), launch: tuple[str, ...] = ("--standalone",)
+) -> subprocess.CompletedProcess:
+    command = [sys.executable, "-m", TORCHRUN, *launch, "--nproc-per-node=2", *worker, "train", SMOKE]
     return subprocess.run(
         [*command, "--storage", str(tmp_path / "run"), "log.console=false", *overrides],
         cwd=REPO,
@@ -82,3 +85,21 @@ def test_a_crash_under_ftrains_torchrun_keeps_torchruns_report(tmp_path) -> None
     result = ftrun(tmp_path, "iterations=3", crash)
     assert result.returncode == 1
     assert "ChildFailedError" in result.stderr and "RuntimeError: probe crash after iteration 1" in result.stderr
+
+
+@pytest.mark.slow
+def test_an_elastic_launch_refuses_at_its_start_a_total_that_a_larger_world_cannot_share(tmp_path) -> None:
+    """``--nnodes 1:2`` of 2 ranks each: the run starts at 2 ranks, which share 6 environments, but a second node
+    would make 4, which do not. Refused before the first iteration, not when the node joins."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    elastic = ("--nnodes=1:2", "--rdzv-backend=c10d", f"--rdzv-endpoint=127.0.0.1:{port}")
+    result = ftrun(tmp_path, "env.total_envs=6", launch=(*elastic, "--rdzv-conf=last_call_timeout=1"))
+    refused = "env.total_envs=6 cannot be shared evenly by the 4 ranks of 2 nodes (--nnodes 1:2, 2 per node)"
+    assert result.returncode == 2, result.stderr[-3000:]
+    assert (result.stdout + result.stderr).splitlines() == [
+        f"ftrain: error: {refused}: set a total that every world divides (env.total_envs=4), or env.num_envs=N to "
+        "count per rank"
+    ]
+    assert not list((tmp_path / "run").glob("checkpoints/*"))  # not an iteration trained, nothing saved

@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 import os
 import signal
 import sys
@@ -30,7 +29,7 @@ from ftrain import procfs
 from ftrain.ckpt import cas
 from ftrain.ckpt.lease import Lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
-from ftrain.config import Config, for_world, make_local_directories, storage_key
+from ftrain.config import Config, for_elastic, make_local_directories, storage_key
 from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, Deliveries, UserError, stop_code, stop_signals
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.log_dir_lock import claim_log_dir
@@ -62,24 +61,6 @@ LINGER = 30.0
 """Seconds node 0 keeps answering after the end, until every node has learnt the outcome."""
 
 
-def refuse_unshared_envs(config: Config, nodes: Nodes, nproc: int) -> None:
-    """``env.total_envs`` shared by every world the run may train at (each node count from ``--nnodes`` MIN to MAX):
-    refused here, before anything starts, not by every worker of an odd world in the middle of the run."""
-    worlds = [count * nproc for count in range(nodes.least, nodes.count + 1)]
-    if not nodes.elastic or not config.env.total_envs:
-        for_world(config, worlds[-1])
-        return
-    odd = [world for world in worlds if config.env.total_envs % world]
-    if odd:
-        fits = math.lcm(*worlds)  # named where it is a size a run might take
-        named = f" (env.total_envs={fits})" if fits <= 8 * worlds[-1] else ""
-        raise UserError(
-            f"env.total_envs={config.env.total_envs} cannot be shared evenly by the {odd[0]} ranks of "
-            f"{odd[0] // nproc} nodes (--nnodes {nodes.least}:{nodes.count}, {nproc} per node): set a total that "
-            f"every world divides{named}, or env.num_envs=N to count per rank"
-        )
-
-
 def supervise(options: SupervisorOptions, config: Config, train_args: list[str]) -> int:
     """Run training under supervision until it finishes or gives up; returns the exit code (see module doc).
 
@@ -88,7 +69,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     hang_timeout = parse_hang_timeout(options.hang_timeout)
     nodes = parse_nodes(options)
     options, chosen = with_nproc(options, nodes, config)
-    refuse_unshared_envs(config, nodes, options.nproc_per_node)
+    for_elastic(config, nodes.least, nodes.count, options.nproc_per_node)  # before anything starts
     try:
         supervisor = Supervisor(options, nodes, hang_timeout, train_args, config)
     except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout

@@ -26,7 +26,7 @@ from ftrain.ckpt.manager import Checkpointer
 from ftrain.ckpt.resume import CheckpointError
 from ftrain.ckpt.storage import StorageUnavailable
 from ftrain.comm import group
-from ftrain.config import Config, for_world
+from ftrain.config import Config, for_launch
 from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, stop_code
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter, read_stop_reason
 from ftrain.policy.model import action_std
@@ -76,7 +76,8 @@ class Trainer:
     ) -> None:
         """``lease_lost``: why the storage's lease was lost to another run, once it was (rank 0 without a supervisor,
         which holds the lease; a supervisor stops its workers itself)."""
-        config = for_world(config, info.world_size)  # env.total_envs shared by this world's ranks
+        config = for_launch(config, info.world_size)  # env.total_envs shared by this world's ranks (and the others
+        # an elastic launch may resize to)
         self.config = config
         self.info = info
         self.stop = stop or StopRequest()
