@@ -12,6 +12,7 @@ to pass instead (``part_of_a_storage``).
 from __future__ import annotations
 
 import json
+import os
 import re
 import time
 from collections.abc import Callable
@@ -43,7 +44,7 @@ from ftrain.ckpt.format import (
 from ftrain.ckpt.lineage import History, generation, history
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.storage import Storage
-from ftrain.config import check_writable
+from ftrain.config import check_writable, local_path
 from ftrain.errors import UserError, command
 from ftrain.redact import display_url
 
@@ -82,9 +83,14 @@ def check_not_a_checkpoints_directory(storage: Storage) -> None:
 
 def check_storage_place(url: str) -> None:
     """UserError if ``url`` is or lies inside a step directory of a storage (``<run>/checkpoints/step-N``, one set
-    aside under ``quarantine/``, a policy snapshot under ``policies/``): that run's retention and clean-up would
-    delete what a run there writes."""
+    aside under ``quarantine/``, a policy snapshot under ``policies/``) or a storage's ``quarantine/``: that run's
+    retention and clean-up would delete what a run there writes."""
     shown = display_url(url)
+    if (run := _quarantine_around(url)) is not None:
+        raise UserError(
+            f"storage {shown} is the {ASIDE}/ of the run in {run}, or lies inside it: ftrain ckpt prune --drop-bad "
+            "deletes all of it: pass a directory of its own"
+        )
     if (found := _enclosing_step_of_any(shown)) is None:
         return
     where, step, parent = found
@@ -105,7 +111,25 @@ def check_output(path: Path, option: str) -> None:
             f"{option} {path} lies inside {found[1]}, a step of a run's storage: a file written there replaces the "
             f"step's own or is deleted with it: pass {option} a path outside the storage's steps"
         )
+    if (run := _quarantine_around(str(path))) is not None:
+        raise UserError(
+            f"{option} {path} lies inside the {ASIDE}/ of the run in {run}: ftrain ckpt prune --drop-bad deletes "
+            f"all of it: pass {option} a path outside it"
+        )
     check_writable(path, option)
+
+
+def _quarantine_around(url: str) -> str | None:
+    """The local storage whose ``quarantine/`` ``url`` is or lies inside (a directory there is a step set aside,
+    whatever its name, which ``prune --drop-bad`` deletes), or None: the first place so named that is a run's storage
+    (it holds ``checkpoints/``)."""
+    for where in spellings(url):
+        parts = local_path(where).rstrip("/").split("/")
+        for index in range(1, len(parts)):
+            root = "/".join(parts[:index]) or "/"
+            if parts[index] == ASIDE and os.path.isdir(os.path.join(root, CHECKPOINTS)):
+                return root
+    return None
 
 
 def _enclosing_step_of_any(url: str) -> tuple[str, str, str] | None:

@@ -22,6 +22,7 @@ from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.save import Result, StepWriter
 from ftrain.ckpt.steps import (
     ASIDE,
+    check_output,
     check_storage_place,
     clear_newer,
     quarantine,
@@ -302,6 +303,41 @@ def test_train_and_supervise_refuse_a_storage_inside_a_step_before_they_touch_it
     ], result.stderr
     assert sorted(path.name for path in inside.iterdir()) == before
     assert [info.status for info in scan(run, full=True)] == ["verified"]
+
+
+def test_a_storage_in_a_runs_quarantine_is_refused_however_it_is_spelt(tmp_path, monkeypatch) -> None:
+    """A run's ``quarantine/`` is deleted whole by ``prune --drop-bad`` (every directory there is a step set aside,
+    whatever its name): a storage there, or an exported file, was taken, and that prune deleted the run trained
+    there. Generated places in and around it: refused where they lie inside a run's quarantine/, taken elsewhere
+    (a directory named quarantine of no run), and a train there is one line, exit 2, with nothing written."""
+    run = tmp_path / "run"
+    make_step(Storage.open(str(run)), 2)
+    (tmp_path / "plain" / ASIDE).mkdir(parents=True)  # named so, but no run's
+    monkeypatch.chdir(tmp_path)
+    draw = random.Random(random.SystemRandom().randrange(2**31))
+    count = refused = 0
+    for _ in range(200):
+        base = draw.choice(["run", str(run), f"file://{run}", "plain", "./run", "run/../run"])
+        tail = "/".join(draw.choice(["a", "step-x", ASIDE]) for _ in range(draw.randrange(3)))
+        below = draw.choice([ASIDE, "other"])  # a quarantine/ deeper down lies in no run's storage
+        place = "/".join(filter(None, [base, below, tail])) + draw.choice(["", "/"])
+        inside = below == ASIDE and base != "plain"
+        count += 1
+        try:
+            check_storage_place(place)
+        except UserError as error:
+            refused += 1
+            assert inside and f"is the {ASIDE}/ of the run in " in str(error), place
+        else:
+            assert not inside, place
+    print(f"{count} generated places checked, {refused} refused")
+    assert 0 < refused < count
+    result = subprocess.run(train_command(run / ASIDE, "iterations=2"), env=child_env(), capture_output=True, text=True)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
+    assert "ftrain ckpt prune --drop-bad deletes all of it: pass a directory of its own" in result.stderr
+    assert not (run / ASIDE).exists() and sorted(os.listdir(run / "checkpoints")) == ["step-000000002"]
+    with pytest.raises(UserError, match=rf"^-o {run}/{ASIDE}/p.onnx lies inside the {ASIDE}/ of the run in {run}: "):
+        check_output(run / ASIDE / "p.onnx", "-o")
 
 
 def test_a_runs_checkpoints_directory_passed_as_a_storage_is_refused_before_anything_is_written(tmp_path) -> None:
