@@ -18,6 +18,7 @@ import select
 import signal
 import sys
 import typing
+from pathlib import Path
 
 from ftrain import errorfile
 from ftrain.errors import (
@@ -582,7 +583,7 @@ def _run_config(args: argparse.Namespace) -> Config:
     from ftrain.ckpt.format import CHECKPOINTS
     from ftrain.ckpt.steps import check_not_a_checkpoints_directory, check_storage_place
     from ftrain.ckpt.storage import Storage
-    from ftrain.config import load_config, local_path
+    from ftrain.config import check_writable, load_config, local_path
     from ftrain.train.env_ids import check_env_id
 
     config = load_config(args.config, args.overrides, args.storage)
@@ -590,6 +591,8 @@ def _run_config(args: argparse.Namespace) -> Config:
     check_storage_place(config.storage.url)
     if os.path.isdir(storage := local_path(config.storage.url)):  # before a supervisor writes its logs there
         check_not_a_checkpoints_directory(Storage.open(storage))
+        if os.path.isdir(checkpoints := os.path.join(storage, CHECKPOINTS)):  # else its saves would fail and hold
+            check_writable(Path(checkpoints), "--storage")
     resume = local_path(config.resume) if config.resume not in ("auto", "never") else ""
     own = os.path.isdir(os.path.join(storage, CHECKPOINTS))  # steps of its own: it goes on from them, and needs not
     if resume and storage and not own and not os.path.exists(resume):  # the step it began at (maybe deleted since)

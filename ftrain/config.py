@@ -583,18 +583,19 @@ def _override(data: dict, key: str, value: object, item: str) -> None:
 
 def check_writable(path: Path, option: str) -> None:
     """UserError unless ``path`` can be written, said before the work that makes its contents. It tries: a file made
-    and dropped in the nearest directory that exists (root passes every permission check, /proc and read-only mounts
-    refuse anyway), or ``path`` opened to append where it exists (its contents untouched). ``option``: the flag that
-    chooses the path."""
+    and dropped in ``path`` where it is a directory, else in the nearest directory that exists (root passes every
+    permission check, /proc, read-only mounts and immutable directories refuse anyway), or ``path`` opened to append
+    where it is a file (its contents untouched). ``option``: the flag that chooses the path."""
     where = path if path.exists() else next(parent for parent in path.absolute().parents if parent.exists())
+    a_file = where == path and not path.is_dir()
     try:
-        if where == path:
+        if a_file:
             path.open("ab").close()
         else:
             tempfile.TemporaryFile(dir=where).close()
     except OSError as error:
         why = error.strerror or str(error)
-        detail = why if where == path else f"{where}{' takes no new file' if where.is_dir() else ''}: {why}"
+        detail = why if a_file else f"{where}{' takes no new file' if where.is_dir() else ''}: {why}"
         raise UserError(f"cannot write {path} ({detail}): pass {option} a path you can write to") from None
 
 

@@ -5,6 +5,7 @@ import math
 import os
 import random
 import re
+import shutil
 import subprocess
 import sys
 import typing
@@ -12,11 +13,12 @@ import typing
 import pytest
 
 from ftrain.ckpt.lease import TTL_ENV, ttl_from_env
+from ftrain.ckpt.storage import Storage
 from ftrain.config import ELASTIC_NODES_ENV, Config, for_elastic, for_launch, for_world, load_config, local_directories
 from ftrain.errors import UserError
 from ftrain.train.lr_schedule import horizon_notice
 
-from helpers import REPO, SMOKE, child_env
+from helpers import REPO, SMOKE, child_env, make_step
 
 LINEAR = ["algorithm.schedule=linear", "algorithm.schedule_iterations=8"]
 
@@ -335,6 +337,30 @@ def test_supervise_refuses_total_envs_its_world_cannot_share_before_it_launches_
     for_elastic(load_config(str(REPO / "configs" / "ant.yaml"), ["env.total_envs=96"]), 2, 4, 8)
     with pytest.raises(UserError, match=r"set a total that every world divides, or env.num_envs=N"):  # lcm 5,765,760
         for_elastic(load_config(str(REPO / "configs" / "ant.yaml")), 2, 16, 8)
+
+
+@pytest.mark.parametrize("command", ["train", "supervise"])
+def test_a_checkpoints_directory_that_takes_no_file_is_one_line_exit_2_before_the_run_starts(tmp_path, command):
+    """A run's ``checkpoints/`` that refuses new files (here immutable; a permission or a read-only mount alike):
+    ``ftrain train`` trained and then held up to an hour retrying its saves, where the supervisor refused at once.
+    Both refuse before training, in one line, and leave the run's steps as they were."""
+    storage = tmp_path / "run"
+    make_step(Storage.open(str(storage)), 2)
+    checkpoints = storage / "checkpoints"
+    if not shutil.which("chattr") or subprocess.run(["chattr", "+i", str(checkpoints)], capture_output=True).returncode:
+        pytest.skip("chattr +i is not available here")
+    try:
+        words = [command, SMOKE, "--storage", str(storage), "iterations=4"]
+        result = subprocess.run(
+            [sys.executable, "-m", "ftrain", *words], env=child_env(), capture_output=True, text=True
+        )
+    finally:
+        subprocess.run(["chattr", "-i", str(checkpoints)])
+    assert result.returncode == 2 and result.stderr == (
+        f"ftrain: error: cannot write {checkpoints} ({checkpoints} takes no new file: Operation not permitted): pass "
+        "--storage a path you can write to\n"
+    ), result.stderr
+    assert sorted(os.listdir(storage)) == ["checkpoints"] and os.listdir(checkpoints) == ["step-000000002"]
 
 
 def test_a_storage_or_log_dir_that_is_a_file_is_one_line_exit_2_and_the_file_is_left_alone(tmp_path) -> None:

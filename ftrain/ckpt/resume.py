@@ -397,17 +397,17 @@ def check_compatible(
     """UserError unless ``step`` (by its manifest) can continue as this run at ``world_size`` ranks, training ``robot``
     (``ftrain.policy.robot.identity``; None: not checked). ``in_place``: the step lies in this storage as it is (not
     in the spool nor another storage, from which even a start that trains nothing writes it, with this config)."""
-    written = manifest.get("state_format", 1)
+    written, versions = manifest.get("state_format", 1), manifest.get("versions", "its versions are not recorded")
     if written in PACKED_STATE_FORMATS:
         raise UserError(
             f"checkpoint step {step} is in ftrain 0.1's packed format (state format {written}); this ftrain reads "
-            f"state format {STATE_FORMAT}: resume it with the ftrain that wrote it ({manifest['versions']}), or start "
+            f"state format {STATE_FORMAT}: resume it with the ftrain that wrote it ({versions}), or start "
             "another --storage"
         )
     if written != STATE_FORMAT:
         raise UserError(
             f"checkpoint step {step} holds training state in format {written}, this ftrain reads format "
-            f"{STATE_FORMAT}: resume it with the ftrain that wrote it ({manifest['versions']}), or start another "
+            f"{STATE_FORMAT}: resume it with the ftrain that wrote it ({versions}), or start another "
             "--storage"
         )
     saved = manifest["config"]  # another robot or model first: no count of environments mends that

@@ -180,6 +180,10 @@ def test_resume_refuses_other_env_count_config_and_format(tmp_path) -> None:
         result = subprocess.run(train_command(storage, "iterations=4"), cwd=REPO, env=child_env(), capture_output=True)
         assert result.returncode == 2 and message in result.stderr
         assert not (storage / "checkpoints/step-000000002" / QUARANTINED).exists(), "refused, not quarantined"
+    bare = {key: value for key, value in json.loads(current).items() if key not in (DIGEST, "state_format", "versions")}
+    manifest_file.write_text(json.dumps(bare))  # made by hand or by another tool: no traceback either
+    result = subprocess.run(train_command(storage, "iterations=4"), cwd=REPO, env=child_env(), capture_output=True)
+    assert result.returncode == 2 and b"wrote it (its versions are not recorded)" in result.stderr, result.stderr
     manifest_file.write_text(current)
     changed = "algorithm.clip_param 0.2 -> 0.1; algorithm.gamma 0.99 -> 0.98"
     refused = subprocess.run(
