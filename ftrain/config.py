@@ -3,7 +3,7 @@ on this machine that a run or a command writes (the storage where local, the log
 tried before any work, so that one that cannot be written is one line, not a traceback halfway through.
 
 Torch-free on purpose: the supervisor loads and validates the config before it launches anything. Imports: values,
-errors, redact.
+errors, redact, log_dir_lock.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from pathlib import Path
 import yaml
 
 from ftrain.errors import UserError, did_you_mean
+from ftrain.log_dir_lock import STORAGE_FILE
 from ftrain.redact import Url, display_url, display_urls, redact_options
 from ftrain.values import build, dotted, parse_amount, parse_value, set_dotted, storage_option_overrides
 
@@ -396,6 +397,7 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
                 f"config file {path!r} is empty: give it keys (configs/smoke.yaml shows them), or pass key=value "
                 "overrides to train the defaults with them"
             )
+        _follow_a_moved_run(file, data)
     keys_given = set()  # the dotted keys set on the command line, a section's mapping (env={num_envs: 8}) by its keys
     for before, item in zip(["", *overrides], overrides, strict=False):
         key, sep, raw = item.partition("=")
@@ -434,6 +436,21 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
         config.log_dir = default_log_dir(config.storage.url, config.name)
     validate(config)
     return config
+
+
+def _follow_a_moved_run(file: Path, data: dict) -> None:
+    """A run's own ``config.yaml`` (``saved_dict``: absolute paths), read from a log directory that is no longer where
+    it says (the run's directory moved or copied whole): the log directory is where the file lies, and so is the
+    storage where it was that same directory (a local run's default). Its old place is not written again."""
+    here, saved = file.resolve().parent, data.get("log_dir")
+    if file.name != "config.yaml" or not isinstance(saved, str) or not (here / STORAGE_FILE).is_file():
+        return
+    if os.path.realpath(saved) == str(here):
+        return
+    data["log_dir"] = str(here)
+    storage = data.get("storage")
+    if isinstance(storage, dict) and isinstance(storage.get("url"), str) and local_path(storage["url"]) == saved:
+        storage["url"] = str(here)
 
 
 def _count_envs_as_given(config: Config, given: set[str]) -> None:

@@ -62,7 +62,7 @@ LAYERS = {
     },
     "comm": {"errors", "procfs"},
     "torchrun": {"config", "errors", "errorfile", "lifeline", "proctitle"},
-    "config": {"values", "errors", "redact"},
+    "config": {"values", "errors", "redact", "log_dir_lock"},
     "values": {"errors", "redact"},
     "heartbeat": set(),
     "log_dir_lock": {"errors"},
