@@ -258,8 +258,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--keep-line",
         type=int,
         metavar="STEP",
-        help="instead of the retention rules: keep STEP's line of descent and set every verified step off it aside "
-        "(a forked storage)",
+        help="instead of the retention rules: keep the line of descent that ends at STEP (the newest step of a "
+        "line) and set every verified step off it aside (a forked storage)",
     )
     prune.add_argument(
         "--force", action="store_true", help="prune even while a run holds the storage (it refuses by default)"

@@ -31,7 +31,7 @@ from ftrain.ckpt.format import (
     verify_step,
 )
 from ftrain.ckpt.lease import Lease, LeaseHeld, read_record
-from ftrain.ckpt.lineage import history
+from ftrain.ckpt.lineage import history, listed_steps
 from ftrain.ckpt.retention import Kept, delete_step, kept, retention_plan
 from ftrain.ckpt.steps import (
     ASIDE,
@@ -230,12 +230,19 @@ def prune(
 
 def keep_line(url: str, step: int, options: dict | None = None, force: bool = False, dry_run: bool = False) -> int:
     """Keep the line of descent that ends at ``step`` (``lineage.py``): every verified step off it is set aside under
-    ``quarantine/`` (nothing is deleted), so that the storage holds one history again (``dry_run``: only print)."""
+    ``quarantine/`` (nothing is deleted), so that the storage holds one history again (``dry_run``: only print). A
+    ``step`` that newer steps descend from ends no line: refused, or its own line's newer steps would go aside."""
     storage, _ = _open(url, options, one_step=False)
 
     def body(held: Storage) -> int:
         infos = scan(held)
         past = history(infos, head=step)
+        if later := [i.step for i in infos if i.step in past.off_line() and step in history(infos, head=i.step).line]:
+            raise UserError(
+                f"step {step} does not end a line of descent: {listed_steps(later)} descend from it; pass the "
+                f"newest step of the line to keep (--keep-line {later[0]}), or train on from step {step} with "
+                f"resume={held.where(step_dir(step))}"
+            )
         for info in infos:
             if info.step not in past.off_line():
                 continue

@@ -43,9 +43,9 @@ class History:
         """The one line that refuses a forked storage, and says how to keep one line."""
         keep = command("ftrain", "ckpt", "prune", url, "--keep-line", "STEP")
         return (
-            f"{url} holds two histories of generation {self.generation[0]}: steps {_steps(self.line)} and steps "
-            f"{_steps(self.forks)} do not descend from each other (two processes wrote it as one run); keep one line "
-            f"with {keep} (the other's steps are set aside under quarantine/), then start again"
+            f"{url} holds two histories of generation {self.generation[0]}: steps {listed_steps(self.line)} and "
+            f"steps {listed_steps(self.forks)} do not descend from each other (two processes wrote it as one run); "
+            f"keep one line with {keep} (the other's steps are set aside under quarantine/), then start again"
         )
 
 
@@ -94,10 +94,10 @@ def _find(verified: list[StepInfo], step: int) -> StepInfo:
     for info in verified:
         if info.step == step:
             return info
-    steps = _steps(info.step for info in verified)
+    steps = listed_steps(info.step for info in verified)
     raise UserError(f"step {step} is not a committed step of this storage: pick one of {steps}")
 
 
-def _steps(steps: Iterable[int]) -> str:
+def listed_steps(steps: Iterable[int]) -> str:
     listed = sorted(steps, reverse=True)
     return ", ".join(map(str, listed[:6])) + (f" (and {len(listed) - 6} more)" if len(listed) > 6 else "")

@@ -86,12 +86,12 @@ def check_storage_place(url: str) -> None:
     aside under ``quarantine/``, a policy snapshot under ``policies/``) or a storage's ``quarantine/``: that run's
     retention and clean-up would delete what a run there writes."""
     shown = display_url(url)
-    if (run := _quarantine_around(url)) is not None:
-        raise UserError(
-            f"storage {shown} is the {ASIDE}/ of the run in {run}, or lies inside it: ftrain ckpt prune --drop-bad "
-            "deletes all of it: pass a directory of its own"
-        )
     if (found := _enclosing_step_of_any(shown)) is None:
+        if (run := _quarantine_around(url)) is not None:
+            raise UserError(
+                f"storage {shown} is the {ASIDE}/ of the run in {run}, or lies inside it: ftrain ckpt prune "
+                "--drop-bad deletes all of it: pass a directory of its own"
+            )
         return
     where, step, parent = found
     resume = f" (to train on from that step: resume={step})" if parent == CHECKPOINTS else ""

@@ -428,6 +428,10 @@ def test_a_step_set_aside_that_would_fork_the_storage_or_does_not_verify_stays_a
     ten = commit_step(storage, 10, 1, None)
     commit_step(storage, 30, 1, commit_step(storage, 20, 1, ten))
     commit_step(storage, 25, 1, ten)  # a second line from step 10: a fork
+    for inner, later in ((20, "30"), (10, "30, 25, 20")):  # a step newer steps descend from ends no line
+        with pytest.raises(UserError, match=rf"^step {inner} does not end a line of descent: {later} descend from it"):
+            ckpt_commands.keep_line(storage.url, inner)
+        assert not storage.list_dirs(ASIDE)
     assert ckpt_commands.keep_line(storage.url, 25) == 0
     assert sorted(storage.list_dirs(ASIDE)) == ["step-000000020", "step-000000030"]
     flip_shard_byte(storage, 25)
