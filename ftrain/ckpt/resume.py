@@ -427,9 +427,11 @@ def check_compatible(
     taken = _taken_as_it_is(manifest["config"], config, step if in_place else None)
     if manifest["config_hash"] != config.training_hash(robot) and not config.allow_config_change and not taken:
         keys = config_change(manifest["config"], config.public_dict(), None, None)
-        horizon_alone = set(changed_keys(manifest["config"], config.public_dict())) == {"algorithm.schedule_iterations"}
+        horizon_alone = set(changed_keys(manifest["config"], config.public_dict())) == {HORIZON}
         if horizon_alone and config.algorithm.schedule_iterations == config.iterations:
             keys += f", which iterations={config.iterations} sets"
+        elif _horizon_taken(manifest["config"], config, step if in_place else None):
+            keys += f"; of these a resume takes {HORIZON} alone: it follows iterations={config.iterations}"
         raise UserError(
             f"checkpoint step {step} was trained with a different config "
             f"({keys or 'hash ' + manifest['config_hash'] + ', now ' + config.training_hash(robot)}): restore the "
@@ -478,10 +480,18 @@ def _taken_as_it_is(saved: dict, config: Config, step: int | None) -> bool:
     more than it has trained, which trains nothing (the trainer says so). A count of the environments per rank where
     it was in all, or the other way round: ``_check_env_counts`` has let only the same environments through."""
     changed = set(changed_keys(saved, config.public_dict())) - {"teacher", *ENV_COUNTS}
-    if changed != {"algorithm.schedule_iterations"}:
+    if changed != {HORIZON}:
         return not changed
+    return _horizon_taken(saved, config, step)
+
+
+HORIZON = "algorithm.schedule_iterations"
+
+
+def _horizon_taken(saved: dict, config: Config, step: int | None) -> bool:
+    """Whether the change of a linear schedule's horizon since ``saved`` is one a resume takes (``_taken_as_it_is``)."""
     if saved["algorithm"].get("schedule") != "linear" or config.algorithm.schedule != "linear":
         return False
     horizons = (saved["algorithm"].get("schedule_iterations"), config.algorithm.schedule_iterations)
-    follows = horizons == (saved.get("iterations"), config.iterations)
+    follows = horizons == (saved.get("iterations"), config.iterations) and horizons[0] != horizons[1]
     return follows and (horizons[1] > horizons[0] or (step is not None and config.iterations <= step))
