@@ -6,12 +6,14 @@ ftrain versions an iteration redone appears twice, and its last row wins) and, i
 ``<run>/events.jsonl``. Restarts are counted as the supervisor counts them: each ``restart`` event, drawn at the step
 the next attempt resumed from. Every other resume (the same command run again after a
 preemption or by hand) is a resume, and one that ``allow_config_change=true`` let through with a changed config
-(``config_change`` in its row) is a config change.
+(``config_change`` in its row) is a config change. A run's storage URL on S3 or elsewhere, which holds no
+``metrics.csv``, is plotted from its default log directory on this machine (``runs/<name>/<protocol>/...``).
 """
 
 from __future__ import annotations
 
 import csv
+import glob
 import itertools
 import json
 import math
@@ -50,6 +52,13 @@ class Plot:
     the curves break there rather than draw a line across."""
 
 
+def _logs_here(url: str) -> str | None:
+    """The log directory on this machine of the run on remote storage ``url``, where one run logged there by default
+    (``runs/<name>/<protocol>/<bucket>/<prefix>``); None where none did, or several."""
+    found = [path for path in glob.glob(default_log_dir(url, "*")) if (Path(path) / METRICS).is_file()]
+    return found[0] if len(found) == 1 else None
+
+
 def read_metrics(
     run: str | Path, options: dict | None = None
 ) -> tuple[dict[str, list[float]], list[int], dict[int, str]]:
@@ -59,6 +68,11 @@ def read_metrics(
     storage = Storage.open(str(run), options)
     path = storage.where(METRICS)
     data = _read(storage, METRICS)
+    if data is None and not storage.is_local:  # its logs stay on the machine that trained it
+        raise UserError(
+            f"{path} does not exist: a run on this storage logs to {default_log_dir(str(run), '<name>')} on the "
+            f"machine that trained it: pass that directory"
+        )
     if data is None:
         raise UserError(f"{path} does not exist: pass a run's log directory (where training wrote {METRICS})")
     rows: dict[int, dict[str, str]] = {}
@@ -137,6 +151,9 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     if output is not None and Path(output).suffix.lstrip(".").lower() not in FigureCanvasBase.get_supported_filetypes():
         raise UserError(f"-o {output}: not a picture file matplotlib writes: end it in .png, .svg or .pdf")
     storage = Storage.open(str(run), options)
+    if not storage.is_local and (here := _logs_here(str(run))) is not None and _read(storage, METRICS) is None:
+        print(f"ftrain plot: the logs of {storage.url} are in {here}", file=sys.stderr)
+        run, storage = here, Storage.open(here)
     columns, resumed, changed = read_metrics(run, options)
     run_name = Path(run).resolve().name if storage.is_local else PurePosixPath(storage.url).name
     path = Path(output) if output else Path(default_log_dir(str(run), run_name)) / "curves.png"

@@ -127,3 +127,12 @@ def test_plot_reads_a_log_directory_on_s3(s3_run, tmp_path) -> None:
     plotted = ftrain("plot", logs, "-o", str(tmp_path / "curves.png"), *options)
     assert plotted.returncode == 0, plotted.stderr
     assert plotted.stdout == f"wrote {tmp_path / 'curves.png'}\n" and (tmp_path / "curves.png").stat().st_size > 0
+    # the run's own URL: its logs stay on the machine that trained it, found there, named elsewhere
+    local_logs = Path("runs") / "smoke" / "s3" / url.removeprefix("s3://")
+    here = ftrain("plot", url, "-o", str(tmp_path / "here.png"), *options, cwd=cwd)
+    assert here.returncode == 0 and here.stderr == f"ftrain plot: the logs of {url} are in {local_logs}\n", here.stderr
+    elsewhere = ftrain("plot", url, "-o", str(tmp_path / "elsewhere.png"), *options, cwd=tmp_path)
+    assert elsewhere.returncode == 2 and elsewhere.stderr == (
+        f"ftrain: error: {url}/metrics.csv does not exist: a run on this storage logs to "
+        f"runs/<name>/s3/{url.removeprefix('s3://')} on the machine that trained it: pass that directory\n"
+    ), elsewhere.stderr
