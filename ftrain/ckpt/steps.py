@@ -95,6 +95,9 @@ def check_storage_place(url: str) -> None:
         return
     where, step, parent = found
     resume = f" (to train on from that step: resume={step})" if parent == CHECKPOINTS else ""
+    if resume and (local := local_path(step)) and not os.path.isdir(local):  # no step to train on from
+        listing = command("ftrain", "ckpt", "ls", os.path.dirname(os.path.dirname(local)) or ".")
+        resume = f" ({step} does not exist: {listing})"
     place = "is" if step == where.partition("?")[0].rstrip("/") else f"is inside {step},"
     raise UserError(
         f"storage {shown} {place} a step of another run's storage, which that run may delete: pass a directory of "

@@ -225,14 +225,19 @@ INSIDE_A_STEP = [
 
 @pytest.mark.parametrize(("url", "step", "resumable"), INSIDE_A_STEP)
 def test_a_storage_inside_a_step_of_another_storage_is_refused(tmp_path, url, step, resumable) -> None:
-    """That run's retention and clean-up would delete what a run there writes, while it reports success."""
+    """That run's retention and clean-up would delete what a run there writes, while it reports success. A local step
+    that is there is named to train on from (``resume=``), one that is not is not."""
     run = tmp_path / "run"
+    make_step(Storage.open(str(run)), 4)
     with pytest.raises(UserError) as refused:
         check_storage_place(url.format(run=run))
     line = str(refused.value)
     place = "is" if url == step else f"is inside {step.format(run=run)},"  # the step itself: named once
     assert line.startswith(f"storage {url.format(run=run)} {place} a step of another run's storage"), line
     assert ("resume=" in line) == resumable, line
+    if resumable and not url.startswith("s3:"):
+        with pytest.raises(UserError, match=rf"step-000000005 does not exist: ftrain ckpt ls {run}\)$"):
+            check_storage_place(url.format(run=run).replace("step-000000004", "step-000000005"))
     named_alike = (f"{run}/checkpoints", f"{run}/steps/step-000000004", "s3://bucket/checkpoints/run")
     for own in (run, *named_alike, "s3://checkpoints/step-1", "memory://policies/step-3/run"):  # nothing above a bucket
         check_storage_place(str(own))  # a directory named checkpoints, or a step of nothing, is a storage's own
