@@ -439,18 +439,19 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
 
 
 def _follow_a_moved_run(file: Path, data: dict) -> None:
-    """A run's own ``config.yaml`` (``saved_dict``: absolute paths), read from a log directory that is no longer where
-    it says (the run's directory moved or copied whole): the log directory is where the file lies, and so is the
-    storage where it was that same directory (a local run's default). Its old place is not written again."""
-    here, saved = file.resolve().parent, data.get("log_dir")
-    if file.name != "config.yaml" or not isinstance(saved, str) or not (here / STORAGE_FILE).is_file():
+    """A local run's own ``config.yaml`` (``saved_dict``: absolute paths), its storage its log directory (the default),
+    read from that directory after it moved or was copied whole: its ``storage.txt`` still names the storage the file
+    names, but the file lies elsewhere. The run goes on where the file lies (storage and logs), not at its old place,
+    which it would make again. Anything else (a file copied alone, a storage elsewhere) is taken as written."""
+    here, saved, storage = file.resolve().parent, data.get("log_dir"), data.get("storage")
+    url = storage.get("url") if isinstance(storage, dict) else None
+    if file.name != "config.yaml" or not isinstance(saved, str) or not isinstance(url, str) or not local_path(url):
         return
-    if os.path.realpath(saved) == str(here):
+    if not same_storage(url, saved) or storage_key(saved) == str(here):
         return
-    data["log_dir"] = str(here)
-    storage = data.get("storage")
-    if isinstance(storage, dict) and isinstance(storage.get("url"), str) and local_path(storage["url"]) == saved:
-        storage["url"] = str(here)
+    with contextlib.suppress(OSError):
+        if (here / STORAGE_FILE).read_text().strip() == storage_key(url):
+            data["log_dir"] = storage["url"] = str(here)
 
 
 def _count_envs_as_given(config: Config, given: set[str]) -> None:

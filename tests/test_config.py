@@ -9,8 +9,10 @@ import shutil
 import subprocess
 import sys
 import typing
+from pathlib import Path
 
 import pytest
+import yaml
 
 from ftrain.ckpt.lease import TTL_ENV, ttl_from_env
 from ftrain.ckpt.storage import Storage
@@ -422,6 +424,33 @@ def test_a_section_set_whole_by_an_override_merges_a_mapping_and_refuses_anythin
     print(f"{checked} overrides of {checked // 5} sections checked")
     assert checked >= 5 * 8
     assert load_config(SMOKE, ["env={num_envs: 8}"]).env.id == plain.env.id  # the file's other keys stay
+
+
+def test_a_runs_config_yaml_follows_its_directory_only_where_the_whole_run_moved(tmp_path) -> None:
+    """A local run's config.yaml read where its directory now lies goes on there (tests/train/test_training.py trains
+    it); a file copied alone into another run's directory, a storage elsewhere, or a file read in place is taken as
+    written: nothing but a whole run moved or copied is redirected."""
+    old, new, other = tmp_path / "old", tmp_path / "new", tmp_path / "other"
+
+    def saved_in(directory: Path, storage: str, log_dir: str, names: str) -> Config:
+        directory.mkdir(exist_ok=True)
+        (directory / "storage.txt").write_text(names + "\n")
+        config = {"env": {"id": "HalfCheetah-v5"}, "storage": {"url": storage}, "log_dir": log_dir}
+        (directory / "config.yaml").write_text(yaml.safe_dump(config))
+        return load_config(str(directory / "config.yaml"))
+
+    for spelt in (str(old), f"file://{old}/", f"{old}/"):  # however the storage was spelt
+        moved = saved_in(new, spelt, str(old), str(old))
+        assert moved.storage.url == moved.log_dir == str(new), spelt
+    copied_alone = saved_in(other, str(old), str(old), str(other))  # another run's directory
+    assert copied_alone.storage.url == copied_alone.log_dir == str(old)
+    elsewhere = saved_in(new, str(other), str(old), str(other))  # its storage was not its log directory
+    assert (elsewhere.storage.url, elsewhere.log_dir) == (str(other), str(old))
+    in_place = saved_in(old, str(old), str(old), str(old))
+    assert in_place.storage.url == in_place.log_dir == str(old)
+    assert saved_in(new, str(old), str(old), str(old)).log_dir == str(new)
+    overridden = load_config(str(new / "config.yaml"), [f"log_dir={old}"])  # the command line wins
+    assert (overridden.storage.url, overridden.log_dir) == (str(new), str(old))
 
 
 @pytest.mark.slow  # trains
