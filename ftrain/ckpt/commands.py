@@ -31,7 +31,7 @@ from ftrain.ckpt.format import (
     verify_step,
 )
 from ftrain.ckpt.lease import Lease, LeaseHeld, read_record
-from ftrain.ckpt.lineage import history, listed_steps
+from ftrain.ckpt.lineage import generation, history, listed_steps
 from ftrain.ckpt.retention import Kept, delete_step, kept, retention_plan
 from ftrain.ckpt.steps import (
     ASIDE,
@@ -237,12 +237,7 @@ def keep_line(url: str, step: int, options: dict | None = None, force: bool = Fa
     def body(held: Storage) -> int:
         infos = scan(held)
         past = history(infos, head=step)
-        if later := [i.step for i in infos if i.step in past.off_line() and step in history(infos, head=i.step).line]:
-            raise UserError(
-                f"step {step} does not end a line of descent: {listed_steps(later)} descend from it; pass the "
-                f"newest step of the line to keep (--keep-line {later[0]}), or train on from step {step} with "
-                f"resume={held.where(step_dir(step))}"
-            )
+        _refuse_an_inner_step(held, infos, step, past.off_line())
         for info in infos:
             if info.step not in past.off_line():
                 continue
@@ -257,6 +252,25 @@ def keep_line(url: str, step: int, options: dict | None = None, force: bool = Fa
         return 0
 
     return as_lease_holder(storage, "prune --keep-line", force, body, dry_run)
+
+
+def _refuse_an_inner_step(storage: Storage, infos: list[StepInfo], step: int, off_line: list[int]) -> None:
+    """UserError where newer steps descend from ``step``, naming the ends of their lines (newest generation first) and
+    how to train on from ``step`` itself: in another storage, which ``resume=`` hands it to."""
+    lines = {info.step: history(infos, head=info.step).line for info in infos if info.step in off_line}
+    later = [other for other, line in lines.items() if step in line]
+    if not later:
+        return
+    ends = [end for end in later if not any(end in lines[other] for other in later if other != end)]
+    by_generation = {info.step: (generation(info), info.step) for info in infos}
+    ends.sort(key=by_generation.get, reverse=True)
+    keep = " or ".join(f"--keep-line {end}" for end in ends)
+    verb = "descends" if len(later) == 1 else "descend"
+    raise UserError(
+        f"step {step} does not end a line of descent: {listed_steps(later)} {verb} from it; keep a line that ends "
+        f"there ({keep}), or train on from step {step} in another storage: --storage NEW "
+        f"resume={storage.where(step_dir(step))}"
+    )
 
 
 def as_lease_holder(

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from ftrain.ckpt import commands as ckpt_commands
-from ftrain.ckpt.format import encode, read_manifest, write_file
+from ftrain.ckpt.format import encode, read_manifest, step_dir, write_file
 from ftrain.ckpt.steps import ABANDONED_AFTER, resolve_checkpoint_url, scan
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
@@ -369,7 +369,6 @@ def test_a_step_set_aside_goes_back_only_where_it_continues_the_line_and_nothing
     head; where it is refused (its number taken, or off the line), nothing in the storage changes."""
     import random
 
-    from ftrain.ckpt.format import step_dir
     from ftrain.ckpt.lineage import history
     from ftrain.ckpt.steps import ASIDE, clear_newer, select_resume
 
@@ -428,10 +427,21 @@ def test_a_step_set_aside_that_would_fork_the_storage_or_does_not_verify_stays_a
     ten = commit_step(storage, 10, 1, None)
     commit_step(storage, 30, 1, commit_step(storage, 20, 1, ten))
     commit_step(storage, 25, 1, ten)  # a second line from step 10: a fork
-    for inner, later in ((20, "30"), (10, "30, 25, 20")):  # a step newer steps descend from ends no line
-        with pytest.raises(UserError, match=rf"^step {inner} does not end a line of descent: {later} descend from it"):
+    cases = ((20, "30 descends", "--keep-line 30"), (10, "30, 25, 20 descend", "--keep-line 30 or --keep-line 25"))
+    for inner, later, ends in cases:  # a step newer steps descend from ends no line: the ends of theirs are named
+        with pytest.raises(UserError) as refused:
             ckpt_commands.keep_line(storage.url, inner)
+        assert str(refused.value) == (
+            f"step {inner} does not end a line of descent: {later} from it; keep a line that ends there ({ends}), or "
+            f"train on from step {inner} in another storage: --storage NEW resume={storage.where(step_dir(inner))}"
+        )
         assert not storage.list_dirs(ASIDE)
+    newer = Storage.open(str(tmp_path / "newer"))  # generation 2 went on from 20; generation 1's 30 landed late
+    twenty = commit_step(newer, 20, 1, commit_step(newer, 10, 1, None))
+    commit_step(newer, 25, 2, twenty)
+    commit_step(newer, 30, 1, twenty)
+    with pytest.raises(UserError, match=r"keep a line that ends there \(--keep-line 25 or --keep-line 30\)"):
+        ckpt_commands.keep_line(newer.url, 20)  # the newer generation's end first, though its number is lower
     assert ckpt_commands.keep_line(storage.url, 25) == 0
     assert sorted(storage.list_dirs(ASIDE)) == ["step-000000020", "step-000000030"]
     flip_shard_byte(storage, 25)
