@@ -591,8 +591,9 @@ def _run_config(args: argparse.Namespace) -> Config:
     check_storage_place(config.storage.url)
     if os.path.isdir(storage := local_path(config.storage.url)):  # before a supervisor writes its logs there
         check_not_a_checkpoints_directory(Storage.open(storage))
-        if os.path.isdir(checkpoints := os.path.join(storage, CHECKPOINTS)):  # else its saves would fail and hold
-            check_writable(Path(checkpoints), "--storage")
+        if (checkpoints := Path(storage, CHECKPOINTS)).is_dir():  # else its saves would fail and hold
+            fix = "make it writable (its permissions, its mount), or pass --storage another directory"
+            check_writable(checkpoints, "--storage", fix)
     resume = local_path(config.resume) if config.resume not in ("auto", "never") else ""
     own = os.path.isdir(os.path.join(storage, CHECKPOINTS))  # steps of its own: it goes on from them, and needs not
     if resume and storage and not own and not os.path.exists(resume):  # the step it began at (maybe deleted since)

@@ -599,11 +599,12 @@ def _override(data: dict, key: str, value: object, item: str) -> None:
         _override(data, f"{key}.{name}", inner, item)
 
 
-def check_writable(path: Path, option: str) -> None:
+def check_writable(path: Path, option: str, fix: str = "") -> None:
     """UserError unless ``path`` can be written, said before the work that makes its contents. It tries: a file made
     and dropped in ``path`` where it is a directory, else in the nearest directory that exists (root passes every
     permission check, /proc, read-only mounts and immutable directories refuse anyway), or ``path`` opened to append
-    where it is a file (its contents untouched). ``option``: the flag that chooses the path."""
+    where it is a file (its contents untouched). ``option``: the flag that chooses the path; ``fix``: what the line
+    says to do (default: pass that flag another path)."""
     where = path if path.exists() else next(parent for parent in path.absolute().parents if parent.exists())
     a_file = where == path and not path.is_dir()
     try:
@@ -613,8 +614,9 @@ def check_writable(path: Path, option: str) -> None:
             tempfile.TemporaryFile(dir=where).close()
     except OSError as error:
         why = error.strerror or str(error)
-        detail = why if a_file else f"{where}{' takes no new file' if where.is_dir() else ''}: {why}"
-        raise UserError(f"cannot write {path} ({detail}): pass {option} a path you can write to") from None
+        takes = " takes no new file" if where.is_dir() else ""
+        detail = why if a_file else f"it{takes}: {why}" if where == path else f"{where}{takes}: {why}"
+        raise UserError(f"cannot write {path} ({detail}): {fix or f'pass {option} a path you can write to'}") from None
 
 
 def default_log_dir(storage_url: str, name: str) -> str:

@@ -117,6 +117,7 @@ def _explained(failed: ChildFailedError) -> int | None:
 def _tell_workers_the_nodes(arguments: list[str]) -> None:
     """An elastic launch's ``--nnodes MIN:MAX`` in the workers' environment (``ELASTIC_NODES_ENV``): a world size of
     the launch that cannot share the run's environments is refused at the start (``config.for_launch``)."""
+    os.environ.pop(ELASTIC_NODES_ENV, None)  # not one inherited from another launch
     parser = get_args_parser()
     parser.error = _unparsed  # torchrun itself says what is wrong with its arguments
     try:
@@ -125,8 +126,6 @@ def _tell_workers_the_nodes(arguments: list[str]) -> None:
         return
     if least < most:
         os.environ[ELASTIC_NODES_ENV] = f"{least}:{most}"
-    else:
-        os.environ.pop(ELASTIC_NODES_ENV, None)
 
 
 def _unparsed(message: str) -> typing.NoReturn:

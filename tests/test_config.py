@@ -343,24 +343,29 @@ def test_supervise_refuses_total_envs_its_world_cannot_share_before_it_launches_
 
 @pytest.mark.parametrize("command", ["train", "supervise"])
 def test_a_checkpoints_directory_that_takes_no_file_is_one_line_exit_2_before_the_run_starts(tmp_path, command):
-    """A run's ``checkpoints/`` that refuses new files (here immutable; a permission or a read-only mount alike):
-    ``ftrain train`` trained and then held up to an hour retrying its saves, where the supervisor refused at once.
-    Both refuse before training, in one line, and leave the run's steps as they were."""
+    """A run's ``checkpoints/`` that refuses new files (immutable as root, who passes every permission check; read
+    and list only otherwise): ``ftrain train`` trained and then held up to an hour retrying its saves, where the
+    supervisor refused at once. Both refuse before training, in one line, and leave the run's steps as they were."""
     storage = tmp_path / "run"
     make_step(Storage.open(str(storage)), 2)
     checkpoints = storage / "checkpoints"
-    if not shutil.which("chattr") or subprocess.run(["chattr", "+i", str(checkpoints)], capture_output=True).returncode:
-        pytest.skip("chattr +i is not available here")
+    root = os.geteuid() == 0
+    if root and (not shutil.which("chattr") or subprocess.run(["chattr", "+i", str(checkpoints)]).returncode):
+        pytest.skip("root passes every permission check, and chattr +i is not available here")
+    if not root:
+        checkpoints.chmod(0o555)
     try:
-        words = [command, SMOKE, "--storage", str(storage), "iterations=4"]
-        result = subprocess.run(
-            [sys.executable, "-m", "ftrain", *words], env=child_env(), capture_output=True, text=True
-        )
+        words = [sys.executable, "-m", "ftrain", command, SMOKE, "--storage", str(storage), "iterations=4"]
+        result = subprocess.run(words, env=child_env(), capture_output=True, text=True)
     finally:
-        subprocess.run(["chattr", "-i", str(checkpoints)])
+        if root:
+            subprocess.run(["chattr", "-i", str(checkpoints)])
+        else:
+            checkpoints.chmod(0o755)
+    why = "Operation not permitted" if root else "Permission denied"
     assert result.returncode == 2 and result.stderr == (
-        f"ftrain: error: cannot write {checkpoints} ({checkpoints} takes no new file: Operation not permitted): pass "
-        "--storage a path you can write to\n"
+        f"ftrain: error: cannot write {checkpoints} (it takes no new file: {why}): make it writable (its "
+        "permissions, its mount), or pass --storage another directory\n"
     ), result.stderr
     assert sorted(os.listdir(storage)) == ["checkpoints"] and os.listdir(checkpoints) == ["step-000000002"]
 

@@ -430,8 +430,11 @@ def check_compatible(
         horizon_alone = set(changed_keys(manifest["config"], config.public_dict())) == {HORIZON}
         if horizon_alone and config.algorithm.schedule_iterations == config.iterations:
             keys += f", which iterations={config.iterations} sets"
-        elif _horizon_taken(manifest["config"], config, step if in_place else None):
-            keys += f"; of these a resume takes {HORIZON} alone: it follows iterations={config.iterations}"
+        elif _horizon_taken(manifest["config"], config, step if in_place else None):  # named apart, as taken
+            parts = keys.split("; ")
+            horizon = next(part for part in parts if part.startswith(f"{HORIZON} "))
+            keys = "; ".join(part for part in parts if part != horizon)
+            keys += f"; and {horizon}, which follows iterations={config.iterations} and is taken"
         raise UserError(
             f"checkpoint step {step} was trained with a different config "
             f"({keys or 'hash ' + manifest['config_hash'] + ', now ' + config.training_hash(robot)}): restore the "
@@ -439,6 +442,8 @@ def check_compatible(
         )
 
 
+HORIZON = "algorithm.schedule_iterations"
+"""A linear learning rate's horizon: a change of it that follows the run's length is taken (``_horizon_taken``)."""
 ENV_COUNTS = {"env.num_envs", "env.total_envs"}
 """The two ways to count a run's environments (per rank, in all): ``_check_env_counts`` compares the counts."""
 
@@ -483,9 +488,6 @@ def _taken_as_it_is(saved: dict, config: Config, step: int | None) -> bool:
     if changed != {HORIZON}:
         return not changed
     return _horizon_taken(saved, config, step)
-
-
-HORIZON = "algorithm.schedule_iterations"
 
 
 def _horizon_taken(saved: dict, config: Config, step: int | None) -> bool:

@@ -97,7 +97,7 @@ def check_storage_place(url: str) -> None:
     resume = f" (to train on from that step: resume={step})" if parent == CHECKPOINTS else ""
     if resume and (local := local_path(step)) and not os.path.isdir(local):  # no step to train on from
         listing = command("ftrain", "ckpt", "ls", os.path.dirname(os.path.dirname(local)) or ".")
-        resume = f" ({step} does not exist: {listing})"
+        resume = f" ({step} does not exist; its steps: {listing})"
     place = "is" if step == where.partition("?")[0].rstrip("/") else f"is inside {step},"
     raise UserError(
         f"storage {shown} {place} a step of another run's storage, which that run may delete: pass a directory of "
@@ -125,11 +125,13 @@ def check_output(path: Path, option: str) -> None:
 def _quarantine_around(url: str) -> str | None:
     """The local storage whose ``quarantine/`` ``url`` is or lies inside (a directory there is a step set aside,
     whatever its name, which ``prune --drop-bad`` deletes), or None: the first place so named that is a run's storage
-    (it holds ``checkpoints/``)."""
-    for where in spellings(url):
-        parts = local_path(where).rstrip("/").split("/")
-        for index in range(1, len(parts)):
-            root = "/".join(parts[:index]) or "/"
+    (it holds ``checkpoints/``), by the path as written (``..`` resolved) and where it really goes."""
+    if not (local := local_path(url)):
+        return None
+    for where in dict.fromkeys((os.path.normpath(os.path.abspath(local)), os.path.realpath(local))):
+        parts = where.split("/")
+        for index in range(2, len(parts)):
+            root = "/".join(parts[:index])
             if parts[index] == ASIDE and os.path.isdir(os.path.join(root, CHECKPOINTS)):
                 return root
     return None

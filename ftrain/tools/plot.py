@@ -52,11 +52,21 @@ class Plot:
     the curves break there rather than draw a line across."""
 
 
-def _logs_here(url: str) -> str | None:
-    """The log directory on this machine of the run on remote storage ``url``, where one run logged there by default
-    (``runs/<name>/<protocol>/<bucket>/<prefix>``); None where none did, or several."""
-    found = [path for path in glob.glob(default_log_dir(url, "*")) if (Path(path) / METRICS).is_file()]
-    return found[0] if len(found) == 1 else None
+def _logs_here(storage: Storage) -> str:
+    """The log directory of the run on remote ``storage`` (which holds no ``metrics.csv``: its logs stay on the
+    machine that trained it), where one run logged it by default under this directory (``runs/<name>/<protocol>/
+    <bucket>/<prefix>``); else UserError saying where to look."""
+    pattern = glob.escape(default_log_dir(storage.url, "\0")).replace("\0", "*")
+    found = sorted(path for path in glob.glob(pattern) if (Path(path) / METRICS).is_file())
+    if len(found) == 1:
+        return found[0]
+    missing = f"{storage.where(METRICS)} does not exist"
+    if found:
+        raise UserError(f"{missing}, and several runs here logged that storage: {', '.join(found)}: pass one")
+    raise UserError(
+        f"{missing}: a run on this storage logs to {default_log_dir(storage.url, '<name>')} under the directory it "
+        "was started in, on the machine that trained it: pass that directory"
+    )
 
 
 def read_metrics(
@@ -68,11 +78,6 @@ def read_metrics(
     storage = Storage.open(str(run), options)
     path = storage.where(METRICS)
     data = _read(storage, METRICS)
-    if data is None and not storage.is_local:  # its logs stay on the machine that trained it
-        raise UserError(
-            f"{path} does not exist: a run on this storage logs to {default_log_dir(str(run), '<name>')} on the "
-            f"machine that trained it: pass that directory"
-        )
     if data is None:
         raise UserError(f"{path} does not exist: pass a run's log directory (where training wrote {METRICS})")
     rows: dict[int, dict[str, str]] = {}
@@ -151,9 +156,10 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     if output is not None and Path(output).suffix.lstrip(".").lower() not in FigureCanvasBase.get_supported_filetypes():
         raise UserError(f"-o {output}: not a picture file matplotlib writes: end it in .png, .svg or .pdf")
     storage = Storage.open(str(run), options)
-    if not storage.is_local and (here := _logs_here(str(run))) is not None and _read(storage, METRICS) is None:
-        print(f"ftrain plot: the logs of {storage.url} are in {here}", file=sys.stderr)
-        run, storage = here, Storage.open(here)
+    if not storage.is_local and _read(storage, METRICS) is None:  # a run's storage, not its logs copied there
+        run = _logs_here(storage)
+        print(f"ftrain plot: the logs of {storage.url} are in {run}", file=sys.stderr)
+        storage = Storage.open(run)
     columns, resumed, changed = read_metrics(run, options)
     run_name = Path(run).resolve().name if storage.is_local else PurePosixPath(storage.url).name
     path = Path(output) if output else Path(default_log_dir(str(run), run_name)) / "curves.png"

@@ -76,8 +76,8 @@ class Trainer:
     ) -> None:
         """``lease_lost``: why the storage's lease was lost to another run, once it was (rank 0 without a supervisor,
         which holds the lease; a supervisor stops its workers itself)."""
-        config = for_launch(config, info.world_size)  # env.total_envs shared by this world's ranks (and the others
-        # an elastic launch may resize to)
+        # env.total_envs shared by this world's ranks (and by the others an elastic launch may resize to)
+        config = for_launch(config, info.world_size)
         self.config = config
         self.info = info
         self.stop = stop or StopRequest()

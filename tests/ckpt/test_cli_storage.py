@@ -134,5 +134,6 @@ def test_plot_reads_a_log_directory_on_s3(s3_run, tmp_path) -> None:
     elsewhere = ftrain("plot", url, "-o", str(tmp_path / "elsewhere.png"), *options, cwd=tmp_path)
     assert elsewhere.returncode == 2 and elsewhere.stderr == (
         f"ftrain: error: {url}/metrics.csv does not exist: a run on this storage logs to "
-        f"runs/<name>/s3/{url.removeprefix('s3://')} on the machine that trained it: pass that directory\n"
+        f"runs/<name>/s3/{url.removeprefix('s3://')} under the directory it was started in, on the machine that "
+        "trained it: pass that directory\n"
     ), elsewhere.stderr

@@ -236,7 +236,7 @@ def test_a_storage_inside_a_step_of_another_storage_is_refused(tmp_path, url, st
     assert line.startswith(f"storage {url.format(run=run)} {place} a step of another run's storage"), line
     assert ("resume=" in line) == resumable, line
     if resumable and not url.startswith("s3:"):
-        with pytest.raises(UserError, match=rf"step-000000005 does not exist: ftrain ckpt ls {run}\)$"):
+        with pytest.raises(UserError, match=rf"step-000000005 does not exist; its steps: ftrain ckpt ls {run}\)$"):
             check_storage_place(url.format(run=run).replace("step-000000004", "step-000000005"))
     named_alike = (f"{run}/checkpoints", f"{run}/steps/step-000000004", "s3://bucket/checkpoints/run")
     for own in (run, *named_alike, "s3://checkpoints/step-1", "memory://policies/step-3/run"):  # nothing above a bucket
@@ -319,7 +319,8 @@ def test_a_storage_in_a_runs_quarantine_is_refused_however_it_is_spelt(tmp_path,
     make_step(Storage.open(str(run)), 2)
     (tmp_path / "plain" / ASIDE).mkdir(parents=True)  # named so, but no run's
     monkeypatch.chdir(tmp_path)
-    draw = random.Random(random.SystemRandom().randrange(2**31))
+    seed = random.SystemRandom().randrange(2**31)
+    draw = random.Random(seed)
     count = refused = 0
     for _ in range(200):
         base = draw.choice(["run", str(run), f"file://{run}", "plain", "./run", "run/../run"])
@@ -335,8 +336,11 @@ def test_a_storage_in_a_runs_quarantine_is_refused_however_it_is_spelt(tmp_path,
             assert inside and f"is the {ASIDE}/ of the run in " in str(error), place
         else:
             assert not inside, place
-    print(f"{count} generated places checked, {refused} refused")
+    print(f"{count} generated places checked (seed {seed}), {refused} refused")
     assert 0 < refused < count
+    check_storage_place(f"file://{run}/{ASIDE}/..")  # the run itself, spelt through its quarantine/
+    with pytest.raises(UserError, match=f"is the {ASIDE}/ of the run in {run}, "):
+        check_storage_place(f"file://{run}/{ASIDE}/a/..")
     result = subprocess.run(train_command(run / ASIDE, "iterations=2"), env=child_env(), capture_output=True, text=True)
     assert result.returncode == 2 and result.stderr.count("\n") == 1, result.stderr
     assert "ftrain ckpt prune --drop-bad deletes all of it: pass a directory of its own" in result.stderr
