@@ -308,7 +308,8 @@ def test_a_full_disk_is_named_with_the_fix_for_what_lies_on_it(tmp_path) -> None
 @pytest.mark.parametrize("command", ["train", "prune"])
 def test_a_read_only_storage_is_bad_input_in_one_line(tmp_path, command) -> None:
     """A storage remounted read-only (as a disk is after errors) is bad input, as the supervisor's probe says (exit
-    2), not a raw EROFS (exit 1), for a run and for ``ckpt prune``, which takes the storage's lock."""
+    2), not a raw EROFS (exit 1), for a run (its checkpoints/ tried first) and for ``ckpt prune``, which takes the
+    storage's lock."""
     with small_disk(tmp_path / "disk", "1m") as disk:
         make_step(Storage.open(str(disk)), 4)
         subprocess.run(["mount", "-o", "remount,ro", str(disk)], check=True)
@@ -318,9 +319,15 @@ def test_a_read_only_storage_is_bad_input_in_one_line(tmp_path, command) -> None
         result = subprocess.run(
             [sys.executable, "-m", "ftrain", *words], env=child_env(), capture_output=True, text=True
         )
-    assert result.returncode == EXIT_USAGE, result.stderr
-    assert result.stderr.startswith("ftrain: error: lock ") and len(result.stderr.strip().splitlines()) == 1
-    assert "read-only file system: pass a storage you can write to" in result.stderr, result.stderr
+    assert result.returncode == EXIT_USAGE and len(result.stderr.strip().splitlines()) == 1, result.stderr
+    if command == "train":  # its checkpoints/ is tried before the run starts
+        assert result.stderr == (
+            f"ftrain: error: cannot write {disk / 'checkpoints'} (it takes no new file: Read-only file system): make "
+            "it writable (its permissions, its mount), or pass --storage another directory\n"
+        )
+    else:
+        assert result.stderr.startswith("ftrain: error: lock ")
+        assert "read-only file system: pass a storage you can write to" in result.stderr, result.stderr
 
 
 def test_a_file_where_the_last_step_goes_is_named_while_training_holds_and_once_moved_the_run_ends(tmp_path) -> None:
