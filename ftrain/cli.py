@@ -481,9 +481,12 @@ def _dispatch(args: argparse.Namespace) -> int:
 
         with imports():
             from ftrain.policy.robot import check_env
+            from ftrain.train.hooks import hook_target
             from ftrain.train.trainer import train
 
         check_env(config.env)  # the user's module, id, model, spaces and values: refused here, before any rendezvous
+        for hook in config.hooks:  # and the user's hooks' modules, before the storage is taken
+            hook_target(hook.target)
         made = make_local_directories(config)
         try:
             return train(config)

@@ -17,6 +17,7 @@ import os
 import re
 import statistics
 import time
+import typing
 from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -342,14 +343,21 @@ CSV_ONLY = ("iteration", "resumed_from", "config_change")
 """Columns of metrics.csv that are not metrics."""
 
 
-def load_hook(target: str, kwargs: dict) -> Hook:
+def hook_target(target: str) -> typing.Callable[..., Hook]:
+    """What ``target`` (``module:Class``) names, imported; UserError naming it where it cannot be. A worker asks
+    before it takes the storage or says anything (``ftrain train``), so that a hook that does not import is one line
+    and leaves nothing behind."""
     module_name, _, class_name = target.partition(":")
     try:
-        cls = getattr(importlib.import_module(module_name), class_name)
+        return getattr(importlib.import_module(module_name), class_name)
     except (ImportError, AttributeError) as error:
         raise UserError(f"hook target {target!r} cannot be imported ({error}): fix the import path") from None
     except Exception as error:  # the module itself raised: the user's code, which a restart would run alike
         raise UserError(f"hook target {target!r} cannot be imported: {error_line(error)}: fix the module") from None
+
+
+def load_hook(target: str, kwargs: dict) -> Hook:
+    cls = hook_target(target)
     try:
         hook = cls(**kwargs)
     except TypeError as error:

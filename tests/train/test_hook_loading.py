@@ -4,12 +4,15 @@ an exit that a supervisor would take for a crash and restart."""
 
 from __future__ import annotations
 
+import subprocess
 import sys
 
 import pytest
 
 from ftrain.errors import UserError
-from ftrain.train.hooks import load_hook
+from ftrain.train.hooks import Hook, load_hook
+
+from helpers import SMOKE, child_env
 
 MODULE = """
 from ftrain.train.hooks import Hook
@@ -61,4 +64,20 @@ def test_a_hook_that_cannot_be_had_is_one_line_naming_it(tmp_path, monkeypatch, 
     with pytest.raises(UserError) as refused:
         load_hook(target, kwargs)
     assert str(refused.value).startswith(expected) and "\n" not in str(refused.value), str(refused.value)
-    assert isinstance(load_hook("userhooks:Fine", {"every": 3}), object)
+    fine = load_hook("userhooks:Fine", {"every": 3})
+    assert isinstance(fine, Hook) and fine.every == 3
+
+
+def test_a_hook_that_does_not_import_is_refused_before_the_run_takes_its_storage(tmp_path) -> None:
+    """Refused after the topology line and the storage's lease, it was two lines and left a lease, a lock and
+    storage.txt in a storage that held nothing: now one line, and no storage made."""
+    storage = tmp_path / "run"
+    hooks = 'hooks=[{target: "userhooks_absent:Fine"}]'
+    command = [sys.executable, "-m", "ftrain", "train", SMOKE, "--storage", str(storage), hooks]
+    result = subprocess.run(command, cwd=tmp_path, env=child_env(), capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and result.stdout == "", result.stdout
+    assert result.stderr == (
+        "ftrain: error: hook target 'userhooks_absent:Fine' cannot be imported (No module named 'userhooks_absent'): "
+        "fix the import path\n"
+    )
+    assert not storage.exists()
