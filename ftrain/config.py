@@ -440,18 +440,17 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
 
 def _follow_a_moved_run(file: Path, data: dict) -> None:
     """A local run's own ``config.yaml`` (``saved_dict``: absolute paths), its storage its log directory (the default),
-    read from that directory after it moved or was copied whole: its ``storage.txt`` still names the storage the file
-    names, but the file lies elsewhere. The run goes on where the file lies (storage and logs), not at its old place,
-    which it would make again. Anything else (a file copied alone, a storage elsewhere) is taken as written."""
+    read from that directory after it moved: the place the file names is gone, and the file lies in a run's directory
+    (its ``storage.txt``). The run goes on where the file lies, storage and logs, and does not make its old place
+    again. The test asks nothing that the run changes, so every process of a run (a supervisor and its workers, a
+    restart) decides alike; anything else (a copy, whose original is still there, a storage elsewhere) is taken as
+    written."""
     here, saved, storage = file.resolve().parent, data.get("log_dir"), data.get("storage")
     url = storage.get("url") if isinstance(storage, dict) else None
     if file.name != "config.yaml" or not isinstance(saved, str) or not isinstance(url, str) or not local_path(url):
         return
-    if not same_storage(url, saved) or storage_key(saved) == str(here):
-        return
-    with contextlib.suppress(OSError):
-        if (here / STORAGE_FILE).read_text().strip() == storage_key(url):
-            data["log_dir"] = storage["url"] = str(here)
+    if same_storage(url, saved) and not os.path.lexists(saved) and (here / STORAGE_FILE).is_file():
+        data["log_dir"] = storage["url"] = str(here)
 
 
 def _count_envs_as_given(config: Config, given: set[str]) -> None:

@@ -432,30 +432,34 @@ def test_a_section_set_whole_by_an_override_merges_a_mapping_and_refuses_anythin
 
 
 def test_a_runs_config_yaml_follows_its_directory_only_where_the_whole_run_moved(tmp_path) -> None:
-    """A local run's config.yaml read where its directory now lies goes on there (tests/train/test_training.py trains
-    it); a file copied alone into another run's directory, a storage elsewhere, or a file read in place is taken as
-    written: nothing but a whole run moved or copied is redirected."""
+    """A local run's config.yaml read where its directory now lies goes on there when the place it names is gone
+    (tests/train/test_training.py trains it, supervised too); a copy whose original is still there, a storage
+    elsewhere, a file that lies in no run's directory, or a file read in place is taken as written."""
     old, new, other = tmp_path / "old", tmp_path / "new", tmp_path / "other"
 
-    def saved_in(directory: Path, storage: str, log_dir: str, names: str) -> Config:
+    def saved_in(directory: Path, storage: str, log_dir: str, run: bool = True) -> Config:
         directory.mkdir(exist_ok=True)
-        (directory / "storage.txt").write_text(names + "\n")
+        (directory / "storage.txt").unlink(missing_ok=True)
+        if run:
+            (directory / "storage.txt").write_text("whatever a claim last wrote\n")
         config = {"env": {"id": "HalfCheetah-v5"}, "storage": {"url": storage}, "log_dir": log_dir}
         (directory / "config.yaml").write_text(yaml.safe_dump(config))
         return load_config(str(directory / "config.yaml"))
 
     for spelt in (str(old), f"file://{old}/", f"{old}/"):  # however the storage was spelt
-        moved = saved_in(new, spelt, str(old), str(old))
+        moved = saved_in(new, spelt, str(old))
         assert moved.storage.url == moved.log_dir == str(new), spelt
-    copied_alone = saved_in(other, str(old), str(old), str(other))  # another run's directory
-    assert copied_alone.storage.url == copied_alone.log_dir == str(old)
-    elsewhere = saved_in(new, str(other), str(old), str(other))  # its storage was not its log directory
+    overridden = load_config(str(new / "config.yaml"), [f"log_dir={other}"])  # the command line wins
+    assert (overridden.storage.url, overridden.log_dir) == (str(new), str(other))
+    no_run = saved_in(other, str(old), str(old), run=False)  # a file alone, in no run's directory
+    assert no_run.storage.url == no_run.log_dir == str(old)
+    elsewhere = saved_in(new, str(other), str(old))  # its storage was not its log directory
     assert (elsewhere.storage.url, elsewhere.log_dir) == (str(other), str(old))
-    in_place = saved_in(old, str(old), str(old), str(old))
+    old.mkdir()
+    copied = saved_in(new, str(old), str(old))  # the original is still there: the file names it
+    assert copied.storage.url == copied.log_dir == str(old)
+    in_place = saved_in(old, str(old), str(old))
     assert in_place.storage.url == in_place.log_dir == str(old)
-    assert saved_in(new, str(old), str(old), str(old)).log_dir == str(new)
-    overridden = load_config(str(new / "config.yaml"), [f"log_dir={old}"])  # the command line wins
-    assert (overridden.storage.url, overridden.log_dir) == (str(new), str(old))
 
 
 @pytest.mark.slow  # trains

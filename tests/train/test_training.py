@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import csv
 import json
-import shutil
 import subprocess
 import sys
 
@@ -66,17 +65,19 @@ def test_a_runs_config_yaml_continues_it_from_any_directory(tmp_path) -> None:
     saved = yaml.safe_load((tmp_path / "run" / "config.yaml").read_text())
     assert saved["storage"]["url"] == saved["log_dir"] == str(tmp_path / "run") and saved["iterations"] == 4
     assert final_manifest(tmp_path / "run")["step"] == 4 and not any(elsewhere.iterdir())
-    # moved whole, then copied: each goes on where it lies (its logs were written back to the old place)
-    moved, copy = tmp_path / "moved", tmp_path / "copy"
+    # moved, then moved again and supervised (whose workers read the file after the supervisor has claimed the new
+    # place): each goes on where it lies, where its logs were written back to the old place
+    moved, again = tmp_path / "moved", tmp_path / "again"
     (tmp_path / "run").rename(moved)
-    for run, iterations in ((moved, 6), (copy, 8)):
-        if run == copy:
-            shutil.copytree(moved, copy, ignore=shutil.ignore_patterns("*.lock"))
-        command = [*train, str(run / "config.yaml"), f"iterations={iterations}", "log.console=false"]
-        done = subprocess.run(command, cwd=elsewhere, env=child_env(), capture_output=True, text=True, timeout=300)
-        assert done.returncode == 0 and f"logs in {run}" in done.stdout, done.stdout + done.stderr
+    for run, iterations, command in ((moved, 6, ["train"]), (again, 8, ["supervise", "--nproc-per-node", "1"])):
+        if run == again:
+            moved.rename(again)
+        words = [sys.executable, "-m", "ftrain", *command, str(run / "config.yaml"), f"iterations={iterations}"]
+        words.append("log.console=false")
+        done = subprocess.run(words, cwd=elsewhere, env=child_env(), capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stdout + done.stderr
         assert final_manifest(run)["step"] == iterations and max(metrics_by_iteration(run)) == iterations
-    assert not (tmp_path / "run").exists() and final_manifest(moved)["step"] == 6  # the copy left it alone
+    assert not (tmp_path / "run").exists() and not moved.exists() and not any(elsewhere.iterdir())
 
 
 @pytest.mark.slow
