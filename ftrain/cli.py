@@ -592,14 +592,15 @@ def _run_config(args: argparse.Namespace) -> Config:
     config = load_config(args.config, args.overrides, args.storage)
     check_env_id(config.env)
     check_storage_place(config.storage.url)
-    if os.path.isdir(storage := local_path(config.storage.url)):  # before a supervisor writes its logs there
+    storage = local_path(config.storage.url)
+    own = bool(storage) and os.path.isdir(os.path.join(storage, CHECKPOINTS))  # steps of its own: it goes on from them
+    if os.path.isdir(storage):  # before a supervisor writes its logs there
         check_not_a_checkpoints_directory(Storage.open(storage))
-        if (checkpoints := Path(storage, CHECKPOINTS)).is_dir():  # else its saves would fail and hold
-            fix = "make it writable (its permissions, its mount), or pass --storage another directory"
-            check_writable(checkpoints, "--storage", fix)
+    if own:  # else its saves would fail and hold
+        fix = "make it writable (its permissions, its mount), or pass --storage another directory"
+        check_writable(Path(storage, CHECKPOINTS), "--storage", fix)
     resume = local_path(config.resume) if config.resume not in ("auto", "never") else ""
-    own = os.path.isdir(os.path.join(storage, CHECKPOINTS))  # steps of its own: it goes on from them, and needs not
-    if resume and storage and not own and not os.path.exists(resume):  # the step it began at (maybe deleted since)
+    if resume and storage and not own and not os.path.exists(resume):  # else it needs the step it began at
         raise UserError(f"resume={config.resume}: {resume} does not exist: pass a run's storage or a step directory")
     return config
 

@@ -431,10 +431,11 @@ def check_compatible(
         if horizon_alone and config.algorithm.schedule_iterations == config.iterations:
             keys += f", which iterations={config.iterations} sets"
         elif _horizon_taken(manifest["config"], config, step if in_place else None):  # named apart, as taken
-            parts = keys.split("; ")
-            horizon = next(part for part in parts if part.startswith(f"{HORIZON} "))
-            keys = "; ".join(part for part in parts if part != horizon)
-            keys += f"; and {horizon}, which follows iterations={config.iterations} and is taken"
+            saved_horizon = manifest["config"]["algorithm"]["schedule_iterations"]
+            others = config.public_dict()
+            others["algorithm"]["schedule_iterations"] = saved_horizon
+            keys = f"{config_change(manifest['config'], others, None, None)}; and {HORIZON} {saved_horizon} -> "
+            keys += f"{config.algorithm.schedule_iterations}, which follows iterations={config.iterations} and is taken"
         raise UserError(
             f"checkpoint step {step} was trained with a different config "
             f"({keys or 'hash ' + manifest['config_hash'] + ', now ' + config.training_hash(robot)}): restore the "

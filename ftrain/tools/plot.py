@@ -156,7 +156,7 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     if output is not None and Path(output).suffix.lstrip(".").lower() not in FigureCanvasBase.get_supported_filetypes():
         raise UserError(f"-o {output}: not a picture file matplotlib writes: end it in .png, .svg or .pdf")
     storage = Storage.open(str(run), options)
-    if not storage.is_local and _read(storage, METRICS) is None:  # a run's storage, not its logs copied there
+    if not storage.is_local and not storage.exists(METRICS):  # a run's storage, not its logs copied there
         run = _logs_here(storage)
         print(f"ftrain plot: the logs of {storage.url} are in {run}", file=sys.stderr)
         storage = Storage.open(run)
