@@ -480,13 +480,10 @@ def _dispatch(args: argparse.Namespace) -> int:
         from ftrain.config import make_local_directories, remove_if_empty
 
         with imports():
-            from ftrain.policy.robot import check_env
-            from ftrain.train.hooks import hook_target
             from ftrain.train.trainer import train
+            from ftrain.train.user_code import check
 
-        check_env(config.env)  # the user's module, id, model, spaces and values: refused here, before any rendezvous
-        for hook in config.hooks:  # and the user's hooks' modules, before the storage is taken
-            hook_target(hook.target)
+        check(config.env, config.hooks)  # refused here, before any rendezvous or the storage is taken
         made = make_local_directories(config)
         try:
             return train(config)
@@ -499,10 +496,10 @@ def _dispatch(args: argparse.Namespace) -> int:
         options = SupervisorOptions(**{f.name: getattr(args, f.name) for f in dataclasses.fields(SupervisorOptions)})
         train_args = [args.config, *(["--storage", args.storage] if args.storage is not None else []), *args.overrides]
         config = _run_config(args)
-        if ":" in config.env.id or config.env.imports or config.env.kwargs:  # checked in a child, before anything
-            from ftrain.policy.env_check import check_in_child
+        from ftrain.supervise.user_check import check_in_child, has_user_code
 
-            check_in_child(config.env)
+        if has_user_code(config.env, config.hooks):  # checked in a child, before anything is taken
+            check_in_child(config.env, config.hooks)
         name_process("supervisor", config.name)
         return supervise(options, config, train_args)
     if args.command == "bench":

@@ -4,6 +4,7 @@ supervisor."""
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -159,7 +160,11 @@ def test_no_import_cycles_and_no_imports_hidden_in_functions() -> None:
 def test_every_package_says_what_lives_there_and_what_it_may_import() -> None:
     for init in PACKAGE.glob("*/__init__.py"):
         doc = ast.get_docstring(ast.parse(init.read_text()))
-        assert doc and "May import" in doc, f"{init.relative_to(REPO)} needs a docstring with 'May import'"
+        assert doc and "May import: " in doc, f"{init.relative_to(REPO)} needs a docstring with 'May import: '"
+        listed = re.sub(r"\([^)]*\)", "", doc.split("May import: ", 1)[1].split(".", 1)[0])  # its first sentence
+        said = {name.strip() for name in listed.replace("\n", " ").split(",")}
+        package = init.parent.name
+        assert said == LAYERS[package], f"{init.relative_to(REPO)} says it may import {sorted(said)}: {LAYERS[package]}"
 
 
 def test_the_supervisor_imports_no_torch_mujoco_or_rsl_rl() -> None:

@@ -2,5 +2,5 @@
 (``collectives.py``), which carries every collective of training through the ranks' shared memory (``shm_allreduce``,
 ``host_first``) where it can and through gloo where it cannot, and says which.
 
-May import: procfs, errors, torch and the standard library only.
+May import: errors, procfs. Besides them, torch and the standard library only.
 """

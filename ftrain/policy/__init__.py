@@ -1,4 +1,4 @@
 """Policies outside the loop: the actor model, loading from any ftrain URL, rollouts, export, play, snapshots.
 
-May import: ckpt, config, errors.
+May import: ckpt, config, errors, progress.
 """

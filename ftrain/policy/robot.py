@@ -272,11 +272,3 @@ def _fingerprint(value: object, depth: int = 0) -> object:
     if depth < 3 and isinstance(value, dict):
         return tuple((str(key), _fingerprint(item, depth + 1)) for key, item in value.items())
     return None
-
-
-if __name__ == "__main__":  # the supervisor's check of an env of the user's own (``ftrain.policy.env_check``)
-    try:
-        check_env(EnvConfig(**json.loads(sys.argv[1])))
-    except UserError as error:
-        print(error, file=sys.stderr)
-        sys.exit(2)

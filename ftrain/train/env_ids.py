@@ -2,7 +2,7 @@
 
 It imports gymnasium but not MuJoCo, torch or the user's module (the supervisor stays free of them), so it checks
 only ids of gymnasium's own. An env of the user's (``module:EnvId``, or an id registered by ``env.imports``) the
-supervisor has made once in a child (``ftrain.policy.env_check``), and each worker makes it again
+supervisor has made once in a child (``ftrain.supervise.user_check``), and each worker makes it again
 (``ftrain.policy.robot``), refusing it in one line with exit code 2, which is what plain torchrun relies on.
 """
 

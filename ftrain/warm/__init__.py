@@ -13,7 +13,7 @@ ftrain train ...``). Promises:
   socket's name held by another process: a line) or closes before it forks, the stand-in runs the command cold;
 - a stand-in talks only to its supervisor's socket (``SO_PEERCRED``), the pool only to processes of its user that
   know the secret of ``POOL_ENV``.
-May import: lifeline, proctitle, process, and by name in the pool (``__main__.py``) the entries it forks: cli, torchrun.
+May import: lifeline, proctitle, process. By name, the pool (``__main__.py``) forks the entries cli and torchrun.
 """
 
 from __future__ import annotations

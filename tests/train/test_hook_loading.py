@@ -68,13 +68,15 @@ def test_a_hook_that_cannot_be_had_is_one_line_naming_it(tmp_path, monkeypatch, 
     assert isinstance(fine, Hook) and fine.every == 3
 
 
-def test_a_hook_that_does_not_import_is_refused_before_the_run_takes_its_storage(tmp_path) -> None:
+@pytest.mark.parametrize("command", ["train", "supervise"])
+def test_a_hook_that_does_not_import_is_refused_before_the_run_takes_its_storage(tmp_path, command) -> None:
     """Refused after the topology line and the storage's lease, it was two lines and left a lease, a lock and
-    storage.txt in a storage that held nothing: now one line, and no storage made."""
+    storage.txt in a storage that held nothing; under ``supervise``, the workers were launched to find it. Now one
+    line, and no storage made: ``train`` imports the hooks' modules itself, ``supervise`` in a child."""
     storage = tmp_path / "run"
     hooks = 'hooks=[{target: "userhooks_absent:Fine"}]'
-    command = [sys.executable, "-m", "ftrain", "train", SMOKE, "--storage", str(storage), hooks]
-    result = subprocess.run(command, cwd=tmp_path, env=child_env(), capture_output=True, text=True, timeout=120)
+    argv = [sys.executable, "-m", "ftrain", command, SMOKE, "--storage", str(storage), hooks]
+    result = subprocess.run(argv, cwd=tmp_path, env=child_env(), capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and result.stdout == "", result.stdout
     assert result.stderr == (
         "ftrain: error: hook target 'userhooks_absent:Fine' cannot be imported (No module named 'userhooks_absent'): "

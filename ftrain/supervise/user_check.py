@@ -1,0 +1,37 @@
+"""The supervisor's check of the user's code before it launches or creates anything: ``python -m
+ftrain.train.user_code`` in a child (the env made once, the hooks' modules imported), so that the supervisor stays
+free of torch, MuJoCo and the user's modules, whose import may do anything. Asked only where there is user code
+(``has_user_code``): gymnasium's own envs with their default arguments are checked by id. A refusal is the child's one
+line as a UserError; anything else (a crash, a hang past ``TIMEOUT``) is left to the workers, which check again.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import subprocess
+import sys
+
+from ftrain.config import EnvConfig, HookConfig
+from ftrain.errors import UserError
+
+TIMEOUT = 120.0
+"""Seconds the child may take; past them (a module that hangs on import) the workers meet the code as before, as they
+do values that JSON cannot carry to the child (YAML dates in ``env.kwargs``, say)."""
+
+
+def has_user_code(env: EnvConfig, hooks: list[HookConfig]) -> bool:
+    """Whether the run runs code beyond gymnasium's own envs with their default arguments."""
+    return ":" in env.id or bool(env.imports or env.kwargs or hooks)
+
+
+def check_in_child(env: EnvConfig, hooks: list[HookConfig]) -> None:
+    """UserError with the child's line if ``env`` cannot be trained or a hook's module does not import."""
+    try:
+        config = {"env": dataclasses.asdict(env), "hooks": [dataclasses.asdict(hook) for hook in hooks]}
+        command = [sys.executable, "-m", "ftrain.train.user_code", json.dumps(config)]
+        done = subprocess.run(command, capture_output=True, text=True, timeout=TIMEOUT)
+    except (TypeError, subprocess.TimeoutExpired):  # values that JSON cannot carry, or a module that hangs
+        return
+    if done.returncode == 2 and done.stderr.strip():
+        raise UserError(done.stderr.strip().splitlines()[-1])
