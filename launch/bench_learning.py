@@ -20,6 +20,9 @@ with stable-baselines3 PPO (the RL Zoo's tuned hyperparameters) side by side on 
   evaluation reaches the target, or for ``--sb3-steps`` steps; its time to 1M steps is scaled from that run.
 - ``--reuse results.json ...`` takes ftrain's runs from earlier runs of this benchmark (to report again, to pool
   the seeds of several runs, or to measure SB3 only).
+- Each run records its arithmetic (the CPU and libraries its ranks computed on, from its final manifest: a seed trains
+  other bits on another, so its return is another draw); where the runs reported span more than one, each one's
+  seeds are reported apart too.
 
 Targets: 5,000 on HalfCheetah, the RL Zoo's return after 1M steps on the others. Writes ``results.json`` with every
 curve, every seed's figures, the machine's load average around each run and its speed (``machine_speed.py``).
@@ -89,6 +92,9 @@ class Run:
     seed: int = 0
     ranks: int = RANKS
     """ftrain's ranks (runs from before ``--ranks`` ran at 2)."""
+    arithmetic: str = ""
+    """What its ranks computed on, as its final manifest records it (``ftrain.ckpt.arithmetic``); "" for a run of
+    an older benchmark, which did not record it."""
 
     @classmethod
     def from_json(cls, run: dict) -> Run:
@@ -177,10 +183,11 @@ def run_ftrain(
     run.curve = [tuple(json.loads(line)) for line in curve.read_text().splitlines()] if curve.exists() else []
     run.eval_seconds = run.curve[-1][3] if run.curve else 0.0
     run.seconds = wall - run.eval_seconds
-    if not reached:
-        from ftrain.policy.load import load_policy  # torch: not before the arguments are checked
+    from ftrain.policy.load import load_policy  # torch: not before the arguments are checked
 
-        policy = load_policy(str(storage))
+    policy = load_policy(str(storage))
+    run.arithmetic = " | ".join(policy.manifest["arithmetic"])  # one line per arithmetic the ranks had: mostly one
+    if not reached:
         run.episodes = evaluate(policy.act, policy.config.env, policy.config.eval.seed)
         run.final_return = statistics.fmean(run.episodes)
     return run
@@ -353,6 +360,19 @@ class Seeds:
         return verdict
 
 
+def by_arithmetic(env_id: str, runs: list[Run]) -> list[str]:
+    """Where ``runs`` computed on more than one arithmetic, each one's seeds and verdict, apart (none where one)."""
+    kinds = sorted({run.arithmetic for run in runs})
+    if len(kinds) < 2:
+        return []
+    lines = []
+    for kind in kinds:
+        own = [run for run in runs if run.arithmetic == kind]
+        seeds = ", ".join(str(run.seed) for run in own)
+        lines.append(f"on {kind or 'an arithmetic not recorded'} (seeds {seeds}): {Seeds.of(env_id, own).verdict()}")
+    return lines
+
+
 def or_inf(value: float) -> float:
     """A time or step count never reached (NaN) as infinite: the worst of any."""
     return value if math.isfinite(value) else math.inf
@@ -514,6 +534,7 @@ def main() -> None:
         results[env_id]["seeds"] = asdict(seeds) | counts
         tables.append(f"{env_id}, {len(runs)} seeds, {runs[0].steps:,} steps each:\n{seed_table(env_id, runs)}")
         tables[-1] += f"\n{env_id}: {seeds.verdict()}"
+        tables[-1] += "".join(f"\n{env_id} {line}" for line in by_arithmetic(env_id, runs))
         rows += [against_sb3(env_id, runs, sb3)] if sb3 else []
     settings = json.loads(json.dumps(vars(args), default=str))  # paths as strings
     summary = {"args": settings, "machine_speed_cpu_s": speed, "results": results}

@@ -89,6 +89,7 @@ def test_reused_runs_pool_the_seeds_of_several_files_into_one_report(tmp_path: P
     pooled = report["results"]["HalfCheetah-v5"]["ftrain"]
     assert [(r["seed"], r["final_return"], r["ranks"]) for r in pooled] == [(1, 6_001, 1), (2, 6_002, 2), (3, 6_003, 1)]
     assert report["args"]["reuse"] == [str(first), str(second)] and (out / "halfcheetah.png").stat().st_size > 0
+    assert " on " not in done.stdout  # one arithmetic (none recorded): no report apart
     with pytest.raises(SystemExit, match=r"seeds \[2\] of HalfCheetah-v5 are in more than one"):
         reused(
             "HalfCheetah-v5", {path: json.loads(path.read_text()) for path in (first, second, results("c.json", 2, 4))}
@@ -108,3 +109,26 @@ def test_bad_arguments_are_refused_in_one_line_before_anything_runs(
     assert done.returncode == 2
     assert message in done.stderr and "Traceback" not in done.stderr
     assert list(tmp_path.iterdir()) == []  # refused before any run or smoke test
+
+
+def test_seeds_of_several_arithmetics_are_also_reported_apart(tmp_path: Path) -> None:
+    """A seed trains other bits on another CPU type: pooled runs of two are one report, and one per arithmetic."""
+    amd, intel = "AMD EPYC, AVX512 kernels; torch 2.13.0+cpu", "Intel(R) Xeon(R), AVX512 kernels; torch 2.13.0+cpu"
+    finals = {1: (amd, 6_500.0), 2: (intel, 5_500.0), 3: (amd, 6_100.0), 4: (intel, 5_900.0), 5: ("", 4_800.0)}
+    runs = [run(seed, final, [final]) for seed, (_, final) in finals.items()]
+    for entry, (kind, _) in zip(runs, finals.values(), strict=True):
+        entry.arithmetic = kind
+    path = tmp_path / "pooled.json"
+    path.write_text(
+        json.dumps({"machine_speed_cpu_s": 2.5, "results": {"HalfCheetah-v5": {"ftrain": [asdict(r) for r in runs]}}})
+    )
+    done = bench("--envs", "halfcheetah", "--reuse", str(path), "--out", str(tmp_path / "out"))
+    assert done.returncode == 0, done.stderr
+    assert "HalfCheetah-v5: 4/5 seeds reached 5,000; 3/5 ended at or above" in done.stdout
+    apart = [line for line in done.stdout.splitlines() if line.startswith("HalfCheetah-v5 on ")]
+    assert apart == [
+        "HalfCheetah-v5 on an arithmetic not recorded (seeds 5): " + Seeds.of("HalfCheetah-v5", runs[4:]).verdict(),
+        f"HalfCheetah-v5 on {amd} (seeds 1, 3): " + Seeds.of("HalfCheetah-v5", runs[0:3:2]).verdict(),
+        f"HalfCheetah-v5 on {intel} (seeds 2, 4): " + Seeds.of("HalfCheetah-v5", runs[1:4:2]).verdict(),
+    ]
+    assert "2/2 ended at or above the RL Zoo's 5,819" in apart[1] and "1/2 ended at or above" in apart[2]
