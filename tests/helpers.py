@@ -402,18 +402,34 @@ class S3Outage:
 
 class S3Proxy:
     """A real HTTP proxy on 127.0.0.1 in front of an S3 server, for the faults of S3-compatible servers and networks:
-    ``ignored`` request headers are dropped (a server that ignores If-Match, say), and a request that ``lose``
-    (method, path) selects is done by the server but its answer is lost (the connection is reset)."""
+    ``ignored`` request headers are dropped (a server that ignores If-Match, say), a request that ``lose``
+    (method, path) selects is done by the server but its answer is lost (the connection is reset), and while
+    ``stalling`` is set, a PUT is taken and never answered, not even its ``Expect: 100-continue`` (a server paused in
+    the middle of an upload), until ``stalling`` is cleared (then its connection closes)."""
 
     def __init__(self, upstream: str, ignored: tuple[str, ...] = (), lose=lambda method, path: False) -> None:
         target, dropped = urlsplit(upstream), {name.lower() for name in ignored}
+        self.stalling, self._served = threading.Event(), threading.Event()
+        proxy = self
 
         class Forward(http.server.BaseHTTPRequestHandler):
             protocol_version = "HTTP/1.1"
 
+            def handle_expect_100(self) -> bool:
+                return not self._stalled() and super().handle_expect_100()
+
+            def _stalled(self) -> bool:
+                """Hold a PUT while the proxy stalls; True if it did (the request then goes unanswered)."""
+                if self.command != "PUT" or not proxy.stalling.is_set():
+                    return False
+                while proxy.stalling.is_set() and not proxy._served.is_set():
+                    time.sleep(0.05)
+                self.close_connection = True
+                return True
+
             def handle_one_request(self) -> None:
                 self.raw_requestline = self.rfile.readline(65537)
-                if not self.raw_requestline or not self.parse_request():
+                if not self.raw_requestline or not self.parse_request() or self._stalled():
                     self.close_connection = True
                     return
                 body = self._body()
@@ -455,6 +471,7 @@ class S3Proxy:
         threading.Thread(target=self.server.serve_forever, daemon=True).start()
 
     def close(self) -> None:
+        self._served.set()
         self.server.shutdown()
         self.server.server_close()
 

@@ -2,11 +2,13 @@
 a storage is opened: listings read afresh (another node may have written since), a silent server given up on within
 seconds, and the client's own retries off, so that ``Storage``'s retry loop is the only one.
 
-May import: fsspec, ``ftrain.redact``, the standard library.
+May import: fsspec, ``ftrain.redact``, the standard library; S3's client (aiobotocore) once a storage names S3.
 """
 
 from __future__ import annotations
 
+import asyncio
+import functools
 import logging
 import types
 from urllib.parse import unquote, urlsplit
@@ -19,6 +21,9 @@ S3_TIMEOUTS = {"connect_timeout": 5, "read_timeout": 15}
 """botocore's defaults are 60 s each (the Azure SDK's 300 s; Azure storages get the same as S3's): a paused server
 would hold one request for minutes, longer than the ranks' collectives wait for each other. Large objects go up in
 parts, each its own request."""
+SLOWEST_UPLOAD = 256 * 1024
+"""Bytes per second an S3 request's body must at least go up at: a request gets the connect and read timeouts plus
+its body's size at this rate, whole, before it is given up (``_deadline_session``)."""
 S3_PROTOCOLS = frozenset({"s3", "s3a"})
 """s3fs's protocols. Its class is imported (by fsspec) only for a storage that names one: importing s3fs takes a
 second, in every ``ftrain ckpt`` command and every worker of a run on a local directory."""
@@ -70,8 +75,31 @@ def _s3_options(url: str, options: dict) -> str:
     options.setdefault("skip_instance_cache", True)
     config = {**S3_TIMEOUTS, **(options.get("config_kwargs") or {})}
     config.setdefault("retries", {"total_max_attempts": 1})
+    config.setdefault("http_session_cls", _deadline_session())
     options["config_kwargs"] = config
     return url
+
+
+@functools.cache
+def _deadline_session() -> type:
+    """aiobotocore's HTTP session with a deadline on each request as a whole. aiohttp's read timeout starts only once
+    the request's body is sent, so a server that takes the connection and never answers (paused, or stalled on its
+    disk) held a PUT for as long as it stayed so, waiting for ``100 Continue`` or for the socket to drain, and with it
+    the saves and the training behind them; past its deadline the request ends as a read timeout does, which
+    ``Storage`` retries and then waits out as an outage."""
+    from aiobotocore.httpsession import AIOHTTPSession
+    from botocore.exceptions import ReadTimeoutError
+
+    class DeadlineSession(AIOHTTPSession):
+        async def send(self, request):  # aiobotocore's own signature
+            size = int(request.headers.get("Content-Length") or 0)
+            seconds = (self._timeout.sock_connect or 0) + (self._timeout.sock_read or 0) + size / SLOWEST_UPLOAD
+            try:
+                return await asyncio.wait_for(super().send(request), seconds)
+            except TimeoutError:  # aiohttp's own timeouts come out of ``send`` as botocore's errors: this is ours
+                raise ReadTimeoutError(endpoint_url=request.url, error=f"no answer in {seconds:.0f} s") from None
+
+    return DeadlineSession
 
 
 def _azure_options(options: dict) -> None:

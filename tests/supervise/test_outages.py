@@ -18,6 +18,7 @@ import signal
 import subprocess
 import sys
 import time
+import types
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -35,6 +36,7 @@ from helpers import (
     SMOKE,
     TESTS,
     Hold,
+    S3Proxy,
     child_env,
     events,
     finish,
@@ -142,6 +144,35 @@ def test_a_hanging_storage_with_a_worker_killed_inside_the_outage_is_waited_out_
     s3_outage.server.unhang()
     names = [event["event"] for event in assert_finished(proc, s3_outage, logs, reference)]
     assert "storage_wait" in names and "storage_back" in names
+
+
+@pytest.mark.waits
+def test_an_upload_that_is_never_answered_is_given_up_and_training_goes_on_through_it(
+    tmp_path, s3_server, s3_url, reference
+):
+    """A server that takes an upload and never answers (one paused in the middle of a save) held the PUT for as long
+    as it stayed so: aiohttp's read timeout starts only once a request's body is sent, and the body waited for ``100
+    Continue``. The saves in flight stopped, then the training behind them, with no line and a heartbeat that kept
+    beating. Each S3 request has a deadline now: the saves fail, training goes on (to the spool) while every PUT
+    stalls, and the run ends on the uninterrupted bits."""
+    url, options = s3_url
+    proxy = S3Proxy(s3_server["endpoint_url"])
+    try:
+        logs = tmp_path / "logs"
+        env = {"AWS_ENDPOINT_URL": proxy.endpoint_url, "AWS_ACCESS_KEY_ID": options["key"]}
+        env |= {"AWS_SECRET_ACCESS_KEY": options["secret"], "AWS_DEFAULT_REGION": s3_server["region"]}
+        proc = start(url, logs, env, ["checkpoint.max_unsaved=1000"])  # no hold: training goes on
+        training(logs / "heartbeat", 20)
+        proxy.stalling.set()
+        try:
+            stalled_at = max(beat.iteration for beat in read_heartbeats(logs / "heartbeat").values())
+            wait_for(lambda: "not committed" in Path(f"{logs}.log").read_text(), "a failed save", timeout=60)
+            training(logs / "heartbeat", stalled_at + 40, ranks=(0,))  # while every PUT still stalls
+        finally:
+            proxy.stalling.clear()
+        assert_finished(proc, types.SimpleNamespace(url=url, options=options), logs, reference)
+    finally:
+        proxy.close()
 
 
 MOUNT_OUTAGE = 9.0
