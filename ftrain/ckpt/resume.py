@@ -301,8 +301,12 @@ def _decide(
         check_compatible(config, step, manifest, world_size, robot, in_place=False)
         if reachable:
             clear_newer(storage, step, log)
-        committed = found[0] if found else manifest[SPOOL_FIELD]["base"]
+        committed = found[0] if found else None if reachable else manifest[SPOOL_FIELD]["base"]
         newest = f"the storage's newest is step {committed}" if reachable else f"{storage.url} does not answer"
+        if reachable and found is None:  # emptied since, or never committed to
+            held = manifest[SPOOL_FIELD]["base"]
+            newest = "the storage holds no step"
+            newest += f" (it held step {held}; resume=never starts afresh)" if held is not None else ""
         where = f"the spool {spool.storage.url}: {newest}"
         return _resume(step, manifest, url=None, where=where, committed=committed, spooled=True)
     if down is not None:

@@ -44,8 +44,15 @@ def test_a_spooled_step_that_does_not_continue_the_storage_is_not_resumed_from(t
     lines = []
     spool = spool_with(tmp_path, monkeypatch, {20: ("x", 10), 30: ("c", 10)})
     assert spool.newest(remote_step(tmp_path, 20, "b"), True, lines.append) is None  # another history's step 20
-    assert spool.newest(None, True, lines.append) is None  # the storage was emptied since
-    assert all("not in its history" in line for line in lines) and len(lines) == 2
+    assert lines == [
+        f"not resuming from spooled step 30 ({spool.storage.url}): the storage's newest step 20 is not in its history"
+    ]
+
+
+def test_a_storage_that_holds_no_step_any_more_goes_on_from_the_spool(tmp_path, monkeypatch):
+    """Emptied since the spool's steps were written on its step 10: no history contradicts them, and they are the
+    only copy of what was trained."""
+    assert spool_with(tmp_path, monkeypatch, {20: ("b", 10), 30: ("c", 20)}).newest(None, True, print)[0] == 30
 
 
 def test_the_storage_newer_than_the_spool_wins(tmp_path, monkeypatch):
