@@ -27,7 +27,7 @@ import yaml
 
 from ftrain.errors import UserError, did_you_mean
 from ftrain.log_dir_lock import STORAGE_FILE
-from ftrain.redact import Url, display_url, display_urls, redact_options
+from ftrain.redact import Url, display_url, display_urls, redact_options, without_hidden
 from ftrain.values import build, dotted, parse_amount, parse_value, set_dotted, storage_option_overrides
 
 POLICY_FORMATS = ("torchscript", "onnx")
@@ -143,6 +143,9 @@ class StorageConfig:
     """fsspec storage options (for s3: ``endpoint_url``, ``key``, ``secret``...)."""
     plain_writes: bool = False
     """Accept a storage without conditional writes (not local, not an S3 that honours them; see ``ckpt/cas.py``)."""
+
+    def __post_init__(self) -> None:
+        self.options = without_hidden(self.options)  # a saved config's hidden credentials are none
 
 
 class Switched:

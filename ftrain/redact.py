@@ -100,6 +100,17 @@ def redact_options(options: dict) -> dict:
     }
 
 
+def without_hidden(options: dict) -> dict:
+    """A copy of fsspec ``options`` without the values ``redact_options`` hid, at any depth: a config saved with them
+    (``<log_dir>/config.yaml``, a manifest's) read back takes its credentials from where they came, the environment or
+    ``--storage-option``, instead of sending ``***`` as one."""
+    return {
+        name: without_hidden(value) if isinstance(value, dict) else value
+        for name, value in options.items()
+        if not (name in SECRET_OPTIONS and value == HIDDEN)
+    }
+
+
 def _redact(value: object) -> object:
     if isinstance(value, dict):
         return redact_options(value)

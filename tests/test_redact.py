@@ -140,3 +140,18 @@ def test_a_gcs_token_given_as_credentials_loses_its_keys() -> None:
     assert shown["project"] == "p" and shown["token"]["client_email"] == "ci@p.iam"
     assert "-----PEM-----" not in str(shown) and "ID9" not in str(shown) and "RT" not in str(shown)
     assert {"-----PEM-----", "ID9", "RT"} <= set(secret_values(options))
+
+
+def test_a_saved_config_read_back_takes_no_hidden_value_for_a_credential(tmp_path) -> None:
+    """``<log_dir>/config.yaml`` holds ``key: '***'``: read back (to go on with the run from anywhere), ``***`` was
+    sent to S3 as the key, overriding the environment's own and refused as access denied. A hidden value is no value:
+    the credentials come from the environment or ``--storage-option`` again; everything else is kept."""
+    options = {"endpoint_url": "http://127.0.0.1:9000", "key": "KEY", "secret": "SECRET", "config_kwargs": {}}
+    options["token"] = {"client_secret": "S", "client_id": "id"}  # a gcsfs token given as credentials, key by key
+    saved = tmp_path / "config.yaml"
+    saved.write_text(yaml.safe_dump({"storage": {"url": "s3://bucket/run", "options": redact_options(options)}}))
+    assert HIDDEN in saved.read_text()
+    read = load_config(str(saved)).storage.options
+    assert read == {"endpoint_url": "http://127.0.0.1:9000", "config_kwargs": {}, "token": {"client_id": "id"}}
+    given = load_config(str(saved), ["storage.options.key=K2"]).storage.options
+    assert given["key"] == "K2" and "secret" not in given
