@@ -23,12 +23,15 @@ class RestartPolicy:
         self._no_progress = 0
 
     def judge(self, attempt: Attempt) -> Outcome | float:
-        """After ``attempt`` failed: the ending of the run, or the seconds to back off before the restart it counts."""
-        new_commit = attempt.committed is not None and (
-            self.best_committed is None or attempt.committed > self.best_committed
-        )
-        if attempt.committed is not None:
-            self.best_committed = max(attempt.committed, self.best_committed or 0)
+        """After ``attempt`` failed: the ending of the run, or the seconds to back off before the restart it counts.
+        A step it resumed from that is newer than any known was committed by the attempt before, whose heartbeats
+        missed it (a save that landed as it crashed): that attempt is no longer counted in the crash loop. The step it
+        resumed from is no new commit of its own."""
+        if self._newer(attempt.resumed):
+            self._no_commit, self.best_committed = 0, attempt.resumed
+        new_commit = self._newer(attempt.committed)
+        if new_commit:
+            self.best_committed = attempt.committed
         self._no_commit = 0 if new_commit or self.restarts == 0 else self._no_commit + 1
         self._no_progress = 0 if attempt.progressed else self._no_progress + 1
         if self.restarts >= self.options.max_restarts:
@@ -44,3 +47,6 @@ class RestartPolicy:
         if not self._no_progress:
             return 0.0
         return min(self.options.backoff_max, self.options.backoff_initial * 2 ** (self._no_progress - 1))
+
+    def _newer(self, step: int | None) -> bool:
+        return step is not None and (self.best_committed is None or step > self.best_committed)
