@@ -179,6 +179,29 @@ def decode(data: bytes, name: str = "checkpoint data") -> dict:
     return state
 
 
+def unloadable_part(state: dict) -> str | None:
+    """Where in ``state``, which does not load as plain data (``decode``), the first part that does not load on its
+    own lies, as a path and a type (``ftrain/hooks/mod.Hook#0/obj, a object``): a refused file names the hook or
+    metric that holds it. Found by saving and loading the parts, as ``decode`` would; None if every part loads."""
+    path, node = [], state
+    while isinstance(node, (dict, list, tuple)):
+        parts = node.items() if isinstance(node, dict) else enumerate(node)
+        found = next(((key, part) for key, part in parts if not _loads(part)), None)
+        if found is None:
+            break
+        path.append(str(found[0]))
+        node = found[1]
+    return f"{'/'.join(path)}, a {type(node).__name__}" if path else None
+
+
+def _loads(part: object) -> bool:
+    try:
+        decode(encode({"part": part}))
+    except CorruptCheckpoint:
+        return False
+    return True
+
+
 def learned_state(common: dict) -> dict:
     """What training has learned, in ``common.pt``: rsl-rl's model and optimizer state dicts (the observation
     normalizers and the learning rate are inside them)."""

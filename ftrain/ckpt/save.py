@@ -39,6 +39,7 @@ from ftrain.ckpt.format import (
     encode,
     learned_state,
     state_digest,
+    unloadable_part,
     verify_step,
     write_file,
 )
@@ -208,7 +209,11 @@ class StepWriter:
         encoded = {name: encode(state) for name, state in files.items()}
         if check_loadable:
             for name, data in encoded.items():
-                decode(data, name)
+                try:
+                    decode(data, name)
+                except CorruptCheckpoint as exc:
+                    part = unloadable_part(files[name])
+                    raise CorruptCheckpoint(f"{exc} (in {part})" if part else str(exc)) from None
         fields = {}
         if COMMON in files:
             common = files[COMMON]
