@@ -296,10 +296,13 @@ class Checkpointer:
         self._failing = Failing(now if first else self._failing.since, now, count, detail)
         if self._failure_lines.due(always=first):
             iterations, seconds = self.schedule.unsaved(step, now)
+            bound = self.config.checkpoint.max_unsaved
+            then = f"training goes on and retries; it holds past checkpoint.max_unsaved={bound}"
+            if step >= self.config.iterations:  # nothing left to train on: only the retries
+                then = "training is done, and the run retries this last step until it commits"
             self.log(
                 f"checkpoint step {step} not committed, earlier steps intact ({detail}); {iterations} iterations "
-                f"({seconds:.0f} s) unsaved, training goes on and retries; it holds past checkpoint.max_unsaved="
-                f"{self.config.checkpoint.max_unsaved}",
+                f"({seconds:.0f} s) unsaved, {then}",
                 every_rank=True,
             )
 

@@ -373,8 +373,14 @@ def test_a_file_where_the_last_step_goes_is_named_while_training_holds_and_once_
     proc = launch(command, env=child_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     told = f"{stray} is a file where ftrain needs a directory: move it out of the storage"
     try:
-        held = next(line for line in proc.stdout if "training held at step 8" in line)
-        assert told in held, held
+        seen = []
+        for line in proc.stdout:
+            seen.append(line)
+            if "training held at step 8" in line:
+                break
+        assert told in seen[-1], seen
+        failed = [line for line in seen if "checkpoint step 8 not committed" in line]
+        assert failed and all("training is done, and the run retries this last step" in line for line in failed), seen
         stray.rename(tmp_path / "notes.txt")
         rest = proc.communicate(timeout=120)[0]
     finally:
