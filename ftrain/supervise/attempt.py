@@ -208,6 +208,9 @@ class Attempt:
         self.completed = 0
         self.committed: int | None = None
         self.resumed: int | None = None
+        self.starts: list[int | None] = []
+        """The step each of its worker groups resumed from, in order: the first is where the attempt started (a
+        regroup inside it resumes from its own commits)."""
         self.progressed = False
         self.seen = False
         self.world: int | None = None

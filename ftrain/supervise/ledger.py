@@ -63,6 +63,8 @@ class Ledger:
             attempt.completed = max(attempt.completed, beat.iteration, beat.committed_step or 0)
             if beat.committed_step is not None:
                 attempt.committed = max(beat.committed_step, attempt.committed or 0)
+            if beat.resumed_step is not None and not attempt.starts:  # restored, not yet past its start
+                attempt.starts.append(beat.resumed_step)
                 self.committed = max(self.committed, beat.committed_step)
         if self.paused is None and any(beat.phase == Phase.PREEMPTED for beat in beats.values()):
             self.paused = Failure(now, attempt.completed)  # saved on request: torchrun regroups, or the attempt ends
@@ -83,6 +85,7 @@ class Ledger:
             attempt.seen = True
             first = min(past_start, key=lambda beat: beat.rank)
             attempt.resumed = first.resumed_step
+            attempt.starts.append(attempt.resumed)
             change = {"config_change": first.config_change} if first.config_change else {}
             self.events("resumed", attempt=attempt.plan.attempt, step=attempt.resumed, **change)
         base = attempt.resumed or 0

@@ -21,19 +21,24 @@ class RestartPolicy:
         """The newest step any attempt of this run committed or resumed from."""
         self._no_commit = 0
         self._no_progress = 0
+        self._unstarted = 0
+        """Restarts since the newest attempt that started from a step (or since the first attempt)."""
 
     def judge(self, attempt: Attempt) -> Outcome | float:
         """After ``attempt`` failed: the ending of the run, or the seconds to back off before the restart it counts.
-        A step it resumed from that is newer than any known was committed by the attempt before, whose heartbeats
-        missed it (a save that landed as it crashed): that attempt is no longer counted in the crash loop. The step it
-        resumed from is no new commit of its own."""
-        if self._newer(attempt.resumed):
-            self._no_commit, self.best_committed = 0, attempt.resumed
+        A step it started from that is newer than any known was committed by the newest attempt before it that
+        started (one that crashed before it restored a step commits nothing), whose heartbeats missed it (a save that
+        landed as it crashed): the loop counts from that attempt on. The step it started from is no new commit of its
+        own; a step a regroup inside it resumed from was its own commit."""
+        started = attempt.starts[0] if attempt.starts else None
+        if self._newer(started):
+            self._no_commit, self.best_committed = self._unstarted, started
         new_commit = self._newer(attempt.committed)
         if new_commit:
             self.best_committed = attempt.committed
         self._no_commit = 0 if new_commit or self.restarts == 0 else self._no_commit + 1
         self._no_progress = 0 if attempt.progressed else self._no_progress + 1
+        self._unstarted = 0 if attempt.starts or self.restarts == 0 else self._unstarted + 1
         if self.restarts >= self.options.max_restarts:
             return Outcome("max_restarts", EXIT_MAX_RESTARTS, f"giving up after {self.restarts} restarts")
         if self.options.crash_loop and self._no_commit >= self.options.crash_loop:

@@ -17,7 +17,7 @@ RUNS = 400
 class Ended:
     """What the supervisor knows of a failed attempt when it judges it (``supervise.attempt.Attempt``'s fields)."""
 
-    resumed: int | None
+    starts: list[int | None]
     committed: int | None
     progressed: bool = True
 
@@ -29,20 +29,29 @@ def test_a_crash_loop_stops_after_its_count_of_restarts_that_committed_nothing_n
         loop = rng.randint(1, 4)
         policy = RestartPolicy(SupervisorOptions(crash_loop=loop, max_restarts=1000))
         newest = rng.choice([None, 4])  # the storage's newest step: the run goes on from an earlier one, or not
-        streak = 0  # restarts in a row whose attempt committed nothing (as far as its own heartbeats told)
+        streak = 0  # restarts in a row whose attempt committed nothing, as far as the supervisor can know
+        since = 0  # restarts since the newest attempt that committed, told of or not
+        unseen = False  # a commit no heartbeat told of: the next attempt that is seen to start shows it
         for index in range(200):
-            resumed, made = newest, rng.random() < 0.3
+            resumed, unstarted = newest, rng.random() < 0.1  # unstarted: it crashed before it restored any step
+            made = not unstarted and rng.random() < 0.3
             newest = (newest or 0) + 4 if made else newest
-            told = made and rng.random() < 0.5  # else the save landed as the attempt crashed: its beats missed it
+            regrouped = made and rng.random() < 0.3  # torchrun regrouped its workers after the commit: they resume it
+            told = regrouped or (made and rng.random() < 0.5)  # else the save landed as the attempt crashed
+            starts = [] if unstarted else [resumed, newest] if regrouped else [resumed]
+            if starts and unseen:
+                streak, unseen = since, False
             streak = 0 if index == 0 or told else streak + 1
-            judged = policy.judge(Ended(resumed, newest if told else rng.choice([resumed, None])))
+            since = 0 if index == 0 or made else since + 1
+            judged = policy.judge(Ended(starts, newest if told else None if unstarted else rng.choice([resumed, None])))
+            where = f"seed {seed}, crash loop {loop}, attempt {index}, streak {streak}"
             if streak >= loop:
-                where = f"seed {seed}, crash loop {loop}, attempt {index}"
                 assert isinstance(judged, Outcome) and judged.code == EXIT_CRASH_LOOP, where
                 assert f"crash loop: {loop} restarts in a row" in judged.message, where
                 assert policy.restarts == index, where  # attempts 1..index were its restarts
                 break
-            assert not isinstance(judged, Outcome), f"seed {seed}: stopped at attempt {index}, streak {streak}"
-            if made and not told:
-                streak = 0  # the next attempt resumes from the step it made: the policy learns of it there
-    print(f"{RUNS} generated runs of the crash-loop policy (seed {seed})")
+            assert not isinstance(judged, Outcome), where
+            unseen = unseen or (made and not told)
+    print(
+        f"{RUNS} generated runs of the crash-loop policy, with unseen commits, unseen starts and regroups (seed {seed})"
+    )
