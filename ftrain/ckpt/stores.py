@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import io
 import logging
 import types
 from urllib.parse import unquote, urlsplit
@@ -23,7 +24,11 @@ would hold one request for minutes, longer than the ranks' collectives wait for 
 parts, each its own request."""
 SLOWEST_UPLOAD = 256 * 1024
 """Bytes per second an S3 request's body must at least go up at: a request gets the connect and read timeouts plus
-its body's size at this rate, whole, before it is given up (``_deadline_session``)."""
+its body's size at this rate, whole, before it is given up (``_deadline_session``). Per request: the parts of a large
+object that go up side by side (s3fs sends up to 10) each need it."""
+SENT_AT_ONCE = 64 * 1024
+"""A body this small goes into the socket's buffer at once, so that aiohttp's read timeout starts with the request,
+unless it first waits for ``100 Continue``."""
 S3_PROTOCOLS = frozenset({"s3", "s3a"})
 """s3fs's protocols. Its class is imported (by fsspec) only for a storage that names one: importing s3fs takes a
 second, in every ``ftrain ckpt`` command and every worker of a run on a local directory."""
@@ -92,7 +97,9 @@ def _deadline_session() -> type:
 
     class DeadlineSession(AIOHTTPSession):
         async def send(self, request):  # aiobotocore's own signature
-            size = int(request.headers.get("Content-Length") or 0)
+            size = _body_size(request)
+            if size < SENT_AT_ONCE and "Expect" not in request.headers:  # read timeouts cover it from the start
+                return await super().send(request)  # (a CompleteMultipartUpload may answer slowly for minutes)
             seconds = (self._timeout.sock_connect or 0) + (self._timeout.sock_read or 0) + size / SLOWEST_UPLOAD
             try:
                 return await asyncio.wait_for(super().send(request), seconds)
@@ -100,6 +107,24 @@ def _deadline_session() -> type:
                 raise ReadTimeoutError(endpoint_url=request.url, error=f"no answer in {seconds:.0f} s") from None
 
     return DeadlineSession
+
+
+def _body_size(request: object) -> int:
+    """Bytes of an S3 request's body: its ``Content-Length``, or over HTTPS, where botocore sends uploads as
+    ``aws-chunked`` without one, the size it declares in ``X-Amz-Decoded-Content-Length``, else the body's own."""
+    headers = request.headers
+    declared = headers.get("Content-Length") or headers.get("X-Amz-Decoded-Content-Length")
+    if declared:
+        return int(declared)
+    body = request.body
+    if isinstance(body, (bytes, bytearray, memoryview)):
+        return len(body)
+    if hasattr(body, "seek") and hasattr(body, "tell"):
+        here = body.tell()
+        size = body.seek(0, io.SEEK_END) - here
+        body.seek(here)
+        return size
+    return 0
 
 
 def _azure_options(options: dict) -> None:
