@@ -295,37 +295,45 @@ def _decide(
             raise
         down = error
     reachable = down is None
+    if reachable and found is None:
+        _refuse_corrupt(storage)  # before the spool: a storage with steps that do not verify is the user's to look at
     spooled = _spooled(spool, found, reachable, log) if spool is not None else None
     if spooled is not None:
         step, manifest = spooled
         check_compatible(config, step, manifest, world_size, robot, in_place=False)
         if reachable:
             clear_newer(storage, step, log)
-        committed = found[0] if found else None if reachable else manifest[SPOOL_FIELD]["base"]
-        newest = f"the storage's newest is step {committed}" if reachable else f"{storage.url} does not answer"
-        if reachable and found is None:  # emptied since, or never committed to
-            held = manifest[SPOOL_FIELD]["base"]
-            newest = "the storage holds no step"
-            newest += f" (it held step {held}; resume=never starts afresh)" if held is not None else ""
+        if not reachable:
+            committed, newest = manifest[SPOOL_FIELD]["base"], f"{storage.url} does not answer"
+        elif found is None:  # emptied since (this run's own spool), or never committed to
+            base = manifest[SPOOL_FIELD]["base"]
+            committed, newest = None, "the storage holds no step"
+            newest += f" (emptied: this run spooled the step on its step {base})" if base is not None else ""
+        else:
+            committed, newest = found[0], f"the storage's newest is step {found[0]}"
         where = f"the spool {spool.storage.url}: {newest}"
         return _resume(step, manifest, url=None, where=where, committed=committed, spooled=True)
     if down is not None:
         raise down
     if found is None:
-        bad = sorted(step.step for step in scan(storage) if step.status != INCOMPLETE)
-        if bad:
-            raise UserError(
-                f"no checkpoint in {storage.url} verifies, and steps {bad} are corrupt: inspect them "
-                f"({command('ftrain', 'ckpt', 'ls', storage.url)}), then remove them "
-                f"({command('ftrain', 'ckpt', 'prune', storage.url, '--drop-bad')}) to start over, or use another "
-                "--storage"
-            )
         clear_newer(storage, 0, log)
         return {"kind": "fresh", "why": f"no verified checkpoint in {storage.url}: starting fresh"}
     step, manifest = found
     check_compatible(config, step, manifest, world_size, robot)
     clear_newer(storage, step, log)
     return _resume(step, manifest, url=None, where="this storage", committed=step)
+
+
+def _refuse_corrupt(storage: Storage) -> None:
+    """UserError if ``storage`` has no verified step but steps that do not verify."""
+    bad = sorted(step.step for step in scan(storage) if step.status != INCOMPLETE)
+    if bad:
+        raise UserError(
+            f"no checkpoint in {storage.url} verifies, and steps {bad} are corrupt: inspect them "
+            f"({command('ftrain', 'ckpt', 'ls', storage.url)}), then remove them "
+            f"({command('ftrain', 'ckpt', 'prune', storage.url, '--drop-bad')}) to start over, or use another "
+            "--storage"
+        )
 
 
 def _from_url(

@@ -23,6 +23,7 @@ from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage, StorageError
 from ftrain.comm import group
 from ftrain.config import Config
+from ftrain.errors import UserError
 from ftrain.identity import Identity
 
 KEEP = 3
@@ -84,10 +85,12 @@ class Spool:
 
         Reachable storage: the spool's newest step must be newer than the storage's, and continue its history: the
         storage's newest step is the one it was spooled on (``base``), or the spool holds that step too, with the
-        same state; a storage that holds no step at all has no history to contradict it (emptied, its bucket made
-        anew: the spool then holds the only copy of what was trained, which a fresh start would delete). Unreachable
-        storage: the spooled step must have been written for this holder of the storage's lease (the same run and
-        generation), which has held it since, so nothing else can have committed to it.
+        same state. A storage that holds no step at all, where the spooled step continued one of its steps: emptied
+        since (its bucket made anew, a server that kept it in memory restarted), the spool holding the only copy of
+        what was trained, which a fresh start would delete; this run's own spool goes on, another run's is refused
+        (UserError), kept, with the two ways on. Unreachable storage: the spooled step must have been written for
+        this holder of the storage's lease (the same run and generation), which has held it since, so nothing else
+        can have committed to it.
         """
         infos = scan(self.storage)
         ours = [info for info in infos if info.status == VERIFIED and _storage_of(info) == self.remote_url]
@@ -107,18 +110,31 @@ class Spool:
         if not reachable:
             trusted = self.holder is not None and record.get("holder") == self.holder
             why = "" if trusted else "it was written for another holder of the storage"
-        elif remote is None:
+        elif remote is None and record["base"] is not None:
+            if self.holder is None or (record.get("holder") or [None])[0] != self.holder[0]:
+                raise UserError(self._emptied(newest.step, record["base"]))
             trusted, why = True, ""
-        elif remote[0] >= newest.step:
+        elif remote is not None and remote[0] >= newest.step:
             return None
         else:
+            remote_step = remote[0] if remote is not None else None
             same = {info.step: info.manifest.get("state_sha256") for info in ours}
-            trusted = record["base"] == remote[0] or same.get(remote[0]) == remote[1].get("state_sha256")
-            why = "" if trusted else f"the storage's newest step {remote[0]} is not in its history"
+            trusted = record["base"] == remote_step or (
+                remote is not None and same.get(remote_step) == remote[1].get("state_sha256")
+            )
+            why = "" if trusted else f"the storage's newest step {remote_step} is not in its history"
         if not trusted:
             log(f"not resuming from spooled step {newest.step} ({self.storage.url}): {why}")
             return None
         return newest.step, newest.manifest
+
+    def _emptied(self, step: int, base: int) -> str:
+        spooled = self.storage.where(step_dir(step))
+        return (
+            f"{self.remote_url} holds no step, but the spool holds step {step} of its history, spooled on its step "
+            f"{base} by an earlier run ({spooled}): to go on from it, copy that directory to "
+            f"{self.remote_url}/{step_dir(step)} and run again; resume=never starts afresh and empties the spool"
+        )
 
 
 def _storage_of(info: StepInfo) -> str | None:

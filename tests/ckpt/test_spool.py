@@ -4,9 +4,13 @@ holder of the storage's lease that wrote it (its run and generation)."""
 
 from __future__ import annotations
 
+import pytest
+
 from ftrain.ckpt.format import commit, write_file
 from ftrain.ckpt.spool import KEEP, Spool
+from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage
+from ftrain.errors import UserError
 from ftrain.identity import GENERATION_ENV, RUN_ID_ENV
 
 REMOTE = "s3://bucket/run"
@@ -49,10 +53,20 @@ def test_a_spooled_step_that_does_not_continue_the_storage_is_not_resumed_from(t
     ]
 
 
-def test_a_storage_that_holds_no_step_any_more_goes_on_from_the_spool(tmp_path, monkeypatch):
-    """Emptied since the spool's steps were written on its step 10: no history contradicts them, and they are the
-    only copy of what was trained."""
-    assert spool_with(tmp_path, monkeypatch, {20: ("b", 10), 30: ("c", 20)}).newest(None, True, print)[0] == 30
+def test_a_storage_emptied_since_goes_on_from_this_runs_spool_and_refuses_another_runs(tmp_path, monkeypatch):
+    """Emptied since the spool's steps were written on its step 20: they are the only copy of what was trained. The
+    run that spooled them goes on from them; another run (the same command again, the storage emptied to start over,
+    or another server with the same bucket) is refused, and the spool kept, with both ways on."""
+    lines = []
+    spool = spool_with(tmp_path, monkeypatch, {20: ("b", 10), 30: ("c", 20)})
+    assert spool.newest(None, True, lines.append)[0] == 30 and lines == []
+    monkeypatch.setenv(RUN_ID_ENV, "another")
+    said = r"s3://bucket/run holds no step, but the spool holds step 30 of its history, spooled on its step 20 by an"
+    with pytest.raises(
+        UserError, match=said + r" earlier run \(.*\): to go on from it, copy that directory to .*resume=never"
+    ):
+        Spool(spool.storage, REMOTE).newest(None, True, lines.append)
+    assert [info.step for info in scan(spool.storage)] == [30, 20] and lines == []
 
 
 def test_the_storage_newer_than_the_spool_wins(tmp_path, monkeypatch):

@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
@@ -277,12 +278,13 @@ def test_a_last_step_only_in_the_spool_reaches_the_storage_before_the_run_ends(t
     assert json.loads(_read_s3_manifest(url, 8, s3_env))["state_sha256"] == final["state_sha256"]
 
 
-def test_a_storage_emptied_of_every_step_goes_on_from_the_spool_which_holds_the_only_copy(
+def test_a_storage_emptied_of_every_step_keeps_the_spool_which_holds_the_only_copy(
     tmp_path, s3_server, s3_env, reference_state
 ) -> None:
     """The storage lost every step (its objects deleted, its bucket made anew, an S3 server that kept them in memory
-    restarted): the spool's steps were the only ones left, and a start that found no step went fresh and deleted
-    them. It now goes on from the spool, and ends on the uninterrupted run's bits."""
+    restarted): the spool's steps were the only ones left, and the next start, finding no step, went fresh and
+    deleted them. Another run's start is now refused, the spool kept, with the copy that goes on from it; done as
+    it says, the run ends on the uninterrupted bits."""
     from ftrain.ckpt.storage import Storage
 
     url = f"s3://{create_bucket(s3_server)}/run"
@@ -290,11 +292,18 @@ def test_a_storage_emptied_of_every_step_goes_on_from_the_spool_which_holds_the_
     run_train(url, "iterations=8", logs, ranks=2, env=s3_env)
     options = {"endpoint_url": s3_env["AWS_ENDPOINT_URL"], "key": s3_server["key"], "secret": s3_server["secret"]}
     Storage.open(url, options).delete_tree("checkpoints")
-    result = run_train(url, "iterations=12", logs, ranks=2, env=s3_env)
-    said = re.search(
-        r"resumed from step 8 \(the spool \S+: the storage holds no step \(it held step (\d+);", result.stdout
+    refused = subprocess.run(
+        train_command(url, "iterations=12", logs), cwd=REPO, env=child_env(s3_env), capture_output=True, text=True
     )
-    assert said and int(said[1]) < 8, result.stdout
+    said = re.search(r"but the spool holds step 8 of its history, .* \((\S+)\): to go on from it, copy", refused.stderr)
+    assert refused.returncode == 2 and said, refused.stderr
+    spooled = Path(said[1])
+    assert (spooled / "MANIFEST.json").exists()
+    fs = Storage.open(url, options).fs
+    for file in spooled.iterdir():
+        fs.put_file(str(file), f"{url.removeprefix('s3://')}/checkpoints/{spooled.name}/{file.name}")
+    result = run_train(url, "iterations=12", logs, ranks=2, env=s3_env)
+    assert "resumed from step 8 " in result.stdout, result.stdout
     assert json.loads(_read_s3_manifest(url, 12, s3_env))["state_sha256"] == reference_state(12)
 
 
