@@ -105,10 +105,18 @@ def without_hidden(options: dict) -> dict:
     (``<log_dir>/config.yaml``, a manifest's) read back takes its credentials from where they came, the environment or
     ``--storage-option``, instead of sending ``***`` as one."""
     return {
-        name: without_hidden(value) if isinstance(value, dict) else value
+        name: _without_hidden(value)
         for name, value in options.items()
         if not (name in SECRET_OPTIONS and value == HIDDEN)
     }
+
+
+def _without_hidden(value: object) -> object:
+    if isinstance(value, dict):
+        return without_hidden(value)
+    if isinstance(value, list):
+        return [_without_hidden(item) for item in value]
+    return value
 
 
 def _redact(value: object) -> object:

@@ -185,6 +185,8 @@ def run_ftrain(
     run.seconds = wall - run.eval_seconds
     from ftrain.policy.load import load_policy  # torch: not before the arguments are checked
 
+    if reached and not (storage / "checkpoints").is_dir():  # stopped at the target before its first commit
+        return run
     policy = load_policy(str(storage))
     run.arithmetic = " | ".join(policy.manifest["arithmetic"])  # one line per arithmetic the ranks had: mostly one
     if not reached:

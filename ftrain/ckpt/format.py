@@ -191,7 +191,7 @@ def unloadable_part(state: dict) -> str | None:
             break
         path.append(str(found[0]))
         node = found[1]
-    return f"{'/'.join(path)}, a {type(node).__name__}" if path else None
+    return f"{'/'.join(path)}, of type {type(node).__name__}" if path else None
 
 
 def _loads(part: object) -> bool:

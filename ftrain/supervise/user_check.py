@@ -28,7 +28,7 @@ def has_user_code(env: EnvConfig, hooks: list[HookConfig]) -> bool:
 def check_in_child(env: EnvConfig, hooks: list[HookConfig]) -> None:
     """UserError with the child's line if ``env`` cannot be trained or a hook's module does not import."""
     try:
-        config = {"env": dataclasses.asdict(env), "hooks": [dataclasses.asdict(hook) for hook in hooks]}
+        config = {"env": dataclasses.asdict(env), "hooks": [{"target": hook.target} for hook in hooks]}  # not kwargs
         command = [sys.executable, "-m", "ftrain.train.user_code", json.dumps(config)]
         done = subprocess.run(command, capture_output=True, text=True, timeout=TIMEOUT)
     except (TypeError, subprocess.TimeoutExpired):  # values that JSON cannot carry, or a module that hangs

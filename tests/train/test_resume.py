@@ -498,7 +498,9 @@ def test_state_that_would_not_load_back_is_refused_at_the_first_save(tmp_path) -
     assert result.returncode == 2
     errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
     assert len(errors) == 1 and "hooks and metrics must keep plain data" in errors[0], result.stderr
-    assert "(in ftrain/hooks/probe_hooks.NumpyStateHook#0/" in errors[0], errors[0]  # the hook that holds it
+    assert "(in ftrain/hooks/probe_hooks.NumpyStateHook#0/best, of type float64)" in errors[0], errors[
+        0
+    ]  # the hook that holds it
     assert manifests(tmp_path / "run") == {}
 
 
