@@ -63,9 +63,9 @@ class Ledger:
             attempt.completed = max(attempt.completed, beat.iteration, beat.committed_step or 0)
             if beat.committed_step is not None:
                 attempt.committed = max(beat.committed_step, attempt.committed or 0)
+                self.committed = max(self.committed, beat.committed_step)
             if beat.resumed_step is not None and not attempt.starts:  # restored, not yet past its start
                 attempt.starts.append(beat.resumed_step)
-                self.committed = max(self.committed, beat.committed_step)
         if self.paused is None and any(beat.phase == Phase.PREEMPTED for beat in beats.values()):
             self.paused = Failure(now, attempt.completed)  # saved on request: torchrun regroups, or the attempt ends
         # a rank that is done or saved on request may be left over from an older world; but where every rank is,
