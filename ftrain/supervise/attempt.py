@@ -208,14 +208,20 @@ class Attempt:
         self.completed = 0
         self.committed: int | None = None
         self.resumed: int | None = None
-        self.starts: list[int | None] = []
-        """The step each of its worker groups resumed from, in order: the first is where the attempt started (a
-        regroup inside it resumes from its own commits)."""
+        self.started = False
+        """Whether a worker of it was seen to have restored its start (a step, or none for a fresh one)."""
+        self.started_from: int | None = None
+        """The step its first worker group resumed from (a regroup inside it resumes from its own commits)."""
         self.progressed = False
         self.seen = False
         self.world: int | None = None
         """World size of the worker group the ledger follows (torchrun may restart it in a larger world)."""
         self.reported = False
+
+    def note_start(self, step: int | None) -> None:
+        """``started_from``, the first time a worker tells where it started."""
+        if not self.started:
+            self.started, self.started_from = True, step
 
     def culprit(self) -> tuple[int, WorkerFailure] | None:
         """The rank to blame and how it ended (see ``outcome.blame``)."""

@@ -64,8 +64,8 @@ class Ledger:
             if beat.committed_step is not None:
                 attempt.committed = max(beat.committed_step, attempt.committed or 0)
                 self.committed = max(self.committed, beat.committed_step)
-            if beat.resumed_step is not None and not attempt.starts:  # restored, not yet past its start
-                attempt.starts.append(beat.resumed_step)
+            if beat.resumed_step is not None:  # restored, maybe not yet past its start
+                attempt.note_start(beat.resumed_step)
         if self.paused is None and any(beat.phase == Phase.PREEMPTED for beat in beats.values()):
             self.paused = Failure(now, attempt.completed)  # saved on request: torchrun regroups, or the attempt ends
         # a rank that is done or saved on request may be left over from an older world; but where every rank is,
@@ -85,7 +85,7 @@ class Ledger:
             attempt.seen = True
             first = min(past_start, key=lambda beat: beat.rank)
             attempt.resumed = first.resumed_step
-            attempt.starts.append(attempt.resumed)
+            attempt.note_start(attempt.resumed)
             change = {"config_change": first.config_change} if first.config_change else {}
             self.events("resumed", attempt=attempt.plan.attempt, step=attempt.resumed, **change)
         base = attempt.resumed or 0

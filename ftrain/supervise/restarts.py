@@ -30,15 +30,14 @@ class RestartPolicy:
         started (one that crashed before it restored a step commits nothing), whose heartbeats missed it (a save that
         landed as it crashed): the loop counts from that attempt on. The step it started from is no new commit of its
         own; a step a regroup inside it resumed from was its own commit."""
-        started = attempt.starts[0] if attempt.starts else None
-        if self._newer(started):
-            self._no_commit, self.best_committed = self._unstarted, started
+        if self._newer(attempt.started_from):
+            self._no_commit, self.best_committed = self._unstarted, attempt.started_from
         new_commit = self._newer(attempt.committed)
         if new_commit:
             self.best_committed = attempt.committed
         self._no_commit = 0 if new_commit or self.restarts == 0 else self._no_commit + 1
         self._no_progress = 0 if attempt.progressed else self._no_progress + 1
-        self._unstarted = 0 if attempt.starts or self.restarts == 0 else self._unstarted + 1
+        self._unstarted = 0 if attempt.started or self.restarts == 0 else self._unstarted + 1
         if self.restarts >= self.options.max_restarts:
             return Outcome("max_restarts", EXIT_MAX_RESTARTS, f"giving up after {self.restarts} restarts")
         if self.options.crash_loop and self._no_commit >= self.options.crash_loop:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import random
 from dataclasses import dataclass
 
+from ftrain.supervise.attempt import Attempt
 from ftrain.supervise.options import EXIT_CRASH_LOOP, SupervisorOptions
 from ftrain.supervise.outcome import Outcome
 from ftrain.supervise.restarts import RestartPolicy
@@ -17,9 +18,10 @@ RUNS = 400
 class Ended:
     """What the supervisor knows of a failed attempt when it judges it (``supervise.attempt.Attempt``'s fields)."""
 
-    starts: list[int | None]
     committed: int | None
     progressed: bool = True
+    started: bool = False
+    started_from: int | None = None
 
 
 def test_a_crash_loop_stops_after_its_count_of_restarts_that_committed_nothing_new() -> None:
@@ -38,12 +40,14 @@ def test_a_crash_loop_stops_after_its_count_of_restarts_that_committed_nothing_n
             newest = (newest or 0) + 4 if made else newest
             regrouped = made and rng.random() < 0.3  # torchrun regrouped its workers after the commit: they resume it
             told = regrouped or (made and rng.random() < 0.5)  # else the save landed as the attempt crashed
-            starts = [] if unstarted else [resumed, newest] if regrouped else [resumed]
-            if starts and unseen:
+            ended = Ended(newest if told else None if unstarted else rng.choice([resumed, None]))
+            for start in [] if unstarted else [resumed, newest] if regrouped else [resumed]:
+                Attempt.note_start(ended, start)  # as the ledger notes each worker group's start
+            if ended.started and unseen:
                 streak, unseen = since, False
             streak = 0 if index == 0 or told else streak + 1
             since = 0 if index == 0 or made else since + 1
-            judged = policy.judge(Ended(starts, newest if told else None if unstarted else rng.choice([resumed, None])))
+            judged = policy.judge(ended)
             where = f"seed {seed}, crash loop {loop}, attempt {index}, streak {streak}"
             if streak >= loop:
                 assert isinstance(judged, Outcome) and judged.code == EXIT_CRASH_LOOP, where
