@@ -148,7 +148,7 @@ def test_a_hanging_storage_with_a_worker_killed_inside_the_outage_is_waited_out_
 
 @pytest.mark.waits
 def test_an_upload_that_is_never_answered_is_given_up_and_training_goes_on_through_it(
-    tmp_path, s3_server, s3_url, reference
+    tmp_path, s3_server, s3_env, s3_url, reference
 ):
     """A server that takes an upload and never answers (one paused in the middle of a save) held the PUT for as long
     as it stayed so: aiohttp's read timeout starts only once a request's body is sent, and the body waited for ``100
@@ -159,8 +159,7 @@ def test_an_upload_that_is_never_answered_is_given_up_and_training_goes_on_throu
     proxy = S3Proxy(s3_server["endpoint_url"])
     try:
         logs = tmp_path / "logs"
-        env = {"AWS_ENDPOINT_URL": proxy.endpoint_url, "AWS_ACCESS_KEY_ID": options["key"]}
-        env |= {"AWS_SECRET_ACCESS_KEY": options["secret"], "AWS_DEFAULT_REGION": s3_server["region"]}
+        env = {**s3_env, "AWS_ENDPOINT_URL": proxy.endpoint_url}
         proc = start(url, logs, env, ["checkpoint.max_unsaved=1000"])  # no hold: training goes on
         training(logs / "heartbeat", 20)
         proxy.stalling.set()
