@@ -31,6 +31,7 @@ from typing import Protocol
 from ftrain.ckpt.arithmetic import change as arithmetic_change
 from ftrain.ckpt.changes import changed_keys, config_change, model_change, robot_change
 from ftrain.ckpt.format import (
+    CHECKPOINTS,
     COMMON,
     INCOMPLETE,
     PACKED_STATE_FORMATS,
@@ -285,6 +286,12 @@ def _decide(
         clear_newer(storage, 0, log)
         return {"kind": "fresh", "why": "resume=never: starting fresh"}
     found = select_resume(storage, log=log) if resume != "auto" else None
+    if resume != "auto" and spool is not None and spool.holds(resume):
+        raise UserError(
+            f"resume={display_url(resume)} is in this run's spool, which a start that does not resume from it "
+            f"empties before the step is read: copy the step's directory out of {spool.storage.url} (into "
+            f"{storage.where(CHECKPOINTS)}/ to go on from it with resume=auto, or elsewhere for resume=) and run again"
+        )
     if resume != "auto" and (started := _from_url(config, storage, found, log, world_size, robot)) is not None:
         return started
     try:

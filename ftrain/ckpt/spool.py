@@ -22,7 +22,7 @@ from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage, StorageError
 from ftrain.comm import group
-from ftrain.config import Config
+from ftrain.config import Config, local_path
 from ftrain.errors import UserError
 from ftrain.identity import Identity
 
@@ -78,6 +78,13 @@ class Spool:
         """Forget every spooled step (a spool that failed, or a run that starts over)."""
         for info in scan(self.storage):
             delete_step(self.storage, info.step)
+
+    def holds(self, url: str) -> bool:
+        """Whether ``url`` (a local path or ``file://`` URL) lies in this spool, by any name: a start that does not
+        resume from the spool empties it, so a step there cannot be named by ``resume=``."""
+        path = local_path(url)
+        root = os.path.realpath(self.storage.root)
+        return bool(path) and os.path.commonpath([os.path.realpath(path), root]) == root
 
     def newest(self, remote: tuple[int, dict] | None, reachable: bool, log: Callable[[str], None]) -> tuple | None:
         """``(step, manifest)`` of the spooled step to resume from instead of the storage's newest step ``remote``

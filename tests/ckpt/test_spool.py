@@ -109,3 +109,17 @@ def test_a_corrupt_spooled_step_newer_than_the_storages_is_told_not_skipped_in_s
     lines.clear()
     assert spool.newest(remote_step(tmp_path, 50, "e"), True, lines.append) is None  # the storage has newer: no word
     assert lines == []
+
+
+def test_a_path_in_the_spool_is_known_by_any_name(tmp_path, monkeypatch):
+    spool = spool_with(tmp_path, monkeypatch, {5: ("a", None)})
+    (tmp_path / "link").symlink_to(tmp_path / "spool")
+    inside = [
+        tmp_path / "spool" / "checkpoints" / "step-000000005",
+        tmp_path / "link" / "checkpoints",
+        tmp_path / "other" / ".." / "spool",
+    ]
+    assert all(spool.holds(str(path)) for path in inside)
+    assert spool.holds(f"file://{tmp_path}/spool/checkpoints/step-000000005")
+    outside = [str(tmp_path / "spool2"), str(tmp_path), REMOTE + "/checkpoints/step-000000005"]
+    assert not any(spool.holds(url) for url in outside)

@@ -299,6 +299,16 @@ def test_a_storage_emptied_of_every_step_keeps_the_spool_which_holds_the_only_co
     assert refused.returncode == 2 and said, refused.stderr
     spooled = Path(said[1])
     assert (spooled / "MANIFEST.json").exists()
+    named = subprocess.run(  # resume= into the spool, which the start would have emptied before reading the step
+        train_command(url, "iterations=12", logs, f"resume={spooled}"),
+        cwd=REPO,
+        env=child_env(s3_env),
+        capture_output=True,
+        text=True,
+    )
+    said = f"resume={spooled} is in this run's spool, which a start that does not resume from it empties"
+    assert named.returncode == 2 and said in named.stderr, named.stderr
+    assert (spooled / "MANIFEST.json").exists()
     fs = Storage.open(url, options).fs
     for file in spooled.iterdir():
         fs.put_file(str(file), f"{url.removeprefix('s3://')}/checkpoints/{spooled.name}/{file.name}")
