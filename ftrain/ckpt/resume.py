@@ -259,7 +259,9 @@ def decide(
         decision = {"kind": "storage", "why": f"checkpoint storage {storage.url} failed while choosing a step: {error}"}
     if spool is not None and decision["kind"] in ("fresh", "resume") and not decision.get("spooled"):
         try:
-            spool.clear()
+            if deleted := spool.clear():
+                steps = ", ".join(map(str, deleted))
+                log(f"emptied the spool {spool.storage.url}: this start does not go on from its steps {steps}")
         except (StorageError, OSError) as error:
             log(f"could not empty the spool {spool.storage.url} ({error})")
     return decision
@@ -292,7 +294,11 @@ def _decide(
             f"empties before the step is read: copy the step's directory out of {spool.storage.url} (into "
             f"{storage.where(CHECKPOINTS)}/ to go on from it with resume=auto, or elsewhere for resume=) and run again"
         )
-    if resume != "auto" and (started := _from_url(config, storage, found, log, world_size, robot)) is not None:
+    if (
+        resume != "auto"
+        and not _spool_goes_on(config, storage, spool, found)
+        and (started := _from_url(config, storage, found, log, world_size, robot)) is not None
+    ):
         return started
     try:
         if down is None and found is None:
@@ -329,6 +335,25 @@ def _decide(
     check_compatible(config, step, manifest, world_size, robot)
     clear_newer(storage, step, log)
     return _resume(step, manifest, url=None, where="this storage", committed=step)
+
+
+def _spool_goes_on(config: Config, storage: Storage, spool: Spool | None, found: tuple[int, dict] | None) -> bool:
+    """``resume=URL`` on a storage that holds no step, where the spool holds steps of its history: whether they
+    go on from that same ``resume=`` (a restart whose commits never reached the storage), then resumed as
+    ``resume=auto`` would. Steps of another history are the only copy of it, which this start would delete:
+    UserError."""
+    if spool is None or found is not None or not (held := spool.held()):
+        return False
+    shown = display_url(config.resume)
+    if (held[0].manifest.get(ORIGIN) or {}).get("url") == shown:
+        return True
+    spooled = spool.storage.where(step_dir(held[0].step))
+    raise UserError(
+        f"resume={shown}: {storage.url} holds no step, but the spool holds step {held[0].step} of another history "
+        f"of it ({spooled}), its only copy, which this start would delete: copy that directory to "
+        f"{storage.where(step_dir(held[0].step))} to go on from it, or delete the spool {spool.storage.url} to "
+        f"start from resume={shown}"
+    )
 
 
 def _refuse_corrupt(storage: Storage) -> None:

@@ -74,10 +74,20 @@ class Spool:
         for info in scan(self.storage)[KEEP:]:
             delete_step(self.storage, info.step)
 
-    def clear(self) -> None:
-        """Forget every spooled step (a spool that failed, or a run that starts over)."""
+    def clear(self) -> list[int]:
+        """Forget every spooled step (a spool that failed, or a run that starts over); the steps of this storage's
+        history it held, which the caller says were deleted."""
+        held = [info.step for info in self.held()]
         for info in scan(self.storage):
             delete_step(self.storage, info.step)
+        return held
+
+    def held(self) -> list[StepInfo]:
+        """The spooled steps of this storage's history that verify, newest first."""
+        return [info for info in scan(self.storage) if self._of_this_storage(info)]
+
+    def _of_this_storage(self, info: StepInfo) -> bool:
+        return info.status == VERIFIED and _storage_of(info) == self.remote_url
 
     def holds(self, url: str) -> bool:
         """Whether ``url`` (a local path or ``file://`` URL) lies in this spool, by any name: a start that does not
@@ -100,7 +110,7 @@ class Spool:
         can have committed to it.
         """
         infos = scan(self.storage)
-        ours = [info for info in infos if info.status == VERIFIED and _storage_of(info) == self.remote_url]
+        ours = [info for info in infos if self._of_this_storage(info)]
         newer_than = max(ours[0].step if ours else -1, remote[0] if remote is not None else -1)
         damaged = [
             info

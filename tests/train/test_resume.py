@@ -317,6 +317,40 @@ def test_a_storage_emptied_of_every_step_keeps_the_spool_which_holds_the_only_co
     assert json.loads(_read_s3_manifest(url, 12, s3_env))["state_sha256"] == reference_state(12)
 
 
+def test_resume_url_on_an_emptied_storage_goes_on_from_its_own_spool_and_keeps_another_historys(
+    tmp_path, s3_server, s3_env
+) -> None:
+    """``resume=URL`` on a storage that lost every step: the spool's steps that continue that same ``resume=`` (the
+    same run again) are gone on from; those of another history are its only copy, which the start deleted when it
+    took ``resume=``'s step: now refused, the spool kept, and a start that empties a spool says which steps it
+    deleted."""
+    from ftrain.ckpt.storage import Storage
+    from ftrain.identity import RUN_ID_ENV
+
+    source = tmp_path / "source"
+    run_train(source, "iterations=4")
+    url = f"s3://{create_bucket(s3_server)}/run"
+    logs = f"log_dir={tmp_path / 'logs'}"
+    started = [url, "iterations=8", logs, f"resume={source}/checkpoints/step-000000004"]
+    run_train(*started, env=s3_env | {RUN_ID_ENV: "job"})
+    final = json.loads(_read_s3_manifest(url, 8, s3_env))["state_sha256"]
+    options = {"endpoint_url": s3_env["AWS_ENDPOINT_URL"], "key": s3_server["key"], "secret": s3_server["secret"]}
+    Storage.open(url, options).delete_tree("checkpoints")
+    again = run_train(*started, env=s3_env | {RUN_ID_ENV: "job"})
+    assert "resumed from step 8 (the spool " in again.stdout, again.stdout
+    assert json.loads(_read_s3_manifest(url, 8, s3_env))["state_sha256"] == final
+    Storage.open(url, options).delete_tree("checkpoints")
+    other = [url, "iterations=8", logs, f"resume={source}/checkpoints/step-000000002"]
+    refused = subprocess.run(train_command(*other), cwd=REPO, env=child_env(s3_env), capture_output=True, text=True)
+    said = f"but the spool holds step 8 of another history of it ({tmp_path / 'logs' / 'spool'}/checkpoints/"
+    assert refused.returncode == 2 and said in refused.stderr and "delete the spool" in refused.stderr, refused.stderr
+    assert (tmp_path / "logs" / "spool" / "checkpoints" / "step-000000008" / "MANIFEST.json").exists()
+    emptied = run_train(url, "iterations=8", logs, "resume=never", env=s3_env)
+    assert re.search(r"emptied the spool \S+: this start does not go on from its steps 8, 6", emptied.stdout), (
+        emptied.stdout
+    )
+
+
 def _read_s3_manifest(url: str, step: int, env: dict) -> str:
     from ftrain.ckpt.storage import Storage
 
