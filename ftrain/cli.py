@@ -581,6 +581,7 @@ def _run_config(args: argparse.Namespace) -> Config:
     """The config of ``train`` and ``supervise``, validated before anything starts: its env id too, against
     gymnasium's registry (not in ``config.py``, which the supervisor imports and which stays free of gymnasium)."""
     from ftrain.ckpt.format import CHECKPOINTS
+    from ftrain.ckpt.spool import check_place as check_spool_place
     from ftrain.ckpt.steps import check_not_a_checkpoints_directory, check_storage_place
     from ftrain.ckpt.storage import Storage
     from ftrain.config import check_writable, load_config, local_path
@@ -589,6 +590,7 @@ def _run_config(args: argparse.Namespace) -> Config:
     config = load_config(args.config, args.overrides, args.storage)
     check_env_id(config.env)
     check_storage_place(config.storage.url)
+    check_spool_place(config)
     storage = local_path(config.storage.url)
     own = bool(storage) and os.path.isdir(os.path.join(storage, CHECKPOINTS))  # steps of its own: it goes on from them
     if os.path.isdir(storage):  # before a supervisor writes its logs there

@@ -7,7 +7,8 @@ instead of the storage's when it is newer and continues the storage's history (:
 killed during an outage, or just after it before the newest state reached the storage, goes on from where it was.
 The storage stays the truth: the spool keeps only its newest ``KEEP`` steps, the run's last step must commit to the
 storage, and a machine that is lost takes its spool with it (hence node-local only: on several nodes each spool
-would hold only its own node's shards, so there is none).
+would hold only its own node's shards, so there is none). No directory is both a spool and a storage
+(``check_place``, before a run starts). Imports no torch at the top: the supervisor runs that check.
 """
 
 from __future__ import annotations
@@ -16,16 +17,24 @@ import contextlib
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ftrain.ckpt.format import CORRUPT, MANIFEST, VERIFIED, FileEntry, StepInfo, commit, step_dir, write_file
+from ftrain.ckpt.lease import LEASE
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage, StorageError
-from ftrain.comm import group
-from ftrain.config import Config, local_path
+from ftrain.config import Config, local_path, storage_key
 from ftrain.errors import UserError
 from ftrain.identity import Identity
+from ftrain.log_dir_lock import STORAGE_FILE
+from ftrain.redact import display_url
 
+if TYPE_CHECKING:  # torch: not imported by the checks a supervisor runs (check_place)
+    from ftrain.comm import group
+
+SPOOL = "spool"
+"""The spool's directory in the run's log directory."""
 KEEP = 3
 """Spooled steps kept: the newest, and two before it (one of them is usually the storage's newest commit, which
 tells that the spool continues the storage's history)."""
@@ -51,7 +60,7 @@ class Spool:
         single_node = int(os.environ.get("LOCAL_WORLD_SIZE", info.world_size)) == info.world_size
         if not config.checkpoint.spool or remote.is_local:
             return None
-        spool = cls(Storage.open(str(Path(config.log_dir) / "spool")), remote.url)
+        spool = cls(Storage.open(str(Path(config.log_dir) / SPOOL)), remote.url)
         if single_node:
             return spool
         if info.local_rank == 0:  # what a one-node phase of an elastic run spooled is older than the others' commits
@@ -151,6 +160,28 @@ class Spool:
             f"{self.remote_url} holds no step, but the spool holds step {step} of its history, spooled on its step "
             f"{base} by an earlier run ({spooled}): to go on from it, copy that directory to "
             f"{self.remote_url}/{step_dir(step)} and run again; resume=never starts afresh and empties the spool"
+        )
+
+
+def check_place(config: Config) -> None:
+    """UserError where a spool and a storage would be one directory: this run's spool, ``<log_dir>/spool``, holds
+    another run's storage (its lease), or this run's local storage is another run's spool (the directory above it is
+    a log directory of another storage). Each run would delete the other's steps: the spool its storage's, the
+    storage's clean-up the spool's."""
+    url = config.storage.url
+    if (path := local_path(url)) and os.path.basename(path := os.path.realpath(path)) == SPOOL:
+        holder = Path(path).parent / STORAGE_FILE
+        with contextlib.suppress(OSError):
+            if (other := holder.read_text().strip()) != storage_key(url):
+                raise UserError(
+                    f"storage {url} is the spool of the run on {other}, whose log directory is {holder.parent}: "
+                    "that run empties it: pass a directory of its own"
+                )
+    spool = Path(config.log_dir) / SPOOL
+    if not path and config.checkpoint.spool and (spool / LEASE).exists():
+        raise UserError(
+            f"log directory {config.log_dir} would keep this run's spool in {spool}, which is the storage of another "
+            f"run (it holds {LEASE}): give the run on {display_url(url)} a log directory of its own with log_dir=DIR"
         )
 
 

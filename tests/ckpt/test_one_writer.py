@@ -310,6 +310,35 @@ def test_train_and_supervise_refuse_a_storage_inside_a_step_before_they_touch_it
     assert [info.status for info in scan(run, full=True)] == ["verified"]
 
 
+def test_a_spool_and_a_storage_are_never_one_directory(tmp_path) -> None:
+    """A run on S3 keeps its spool in ``<log_dir>/spool`` and empties it when it starts afresh: a local run there lost
+    every step, in silence, whichever started first. Both orders are refused in one line with exit 2, nothing
+    written or deleted; a directory named spool in no log directory, or a spool switched off, is taken."""
+    from ftrain.ckpt.spool import check_place
+    from ftrain.config import load_config
+
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    (logs / "storage.txt").write_text("s3://bucket/run\n")
+    spool = logs / "spool"
+    result = subprocess.run(
+        train_command(spool), cwd=tmp_path, env=child_env(), capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 2 and result.stderr.strip().splitlines() == [
+        f"ftrain: error: storage {spool} is the spool of the run on s3://bucket/run, whose log directory is {logs}: "
+        "that run empties it: pass a directory of its own"
+    ], result.stderr
+    assert not spool.exists()
+    check_place(load_config(None, [f"storage.url={tmp_path / 'plain' / 'spool'}"]))
+    make_step(Storage.open(str(spool)), 4)  # a local run there, then one on S3 whose log directory is above it
+    (spool / "LEASE.json").write_text("{}")
+    remote = ["storage.url=s3://bucket/other", f"log_dir={logs}"]
+    with pytest.raises(UserError, match=rf"would keep this run's spool in {re.escape(str(spool))}, which is the "):
+        check_place(load_config(None, remote))
+    check_place(load_config(None, [*remote, "checkpoint.spool=false"]))
+    assert [info.status for info in scan(Storage.open(str(spool)), full=True)] == ["verified"]
+
+
 def test_a_storage_in_a_runs_quarantine_is_refused_however_it_is_spelt(tmp_path, monkeypatch) -> None:
     """A run's ``quarantine/`` is deleted whole by ``prune --drop-bad`` (every directory there is a step set aside,
     whatever its name): a storage there, or an exported file, was taken, and that prune deleted the run trained
