@@ -24,6 +24,7 @@ import errno
 import functools
 import logging
 import os
+import posixpath
 import re
 import time
 from collections.abc import Callable, Iterable
@@ -117,6 +118,7 @@ class Storage:
         if protocol in ("file", "local"):  # named as the path it is (file:///a%41 is /aA), in every line
             url = shown = local_path(url)
         else:
+            _check_key(shown)
             url = stores.prepare(protocol, url, options)
         try:
             fs, root = fsspec.core.url_to_fs(url, **options)
@@ -379,6 +381,21 @@ class Storage:
 
     def _scrub(self, exc: BaseException) -> str:
         return scrub(exc, self._secrets)
+
+
+def _check_key(shown: str) -> None:
+    """UserError for a remote URL whose path has an empty, ``.`` or ``..`` part (``s3://bucket//run``): object keys
+    keep them as written, so the storage would be other keys than the same place spelt plainly (another storage
+    beside the one it names), and s3fs reads some of them back by another key than it wrote."""
+    protocol, _, rest = shown.partition("://")
+    bucket, _, key = rest.partition("/")
+    parts = key.rstrip("/").split("/") if key.rstrip("/") else []
+    if any(part in ("", ".", "..") for part in parts):
+        plain = "/" + posixpath.normpath("/" + key).strip("/")  # POSIX keeps a leading // as it is
+        raise UserError(
+            f"storage URL {shown!r} has an empty, . or .. part in its path, which object stores keep as written: "
+            f"write {protocol}://{bucket}{plain.rstrip('/')}"
+        )
 
 
 def _modified(entry: dict) -> float | None:

@@ -81,6 +81,12 @@ def test_a_new_storage_sees_what_another_wrote(storage_url):
         ("s3:/bucket/run", "looks like a mistyped s3:// URL: write s3://bucket/run, or ./s3:/bucket/run for a local"),
         ("s3//bucket/run", "looks like a mistyped s3:// URL: write s3://bucket/run,"),
         ("gs:bucket", "looks like a mistyped gs:// URL: write gs://bucket,"),
+        (
+            "s3://bucket//run",
+            "has an empty, . or .. part in its path, which object stores keep as written: write s3://bucket/run",
+        ),
+        ("s3://bucket/run/.", "write s3://bucket/run"),
+        ("gs://bucket/a/../run/", "write gs://bucket/run"),
     ],
 )
 def test_bad_url_is_a_user_error(url, message, tmp_path, monkeypatch):
