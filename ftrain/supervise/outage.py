@@ -205,17 +205,25 @@ def head_of(storage: StorageConfig) -> tuple[bool, StepInfo | None]:
 
 def start_of(config: Config) -> tuple[bool, tuple[int, dict] | None]:
     """Whether the storage answered within ``NEWEST_WITHIN`` seconds, and (step, manifest) of the step a start
-    resumes from: the head of the storage's history, else ``resume=``'s step (None: a fresh start)."""
+    resumes from: the head of the storage's history, else ``resume=``'s step (None: a fresh start). UserError for
+    bad input found on the way (a ``resume=`` step that does not verify, a bucket that does not exist), which no
+    wait mends: the start ends with it before anything is made."""
 
-    def look() -> tuple[int, dict] | None:
-        if (head := _head(config.storage)) is not None:
-            return head.step, head.manifest or {}
-        if config.resume == AUTO:
-            return None
-        _, step, manifest = resolve_checkpoint_url(config.resume, config.storage.options, log=lambda line: None)
+    def look() -> tuple[int, dict] | UserError | None:
+        try:
+            if (head := _head(config.storage)) is not None:
+                return head.step, head.manifest or {}
+            if config.resume == AUTO:
+                return None
+            _, step, manifest = resolve_checkpoint_url(config.resume, config.storage.options, log=lambda line: None)
+        except UserError as error:
+            return error
         return step, manifest
 
-    return _within(look)
+    answered, start = _within(look)
+    if isinstance(start, UserError):
+        raise start
+    return answered, start
 
 
 def _head(storage: StorageConfig) -> StepInfo | None:

@@ -378,14 +378,21 @@ def test_several_nodes_refuse_to_start_without_a_secret_or_off_their_address(tmp
         (["--nnodes", "2", "--rdzv-conf", "protocol=https"], [], "--rdzv-conf is for --rdzv-backend etcd-v2"),
         ([], ["iterations=zero"], "iterations"),
         ([], ["env.id=Pendulum-v1"], "env.id='Pendulum-v1' is not a MuJoCo environment"),
+        ([], ["resume={old}"], "(MANIFEST.json: missing: the step was never committed): pick another step"),
     ],
 )
 def test_bad_input_fails_before_launch(tmp_path, options, overrides, fragment):
+    """One line, exit 2, nothing made; a ``resume=`` step that was never committed too (it waited 5 s, said the
+    storage had not answered, and left the supervisor's files in the storage)."""
+    old = tmp_path / "old" / "checkpoints" / "step-000000002"
+    old.mkdir(parents=True)
+    (old / "common.pt").write_bytes(b"never committed")
+    overrides = [override.format(old=old) for override in overrides]
     command = [sys.executable, "-m", "ftrain", "supervise", *options, str(write_config(tmp_path))]
     done = subprocess.run(
         [*command, "--storage", str(tmp_path / "run"), *overrides], cwd=REPO, capture_output=True, text=True, timeout=60
     )
-    assert done.returncode == 2, done.stderr
+    assert done.returncode == 2 and len(done.stderr.splitlines()) == 1, done.stderr
     assert fragment in done.stderr and "Traceback" not in done.stderr and "hunter2" not in done.stderr
     assert not (tmp_path / "run").exists()
 
