@@ -54,7 +54,8 @@ def claim_log_dir(log_dir: Path, node: int | None, holder: str, storage: str) ->
 def _belongs(log_dir: Path, storage: str) -> None:
     """Record that ``log_dir`` holds the records of ``storage``; UserError if it holds another storage's. A local
     storage's own directory, its default log directory, is its own whatever it was called before (moved), and a
-    directory without records is anyone's."""
+    directory without records is anyone's. (Not while the storage its records name is still there: a storage made in
+    another run's log directory would rewrite them.)"""
     record = log_dir / STORAGE_FILE
     try:
         other = record.read_text().strip()
@@ -63,7 +64,8 @@ def _belongs(log_dir: Path, storage: str) -> None:
     except OSError as error:
         raise _cannot_hold(log_dir, record, error) from None
     held = [name for name in RECORDS if (log_dir / name).exists()]
-    if other in ("", storage) or not held or os.path.realpath(log_dir) == storage:
+    moved = os.path.realpath(log_dir) == storage and os.path.isabs(other) and not os.path.exists(other)
+    if other in ("", storage) or not held or moved:
         if other != storage:
             with contextlib.suppress(OSError):  # a directory it cannot write is said when a record is written
                 tmp = record.with_name(f".{STORAGE_FILE}.{os.getpid()}")

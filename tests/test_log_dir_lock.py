@@ -108,6 +108,10 @@ def test_a_log_directory_holds_one_storages_records_however_that_storage_is_spel
     assert (logs / STORAGE_FILE).read_text() == f"{storage}\n"
     with claim_log_dir(storage, None, "supervisor", storage_key(str(storage))):  # its default log directory
         pass
+    made_in_them = claim_log_dir(logs, None, "supervisor", storage_key(str(logs)))  # a storage made in its records
+    with pytest.raises(UserError, match=f"holds the records of the run on {storage} "), made_in_them:
+        pass
+    assert (logs / STORAGE_FILE).read_text() == f"{storage}\n"
     storage.rename(other)  # moved: its own directory is still its own
     with claim_log_dir(other, None, "supervisor", storage_key(str(other))):
         pass
