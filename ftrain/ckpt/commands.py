@@ -93,9 +93,9 @@ def ls(url: str, options: dict | None = None) -> int:
 def verify(url: str, options: dict | None = None) -> int:
     """Verify every committed step (or the one step) with full digests: 1 if any does not verify, naming each
     failure, else 0. A step without a manifest was never committed (a save cut short): it is told with its age,
-    and fails nothing (``resume`` skips it, retention deletes it). A run's storage must also hold one history
-    (``lineage.py``): superseded steps are named, a fork is named and fails (1). A step set aside under
-    ``quarantine/`` is verified where it lies (``_verify_aside``)."""
+    and fails nothing (``resume`` skips it, retention deletes it), unless it is the one step named (1). A run's
+    storage must also hold one history (``lineage.py``): superseded steps are named, a fork is named and fails (1).
+    A step set aside under ``quarantine/`` is verified where it lies (``_verify_aside``)."""
     if (aside := set_aside_location(url)) is not None:
         return _verify_aside(Storage.open(aside[0], options), aside[1])
     storage, step = _open(url, options)
@@ -120,7 +120,8 @@ def verify(url: str, options: dict | None = None) -> int:
         print(holder)
     never = f"; {incomplete} incomplete (never committed)" if incomplete else ""
     print(f"{len(committed) - failed} of {counted(len(committed), 'committed step')} verified{never}")
-    return 1 if failed or (past is not None and past.forks) else 0
+    uncommitted = step is not None and not committed  # the step named was never committed: ``verify STEP && use STEP``
+    return 1 if failed or uncommitted or (past is not None and past.forks) else 0
 
 
 def verify_each(storage: Storage, infos: list[StepInfo], noun: str = "step", top: str = CHECKPOINTS) -> int:

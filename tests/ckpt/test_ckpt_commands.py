@@ -77,6 +77,9 @@ def test_verify_a_run_and_single_steps(run, capsys):
     assert ckpt_commands.verify(f"{run}/checkpoints/step-000000020") == 0
     assert capsys.readouterr().out.splitlines() == ["step 20: ok", "1 of 1 committed step verified"]
 
+    assert ckpt_commands.verify(f"{run}/checkpoints/step-000000040") == 1  # named, and never committed
+    assert capsys.readouterr().out.splitlines()[-1] == "0 of 0 committed steps verified; 1 incomplete (never committed)"
+
     flip_shard_byte(Storage.open(run), 20)
     assert ckpt_commands.verify(f"{run}/checkpoints/step-000000020") == 1
     assert "checkpoints/step-000000020/rank-00001.pt: sha256 mismatch" in capsys.readouterr().out
