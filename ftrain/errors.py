@@ -58,17 +58,21 @@ class Terminated(BaseException):
 
 def stop_on_sigterm() -> None:
     """From the start of a command until it takes SIGTERM over (a run's stop request, the supervisor's), a SIGTERM
-    ends it as a Ctrl-C does, in one line (``stopped``) with 143, where it died without a word. Left alone where the
-    process inherited another disposition (ignored, say)."""
-    if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGTERM) == signal.SIG_DFL:
-        signal.signal(signal.SIGTERM, raise_terminated)
+    (or SIGHUP) ends it as a Ctrl-C does, in one line (``stopped``) with 143, where it died without a word. Left alone
+    where the process inherited another disposition (ignored, say)."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for number in (signal.SIGTERM, signal.SIGHUP):
+        if signal.getsignal(number) == signal.SIG_DFL:
+            signal.signal(number, raise_terminated)
 
 
 def stop_signals() -> tuple[int, ...]:
-    """The stop signals a run takes over: SIGTERM, and SIGINT unless it is ignored, which nothing but the process's
-    start does (the background job of a script, whose Ctrl-C is for the script's foreground): it stays so, as Python
-    leaves it."""
-    return (signal.SIGTERM,) + ((signal.SIGINT,) if signal.getsignal(signal.SIGINT) != signal.SIG_IGN else ())
+    """The stop signals a run takes over: SIGTERM; SIGHUP, the terminal or SSH session that closed, a stop like
+    SIGTERM (saved, 143); SIGINT. SIGHUP and SIGINT are left ignored where the process started so: ``nohup``, the
+    background job of a script, whose Ctrl-C is for the script's foreground (as Python leaves it)."""
+    unless_ignored = (signal.SIGHUP, signal.SIGINT)
+    return (signal.SIGTERM, *(number for number in unless_ignored if signal.getsignal(number) != signal.SIG_IGN))
 
 
 def raise_terminated(signum: int, frame: object) -> None:

@@ -28,12 +28,13 @@ from ftrain.errors import raise_terminated
 @contextlib.contextmanager
 def imports() -> Iterator[None]:
     """Around the imports of the heavy libraries: without the cyclic garbage collector, then what they made frozen.
-    A Ctrl-C or SIGTERM meanwhile raises its exception once they are done (``errors.stop_signal``): raised inside a
-    library's import, it may come out as that library's ImportError, or be swallowed by an ``except ImportError`` of
-    an optional one."""
+    A Ctrl-C, SIGTERM or SIGHUP meanwhile raises its exception once they are done (``errors.stop_signal``): raised
+    inside a library's import, it may come out as that library's ImportError, or be swallowed by an ``except
+    ImportError`` of an optional one."""
     enabled, held = gc.isenabled(), []
     gc.disable()
-    ours = {signal.SIGINT: signal.default_int_handler, signal.SIGTERM: raise_terminated}
+    stops = dict.fromkeys((signal.SIGTERM, signal.SIGHUP), raise_terminated)
+    ours = {signal.SIGINT: signal.default_int_handler, **stops}
     main = threading.current_thread() is threading.main_thread()
     holding = {number: handler for number, handler in ours.items() if main and signal.getsignal(number) == handler}
     for number in holding:

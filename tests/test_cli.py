@@ -54,7 +54,7 @@ def test_supervise_help_lists_the_exit_codes_and_what_a_stop_signal_does() -> No
     from ftrain.supervise.options import EXIT_CODES
 
     text = ftrain("supervise", "--help").stdout
-    assert "SIGTERM or SIGINT (Ctrl-C) to the supervisor makes the workers save" in text
+    assert "SIGTERM, SIGHUP (a closed terminal) or SIGINT (Ctrl-C) to the supervisor makes the workers save" in text
     for code, meaning in EXIT_CODES.items():
         assert f"{code:>5}  {meaning}" in text
     docs = (REPO / "docs" / "supervision.md").read_text()

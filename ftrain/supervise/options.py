@@ -57,9 +57,10 @@ def exit_codes_help() -> str:
     """The exit codes and the stop signals, for ``ftrain supervise --help``."""
     codes = "\n".join(f"  {code:>3}  {meaning}" for code, meaning in EXIT_CODES.items())
     return (
-        "SIGTERM or SIGINT (Ctrl-C) to the supervisor makes the workers save at the next iteration boundary\n"
-        "and exit; the supervisor then exits 143 or 130. A second signal, half a second or more after the first,\n"
-        "stops them at once, without a save (the summary counts the iterations lost).\n\nexit codes:\n" + codes
+        "SIGTERM, SIGHUP (a closed terminal) or SIGINT (Ctrl-C) to the supervisor makes the workers save at the\n"
+        "next iteration boundary and exit; the supervisor then exits 143 (130 for SIGINT). A second signal, half a\n"
+        "second or more after the first, stops them at once, without a save (the summary counts the iterations\n"
+        "lost).\n\nexit codes:\n" + codes
     )
 
 

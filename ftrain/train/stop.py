@@ -1,4 +1,4 @@
-"""A stop asked for by a signal: SIGTERM or SIGINT sets a request that the training loop acts on at its next
+"""A stop asked for by a signal: SIGTERM (or SIGHUP) or SIGINT sets a request that the training loop acts on at its next
 iteration boundary (the ranks agree, save, and exit 128 + the signal). Until training begins there is nothing to
 save, and a stop ends the process at once (``StopRequest.install``), even inside a call that waits for a rank that is
 gone.
@@ -67,13 +67,14 @@ class StopRequest:
     def _while_starting(self, read: int, at_start: typing.Callable[[int], None]) -> None:
         with os.fdopen(read, "rb", buffering=0) as pipe:
             while number := pipe.read(1):
-                if number[0] in (signal.SIGTERM, signal.SIGINT) and self._wakeup is not None:
+                if number[0] in stop_signals() and self._wakeup is not None:
                     at_start(number[0])
                     for stream in (sys.stdout, sys.stderr):
                         stream.flush()
                     os._exit(stop_code(number[0]))
 
     def _handle(self, signum: int, frame: object) -> None:
+        signum = signal.SIGTERM if signum == signal.SIGHUP else signum  # a closed terminal: the ranks vote a SIGTERM
         if not self.deliveries.new(signum):
             return
         if self.requested and signum == signal.SIGINT:

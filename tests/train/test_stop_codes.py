@@ -73,6 +73,25 @@ def test_a_lone_trainer_stopped_by_ctrl_c_saves_and_exits_130(tmp_path) -> None:
     assert f"[ftrain] stopped by SIGINT: saved step {step}, exiting with code 130" in proc.stdout.read()
 
 
+@pytest.mark.parametrize("supervised", [False, True], ids=["train", "supervise"])
+def test_a_closed_terminal_sighup_saves_and_exits_143_as_sigterm(tmp_path, supervised: bool) -> None:
+    """SIGHUP, a terminal or SSH session that closed, killed the run where it stood (a probe lost 9 iterations and
+    left a step half written): now it stops as SIGTERM does, saving every iteration trained, exit 143."""
+    storage = tmp_path / "run"
+    if supervised:
+        command, beats = supervise_command(storage, LONG, ranks=1), storage / "heartbeat"
+    else:
+        command, beats = [*train_command(storage, LONG), "log.console=true"], tmp_path / "beats"
+    proc = start(command, beats)
+    training(beats, 3, [0])
+    proc.send_signal(signal.SIGHUP)
+    assert finish(proc) == 143
+    printed, step = proc.stdout.read(), final_manifest(storage)["step"]
+    assert step == max(metrics_by_iteration(storage)) >= 3, "every iteration trained is in the last save"
+    said = "SIGHUP: asking the workers to save" if supervised else f"stopped by SIGTERM: saved step {step}"
+    assert said in printed, printed[-2000:]
+
+
 @pytest.mark.parametrize(
     ("target", "stop", "code", "as_supervised"),
     [
