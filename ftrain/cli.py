@@ -355,6 +355,12 @@ def _version() -> str:
 def parse(argv: list[str]) -> argparse.Namespace:
     """``argv`` as ``ftrain`` reads it: overrides may come before or after options such as --storage, and
     ``--storage-option``, ``-q`` and ``-v`` become overrides. A usage error or a bad value is a UserError."""
+    for word in argv:
+        try:
+            word.encode()
+        except UnicodeEncodeError:  # bytes the file system's encoding could not read, kept as surrogates
+            shown = word.encode(errors="surrogateescape").decode(errors="backslashreplace")
+            raise UserError(f"'{shown}' is not UTF-8: ftrain reads paths and values as UTF-8: rename it") from None
     parser = build_parser()
     try:
         args, extra = parser.parse_known_args(argv)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib.metadata
+import os
 import re
 import subprocess
 import sys
@@ -13,7 +14,7 @@ import pytest
 from ftrain.ckpt.storage import Storage
 from ftrain.cli import build_parser, main, parsers
 
-from helpers import REPO, child_env, make_step, train_command
+from helpers import REPO, SMOKE, child_env, make_step, train_command
 
 
 def ftrain(*args: str) -> subprocess.CompletedProcess:
@@ -234,6 +235,22 @@ def test_a_path_the_terminal_cannot_encode_is_escaped_not_a_crash(tmp_path) -> N
         [sys.executable, "-m", "ftrain", "ckpt", "show", str(storage)], env=env, capture_output=True, text=True
     )
     assert shown.returncode == 0 and "\\xfc run" in shown.stdout, shown.stderr[-2000:]
+
+
+def test_a_path_that_is_not_utf8_is_one_line_and_nothing_made(tmp_path) -> None:
+    """Bytes that are not UTF-8 in a path (Latin-1's \\xff) were a traceback when the log directory was claimed, with
+    the lease and lock files left in a new storage; in a config's name, a traceback naming the process."""
+    storage = os.fsencode(tmp_path) + b"/bad\xff"
+    for command in ([b"train", SMOKE.encode(), b"--storage", storage], [b"supervise", b"bad\xff.yaml"]):
+        done = subprocess.run(
+            [sys.executable.encode(), b"-m", b"ftrain", *command], capture_output=True, env=child_env()
+        )
+        said = done.stderr.decode()
+        assert done.returncode == 2 and len(said.splitlines()) == 1, said
+        assert re.search(r"bad\\xff(\.yaml)?' is not UTF-8: ftrain reads paths and values as UTF-8: rename it", said), (
+            said
+        )
+    assert list(tmp_path.iterdir()) == []
 
 
 KEEP_LINE_BESIDE = [
