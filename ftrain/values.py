@@ -101,6 +101,14 @@ def build(cls: type, data: dict, prefix: str) -> Any:
     return cls(**kwargs)
 
 
+def _list_example(item_kind: Any) -> str:
+    """A list of ``item_kind`` as an override writes it."""
+    if dataclasses.is_dataclass(item_kind):
+        first = dataclasses.fields(item_kind)[0].name
+        return f"[{{{first}: ...}}]"
+    return {int: "[64,64]", float: "[0.5,0.5]"}.get(item_kind, "[a,b]")
+
+
 def convert(kind: Any, value: Any, key: str, example: float | None = None) -> Any:
     """``value`` as ``kind``, else UserError naming ``key``; ``example``: a value to show in it (the default)."""
     e_g = f", e.g. {key}={example if example is not None else 100}"
@@ -110,7 +118,7 @@ def convert(kind: Any, value: Any, key: str, example: float | None = None) -> An
     if origin is list:
         (item_kind,) = typing.get_args(kind)
         if not isinstance(value, list):
-            raise UserError(f"{key}={value!r} must be a list, e.g. {key}=[64,64]")
+            raise UserError(f"{key}={value!r} must be a list, e.g. {key}={_list_example(item_kind)}")
         return [convert(item_kind, item, f"{key}[{i}]") for i, item in enumerate(value)]
     if origin in (typing.Union, types.UnionType):
         return value

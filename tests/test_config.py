@@ -126,6 +126,9 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
         (["policy.hidden_dims=[-5]"], r"policy.hidden_dims=\[-5\] must list"),
         (["hooks=[{target: 'a:B', every: 0}]"], r"^hooks\[0\].every=0 must be at least 1 \(its hook runs every N "),
         (["hooks=[{target: 'a:B'}, {target: 'a:C', every: -3}]"], r"^hooks\[1\].every=-3 must be at least 1"),
+        (["hooks=foo"], r"^hooks='foo' must be a list, e.g. hooks=\[\{target: \.\.\.\}\]$"),
+        (["log.wandb.tags=x"], r"^log.wandb.tags='x' must be a list, e.g. log.wandb.tags=\[a,b\]$"),
+        (["policy.hidden_dims=5"], r"^policy.hidden_dims=5 must be a list, e.g. policy.hidden_dims=\[64,64\]$"),
         (
             ["log.wandb.mode=offline", "log.wandb.project=a/b"],
             r"^log.wandb.project='a/b' is no W&B project name \(/\): set log.wandb.project to at most 128 characters "
