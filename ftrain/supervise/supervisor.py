@@ -47,6 +47,7 @@ from ftrain.supervise.options import (
     SupervisorOptions,
     parse_hang_timeout,
     parse_nodes,
+    parse_workers,
 )
 from ftrain.supervise.outage import NEWEST_WITHIN, StorageWait, start_of
 from ftrain.supervise.outcome import Outcome, classify, finished, newest_step, not_admitted, peer_ended
@@ -67,6 +68,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
     ``config``: the run's validated config; ``train_args``: the arguments of ``ftrain train`` it was read from
     (config file, ``--storage``, overrides), which every worker gets."""
     hang_timeout = parse_hang_timeout(options.hang_timeout)
+    parse_workers(options.workers)  # before the storage is looked at (``with_nproc``), which makes its directory
     nodes = parse_nodes(options)
     options, chosen = with_nproc(options, nodes, config)
     for_elastic(config, nodes.least, nodes.count, options.nproc_per_node)  # before anything starts

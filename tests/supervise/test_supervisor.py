@@ -369,6 +369,7 @@ def test_several_nodes_refuse_to_start_without_a_secret_or_off_their_address(tmp
     ("options", "overrides", "fragment"),
     [
         (["--hang-timeout", "soon"], [], "--hang-timeout"),
+        (["--workers", "lukewarm"], [], "--workers='lukewarm' must be one of warm, cold (did you mean warm?)"),
         (["--nnodes", "3:2"], [], "--nnodes"),
         (["--nnodes", "2"], [], "--rdzv-endpoint"),
         (["--nnodes", "2", "--rdzv-backend", "etcd"], [], "--rdzv-backend='etcd' must be one of c10d, etcd-v2"),
