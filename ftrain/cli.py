@@ -481,9 +481,11 @@ def main(argv: list[str] | None = None) -> int:
 def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "train":
         config = _run_config(args)
+        from ftrain.config import for_launch, make_local_directories, remove_if_empty
+
+        for_launch(config, int(os.environ.get("WORLD_SIZE", "1")))  # checked here, before the storage is taken
         name_process(rank_role("worker"), config.name)
         watch_launcher()
-        from ftrain.config import make_local_directories, remove_if_empty
 
         with imports():
             from ftrain.train.trainer import train
