@@ -28,16 +28,14 @@ import sys
 import typing
 from pathlib import Path
 
-from torch.distributed.elastic.multiprocessing.api import SignalException
-from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
-from torch.distributed.elastic.rendezvous.api import RendezvousTimeoutError
-from torch.distributed.run import get_args_parser, parse_min_max_nnodes
-from torch.distributed.run import main as torchrun
+if typing.TYPE_CHECKING:
+    from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
 
 from ftrain import errorfile
 from ftrain.config import ELASTIC_NODES_ENV
-from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, STOPPED
+from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, STOPPED, Terminated, stop_on_sigterm, stop_signal, stopped
 from ftrain.lifeline import die_with_supervisor
+from ftrain.process import imports
 from ftrain.proctitle import name_process
 
 EXIT_WORKERS_FAILED = 1
@@ -45,6 +43,7 @@ FAILURES_OPTION = "--failures="
 QUIETED = {
     "torch.distributed.run": ("Setting OMP_NUM_THREADS",),  # ftrain sets each worker's threads itself (torch_threads)
     "torch.distributed.elastic.multiprocessing.api": ("failed (exitcode", "closing signal"),  # the end says it
+    "torch.distributed.elastic.agent.server.api": ("death signal",),  # the workers' and the agent's lines say it
     "torch.distributed.elastic.multiprocessing.errors.error_handler": ("no error file defined for parent",),
 }
 """torchrun's log lines that a run by hand does without: logger, and fragments of the lines."""
@@ -56,14 +55,25 @@ def main(argv: list[str]) -> int:
 
 
 def console() -> None:
-    """``ftrun``: this module as a console script."""
-    sys.exit(main(sys.argv[1:]))
+    """``ftrun`` and ``python -m ftrain.torchrun``: a stop before torchrun takes the signals over (while torch
+    imports, or in the rendezvous) is one line and 128 + the signal, not a traceback or a silent death."""
+    stop_on_sigterm()
+    try:
+        code = main(sys.argv[1:])
+    except (KeyboardInterrupt, Terminated) as stop:
+        code = stopped(stop_signal(stop))
+    sys.exit(code)
 
 
 def run(argv: list[str]) -> int:
     """torchrun in this process: ``main`` without the tie to the supervisor (the warm pool forks it: ``ftrain/warm``,
     where it ends with the pool)."""
     name_process("torchrun agent")
+    with imports():  # here, not at the top: a Ctrl-C meanwhile is the one line of ``console``
+        from torch.distributed.elastic.multiprocessing.api import SignalException
+        from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
+        from torch.distributed.elastic.rendezvous.api import RendezvousTimeoutError
+        from torch.distributed.run import main as torchrun
     failures_path = argv[0].removeprefix(FAILURES_OPTION) if argv[:1] and argv[0].startswith(FAILURES_OPTION) else None
     arguments = argv[1:] if failures_path is not None else argv
     if failures_path is None:
@@ -117,6 +127,8 @@ def _explained(failed: ChildFailedError) -> int | None:
 def _tell_workers_the_nodes(arguments: list[str]) -> None:
     """An elastic launch's ``--nnodes MIN:MAX`` in the workers' environment (``ELASTIC_NODES_ENV``): a world size of
     the launch that cannot share the run's environments is refused at the start (``config.for_launch``)."""
+    from torch.distributed.run import get_args_parser, parse_min_max_nnodes
+
     os.environ.pop(ELASTIC_NODES_ENV, None)  # not one inherited from another launch
     parser = get_args_parser()
     parser.error = _unparsed  # torchrun itself says what is wrong with its arguments
@@ -145,4 +157,4 @@ def _recorded(error_file: str, data: dict) -> dict | None:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1:]))
+    console()

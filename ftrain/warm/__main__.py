@@ -25,9 +25,9 @@ from ftrain.process import exit_fast, imports
 from ftrain.proctitle import name_process
 from ftrain.warm import ENTRIES, LISTENER_ENV, PEER, STREAMS, handover, receive_message, send_message
 
-PRELOAD = ("ftrain.train.trainer", "ftrain.policy.robot", "gymnasium.envs.mujoco")
-"""What ``ftrain train`` imports before its first iteration, MuJoCo's gymnasium environments included (the entries'
-modules come first)."""
+PRELOAD = ("ftrain.train.trainer", "ftrain.policy.robot", "gymnasium.envs.mujoco", "torch.distributed.run")
+"""What ``ftrain train`` imports before its first iteration, MuJoCo's gymnasium environments included, and torchrun
+(``ftrain.torchrun`` imports it when it runs); the entries' modules come first."""
 TORCHRUN = "torchrun"
 """The entry of torchrun's stand-in."""
 REQUEST_TIMEOUT = 10.0

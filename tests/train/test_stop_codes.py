@@ -5,6 +5,7 @@ workers signalled as a scheduler does), ``ftrain supervise``. Real processes, re
 from __future__ import annotations
 
 import json
+import math
 import os
 import random
 import re
@@ -166,21 +167,30 @@ def test_a_stop_delivered_again_at_once_is_one_stop_that_saves(tmp_path, supervi
 def test_a_stop_at_any_moment_of_the_start_is_one_line_and_its_exit_code(tmp_path) -> None:
     """While it imports torch and builds the run (seconds on a slow machine) a Ctrl-C or SIGTERM is one line, not a
     traceback (Ctrl-C) or a silent death (SIGTERM, a probe's); from the moment the trainer takes them over it saves
-    first. Random moments over the whole start, a random signal each: 128 + the signal every time, no traceback, a
-    line that says the stop, and whatever the storage holds verifies."""
+    first. So for ``ftrun`` (torchrun's agent: a traceback from its import of torch or its rendezvous, before). Random
+    moments over the whole start, a random signal and launcher each: 128 + the signal every time, no traceback, a
+    line that says the stop, and whatever the storage holds verifies; or, before the interpreter has taken its
+    signals over (the first tens of milliseconds, longer on a loaded machine), the signal's own silent death with
+    nothing printed or made."""
     draw = random.Random(130)
-    moments, saved, checked = sorted(draw.uniform(0.05, 10.0) for _ in range(8)), 0, []
+    # log-uniform: the start's phases are shorter the earlier they come (imports, rendezvous, building, training)
+    moments, saved, checked = sorted(math.exp(draw.uniform(math.log(0.05), math.log(10.0))) for _ in range(10)), 0, []
     for moment in moments:
-        stop = draw.choice([signal.SIGINT, signal.SIGTERM])
-        checked.append(f"{stop.name} at {moment:.2f} s")
+        stop, ftrun = draw.choice([signal.SIGINT, signal.SIGTERM]), draw.random() < 0.5
+        checked.append(f"{stop.name} to {'ftrun' if ftrun else 'train'} at {moment:.2f} s")
         storage = tmp_path / f"run-{moment:.2f}"
         command, beats = [*train_command(storage, LONG), "log.console=true"], tmp_path / f"beats-{moment:.2f}"
+        if ftrun:
+            command = [sys.executable, "-m", TORCHRUN, "--standalone", "--nproc-per-node=1", *command[1:]]
         proc = start(command, beats, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         time.sleep(moment)
         proc.send_signal(stop)
         output = proc.communicate(timeout=120)[0]
+        if proc.returncode == -stop and not output and not storage.exists():  # before Python took its signals over
+            checked[-1] += " (before the interpreter's start)"
+            continue
         assert proc.returncode == 128 + stop, (moment, stop, output[-2000:])
-        assert "Traceback" not in output, (moment, output[-2000:])
+        assert "Traceback" not in output and "death signal" not in output, (moment, output[-2000:])
         said = ["ftrain: interrupted (Ctrl-C)" if stop == signal.SIGINT else "ftrain: stopped by SIGTERM"]
         said += [f"stopped by {stop.name} while starting", f"stopped by {stop.name}: saved step"]
         assert any(line in output for line in said), (moment, stop, output[-2000:])
