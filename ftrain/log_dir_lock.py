@@ -54,8 +54,8 @@ def claim_log_dir(log_dir: Path, node: int | None, holder: str, storage: str) ->
 def _belongs(log_dir: Path, storage: str) -> None:
     """Record that ``log_dir`` holds the records of ``storage``; UserError if it holds another storage's. A local
     storage's own directory, its default log directory, is its own whatever it was called before (moved), and a
-    directory without records is anyone's. (Not while the storage its records name is still there: a storage made in
-    another run's log directory would rewrite them.)"""
+    directory without records is anyone's. (A storage made in another run's log directory, which holds no steps of
+    its own while that run's storage is still there, would rewrite them: refused.)"""
     record = log_dir / STORAGE_FILE
     try:
         other = record.read_text().strip()
@@ -64,8 +64,12 @@ def _belongs(log_dir: Path, storage: str) -> None:
     except OSError as error:
         raise _cannot_hold(log_dir, record, error) from None
     held = [name for name in RECORDS if (log_dir / name).exists()]
-    moved = os.path.realpath(log_dir) == storage and os.path.isabs(other) and not os.path.exists(other)
-    if other in ("", storage) or not held or moved:
+    own = os.path.realpath(log_dir) == storage and os.path.isabs(other)  # moved, or copied with its steps
+    if (
+        other in ("", storage)
+        or not held
+        or (own and (not os.path.exists(other) or (log_dir / "checkpoints").is_dir()))
+    ):
         if other != storage:
             with contextlib.suppress(OSError):  # a directory it cannot write is said when a record is written
                 tmp = record.with_name(f".{STORAGE_FILE}.{os.getpid()}")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import random
 import re
+import shutil
 
 import pytest
 
@@ -112,6 +113,11 @@ def test_a_log_directory_holds_one_storages_records_however_that_storage_is_spel
     with pytest.raises(UserError, match=f"holds the records of the run on {storage} "), made_in_them:
         pass
     assert (logs / STORAGE_FILE).read_text() == f"{storage}\n"
+    copy = tmp_path / "copy"  # copied with its steps: its own too, while the original is still there
+    shutil.copytree(storage, copy)
+    (copy / "checkpoints").mkdir()
+    with claim_log_dir(copy, None, "supervisor", storage_key(str(copy))):
+        pass
     storage.rename(other)  # moved: its own directory is still its own
     with claim_log_dir(other, None, "supervisor", storage_key(str(other))):
         pass
