@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import signal
 import sys
 import typing
 from pathlib import Path
@@ -33,7 +34,16 @@ if typing.TYPE_CHECKING:
 
 from ftrain import errorfile
 from ftrain.config import ELASTIC_NODES_ENV
-from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, STOPPED, Terminated, stop_on_sigterm, stop_signal, stopped
+from ftrain.errors import (
+    EXIT_RENDEZVOUS_TIMEOUT,
+    STOPPED,
+    Terminated,
+    stop_code,
+    stop_on_sigterm,
+    stop_signal,
+    stop_signals,
+    stopped,
+)
 from ftrain.lifeline import die_with_supervisor
 from ftrain.process import imports
 from ftrain.proctitle import name_process
@@ -69,6 +79,11 @@ def run(argv: list[str]) -> int:
     """torchrun in this process: ``main`` without the tie to the supervisor (the warm pool forks it: ``ftrain/warm``,
     where it ends with the pool)."""
     name_process("torchrun agent")
+    # the agent's own handlers: the stop signals this process takes (a SIGHUP ignored under nohup stays so), SIGQUIT
+    os.environ.setdefault(
+        "TORCHELASTIC_SIGNALS_TO_HANDLE",
+        ",".join(sig.name for sig in map(signal.Signals, (*stop_signals(), signal.SIGQUIT))),
+    )
     with imports():  # here, not at the top: a Ctrl-C meanwhile is the one line of ``console``
         from torch.distributed.elastic.multiprocessing.api import SignalException
         from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
@@ -101,7 +116,7 @@ def run(argv: list[str]) -> int:
         os.replace(path.with_suffix(".tmp"), path)
         return stopped or EXIT_WORKERS_FAILED
     except SignalException as signalled:  # the agent has stopped the workers with the same signal before raising
-        return 128 + int(signalled.sigval)
+        return stop_code(int(signalled.sigval)) if signalled.sigval in stop_signals() else 128 + int(signalled.sigval)
     except RendezvousTimeoutError as error:
         print(f"torchrun: rendezvous timed out: {' '.join(str(error).split())}", file=sys.stderr, flush=True)
         return EXIT_RENDEZVOUS_TIMEOUT
