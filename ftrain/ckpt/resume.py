@@ -31,7 +31,6 @@ from typing import Protocol
 from ftrain.ckpt.arithmetic import change as arithmetic_change
 from ftrain.ckpt.changes import changed_keys, config_change, model_change, robot_change
 from ftrain.ckpt.format import (
-    CHECKPOINTS,
     COMMON,
     INCOMPLETE,
     PACKED_STATE_FORMATS,
@@ -288,17 +287,8 @@ def _decide(
         clear_newer(storage, 0, log)
         return {"kind": "fresh", "why": "resume=never: starting fresh"}
     found = select_resume(storage, log=log) if resume != "auto" else None
-    if resume != "auto" and spool is not None and spool.holds(resume):
-        raise UserError(
-            f"resume={display_url(resume)} is in this run's spool, which a start that does not resume from it "
-            f"empties before the step is read: copy the step's directory out of {spool.storage.url} (into "
-            f"{storage.where(CHECKPOINTS)}/ to go on from it with resume=auto, or elsewhere for resume=) and run again"
-        )
-    if (
-        resume != "auto"
-        and not _spool_goes_on(config, storage, spool, found)
-        and (started := _from_url(config, storage, found, log, world_size, robot)) is not None
-    ):
+    from_url = resume != "auto" and not _spool_goes_on(config, storage, spool, found)
+    if from_url and (started := _from_url(config, storage, found, log, world_size, robot)) is not None:
         return started
     try:
         if down is None and found is None:
@@ -328,6 +318,8 @@ def _decide(
         return _resume(step, manifest, url=None, where=where, committed=committed, spooled=True)
     if down is not None:
         raise down
+    if resume != "auto" and not from_url and found is None:  # the spool it was to go on from did not read
+        return _from_url(config, storage, found, log, world_size, robot)
     if found is None:
         clear_newer(storage, 0, log)
         return {"kind": "fresh", "why": f"no verified checkpoint in {storage.url}: starting fresh"}
@@ -351,8 +343,8 @@ def _spool_goes_on(config: Config, storage: Storage, spool: Spool | None, found:
     raise UserError(
         f"resume={shown}: {storage.url} holds no step, but the spool holds step {held[0].step} of another history "
         f"of it ({spooled}), its only copy, which this start would delete: copy that directory to "
-        f"{storage.where(step_dir(held[0].step))} to go on from it, or delete the spool {spool.storage.url} to "
-        f"start from resume={shown}"
+        f"{storage.where(step_dir(held[0].step))} to go on from it with resume=auto, or delete the spool "
+        f"{spool.storage.url} to start from resume={shown}"
     )
 
 

@@ -19,12 +19,22 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ftrain.ckpt.format import CORRUPT, MANIFEST, VERIFIED, FileEntry, StepInfo, commit, step_dir, write_file
+from ftrain.ckpt.format import (
+    CHECKPOINTS,
+    CORRUPT,
+    MANIFEST,
+    VERIFIED,
+    FileEntry,
+    StepInfo,
+    commit,
+    step_dir,
+    write_file,
+)
 from ftrain.ckpt.lease import LEASE
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import Storage, StorageError
-from ftrain.config import Config, local_path, storage_key
+from ftrain.config import Config, local_path
 from ftrain.errors import UserError
 from ftrain.identity import Identity
 from ftrain.log_dir_lock import STORAGE_FILE
@@ -98,13 +108,6 @@ class Spool:
     def _of_this_storage(self, info: StepInfo) -> bool:
         return info.status == VERIFIED and _storage_of(info) == self.remote_url
 
-    def holds(self, url: str) -> bool:
-        """Whether ``url`` (a local path or ``file://`` URL) lies in this spool, by any name: a start that does not
-        resume from the spool empties it, so a step there cannot be named by ``resume=``."""
-        path = local_path(url)
-        root = os.path.realpath(self.storage.root)
-        return bool(path) and os.path.commonpath([os.path.realpath(path), root]) == root
-
     def newest(self, remote: tuple[int, dict] | None, reachable: bool, log: Callable[[str], None]) -> tuple | None:
         """``(step, manifest)`` of the spooled step to resume from instead of the storage's newest step ``remote``
         (None: the storage has none), or None.
@@ -166,23 +169,39 @@ class Spool:
 def check_place(config: Config) -> None:
     """UserError where a spool and a storage would be one directory: this run's spool, ``<log_dir>/spool``, holds
     another run's storage (its lease), or this run's local storage is another run's spool (the directory above it is
-    a log directory of another storage). Each run would delete the other's steps: the spool its storage's, the
-    storage's clean-up the spool's."""
+    the log directory of a run on a remote storage). Each run would delete the other's steps: the spool its storage's,
+    the storage's clean-up the spool's. And where ``resume=`` names a step in this run's spool, which a start that
+    does not resume from the spool empties before the step is read (on several nodes, before anything)."""
     url = config.storage.url
     if (path := local_path(url)) and os.path.basename(path := os.path.realpath(path)) == SPOOL:
         holder = Path(path).parent / STORAGE_FILE
         with contextlib.suppress(OSError):
-            if (other := holder.read_text().strip()) != storage_key(url):
+            if "://" in (other := holder.read_text().strip()):  # a local storage's run keeps no spool
                 raise UserError(
                     f"storage {url} is the spool of the run on {other}, whose log directory is {holder.parent}: "
                     "that run empties it: pass a directory of its own"
                 )
     spool = Path(config.log_dir) / SPOOL
-    if not path and config.checkpoint.spool and (spool / LEASE).exists():
+    if path or not config.checkpoint.spool:
+        return
+    if (spool / LEASE).exists():
         raise UserError(
             f"log directory {config.log_dir} would keep this run's spool in {spool}, which is the storage of another "
             f"run (it holds {LEASE}): give the run on {display_url(url)} a log directory of its own with log_dir=DIR"
         )
+    if config.resume not in ("auto", "never") and _inside(config.resume, spool):
+        raise UserError(
+            f"resume={display_url(config.resume)} is in this run's spool, which a start that does not resume from it "
+            f"empties before the step is read: copy the step's directory out of {spool} (into "
+            f"{display_url(url).rstrip('/')}/{CHECKPOINTS}/ to go on from it with resume=auto, or elsewhere for "
+            "resume=) and run again"
+        )
+
+
+def _inside(url: str, root: Path) -> bool:
+    """Whether ``url`` (a local path or ``file://`` URL) lies in ``root``, by any name (links, ``..``)."""
+    path, real_root = local_path(url), os.path.realpath(root)
+    return bool(path) and os.path.commonpath([os.path.realpath(path), real_root]) == real_root
 
 
 def _storage_of(info: StepInfo) -> str | None:

@@ -330,6 +330,9 @@ def test_a_spool_and_a_storage_are_never_one_directory(tmp_path) -> None:
     ], result.stderr
     assert not spool.exists()
     check_place(load_config(None, [f"storage.url={tmp_path / 'plain' / 'spool'}"]))
+    (tmp_path / "local").mkdir()  # the log directory of a run on a local storage, which keeps no spool
+    (tmp_path / "local" / "storage.txt").write_text(f"{tmp_path / 'local'}\n")
+    check_place(load_config(None, [f"storage.url={tmp_path / 'local' / 'spool'}"]))
     make_step(Storage.open(str(spool)), 4)  # a local run there, then one on S3 whose log directory is above it
     (spool / "LEASE.json").write_text("{}")
     remote = ["storage.url=s3://bucket/other", f"log_dir={logs}"]

@@ -111,15 +111,27 @@ def test_a_corrupt_spooled_step_newer_than_the_storages_is_told_not_skipped_in_s
     assert lines == []
 
 
-def test_a_path_in_the_spool_is_known_by_any_name(tmp_path, monkeypatch):
-    spool = spool_with(tmp_path, monkeypatch, {5: ("a", None)})
-    (tmp_path / "link").symlink_to(tmp_path / "spool")
+def test_resume_into_the_spool_is_refused_by_any_name_before_the_start(tmp_path, monkeypatch):
+    """A start that does not resume from the spool empties it (on several nodes, before anything): ``resume=`` a step
+    there is refused, however it is spelt, before the run starts; a path beside it, or a spool switched off, is
+    taken."""
+    from ftrain.ckpt.spool import check_place
+    from ftrain.config import load_config
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "logs" / "spool" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "link").symlink_to(tmp_path / "logs")
+    run = ["storage.url=s3://bucket/run", f"log_dir={tmp_path / 'logs'}"]
     inside = [
-        tmp_path / "spool" / "checkpoints" / "step-000000005",
-        tmp_path / "link" / "checkpoints",
-        tmp_path / "other" / ".." / "spool",
+        "logs/spool/checkpoints/step-000000005",
+        str(tmp_path / "link" / "spool" / "checkpoints"),
+        "other/../logs/spool",
+        f"file://{tmp_path}/logs/spool/checkpoints/step-000000005",
     ]
-    assert all(spool.holds(str(path)) for path in inside)
-    assert spool.holds(f"file://{tmp_path}/spool/checkpoints/step-000000005")
-    outside = [str(tmp_path / "spool2"), str(tmp_path), REMOTE + "/checkpoints/step-000000005"]
-    assert not any(spool.holds(url) for url in outside)
+    for resume in inside:
+        with pytest.raises(UserError, match=r"is in this run's spool, which a start that does not resume from it"):
+            check_place(load_config(None, [*run, f"resume={resume}"]))
+    for resume in ["logs/spool2/checkpoints/step-000000005", "s3://bucket/run/checkpoints/step-000000005"]:
+        check_place(load_config(None, [*run, f"resume={resume}"]))
+    check_place(load_config(None, [*run, f"resume={inside[0]}", "checkpoint.spool=false"]))
+    print(f"{len(inside)} spellings refused, 3 taken")
