@@ -62,7 +62,7 @@ LAYERS = {
         "redact",
     },
     "comm": {"errors", "procfs"},
-    "torchrun": {"config", "errors", "errorfile", "lifeline", "proctitle"},
+    "torchrun": {"config", "errors", "errorfile", "lifeline", "process", "proctitle"},
     "config": {"values", "errors", "redact", "log_dir_lock"},
     "values": {"errors", "redact"},
     "heartbeat": set(),

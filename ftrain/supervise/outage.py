@@ -26,9 +26,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
 
-from ftrain.ckpt.format import StepInfo, human_size, verify_step
+from ftrain.ckpt.format import CHECKPOINTS, StepInfo, human_size, verify_step
 from ftrain.ckpt.lineage import history
 from ftrain.ckpt.retry import OUTAGE, Backoff, WaitLines
+from ftrain.ckpt.spool import SPOOL
 from ftrain.ckpt.steps import resolve_checkpoint_url, scan
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.config import AUTO, Config, StorageConfig
@@ -213,11 +214,15 @@ def start_of(config: Config) -> tuple[bool, tuple[int, dict] | None]:
         try:
             if (head := _head(config.storage)) is not None:
                 return head.step, head.manifest or {}
-            if config.resume == AUTO:
-                return None
-            _, step, manifest = resolve_checkpoint_url(config.resume, config.storage.options, log=lambda line: None)
         except UserError as error:
             return error
+        if config.resume == AUTO:
+            return None
+        try:
+            _, step, manifest = resolve_checkpoint_url(config.resume, config.storage.options, log=lambda line: None)
+        except UserError as error:  # unless the workers may go on from the spool instead (``resume.py``)
+            spooled = Path(config.log_dir) / SPOOL / CHECKPOINTS
+            return None if spooled.is_dir() and any(spooled.iterdir()) else error
         return step, manifest
 
     answered, start = _within(look)
