@@ -203,7 +203,8 @@ def test_the_workers_a_supervisor_starts_without_nproc_per_node(tmp_path, two_ra
         ),
         "resume= into a fresh one": (chosen(str(tmp_path / "new"), f"resume={two_rank_step}")[0], 2),
     }
-    down = chosen("s3://bucket/run", options={"endpoint_url": f"http://127.0.0.1:{free_port()}"})
+    nobody = {"endpoint_url": f"http://127.0.0.1:{free_port()}", "key": "k", "secret": "s"}  # credentials: it is asked
+    down = chosen("s3://bucket/run", options=nobody)
     cases["a storage that does not answer"] = (down[0], 1)
     assert "the storage did not say within 5 s how many ranks its run has: 1 worker" in down[1], down
     monkeypatch.setattr("os.cpu_count", lambda: 1)
