@@ -171,11 +171,12 @@ def test_a_stop_at_any_moment_of_the_start_is_one_line_and_its_exit_code(tmp_pat
     traceback (Ctrl-C) or a silent death (SIGTERM, a probe's); from the moment the trainer takes them over it saves
     first. So for ``ftrun`` (torchrun's agent: a traceback from its import of torch or its rendezvous, before). Random
     moments over the whole start, a random signal and launcher each: 128 + the signal every time, no traceback, a
-    line that says the stop, and whatever the storage holds verifies; or, before the interpreter has taken its
-    signals over (within twice the time a bare interpreter takes to start, measured here), the signal's own silent
-    death with nothing printed or made."""
+    line that says the stop, and whatever the storage holds verifies; or, before the launcher has taken its signals
+    over (within twice the time the interpreter takes to start and import ftrun's module, measured here), the
+    signal's own silent death with nothing printed or made."""
     draw = random.Random(130)
-    interpreter_start = 2 * max(_seconds([sys.executable, "-c", "pass"]) for _ in range(3))  # today's, loaded or not
+    # the launchers take their signals over once their module is imported: twice that time, today's, loaded or not
+    interpreter_start = 2 * max(_seconds([sys.executable, "-c", f"import {TORCHRUN}"]) for _ in range(3))
     # log-uniform: the start's phases are shorter the earlier they come (imports, rendezvous, building, training)
     moments, saved, checked = sorted(math.exp(draw.uniform(math.log(0.05), math.log(10.0))) for _ in range(10)), 0, []
     for moment in moments:
@@ -190,7 +191,7 @@ def test_a_stop_at_any_moment_of_the_start_is_one_line_and_its_exit_code(tmp_pat
         proc.send_signal(stop)
         output = proc.communicate(timeout=120)[0]
         if proc.returncode == -stop and moment < interpreter_start and not output and not storage.exists():
-            checked[-1] += " (before the interpreter took its signals over)"
+            checked[-1] += " (before the launcher took its signals over)"
             continue
         assert proc.returncode == 128 + stop, (moment, stop, output[-2000:])
         assert "Traceback" not in output and "death signal" not in output, (moment, output[-2000:])
