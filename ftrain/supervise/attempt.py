@@ -227,10 +227,11 @@ class Attempt:
         """The rank to blame and how it ended (see ``outcome.blame``)."""
         return blame(self.failures, self.killed)
 
-    def terminate(self) -> None:
-        """SIGTERM every worker (each saves at the next iteration boundary), or torchrun before it has any."""
+    def terminate(self, signum: int = signal.SIGTERM) -> None:
+        """SIGTERM every worker (each saves at the next iteration boundary), or torchrun before it has any; SIGHUP
+        where the supervisor got one: a stop alike, and the workers print no more to the terminal that closed."""
         for pid in self.workers() or ([self.proc.pid] if self.proc.poll() is None else []):
-            kill(pid, signal.SIGTERM)
+            kill(pid, signum)
 
     def workers(self) -> list[int]:
         return [pid for pid in processes_with(self.token) if pid != self.proc.pid]

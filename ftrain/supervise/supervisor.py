@@ -30,7 +30,7 @@ from ftrain.ckpt import cas
 from ftrain.ckpt.lease import Lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config, for_elastic, make_local_directories, storage_key
-from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, Deliveries, UserError, stop_code, stop_signals
+from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, Deliveries, UserError, leave_the_terminal, stop_code, stop_signals
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.log_dir_lock import claim_log_dir
 from ftrain.redact import hide_credentials, redact_command
@@ -169,6 +169,8 @@ class Supervisor:
         self.lease: Lease | None = None  # the storage's, held for the run (``run``)
 
     def on_signal(self, number: int, frame: object) -> None:
+        if number == signal.SIGHUP:
+            leave_the_terminal()
         if self.deliveries.new(number):
             self.signals.append(number)
 
@@ -382,7 +384,7 @@ class Supervisor:
         elif self.nodes.count > 1:
             self._tell("finish", code=stop_code(self.signals[0]))
         write_stop_reason(self.heartbeat_dir, self.signals[0])
-        attempt.terminate()
+        attempt.terminate(signal.SIGHUP if self.signals[0] == signal.SIGHUP else signal.SIGTERM)
 
     def _exited(self, attempt: Attempt, code: int) -> Outcome:
         now = time.monotonic()

@@ -14,7 +14,7 @@ import sys
 import threading
 import typing
 
-from ftrain.errors import Deliveries, stop_code, stop_signals
+from ftrain.errors import Deliveries, leave_the_terminal, stop_code, stop_signals
 
 
 class StopRequest:
@@ -74,7 +74,9 @@ class StopRequest:
                     os._exit(stop_code(number[0]))
 
     def _handle(self, signum: int, frame: object) -> None:
-        signum = signal.SIGTERM if signum == signal.SIGHUP else signum  # a closed terminal: the ranks vote a SIGTERM
+        if signum == signal.SIGHUP:  # a closed terminal: the ranks vote a SIGTERM, and print no more to it
+            leave_the_terminal()
+            signum = signal.SIGTERM
         if not self.deliveries.new(signum):
             return
         if self.requested and signum == signal.SIGINT:

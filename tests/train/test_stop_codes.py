@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import pty
 import random
 import re
 import signal
@@ -93,6 +94,32 @@ def test_a_closed_terminal_sighup_saves_and_exits_143_as_sigterm(tmp_path, launc
     assert step == max(metrics_by_iteration(storage)) >= 3, "every iteration trained is in the last save"
     said = "SIGHUP: asking the workers to save" if supervised else f"stopped by SIGTERM: saved step {step}"
     assert said in printed, printed[-2000:]
+
+
+def test_a_lone_trainer_printing_to_a_terminal_that_closes_saves_and_exits_143(tmp_path) -> None:
+    """A real terminal (a pseudo-terminal that is the run's controlling one) closes while the run prints its progress
+    to it: the kernel sends SIGHUP, and every write to it fails (EIO), which ended the run (exit 1) before its save.
+    Now what it still prints goes to /dev/null, and it saves every iteration trained and exits 143."""
+    storage = tmp_path / "run"
+    master, slave = pty.openpty()
+    terminal = os.ttyname(slave)
+
+    def in_a_terminal() -> None:
+        os.setsid()
+        opened = os.open(terminal, os.O_RDWR)  # the first terminal a session leader opens becomes its controlling one
+        for fd in (0, 1, 2):
+            os.dup2(opened, fd)
+
+    command = [*train_command(storage, LONG, "checkpoint.interval=100000"), "log.console=true"]
+    proc = subprocess.Popen(command, cwd=REPO, env=child_env(), preexec_fn=in_a_terminal, close_fds=True)
+    os.close(slave)
+    printed, deadline = b"", time.monotonic() + 120
+    while b"it 5/" not in printed and time.monotonic() < deadline:
+        printed += os.read(master, 65536)
+    os.close(master)  # the terminal closes
+    assert proc.wait(timeout=120) == 143, printed[-2000:]
+    step = final_manifest(storage)["step"]
+    assert step == max(metrics_by_iteration(storage)) >= 5, "every iteration trained is in the last save"
 
 
 @pytest.mark.parametrize(
