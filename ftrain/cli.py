@@ -39,6 +39,7 @@ from ftrain.lifeline import watch_launcher
 from ftrain.process import imports
 from ftrain.proctitle import name_process, rank_role
 from ftrain.redact import display_url, reveal_credentials
+from ftrain.terminal import outlive_a_hangup
 
 if typing.TYPE_CHECKING:
     from ftrain.config import Config
@@ -441,6 +442,7 @@ def _command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    outlive_a_hangup()
     stop_on_sigterm()
     _escape_what_stdout_cannot_encode()
     if argv[:1] == ["train"]:  # a worker of ``ftrain supervise``: the credentials come from the environment

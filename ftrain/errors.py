@@ -18,6 +18,7 @@ import traceback
 import typing
 
 from ftrain import errorfile
+from ftrain.terminal import leave_the_terminal
 
 EXIT_FAILED = 1
 """A storage operation failed for good (``StorageError``) outside training."""
@@ -79,20 +80,6 @@ def raise_terminated(signum: int, frame: object) -> None:
     if signum == signal.SIGHUP:
         leave_the_terminal()
     raise Terminated
-
-
-TERMINAL_FDS = tuple(fd for fd in (1, 2) if os.isatty(fd))
-"""Standard output and error where they were a terminal when ftrain was imported (once it hangs up, ``isatty`` fails
-too)."""
-
-
-def leave_the_terminal() -> None:
-    """After SIGHUP: a terminal that hung up fails every write (EIO), which would end the run before its save; what it
-    still prints goes to /dev/null instead (output to a file or a pipe is left alone)."""
-    null = os.open(os.devnull, os.O_WRONLY)
-    for fd in TERMINAL_FDS:
-        os.dup2(null, fd)
-    os.close(null)
 
 
 def stopped(signum: int) -> int:

@@ -47,6 +47,7 @@ from ftrain.errors import (
 from ftrain.lifeline import die_with_supervisor
 from ftrain.process import imports
 from ftrain.proctitle import name_process
+from ftrain.terminal import outlive_a_hangup
 
 EXIT_WORKERS_FAILED = 1
 FAILURES_OPTION = "--failures="
@@ -79,6 +80,7 @@ def run(argv: list[str]) -> int:
     """torchrun in this process: ``main`` without the tie to the supervisor (the warm pool forks it: ``ftrain/warm``,
     where it ends with the pool)."""
     name_process("torchrun agent")
+    outlive_a_hangup()
     # the agent's own handlers: the stop signals this process takes (a SIGHUP ignored under nohup stays so), SIGQUIT
     os.environ.setdefault(
         "TORCHELASTIC_SIGNALS_TO_HANDLE",

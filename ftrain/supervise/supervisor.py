@@ -30,7 +30,7 @@ from ftrain.ckpt import cas
 from ftrain.ckpt.lease import Lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config, for_elastic, make_local_directories, storage_key
-from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, Deliveries, UserError, leave_the_terminal, stop_code, stop_signals
+from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, Deliveries, UserError, stop_code, stop_signals
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.log_dir_lock import claim_log_dir
 from ftrain.redact import hide_credentials, redact_command
@@ -53,6 +53,7 @@ from ftrain.supervise.outage import NEWEST_WITHIN, StorageWait, start_of
 from ftrain.supervise.outcome import Outcome, classify, finished, newest_step, not_admitted, peer_ended
 from ftrain.supervise.plan import Plan, plan_key
 from ftrain.supervise.restarts import RestartPolicy
+from ftrain.terminal import leave_the_terminal
 
 POLL = 0.1
 """Seconds between two looks at torchrun and the heartbeats."""

@@ -14,7 +14,8 @@ import sys
 import threading
 import typing
 
-from ftrain.errors import Deliveries, leave_the_terminal, stop_code, stop_signals
+from ftrain.errors import Deliveries, stop_code, stop_signals
+from ftrain.terminal import leave_the_terminal
 
 
 class StopRequest:

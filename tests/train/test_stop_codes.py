@@ -96,30 +96,66 @@ def test_a_closed_terminal_sighup_saves_and_exits_143_as_sigterm(tmp_path, launc
     assert said in printed, printed[-2000:]
 
 
-def test_a_lone_trainer_printing_to_a_terminal_that_closes_saves_and_exits_143(tmp_path) -> None:
-    """A real terminal (a pseudo-terminal that is the run's controlling one) closes while the run prints its progress
-    to it: the kernel sends SIGHUP, and every write to it fails (EIO), which ended the run (exit 1) before its save.
-    Now what it still prints goes to /dev/null, and it saves every iteration trained and exits 143."""
-    storage = tmp_path / "run"
+def in_a_terminal(command: list[str], *, ignore_sighup: bool = False) -> tuple[subprocess.Popen, int]:
+    """``command`` started with a real terminal (a pseudo-terminal that is its controlling one) as its stdin, stdout
+    and stderr, as in a shell; ``ignore_sighup``: as ``disown`` or ``trap '' HUP`` leave it. Returns the process and
+    the terminal's other side: closing that closes the terminal."""
     master, slave = pty.openpty()
     terminal = os.ttyname(slave)
 
-    def in_a_terminal() -> None:
+    def become_its_session() -> None:
         os.setsid()
         opened = os.open(terminal, os.O_RDWR)  # the first terminal a session leader opens becomes its controlling one
         for fd in (0, 1, 2):
             os.dup2(opened, fd)
+        if ignore_sighup:
+            signal.signal(signal.SIGHUP, signal.SIG_IGN)
 
-    command = [*train_command(storage, LONG, "checkpoint.interval=100000"), "log.console=true"]
-    proc = subprocess.Popen(command, cwd=REPO, env=child_env(), preexec_fn=in_a_terminal, close_fds=True)
+    proc = subprocess.Popen(command, cwd=REPO, env=child_env(), preexec_fn=become_its_session, close_fds=True)
     os.close(slave)
-    printed, deadline = b"", time.monotonic() + 120
-    while b"it 5/" not in printed and time.monotonic() < deadline:
+    return proc, master
+
+
+def read_until(master: int, wanted: bytes, timeout: float = 120) -> bytes:
+    printed, deadline = b"", time.monotonic() + timeout
+    while wanted not in printed and time.monotonic() < deadline:
         printed += os.read(master, 65536)
-    os.close(master)  # the terminal closes
+    return printed
+
+
+@pytest.mark.parametrize("launcher", ["train", "supervise"])
+def test_a_run_printing_to_a_terminal_that_closes_saves_and_exits_143(tmp_path, launcher: str) -> None:
+    """A real terminal closes while the run prints its progress to it: the kernel sends SIGHUP, and every write to it
+    fails (EIO), which ended a lone run (exit 1) before its save, and a supervised worker that printed before the
+    supervisor passed the SIGHUP on. Now what they still print goes to /dev/null, and the run saves every iteration
+    trained and exits 143."""
+    storage, overrides = tmp_path / "run", (LONG, "checkpoint.interval=100000", "log.console=true")
+    command = train_command(storage, *overrides)
+    if launcher == "supervise":
+        command = supervise_command(storage, *overrides, ranks=1)
+    proc, terminal = in_a_terminal(command)
+    printed = read_until(terminal, b"it 5/")
+    os.close(terminal)  # the terminal closes
     assert proc.wait(timeout=120) == 143, printed[-2000:]
     step = final_manifest(storage)["step"]
     assert step == max(metrics_by_iteration(storage)) >= 5, "every iteration trained is in the last save"
+
+
+@pytest.mark.parametrize("launcher", ["train", "supervise"])
+def test_a_run_that_ignores_sighup_outlives_its_terminal_and_finishes(tmp_path, launcher: str) -> None:
+    """A run that SIGHUP does not stop (``disown``, ``trap '' HUP``) goes on printing to a terminal that closed: every
+    write failed (EIO), and the process that wrote (a worker, the supervisor) ended with exit 1, losing what it had
+    trained since its last save. Now what it prints goes to /dev/null, and it trains to the end."""
+    storage, iterations = tmp_path / "run", 300
+    overrides = (f"iterations={iterations}", "checkpoint.interval=100", "log.console=true")
+    command = train_command(storage, *overrides)
+    if launcher == "supervise":
+        command = supervise_command(storage, *overrides, ranks=1)
+    proc, terminal = in_a_terminal(command, ignore_sighup=True)
+    printed = read_until(terminal, b"it 5/")
+    os.close(terminal)
+    assert finish(proc, timeout=180) == 0, printed[-2000:]
+    assert final_manifest(storage)["step"] == max(metrics_by_iteration(storage)) == iterations
 
 
 @pytest.mark.parametrize(
