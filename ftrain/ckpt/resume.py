@@ -301,6 +301,8 @@ def _decide(
     if reachable and found is None:
         _refuse_corrupt(storage)  # before the spool: a storage with steps that do not verify is the user's to look at
     spooled = _spooled(spool, found, reachable, log) if spool is not None else None
+    if spool is None and reachable and resume == "auto" and (switched_off := Spool.switched_off(config, storage)):
+        switched_off.refuse_to_pass_over(found)
     if spooled is not None:
         step, manifest = spooled
         check_compatible(config, step, manifest, world_size, robot, in_place=False)

@@ -78,6 +78,33 @@ class Spool:
                 spool.clear()
         return None
 
+    @classmethod
+    def switched_off(cls, config: Config, remote: Storage) -> Spool | None:
+        """The spool an earlier run on ``remote`` left in this log directory, where ``checkpoint.spool=false`` would
+        pass over it, or None."""
+        path = Path(config.log_dir) / SPOOL
+        if config.checkpoint.spool or remote.is_local or not (path / CHECKPOINTS).is_dir():
+            return None
+        return cls(Storage.open(str(path)), remote.url)
+
+    def refuse_to_pass_over(self, remote: tuple[int, dict] | None) -> None:
+        """UserError where this spool, switched off, holds a step that a start with it on would go on from (the
+        storage's newest being ``remote``): the start would train on from an older step, and the spooled one, the
+        only copy of what was trained since, would no longer continue the storage's history. A spool that does not
+        read is passed over: it is optional."""
+        try:
+            newer = self.newest(remote, True, lambda line: None)
+        except (StorageError, OSError, KeyError, TypeError, ValueError):
+            return
+        if newer is not None:
+            older = f"from its step {remote[0]}" if remote is not None else "afresh"
+            spool = self.storage.where("")
+            raise UserError(
+                f"checkpoint.spool=false passes over step {newer[0]} in the spool {spool}, newer than what "
+                f"{display_url(self.remote_url)} holds: run with checkpoint.spool=true to go on from it, or delete "
+                f"{spool} to go on {older}"
+            )
+
     def write(self, step: int, name: str, data: bytes) -> FileEntry:
         """One file of ``step``; what an earlier attempt at the same step left is replaced (the spool is this
         node's alone)."""

@@ -263,7 +263,8 @@ def test_two_ranks_on_s3_killed_and_resumed(tmp_path, s3_server, s3_env, referen
 
 def test_a_last_step_only_in_the_spool_reaches_the_storage_before_the_run_ends(tmp_path, s3_server, s3_env) -> None:
     """The run's last step was spooled, but its save to S3 never landed (here: deleted): the next start resumes
-    from the spool, finds nothing to train, and commits that step to S3 before it calls the run done."""
+    from the spool, finds nothing to train, and commits that step to S3 before it calls the run done. A start with
+    the spool switched off would have gone on from step 6 and left step 8 behind: refused, with both ways on."""
     from ftrain.ckpt.retention import delete_step
     from ftrain.ckpt.storage import Storage
 
@@ -273,6 +274,15 @@ def test_a_last_step_only_in_the_spool_reaches_the_storage_before_the_run_ends(t
     final = json.loads(_read_s3_manifest(url, 8, s3_env))
     options = {"endpoint_url": s3_env["AWS_ENDPOINT_URL"], "key": s3_server["key"], "secret": s3_server["secret"]}
     delete_step(Storage.open(url, options), 8)
+    switched_off = subprocess.run(
+        train_command(url, *overrides, "checkpoint.spool=false"), cwd=REPO, env=child_env(s3_env), capture_output=True
+    )
+    spool = tmp_path / "logs" / "spool"
+    said = (
+        f"ftrain: error: checkpoint.spool=false passes over step 8 in the spool {spool}, newer than what {url} holds: "
+        f"run with checkpoint.spool=true to go on from it, or delete {spool} to go on from its step 6\n"
+    ).encode()
+    assert (switched_off.returncode, switched_off.stderr[-len(said) :]) == (2, said), switched_off.stderr
     result = run_train(url, *overrides, env=s3_env)
     assert "resumed from step 8 (the spool " in result.stdout and "nothing to train" in result.stdout, result.stdout
     assert json.loads(_read_s3_manifest(url, 8, s3_env))["state_sha256"] == final["state_sha256"]
