@@ -190,8 +190,9 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
         ),
         ("Throughput", "environment steps / s", {"steps_per_s": "all ranks"}),
     ]
-    panels = [(title, unit, {k: v for k, v in series.items() if k in columns}) for title, unit, series in panels]
-    panels = [panel for panel in panels if panel[2]]
+    drawn = {column for column, values in columns.items() if not all(map(math.isnan, values))}
+    panels = [(title, unit, {k: v for k, v in series.items() if k in drawn}) for title, unit, series in panels]
+    panels = [panel for panel in panels if panel[2]]  # no empty panel: a run too short for an episode to end
     figure, axes = plt.subplots(2, 2, figsize=(12, 8), squeeze=False)
     for ax, (title, unit, series) in zip(axes.flat, panels, strict=False):
         for column, label in series.items():

@@ -107,6 +107,19 @@ def test_iterations_missing_from_the_file_break_the_curves_and_are_named(resumed
     )
 
 
+def test_a_run_in_which_no_episode_ended_has_no_empty_panel(resumed, tmp_path) -> None:
+    """HalfCheetah's episodes last 1,000 steps, 62 iterations of the shipped config: a shorter run logs no episode
+    return or length (NaN in every row), which drew an empty panel."""
+    rows = list(csv.DictReader((resumed / "metrics.csv").open()))
+    run = tmp_path / "short"
+    run.mkdir()
+    with (run / "metrics.csv").open("w", newline="") as file:
+        writer = csv.DictWriter(file, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(row | {"mean_return": "nan", "mean_length": "nan"} for row in rows)
+    assert plot_run(run, tmp_path / "curves.png").panels == ["Episode return", "Losses", "Throughput"]  # evaluations
+
+
 def test_a_curve_never_joins_two_points_across_a_missing_iteration() -> None:
     """Generated files (seeded): which iterations have rows, and which rows have a value in the column (an
     evaluation's, every few rows): every value is drawn, and the line between two drawn points spans no iteration
