@@ -87,9 +87,15 @@ def stopped(signum: int) -> int:
     line instead of a traceback or a silent death, and the shell's code, 128 + the signal. A run saves from the
     moment it took them over. Of a launcher's workers, rank 0 alone says it (``errorfile.says_its_stop``)."""
     said = "interrupted (Ctrl-C)" if signum == signal.SIGINT else f"stopped by {signal.Signals(signum).name}"
-    if errorfile.says_its_stop():
-        print(f"ftrain: {said}", file=sys.stderr, flush=True)
+    with _SAYING:  # said once, where a launcher's watch (``ftrain.torchrun``) ends a start its main thread could not
+        if errorfile.says_its_stop() and not _said:
+            _said.append(said)
+            print(f"ftrain: {said}", file=sys.stderr, flush=True)
     return 128 + signum
+
+
+_SAYING = threading.Lock()
+_said: list[str] = []
 
 
 def stop_signal(error: BaseException) -> int | None:

@@ -26,6 +26,8 @@ import logging
 import os
 import signal
 import sys
+import threading
+import time
 import typing
 from pathlib import Path
 
@@ -51,6 +53,8 @@ from ftrain.terminal import outlive_a_hangup
 
 EXIT_WORKERS_FAILED = 1
 FAILURES_OPTION = "--failures="
+STOP_GRACE = 1.0
+"""Seconds a stop before the workers start has for its own handler to end the process, before the watch ends it."""
 QUIETED = {
     "torch.distributed.run": ("Setting OMP_NUM_THREADS",),  # ftrain sets each worker's threads itself (torch_threads)
     "torch.distributed.elastic.multiprocessing.api": ("failed (exitcode", "closing signal"),  # the end says it
@@ -96,6 +100,7 @@ def run(argv: list[str]) -> int:
     if failures_path is None:
         _quiet_torchrun()
     _tell_workers_the_nodes(arguments)
+    _watch_for_a_stop_before_the_workers()
     try:
         torchrun(arguments)
     except ChildFailedError as failed:
@@ -123,6 +128,30 @@ def run(argv: list[str]) -> int:
         print(f"torchrun: rendezvous timed out: {' '.join(str(error).split())}", file=sys.stderr, flush=True)
         return EXIT_RENDEZVOUS_TIMEOUT
     return 0
+
+
+def _watch_for_a_stop_before_the_workers() -> None:
+    """Ctrl-C, SIGTERM or SIGHUP while torchrun waits for its rendezvous: torch's TCPStore retries its connect
+    through the interruption (up to 15 minutes, a C++ trace each time), so Python's handler, which runs only once that
+    call returns, never ran. A thread woken by the signal itself (``signal.set_wakeup_fd``) ends the process with the
+    stop's one line where, a second later, it has not ended and no worker has started (the agent takes the signals
+    over when it starts them): there is nothing to save."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    ours = {number: signal.getsignal(number) for number in stop_signals()}
+    readable, writable = os.pipe()
+    os.set_blocking(writable, False)
+    signal.set_wakeup_fd(writable, warn_on_full_buffer=False)
+
+    def watch() -> None:
+        while True:
+            signum = os.read(readable, 1)[0]
+            if signum in ours:
+                time.sleep(STOP_GRACE)
+                if signal.getsignal(signum) is ours[signum]:
+                    os._exit(stopped(signal.SIGTERM if signum == signal.SIGHUP else signum))
+
+    threading.Thread(target=watch, name="stop before the workers", daemon=True).start()
 
 
 def _explained(failed: ChildFailedError) -> int | None:

@@ -4,9 +4,12 @@ torchrun's report. Real torchrun, real workers."""
 from __future__ import annotations
 
 import json
+import signal
 import socket
 import subprocess
 import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -103,3 +106,30 @@ def test_an_elastic_launch_refuses_at_its_start_a_total_that_a_larger_world_cann
         "count per rank"
     ]
     assert not (tmp_path / "run").exists()  # refused before the storage was taken: nothing made (its lease, locks)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("stop", [signal.SIGTERM, signal.SIGHUP])
+def test_a_stop_while_waiting_for_a_rendezvous_host_that_is_not_up_ends_at_once_in_one_line(tmp_path, stop) -> None:
+    """Node 1 of 2 waits for node 0's address, where nothing listens yet: torch's TCPStore retries its connect through
+    a signal for up to 15 minutes (a C++ trace each time), so a stop there did nothing. Now it ends within seconds with
+    143 and one line; there is nothing to save."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    launch = ["--nnodes=2", "--node-rank=1", "--nproc-per-node=1", "--master-addr=127.0.0.1", f"--master-port={port}"]
+    command = [sys.executable, "-m", TORCHRUN, *launch, "-m", "ftrain", "train", SMOKE, "--storage", str(tmp_path)]
+    proc = subprocess.Popen(command, cwd=REPO, env=child_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    maps = Path(f"/proc/{proc.pid}/maps")
+    deadline = time.monotonic() + 120
+    while "libtorch_python" not in maps.read_text() and time.monotonic() < deadline:
+        time.sleep(0.1)
+    time.sleep(3)  # torch imported; then torchrun's rendezvous, in its connect to the host that is not up
+    proc.send_signal(stop)
+    try:
+        code = proc.wait(timeout=30)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        raise AssertionError(f"still waiting 30 s after {stop.name}: {proc.stderr.read().decode()[-2000:]}") from None
+    said = proc.stderr.read().decode()
+    assert (code, said.splitlines()[-1:]) == (143, ["ftrain: stopped by SIGTERM"]), said[-2000:]
