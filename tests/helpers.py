@@ -400,14 +400,23 @@ class S3Outage:
         }
 
 
-class S3Proxy:
-    """A real HTTP proxy on 127.0.0.1 in front of an S3 server, for the faults of S3-compatible servers and networks:
-    ``ignored`` request headers are dropped (a server that ignores If-Match, say), a request that ``lose``
-    (method, path) selects is done by the server but its answer is lost (the connection is reset), and while
-    ``stalling`` is set, a PUT is taken and never answered, not even its ``Expect: 100-continue`` (a server paused in
-    the middle of an upload), until ``stalling`` is cleared (then its connection closes)."""
+class StoreProxy:
+    """A real HTTP proxy on 127.0.0.1 in front of an object store's server (S3's, GCS's), for the faults of servers
+    and networks: ``ignored`` request headers are dropped (a server that ignores If-Match, say), a request that
+    ``lose`` (method, path) selects is done by the server but its answer is lost (the connection is reset), request
+    bodies are taken at ``rate`` bytes per second (a slow link), and while ``stalling`` is set, a request of a method
+    in ``stalls`` (S3's uploads are PUTs, GCS's POSTs) is taken and never answered, not even its ``Expect:
+    100-continue`` (a server paused in the middle of an upload), until ``stalling`` is cleared (then its connection
+    closes)."""
 
-    def __init__(self, upstream: str, ignored: tuple[str, ...] = (), lose=lambda method, path: False) -> None:
+    def __init__(
+        self,
+        upstream: str,
+        ignored: tuple[str, ...] = (),
+        lose=lambda method, path: False,
+        stalls: tuple[str, ...] = ("PUT",),
+        rate: float | None = None,
+    ) -> None:
         target, dropped = urlsplit(upstream), {name.lower() for name in ignored}
         self.stalling, self._served = threading.Event(), threading.Event()
         proxy = self
@@ -419,8 +428,8 @@ class S3Proxy:
                 return not self._stalled() and super().handle_expect_100()
 
             def _stalled(self) -> bool:
-                """Hold a PUT while the proxy stalls; True if it did (the request then goes unanswered)."""
-                if self.command != "PUT" or not proxy.stalling.is_set():
+                """Hold an upload while the proxy stalls; True if it did (the request then goes unanswered)."""
+                if self.command not in stalls or not proxy.stalling.is_set():
                     return False
                 while proxy.stalling.is_set() and not proxy._served.is_set():
                     time.sleep(0.05)
@@ -461,12 +470,26 @@ class S3Proxy:
                         self.rfile.readline()
                     self.rfile.readline()
                     return b"".join(chunks)
-                return self.rfile.read(int(self.headers.get("Content-Length") or 0))
+                return self._read(int(self.headers.get("Content-Length") or 0))
+
+            def _read(self, size: int) -> bytes:
+                if rate is None:
+                    return self.rfile.read(size)
+                chunks = []
+                while size > 0 and (chunk := self.rfile.read(min(size, 16384))):
+                    chunks.append(chunk)
+                    size -= len(chunk)
+                    time.sleep(len(chunk) / rate)
+                return b"".join(chunks)
 
             def log_message(self, *args: object) -> None:
                 pass
 
-        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Forward)
+        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Forward, bind_and_activate=False)
+        if rate is not None:  # a slow link's buffers: loopback's take megabytes, a slow upload's tail ahead of its time
+            self.server.socket.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 16384)
+        self.server.server_bind()
+        self.server.server_activate()
         self.endpoint_url = f"http://127.0.0.1:{self.server.server_address[1]}"
         threading.Thread(target=self.server.serve_forever, daemon=True).start()
 

@@ -23,9 +23,9 @@ S3_TIMEOUTS = {"connect_timeout": 5, "read_timeout": 15}
 would hold one request for minutes, longer than the ranks' collectives wait for each other. Large objects go up in
 parts, each its own request."""
 SLOWEST_UPLOAD = 256 * 1024
-"""Bytes per second an S3 request's body must at least go up at: a request gets the connect and read timeouts plus
-its body's size at this rate, whole, before it is given up (``_deadline_session``). Per request: the parts of a large
-object that go up side by side (s3fs sends up to 10) each need it."""
+"""Bytes per second a request's body must at least go up at (S3, GCS): a request gets the connect and read timeouts
+plus its body's size at this rate, whole, before it is given up (``_deadline_session``, ``_gcs_send_once``). Per
+request: the parts of a large object that go up side by side (s3fs sends up to 10) each need it."""
 SENT_AT_ONCE = 64 * 1024
 """A body this small goes into the socket's buffer at once, so that aiohttp's read timeout starts with the request,
 unless it first waits for ``100 Continue``."""
@@ -63,10 +63,32 @@ def send_once(fs: fsspec.AbstractFileSystem, protocol: str) -> None:
 
 
 def _gcs_send_once(fs: fsspec.AbstractFileSystem) -> None:
-    """Send each request of this gcsfs instance once: gcsfs wraps its one request method in a retry of its own (6
-    tries over half a minute, so that a storage down at start took a minute and a half to tell) and takes no option
-    for it; this instance gets the method unwrapped."""
-    fs._request = types.MethodType(type(fs)._request.__wrapped__, fs)
+    """Send each request of this gcsfs instance once, and give it S3's timeouts: gcsfs wraps its one request method
+    in a retry of its own (6 tries over half a minute, so that a storage down at start took a minute and a half to
+    tell) and takes no option for it; this instance gets the method unwrapped. gcsfs gives each request
+    ``requests_timeout`` as a whole, which cut short every shard (one request up to 50 MiB) on a link slower than its
+    size over that time: it is the wait for an answer here, and a body gets on top of it its time at
+    ``SLOWEST_UPLOAD``."""
+    import aiohttp  # gcsfs's own client
+
+    send = types.MethodType(type(fs)._request.__wrapped__, fs)
+    read = fs.requests_timeout or S3_TIMEOUTS["read_timeout"]
+    fs.requests_timeout = aiohttp.ClientTimeout(sock_connect=S3_TIMEOUTS["connect_timeout"], sock_read=read)
+
+    async def within_deadline(method: str, path: str, *args, data=None, **kwargs):
+        size = _bytes_in(data)
+        if size < SENT_AT_ONCE:  # read timeouts cover it from the start
+            return await send(method, path, *args, data=data, **kwargs)
+        seconds = S3_TIMEOUTS["connect_timeout"] + read + size / SLOWEST_UPLOAD
+        try:
+            async with asyncio.timeout(seconds) as deadline:
+                return await send(method, path, *args, data=data, **kwargs)
+        except TimeoutError:
+            if deadline.expired():  # ours, not aiohttp's read timeout
+                raise TimeoutError(f"no answer in {seconds:.0f} s") from None
+            raise
+
+    fs._request = within_deadline
 
 
 def _s3_options(url: str, options: dict) -> str:
@@ -116,7 +138,11 @@ def _body_size(request: object) -> int:
     declared = headers.get("Content-Length") or headers.get("X-Amz-Decoded-Content-Length")
     if declared:
         return int(declared)
-    body = request.body
+    return _bytes_in(request.body)
+
+
+def _bytes_in(body: object) -> int:
+    """Bytes of a request's body (bytes, or a stream from where it stands), 0 for anything else."""
     if isinstance(body, (bytes, bytearray, memoryview)):
         return len(body)
     if hasattr(body, "seek") and hasattr(body, "tell"):

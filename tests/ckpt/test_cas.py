@@ -31,7 +31,7 @@ from ftrain.errors import StorageUnavailable, UserError
 from helpers import (
     HOLD_LOCK,
     REPO,
-    S3Proxy,
+    StoreProxy,
     azurite_connection,
     child_env,
     create_bucket,
@@ -49,7 +49,7 @@ RACERS = 8
 @pytest.fixture
 def careless_s3(s3_server) -> Iterator[dict]:
     """An S3 endpoint that ignores conditional writes: moto behind a proxy that drops their headers."""
-    proxy = S3Proxy(s3_server["endpoint_url"], ignored=("If-Match", "If-None-Match"))
+    proxy = StoreProxy(s3_server["endpoint_url"], ignored=("If-Match", "If-None-Match"))
     try:
         yield {**s3_server, "endpoint_url": proxy.endpoint_url}
     finally:

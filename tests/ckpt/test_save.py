@@ -29,7 +29,7 @@ from helpers import (
     SMOKE,
     TESTS,
     Hold,
-    S3Proxy,
+    StoreProxy,
     assert_same,
     child_env,
     final_manifest,
@@ -190,7 +190,7 @@ def test_a_commit_whose_answer_was_lost_counts_when_its_manifest_landed_and_is_n
             outage.set()  # this PUT is done; from now on no answer comes back
         return manifest or (method == "PUT" and path.split("?")[0].endswith(f"/{step_dir(2)}/{MANIFEST}"))
 
-    proxy = S3Proxy(options["endpoint_url"], lose=lose)
+    proxy = StoreProxy(options["endpoint_url"], lose=lose)
     try:
         storage = Storage.open(url, {**options, "endpoint_url": proxy.endpoint_url}, retries=1)
         writer = StepWriter(storage, CheckpointConfig(keep_last=1), RankInfo(0, 1, 0), None, print)

@@ -36,7 +36,7 @@ from helpers import (
     SMOKE,
     TESTS,
     Hold,
-    S3Proxy,
+    StoreProxy,
     child_env,
     events,
     finish,
@@ -156,7 +156,7 @@ def test_an_upload_that_is_never_answered_is_given_up_and_training_goes_on_throu
     beating. Each S3 request has a deadline now: the saves fail, training goes on (to the spool) while every PUT
     stalls, and the run ends on the uninterrupted bits."""
     url, options = s3_url
-    proxy = S3Proxy(s3_server["endpoint_url"])
+    proxy = StoreProxy(s3_server["endpoint_url"])
     try:
         logs = tmp_path / "logs"
         env = {**s3_env, "AWS_ENDPOINT_URL": proxy.endpoint_url}
