@@ -12,11 +12,15 @@ import functools
 import io
 import logging
 import types
+from collections.abc import Awaitable
+from typing import TypeVar
 from urllib.parse import unquote, urlsplit
 
 import fsspec
 
 from ftrain.redact import display_url
+
+T = TypeVar("T")
 
 S3_TIMEOUTS = {"connect_timeout": 5, "read_timeout": 15}
 """botocore's defaults are 60 s each (the Azure SDK's 300 s; Azure storages get the same as S3's): a paused server
@@ -76,17 +80,10 @@ def _gcs_send_once(fs: fsspec.AbstractFileSystem) -> None:
     fs.requests_timeout = aiohttp.ClientTimeout(sock_connect=S3_TIMEOUTS["connect_timeout"], sock_read=read)
 
     async def within_deadline(method: str, path: str, *args, data=None, **kwargs):
+        sending = send(method, path, *args, data=data, **kwargs)
         size = _bytes_in(data)
-        if size < SENT_AT_ONCE:  # read timeouts cover it from the start
-            return await send(method, path, *args, data=data, **kwargs)
-        seconds = S3_TIMEOUTS["connect_timeout"] + read + size / SLOWEST_UPLOAD
-        try:
-            async with asyncio.timeout(seconds) as deadline:
-                return await send(method, path, *args, data=data, **kwargs)
-        except TimeoutError:
-            if deadline.expired():  # ours, not aiohttp's read timeout
-                raise TimeoutError(f"no answer in {seconds:.0f} s") from None
-            raise
+        connect = S3_TIMEOUTS["connect_timeout"]
+        return await (sending if size < SENT_AT_ONCE else _by_deadline(sending, size, connect, read))
 
     fs._request = within_deadline
 
@@ -122,11 +119,11 @@ def _deadline_session() -> type:
             size = _body_size(request)
             if size < SENT_AT_ONCE and "Expect" not in request.headers:  # read timeouts cover it from the start
                 return await super().send(request)  # (a CompleteMultipartUpload may answer slowly for minutes)
-            seconds = (self._timeout.sock_connect or 0) + (self._timeout.sock_read or 0) + size / SLOWEST_UPLOAD
             try:
-                return await asyncio.wait_for(super().send(request), seconds)
-            except TimeoutError:  # aiohttp's own timeouts come out of ``send`` as botocore's errors: this is ours
-                raise ReadTimeoutError(endpoint_url=request.url, error=f"no answer in {seconds:.0f} s") from None
+                timeouts = (self._timeout.sock_connect or 0, self._timeout.sock_read or 0)
+                return await _by_deadline(super().send(request), size, *timeouts)
+            except TimeoutError as late:  # aiohttp's own timeouts come out of ``send`` as botocore's errors: ours
+                raise ReadTimeoutError(endpoint_url=request.url, error=str(late)) from None
 
     return DeadlineSession
 
@@ -139,6 +136,21 @@ def _body_size(request: object) -> int:
     if declared:
         return int(declared)
     return _bytes_in(request.body)
+
+
+async def _by_deadline(sending: Awaitable[T], size: int, connect_timeout: float, read_timeout: float) -> T:
+    """``sending``, given up with a TimeoutError past the connect and read timeouts plus ``size`` bytes at
+    ``SLOWEST_UPLOAD``: aiohttp's read timeout starts only once a request's body is in the socket's buffers, so that a
+    server that takes the connection and never reads (paused, or stalled on its disk) held an upload, and the saves
+    and training behind it, for as long as it stayed so. Its own timeouts come out as they are."""
+    seconds = connect_timeout + read_timeout + size / SLOWEST_UPLOAD
+    try:
+        async with asyncio.timeout(seconds) as deadline:
+            return await sending
+    except TimeoutError:
+        if deadline.expired():
+            raise TimeoutError(f"no answer in {seconds:.0f} s") from None
+        raise
 
 
 def _bytes_in(body: object) -> int:
@@ -164,7 +176,19 @@ def _azure_options(options: dict) -> None:
 def _azure_send_once(fs: fsspec.AbstractFileSystem) -> None:
     """Turn off the retries of adlfs's Azure client (3 per request, 15-24 s apart: a minute and a half before a
     request to a server that is down fails), so that ours are the only ones, as on S3. adlfs takes no option for it:
-    this sets the counts of the retry policy its client's pipeline runs (azure-storage-blob's ``_config``)."""
+    this sets the counts of the retry policy its client's pipeline runs (azure-storage-blob's ``_config``). Its
+    uploads get S3's deadline, in the transport that every client made from adlfs's sends through."""
     policy = fs.service_client._config.retry_policy
     for name in ("total_retries", "connect_retries", "read_retries", "status_retries"):
         setattr(policy, name, 0)
+    transport = fs.service_client._pipeline._transport
+    send = transport.send
+
+    async def within_deadline(request: object, **config: object):
+        sending = send(request, **config)
+        size = int(request.headers.get("Content-Length") or 0) or _bytes_in(getattr(request, "data", None))
+        connect = config.get("connection_timeout") or transport.connection_config.timeout
+        read = config.get("read_timeout") or transport.connection_config.read_timeout
+        return await (sending if size < SENT_AT_ONCE else _by_deadline(sending, size, connect, read))
+
+    transport.send = within_deadline
