@@ -41,6 +41,7 @@ from helpers import (
     supervise_command,
     train_command,
     training,
+    wait_for,
 )
 
 pytestmark = pytest.mark.slow
@@ -346,6 +347,31 @@ def test_the_supervisors_closing_line_names_the_step_a_rerun_resumes_from(tmp_pa
         newest = select_resume(Storage.open(str(storage)), log=lambda line: None)[0]
         assert closing == [str(newest)], (schedule, closing, newest)
     print(f"{len(schedules)} schedules checked: {', '.join(schedules)}")
+
+
+def test_a_stop_that_comes_after_the_last_step_ends_a_finished_run_with_0(tmp_path) -> None:
+    """A SIGTERM that reaches the supervisor once every worker has finished (a scheduler's time limit, a preemption,
+    moments late) cut nothing short: the run ends finished, exit 0, not preempted with 143 (on which a SLURM script
+    requeues a finished job). The supervisor is held (SIGSTOP) from its workers' first iteration until they are done,
+    and the SIGTERM waits for it."""
+    storage = tmp_path / "run"
+    proc = start(supervise_command(storage, "iterations=20"), tmp_path / "unused")
+    wait_for(lambda: len(read_heartbeats(storage / "heartbeat")) == 2, "both workers training")
+    proc.send_signal(signal.SIGSTOP)
+    try:
+        wait_for(
+            lambda: {beat.phase for beat in read_heartbeats(storage / "heartbeat").values()} == {"done"},
+            "both workers done",
+        )
+        proc.send_signal(signal.SIGTERM)
+    finally:
+        proc.send_signal(signal.SIGCONT)
+    assert finish(proc) == 0
+    printed = proc.stdout.read()
+    assert "ftrain supervise: training finished (exit 0)" in printed and "preempted" not in printed, printed[-2000:]
+    assert "training finished (step 20; the stop came after the last step)" in printed, printed[-2000:]
+    assert [event["event"] for event in events(storage)][-2:] == ["done", "summary"]
+    assert final_manifest(storage)["step"] == 20
 
 
 def test_a_sigint_ignored_at_start_stays_ignored_and_sigterm_is_taken_over(tmp_path) -> None:
