@@ -115,8 +115,7 @@ class Record:
             "run_id": self.run_id,
             "generation": self.generation,
             "ttl": self.ttl,
-            "expires_at": round(self.expires_at, 3),
-            "expires": _when(self.expires_at),
+            **({"expires_at": round(self.expires_at, 3), "expires": _when(self.expires_at)} if self.entries else {}),
             "holders": [
                 {**dataclasses.asdict(e.process), "renewed_at": round(e.renewed_at, 3), "since": round(e.since, 3)}
                 for e in self.entries

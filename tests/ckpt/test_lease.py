@@ -257,6 +257,7 @@ def test_release_lets_the_next_run_start_at_once_at_the_next_generation(storage)
     assert (os.environ[RUN_ID_ENV], os.environ[GENERATION_ENV]) == ("first", "1")  # for its commits and workers
     first.release()
     assert record(storage).entries == ()  # no holder; the generation stays, so that it only grows
+    assert "expires" not in json.loads(storage.read(LEASE))  # not 1970: nothing to expire
     assert Lease(storage, "second", print).acquire() is None  # nothing said: nobody held it
     assert (record(storage).run_id, record(storage).generation) == ("second", 2)
 
