@@ -57,7 +57,11 @@ def prepare(protocol: str, url: str, options: dict) -> str:
 
 def send_once(fs: fsspec.AbstractFileSystem, protocol: str) -> None:
     """Turn off the retries of ``fs``'s own client, so that ours (``Storage``) are the only ones and a storage that is
-    down is told within seconds, whichever store it is."""
+    down is told within seconds, whichever store it is; once per instance (fsspec reuses one for the same options,
+    where ``skip_instance_cache`` is set false)."""
+    if getattr(fs, "_ftrain_sends_once", False):
+        return
+    fs._ftrain_sends_once = True
     if protocol in S3_PROTOCOLS:
         fs.retries = 1  # s3fs's own retry loop: one attempt, ours does the retrying
     if protocol in GCS_PROTOCOLS:

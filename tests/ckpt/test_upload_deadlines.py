@@ -74,3 +74,16 @@ def test_an_upload_that_a_server_never_takes_is_given_up_when_its_size_had_time_
         storage.fs.pipe_file(f"{storage.root}/stalled.pt", data)
     assert deadline - 0.5 < time.monotonic() - started < deadline + 5
     assert str(given_up.value.__cause__) == f"no answer in {deadline:.0f} s"
+
+
+def test_a_client_that_fsspec_hands_out_again_keeps_its_timeouts(gcs_server) -> None:
+    """With ``skip_instance_cache=false`` fsspec gives a second open of the same storage the same client: its
+    timeouts are set once (set again, a deadline was the read timeout plus a whole ``ClientTimeout``: a TypeError on
+    every upload of 64 KiB or more)."""
+    options = {**gcs_options(gcs_server), "skip_instance_cache": False}
+    url = f"gs://{create_gcs_bucket(gcs_server)}/run"
+    first, second = Storage.open(url, dict(options)), Storage.open(url, dict(options))
+    assert first.fs is second.fs
+    data = os.urandom(100_000)
+    second.write_replace("shard.pt", data)
+    assert first.read("shard.pt") == data
