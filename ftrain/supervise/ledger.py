@@ -11,7 +11,7 @@ from ftrain.errors import counted
 from ftrain.heartbeat import Heartbeat, Phase
 from ftrain.supervise.attempt import Attempt
 from ftrain.supervise.hang import QUIET_PHASES
-from ftrain.supervise.outcome import in_words
+from ftrain.supervise.outcome import Event, in_words
 
 
 @dataclass
@@ -119,7 +119,7 @@ class Ledger:
         were stopped)."""
         self.committed = max(self.committed, step or 0)
 
-    def summarize(self, ending: str, code: int, restarts: int, now: float) -> None:
+    def summarize(self, ending: Event, code: int, restarts: int, now: float) -> None:
         """The ``summary`` event that closes the run (``ending``: its event): restarts, iterations lost, downtime. A
         failure no attempt recovered from (the run stopped, or gave up, before one trained again) lost what it had
         completed past the newest commit, and was down until ``now``; so did a last attempt stopped without a save (a

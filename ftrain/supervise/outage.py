@@ -38,7 +38,7 @@ from ftrain.progress import Progress, duration
 from ftrain.redact import Url
 from ftrain.supervise.events import EventLog
 from ftrain.supervise.options import EXIT_STORAGE_WAIT
-from ftrain.supervise.outcome import Outcome
+from ftrain.supervise.outcome import Event, Outcome
 
 T = TypeVar("T")
 
@@ -122,7 +122,7 @@ class StorageWait:
             try:
                 problem = probe(self.storage.url, self.storage.options, self.log_dir)
             except UserError as error:
-                return Outcome("usage", EXIT_USAGE, str(error))
+                return Outcome(Event.USAGE, EXIT_USAGE, str(error))
             waited = self.clock() - outage.started
             if problem is None and not again:
                 if why is not None or outage.tries:
@@ -134,7 +134,7 @@ class StorageWait:
                 self._waiting(url, problem, lines)
             if waited > self.limit:
                 return Outcome(
-                    "storage_down",
+                    Event.STORAGE_DOWN,
                     EXIT_STORAGE_WAIT,
                     f"the storage {url} was not usable for {self.limit:g} s ({problem or why}); nothing committed is "
                     "lost: run the same command again once it is usable again",

@@ -2,12 +2,33 @@
 
 from __future__ import annotations
 
+import enum
 import math
 import signal
 from dataclasses import dataclass
 
 from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, EXIT_USAGE, STOPPED
+from ftrain.heartbeat import Phase
 from ftrain.supervise.options import EXIT_DONE, EXIT_TOO_FEW_NODES
+
+
+class Event(enum.StrEnum):
+    """How an attempt ended, by the name the events log gives it: a restart (``FAILED``), a wait for the storage
+    (``STORAGE_DOWN``), another node gone with this one's workers saved (``REGROUP``), or an ending of the run."""
+
+    DONE = "done"
+    PREEMPTED = "preempted"
+    FAILED = "failed"
+    STORAGE_DOWN = "storage_down"
+    STORAGE_HELD = "storage_held"
+    USAGE = "usage"
+    PEER_ENDED = "peer_ended"
+    PEER_LOST = "peer_lost"
+    REGROUP = "regroup"
+    MAX_RESTARTS = "max_restarts"
+    CRASH_LOOP = "crash_loop"
+    NOT_ADMITTED = "not_admitted"
+    TOO_FEW_NODES = "too_few_nodes"
 
 
 @dataclass
@@ -48,7 +69,7 @@ def blame(failures: dict[int, WorkerFailure], killed: set[int]) -> tuple[int, Wo
 FINAL_FIRST = (EXIT_USAGE, EXIT_STORAGE_HELD, EXIT_STORAGE_DOWN)
 """Exit codes that name their cause (bad input, the storage lost to another run, the storage down), in the order
 they are blamed before any other."""
-ENDINGS = {"usage": "bad input", "done": "training finished"}
+ENDINGS = {Event.USAGE: "bad input", Event.DONE: "training finished"}
 """How the summary names an ending whose event name is not plain words."""
 
 
@@ -59,12 +80,12 @@ def newest_step(step: int | None) -> str:
 
 def finished(step: int | None, how: str = "") -> Outcome:
     """Training finished at ``step`` (``how``: seen how, if not from this node's own workers)."""
-    return Outcome("done", EXIT_DONE, f"training finished (step {step}{'; ' + how if how else ''})")
+    return Outcome(Event.DONE, EXIT_DONE, f"training finished (step {step}{'; ' + how if how else ''})")
 
 
 def peer_ended(code: int) -> Outcome:
     """The run ended on another node, with exit ``code``."""
-    return Outcome("peer_ended", code, f"another node ended the run with exit code {code}")
+    return Outcome(Event.PEER_ENDED, code, f"another node ended the run with exit code {code}")
 
 
 def not_admitted(committed: int | None) -> Outcome:
@@ -73,7 +94,7 @@ def not_admitted(committed: int | None) -> Outcome:
     alone: the others time out by themselves in the first case, and train on in the second."""
     newest = f"newest step {committed}" if committed is not None else "this node saw no commit"
     return Outcome(
-        "not_admitted",
+        Event.NOT_ADMITTED,
         EXIT_TOO_FEW_NODES,
         f"this node joined no worker group within --rdzv-timeout: fewer than MIN nodes met, or the nodes training did "
         f"not take it in; the other nodes are not stopped and nothing committed is lost ({newest}): start the missing "
@@ -81,7 +102,7 @@ def not_admitted(committed: int | None) -> Outcome:
     )
 
 
-def in_words(event: str) -> str:
+def in_words(event: Event) -> str:
     """The name of an ending (an event) for a person: ``usage`` is "bad input", ``crash_loop`` "crash loop"."""
     return ENDINGS.get(event, event.replace("_", " "))
 
@@ -91,13 +112,13 @@ class Outcome:
     """How an attempt ended: ``failed`` (restart), ``storage_down`` (wait for the storage, then restart) or one of the
     endings, with its exit code and event name."""
 
-    event: str
+    event: Event
     code: int | None
     message: str
 
     @property
     def failed(self) -> bool:
-        return self.event in ("failed", "storage_down")
+        return self.event in (Event.FAILED, Event.STORAGE_DOWN)
 
 
 def classify(
@@ -120,36 +141,44 @@ def classify(
     node that joined late (the first agent to see the new node stops its workers, and through the iteration boundary
     they agree on, everyone's, before the other agents have looked); ``committed``: the newest step committed.
     """
-    if stopped is not None and phases == {"done"} and not orphans:  # it came once every worker had finished
+    if stopped is not None and phases == {Phase.DONE} and not orphans:  # it came once every worker had finished
         return finished(committed, "the stop came after the last step")
     if stopped is not None:
-        saved = bool(phases) and phases <= {"preempted", "done"}
+        saved = bool(phases) and phases <= {Phase.PREEMPTED, Phase.DONE}
         how = "the workers saved" if saved else "the workers did not all confirm a save"
         how = how if phases else "the workers stopped before training began"  # not one heartbeat: nothing to save
-        return Outcome("preempted", stopped, f"preempted: {how} ({newest_step(committed)})")
+        return Outcome(Event.PREEMPTED, stopped, f"preempted: {how} ({newest_step(committed)})")
     if orphans:
-        return Outcome("failed", None, cause)
+        return Outcome(Event.FAILED, None, cause)
     if code == 0:
         return finished(committed)
-    if code in STOPPED and phases and phases <= {"preempted", "done"}:  # the workers were signalled, saved, exited
+    if (
+        code in STOPPED and phases and phases <= {Phase.PREEMPTED, Phase.DONE}
+    ):  # the workers were signalled, saved, exited
         if superseded:
-            return Outcome("failed", None, "stopped by another node (it failed, or restarted for a node that joined)")
-        return Outcome("preempted", code, f"preempted: the workers saved ({newest_step(committed)}); rerun to continue")
+            return Outcome(
+                Event.FAILED, None, "stopped by another node (it failed, or restarted for a node that joined)"
+            )
+        return Outcome(
+            Event.PREEMPTED, code, f"preempted: the workers saved ({newest_step(committed)}); rerun to continue"
+        )
     if code == EXIT_RENDEZVOUS_TIMEOUT and culprit is None:
         return Outcome(
-            "too_few_nodes",
+            Event.TOO_FEW_NODES,
             EXIT_TOO_FEW_NODES,
             f"fewer nodes than the minimum joined within --rdzv-timeout; nothing committed is lost "
             f"({newest_step(committed)}): start the missing nodes and run the same command again",
         )
     if culprit is not None and culprit[1].code == EXIT_STORAGE_DOWN:
-        return Outcome("storage_down", None, f"rank {culprit[0]}: {culprit[1].error or 'the storage did not answer'}")
+        return Outcome(
+            Event.STORAGE_DOWN, None, f"rank {culprit[0]}: {culprit[1].error or 'the storage did not answer'}"
+        )
     if culprit is not None and culprit[1].code == EXIT_USAGE:
         rank, failure = culprit
         refusal = f"refused its input: {failure.error}" if failure.error else f"exited with code {EXIT_USAGE}"
-        return Outcome("usage", EXIT_USAGE, f"rank {rank} {refusal}; not restarting")
+        return Outcome(Event.USAGE, EXIT_USAGE, f"rank {rank} {refusal}; not restarting")
     if culprit is not None and culprit[1].code == EXIT_STORAGE_HELD:  # another run took the storage: a restart would
         rank, failure = culprit  # be refused too
         held = failure.error or "another run holds the storage"
-        return Outcome("storage_held", EXIT_STORAGE_HELD, f"rank {rank}: {held}; not restarting")
-    return Outcome("failed", None, cause)
+        return Outcome(Event.STORAGE_HELD, EXIT_STORAGE_HELD, f"rank {rank}: {held}; not restarting")
+    return Outcome(Event.FAILED, None, cause)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from ftrain.supervise.attempt import Attempt
 from ftrain.supervise.options import EXIT_CRASH_LOOP, EXIT_MAX_RESTARTS, SupervisorOptions
-from ftrain.supervise.outcome import Outcome, newest_step
+from ftrain.supervise.outcome import Event, Outcome, newest_step
 
 
 class RestartPolicy:
@@ -39,10 +39,10 @@ class RestartPolicy:
         self._no_progress = 0 if attempt.progressed else self._no_progress + 1
         self._unstarted = 0 if attempt.started or self.restarts == 0 else self._unstarted + 1
         if self.restarts >= self.options.max_restarts:
-            return Outcome("max_restarts", EXIT_MAX_RESTARTS, f"giving up after {self.restarts} restarts")
+            return Outcome(Event.MAX_RESTARTS, EXIT_MAX_RESTARTS, f"giving up after {self.restarts} restarts")
         if self.options.crash_loop and self._no_commit >= self.options.crash_loop:
             return Outcome(
-                "crash_loop",
+                Event.CRASH_LOOP,
                 EXIT_CRASH_LOOP,
                 f"crash loop: {self._no_commit} restarts in a row committed no new checkpoint "
                 f"({newest_step(self.best_committed)}); fix the cause above and run the same command again",

@@ -50,7 +50,7 @@ from ftrain.supervise.options import (
     parse_workers,
 )
 from ftrain.supervise.outage import NEWEST_WITHIN, StorageWait, start_of
-from ftrain.supervise.outcome import Outcome, classify, finished, newest_step, not_admitted, peer_ended
+from ftrain.supervise.outcome import Event, Outcome, classify, finished, newest_step, not_admitted, peer_ended
 from ftrain.supervise.plan import Plan, plan_key
 from ftrain.supervise.restarts import RestartPolicy
 from ftrain.terminal import leave_the_terminal
@@ -190,7 +190,7 @@ class Supervisor:
         try:
             self.link.begin(lease)
         except ConnectionError as error:  # etcd-v2: etcd did not answer within --rdzv-timeout
-            raise _Stop(Outcome("peer_lost", EXIT_PEER_LOST, str(error))) from None
+            raise _Stop(Outcome(Event.PEER_LOST, EXIT_PEER_LOST, str(error))) from None
         if self.nodes.count > 1 and self.storage_wait.holds(self.last_step):
             # a node that finds the run finished leaves (``_next_plan``), and torchrun cannot start without it
             raise _Stop(
@@ -201,12 +201,12 @@ class Supervisor:
         while True:
             attempt = self._launch(plan)
             outcome = self._watch(attempt)
-            if outcome.event == "regroup":
+            if outcome.event == Event.REGROUP:
                 plan = self._next_plan(plan)
                 continue
             if not outcome.failed:
                 raise _Stop(outcome)
-            if outcome.event == "storage_down":
+            if outcome.event == Event.STORAGE_DOWN:
                 ending = self.storage_wait(outcome.message, again=waited and not attempt.progressed)
                 if ending is not None:
                     raise _Stop(ending)
@@ -241,7 +241,7 @@ class Supervisor:
         code = stop_code(self.signals[0])
         newest = newest_step(self.storage_wait.newest(self.policy.best_committed))  # as every other stop says it
         return Outcome(
-            "preempted", code, f"preempted: stopped by a signal while no workers ran ({newest}); rerun to continue"
+            Event.PREEMPTED, code, f"preempted: stopped by a signal while no workers ran ({newest}); rerun to continue"
         )
 
     def _next_plan(self, previous: Plan | None) -> Plan:
@@ -265,7 +265,7 @@ class Supervisor:
             if plan is not None and (previous is None or plan_key(plan) != plan_key(previous)):
                 return plan
             if time.monotonic() > deadline:
-                raise _Stop(Outcome("peer_lost", EXIT_PEER_LOST, f"{self.link.peer} did not answer"))
+                raise _Stop(Outcome(Event.PEER_LOST, EXIT_PEER_LOST, f"{self.link.peer} did not answer"))
             time.sleep(PEER_POLL / 5)
 
     def _launch(self, plan: Plan) -> Attempt:
@@ -303,7 +303,7 @@ class Supervisor:
             if (lost := self.lease.lost) is not None:  # nothing they train from now on could be committed: stop them
                 attempt.kill()
                 self._log_exit(attempt, "stopped: another generation holds the storage")
-                return Outcome("storage_held", EXIT_STORAGE_HELD, f"{lost}; its workers are stopped")
+                return Outcome(Event.STORAGE_HELD, EXIT_STORAGE_HELD, f"{lost}; its workers are stopped")
             if not attempt.dead:
                 self._check_workers(attempt, beats)
             if self.signals and preempt_deadline is None:
@@ -324,7 +324,7 @@ class Supervisor:
                 self._failed(attempt, now)
                 attempt.kill()
                 self._log_exit(attempt, hang.cause())
-                return Outcome("failed", None, "hang")
+                return Outcome(Event.FAILED, None, "hang")
             if self.nodes.count > 1 and now >= next_peer_check:
                 next_peer_check = now + PEER_POLL
                 outcome = self._check_peers(attempt, now)
@@ -373,7 +373,7 @@ class Supervisor:
         self._failed(attempt, now)
         attempt.stop(self.options.stop_grace)
         self._log_exit(attempt, "stopped: another node failed")
-        return Outcome("failed", None, "superseded")
+        return Outcome(Event.FAILED, None, "superseded")
 
     def _preempt(self, attempt: Attempt) -> None:
         name = signal_name(self.signals[0])
@@ -410,9 +410,9 @@ class Supervisor:
             committed = self.storage_wait.newest(committed)  # the storage has it (others going on commit newer ones)
             self.ledger.seen_commit(committed)
             outcome = classify(code, cause, attempt.culprit(), stopped, bool(orphans), phases, superseded, committed)
-        if outcome.event == "failed" and (full := self.storage_wait.disk_full()) is not None:
-            outcome = Outcome("storage_down", None, full)  # restarts would fail alike: wait for space instead
-        if outcome.event == "too_few_nodes" and self._keeps_no_plan():
+        if outcome.event == Event.FAILED and (full := self.storage_wait.disk_full()) is not None:
+            outcome = Outcome(Event.STORAGE_DOWN, None, full)  # restarts would fail alike: wait for space instead
+        if outcome.event == Event.TOO_FEW_NODES and self._keeps_no_plan():
             outcome = not_admitted(committed)
         if moved and current.left is not None and outcome.failed:  # saved for a node that left: no failure
             return self._regroup(attempt, current, cause, phases)
@@ -427,7 +427,7 @@ class Supervisor:
         message = f"attempt {attempt.plan.attempt}: node {plan.left} left the run; regrouping without it"
         self.ledger.left.add(plan.left)
         self.events("regroup", message, attempt=attempt.plan.attempt, left=plan.left)
-        return Outcome("regroup", None, message)
+        return Outcome(Event.REGROUP, None, message)
 
     def _phases(self, attempt: Attempt) -> set[str]:
         """The phases of the final heartbeats (after the attempt's processes are gone)."""
@@ -465,7 +465,7 @@ class Supervisor:
     def _ends_alone(self, ending: Outcome) -> bool:
         """Whether ``ending`` ends this node only: its preemption when it ``_leaves_alone``, or its rendezvous timeout
         when ``not_admitted`` (a node that came back late and was not taken in must not stop those that train)."""
-        return self._leaves_alone() if ending.event == "preempted" else ending.event == "not_admitted"
+        return self._leaves_alone() if ending.event == Event.PREEMPTED else ending.event == Event.NOT_ADMITTED
 
     def _keeps_no_plan(self) -> bool:
         """An elastic node that neither keeps the plan nor hosts the rendezvous: on etcd-v2 any, on c10d not node 0."""
