@@ -59,6 +59,18 @@ class NumpyStateHook(Hook):
         return {"best": np.float64(1.5)}
 
 
+class UnpicklableStateHook(Hook):
+    """Keeps what cannot be pickled at all in its state (a lambda, or a lock): it must be refused as the above."""
+
+    def __init__(self, kind: str) -> None:
+        self.kind = kind
+
+    def state_dict(self) -> dict:
+        import threading
+
+        return {"kept": (lambda x: x) if self.kind == "lambda" else threading.Lock()}
+
+
 class FailingLoadHook(Hook):
     """Saves a state that verifies, but refuses to load it back: a hook changed between runs."""
 

@@ -180,7 +180,7 @@ def decode(data: bytes, name: str = "checkpoint data") -> dict:
 
 
 def unloadable_part(state: dict) -> str | None:
-    """Where in ``state``, which does not load as plain data (``decode``), the first part that does not load on its
+    """Where in ``state``, which does not save or load as plain data (``decode``), the first part that does not on its
     own lies, as a path and a type (``ftrain/hooks/mod.Hook#0/obj, a object``): a refused file names the hook or
     metric that holds it. Found by saving and loading the parts, as ``decode`` would; None if every part loads."""
     path, node = [], state
@@ -197,7 +197,7 @@ def unloadable_part(state: dict) -> str | None:
 def _loads(part: object) -> bool:
     try:
         decode(encode({"part": part}))
-    except CorruptCheckpoint:
+    except Exception:  # it does not pickle (a lambda, a lock), or does not load back
         return False
     return True
 

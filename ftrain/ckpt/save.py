@@ -17,6 +17,7 @@ import contextlib
 import dataclasses
 import enum
 import functools
+import pickle
 import queue
 import threading
 import time
@@ -53,6 +54,8 @@ from ftrain.config import CheckpointConfig
 from ftrain.errors import did_you_mean
 
 UNLOADABLE_HINT = "hooks and metrics must keep plain data (tensors, numbers, strings, lists, dicts)"
+UNPICKLABLE = (pickle.PicklingError, TypeError, AttributeError)
+"""What ``torch.save`` raises for an object that cannot be pickled (a lambda, a lock, a local class's object)."""
 
 
 class Result(enum.StrEnum):
@@ -172,7 +175,7 @@ class StepWriter:
         encoded = {}
         try:
             encoded, report["fields"] = self._encode(files, check_loadable)
-        except CorruptCheckpoint as exc:  # only the loadability check raises it
+        except CorruptCheckpoint as exc:  # state that does not pickle, or would not load back
             report["error"], report["unloadable"] = f"rank {self.info.rank}: {exc}: {UNLOADABLE_HINT}", True
         except Exception as exc:
             report["error"] = f"rank {self.info.rank}: {type(exc).__name__}: {exc}"
@@ -205,8 +208,16 @@ class StepWriter:
         return Outcome(Result(result), step, detail)
 
     def _encode(self, files: dict[str, dict], check_loadable: bool) -> tuple[dict[str, bytes], dict]:
-        """``files`` encoded, and the manifest fields that come from common.pt."""
-        encoded = {name: encode(state) for name, state in files.items()}
+        """``files`` encoded, and the manifest fields that come from common.pt. State that cannot be pickled (a
+        lambda, a lock) fails alike at every try: CorruptCheckpoint, as for state that would not load back."""
+        encoded = {}
+        for name, state in files.items():
+            try:
+                encoded[name] = encode(state)
+            except UNPICKLABLE as exc:
+                part = unloadable_part(state)
+                why = f"{name} cannot be saved ({type(exc).__name__}: {exc})"
+                raise CorruptCheckpoint(f"{why} (in {part})" if part else why) from None
         if check_loadable:
             for name, data in encoded.items():
                 try:

@@ -543,18 +543,26 @@ def test_a_failed_final_save_holds_and_a_stop_ends_the_hold_as_an_error_not_succ
     assert "Traceback" not in stderr
 
 
-def test_state_that_would_not_load_back_is_refused_at_the_first_save(tmp_path) -> None:
+@pytest.mark.parametrize(
+    ("hook", "part"),
+    [
+        (probe_hook("NumpyStateHook", path="unused"), "NumpyStateHook#0/best, of type float64"),  # saves, never loads
+        (probe_hook("UnpicklableStateHook", kind="lambda"), "UnpicklableStateHook#0/kept, of type function"),
+        (probe_hook("UnpicklableStateHook", kind="lock"), "UnpicklableStateHook#0/kept, of type lock"),
+    ],
+    ids=["numpy", "lambda", "lock"],
+)
+def test_state_that_would_not_load_back_is_refused_at_the_first_save(tmp_path, hook: str, part: str) -> None:
     """A hook's state that is not plain data is bad input (exit 2: a supervisor does not restart what would save
-    alike), in one line, and nothing is committed."""
-    hook = hooks_override(probe_hook("NumpyStateHook", path=tmp_path))
+    alike), in one line that names the hook, and nothing is committed. State that does not even pickle was a save
+    failure like a storage's, retried and held for up to an hour."""
     env = child_env({"PYTHONPATH": str(TESTS)})
-    result = subprocess.run(train_command(tmp_path / "run", hook), cwd=REPO, env=env, capture_output=True, text=True)
-    assert result.returncode == 2
+    command = train_command(tmp_path / "run", hooks_override(hook))
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2, result.stderr[-2000:]
     errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
     assert len(errors) == 1 and "hooks and metrics must keep plain data" in errors[0], result.stderr
-    assert "(in ftrain/hooks/probe_hooks.NumpyStateHook#0/best, of type float64)" in errors[0], errors[
-        0
-    ]  # the hook that holds it
+    assert f"(in ftrain/hooks/probe_hooks.{part})" in errors[0], errors[0]  # the hook that holds it
     assert manifests(tmp_path / "run") == {}
 
 
