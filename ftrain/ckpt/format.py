@@ -360,6 +360,11 @@ def verify_step(storage: Storage, step: int, full: bool = True, directory: str |
 
 def read_verified(storage: Storage, step: int, name: str, manifest: dict) -> dict:
     """Read one file of ``step``, check its size and SHA-256 against ``manifest``, then decode it."""
+    return decode(read_verified_bytes(storage, step, name, manifest), storage.where(f"{step_dir(step)}/{name}"))
+
+
+def read_verified_bytes(storage: Storage, step: int, name: str, manifest: dict) -> bytes:
+    """Read one file of ``step`` and check its size and SHA-256 against ``manifest``."""
     entry = manifest["files"].get(name)
     where = storage.where(f"{step_dir(step)}/{name}")
     if entry is None:
@@ -371,7 +376,7 @@ def read_verified(storage: Storage, step: int, name: str, manifest: dict) -> dic
     problem = content_problem(name, data, entry)
     if problem:
         raise CorruptCheckpoint(f"{where}: {problem.reason}")
-    return decode(data, where)
+    return data
 
 
 def verify_listed(

@@ -30,6 +30,7 @@ from ftrain.ckpt.format import (
     CorruptCheckpoint,
     parse_checkpoint_url,
     read_verified,
+    read_verified_bytes,
     step_dir,
 )
 from ftrain.ckpt.steps import resolve_checkpoint_url
@@ -116,11 +117,18 @@ def _refuse_packed(where: str, manifest: dict) -> None:
 
 
 def _policy_file(url: str, options: dict | None) -> tuple[bytes, str] | None:
-    """The content and printable URL of ``url`` if it names a file (not a checkpoint step or a directory)."""
+    """The content and printable URL of ``url`` if it names a file (not a checkpoint step or a directory); a file of
+    a policy snapshot (its ``policy.onnx``) checked against the snapshot's manifest, as the snapshot would be."""
     if parse_checkpoint_url(url)[1] is not None:
         return None
     storage = Storage.open(url, options)
-    return (storage.read(""), storage.url) if storage.fs.isfile(storage.root) else None
+    if not storage.fs.isfile(storage.root):
+        return None
+    parent, name = (storage.root if storage.is_local else url).rstrip("/").rpartition("/")[::2]
+    if parent and snapshots.parse_snapshot_url(parent) is not None:
+        view, step, manifest = snapshots.open_snapshot(parent, options)
+        return read_verified_bytes(view, step, name, manifest), storage.url
+    return storage.read(""), storage.url
 
 
 def _actor(config: Config, state: dict, source: str) -> torch.nn.Module:

@@ -116,6 +116,9 @@ def test_snapshots_are_verified_with_their_own_retention(runs, capsys, monkeypat
     onnx_file.write_bytes(bytes(data))
     with pytest.raises(UserError, match=r"policy snapshot .*step-000000006 does not verify \(policy.onnx: sha256"):
         load_policy(snapshot_url(run, 6))
+    with pytest.raises(UserError, match=r"policy snapshot .*step-000000006 does not verify \(policy.onnx: sha256"):
+        load_policy(str(onnx_file))  # the file itself is as verified as its snapshot (it played, unchecked)
+    assert load_policy(str(Path(snapshot_url(run, 8)) / "policy.onnx")).exported == "onnx"  # an intact one plays
     capsys.readouterr()
     assert main(["ckpt", "verify", str(run)]) == 1  # the checkpoints, then the snapshots: verified alike
     out = capsys.readouterr().out.splitlines()
