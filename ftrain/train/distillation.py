@@ -5,8 +5,9 @@ from __future__ import annotations
 from rsl_rl.algorithms import Distillation
 from rsl_rl.storage import RolloutStorage
 
+from ftrain.ckpt.steps import resolve_checkpoint_url
 from ftrain.comm.group import RankInfo
-from ftrain.config import Config
+from ftrain.config import Config, config_from_dict
 from ftrain.errors import UserError
 from ftrain.policy.load import load_policy
 from ftrain.policy.model import build_actor
@@ -21,18 +22,25 @@ WHOLE_TEACHER = (
 def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Distillation:
     """rsl-rl's Distillation: a student like a PPO actor learns to imitate the teacher loaded from
     ``config.teacher`` (any ftrain checkpoint URL, verified by its manifest; architecture from its own config)."""
+    obs = env.get_observations()
     try:
         teacher = load_policy(config.teacher, config.storage.options, not_a_file=WHOLE_TEACHER)
     except UserError as error:  # which setting named it: a distillation config's teacher may not be the user's own
-        raise UserError(f"teacher={config.teacher}: {error}") from None
-    _check_teacher_fits(config, env, teacher)
-    obs = env.get_observations()
+        missing = f"teacher={config.teacher}: {error}"
+        if (identity := _stored_teacher(config)) is None:
+            raise UserError(missing) from None
+        teacher_actor = build_actor(config_from_dict(identity["config"]), obs, env.num_actions)  # its weights: restore
+    else:
+        _check_teacher_fits(config, env, teacher)
+        teacher_actor, missing = teacher.actor, None
+        identity = {"source": teacher.source, "step": teacher.step, "digest": teacher.digest}
+        identity["config"] = teacher.manifest["config"]  # so that a resume builds it where the teacher is gone
     student = build_actor(config, obs, env.num_actions, obs_set="student")
     storage = RolloutStorage("distillation", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
     a = config.algorithm
     alg = Distillation(
         student,
-        teacher.actor,
+        teacher_actor,
         storage,
         num_learning_epochs=a.num_learning_epochs,
         gradient_length=a.gradient_length,
@@ -41,9 +49,22 @@ def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Dis
         loss_type=a.loss_type,
         multi_gpu_cfg=info.rsl_rl_cfg(),
     )
-    alg.teacher_loaded = True
-    alg.teacher_identity = {"source": teacher.source, "step": teacher.step, "digest": teacher.digest}
+    alg.teacher_loaded = missing is None
+    alg.teacher_missing = missing
+    alg.teacher_identity = identity
     return alg
+
+
+def _stored_teacher(config: Config) -> dict | None:
+    """The teacher (identity and config) that the newest verified checkpoint of this run learned from, if it has one:
+    a resumed student keeps its teacher, whose weights its checkpoint holds, also once the teacher's own run has
+    deleted that step (its retention). None for a fresh run, or a checkpoint of before the teacher's config was kept."""
+    try:
+        _, _, manifest = resolve_checkpoint_url(config.storage.url, config.storage.options, log=lambda line: None)
+    except UserError:
+        return None
+    stored = manifest.get("teacher")
+    return stored if isinstance(stored, dict) and "config" in stored else None
 
 
 def _check_teacher_fits(config: Config, env: MujocoVecEnv, teacher) -> None:

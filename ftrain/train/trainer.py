@@ -27,7 +27,7 @@ from ftrain.ckpt.resume import CheckpointError
 from ftrain.ckpt.storage import StorageUnavailable
 from ftrain.comm import group
 from ftrain.config import Config, for_launch
-from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, stop_code
+from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, UserError, stop_code
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter, read_stop_reason
 from ftrain.policy.model import action_std
 from ftrain.policy.noise_ceiling import build_noise_ceiling
@@ -237,7 +237,11 @@ class Trainer:
         self.heartbeat.beat("start", 0)
         resumed = self.checkpointer.restore(self)
         if hasattr(self.alg, "teacher_identity"):  # which teacher a distillation learns from: a resumed one, its own
+            if not self.alg.teacher_loaded:  # gone, and no step of this run restored to take its weights from
+                raise UserError(self.alg.teacher_missing)
             teacher = self.alg.teacher_identity
+            if self.alg.teacher_missing:
+                self.log(f"{self.alg.teacher_missing}; the run goes on with the teacher its checkpoint holds")
             self.log(f"teacher: {teacher['source']} (step {teacher['step']}, state_sha256 {teacher['digest'][:16]})")
         if resumed is None and self.info.distributed:
             self.alg.broadcast_parameters()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import statistics
 import subprocess
 
@@ -60,6 +61,28 @@ def test_student_learns_from_teacher_and_resumes_exactly(tmp_path) -> None:
         f"[ftrain] teacher: {source} (step 12, state_sha256 {teacher_manifest['state_sha256'][:16]})",
     ], result.stdout
     assert final_manifest(resumed)["teacher"] == manifest["teacher"]
+
+    # the teacher's run gone (its retention deleted the step, or the run was moved): a resume goes on with the
+    # teacher its checkpoint holds, bit for bit as where the teacher is still there
+    gone = tmp_path / "resumed-gone"
+    shutil.copytree(resumed, gone)
+    run_train(resumed, f"teacher={teacher}", "iterations=14", *SMALL, **options)
+    teacher.rename(tmp_path / "teacher-moved")
+    result = run_train(gone, f"teacher={teacher}", "iterations=14", *SMALL, **options)
+    said = [line for line in result.stdout.splitlines() if "teacher" in line]
+    assert said[0].startswith(f"[ftrain] teacher={teacher}: ") and said[0].endswith(
+        "; the run goes on with the teacher its checkpoint holds"
+    ), said
+    assert final_manifest(gone)["state_sha256"] == final_manifest(resumed)["state_sha256"]
+    assert final_manifest(gone)["teacher"] == manifest["teacher"]
+    fresh = subprocess.run(  # a student with nothing to resume from has no teacher at all: one line, exit 2
+        train_command(tmp_path / "fresh", f"teacher={teacher}", *SMALL, config=DISTILL),
+        cwd=REPO,
+        env=child_env(),
+        capture_output=True,
+        text=True,
+    )
+    assert fresh.returncode == 2 and fresh.stderr.startswith(f"ftrain: error: teacher={teacher}: "), fresh.stderr
 
 
 def test_teacher_from_another_environment_is_one_clear_error(tmp_path) -> None:
