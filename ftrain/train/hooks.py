@@ -349,11 +349,16 @@ def hook_target(target: str) -> typing.Callable[..., Hook]:
     and leaves nothing behind."""
     module_name, _, class_name = target.partition(":")
     try:
-        return getattr(importlib.import_module(module_name), class_name)
-    except (ImportError, AttributeError) as error:
-        raise UserError(f"hook target {target!r} cannot be imported ({error}): fix the import path") from None
-    except Exception as error:  # the module itself raised: the user's code, which a restart would run alike
+        module = importlib.import_module(module_name)
+    except Exception as error:
+        if isinstance(error, ModuleNotFoundError) and error.name and f"{module_name}.".startswith(f"{error.name}."):
+            raise UserError(f"hook target {target!r} cannot be imported ({error}): fix the import path") from None
+        # the module itself raised (an import of its own included): the user's code, which a restart would run alike
         raise UserError(f"hook target {target!r} cannot be imported: {error_line(error)}: fix the module") from None
+    try:
+        return getattr(module, class_name)
+    except AttributeError as error:
+        raise UserError(f"hook target {target!r} cannot be imported ({error}): fix the import path") from None
 
 
 def load_hook(target: str, kwargs: dict) -> Hook:

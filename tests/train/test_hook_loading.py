@@ -44,6 +44,12 @@ class NotAHook:
             "hook target 'userhooks_broken:Fine' cannot be imported: ZeroDivisionError: float division by zero "
             "(userhooks_broken.py, line 2): fix the module",
         ),
+        (  # the module is there; an import of its own is not (it was told to fix the import path)
+            "userhooks_needs:Fine",
+            {},
+            "hook target 'userhooks_needs:Fine' cannot be imported: ModuleNotFoundError: No module named "
+            "'nonexistent_module_xyz' (userhooks_needs.py, line 1): fix the module",
+        ),
         ("userhooks:Fine", {"evry": 2}, "hook 'userhooks:Fine' rejects its kwargs: "),
         (
             "userhooks:Raising",
@@ -57,9 +63,10 @@ class NotAHook:
 def test_a_hook_that_cannot_be_had_is_one_line_naming_it(tmp_path, monkeypatch, target, kwargs, expected) -> None:
     (tmp_path / "userhooks.py").write_text(MODULE)
     (tmp_path / "userhooks_broken.py").write_text("import math\nmath.pi / 0\n")
+    (tmp_path / "userhooks_needs.py").write_text("import nonexistent_module_xyz\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.chdir(tmp_path)  # where the file is named from
-    for name in ("userhooks", "userhooks_broken"):  # this test's files, not another case's imported before
+    for name in ("userhooks", "userhooks_broken", "userhooks_needs"):  # not another case's, imported before
         monkeypatch.delitem(sys.modules, name, raising=False)
     with pytest.raises(UserError) as refused:
         load_hook(target, kwargs)
