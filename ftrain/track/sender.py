@@ -128,6 +128,9 @@ class Sender:
         self._sent += 1
 
 
-def _first_line(error: Exception, limit: int = 300) -> str:
+def _first_line(error: Exception, limit: int = 600) -> str:
+    """The error's first line; past ``limit`` characters, its start and its end (where a library puts its fix, as
+    MLflow's "set MLFLOW_ALLOW_FILE_STORE=true") around an elision."""
     text = str(error).strip().splitlines()
-    return text[0][:limit] if text else ""
+    line = text[0] if text else ""
+    return line if len(line) <= limit else f"{line[: limit // 2 - 3]} ... {line[-(limit // 2 - 2) :]}"

@@ -310,6 +310,26 @@ def test_the_end_waits_for_a_slow_tracker_while_it_takes_rows_and_not_for_one_th
         assert len(tracker.logged) < 2 if tracker.seconds == 0.5 else len(tracker.logged) > 10, tracker.logged
 
 
+class Refusing(Stuck):
+    """A tracker whose server refuses the run in a long line that ends with the fix (MLflow 3 on its file store)."""
+
+    name = "refusing"
+
+    def open(self) -> int:
+        raise RuntimeError(f"The filesystem tracking backend {'is in maintenance mode ' * 40}set ALLOW=true to opt out")
+
+
+def test_a_tracker_that_fails_says_so_in_one_line_that_keeps_the_fix_at_the_end_of_a_long_error() -> None:
+    lines: list[str] = []
+    sender = Sender(Refusing(), lambda last: [], dict, lines.append)
+    sender.send(1, {"x": 1.0})
+    sender.close(finished=True)
+    assert len(lines) == 1 and "\n" not in lines[0], lines
+    assert lines[0].startswith("refusing: failed (RuntimeError: The filesystem tracking backend is in maint"), lines
+    assert lines[0].endswith(f"mode set ALLOW=true to opt out); {GOES_ON}") and " ... " in lines[0], lines
+    assert len(lines[0]) < 700, len(lines[0])
+
+
 def test_the_supervisors_totals_skip_event_lines_damaged_since() -> None:
     """A line that is not an object, or a count of another type, counts as nothing: the tracker, and W&B with it,
     goes on."""
