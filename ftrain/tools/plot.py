@@ -17,6 +17,7 @@ import glob
 import itertools
 import json
 import math
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
@@ -149,7 +150,7 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     run = expand_home(str(run))
     if Path(run).name == METRICS and Path(run).is_file():  # the file itself, for the directory that holds it
         run = str(Path(run).parent)
-    if output is not None and Path(output).is_dir():
+    if output is not None and (Path(output).is_dir() or str(output).endswith(("/", os.sep))):  # a folder, made
         output = Path(output) / "curves.png"
     elif output is not None and not Path(output).suffix:  # what matplotlib writes, and what is said, named alike
         output = Path(output).with_name(Path(output).name + ".png")

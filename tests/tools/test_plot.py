@@ -178,6 +178,8 @@ def test_cli(resumed, tmp_path, capsys) -> None:
         and "cannot write /proc/c.png (/proc takes no new file: No such file or directory): pass -o a" in err
     )
     assert main(["plot", str(resumed), "-o", str(tmp_path)]) == 0 and png_size(tmp_path / "curves.png") == (1200, 800)
+    assert main(["plot", str(resumed), "-o", f"{tmp_path / 'new'}/"]) == 0  # a folder not there yet: made, as export's
+    assert png_size(tmp_path / "new" / "curves.png") == (1200, 800) and not (tmp_path / "new.png").exists()
     capsys.readouterr()
     assert main(["plot", str(resumed / "metrics.csv"), "-o", str(tmp_path / "curves")]) == 0  # the file, no suffix
     assert capsys.readouterr().out == f"wrote {tmp_path / 'curves.png'}\n" and not (tmp_path / "curves").exists()
