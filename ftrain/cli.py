@@ -328,7 +328,8 @@ def build_parser() -> argparse.ArgumentParser:
     plot.add_argument(
         "-o",
         "--output",
-        help="picture to write (.png, .svg, .pdf; .png if none), or a directory (default: <run>/curves.png)",
+        help="picture to write (.png, .svg, .pdf, .jpg: any matplotlib writes; .png if none), or a directory (default: "
+        "<run>/curves.png)",
     )
     _describe(parser)
     return parser
