@@ -747,6 +747,10 @@ def validate(config: Config) -> None:
             raise UserError(
                 f"{key} is set but {module} is not installed: pip install 'ftrain[{module}]', or unset {key}"
             )
+    before, sqlite, database = config.log.mlflow.tracking_uri.reveal().partition("sqlite:///")
+    if config.log.mlflow.enabled and sqlite and not before:  # MLflow retries a file it cannot open for 100 s
+        fix = "pass log.mlflow.tracking_uri a sqlite:/// file you can write to"
+        check_writable(Path(database), "log.mlflow.tracking_uri", fix)
     project = config.log.wandb.project or config.name  # the run's name where no project is set
     forbidden = " ".join(sorted(set(project) & set(WANDB_PROJECT_FORBIDS)))
     if config.log.wandb.enabled and (forbidden or len(project) > 128):

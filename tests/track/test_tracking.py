@@ -195,6 +195,14 @@ def test_a_tracker_is_off_until_one_of_its_keys_is_set(monkeypatch):
         load_config(SMOKE, ["log.wandb.project=p"])
 
 
+def test_an_mlflow_database_that_cannot_be_written_is_refused_before_training(tmp_path):
+    """MLflow retries a sqlite file it cannot open for 100 s, in 25 lines of warnings, and the run then said its
+    tracker "did not answer": one line of bad input instead, before anything starts."""
+    with pytest.raises(UserError, match=r"^cannot write /proc/m.db \(/proc takes no new file: .*\): pass log.mlflow"):
+        load_config(SMOKE, ["log.mlflow.tracking_uri=sqlite:////proc/m.db"])
+    assert load_config(SMOKE, [f"log.mlflow.tracking_uri=sqlite:///{tmp_path}/new/m.db"]).log.mlflow.enabled
+
+
 def test_a_worker_without_a_tracker_never_runs_wandb_and_leaves_nothing_in_tmp(tmp_path):
     """rsl-rl imports wandb; ftrain defers its code to first use: no second of start-up per worker, and none of the
     temporary directories wandb makes on import (removed only at a clean exit, so a killed worker left them)."""
