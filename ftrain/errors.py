@@ -197,6 +197,13 @@ def _negates(typed: str, known: str) -> bool:
     )
 
 
+def module_missing(error: BaseException, name: str) -> bool:
+    """Whether importing module ``name`` failed because it (or a package above it) is not there, as opposed to its
+    own code failing, an import of its own included."""
+    missing = getattr(error, "name", None) if isinstance(error, ModuleNotFoundError) else None
+    return bool(missing) and f"{name}.".startswith(f"{missing}.")
+
+
 def error_line(error: BaseException) -> str:
     """An exception in one line, with where it was raised: ``Type: message (file, line N)``."""
     text = " ".join(f"{type(error).__name__}: {error}".split())

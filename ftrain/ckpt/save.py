@@ -229,7 +229,7 @@ class StepWriter:
         if COMMON in files:
             common = files[COMMON]
             fields["state_sha256"] = state_digest(learned_state(common))
-            if "teacher" in common["ftrain"]:  # plain data: source, step, digest
+            if "teacher" in common["ftrain"]:  # plain data: source, step, digest, the teacher's config
                 fields["teacher"] = common["ftrain"]["teacher"]
         return encoded, fields
 

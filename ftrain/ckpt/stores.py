@@ -61,13 +61,13 @@ def send_once(fs: fsspec.AbstractFileSystem, protocol: str) -> None:
     where ``skip_instance_cache`` is set false)."""
     if getattr(fs, "_ftrain_sends_once", False):
         return
-    fs._ftrain_sends_once = True
     if protocol in S3_PROTOCOLS:
         fs.retries = 1  # s3fs's own retry loop: one attempt, ours does the retrying
     if protocol in GCS_PROTOCOLS:
         _gcs_send_once(fs)
     if protocol in AZURE_PROTOCOLS:
         _azure_send_once(fs)
+    fs._ftrain_sends_once = True
 
 
 def _gcs_send_once(fs: fsspec.AbstractFileSystem) -> None:
@@ -127,7 +127,7 @@ def _deadline_session() -> type:
                 timeouts = (self._timeout.sock_connect or 0, self._timeout.sock_read or 0)
                 return await _by_deadline(super().send(request), size, *timeouts)
             except TimeoutError as late:  # aiohttp's own timeouts come out of ``send`` as botocore's errors: ours
-                raise ReadTimeoutError(endpoint_url=request.url, error=str(late)) from None
+                raise ReadTimeoutError(endpoint_url=request.url, error=str(late) or "no answer") from None
 
     return DeadlineSession
 

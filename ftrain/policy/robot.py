@@ -30,7 +30,7 @@ from gymnasium.envs.mujoco import MujocoEnv
 from gymnasium.envs.registration import registry
 
 from ftrain.config import EnvConfig
-from ftrain.errors import UserError, closest, error_line, short_path
+from ftrain.errors import UserError, closest, error_line, module_missing, short_path
 from ftrain.policy import mjcf
 from ftrain.policy.mujoco_warnings import route_mujoco_warnings
 
@@ -97,10 +97,9 @@ def import_env_modules(env: EnvConfig) -> set[str]:
         try:
             importlib.import_module(name)
         except Exception as error:  # whatever the user's module raises
-            missing = isinstance(error, ModuleNotFoundError) and error.name and name.startswith(error.name)
             fix = (
                 "run ftrain from the directory that holds it, or install it (pip install -e your package)"
-                if missing
+                if module_missing(error, name)
                 else "fix the module"
             )
             raise UserError(f"{key}: module {name!r} does not import ({error_line(error)}): {fix}") from None

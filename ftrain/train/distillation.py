@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from rsl_rl.algorithms import Distillation
+from rsl_rl.models import MLPModel
 from rsl_rl.storage import RolloutStorage
 
 from ftrain.ckpt.steps import resolve_checkpoint_url
@@ -23,18 +24,7 @@ def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Dis
     """rsl-rl's Distillation: a student like a PPO actor learns to imitate the teacher loaded from
     ``config.teacher`` (any ftrain checkpoint URL, verified by its manifest; architecture from its own config)."""
     obs = env.get_observations()
-    try:
-        teacher = load_policy(config.teacher, config.storage.options, not_a_file=WHOLE_TEACHER)
-    except UserError as error:  # which setting named it: a distillation config's teacher may not be the user's own
-        missing = f"teacher={config.teacher}: {error}"
-        if (identity := _stored_teacher(config)) is None:
-            raise UserError(missing) from None
-        teacher_actor = build_actor(config_from_dict(identity["config"]), obs, env.num_actions)  # its weights: restore
-    else:
-        _check_teacher_fits(config, env, teacher)
-        teacher_actor, missing = teacher.actor, None
-        identity = {"source": teacher.source, "step": teacher.step, "digest": teacher.digest}
-        identity["config"] = teacher.manifest["config"]  # so that a resume builds it where the teacher is gone
+    teacher_actor, identity, missing = _teacher(config, env, obs)
     student = build_actor(config, obs, env.num_actions, obs_set="student")
     storage = RolloutStorage("distillation", env.num_envs, config.num_steps_per_env, obs, [env.num_actions])
     a = config.algorithm
@@ -53,6 +43,22 @@ def build_distillation(config: Config, env: MujocoVecEnv, info: RankInfo) -> Dis
     alg.teacher_missing = missing
     alg.teacher_identity = identity
     return alg
+
+
+def _teacher(config: Config, env: MujocoVecEnv, obs) -> tuple[MLPModel, dict, str | None]:
+    """The teacher's model, its identity (with its config, so that a resume builds it where the teacher is gone), and
+    why ``config.teacher`` did not load, where it did not but this run's checkpoint holds the teacher: then the model
+    is built from the stored config, its weights still to come from the restore (``teacher_loaded`` stays false)."""
+    try:
+        teacher = load_policy(config.teacher, config.storage.options, not_a_file=WHOLE_TEACHER)
+    except UserError as error:  # which setting named it: a distillation config's teacher may not be the user's own
+        missing = f"teacher={config.teacher}: {error}"
+        if (identity := _stored_teacher(config)) is None:
+            raise UserError(missing) from None
+        return build_actor(config_from_dict(identity["config"]), obs, env.num_actions), identity, missing
+    _check_teacher_fits(config, env, teacher)
+    identity = {"source": teacher.source, "step": teacher.step, "digest": teacher.digest}
+    return teacher.actor, {**identity, "config": teacher.manifest["config"]}, None
 
 
 def _stored_teacher(config: Config) -> dict | None:

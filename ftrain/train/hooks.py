@@ -23,7 +23,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from ftrain.ckpt.format import human_size, step_dir
-from ftrain.errors import UserError, command, error_line
+from ftrain.errors import UserError, command, error_line, module_missing
 
 METRICS_CSV = "metrics.csv"
 """What ``CsvHook`` writes in the log directory, and ``read_metrics`` reads."""
@@ -351,7 +351,7 @@ def hook_target(target: str) -> typing.Callable[..., Hook]:
     try:
         module = importlib.import_module(module_name)
     except Exception as error:
-        if isinstance(error, ModuleNotFoundError) and error.name and f"{module_name}.".startswith(f"{error.name}."):
+        if module_missing(error, module_name):
             raise UserError(f"hook target {target!r} cannot be imported ({error}): fix the import path") from None
         # the module itself raised (an import of its own included): the user's code, which a restart would run alike
         raise UserError(f"hook target {target!r} cannot be imported: {error_line(error)}: fix the module") from None

@@ -200,7 +200,9 @@ class Trainer:
                     f"teacher={self.config.teacher} is not the teacher this run started with: it keeps that one, "
                     "from its checkpoint"
                 )
-            self.alg.teacher_identity = own["teacher"]
+                self.alg.teacher_identity = own["teacher"]
+            else:  # the same teacher: a checkpoint of before its config was kept gets it from the one loaded
+                self.alg.teacher_identity = {**self.alg.teacher_identity, **own["teacher"]}
         if hasattr(self.alg, "shared_generator"):  # (absent: a checkpoint of before the shared stream)
             shared = own.get("shared_rng")
             if shared is not None:

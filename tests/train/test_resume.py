@@ -558,7 +558,7 @@ def test_state_that_would_not_load_back_is_refused_at_the_first_save(tmp_path, h
     failure like a storage's, retried and held for up to an hour."""
     env = child_env({"PYTHONPATH": str(TESTS)})
     command = train_command(tmp_path / "run", hooks_override(hook))
-    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=120)
+    result = subprocess.run(command, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert result.returncode == 2, result.stderr[-2000:]
     errors = [line for line in result.stderr.splitlines() if line.startswith("ftrain: error:")]
     assert len(errors) == 1 and "hooks and metrics must keep plain data" in errors[0], result.stderr
