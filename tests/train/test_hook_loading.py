@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from ftrain.errors import UserError
+from ftrain.errors import UserError, module_missing
 from ftrain.train.hooks import Hook, load_hook
 
 from helpers import SMOKE, child_env
@@ -90,3 +90,19 @@ def test_a_hook_that_does_not_import_is_refused_before_the_run_takes_its_storage
         "fix the import path\n"
     )
     assert not storage.exists()
+
+
+def test_a_module_is_missing_only_where_it_or_a_package_above_it_is_not_there() -> None:
+    """What the one-line refusals of hooks and env modules tell apart: "fix the import path" against "fix the
+    module" (an import of the module's own failed)."""
+    cases = {
+        ("userenv", "userenv"): True,
+        ("userenv.robots", "userenv"): True,  # its package is not there
+        ("userenv_x", "userenv"): False,  # another module that userenv_x imports
+        ("userenv", "numpyy"): False,
+        ("userenv.robots", "userenv.robots.arm"): False,
+    }
+    for (name, missing), expected in cases.items():
+        assert module_missing(ModuleNotFoundError(name=missing), name) is expected, (name, missing)
+    assert not module_missing(ImportError("cannot import name 'x'"), "userenv")
+    print(f"{len(cases) + 1} cases checked")
