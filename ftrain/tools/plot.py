@@ -43,7 +43,7 @@ class Plot:
     panels: list[str]
     """The titles of the panels drawn."""
     restarts: list[int]
-    """The steps at which restarts are marked (the supervisor's restarts, at the step each resumed from)."""
+    """The supervisor's restarts, each at the step it resumed from (twice a step that two resumed from)."""
     resumes: list[int]
     """The steps of the other resumes."""
     changes: list[int]
@@ -166,7 +166,7 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     path = Path(output) if output else Path(default_log_dir(str(run), run_name)) / "curves.png"
     check_output(path, "-o")
     changes = sorted(changed)
-    restarts = sorted(set(read_restarts(storage)) - set(changes))
+    restarts = [step for step in read_restarts(storage) if step not in changes]  # two from one step are two
     resumes = sorted(set(resumed) - set(restarts) - set(changes))
     iterations = columns.pop("iteration")
     missing = gaps(iterations)
@@ -201,7 +201,7 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
             ax.plot(xs, ys, "o-" if column == "eval_return" else "-", label=label, markersize=3)
         if title == "Losses":
             ax.set_yscale("symlog", linthresh=1e-2)
-        for index, step in enumerate(restarts):
+        for index, step in enumerate(sorted(set(restarts))):
             ax.axvline(step, color="tab:red", linestyle="--", linewidth=1, label="restart" if index == 0 else None)
         for index, step in enumerate(resumes):
             ax.axvline(step, color="tab:gray", linestyle=":", linewidth=1, label="resume" if index == 0 else None)

@@ -153,11 +153,14 @@ def test_plot_adds_the_supervisors_restarts(resumed, tmp_path) -> None:
     events("resumed", attempt=2, step=2)
     events("restart", attempt=3, restarts=2)
     events("resumed", attempt=3, step=None)  # a crash before the first checkpoint: restarted from the start
+    events("restart", attempt=4, restarts=3)
+    events("resumed", attempt=4, step=2)  # a second restart from step 2: counted, on the same line
     with (run / "events.jsonl").open("a") as file:  # damaged since: skipped, a step of another type as none
         file.write('[1, 2]\nnull\n{"event": "restart"}\n{"event": "resumed", "step": "4"}\n' + "[" * 5000 + "\n")
         file.write('{"time": 1.0, "event": "resu')  # cut short when the supervisor itself was killed
     plot = plot_run(run)
-    assert (plot.restarts, plot.resumes) == ([0, 2], [4])
+    assert (plot.restarts, plot.resumes) == ([0, 0, 2, 2], [4])
+    assert plot.title == "supervised: 8 iterations, 4 restarts (dashed), 1 resume (dotted): at the step resumed from"
     assert (run / "curves.png").is_file()
 
 
