@@ -7,7 +7,9 @@ its phase changes. The supervisor reads them without importing torch. Fields:
 - ``rank``, ``pid``: who wrote it (its global rank).
 - ``iteration``: iterations completed when the phase began.
 - ``phase``: a ``Phase``: ``start`` (resumed or fresh, before the first iteration), ``rollout``, ``update``,
-  ``evaluate``, ``checkpoint``, ``done`` (all iterations finished), ``preempted`` (saved on request, exiting).
+  ``evaluate``, ``snapshot``, ``hook``, ``checkpoint``, ``closing``, ``done`` (all iterations finished),
+  ``preempted`` (saved on request, exiting).
+- ``hook``: in phase ``hook``, which hook of the config runs, and where (``after_iteration of pkg.mod.Class``).
 - ``committed_step``: the newest checkpoint step this run has committed or resumed from (None if none).
 - ``resumed_step``: the step this process resumed from (None for a fresh start).
 - ``seq``: increases with every write, so a reader sees progress even when the clock does not move.
@@ -28,6 +30,7 @@ import json
 import os
 import signal
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -70,6 +73,9 @@ class Phase(enum.StrEnum):
     EVALUATE = "evaluate"
     SNAPSHOT = "snapshot"
     """Rank 0 exports a policy snapshot (an ONNX export takes seconds)."""
+    HOOK = "hook"
+    """A hook of the config runs inside an iteration (``Heartbeat.hook`` names it): timed on its own, so that one
+    that hangs is named, and its slow work does not widen the limit of the phase it interrupts."""
     CHECKPOINT = "checkpoint"
     CLOSING = "closing"
     """The end of an attempt (the last iteration, or a stop): its save held until committed, the writer closed, the
@@ -97,6 +103,8 @@ class Heartbeat:
     """Phase -> the longest this process has spent in it, on its own clock, past start-up and its first iteration:
     what the supervisor's hang limits are made of, whether or not one of its polls happened to see the phase (a
     phase of milliseconds seldom meets a poll a tenth of a second apart)."""
+    hook: str | None = None
+    """In phase ``hook``: the hook point and the hook's class (``after_iteration of pkg.mod.Class``)."""
 
 
 class HeartbeatWriter:
@@ -121,6 +129,8 @@ class HeartbeatWriter:
         self.resumed_step: int | None = None
         self.config_change: str | None = None
         self.longest: dict[str, float] = {}
+        self.phase = Phase.START
+        self._hook: str | None = None
         self._timing: tuple[Phase, float] | None = None
         """The phase being timed and when it began (None: start-up or the first iteration, not timed)."""
         self._first: int | None = None
@@ -131,6 +141,7 @@ class HeartbeatWriter:
     def beat(self, phase: Phase, iteration: int | None = None) -> None:
         if iteration is not None:
             self.iteration = iteration
+        self.phase = Phase(phase)
         if self.path is None:
             return
         now = time.monotonic()
@@ -155,10 +166,24 @@ class HeartbeatWriter:
             self.nodes,
             self.config_change,
             {str(timed): round(seconds, 4) for timed, seconds in self.longest.items()},
+            self._hook if phase == Phase.HOOK else None,
         )
         tmp = self.path.with_suffix(f".tmp{os.getpid()}")
         tmp.write_text(json.dumps(asdict(beat)))
         os.replace(tmp, self.path)
+
+    @contextlib.contextmanager
+    def running_hook(self, name: str, iteration: int) -> Iterator[None]:
+        """Phase ``hook`` naming ``name`` while the block runs, then the phase it interrupted again. ``iteration``:
+        the iterations completed, one more than the interrupted phase's in ``after_iteration``: a hook that fails
+        there loses that iteration, and the supervisor counts it lost."""
+        interrupted, self._hook = self.phase, name
+        self.beat(Phase.HOOK, iteration)
+        try:
+            yield
+        finally:
+            self._hook = None
+            self.beat(interrupted)
 
 
 def read_heartbeats(directory: str | os.PathLike) -> dict[int, Heartbeat]:

@@ -120,8 +120,9 @@ class SlowFirstIterationHook(Hook):
 
 
 class LingerHook(Hook):
-    """Sleeps ``seconds`` at the end of every rollout and update from iteration ``start`` on: phases long enough that a
-    test which polls the heartbeats to kill a run inside one cannot miss it, however short a smoke run's phases are."""
+    """Sleeps ``seconds`` after every rollout and update from iteration ``start`` on, in its heartbeat phase ``hook``:
+    long enough that a test which polls the heartbeats to kill a run there cannot miss it, however short a smoke
+    run's phases are."""
 
     def __init__(self, seconds: float, start: int) -> None:
         self.seconds, self.start = seconds, start
@@ -147,6 +148,20 @@ class SlowEndHook(Hook):
     def on_end(self, trainer) -> None:
         if trainer.info.is_main:
             time.sleep(self.seconds)
+
+
+class HangOnceHook(Hook):
+    """Rank 0 hangs for good in ``after_iteration`` of iteration ``iteration`` of a resumed run, once: it first
+    creates ``marker``, which later attempts find. A hook that waits on what never comes (a lock, a socket)."""
+
+    def __init__(self, iteration: int, marker: str) -> None:
+        self.iteration, self.marker = iteration, Path(marker)
+
+    def after_iteration(self, trainer, metrics: dict[str, float]) -> None:
+        resumed = trainer.heartbeat.resumed_step is not None
+        if trainer.info.is_main and resumed and trainer.iteration == self.iteration and not self.marker.exists():
+            self.marker.touch()
+            time.sleep(3600)
 
 
 class HoldHook(Hook):

@@ -100,7 +100,7 @@ class HangWatch:
         seconds, limit = round(now - self.changed[rank][1], 1), round(limit, 1)
         processes = {str(r): state for r, state in states.items()}
         first = self._first_iteration(rank, beat) or None
-        return Hang(rank, beat.phase, seconds, limit, iteration=beat.iteration, processes=processes, first=first)
+        return Hang(rank, beat.phase, seconds, limit, beat.iteration, processes=processes, first=first, hook=beat.hook)
 
     def _stopped(self, working: dict[int, Heartbeat], now: float) -> int | None:
         """A rank whose process has been stopped (SIGSTOP, a debugger) and silent past the floor, in any phase, the
@@ -142,6 +142,8 @@ class Hang:
     ranks_seen: int | None = None
     first: bool | None = None
     """True when the rank hung in the first iteration after start-up."""
+    hook: str | None = None
+    """In phase ``hook``: the hook point and the hook's class (``after_iteration of pkg.mod.Class``)."""
 
     def fields(self) -> dict:
         """For the event log: the fields that apply (``rank`` always, None if no rank was to blame)."""
@@ -153,5 +155,8 @@ class Hang:
     def describe(self) -> str:
         if self.ranks_seen is not None:
             return f"not every rank got past start-up within {self.limit:g} s (--startup-grace)"
-        where = f"phase {self.phase}" + (" of the first iteration" if self.first else "")
+        if self.hook:
+            where = f"hook {self.hook}" + (", in the first iteration" if self.first else "")
+        else:
+            where = f"phase {self.phase}" + (" of the first iteration" if self.first else "")
         return f"rank {self.rank} silent for {self.seconds} s in {where} (limit {self.limit} s)"

@@ -9,6 +9,7 @@ User hooks come from the config: ``hooks: [{target: "package.module:Class", ever
 from __future__ import annotations
 
 import collections
+import contextlib
 import csv
 import importlib
 import io
@@ -108,16 +109,35 @@ class Hook:
 
 
 class Hooks:
-    """The ordered hooks of a run; ``call`` dispatches one hook point to all of them."""
+    """The ordered hooks of a run; ``call`` dispatches one hook point to all of them. A hook of the config that
+    implements a point inside an iteration runs in a heartbeat phase of its own that names it: the supervisor times
+    it apart, and a hang in it names the hook (ours beat their own phases where they take time)."""
 
-    def __init__(self, hooks: list[Hook]) -> None:
-        self.hooks = hooks
+    TIMED_POINTS = ("after_rollout", "after_update", "after_iteration")
+
+    def __init__(self, builtin: list[Hook], user: list[Hook] = ()) -> None:
+        self.hooks = [*builtin, *user]
+        self._user = {id(hook) for hook in user}
 
     def call(self, point: str, trainer: TrainerView, *args: object) -> None:
         for hook in self.hooks:
             if point == "after_iteration" and trainer.iteration % max(1, hook.every):
                 continue
-            getattr(hook, point)(trainer, *args)
+            named = self._timed(hook, point)
+            with (
+                trainer.heartbeat.running_hook(f"{point} of {_class_name(hook)}", trainer.iteration)
+                if named
+                else contextlib.nullcontext()
+            ):
+                getattr(hook, point)(trainer, *args)
+
+    def _timed(self, hook: Hook, point: str) -> bool:
+        """Whether ``point`` of ``hook`` runs in a heartbeat phase of its own: a hook of the config implementing it."""
+        return (
+            id(hook) in self._user
+            and point in self.TIMED_POINTS
+            and getattr(type(hook), point) is not getattr(Hook, point)
+        )
 
     def state_dict(self) -> dict:
         return {key: hook.state_dict() for key, hook in self._keyed()}
@@ -133,10 +153,14 @@ class Hooks:
         seen: collections.Counter[str] = collections.Counter()
         keyed = []
         for hook in self.hooks:
-            name = f"{type(hook).__module__}.{type(hook).__qualname__}"
+            name = _class_name(hook)
             keyed.append((f"{name}#{seen[name]}", hook))
             seen[name] += 1
         return keyed
+
+
+def _class_name(hook: Hook) -> str:
+    return f"{type(hook).__module__}.{type(hook).__qualname__}"
 
 
 class ConsoleHook(Hook):

@@ -398,11 +398,12 @@ def build_hooks(config: Config) -> Hooks:
         hooks.append(TrackingHook(config))
     if config.snapshots.every:
         hooks.append(PolicySnapshotHook(config.snapshots))
+    user = []
     for hook_config in config.hooks:
         hook = load_hook(hook_config.target, hook_config.kwargs)
         hook.every = hook_config.every
-        hooks.append(hook)
-    return Hooks(hooks)
+        user.append(hook)
+    return Hooks(hooks, user)
 
 
 def train(config: Config) -> int:

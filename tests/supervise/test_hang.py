@@ -12,15 +12,17 @@ import signal
 import subprocess
 import sys
 import time
+import types
 import uuid
 
 import pytest
 
 from ftrain import procfs
-from ftrain.heartbeat import Heartbeat, Phase, read_stop_reason, write_stop_reason
+from ftrain.heartbeat import Heartbeat, HeartbeatWriter, Phase, read_heartbeats, read_stop_reason, write_stop_reason
 from ftrain.supervise.attempt import Attempt, attempt_env
 from ftrain.supervise.hang import HANG_FACTOR, HANG_FLOOR, HangWatch
 from ftrain.supervise.plan import Plan
+from ftrain.train.hooks import Hook, Hooks
 
 from helpers import (
     REPO,
@@ -107,6 +109,42 @@ def test_a_stopped_process_is_hung_after_the_floor_even_in_its_first_iteration()
         child.wait()
 
 
+def test_a_hook_of_the_config_runs_in_a_phase_that_names_it_with_its_iteration_counted_as_completed(tmp_path):
+    """What the hook sees in its own heartbeat while it runs, then after: in ``after_iteration`` the iteration is
+    complete (a hook that fails there loses it, and the supervisor counts it lost), and the phase it interrupted goes
+    on; ours, and the points it does not implement, beat nothing."""
+    seen = []
+
+    class Builtin(Hook):
+        def after_iteration(self, trainer, metrics) -> None:
+            seen.append(("builtin", read_heartbeats(tmp_path)[0]))
+
+    class Users(Hook):
+        def after_iteration(self, trainer, metrics) -> None:
+            seen.append(("user", read_heartbeats(tmp_path)[0]))
+
+    writer = HeartbeatWriter(tmp_path, rank=0)
+    trainer = types.SimpleNamespace(heartbeat=writer, iteration=4)
+    hooks = Hooks([Builtin()], [Users()])
+    writer.beat(Phase.UPDATE, 3)
+    hooks.call("after_update", trainer, {})  # implemented by neither
+    assert writer.seq == 1
+    hooks.call("after_iteration", trainer, {})
+    (_, builtin), (_, user) = seen
+    assert (builtin.phase, builtin.hook, builtin.seq) == (Phase.UPDATE, None, 1)
+    name = f"after_iteration of {__name__}.{Users.__qualname__}"
+    assert (user.phase, user.hook, user.iteration) == (Phase.HOOK, name, 4)  # completed: lost if it fails
+    after = read_heartbeats(tmp_path)[0]
+    assert (after.phase, after.hook, after.seq, after.iteration) == (Phase.UPDATE, None, 3, 4)
+    hang = HangWatch(timeout=None, startup_grace=GRACE, ranks=1)
+    hang.restart(now=0)
+    assert hang.check({0: beat(0, 1, Phase.ROLLOUT, 4)}, now=0) is None  # the first iteration of an attempt
+    described = hang.check({0: user}, now=1), hang.check({0: user}, now=2 + GRACE)
+    assert (
+        described[0] is None and f"in hook {name}, in the first iteration (limit {GRACE} s)" in described[1].describe()
+    )
+
+
 def test_a_slow_first_iteration_is_not_a_hang_and_a_stop_in_a_fast_phase_is_caught_in_seconds():
     watch = HangWatch(timeout=None, startup_grace=GRACE, ranks=2)
     watch.restart(now=0)
@@ -187,13 +225,12 @@ def test_a_slow_first_iteration_is_not_a_hang_and_a_stopped_worker_is_caught_in_
     floor any later phase gets; later a worker is stopped in the middle of 0.05 s phases and is called hung at the
     floor (asserted within the floor + ``FIRST``: a margin for a machine 3x slower); the run's end (its last save,
     the hooks' ``on_end``: trackers flushing) takes ``FIRST`` s too, after saves of a fraction of a second, and is
-    no hang either."""
+    no hang either. After the restart, a hook of the config hangs rank 0: the hang names the hook."""
     run = tmp_path / "run"
     command = [sys.executable, "-m", "ftrain", "supervise", "--nproc-per-node", "2", "--backoff-initial", "0.2"]
     command += [SMOKE, "--storage", str(run), "iterations=60", "log.console=false"]
-    command += [
-        hooks_override(*(probe_hook(hook, seconds=FIRST) for hook in ("SlowFirstIterationHook", "SlowEndHook")))
-    ]
+    hooks = [probe_hook(hook, seconds=FIRST) for hook in ("SlowFirstIterationHook", "SlowEndHook")]
+    command += [hooks_override(*hooks, probe_hook("HangOnceHook", iteration=30, marker=tmp_path / "hung"))]
     output = (tmp_path / "supervise.log").open("wb")
     env = child_env({"PYTHONPATH": str(TESTS)})
     supervisor = launch(command, cwd=REPO, env=env, stdout=output, stderr=subprocess.STDOUT)
@@ -209,8 +246,13 @@ def test_a_slow_first_iteration_is_not_a_hang_and_a_stopped_worker_is_caught_in_
     assert finish(supervisor, timeout=180) == 0, (tmp_path / "supervise.log").read_text()[-3000:]
     with (run / "metrics.csv").open() as file:
         assert float(next(csv.DictReader(file))["collect_time"]) >= FIRST  # the first iteration was that slow
-    first = next(e for e in events(run) if e["event"] == "exit")
-    assert [e["event"] for e in events(run)].count("hang") == 1 and first["cause"] == "killed: rank 1 hung"
+    exits = [e["cause"] for e in events(run) if e["event"] == "exit"]
+    assert exits[:2] == ["killed: rank 1 hung", "killed: rank 0 hung"]
+    hangs = [e for e in events(run) if e["event"] == "hang"]
+    hook = "after_iteration of probe_hooks.HangOnceHook"
+    assert len(hangs) == 2 and (hangs[1]["phase"], hangs[1]["hook"], hangs[1]["iteration"]) == ("hook", hook, 30)
+    assert hangs[1]["rank"] == 0 and hangs[1]["limit"] == HANG_FLOOR
+    assert f"in hook {hook} (limit {HANG_FLOOR} s)" in (tmp_path / "supervise.log").read_text()
 
 
 def test_the_reason_for_a_stop_is_read_by_the_workers_and_gone_at_the_next_attempt(tmp_path) -> None:

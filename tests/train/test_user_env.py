@@ -74,15 +74,16 @@ def test_own_robot_trains_supervised_resumes_bit_for_bit_after_sigkill_plays_and
     assert set(expected["robot"]["mjcf"]) == {"robot.xml", "parts/arm.xml", "meshes/block.obj"}
     assert (reference / "policies" / "step-000000008" / "MANIFEST.json").exists()
 
-    # the same run killed twice (mid-rollout, mid-update) and resumed, under plain torchrun; a smoke run's phases
-    # last milliseconds, which a look every 50 ms missed under load: LingerHook makes them last a second (run-only)
+    # the same run killed twice (after a rollout, after an update) and resumed, under plain torchrun; a smoke run's
+    # phases last milliseconds, which a look every 50 ms missed under load: LingerHook lingers a second there, in a
+    # heartbeat phase of its own (run-only)
     run, heartbeats = tmp_path / "run", tmp_path / "heartbeats"
-    for phase, iteration in (("rollout", 3), ("update", 5)):
+    for point, iteration in (("after_rollout", 3), ("after_update", 5)):
         linger = hooks_override(probe_hook("LingerHook", seconds=1, start=iteration))
         env = {ENV_DIR: str(heartbeats), "PYTHONPATH": str(TESTS)}
         proc = start_train(run, *MEMORY_ARM, linger, ranks=2, env=env, cwd=work)
         try:
-            wait_for(functools.partial(_in_phase, heartbeats, phase, iteration), f"{phase} at iteration {iteration}")
+            wait_for(functools.partial(_lingering, heartbeats, point, iteration), f"{point} at iteration {iteration}")
         finally:
             kill_tree(proc)
     result = run_train(run, *MEMORY_ARM, ranks=2, cwd=work)
@@ -116,9 +117,10 @@ def test_own_robot_trains_supervised_resumes_bit_for_bit_after_sigkill_plays_and
         assert "does not fit env.id=userbot:MemoryArm-v0 as it is now: " in line, line
 
 
-def _in_phase(heartbeats: Path, phase: str, iteration: int) -> bool:
+def _lingering(heartbeats: Path, point: str, iteration: int) -> bool:
     beat = read_heartbeats(heartbeats).get(0)
-    return beat is not None and beat.phase == phase and beat.iteration >= iteration
+    lingering = beat is not None and beat.hook == f"{point} of probe_hooks.LingerHook"
+    return lingering and beat.iteration >= iteration
 
 
 def _train(work: Path, storage: Path, *overrides: str) -> subprocess.CompletedProcess:
