@@ -517,9 +517,10 @@ def _dispatch(args: argparse.Namespace) -> int:
         from ftrain.tools.bench import run_benchmark
 
         return run_benchmark(args.iterations, args.settings)
-    from ftrain.config import storage_options
+    from ftrain.config import check_options_used, storage_options
 
     options = storage_options(args.storage_option)
+    check_options_used(args.storage_option, [args.run if args.command == "plot" else args.url])
     if args.command == "ckpt":
         from ftrain.ckpt import commands as ckpt_commands
 
@@ -595,10 +596,12 @@ def _run_config(args: argparse.Namespace) -> Config:
     from ftrain.ckpt.spool import check_place as check_spool_place
     from ftrain.ckpt.steps import check_not_a_checkpoints_directory, check_storage_place
     from ftrain.ckpt.storage import Storage
-    from ftrain.config import check_writable, load_config, local_path
+    from ftrain.config import check_options_used, check_writable, load_config, local_path
     from ftrain.train.env_ids import check_env_id
 
     config = load_config(args.config, args.overrides, args.storage)
+    resumed_from = config.resume if config.resume not in ("auto", "never") else ""
+    check_options_used(getattr(args, "storage_option", []), [config.storage.url, resumed_from, config.teacher])
     check_env_id(config.env)
     check_storage_place(config.storage.url)
     check_spool_place(config)

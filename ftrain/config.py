@@ -28,7 +28,15 @@ import yaml
 from ftrain.errors import UserError, did_you_mean
 from ftrain.log_dir_lock import STORAGE_FILE
 from ftrain.redact import Url, display_url, display_urls, redact_options, without_hidden
-from ftrain.values import build, dotted, parse_amount, parse_value, set_dotted, storage_option_overrides
+from ftrain.values import (
+    STORAGE_OPTION,
+    build,
+    dotted,
+    parse_amount,
+    parse_value,
+    set_dotted,
+    storage_option_overrides,
+)
 
 POLICY_FORMATS = ("torchscript", "onnx")
 """The file formats a policy is exported and snapshotted in."""
@@ -472,6 +480,18 @@ def _count_envs_as_given(config: Config, given: set[str]) -> None:
 def storage_options(words: list[str]) -> dict:
     """The fsspec storage options of ``--storage-option`` words (see ``storage_option_overrides``)."""
     return load_config(None, storage_option_overrides(words)).storage.options
+
+
+def check_options_used(words: list[str], urls: list[str]) -> None:
+    """``--storage-option`` words given where every storage the command opens (``urls``; "" for none) is a local
+    path, which fsspec opens without a word about them: a remote URL written without its protocol, most likely."""
+    places = [url for url in urls if url]
+    if words and places and all(local_path(url) for url in places):
+        keys = ", ".join(dict.fromkeys(word.partition("=")[0].strip() for word in words))
+        raise UserError(
+            f"{STORAGE_OPTION} {keys}: {display_url(places[0])} is a local path, where storage options do nothing: "
+            f"write the remote storage's URL with its protocol (s3://..., gs://...), or leave {STORAGE_OPTION} out"
+        )
 
 
 def config_from_dict(data: dict) -> Config:

@@ -297,3 +297,31 @@ def test_storage_given_twice_is_refused_unless_it_is_the_same_one(tmp_path, caps
     )
     again = [command, "x.yaml", "--storage", first, "--storage", f"file://{first}/"]  # one storage, spelt two ways
     assert build_parser().parse_args(again).storage == f"file://{first}/"
+
+
+def test_storage_options_for_a_local_path_are_refused_by_every_command_that_takes_them(tmp_path, capsys) -> None:
+    """fsspec opens a local path without a word about options it does nothing with: a remote URL written without its
+    protocol, most likely. Every command with ``--storage-option`` (found in the parser, so that a new one is
+    covered) refuses it in one line, and makes nothing; options beside a remote ``resume=`` or teacher are used."""
+    from ftrain.config import check_options_used
+
+    local = tmp_path / "bucket" / "run"
+    checked = []
+    for name, parser in parsers(build_parser()):
+        if not any("--storage-option" in action.option_strings for action in parser._actions):
+            continue
+        words = name.split()[1:]
+        place = [SMOKE, "--storage", str(local)] if words[-1] in ("train", "supervise") else [str(local)]
+        place += ["--format", "onnx"] if words[-1] == "export" else []
+        args = [*words, *place, "--storage-option", "endpoint_url=http://127.0.0.1:9", "--storage-option", "key=K"]
+        assert main(args) == 2, args
+        err = capsys.readouterr().err
+        expected = f"--storage-option endpoint_url, key: {local} is a local path, where storage options do nothing: "
+        assert err.count("\n") == 1 and expected in err and "leave --storage-option out" in err, (args, err)
+        checked.append(name)
+    assert {"ftrain train", "ftrain supervise", "ftrain ckpt prune", "ftrain play", "ftrain plot"} <= set(checked)
+    assert not (tmp_path / "bucket").exists()
+    print(f"{len(checked)} commands refuse storage options for a local path: {', '.join(checked)}")
+    for remote in ("s3://bucket/run", "gs://bucket/step-000000004"):  # a resume= or teacher= on a remote storage
+        check_options_used(["endpoint_url=http://127.0.0.1:9"], [str(local), remote, ""])
+    check_options_used([], [str(local)])
