@@ -30,7 +30,7 @@ from ftrain.ckpt.format import (
     step_dir,
     verify_step,
 )
-from ftrain.ckpt.lease import Lease, LeaseHeld, read_record
+from ftrain.ckpt.lease import Lease, LeaseHeld, saving_now
 from ftrain.ckpt.lineage import generation, history, listed_steps
 from ftrain.ckpt.retention import Kept, delete_step, kept, retention_plan
 from ftrain.ckpt.steps import (
@@ -85,7 +85,7 @@ def ls(url: str, options: dict | None = None) -> int:
     if step is None:
         for directory, reason in set_aside_steps(storage):
             print(_fit(f"set aside: {storage.where(f'{ASIDE}/{directory}')} ({reason})"))
-    if any(info.status == INCOMPLETE for info in every) and (holder := _saving_now(storage)):
+    if any(info.status == INCOMPLETE for info in every) and (holder := saving_now(storage)):
         print(holder)
     return 0
 
@@ -116,7 +116,7 @@ def verify(url: str, options: dict | None = None) -> int:
             line = f"{counted(len(past.line), 'step')} on one line of descent, {len(past.superseded)} superseded"
             print(f"one history: {line}")
     incomplete = len(infos) - len(committed)
-    if incomplete and (holder := _saving_now(storage)):
+    if incomplete and (holder := saving_now(storage)):
         print(holder)
     never = f"; {incomplete} incomplete (never committed)" if incomplete else ""
     print(f"{len(committed) - failed} of {counted(len(committed), 'committed step')} verified{never}")
@@ -400,20 +400,6 @@ def _aside(storage: Storage, directory: str) -> str:
     if full not in storage.list_dirs(ASIDE):
         raise UserError(f"{storage.where(f'{ASIDE}/{directory}')} does not exist: see {_ls(storage)}")
     return full
-
-
-def _saving_now(storage: Storage) -> str | None:
-    """A line naming the run that holds the storage now, if one does: its newest incomplete step may be a save in
-    flight, not one cut short."""
-    try:
-        found = read_record(storage)
-    except UserError:
-        return None
-    live = found[0].live(time.time()) if found else []
-    if not live:
-        return None
-    holder = max(live, key=lambda entry: entry.renewed_at).process.describe()
-    return f"run {found[0].run_id} ({holder}) holds this storage now: an incomplete step may be its save in flight"
 
 
 def _ls(storage: Storage) -> str:

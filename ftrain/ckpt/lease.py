@@ -511,5 +511,19 @@ def read_record(storage: Storage) -> tuple[Record, str] | None:
         ) from None
 
 
+def saving_now(storage: Storage) -> str | None:
+    """A line naming the run that holds ``storage`` now, if one does: its newest incomplete step may be a save in
+    flight, not one cut short."""
+    try:
+        found = read_record(storage)
+    except UserError:
+        return None
+    live = found[0].live(time.time()) if found else []
+    if not live:
+        return None
+    holder = max(live, key=lambda entry: entry.renewed_at).process.describe()
+    return f"run {found[0].run_id} ({holder}) holds this storage now: an incomplete step may be its save in flight"
+
+
 def _when(epoch: float) -> str:
     return datetime.datetime.fromtimestamp(epoch, datetime.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")

@@ -41,6 +41,7 @@ from ftrain.ckpt.format import (
     verify_listed,
     verify_step,
 )
+from ftrain.ckpt.lease import saving_now
 from ftrain.ckpt.lineage import History, generation, history
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.storage import Storage
@@ -201,6 +202,8 @@ def select_resume(
     if past.forks:  # someone else's, read only (play, export, a teacher): the head's line, said
         log(f"{storage.url} holds two histories: reading the newest one's line (steps {past.line[:3]}...)")
     forks = set(past.forks)
+    reading = not quarantine_bad and any(info.status == INCOMPLETE for info in infos)
+    in_flight = saving_now(storage) if reading else None  # else "incomplete" reads as a save cut short
     for info in infos:
         if info.step in past.superseded:
             log(f"skipping checkpoint step {info.step}: {superseded_reason(info, past)}")
@@ -219,7 +222,8 @@ def select_resume(
             quarantine(storage, info.step, reasons)
             log(f"skipping checkpoint step {info.step}: corrupt, quarantined ({reasons})")
         else:
-            log(f"skipping checkpoint step {info.step}: {status} ({reasons})")
+            why = in_flight if status == INCOMPLETE and in_flight else reasons
+            log(f"skipping checkpoint step {info.step}: {status} ({why})")
     return None
 
 
@@ -419,6 +423,12 @@ def resolve_checkpoint_url(
             raise UserError(f"no verified checkpoint under {storage.url}: {fix}")
         return storage, *selected
     result = verify_listed(storage, step, step_files(storage, step), full=True)
+    if result.never_committed and (in_flight := saving_now(storage)):
+        ls = command("ftrain", "ckpt", "ls", storage.url)
+        raise UserError(
+            f"checkpoint {storage.where(step_dir(step))} is not committed ({in_flight}): pick a committed step (see "
+            f"{ls}), or pass {storage.url} for its newest"
+        )
     if not result.ok:
         problems = "; ".join(str(p) for p in result.problems)
         raise UserError(f"checkpoint {storage.where(step_dir(step))} does not verify ({problems}): pick another step")

@@ -563,8 +563,9 @@ def test_a_storage_whose_every_step_is_corrupt_names_commands_that_run_as_writte
 
 
 def test_an_incomplete_step_of_a_storage_held_now_is_said_to_be_maybe_a_save_in_flight(run, capsys):
-    """ls and verify beside a live run called its save in flight 'never committed': where the storage's lease is
-    held now (by this process here: it is alive), they name the holder; without one, or with an expired one, not."""
+    """ls and verify, and play and export (``resolve_checkpoint_url``: the newest step, or the step named), beside a
+    live run called its save in flight 'never committed': where the storage's lease is held now, they name the
+    holder; without one, or with an expired one, not."""
     from ftrain.ckpt.lease import Entry, Record
     from ftrain.procfs import Process
 
@@ -578,3 +579,16 @@ def test_an_incomplete_step_of_a_storage_held_now_is_said_to_be_maybe_a_save_in_
             command(run)
             out = capsys.readouterr().out
             assert (f"run live-run (pid 4242 on host node-far-away) {said}" in out) == held, (lease, out)
+        skipped = []
+        assert resolve_checkpoint_url(run, log=skipped.append)[1] == 30
+        in_flight = f"skipping checkpoint step 40: incomplete (run live-run (pid 4242 on host node-far-away) {said})"
+        assert (in_flight in skipped) == held and len(skipped) == 1, skipped
+        with pytest.raises(UserError) as refused:
+            resolve_checkpoint_url(f"{run}/checkpoints/step-000000040")
+        named = f"checkpoint {run}/checkpoints/step-000000040 is not committed (run live-run (pid 4242 on host "
+        assert (
+            str(refused.value).startswith(named) and str(refused.value).endswith(f"or pass {run} for its newest")
+        ) == held
+        assert (
+            "(MANIFEST.json: missing: the step was never committed): pick another step" in str(refused.value)
+        ) != held
