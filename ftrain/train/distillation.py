@@ -62,15 +62,19 @@ def _teacher(config: Config, env: MujocoVecEnv, obs) -> tuple[MLPModel, dict, st
 
 
 def _stored_teacher(config: Config) -> dict | None:
-    """The teacher (identity and config) that the newest verified checkpoint of this run learned from, if it has one:
-    a resumed student keeps its teacher, whose weights its checkpoint holds, also once the teacher's own run has
-    deleted that step (its retention). None for a fresh run, or a checkpoint of before the teacher's config was kept."""
-    try:
-        _, _, manifest = resolve_checkpoint_url(config.storage.url, config.storage.options, log=lambda line: None)
-    except UserError:
-        return None
-    stored = manifest.get("teacher")
-    return stored if isinstance(stored, dict) and "config" in stored else None
+    """The teacher (identity and config) that the checkpoint this run resumes from learned from, if it has one: a
+    resumed student keeps its teacher, whose weights its checkpoint holds, also once the teacher's own run has deleted
+    that step (its retention). Where the run resumes from (``ckpt/resume.py``): its storage's newest verified step,
+    else a ``resume=`` URL's. None for a fresh run, or a checkpoint of before the teacher's config was kept."""
+    sources = [config.storage.url, *([config.resume] if config.resume not in ("auto", "never") else [])]
+    for url in sources:
+        try:
+            _, _, manifest = resolve_checkpoint_url(url, config.storage.options, log=lambda line: None)
+        except UserError:
+            continue
+        stored = manifest.get("teacher")
+        return stored if isinstance(stored, dict) and "config" in stored else None
+    return None
 
 
 def _check_teacher_fits(config: Config, env: MujocoVecEnv, teacher) -> None:

@@ -75,6 +75,10 @@ def test_student_learns_from_teacher_and_resumes_exactly(tmp_path) -> None:
     ), said
     assert final_manifest(gone)["state_sha256"] == final_manifest(resumed)["state_sha256"]
     assert final_manifest(gone)["teacher"] == manifest["teacher"]
+    branched = tmp_path / "branched"  # a new storage that starts from the student's step: its teacher is in there
+    result = run_train(branched, f"teacher={teacher}", f"resume={gone}", "iterations=15", *SMALL, **options)
+    assert "; the run goes on with the teacher its checkpoint holds" in result.stdout, result.stdout
+    assert final_manifest(branched)["teacher"] == manifest["teacher"]
     fresh = subprocess.run(  # a student with nothing to resume from has no teacher at all: one line, exit 2
         train_command(tmp_path / "fresh", f"teacher={teacher}", *SMALL, config=DISTILL),
         cwd=REPO,
