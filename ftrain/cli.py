@@ -594,7 +594,7 @@ def _run_config(args: argparse.Namespace) -> Config:
     gymnasium's registry (not in ``config.py``, which the supervisor imports and which stays free of gymnasium)."""
     from ftrain.ckpt.format import CHECKPOINTS
     from ftrain.ckpt.spool import check_place as check_spool_place
-    from ftrain.ckpt.steps import check_not_a_checkpoints_directory, check_storage_place
+    from ftrain.ckpt.steps import check_checkpoint_url, check_not_a_checkpoints_directory, check_storage_place
     from ftrain.ckpt.storage import Storage
     from ftrain.config import check_options_used, check_writable, load_config, local_path
     from ftrain.train.env_ids import check_env_id
@@ -613,8 +613,15 @@ def _run_config(args: argparse.Namespace) -> Config:
         fix = "make it writable (its permissions, its mount), or pass --storage another directory"
         check_writable(Path(storage, CHECKPOINTS), "--storage", fix)
     resume = local_path(config.resume) if config.resume not in ("auto", "never") else ""
-    if resume and storage and not own and not os.path.exists(resume):  # else it needs the step it began at
-        raise UserError(f"resume={config.resume}: {resume} does not exist: pass a run's storage or a step directory")
+    if resume and storage and not own:  # else it needs the step it began at: a run's storage that holds none is none
+        if not os.path.exists(resume):
+            raise UserError(
+                f"resume={config.resume}: {resume} does not exist: pass a run's storage or a step directory"
+            )
+        try:
+            check_checkpoint_url(resume)
+        except UserError as error:
+            raise UserError(f"resume={config.resume}: {error}") from None
     return config
 
 

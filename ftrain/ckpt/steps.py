@@ -416,13 +416,26 @@ def resolve_checkpoint_url(
     if step is None:
         selected = select_resume(storage, log, quarantine_bad=False)
         if selected is None:
-            check_exists(storage, "pass a run's storage or a step directory")
-            steps = storage.list_dirs(CHECKPOINTS)  # none verifies: ls tells why
-            ls = f"see {command('ftrain', 'ckpt', 'ls', storage.url)}"
-            fix = part_of_a_storage(storage) or (ls if steps else "pass a run's storage or a step directory")
-            raise UserError(f"no verified checkpoint under {storage.url}: {fix}")
+            raise _no_checkpoint(storage)
         return storage, *selected
-    result = verify_listed(storage, step, step_files(storage, step), full=True)
+    return storage, step, _named_step(storage, step, full=True)
+
+
+def check_checkpoint_url(url: str) -> None:
+    """UserError where ``resolve_checkpoint_url`` would find nothing at ``url`` (a local one), from listings and the
+    manifest alone, without reading the shards: a storage without a step directory, a step whose files do not match
+    its manifest or that has none. Before a start that would take a storage and print its banner first."""
+    root, step = parse_checkpoint_url(url)
+    storage = Storage.open(root)
+    if step is not None:
+        _named_step(storage, step, full=False)
+    elif not any(map(_STEP_NAME.match, storage.list_dirs(CHECKPOINTS))):
+        raise _no_checkpoint(storage)
+
+
+def _named_step(storage: Storage, step: int, full: bool) -> dict:
+    """The manifest of ``step``, named by the user; UserError where it does not verify (``full``: its digests too)."""
+    result = verify_listed(storage, step, step_files(storage, step), full=full)
     if result.never_committed and (in_flight := saving_now(storage)):
         ls = command("ftrain", "ckpt", "ls", storage.url)
         raise UserError(
@@ -432,7 +445,16 @@ def resolve_checkpoint_url(
     if not result.ok:
         problems = "; ".join(str(p) for p in result.problems)
         raise UserError(f"checkpoint {storage.where(step_dir(step))} does not verify ({problems}): pick another step")
-    return storage, step, result.manifest
+    return result.manifest
+
+
+def _no_checkpoint(storage: Storage) -> UserError:
+    """Why ``storage`` gives no checkpoint, where none of its steps verifies (or it has none)."""
+    check_exists(storage, "pass a run's storage or a step directory")
+    steps = storage.list_dirs(CHECKPOINTS)  # none verifies: ls tells why
+    ls = f"see {command('ftrain', 'ckpt', 'ls', storage.url)}"
+    fix = part_of_a_storage(storage) or (ls if steps else "pass a run's storage or a step directory")
+    return UserError(f"no verified checkpoint under {storage.url}: {fix}")
 
 
 def _quarantine_reason(storage: Storage, step: int | str, parent: str = CHECKPOINTS) -> str:

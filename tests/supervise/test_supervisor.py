@@ -53,6 +53,7 @@ from helpers import (
     launch,
     manifests,
     torchrun_pid,
+    train_command,
     training,
     wait_for,
 )
@@ -380,15 +381,18 @@ def test_several_nodes_refuse_to_start_without_a_secret_or_off_their_address(tmp
         ([], ["iterations=zero"], "iterations"),
         ([], ["env.id=Pendulum-v1"], "env.id='Pendulum-v1' is not a MuJoCo environment"),
         ([], ["resume={old}"], "(MANIFEST.json: missing: the step was never committed): pick another step"),
+        ([], ["resume={empty}"], "/empty: no verified checkpoint under "),
     ],
 )
 def test_bad_input_fails_before_launch(tmp_path, options, overrides, fragment):
     """One line, exit 2, nothing made; a ``resume=`` step that was never committed too (it waited 5 s, said the
-    storage had not answered, and left the supervisor's files in the storage)."""
+    storage had not answered, and left the supervisor's files in the storage), and a ``resume=`` directory that holds
+    no step (the start took the storage, printed its banner, then refused)."""
     old = tmp_path / "old" / "checkpoints" / "step-000000002"
     old.mkdir(parents=True)
     (old / "common.pt").write_bytes(b"never committed")
-    overrides = [override.format(old=old) for override in overrides]
+    (tmp_path / "empty").mkdir()
+    overrides = [override.format(old=old, empty=tmp_path / "empty") for override in overrides]
     command = [sys.executable, "-m", "ftrain", "supervise", *options, str(write_config(tmp_path))]
     done = subprocess.run(
         [*command, "--storage", str(tmp_path / "run"), *overrides], cwd=REPO, capture_output=True, text=True, timeout=60
@@ -396,6 +400,16 @@ def test_bad_input_fails_before_launch(tmp_path, options, overrides, fragment):
     assert done.returncode == 2 and len(done.stderr.splitlines()) == 1, done.stderr
     assert fragment in done.stderr and "Traceback" not in done.stderr and "hunter2" not in done.stderr
     assert not (tmp_path / "run").exists()
+    if overrides[:1] and overrides[0].startswith("resume="):  # ftrain train alone: the same line, before its banner
+        alone = subprocess.run(
+            train_command(tmp_path / "run", *overrides, config=str(write_config(tmp_path))),
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+        assert (alone.returncode, alone.stdout, alone.stderr) == (2, "", done.stderr)
+        assert not (tmp_path / "run").exists()
 
 
 @pytest.mark.parametrize("last", [ITERATIONS, ITERATIONS // 2])
