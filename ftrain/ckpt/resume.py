@@ -69,10 +69,11 @@ class Checkpointable(Protocol):
     def rank_state(self) -> dict:
         """This rank's own state (its shard)."""
 
-    def load_state(self, common: dict, rank: dict | None) -> None:
+    def load_state(self, common: dict, rank: dict | None, saved: dict) -> None:
         """Restore what ``common_state`` and ``rank_state`` returned; ``rank`` is None on a rank that the
         checkpoint's world did not have (it starts fresh environments and random streams, from the run's seed, the
-        step and its rank)."""
+        step and its rank). ``saved``: the config the checkpoint was trained with (its manifest's), for what a config
+        change let through at this resume (``allow_config_change``) must replace of the state."""
 
     def rank_state_from(self, shards: list[dict], offset: int) -> dict:
         """This rank's own state from consecutive ranks' ``shards`` of another world size, its environments theirs
@@ -228,7 +229,7 @@ def _load(
     except (StorageError, OSError) as exc:
         return ["storage", f"rank {rank}: {exc}"]
     try:
-        trainer.load_state(common, shard)
+        trainer.load_state(common, shard, manifest["config"])
     except Exception as exc:
         return ["fit", f"rank {rank}: {load_error_line(exc)}"]
     return None

@@ -88,6 +88,12 @@ class MujocoVecEnv(VecEnv):
         self._returns[:] = 0
         self._lengths[:] = 0
 
+    def reseed(self, seed: int) -> None:
+        """New random streams for every sub-env (sub-env i from ``seed + i``, as ``reset``), without a reset: what
+        they draw from here on (where their next episodes start)."""
+        for index, base in enumerate(self._bases):
+            base.np_random, _ = gym.utils.seeding.np_random(seed + index)
+
     @property
     def num_obs(self) -> int:
         return self.obs.shape[1]

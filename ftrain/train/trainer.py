@@ -183,10 +183,11 @@ class Trainer:
             state["reward_norm"] = torch.cat([shard["reward_norm"] for shard in shards])[offset : offset + count]
         return state
 
-    def load_state(self, common: dict, rank: dict | None) -> None:
-        """``rank``: this rank's shard, None for a rank the checkpoint did not have (see ``ftrain.ckpt.resume``)."""
+    def load_state(self, common: dict, rank: dict | None, saved: dict) -> None:
+        """``rank``: this rank's shard, None for a rank the checkpoint did not have; ``saved``: the checkpoint's
+        config (see ``ftrain.ckpt.resume``)."""
         own = common["ftrain"]
-        load_learned_state(self.alg, common, own["learning_rate"])
+        load_learned_state(self.alg, common, self._resumed_learning_rate(own["learning_rate"], saved["algorithm"]))
         self.iteration = common["iter"]
         self.env_steps = own["env_steps"]
         self.metrics = dict(own["metrics"])
@@ -222,6 +223,19 @@ class Trainer:
         group.set_rng_state(rank["rng"])
         self.episodes.clear()
         self.episodes.extend((float(ret), int(length)) for ret, length in rank["episodes"])
+        if saved["seed"] != self.config.seed:  # let through at this resume: the random streams go on from the new one
+            self.env.reseed(self._env_seed(self.iteration))
+            group.seed_all(group.rank_seed(self.config.seed, self.info.rank, self.iteration))
+            if hasattr(self.alg, "shared_generator"):
+                self.alg.shared_generator.manual_seed(group.run_seed(self.config.seed, "update", self.iteration))
+
+    def _resumed_learning_rate(self, rate: float, saved: dict) -> float:
+        """The learning rate a resume goes on with: the checkpoint's ``rate`` (the adaptive schedule's), unless the
+        config's rate or schedule changed at this resume (``allow_config_change``): then the config's, as a start's
+        (a linear schedule sets it again every iteration)."""
+        now = self.config.algorithm
+        changed = (saved.get("learning_rate"), saved.get("schedule")) != (now.learning_rate, now.schedule)
+        return now.learning_rate if changed else rate
 
     def _env_seed(self, *at_step: int) -> int:
         """The seed of this rank's first environment (of a fresh start, or of a rank joining at ``at_step``): by its

@@ -71,6 +71,33 @@ def kill_during(
     assert all(step < 10 for step in committed), f"killed too late: {sorted(committed)}"
 
 
+@pytest.mark.slow
+def test_a_learning_rate_or_seed_let_through_at_a_resume_is_what_the_run_trains_with(tmp_path) -> None:
+    """``allow_config_change`` lets through what the checkpoint holds state of: the learning rate (a fixed schedule's,
+    or an adaptive one's, which adapts on from there) and the seed (the random streams go on from the new one). Each
+    is what the run trains with from the resume, not only what its line says; the same resume twice, the same bits."""
+    trained = {}
+    for schedule in ("fixed", "adaptive"):
+        base = tmp_path / schedule
+        run_train(base, "iterations=2", f"algorithm.schedule={schedule}")
+        for name, changes in [("same", []), ("rate", ["algorithm.learning_rate=0.0005"]), ("seed", ["seed=7"])]:
+            for attempt in (1, 2) if name == "seed" else (1,):
+                storage = tmp_path / f"{schedule}-{name}-{attempt}"
+                shutil.copytree(base, storage)
+                overrides = ["iterations=3", f"algorithm.schedule={schedule}", *changes, "allow_config_change=true"]
+                result = run_train(storage, *overrides)
+                assert ("changed since step 2" in result.stdout) == bool(changes), result.stdout
+                rate = float(metrics_by_iteration(storage)[3]["learning_rate"])
+                trained[schedule, name, attempt] = final_manifest(storage)["state_sha256"], rate
+    assert trained["fixed", "same", 1][1] == 1e-3 and trained["fixed", "rate", 1][1] == 5e-4  # the default: 1e-3
+    adapted = trained["adaptive", "rate", 1][1]  # from the new rate, by 1.5 up or down at each of 4 minibatches
+    assert any(adapted == pytest.approx(5e-4 * 1.5**power, rel=1e-9) for power in range(-4, 5)), adapted
+    for schedule in ("fixed", "adaptive"):
+        digests = {name: trained[schedule, name, 1][0] for name in ("same", "rate", "seed")}
+        assert len(set(digests.values())) == 3, (schedule, digests)
+        assert trained[schedule, "seed", 2][0] == digests["seed"], schedule
+
+
 @pytest.mark.parametrize(
     ("env_id", "ranks"),
     [  # each env's state and each world size in every run; their other two pairings in the opt-in scale lane
