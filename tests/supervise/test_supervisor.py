@@ -382,12 +382,14 @@ def test_several_nodes_refuse_to_start_without_a_secret_or_off_their_address(tmp
         ([], ["env.id=Pendulum-v1"], "env.id='Pendulum-v1' is not a MuJoCo environment"),
         ([], ["resume={old}"], "(MANIFEST.json: missing: the step was never committed): pick another step"),
         ([], ["resume={empty}"], "/empty: no verified checkpoint under "),
+        ([], ["log_dir=/proc"], "cannot write /proc (it takes no new file: "),  # there, and read-only
     ],
 )
 def test_bad_input_fails_before_launch(tmp_path, options, overrides, fragment):
     """One line, exit 2, nothing made; a ``resume=`` step that was never committed too (it waited 5 s, said the
     storage had not answered, and left the supervisor's files in the storage), and a ``resume=`` directory that holds
-    no step (the start took the storage, printed its banner, then refused)."""
+    no step (the start took the storage, printed its banner, then refused), and a log directory that cannot be written
+    (a traceback from the warm pool's log; the lease taken under plain ``ftrain train``)."""
     old = tmp_path / "old" / "checkpoints" / "step-000000002"
     old.mkdir(parents=True)
     (old / "common.pt").write_bytes(b"never committed")
@@ -400,7 +402,7 @@ def test_bad_input_fails_before_launch(tmp_path, options, overrides, fragment):
     assert done.returncode == 2 and len(done.stderr.splitlines()) == 1, done.stderr
     assert fragment in done.stderr and "Traceback" not in done.stderr and "hunter2" not in done.stderr
     assert not (tmp_path / "run").exists()
-    if overrides[:1] and overrides[0].startswith("resume="):  # ftrain train alone: the same line, before its banner
+    if overrides[:1] and overrides[0].startswith(("resume=", "log_dir=")):  # ftrain train alone: the same line
         alone = subprocess.run(
             train_command(tmp_path / "run", *overrides, config=str(write_config(tmp_path))),
             cwd=REPO,
