@@ -20,6 +20,7 @@ from ftrain.ckpt.format import (
     CHECKPOINTS,
     CORRUPT,
     INCOMPLETE,
+    MANIFEST,
     QUARANTINE,
     VERIFIED,
     StepInfo,
@@ -104,7 +105,7 @@ def verify(url: str, options: dict | None = None) -> int:
     infos = [info for info in scan(storage) if step is None or info.step == step]
     progress.clear()
     committed = [info.step for info in infos if info.status != INCOMPLETE]
-    failed = verify_each(storage, infos)
+    failed, deleted = verify_each(storage, infos)
     past = history(infos) if step is None else None
     if past is not None:
         for info in infos:
@@ -119,16 +120,20 @@ def verify(url: str, options: dict | None = None) -> int:
     if incomplete and (holder := saving_now(storage)):
         print(holder)
     never = f"; {incomplete} incomplete (never committed)" if incomplete else ""
-    print(f"{len(committed) - failed} of {counted(len(committed), 'committed step')} verified{never}")
-    uncommitted = step is not None and not committed  # the step named was never committed: ``verify STEP && use STEP``
+    gone = f"; {deleted} deleted meanwhile" if deleted else ""
+    checked = len(committed) - deleted
+    print(f"{checked - failed} of {counted(checked, 'committed step')} verified{never}{gone}")
+    uncommitted = step is not None and checked == 0  # the step named is not committed: ``verify STEP && use STEP``
     return 1 if failed or uncommitted or (past is not None and past.forks) else 0
 
 
-def verify_each(storage: Storage, infos: list[StepInfo], noun: str = "step", top: str = CHECKPOINTS) -> int:
+def verify_each(storage: Storage, infos: list[StepInfo], noun: str = "step", top: str = CHECKPOINTS) -> tuple[int, int]:
     """``verify``'s line for each of ``infos``: a committed step checked with full digests, its problems named under
-    ``top`` (the directory of the steps), a step without a manifest told with its age; how many failed. Policy
-    snapshots (``noun``, ``top``) are verified alike, through ftrain.policy.snapshots' view of ``policies/``."""
-    progress, committed, failed = Progress(), [info.step for info in infos if info.status != INCOMPLETE], 0
+    ``top`` (the directory of the steps), a step without a manifest told with its age; how many failed, and how many
+    were deleted while they were checked (their manifest gone since the listing: a live run's retention, a prune),
+    which is no failure. Policy snapshots (``noun``, ``top``) are verified alike, through ftrain.policy.snapshots'
+    view of ``policies/``."""
+    progress, committed, failed, deleted = Progress(), [info.step for info in infos if info.status != INCOMPLETE], 0, 0
     for info in infos:
         if info.status == INCOMPLETE:
             age = _age(storage.modified(step_dir(info.step)))
@@ -140,11 +145,15 @@ def verify_each(storage: Storage, infos: list[StepInfo], noun: str = "step", top
         )
         result = verify_step(storage, info.step, full=True)
         progress.clear()
+        if not result.ok and MANIFEST not in storage.list_files(step_dir(info.step)):
+            print(f"{noun} {info.step}: deleted while it was checked (a live run's retention, or a prune)")
+            deleted += 1
+            continue
         print(f"{noun} {info.step}: {'ok' if result.ok else 'FAILED'}")
         for problem in result.problems:
             print(f"  {top}/{step_dir(info.step).partition('/')[2]}/{problem}")
         failed += not result.ok
-    return failed
+    return failed, deleted
 
 
 def _verify_aside(storage: Storage, directory: str) -> int:

@@ -93,8 +93,8 @@ def verify(url: str, options: dict | None = None) -> int:
     infos = [info for info in scan(storage) if only is None or info.step == only]
     if only is not None and not infos:
         raise UserError(f"policy snapshot {storage.where(step_dir(only))} does not exist: see {storage.where()}")
-    failed = verify_each(storage, infos, "policy snapshot", POLICIES)
-    if committed := sum(info.status != INCOMPLETE for info in infos):
+    failed, deleted = verify_each(storage, infos, "policy snapshot", POLICIES)
+    if committed := sum(info.status != INCOMPLETE for info in infos) - deleted:
         print(f"{committed - failed} of {counted(committed, 'committed policy snapshot')} verified")
     return 1 if failed else 0
 

@@ -16,7 +16,17 @@ from ftrain.ckpt.steps import ABANDONED_AFTER, resolve_checkpoint_url, scan
 from ftrain.ckpt.storage import Storage
 from ftrain.errors import UserError
 
-from helpers import REPO, flip_shard_byte, make_step, on_a_terminal, truncate_shard
+from helpers import (
+    REPO,
+    flip_shard_byte,
+    kill_tree,
+    make_step,
+    manifests,
+    on_a_terminal,
+    start_train,
+    truncate_shard,
+    wait_for,
+)
 
 
 def build_tree(storage: Storage) -> None:
@@ -592,3 +602,27 @@ def test_an_incomplete_step_of_a_storage_held_now_is_said_to_be_maybe_a_save_in_
         assert (
             "(MANIFEST.json: missing: the step was never committed): pick another step" in str(refused.value)
         ) != held
+
+
+@pytest.mark.slow
+def test_verify_beside_a_live_run_whose_retention_deletes_steps_never_fails(tmp_path, capsys) -> None:
+    """``ckpt verify`` again and again beside a run that saves every iteration and keeps one step: a step its
+    retention deletes between verify's listing and its check is said to be deleted meanwhile, never FAILED (a
+    monitoring script's false alarm); the rounds that met a deletion are counted and printed."""
+    run = tmp_path / "run"
+    proc = start_train(
+        run, "iterations=100000", "checkpoint.interval=1", "checkpoint.keep_last=1", "checkpoint.keep_best=0"
+    )
+    try:
+        wait_for(lambda: len(manifests(run)) >= 1, "a first save")
+        rounds = met = 0
+        while met < 3 and rounds < 400:
+            code = ckpt_commands.verify(str(run))
+            out = capsys.readouterr().out
+            assert code == 0 and "FAILED" not in out, out
+            met += "deleted while it was checked" in out
+            rounds += 1
+    finally:
+        kill_tree(proc)
+    print(f"{rounds} verify rounds beside the run, {met} of them met a step deleted while it was checked")
+    assert met >= 1
