@@ -251,7 +251,11 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="STEP",
         help="a step to keep, besides the run's pinned ones (repeatable)",
     )
-    prune.add_argument("--dry-run", action="store_true", help="print what would be deleted, delete nothing")
+    prune.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print what would be deleted, delete nothing (exit 8 where a live run holds the storage: prune would be refused)",
+    )
     prune.add_argument(
         "--drop-bad", action="store_true", help="also delete corrupt, quarantined and set-aside steps (the only way)"
     )

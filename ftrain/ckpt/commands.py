@@ -289,21 +289,23 @@ def as_lease_holder(
     """``body`` of the storage, with this command holding the storage's lease (``lease.py``) meanwhile: no run starts
     while it deletes, and each of its writes is checked (``fence.guarded``). Refused in one line, with
     ``EXIT_STORAGE_HELD``, while another process holds it; ``force``: without the lease (None: a command that has no
-    ``--force``). ``dry_run``: a ``body`` that only prints, without taking the lease, refused where the command would
-    be (another run holds the lease; a damaged one is a UserError)."""
+    ``--force``). ``dry_run``: a ``body`` that only prints, without taking the lease; where the command would be
+    refused (another run holds the lease), it previews all the same, then says so and exits as the command would (a
+    damaged lease is a UserError)."""
     if force:
         return body(storage)
     anyway = f" (or pass --force to {command} anyway)" if force is not None else ""
 
-    def refused(line: str) -> None:
-        print(f"ftrain: error: ckpt {command} refused: {line}{anyway}", file=sys.stderr)
+    def refused(line: str, now: str = "refused") -> None:
+        print(f"ftrain: error: ckpt {command} {now}: {line}{anyway}", file=sys.stderr)
 
     lease = Lease(storage, f"ftrain-ckpt-{secrets.token_hex(4)}", lambda line: print(line, file=sys.stderr))
     if dry_run:
         try:
             lease.check()
         except LeaseHeld as held:
-            refused(str(held))
+            body(storage)  # what it would do once the storage is free: the preview asked for
+            refused(str(held), "would be refused now")
             return EXIT_STORAGE_HELD
         except (OSError, StorageError):  # the storage's clock asks for a write (a read-only mount): the prune tells
             pass

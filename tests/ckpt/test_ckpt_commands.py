@@ -143,9 +143,10 @@ def test_prune(run, capsys):
     assert [info.step for info in scan(Storage.open(run))] == [40, 30]
 
 
-def test_a_dry_run_of_prune_on_a_held_or_damaged_lease_is_refused_as_prune_is(run, capsys):
-    """A dry run previews what prune does: where prune would refuse a damaged LEASE.json or another run's live
-    lease, the preview refuses too (it went ahead, and the real prune then refused); --force previews without it."""
+def test_a_dry_run_of_prune_on_a_held_or_damaged_lease_says_prune_would_be_refused(run, capsys):
+    """A dry run previews what prune does: beside another run's live lease it previews, then says that prune would be
+    refused, with prune's exit code (it said nothing of it, and the real prune then refused; then it refused the
+    preview too); a damaged LEASE.json refuses both; --force previews without the lease."""
     from ftrain.ckpt.lease import Entry, Record
     from ftrain.errors import EXIT_STORAGE_HELD
     from ftrain.procfs import Process
@@ -153,14 +154,13 @@ def test_a_dry_run_of_prune_on_a_held_or_damaged_lease_is_refused_as_prune_is(ru
     storage = Storage.open(run)
     far = Process("node-far-away", 4242, 123, "another-boot-id", "pid:[1]")
     storage.write_replace("LEASE.json", Record("a-run", 3, 60.0, (Entry(far, time.time()),)).encode())
-    for preview in (
-        lambda: ckpt_commands.prune(run, keep_last=1, dry_run=True),
-        lambda: ckpt_commands.prune(run, keep_last=1),
-    ):
-        assert preview() == EXIT_STORAGE_HELD
+    for dry_run, refused in ((True, "would be refused now"), (False, "refused")):
+        assert ckpt_commands.prune(run, keep_last=1, dry_run=dry_run) == EXIT_STORAGE_HELD
         captured = capsys.readouterr()
-        assert captured.out == "" and captured.err.startswith("ftrain: error: ckpt prune refused: storage "), captured
+        assert ("would delete step 20" in captured.out) == dry_run and "deleting" not in captured.out, captured
+        assert captured.err.startswith(f"ftrain: error: ckpt prune {refused}: storage "), captured
         assert "held by another run (a-run, pid 4242 on host node-far-away" in captured.err, captured.err
+        assert captured.err.count("\n") == 1 and "(or pass --force to prune anyway)" in captured.err
     stale = Record("a-run", 3, 60.0, (Entry(far, time.time() - 600),))  # expired by its time: the storage's clock asked
     storage.write_replace("LEASE.json", stale.encode())
     os.utime(storage.fs._strip_protocol(f"{run}/LEASE.json"), (time.time() - 600, time.time() - 600))
