@@ -254,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     prune.add_argument(
         "--dry-run",
         action="store_true",
-        help="print what would be deleted, delete nothing (exit 8 where a live run holds the storage: prune would be refused)",
+        help="print what would be deleted, delete nothing (exit 8 where a live run holds the storage: as prune)",
     )
     prune.add_argument(
         "--drop-bad", action="store_true", help="also delete corrupt, quarantined and set-aside steps (the only way)"
