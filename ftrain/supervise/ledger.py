@@ -133,8 +133,8 @@ class Ledger:
         lost, downtime = self.lost, self.downtime
         self.events(
             "summary",
-            f"{in_words(ending)} (exit {code}): {counted(restarts, 'restart')}, {counted(lost, 'iteration')} lost, "
-            f"{downtime:.1f} s downtime",
+            f"{in_words(ending, code)} (exit {code}): {counted(restarts, 'restart')}, "
+            f"{counted(lost, 'iteration')} lost, {downtime:.1f} s downtime",
             code=code,
             restarts=restarts,
             iterations_lost=lost,

@@ -9,7 +9,7 @@ from dataclasses import dataclass
 
 from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, EXIT_USAGE, STOPPED
 from ftrain.heartbeat import Phase
-from ftrain.supervise.options import EXIT_DONE, EXIT_TOO_FEW_NODES
+from ftrain.supervise.options import EXIT_DONE, EXIT_INTERRUPTED, EXIT_TOO_FEW_NODES
 
 
 class Event(enum.StrEnum):
@@ -102,8 +102,11 @@ def not_admitted(committed: int | None) -> Outcome:
     )
 
 
-def in_words(event: Event) -> str:
-    """The name of an ending (an event) for a person: ``usage`` is "bad input", ``crash_loop`` "crash loop"."""
+def in_words(event: Event, code: int | None = None) -> str:
+    """The name of an ending (an event, with its exit ``code``) for a person: ``usage`` is "bad input",
+    ``crash_loop`` "crash loop", a preemption by SIGINT (exit 130) "interrupted", as the exit codes' help says."""
+    if event == Event.PREEMPTED and code == EXIT_INTERRUPTED:
+        return "interrupted"
     return ENDINGS.get(event, event.replace("_", " "))
 
 

@@ -321,7 +321,7 @@ class Supervisor:
                     attempt=attempt.plan.attempt,
                     **hang.fields(),
                 )
-                self._failed(attempt, now)
+                self._failed(attempt, now - hang.seconds)  # down since the group went silent, not since it was seen
                 attempt.kill()
                 self._log_exit(attempt, hang.cause())
                 return Outcome(Event.FAILED, None, "hang")

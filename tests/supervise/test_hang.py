@@ -253,6 +253,8 @@ def test_a_slow_first_iteration_is_not_a_hang_and_a_stopped_worker_is_caught_in_
     assert len(hangs) == 2 and (hangs[1]["phase"], hangs[1]["hook"], hangs[1]["iteration"]) == ("hook", hook, 30)
     assert hangs[1]["rank"] == 0 and hangs[1]["limit"] == HANG_FLOOR
     assert f"in hook {hook} (limit {HANG_FLOOR} s)" in (tmp_path / "supervise.log").read_text()
+    recovered = [event for event in events(run) if event["event"] == "recovered"]
+    assert len(recovered) == 2 and all(event["downtime"] >= HANG_FLOOR for event in recovered), recovered  # silent too
 
 
 def test_the_reason_for_a_stop_is_read_by_the_workers_and_gone_at_the_next_attempt(tmp_path) -> None:

@@ -197,7 +197,7 @@ def test_ftrain_supervise_exits_130_after_ctrl_c_with_the_real_trainer(tmp_path)
     assert finish(proc) == 130
     assert [event["event"] for event in events(storage)][-2:] == ["preempted", "summary"]
     printed, step = proc.stdout.read(), final_manifest(storage)["step"]
-    assert "ftrain supervise: preempted (exit 130): 0 restarts, 0 iterations lost" in printed
+    assert "ftrain supervise: interrupted (exit 130): 0 restarts, 0 iterations lost" in printed
     assert step >= 3
     # the workers got SIGTERM from the supervisor (a SIGINT would reach a warm worker twice), and name the user's Ctrl-C
     said = f"[ftrain] stopped by SIGINT to the supervisor (Ctrl-C), passed on as SIGTERM: saved step {step}, exiting "
