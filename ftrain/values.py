@@ -84,11 +84,12 @@ def set_dotted(data: dict, key: str, value: Any) -> None:
 
 def build(cls: type, data: dict, prefix: str) -> Any:
     """Instantiate dataclass ``cls`` from ``data``, converting and checking every value against its type."""
-    if not isinstance(data, dict):
-        raise UserError(f"{prefix.rstrip('.') or 'config'} must be a mapping, got {data!r}")
-    hints = typing.get_type_hints(cls)
     defaults = {f.name: f.default for f in dataclasses.fields(cls)}
     names = list(defaults)
+    if not isinstance(data, dict):
+        keys = ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
+        raise UserError(f"{prefix.rstrip('.') or 'config'} must be a mapping of its keys ({keys}), got {data!r}")
+    hints = typing.get_type_hints(cls)
     kwargs = {}
     for key, value in data.items():
         if key not in names:

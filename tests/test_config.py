@@ -127,6 +127,10 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
         (["hooks=[{target: 'a:B', every: 0}]"], r"^hooks\[0\].every=0 must be at least 1 \(its hook runs every N "),
         (["hooks=[{target: 'a:B'}, {target: 'a:C', every: -3}]"], r"^hooks\[1\].every=-3 must be at least 1"),
         (["hooks=foo"], r"^hooks='foo' must be a list, e.g. hooks=\[\{target: \.\.\.\}\]$"),
+        (
+            ["hooks=[nosuch.Hook]"],
+            r"^hooks\[0\] must be a mapping of its keys \(target, every, kwargs\), got 'nosuch.Hook'$",
+        ),
         (["log.wandb.tags=x"], r"^log.wandb.tags='x' must be a list, e.g. log.wandb.tags=\[a,b\]$"),
         (["policy.hidden_dims=5"], r"^policy.hidden_dims=5 must be a list, e.g. policy.hidden_dims=\[64,64\]$"),
         (

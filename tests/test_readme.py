@@ -133,6 +133,26 @@ def test_every_link_of_the_readme_and_the_docs_leads_somewhere() -> None:
     assert pages == {page.name for page in DOCS[1:]}, "the README links every page of docs/"
 
 
+def test_every_config_key_is_in_the_docs() -> None:
+    """Every key of the config (generated from its dataclasses, so that a new key is covered): named in backticks in
+    docs/, itself (`algorithm.gamma`, `algorithm.schedule=linear`) or as a key of its section's row (`algorithm.*`:
+    `gamma`); `ftrain train --help` listed some that the docs did not."""
+    from ftrain.config import Config
+    from ftrain.values import dotted
+
+    docs = "".join(path.read_text() for path in sorted((REPO / "docs").glob("*.md")))
+    rows = {line.split("`")[1][:-2]: line for line in docs.splitlines() if re.match(r"\| `[a-z_.]+\.\*` \|", line)}
+    keys = dotted(Config().to_dict())
+    missing = []
+    for key in keys:
+        section, _, leaf = key.rpartition(".")
+        named = re.search(rf"`{re.escape(key)}[`= ]", docs)
+        if not named and f"`{leaf}`" not in rows.get(section, "") and f"`{section}.*`" not in docs:
+            missing.append(key)
+    print(f"{len(keys)} config keys, each in docs/")
+    assert not missing, missing
+
+
 @pytest.mark.slow
 def test_the_main_job_trains_where_storage_says(tmp_path) -> None:
     """``launch/run.sh --storage X`` trains in X, not in its default runs/halfcheetah (its header's example). It runs
