@@ -31,7 +31,7 @@ from ftrain.ckpt.format import (
     step_dir,
     verify_step,
 )
-from ftrain.ckpt.lease import Lease, LeaseHeld, saving_now
+from ftrain.ckpt.lease import LEASE, Lease, LeaseHeld, saving_now
 from ftrain.ckpt.lineage import generation, history, listed_steps
 from ftrain.ckpt.retention import Kept, delete_step, kept, retention_plan
 from ftrain.ckpt.steps import (
@@ -438,6 +438,8 @@ def _open(url: str, options: dict | None, one_step: bool = True) -> tuple[Storag
         check_exists(storage, usual)
         if storage.fs.isfile(storage.root):  # an exported policy, a manifest
             raise UserError(f"{storage.url} is a file: {usual}")
+        if LEASE in storage.list_files(""):  # a run's storage all the same
+            raise UserError(f"no checkpoints under {storage.url} yet: the run that took it has saved none so far")
         raise UserError(f"no checkpoints under {storage.url}: {part_of_a_storage(storage) or usual}")
     if step is not None:
         step_files(storage, step)

@@ -398,9 +398,11 @@ def check_exists(storage: Storage, instead: str) -> None:
 
 
 def step_files(storage: Storage, step: int) -> dict[str, int]:
-    """The files of ``step``'s directory (name: size); UserError where it has none: moved to ``quarantine/``,
-    deleted, or never there."""
-    if not (present := storage.list_files(step_dir(step))):
+    """The files of ``step``'s directory (name: size); UserError where it is not there: moved to ``quarantine/``,
+    deleted, or never there. An empty directory is there (a save that wrote nothing yet, or was cut short at once),
+    as ``ls`` lists it: without a manifest."""
+    present = storage.list_files(step_dir(step))
+    if not present and step_dir(step).rpartition("/")[2] not in storage.list_dirs(CHECKPOINTS):
         ls = command("ftrain", "ckpt", "ls", storage.url)
         raise UserError(f"checkpoint {storage.where(step_dir(step))} does not exist: see {ls}")
     return present

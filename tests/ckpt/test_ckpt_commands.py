@@ -626,3 +626,25 @@ def test_verify_beside_a_live_run_whose_retention_deletes_steps_never_fails(tmp_
         kill_tree(proc)
     print(f"{rounds} verify rounds beside the run, {met} of them met a step deleted while it was checked")
     assert met >= 1
+
+
+def test_a_run_with_no_save_yet_and_an_empty_step_directory_are_told_as_what_they_are(tmp_path, capsys) -> None:
+    """A run's storage before its first save (its LEASE.json there, no step) is a run's storage with none yet, not
+    'pass a run's storage'; an empty step directory (a save that wrote nothing yet), listed as incomplete, is
+    incomplete when named too: verify exits 1 (``verify STEP && use STEP``), show and play refuse it as such."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "LEASE.json").write_text('{"run_id": "r", "generation": 1, "ttl": 60, "holders": []}')
+    with pytest.raises(
+        UserError, match=rf"^no checkpoints under {run} yet: the run that took it has saved none so far$"
+    ):
+        ckpt_commands.ls(str(run))
+    (run / "checkpoints" / "step-000000040").mkdir(parents=True)
+    step = f"{run}/checkpoints/step-000000040"
+    assert ckpt_commands.verify(step) == 1
+    out = capsys.readouterr().out
+    assert out.startswith("step 40: incomplete (never committed: no manifest; ") and "1 incomplete" in out, out
+    with pytest.raises(UserError, match=r"does not verify \(MANIFEST.json: missing: the step was never committed"):
+        resolve_checkpoint_url(step)
+    with pytest.raises(UserError, match=r"step-000000041 does not exist: see ftrain ckpt ls "):
+        ckpt_commands.verify(f"{run}/checkpoints/step-000000041")
