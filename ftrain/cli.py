@@ -614,11 +614,11 @@ def _run_config(args: argparse.Namespace) -> Config:
     if os.path.isdir(storage):  # before a supervisor writes its logs there
         check_not_a_checkpoints_directory(Storage.open(storage))
     fix = "make it writable (its permissions, its mount), or pass --storage another directory"
+    if own:  # else its saves would fail and hold
+        check_writable(Path(storage, CHECKPOINTS), "--storage", fix)
     for place, option in ((storage, "--storage"), (config.log_dir, "log_dir=")):  # before a lease, a log or a pool
         if place and os.path.isdir(place):  # (one that cannot be made is said where it is made)
             check_writable(Path(place), option, fix if option == "--storage" else "")
-    if own:  # else its saves would fail and hold
-        check_writable(Path(storage, CHECKPOINTS), "--storage", fix)
     resume = local_path(config.resume) if config.resume not in ("auto", "never") else ""
     if resume and storage and not own:  # else it needs the step it began at: a run's storage that holds none is none
         if not os.path.exists(resume):
