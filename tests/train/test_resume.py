@@ -80,7 +80,8 @@ def test_a_learning_rate_or_seed_let_through_at_a_resume_is_what_the_run_trains_
     for schedule in ("fixed", "adaptive"):
         base = tmp_path / schedule
         run_train(base, "iterations=2", f"algorithm.schedule={schedule}")
-        for name, changes in [("same", []), ("rate", ["algorithm.learning_rate=0.0005"]), ("seed", ["seed=7"])]:
+        cases = [("same", []), ("rate", ["algorithm.learning_rate=0.0005"]), ("seed", ["seed=7"])]
+        for name, changes in cases if schedule == "fixed" else cases[:2]:  # a seed is no matter of the schedule
             for attempt in (1, 2) if name == "seed" else (1,):
                 storage = tmp_path / f"{schedule}-{name}-{attempt}"
                 shutil.copytree(base, storage)
@@ -92,10 +93,9 @@ def test_a_learning_rate_or_seed_let_through_at_a_resume_is_what_the_run_trains_
     assert trained["fixed", "same", 1][1] == 1e-3 and trained["fixed", "rate", 1][1] == 5e-4  # the default: 1e-3
     adapted = trained["adaptive", "rate", 1][1]  # from the new rate, by 1.5 up or down at each of 4 minibatches
     assert any(adapted == pytest.approx(5e-4 * 1.5**power, rel=1e-9) for power in range(-4, 5)), adapted
-    for schedule in ("fixed", "adaptive"):
-        digests = {name: trained[schedule, name, 1][0] for name in ("same", "rate", "seed")}
-        assert len(set(digests.values())) == 3, (schedule, digests)
-        assert trained[schedule, "seed", 2][0] == digests["seed"], schedule
+    digests = {key: digest for key, (digest, _) in trained.items() if key[2] == 1}
+    assert len(set(digests.values())) == len(digests), digests  # each change trained other bits than the same resume
+    assert trained["fixed", "seed", 2][0] == digests["fixed", "seed", 1]
 
 
 @pytest.mark.parametrize(
