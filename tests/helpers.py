@@ -258,13 +258,17 @@ def wait_for(predicate, what: str, timeout: float = 120.0, interval: float = 0.0
 
 def training(heartbeat_dir: str | Path, iteration: int, ranks: Iterable[int] = (0, 1)) -> dict:
     """The heartbeats in ``heartbeat_dir`` once each of ``ranks`` has completed ``iteration`` iterations and trains
-    on (in rollout or update)."""
+    on (in rollout or update, or a hook of its config between them: ``probe_hooks.PacingHook``'s sleep)."""
     ranks = list(ranks)
 
     def ready() -> dict | None:
         beats = read_heartbeats(Path(heartbeat_dir))
         past = [beats.get(rank) for rank in ranks]
-        return beats if all(b and b.iteration >= iteration and b.phase in ("rollout", "update") for b in past) else None
+        return (
+            beats
+            if all(b and b.iteration >= iteration and b.phase in ("rollout", "update", "hook") for b in past)
+            else None
+        )
 
     return wait_for(ready, f"ranks {ranks} at iteration {iteration} in {heartbeat_dir}")
 

@@ -144,9 +144,11 @@ class Checkpointer:
         self.config_change = resumed.config_change
         return resumed.step
 
-    def votes(self, iteration: int) -> tuple[bool, bool, bool]:
+    def votes(self, iteration: int) -> tuple[bool, bool, bool, bool]:
         """This rank's votes after ``iteration``, which the ranks sum: save now, save to the storage (not to the
-        spool alone), and hold (train no further until that save commits).
+        spool alone), hold (train no further until that save commits), and busy (``MAX_IN_FLIGHT`` saves in flight,
+        none settled: another save would wait for the oldest, on a storage that hangs for as long as its requests'
+        deadlines; a save due then is left to the next boundary, unless it holds).
 
         While saves fail, and nothing is in flight: to the storage once the failed save's wait is over, or when more
         work than ``checkpoint.max_unsaved`` is unsaved (hold); to the spool alone when the schedule says, and for the
@@ -154,15 +156,16 @@ class Checkpointer:
         self._settle(MAX_IN_FLIGHT)  # the outcomes that have arrived
         now = time.monotonic()
         due = self.schedule.due(iteration, now)
+        busy = len(self._pending) >= MAX_IN_FLIGHT
         if self._failing is None:
-            return due, due, False
+            return due, due, False, busy
         count = self._failing.count
         delay = 0.0 if count < 2 else min(RETRY_DELAY_MAX, 2.0 ** min(count - 2, 8))
         hold = self.schedule.over_bound(iteration, now)
         idle = not self._pending
         store = idle and (hold or (self._checked_loadable and now - self._failing.last >= delay))
         spool = idle and self.spool is not None and (due or not self._checked_loadable)
-        return store or spool, store, hold
+        return store or spool, store, hold, busy
 
     def save(self, trainer: Checkpointable, wait: bool = False, hold: bool = False, store: bool = True) -> None:
         """Save the state of ``trainer`` as step ``trainer.iteration``.

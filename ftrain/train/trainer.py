@@ -59,7 +59,8 @@ class Votes(typing.NamedTuple):
     """Stop here (a rank was asked to): save and exit; the signal that asked, SIGTERM if any rank got one, else
     SIGINT, so that every rank exits with the same code."""
     save: bool
-    """Save here (the checkpoint schedule, or a retry after a failed save)."""
+    """Save here (the checkpoint schedule, or a retry after a failed save), unless a rank has as many saves in flight
+    as it may, none settled (a storage that hangs): then at a later boundary, so that training goes on meanwhile."""
     store: bool
     """That save goes to the storage, not to the spool alone (which it does while saves fail, between retries)."""
     hold: bool
@@ -357,7 +358,7 @@ class Trainer:
                 [returns, lengths, len(self.episodes), steps, *map(float, votes), sent_kb, *phases.values()]
             )
         total_returns, total_lengths, count, total_steps, *summed = every.sum(dim=0).tolist()
-        terms, ints, save, store, hold, lost = (vote > 0 for vote in summed[: len(votes)])
+        terms, ints, save, store, hold, busy, lost = (vote > 0 for vote in summed[: len(votes)])
         if lost:  # another run took the storage's lease: every rank stops here alike; rank 0 knows why
             raise LeaseLost(self.lease_lost() or "another run took the storage's lease (rank 0 says which)")
         total_sent, *phase_totals = summed[len(votes) :]
@@ -365,7 +366,8 @@ class Trainer:
         slowest = every[:, -len(phases) :].max(dim=0).values.tolist()
         phase_ms = {f"time/{name}_ms": 1000 * seconds for name, seconds in zip(phases, mean, strict=True)}
         phase_ms |= {f"time/{name}_max_ms": 1000 * seconds for name, seconds in zip(phases, slowest, strict=True)}
-        self._votes = Votes(signal.SIGTERM if terms else signal.SIGINT if ints else None, save, store, hold)
+        stop = signal.SIGTERM if terms else signal.SIGINT if ints else None
+        self._votes = Votes(stop, save and (hold or not busy), store, hold)
         self.env_steps += int(total_steps)
         previous = self.metrics
         iteration_time = collect_time + learn_time
