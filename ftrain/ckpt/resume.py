@@ -193,7 +193,8 @@ def resize_line(old: int, new: int, step: int, config: Config) -> str:
     kept = _ranks(0, staying) + (" keeps its" if staying == 1 else " keep their")
     parts = [f"resized from {old} to {new} ranks at step {step}: {kept} environments"]
     if new > old:
-        parts.append(f"{_ranks(old, new)} start with fresh ones (seeded from seed {config.seed}, rank, step {step})")
+        start = "starts" if new - old == 1 else "start"
+        parts.append(f"{_ranks(old, new)} {start} with fresh ones (seeded from seed {config.seed}, rank, step {step})")
     else:
         parts.append(f"the shards of {_ranks(new, old)} are dropped")
     batch = new * config.env.num_envs * config.num_steps_per_env
@@ -261,7 +262,12 @@ def decide(
         try:
             if deleted := spool.clear():
                 steps = ", ".join(map(str, deleted))
-                log(f"emptied the spool {spool.storage.url}: this start does not go on from its steps {steps}")
+                start = (
+                    f"goes on from step {decision['step']} ({decision['where']})"
+                    if decision["kind"] == "resume"
+                    else ""
+                )
+                log(f"emptied the spool {spool.storage.url} (steps {steps}): this start {start or 'is fresh'}")
         except (StorageError, OSError) as error:
             log(f"could not empty the spool {spool.storage.url} ({error})")
     return decision

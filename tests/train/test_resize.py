@@ -70,7 +70,7 @@ def test_a_resize_is_a_function_of_checkpoint_and_world_size(resumed, two_rank_s
     assert (set(before), set(after)) == ({1, 2, 3, 4}, {5, 6, 7, 8})  # the kind, iteration by iteration
     assert set(before.values()) == {1.0} and set(after.values()) == {0.0}
     if ranks == 3:
-        assert "rank 2 start with fresh ones" in logs[0] and "3 x 4 envs" in logs[0]
+        assert "rank 2 starts with fresh ones" in logs[0] and "3 x 4 envs" in logs[0]
     else:
         assert "the shards of rank 1 are dropped" in logs[0]
 
