@@ -621,10 +621,6 @@ def _run_config(args: argparse.Namespace) -> Config:
             check_writable(Path(place), option, fix if option == "--storage" else "")
     resume = local_path(config.resume) if config.resume not in ("auto", "never") else ""
     if resume and storage and not own:  # else it needs the step it began at: a run's storage that holds none is none
-        if not os.path.exists(resume):
-            raise UserError(
-                f"resume={config.resume}: {resume} does not exist: pass a run's storage or a step directory"
-            )
         try:
             check_checkpoint_url(resume)
         except UserError as error:

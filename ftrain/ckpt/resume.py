@@ -263,11 +263,11 @@ def decide(
             if deleted := spool.clear():
                 steps = ", ".join(map(str, deleted))
                 start = (
-                    f"goes on from step {decision['step']} ({decision['where']})"
-                    if decision["kind"] == "resume"
-                    else ""
+                    "is fresh"
+                    if decision["kind"] == "fresh"
+                    else f"goes on from step {decision['step']} ({decision['where']})"
                 )
-                log(f"emptied the spool {spool.storage.url} (steps {steps}): this start {start or 'is fresh'}")
+                log(f"emptied the spool {spool.storage.url} (steps {steps}): this start {start}")
         except (StorageError, OSError) as error:
             log(f"could not empty the spool {spool.storage.url} ({error})")
     return decision

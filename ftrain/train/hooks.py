@@ -117,27 +117,25 @@ class Hooks:
 
     def __init__(self, builtin: list[Hook], user: list[Hook] = ()) -> None:
         self.hooks = [*builtin, *user]
-        self._user = {id(hook) for hook in user}
+        self._timed = {
+            (id(hook), point)
+            for hook in user
+            for point in self.TIMED_POINTS
+            if getattr(type(hook), point) is not getattr(Hook, point)
+        }
+        """(hook, point) that run in a heartbeat phase of their own: a hook of the config implementing the point."""
 
     def call(self, point: str, trainer: TrainerView, *args: object) -> None:
         for hook in self.hooks:
             if point == "after_iteration" and trainer.iteration % max(1, hook.every):
                 continue
-            named = self._timed(hook, point)
+            named = (id(hook), point) in self._timed
             with (
                 trainer.heartbeat.running_hook(f"{point} of {_class_name(hook)}", trainer.iteration)
                 if named
                 else contextlib.nullcontext()
             ):
                 getattr(hook, point)(trainer, *args)
-
-    def _timed(self, hook: Hook, point: str) -> bool:
-        """Whether ``point`` of ``hook`` runs in a heartbeat phase of its own: a hook of the config implementing it."""
-        return (
-            id(hook) in self._user
-            and point in self.TIMED_POINTS
-            and getattr(type(hook), point) is not getattr(Hook, point)
-        )
 
     def state_dict(self) -> dict:
         return {key: hook.state_dict() for key, hook in self._keyed()}

@@ -205,8 +205,9 @@ class Trainer:
                 self.alg.teacher_identity = own["teacher"]
             else:  # the same teacher: a checkpoint of before its config was kept gets it from the one loaded
                 self.alg.teacher_identity = {**self.alg.teacher_identity, **own["teacher"]}
+        reseeded = saved["seed"] != self.config.seed  # let through at this resume: the random streams start anew
         if hasattr(self.alg, "shared_generator"):  # (absent: a checkpoint of before the shared stream)
-            shared = own.get("shared_rng")
+            shared = None if reseeded else own.get("shared_rng")
             if shared is not None:
                 self.alg.shared_generator.set_state(shared)
             else:
@@ -224,11 +225,9 @@ class Trainer:
         group.set_rng_state(rank["rng"])
         self.episodes.clear()
         self.episodes.extend((float(ret), int(length)) for ret, length in rank["episodes"])
-        if saved["seed"] != self.config.seed:  # let through at this resume: the random streams go on from the new one
+        if reseeded:
             self.env.reseed(self._env_seed(self.iteration))
             group.seed_all(group.rank_seed(self.config.seed, self.info.rank, self.iteration))
-            if hasattr(self.alg, "shared_generator"):
-                self.alg.shared_generator.manual_seed(group.run_seed(self.config.seed, "update", self.iteration))
 
     def _resumed_learning_rate(self, rate: float, saved: dict) -> float:
         """The learning rate a resume goes on with: the checkpoint's ``rate`` (the adaptive schedule's), unless the
