@@ -20,6 +20,8 @@ import time
 import traceback
 from pathlib import Path
 
+from ftrain.files import replace_text
+
 ENV = "TORCHELASTIC_ERROR_FILE"
 RECORDED_AT = "ftrain_recorded_at"
 """Our key in ``extraInfo``: when the error was recorded, to the microsecond (torch's ``timestamp`` has seconds)."""
@@ -105,4 +107,4 @@ def _write(summary: str, callstack: str, reported: bool = False) -> None:
     now = time.time()
     info = {"py_callstack": callstack, "timestamp": str(int(now)), RECORDED_AT: now, REPORTED: reported}
     with contextlib.suppress(OSError):
-        Path(path).write_text(json.dumps({"message": {"message": summary, "extraInfo": info}}))
+        replace_text(path, json.dumps({"message": {"message": summary, "extraInfo": info}}))

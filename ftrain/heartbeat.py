@@ -34,6 +34,8 @@ from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+from ftrain.files import replace_text
+
 ENV_DIR = "FTRAIN_HEARTBEAT_DIR"
 TOKEN_ENV = "FTRAIN_ATTEMPT_TOKEN"
 """Set by the supervisor in every worker's environment: how it finds all processes of an attempt."""
@@ -50,10 +52,8 @@ def write_stop_reason(directory: str | os.PathLike, received: int) -> None:
     full disk costs the workers' line its reason, not the stop."""
     name = signal.Signals(received).name
     reason = f"{name} to the supervisor" + (" (Ctrl-C), passed on as SIGTERM" if name == "SIGINT" else "")
-    tmp = Path(directory) / f"{STOP_FILE}.tmp"
     with contextlib.suppress(OSError):
-        tmp.write_text(reason)
-        os.replace(tmp, Path(directory) / STOP_FILE)
+        replace_text(Path(directory) / STOP_FILE, reason)
 
 
 def read_stop_reason(directory: str | os.PathLike | None) -> str | None:
@@ -168,9 +168,7 @@ class HeartbeatWriter:
             {str(timed): round(seconds, 4) for timed, seconds in self.longest.items()},
             self._hook if phase == Phase.HOOK else None,
         )
-        tmp = self.path.with_suffix(f".tmp{os.getpid()}")
-        tmp.write_text(json.dumps(asdict(beat)))
-        os.replace(tmp, self.path)
+        replace_text(self.path, json.dumps(asdict(beat)))
 
     @contextlib.contextmanager
     def running_hook(self, name: str, iteration: int) -> Iterator[None]:

@@ -23,6 +23,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from ftrain.errors import UserError
+from ftrain.files import replace_text
 
 STORAGE_FILE = "storage.txt"
 """In a log directory: the storage whose run it holds the records of (``storage_key``)."""
@@ -72,9 +73,7 @@ def _belongs(log_dir: Path, storage: str) -> None:
     ):
         if other != storage:
             with contextlib.suppress(OSError):  # a directory it cannot write is said when a record is written
-                tmp = record.with_name(f".{STORAGE_FILE}.{os.getpid()}")
-                tmp.write_text(storage + "\n")
-                os.replace(tmp, record)
+                replace_text(record, storage + "\n")
         return
     raise UserError(
         f"log directory {log_dir} holds the records of the run on {other} (its {', '.join(held)}): give the "

@@ -29,7 +29,6 @@ import sys
 import threading
 import time
 import typing
-from pathlib import Path
 
 if typing.TYPE_CHECKING:
     from torch.distributed.elastic.multiprocessing.errors import ChildFailedError
@@ -46,6 +45,7 @@ from ftrain.errors import (
     stop_signals,
     stopped,
 )
+from ftrain.files import replace_text
 from ftrain.lifeline import die_with_supervisor
 from ftrain.process import imports
 from ftrain.proctitle import name_process
@@ -118,9 +118,7 @@ def run(argv: list[str]) -> int:
             rank: {"exitcode": failure.exitcode, "error": _recorded(failure.error_file, failure.error_file_data)}
             for rank, failure in failed.failures.items()
         }
-        path = Path(failures_path)
-        path.with_suffix(".tmp").write_text(json.dumps(failures))
-        os.replace(path.with_suffix(".tmp"), path)
+        replace_text(failures_path, json.dumps(failures))
         return stopped or EXIT_WORKERS_FAILED
     except SignalException as signalled:  # the agent has stopped the workers with the same signal before raising
         return stop_code(int(signalled.sigval)) if signalled.sigval in stop_signals() else 128 + int(signalled.sigval)

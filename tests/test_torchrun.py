@@ -4,6 +4,7 @@ torchrun's report. Real torchrun, real workers."""
 from __future__ import annotations
 
 import json
+import random
 import signal
 import socket
 import subprocess
@@ -63,6 +64,48 @@ def test_the_error_file_tells_a_failure_the_worker_explained_from_a_crash(tmp_pa
     crashed = json.loads(path.read_text())
     assert errorfile.reported(explained) and errorfile.message(explained) == "bad input"
     assert not errorfile.reported(crashed) and not errorfile.reported(None)
+
+
+RECORDING_FOREVER = """
+import sys
+from ftrain import errorfile
+
+try:
+    raise RuntimeError("x" * 1_000_000)
+except RuntimeError as error:
+    errorfile.record_exception(error)
+    print("recorded once", flush=True)
+    while True:
+        errorfile.record_exception(error)
+"""
+"""A worker that records a large exception over and over: killed at any moment, it is killed mid-write."""
+
+
+def test_a_worker_killed_while_it_records_its_error_leaves_a_file_torchrun_can_read(tmp_path) -> None:
+    """torchrun's agent reads a failed worker's error file and raises where it is not JSON, ending with a traceback
+    and no account of any failure (CI: the supervisor SIGKILLed a rank that was recording its broken connection, and
+    blamed 'torchrun exited with code 1'). Killed at random moments mid-write, the file holds the old record or the
+    new one, whole."""
+    from torch.distributed.elastic.multiprocessing.errors import ProcessFailure
+
+    path = tmp_path / "error.json"
+    moments = random.Random(52).choices([0.0, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05], k=30)
+    for moment in moments:
+        worker = subprocess.Popen(
+            [sys.executable, "-c", RECORDING_FOREVER],
+            cwd=REPO,
+            env=child_env({errorfile.ENV: str(path)}),
+            stdout=subprocess.PIPE,
+        )
+        assert worker.stdout.readline() == b"recorded once\n"
+        time.sleep(moment)
+        worker.send_signal(signal.SIGKILL)
+        worker.wait()
+        worker.stdout.close()
+        failure = ProcessFailure(local_rank=0, pid=worker.pid, exitcode=-9, error_file=str(path))  # torchrun's read
+        assert errorfile.message(failure.error_file_data) == "RuntimeError: " + "x" * 1_000_000
+        path.unlink()
+    print(f"{len(moments)} workers killed at random moments while they recorded: each error file whole")
 
 
 @pytest.mark.slow

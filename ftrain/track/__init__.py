@@ -1,4 +1,4 @@
 """Experiment trackers (W&B, MLflow) fed from rank 0 off the training thread: one tracker run per training run.
 
-May import: config, values, errors, redact.
+May import: config, values, errors, files, redact.
 """

@@ -4,8 +4,9 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
+
+from ftrain.files import replace_text
 
 
 def recorded_run(log_dir: str, storage: str) -> str:
@@ -20,6 +21,4 @@ def recorded_run(log_dir: str, storage: str) -> str:
 def record_run(log_dir: str, run_id: str, storage: str) -> None:
     path = Path(log_dir) / "tracking.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps({"run_id": run_id, "storage": storage}))
-    os.replace(tmp, path)
+    replace_text(path, json.dumps({"run_id": run_id, "storage": storage}))
