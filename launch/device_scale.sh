@@ -12,12 +12,12 @@
 # tensorboard; the rest travels as wheels in .whl/ (ignored by git: `echo /.whl/ >> .git/info/exclude`), made here with
 #   python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
 #     --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 \
-#     --platform any -d .whl mujoco==4.0.0 mujoco-core==4.0.0 mujoco-studio==4.0.0 gymnasium==1.4.0 \
+#     --platform any -d .whl mujoco==4.0.1 mujoco-core==4.0.1 mujoco-studio==4.0.1 gymnasium==1.4.0 \
 #     rsl-rl-lib==5.5.1 tensordict==0.15.3 pyvers==0.2.3 glfw==2.11.0 PyOpenGL==3.1.10 Farama-Notifications==0.0.6 \
-#     setproctitle==1.3.8 GitPython gitdb smmap
-# (27 MB; tensordict 0.15 wants torch>=2.11, which that image has). Then the device's run, with carry [".whl"] and a
-# timeout of 560 s: `bash launch/device_scale.sh` (estimated 3-4 minutes a part there; MODE=strong reruns the second
-# alone). MODE (both, weak or strong), ENVS, SCALE_CONFIG, RANKS, ROUNDS and ITERATIONS override the defaults below;
+#     setproctitle==1.3.8 GitPython gitdb smmap botocore jmespath
+# (39 MB; tensordict 0.15 wants torch>=2.11, which that image has; botocore: the checkpoint code imports its
+# exceptions). Then the device's run, with carry [".whl"] and a timeout of 560 s: `bash launch/device_scale.sh` (8
+# minutes there on 2026-12-04, the machine's start not counted; MODE=strong reruns the second part alone). MODE (both, weak or strong), ENVS, SCALE_CONFIG, RANKS, ROUNDS and ITERATIONS override the defaults below;
 # on this 2-core machine `RANKS="1 2" bash launch/device_scale.sh` tries the same path (without .whl/ it uses the
 # venv).
 set -euo pipefail
@@ -42,7 +42,7 @@ weak() {
 # shellcheck disable=SC2086 # RANKS and ENVS are lists
 strong() {
   "$python" launch/bench_scale.py --strong ${ENVS:-256} --config "${SCALE_CONFIG:-halfcheetah_large}" \
-    --ranks ${RANKS:-2 4 8 16} --rounds "${ROUNDS:-1}" --iterations "${ITERATIONS:-20}" 2>&1 \
+    --ranks ${RANKS:-2 4 8 16} --rounds "${ROUNDS:-1}" --iterations "${ITERATIONS:-12}" 2>&1 \
     | tee "$out/bench_scale_strong.txt"
 }
 case "${MODE:-both}" in
