@@ -15,6 +15,7 @@ from pathlib import Path
 import pytest
 from filelock import FileLock
 
+from ftrain import procfs
 from ftrain.identity import ENV_NAMES
 
 import etcd_server as etcd_tools
@@ -111,6 +112,54 @@ lease's expiry, a hang's timeout: under a third of their time on the CPU), in on
 
 FREE = ("slurm", "waits")
 """The markers of tests that take no CPU slot."""
+
+
+TEST_PROCESSES_ENV = "FTRAIN_TEST_PROCESSES"
+"""Set in a test worker while a test's body runs (and so in every process the test starts, and theirs): what finds
+them afterwards."""
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_call(item: pytest.Item):
+    """No process a test started outlives it: a test that fails on a timeout (a run that did not stop, a supervisor
+    that did not exit) left its processes training beside the tests after it, which then ran at half speed (a whole
+    suite 1.5x as long). Whatever carries the test's token when its body returns is SIGKILLed, and named in the test's
+    report."""
+    token = os.environ[TEST_PROCESSES_ENV] = uuid.uuid4().hex
+    try:
+        yield
+    finally:
+        del os.environ[TEST_PROCESSES_ENV]
+        killed = kill_processes_of(token)
+        if killed:
+            item.add_report_section("call", "processes", f"killed, left running by the test: {killed}")
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_fixture_setup(fixturedef: pytest.FixtureDef, request: pytest.FixtureRequest):
+    """A server of a wider scope (S3, etcd, SLURM) that a test's body starts (``request.getfixturevalue``) serves the
+    tests after it: it does not get the test's token."""
+    token = os.environ.pop(TEST_PROCESSES_ENV, None) if fixturedef.scope != "function" else None
+    try:
+        yield
+    finally:
+        if token is not None:
+            os.environ[TEST_PROCESSES_ENV] = token
+
+
+def kill_processes_of(token: str, timeout: float = 10.0) -> list[int]:
+    """SIGKILL every live process whose environment holds ``token`` until none is left (or ``timeout``); their pids."""
+    killed: set[int] = set()
+    deadline = time.monotonic() + timeout
+    while (left := set(procfs.with_environment(TEST_PROCESSES_ENV, token)) - {os.getpid()}) and (
+        time.monotonic() < deadline
+    ):
+        for pid in left:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+        killed |= left
+        time.sleep(0.05)
+    return sorted(killed)
 
 
 @pytest.hookimpl(hookwrapper=True, tryfirst=True)  # outermost: the wait for a slot is not the test's (its timeout)

@@ -140,6 +140,14 @@ LAUNCHED: list[subprocess.Popen] = []
 """Supervisors the tests started; conftest stops any still running after each test."""
 
 
+def as_a_terminal_starts_it() -> None:
+    """``preexec_fn``: a terminal's stop signals (SIGINT, SIGHUP) at their default action, as a shell starts a command
+    in the foreground. The suite may run where they are ignored (pytest-xdist's workers ignore SIGINT, ``nohup``
+    SIGHUP), and a process started with one ignored keeps it so (``ftrain.errors.stop_signals``)."""
+    for number in (signal.SIGINT, signal.SIGHUP):
+        signal.signal(number, signal.SIG_DFL)
+
+
 AS_A_BACKGROUND_JOB = ["sh", "-c", 'trap "" INT; exec "$@"', "sh"]
 """The prefix that starts a command as a script starts its background job (POSIX): with SIGINT ignored."""
 

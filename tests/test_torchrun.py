@@ -17,7 +17,7 @@ import pytest
 from ftrain import errorfile
 from ftrain.supervise.attempt import TORCHRUN
 
-from helpers import REPO, SMOKE, TESTS, child_env, hooks_override, probe_hook
+from helpers import REPO, SMOKE, TESTS, as_a_terminal_starts_it, child_env, hooks_override, probe_hook
 
 TYPO = "ftrain: error: unknown config key iteratons: did you mean iterations?"
 
@@ -162,7 +162,14 @@ def test_a_stop_while_waiting_for_a_rendezvous_host_that_is_not_up_ends_at_once_
         port = probe.getsockname()[1]
     launch = ["--nnodes=2", "--node-rank=1", "--nproc-per-node=1", "--master-addr=127.0.0.1", f"--master-port={port}"]
     command = [sys.executable, "-m", TORCHRUN, *launch, "-m", "ftrain", "train", SMOKE, "--storage", str(tmp_path)]
-    proc = subprocess.Popen(command, cwd=REPO, env=child_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    proc = subprocess.Popen(
+        command,
+        cwd=REPO,
+        env=child_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        preexec_fn=as_a_terminal_starts_it,
+    )
     maps = Path(f"/proc/{proc.pid}/maps")
     deadline = time.monotonic() + 120
     while "libtorch_python" not in maps.read_text() and time.monotonic() < deadline:

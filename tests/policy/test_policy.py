@@ -26,6 +26,7 @@ from ftrain.policy.play import play
 
 from helpers import (
     REPO,
+    as_a_terminal_starts_it,
     child_env,
     final_manifest,
     finish,
@@ -308,7 +309,7 @@ def test_a_play_stopped_part_way_leaves_no_video_cut_short_and_the_one_before_wh
             env=child_env(),
             stdout=sink,
             stderr=subprocess.STDOUT,
-            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),  # pytest-xdist's workers ignore it
+            preexec_fn=as_a_terminal_starts_it,
         )
     wait_for(lambda: "episode 1: return" in output.read_text(), "the first episode")
     proc.send_signal(stop)

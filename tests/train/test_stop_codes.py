@@ -29,6 +29,7 @@ from helpers import (
     REPO,
     SMOKE,
     TESTS,
+    as_a_terminal_starts_it,
     child_env,
     events,
     final_manifest,
@@ -87,7 +88,7 @@ def test_a_closed_terminal_sighup_saves_and_exits_143_as_sigterm(tmp_path, launc
         command, beats = supervise_command(storage, LONG, ranks=1), storage / "heartbeat"
     elif launcher == "ftrun":
         command = [sys.executable, "-m", TORCHRUN, "--standalone", "--nproc-per-node=1", *command[1:]]
-    proc = start(command, beats)
+    proc = start(command, beats, preexec_fn=as_a_terminal_starts_it)
     training(beats, 3, [0])
     proc.send_signal(signal.SIGHUP)
     assert finish(proc) == 143
@@ -105,6 +106,7 @@ def in_a_terminal(command: list[str], *, ignore_sighup: bool = False) -> tuple[s
     terminal = os.ttyname(slave)
 
     def become_its_session() -> None:
+        as_a_terminal_starts_it()
         os.setsid()
         opened = os.open(terminal, os.O_RDWR)  # the first terminal a session leader opens becomes its controlling one
         for fd in (0, 1, 2):
@@ -250,7 +252,7 @@ def test_a_stop_at_any_moment_of_the_start_is_one_line_and_its_exit_code(tmp_pat
         command, beats = [*train_command(storage, LONG), "log.console=true"], tmp_path / f"beats-{moment:.2f}"
         if ftrun:
             command = [sys.executable, "-m", TORCHRUN, "--standalone", "--nproc-per-node=1", *command[1:]]
-        proc = start(command, beats, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        proc = start(command, beats, preexec_fn=as_a_terminal_starts_it)
         time.sleep(moment)
         proc.send_signal(stop)
         output = proc.communicate(timeout=120)[0]
@@ -299,7 +301,7 @@ def test_ctrl_c_inside_a_compiled_modules_import_is_the_same_one_line(tmp_path) 
     )
     command = train_command(tmp_path / "run", LONG)
     command[1:3] = ["-c", CTRL_C_INSIDE_MUJOCOS_IMPORT + start_ftrain]
-    proc = start(command, tmp_path / "beats", preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    proc = start(command, tmp_path / "beats", preexec_fn=as_a_terminal_starts_it)
     output = proc.communicate(timeout=120)[0]
     assert (proc.returncode, output) == (130, "ftrain: interrupted (Ctrl-C)\n")
     chain = "while error:\n  print(type(error).__name__, stop_signal(error) == 2)\n  error = error.__cause__\n"
@@ -382,14 +384,13 @@ def test_a_sigint_ignored_at_start_stays_ignored_and_sigterm_is_taken_over(tmp_p
         "import signal; from ftrain.train.stop import StopRequest; StopRequest().install(); "
         "print(signal.getsignal(signal.SIGINT) is signal.SIG_IGN, signal.getsignal(signal.SIGTERM) is signal.SIG_DFL)"
     )
-    as_from_a_terminal = lambda: signal.signal(signal.SIGINT, signal.SIG_DFL)  # noqa: E731 (pytest may be a background job)
     for prefix, ignored in ((AS_A_BACKGROUND_JOB, "True"), ([], "False")):
         done = subprocess.run(
             [*prefix, sys.executable, "-c", probe],
             capture_output=True,
             text=True,
             timeout=60,
-            preexec_fn=as_from_a_terminal,
+            preexec_fn=as_a_terminal_starts_it,
         )
         assert done.stdout.split() == [ignored, "False"], done.stdout + done.stderr
     said = tmp_path / "sigint.txt"
