@@ -6,10 +6,13 @@ import json
 import pickle
 import sys
 
-import torch
-import torch.distributed as dist
+from ftrain.process import exit_fast, imports
 
-from ftrain.comm import group
+with imports():  # as ftrain's own workers import: a cold start at half the CPU
+    import torch
+    import torch.distributed as dist
+
+    from ftrain.comm import group
 
 
 class Payload:
@@ -48,3 +51,4 @@ def main(out: str, marker: str) -> None:
 
 if __name__ == "__main__":
     main(sys.argv[1], sys.argv[2])
+    exit_fast(0)  # without the interpreter's teardown of torch, as ftrain's workers end

@@ -8,13 +8,16 @@ from __future__ import annotations
 import copy
 import sys
 
-import torch
-from equivalence_worker import rollout
+from ftrain.process import exit_fast, imports
 
-from ftrain.comm import group
-from ftrain.config import load_config
-from ftrain.train.envs import MujocoVecEnv
-from ftrain.train.ppo import build_ppo
+with imports():  # as ftrain's own workers import: a cold start at half the CPU
+    import torch
+    from equivalence_worker import rollout
+
+    from ftrain.comm import group
+    from ftrain.config import load_config
+    from ftrain.train.envs import MujocoVecEnv
+    from ftrain.train.ppo import build_ppo
 
 
 def main(out: str, *overrides: str) -> None:
@@ -42,3 +45,4 @@ def main(out: str, *overrides: str) -> None:
 
 if __name__ == "__main__":
     main(*sys.argv[1:])
+    exit_fast(0)  # without the interpreter's teardown of torch, as ftrain's workers end
