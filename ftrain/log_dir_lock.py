@@ -10,7 +10,7 @@ directory too) hears of the lease, which names the run. Several nodes of one run
 holds ``run-node-N.lock`` alone and ``run.lock`` shared, so a run on one node and a run on several exclude each other.
 A log directory also belongs to one storage, which ``storage.txt`` names: once it holds that storage's records, a run
 on another storage, even after the first has ended, is refused rather than let rewrite them.
-Imports: errors.
+Imports: errors, files.
 """
 
 from __future__ import annotations

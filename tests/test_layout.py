@@ -31,7 +31,7 @@ LAYERS = {
         "process",
         "terminal",
     },
-    "tools": {"train", "ckpt", "config", "values", "errors", "progress"},
+    "tools": {"train", "ckpt", "config", "values", "errors", "files", "progress"},
     "supervise": {
         "ckpt",
         "config",
@@ -54,6 +54,7 @@ LAYERS = {
         "config",
         "errors",
         "errorfile",
+        "files",
         "heartbeat",
         "track",
         "redact",

@@ -67,7 +67,7 @@ def attempt_env(
     restart count 0, next to the first round's); with it off, each round's rank 0 hosts a fresh store
     (``tests/supervise/test_elastic.py`` grows a world both ways)."""
     heartbeat_dir.mkdir(parents=True, exist_ok=True)
-    for stale in [*heartbeat_dir.glob("rank-*"), heartbeat_dir / STOP_FILE]:
+    for stale in [*heartbeat_dir.glob("rank-*"), *heartbeat_dir.glob(".*.tmp"), heartbeat_dir / STOP_FILE]:
         stale.unlink(missing_ok=True)
     return {
         **_inherited(),

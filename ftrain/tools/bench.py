@@ -27,6 +27,7 @@ from pathlib import Path
 
 from ftrain.config import load_config
 from ftrain.errors import UserError
+from ftrain.files import replace_text
 from ftrain.progress import Progress
 from ftrain.train.hooks import Hook
 
@@ -133,7 +134,7 @@ class ThroughputHook(Hook):
             "transport": trainer.run_description["transport"],
             "fallbacks": trainer.comm.fallbacks,
         }
-        Path(self.path).write_text(json.dumps(result))
+        replace_text(self.path, json.dumps(result))
 
 
 def _meet(barrier: Path, name: str, parties: int, timeout: float = 600.0) -> None:

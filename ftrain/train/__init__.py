@@ -1,4 +1,4 @@
 """Training: the loop, hooks (logging, evaluation, policy snapshots), MuJoCo envs with exact state, PPO.
 
-May import: policy, ckpt, comm, config, errors, errorfile, heartbeat, track, redact, procfs, terminal.
+May import: policy, ckpt, comm, config, errors, errorfile, files, heartbeat, track, redact, procfs, terminal.
 """

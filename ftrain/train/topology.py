@@ -14,6 +14,7 @@ from pathlib import Path
 from ftrain.comm import group
 from ftrain.comm.collectives import Comm
 from ftrain.config import Config
+from ftrain.files import replace_text
 from ftrain.train.split import splits_update
 
 RUN_FILE = "run.json"
@@ -91,7 +92,7 @@ def announce(config: Config, info: group.RankInfo, comm: Comm, log: Callable[[st
 
 def write(log_dir: Path, run: dict) -> None:
     """``run`` (``describe``) as ``<log_dir>/run.json``."""
-    (log_dir / RUN_FILE).write_text(json.dumps(run, indent=1) + "\n")
+    replace_text(log_dir / RUN_FILE, json.dumps(run, indent=1) + "\n")
 
 
 def _ranks(ranks: list[int]) -> str:

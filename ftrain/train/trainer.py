@@ -28,6 +28,7 @@ from ftrain.ckpt.storage import StorageUnavailable
 from ftrain.comm import group
 from ftrain.config import Config, for_launch
 from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, UserError, stop_code
+from ftrain.files import replace_text
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter, read_stop_reason
 from ftrain.policy.model import action_std
 from ftrain.policy.noise_ceiling import build_noise_ceiling
@@ -394,7 +395,7 @@ class Trainer:
         if self.info.is_main:
             log_dir = Path(self.config.log_dir)
             log_dir.mkdir(parents=True, exist_ok=True)
-            (log_dir / "config.yaml").write_text(yaml.safe_dump(self.config.saved_dict(), sort_keys=False))
+            replace_text(log_dir / "config.yaml", yaml.safe_dump(self.config.saved_dict(), sort_keys=False))
             topology.write(log_dir, self.run_description)
 
 
