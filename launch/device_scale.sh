@@ -17,7 +17,8 @@
 #     setproctitle==1.3.8 GitPython gitdb smmap botocore jmespath
 # (39 MB; tensordict 0.15 wants torch>=2.11, which that image has; botocore: the checkpoint code imports its
 # exceptions). Then the device's run, with carry [".whl"] and a timeout of 560 s: `bash launch/device_scale.sh` (8
-# minutes there on 2026-12-04, the machine's start not counted; MODE=strong reruns the second part alone). MODE (both, weak or strong), ENVS, SCALE_CONFIG, RANKS, ROUNDS and ITERATIONS override the defaults below;
+# minutes there on 2026-12-04, the machine's start not counted; MODE=strong reruns the second part alone). MODE
+# (both, weak or strong), ENVS, SCALE_CONFIG, RANKS, ROUNDS and ITERATIONS override the defaults below;
 # on this 2-core machine `RANKS="1 2" bash launch/device_scale.sh` tries the same path (without .whl/ it uses the
 # venv).
 set -euo pipefail

@@ -115,31 +115,27 @@ FREE = ("slurm", "waits")
 
 
 TEST_PROCESSES_ENV = "FTRAIN_TEST_PROCESSES"
-"""Set in a test worker while a test's body runs (and so in every process the test starts, and theirs): what finds
-them afterwards."""
+"""Set in a test worker while a test's body runs, and so in the environment of every process the body starts (and
+theirs): what finds them once the test is over. A bare ``os.fork`` of the worker itself is not found (a process's
+environment in /proc is the one it was started with)."""
+PROCESS_TOKEN = pytest.StashKey[str]()
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_call(item: pytest.Item):
-    """No process a test started outlives it: a test that fails on a timeout (a run that did not stop, a supervisor
-    that did not exit) left its processes training beside the tests after it, which then ran at half speed (a whole
-    suite 1.5x as long). Whatever carries the test's token when its body returns is SIGKILLed, and named in the test's
-    report."""
-    token = os.environ[TEST_PROCESSES_ENV] = uuid.uuid4().hex
+    """Give the processes of the test's body a token of this test (``TEST_PROCESSES_ENV``)."""
+    os.environ[TEST_PROCESSES_ENV] = item.stash[PROCESS_TOKEN] = uuid.uuid4().hex
     try:
         yield
     finally:
-        del os.environ[TEST_PROCESSES_ENV]
-        killed = kill_processes_of(token)
-        if killed:
-            item.add_report_section("call", "processes", f"killed, left running by the test: {killed}")
+        os.environ.pop(TEST_PROCESSES_ENV, None)
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_fixture_setup(fixturedef: pytest.FixtureDef, request: pytest.FixtureRequest):
-    """A server of a wider scope (S3, etcd, SLURM) that a test's body starts (``request.getfixturevalue``) serves the
-    tests after it: it does not get the test's token."""
-    token = os.environ.pop(TEST_PROCESSES_ENV, None) if fixturedef.scope != "function" else None
+    """A fixture that a test's body sets up (``request.getfixturevalue``: a server) owns its processes: they do not
+    get the test's token, and its own teardown stops them."""
+    token = os.environ.pop(TEST_PROCESSES_ENV, None)
     try:
         yield
     finally:
@@ -147,19 +143,35 @@ def pytest_fixture_setup(fixturedef: pytest.FixtureDef, request: pytest.FixtureR
             os.environ[TEST_PROCESSES_ENV] = token
 
 
-def kill_processes_of(token: str, timeout: float = 10.0) -> list[int]:
-    """SIGKILL every live process whose environment holds ``token`` until none is left (or ``timeout``); their pids."""
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_teardown(item: pytest.Item, nextitem: pytest.Item | None):
+    """No process a test's body started outlives the test: one that fails on a timeout (a run that did not stop, a
+    supervisor that did not exit) left its processes training beside the tests after it, which then ran at half speed
+    (a whole suite 1.5x as long). After the fixtures' own teardown (``stop_leftover_supervisors`` asks supervisors to
+    stop), whatever still carries the test's token is SIGKILLed and named in the test's report."""
+    yield
+    token = item.stash.get(PROCESS_TOKEN, None)
+    if token is None:
+        return
+    killed, alive = kill_processes_of(token)
+    if killed:
+        item.add_report_section("teardown", "processes", f"left running by the test, SIGKILLed: {killed}")
+    if alive:
+        item.add_report_section("teardown", "processes", f"still alive 10 s after SIGKILL: {alive}")
+
+
+def kill_processes_of(token: str, timeout: float = 10.0) -> tuple[list[int], list[int]]:
+    """SIGKILL every live process whose environment holds ``token`` until none is left or ``timeout`` passed: the
+    pids killed, and those still alive then (asleep in the kernel, e.g. on a hung FUSE mount)."""
     killed: set[int] = set()
     deadline = time.monotonic() + timeout
-    while (left := set(procfs.with_environment(TEST_PROCESSES_ENV, token)) - {os.getpid()}) and (
-        time.monotonic() < deadline
-    ):
+    while (left := set(procfs.with_environment(TEST_PROCESSES_ENV, token))) and time.monotonic() < deadline:
         for pid in left:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
         killed |= left
         time.sleep(0.05)
-    return sorted(killed)
+    return sorted(killed - left), sorted(left)
 
 
 @pytest.hookimpl(hookwrapper=True, tryfirst=True)  # outermost: the wait for a slot is not the test's (its timeout)

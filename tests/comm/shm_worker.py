@@ -10,7 +10,7 @@ import os
 import sys
 import time
 
-from ftrain.process import exit_fast, imports
+from ftrain.process import imports
 
 with imports():  # as ftrain's own workers import: a cold start at half the CPU
     import torch
@@ -91,4 +91,3 @@ def main(out: str, timeout_s: float) -> None:
 
 if __name__ == "__main__":
     main(sys.argv[1], float(sys.argv[2]))
-    exit_fast(0)  # without the interpreter's teardown of torch, as ftrain's workers end
