@@ -16,14 +16,30 @@ from pathlib import Path
 
 
 def replace_text(path: str | os.PathLike, text: str) -> None:
-    """Make ``path`` hold ``text``, atomically (see the module). Raises OSError as ``Path.write_text`` does, and then
+    """Make ``path`` hold ``text``, atomically (see the module)."""
+    replace_file(path, text.encode())
+
+
+def replace_file(path: str | os.PathLike, data: bytes, durable: bool = False) -> None:
+    """Make ``path`` hold ``data``, atomically (see the module); ``durable``: on disk before this returns, the rename
+    too (a record that a power cut must not take back: the storage's lease). Raises OSError as writing does, and then
     leaves no temporary file."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.{os.getpid()}-{threading.get_native_id()}.tmp")
     try:
-        tmp.write_text(text)
+        with open(tmp, "wb") as file:
+            file.write(data)
+            if durable:
+                file.flush()
+                os.fsync(file.fileno())
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):
             tmp.unlink()
         raise
+    if durable:
+        directory = os.open(path.parent, os.O_RDONLY)
+        try:
+            os.fsync(directory)
+        finally:
+            os.close(directory)

@@ -68,6 +68,7 @@ LAYERS = {
         "config",
         "values",
         "errors",
+        "files",
         "heartbeat",
         "identity",
         "lifeline",

@@ -39,6 +39,7 @@ from ftrain import procfs
 from ftrain.ckpt.storage import Storage
 from ftrain.ckpt.stores import S3_TIMEOUTS
 from ftrain.errors import StorageError, UserError
+from ftrain.files import replace_file
 
 if TYPE_CHECKING:
     from azure.storage.blob.aio import BlobClient
@@ -183,7 +184,7 @@ def write(storage: Storage, rel: str, data: bytes, version: str | None) -> None:
         if (current[1] if current else None) != version:
             raise Conflict
         if storage.is_local:
-            storage._call("write", rel, _replace_local, _local_path(storage, rel), data)
+            storage._call("write", rel, replace_file, _local_path(storage, rel), data, durable=True)
         else:
             storage.write_replace(rel, data)
 
@@ -383,20 +384,6 @@ def _wait_for_lock(fd: int, path: str) -> None:
         time.sleep(LOCK_POLL)
     if told:
         log.warning("%s: got the lock after %.0f s; going on", path, time.monotonic() - began)
-
-
-def _replace_local(path: str, data: bytes) -> None:
-    temporary = f"{path}.{os.getpid()}.tmp"
-    with open(temporary, "wb") as file:
-        file.write(data)
-        file.flush()
-        os.fsync(file.fileno())
-    os.replace(temporary, path)
-    directory = os.open(os.path.dirname(path), os.O_RDONLY)
-    try:
-        os.fsync(directory)
-    finally:
-        os.close(directory)
 
 
 def _local_path(storage: Storage, rel: str) -> str:
