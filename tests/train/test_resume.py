@@ -55,20 +55,41 @@ the rollout right after an asynchronous save (iteration 6) runs while the backgr
 def kill_during(
     storage, phase: str, iteration: int, overrides: list[str], ranks: int, heartbeats=None, env: dict | None = None
 ) -> None:
+    """SIGKILL the run's whole process tree once rank 0 is in ``phase`` at or after ``iteration``. A window missed
+    (the run ended, or committed step 10, before a look found rank 0 there: a busy core) is tried again from a copy
+    of the storage as it was, three tries in all; a remote storage is tried once."""
     heartbeats = heartbeats or storage.parent / f"{storage.name}-heartbeat"
+    if "://" in str(storage):
+        assert _killed_in(storage, phase, iteration, overrides, ranks, heartbeats, env), f"missed {phase} {iteration}"
+        return
+    before = storage.parent / f"{storage.name}-before"
+    if storage.exists():
+        shutil.copytree(storage, before, symlinks=True)
+    for _ in range(3):
+        if _killed_in(storage, phase, iteration, overrides, ranks, heartbeats, env):
+            shutil.rmtree(before, ignore_errors=True)
+            return
+        shutil.rmtree(storage, ignore_errors=True)
+        if before.exists():
+            shutil.copytree(before, storage, symlinks=True)
+    raise AssertionError(f"three runs ended, or committed step 10, before rank 0 was seen in {phase} at {iteration}")
+
+
+def _killed_in(storage, phase: str, iteration: int, overrides: list[str], ranks: int, heartbeats, env) -> bool:
+    """One try of ``kill_during``: whether the kill landed before the run ended and before step 10."""
+    shutil.rmtree(heartbeats, ignore_errors=True)  # a killed try's last beat would be seen at once
     proc = start_train(storage, *overrides, ranks=ranks, env={**(env or {}), ENV_DIR: str(heartbeats)})
 
-    def in_phase() -> bool:
+    def in_phase_or_ended() -> bool:
         beat = read_heartbeats(heartbeats).get(0)
-        return beat is not None and beat.phase == phase and beat.iteration >= iteration
+        return (beat is not None and beat.phase == phase and beat.iteration >= iteration) or proc.poll() is not None
 
     try:
-        wait_for(in_phase, f"rank 0 in {phase} at iteration {iteration}", interval=0.001)
+        wait_for(in_phase_or_ended, f"rank 0 in {phase} at iteration {iteration}", interval=0.001)
     finally:
         kill_tree(proc)
-    assert proc.returncode == -signal.SIGKILL
     committed = manifests(storage) if "://" not in str(storage) else {}
-    assert all(step < 10 for step in committed), f"killed too late: {sorted(committed)}"
+    return proc.returncode == -signal.SIGKILL and all(step < 10 for step in committed)
 
 
 @pytest.mark.slow
