@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ftrain.ckpt.lease import Lease, LeaseHeld, ttl_from_env
 from ftrain.ckpt.steps import check_not_a_checkpoints_directory
-from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
+from ftrain.ckpt.storage import NoBucket, Storage, StorageError, StorageUnavailable
 from ftrain.config import Config, storage_key
 from ftrain.errors import UserError
 from ftrain.heartbeat import TOKEN_ENV
@@ -104,8 +104,10 @@ def claim(
 
 def _check_for_supervisor(config: Config, log: Callable[[str], None]) -> None:
     """A supervised worker's check that no other run holds the storage, in one try. The supervisor holds the lease:
-    a storage that does not answer now is not checked (the run may go on from its spool, see ``ftrain.ckpt.spool``)."""
+    a storage that does not answer now is not checked (the run may go on from its spool, see ``ftrain.ckpt.spool``),
+    nor a bucket deleted since the supervisor took the lease in it."""
     try:
         storage_lease(config, log, retries=0).check()
-    except StorageUnavailable as error:
-        log(f"the lease was not checked, the storage does not answer ({error}); the supervisor holds it")
+    except (StorageUnavailable, NoBucket) as error:
+        why = error.gone if isinstance(error, NoBucket) else f"the storage does not answer: {error}"
+        log(f"the lease was not checked ({why}); the supervisor holds it")

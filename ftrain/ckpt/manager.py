@@ -32,7 +32,7 @@ from ftrain.ckpt.retry import OUTAGE, WaitLines
 from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, Target, snapshot
 from ftrain.ckpt.schedule import DEFAULT_STORAGE_WAIT, STORAGE_WAIT_ENV, SaveSchedule
 from ftrain.ckpt.spool import Spool
-from ftrain.ckpt.storage import Storage, StorageUnavailable
+from ftrain.ckpt.storage import NoBucket, Storage, StorageUnavailable
 from ftrain.comm import group
 from ftrain.config import Config
 from ftrain.errors import UserError
@@ -313,13 +313,21 @@ class Checkpointer:
 def _open_storage(config: Config) -> tuple[Storage, StorageUnavailable | None]:
     """The run's storage, and why it does not answer (None: it does). Under a supervisor a storage that does not
     answer is opened all the same, after ``QUICK_CHECK_RETRIES``: the run may resume from the spool, and the
-    supervisor holds the lease, so no other run writes there."""
+    supervisor holds the lease, so no other run writes there. A missing bucket is bad input, but not under a
+    supervisor: it reached the bucket before it launched the run, so it was deleted since (the supervisor decides)."""
     url, options, retries = config.storage.url, config.storage.options, config.checkpoint.retries
-    may_spool = bool(os.environ.get(SUPERVISOR_ENV)) and config.checkpoint.spool
-    storage = Storage.open(url, options, retries, check_bucket=not may_spool)
-    if may_spool:
-        try:
-            storage.with_retries(min(retries, QUICK_CHECK_RETRIES)).check()
-        except StorageUnavailable as down:
-            return storage, down
-    return storage, None
+    supervised = bool(os.environ.get(SUPERVISOR_ENV))
+    may_spool = supervised and config.checkpoint.spool
+    storage = Storage.open(url, options, retries, check_bucket=False)
+    try:
+        storage.with_retries(min(retries, QUICK_CHECK_RETRIES) if may_spool else retries).check()
+        return storage, None
+    except NoBucket as missing:
+        if not supervised:
+            raise
+        down = StorageUnavailable(missing.gone)  # the supervisor reached it before it launched this attempt
+    except StorageUnavailable as error:
+        down = error
+    if not may_spool:
+        raise down
+    return storage, down

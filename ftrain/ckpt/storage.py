@@ -10,9 +10,9 @@ exponential backoff and jitter; the layers below (s3fs, botocore) are told not t
 server within seconds, so that the bound is ours alone (on Azure, adlfs gets the same timeouts, and its client's own
 retries are turned off). A storage that stays unreachable raises :class:`StorageUnavailable`: an infrastructure fault
 that waiting fixes, never bad input (a missing bucket, denied access or a malformed URL are
-:class:`~ftrain.errors.UserError`). Credentials never appear in a message, repr or log line: every text that leaves
-this module is scrubbed. A run's storage is guarded (``guarded``): every write and delete runs inside the holder's
-check (``fence.py``).
+:class:`~ftrain.errors.UserError`; a bucket deleted under a supervised run is waited for: :class:`NoBucket`).
+Credentials never appear in a message, repr or log line: every text that leaves this module is scrubbed. A run's
+storage is guarded (``guarded``): every write and delete runs inside the holder's check (``fence.py``).
 """
 
 from __future__ import annotations
@@ -62,6 +62,17 @@ _MISTYPED = re.compile(
 )
 """A local path that is a remote URL with a slash or the colon missing (``s3:/bucket``, ``s3//bucket``): fsspec would
 make it a directory of the working one."""
+
+
+class NoBucket(UserError):
+    """The storage's S3 bucket does not exist: a wrong URL at a start, but a bucket deleted under a run that reached
+    it (a supervisor's, ``gone``), which it waits for as for an outage."""
+
+    def __init__(self, bucket: str, endpoint: str) -> None:
+        super().__init__(f"S3 bucket {bucket!r} does not exist at {endpoint}: create it or fix the URL")
+        self.gone = (
+            f"S3 bucket {bucket!r} at {endpoint} no longer exists (deleted since the run reached it): create it again"
+        )
 
 
 class Storage:
@@ -303,6 +314,8 @@ class Storage:
                 ) from None
             if isinstance(exc, FileExistsError):
                 raise FileExistsError(errno.EEXIST, "already exists", self.where(rel)) from None
+            if what in ("create", "write") and (missing := self._missing_bucket()) is not None:
+                raise FileNotFoundError(errno.ENOENT, missing.gone, self.where(rel)) from None
             # a path below a plain file does not exist either
             raise FileNotFoundError(errno.ENOENT, "does not exist", self.where(rel)) from None
         except IsADirectoryError:  # a directory where a file belongs: the caller tells what that file was
@@ -353,9 +366,7 @@ class Storage:
         try:
             self._retry("check", "", self.fs.call_s3, "head_bucket", Bucket=bucket)
         except FileNotFoundError:
-            raise UserError(
-                f"S3 bucket {bucket!r} does not exist at {self._endpoint()}: create it or fix the URL"
-            ) from None
+            raise NoBucket(bucket, self._endpoint()) from None
         except (PermissionError, NoCredentialsError) as exc:
             raise self._access_error(exc) from None
         except Exception as exc:
@@ -366,6 +377,16 @@ class Storage:
                     "storage.options.endpoint_url right?"
                 ) from None
             raise UserError(f"cannot open storage {self.url}: {self._scrub(exc)}") from None
+
+    def _missing_bucket(self) -> NoBucket | None:
+        """On S3, NoBucket where a write found no place to go because the bucket is gone; None otherwise."""
+        try:
+            self.with_retries(0).check()
+        except NoBucket as missing:
+            return missing
+        except (StorageError, UserError):
+            pass
+        return None
 
     def _endpoint(self) -> str:
         return display_url(self.fs.s3.meta.endpoint_url)

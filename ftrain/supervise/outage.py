@@ -31,7 +31,7 @@ from ftrain.ckpt.lineage import history
 from ftrain.ckpt.retry import OUTAGE, Backoff, WaitLines
 from ftrain.ckpt.spool import SPOOL
 from ftrain.ckpt.steps import resolve_checkpoint_url, scan
-from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
+from ftrain.ckpt.storage import NoBucket, Storage, StorageError, StorageUnavailable
 from ftrain.config import AUTO, Config, StorageConfig
 from ftrain.errors import EXIT_USAGE, NO_SPACE, UserError
 from ftrain.progress import Progress, duration
@@ -108,7 +108,8 @@ class StorageWait:
 
     def __call__(self, why: str | None, again: bool = False) -> Outcome | None:
         """Probe until the storage answers (None), or the ending of the run: it did not within the limit, or what it
-        answers no waiting fixes (a bucket gone, access denied). ``why``: what found it unreachable (None: nothing
+        answers no waiting fixes (access denied; a missing bucket, unless the run reached it before: then it was
+        deleted under the run, and is waited for). ``why``: what found it unreachable (None: nothing
         yet, this is a first look); ``again``: the attempt since the last wait trained nothing before it found the
         storage unusable too: the wait goes on from there, and backs off before the restart even if the probe passes."""
         url = self.storage.url  # a Url: printed and recorded without its credentials
@@ -121,6 +122,10 @@ class StorageWait:
         while True:
             try:
                 problem = probe(self.storage.url, self.storage.options, self.log_dir)
+            except NoBucket as missing:
+                if not self.reached:
+                    return Outcome(Event.USAGE, EXIT_USAGE, str(missing))
+                problem = missing.gone  # deleted under the run: the spool keeps its newest steps until it is back
             except UserError as error:
                 return Outcome(Event.USAGE, EXIT_USAGE, str(error))
             waited = self.clock() - outage.started

@@ -45,6 +45,7 @@ from helpers import (
     make_step,
     manifests,
     probe_hook,
+    s3_client,
     supervise_command,
     torchrun_pid,
     training,
@@ -126,6 +127,49 @@ def test_a_refusing_storage_with_a_worker_then_torchrun_killed_inside_the_outage
     found = assert_finished(proc, s3_outage, logs, reference)
     assert "storage_wait" not in [event["event"] for event in found]
     assert [e["step"] for e in found if e["event"] == "recovered"] == [recovered["step"], int(resumed[0])]
+
+
+@pytest.mark.parametrize("spool", [True, False])
+def test_a_bucket_deleted_under_the_run_is_an_outage_not_bad_input(
+    tmp_path, s3_server, s3_env, s3_url, reference, spool: bool
+):
+    """A bucket that never existed is bad input: the supervisor refuses it in one line and launches nothing. One
+    deleted under a supervised run (emptied, then deleted, as S3 wants it) is an outage: the saves fail naming the
+    bucket while training goes on; a worker killed meanwhile restarted into no bucket, called it bad input (exit 2)
+    and ended the run. Now the restart goes on from the spool while the bucket is gone; without a spool it ends with
+    exit 7 and the supervisor waits for the bucket, then starts over in it (its steps were deleted with it). Once
+    the bucket is made again, the run ends on the uninterrupted bits."""
+    url, options = s3_url
+    bucket = url.split("/")[2]
+    never = url.replace(bucket, f"{bucket}-never", 1)
+    never = [sys.executable, "-m", "ftrain", "supervise", *OPTIONS, "configs/smoke.yaml", "--storage", never]
+    refused = subprocess.run(never, cwd=REPO, env=child_env(s3_env), capture_output=True, text=True, timeout=120)
+    assert refused.returncode == EXIT_USAGE and "Traceback" not in refused.stderr, refused.stderr
+    assert f"S3 bucket '{bucket}-never' does not exist at " in refused.stderr, refused.stderr
+    assert "launching torchrun" not in refused.stdout + refused.stderr
+
+    logs = tmp_path / "logs"
+    proc = start(url, logs, s3_env, ["checkpoint.max_unsaved=1000", f"checkpoint.spool={str(spool).lower()}"])
+    beats = training(logs / "heartbeat", 20)
+    client = s3_client(s3_server)
+    for page in client.get_paginator("list_objects_v2").paginate(Bucket=bucket):
+        for item in page.get("Contents", []):
+            client.delete_object(Bucket=bucket, Key=item["Key"])
+    client.delete_bucket(Bucket=bucket)
+    gone = f"S3 bucket '{bucket}' at {s3_server['endpoint_url']} no longer exists"
+    wait_for(lambda: gone in Path(f"{logs}.log").read_text(), "a failed save naming the bucket")
+    os.kill(beats[1].pid, signal.SIGKILL)
+    if spool:
+        wait_for(lambda: "(the spool " in Path(f"{logs}.log").read_text(), "a resume from the spool")
+    else:
+        assert gone in wait_event(logs, "storage_wait")["cause"]
+    client.create_bucket(Bucket=bucket)
+    found = assert_finished(proc, types.SimpleNamespace(url=url, options=options), logs, reference)
+    names = [event["event"] for event in found]
+    if spool:
+        assert [event["step"] >= 20 for event in found if event["event"] == "recovered"] == [True], found
+    else:
+        assert "storage_back" in names and "no verified checkpoint" in Path(f"{logs}.log").read_text()
 
 
 @pytest.mark.waits
