@@ -27,9 +27,10 @@ def config_change(saved: dict, current: dict, saved_robot: dict | None, robot: d
     return "; ".join(parts) or None
 
 
-MODEL_FREE = ("obs_normalization_until", "final_noise_std")
-"""Policy keys that do not decide the models' tensors (when the normalizers freeze, where the action noise ends): a
-change of them is a config change, which ``allow_config_change`` lets through."""
+MODEL_FREE = ("obs_normalization_until", "obs_clip", "init_noise_std", "final_noise_std")
+"""Policy keys that do not decide the models' tensors (when the normalizers freeze, where their output is clipped,
+where the action noise starts and ends): a change of them is a config change, which ``allow_config_change`` lets
+through."""
 
 
 def model_change(saved: dict, current: dict) -> str | None:
