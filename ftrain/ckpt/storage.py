@@ -353,7 +353,11 @@ class Storage:
                 delay = self.backoff.delay(attempt)
                 attempt += 1
                 where, reason = self.where(rel), self._scrub(exc)
-                log.warning("%s %s: %s; retry %d/%d in %.2fs", what, where, reason, attempt, self.retries, delay)
+                if attempt == 1:  # one line per failing request: the later retries say the same
+                    more = f", then up to {self.retries - 1} more" if self.retries > 1 else ""
+                    log.warning("%s %s: %s; retry 1/%d in %.2fs%s", what, where, reason, self.retries, delay, more)
+                else:
+                    log.debug("%s %s: %s; retry %d/%d in %.2fs", what, where, reason, attempt, self.retries, delay)
                 time.sleep(delay)
 
     def check(self) -> None:
