@@ -168,9 +168,11 @@ class ConsoleHook(Hook):
     (``every_save``: each; a failed save, a recovery and a hold have lines of their own from the checkpointer); at
     the end, where the run is and how to play or export it (``lines=False``, ``log.console=false``: that alone).
 
-    The ETA is the remaining iterations times the mean wall time of the last ``ETA_WINDOW`` iterations of this
+    The ETA is the remaining iterations times the median wall time of the last ``ETA_WINDOW`` iterations of this
     process, not counting the first ``ETA_SKIP`` after a (re)start (imports, the first save, warm caches); until
-    there are enough, the iteration's own compute time stands in.
+    there are enough, the iteration's own compute time stands in. A median, not a mean: one stalled iteration (a
+    save held through an outage, a paused process) would raise a mean for a whole window, by the stall over the
+    window per iteration left; a lasting change of pace moves the median within half a window.
     """
 
     ETA_WINDOW = 20
@@ -252,7 +254,7 @@ class ConsoleHook(Hook):
             if self._intervals > self.ETA_SKIP:
                 self._recent.append((now - self._last) / max(1, self.every))
         self._last = now
-        return statistics.fmean(self._recent) if len(self._recent) >= self.ETA_SKIP + 1 else compute_time
+        return statistics.median(self._recent) if len(self._recent) >= self.ETA_SKIP + 1 else compute_time
 
 
 class TensorBoardHook(Hook):
