@@ -598,7 +598,12 @@ def _run_config(args: argparse.Namespace) -> Config:
     gymnasium's registry (not in ``config.py``, which the supervisor imports and which stays free of gymnasium)."""
     from ftrain.ckpt.format import CHECKPOINTS
     from ftrain.ckpt.spool import check_place as check_spool_place
-    from ftrain.ckpt.steps import check_checkpoint_url, check_not_a_checkpoints_directory, check_storage_place
+    from ftrain.ckpt.steps import (
+        check_checkpoint_url,
+        check_not_a_checkpoints_directory,
+        check_output,
+        check_storage_place,
+    )
     from ftrain.ckpt.storage import Storage
     from ftrain.config import check_options_used, check_writable, load_config, local_path
     from ftrain.train.env_ids import check_env_id
@@ -608,8 +613,10 @@ def _run_config(args: argparse.Namespace) -> Config:
     check_options_used(getattr(args, "storage_option", []), [config.storage.url, resumed_from, config.teacher])
     check_env_id(config.env)
     check_storage_place(config.storage.url)
-    check_spool_place(config)
     storage = local_path(config.storage.url)
+    if config.log_dir and not (storage and os.path.abspath(config.log_dir) == os.path.abspath(storage)):
+        check_output(Path(config.log_dir), "log_dir")  # not inside a step that its run's retention deletes
+    check_spool_place(config)
     own = bool(storage) and os.path.isdir(os.path.join(storage, CHECKPOINTS))  # steps of its own: it goes on from them
     if os.path.isdir(storage):  # before a supervisor writes its logs there
         check_not_a_checkpoints_directory(Storage.open(storage))

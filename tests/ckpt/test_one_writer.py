@@ -295,7 +295,9 @@ def test_where_a_local_storage_really_goes_decides_not_its_spelling(tmp_path, mo
 
 
 @pytest.mark.parametrize("command", [train_command, supervise_command])
-def test_train_and_supervise_refuse_a_storage_inside_a_step_before_they_touch_it(tmp_path, command) -> None:
+def test_train_and_supervise_refuse_a_storage_or_logs_inside_a_step_before_they_touch_it(tmp_path, command) -> None:
+    """A log directory there (``log_dir=``, another storage's run) was taken: that run's retention deleted its
+    config, metrics and lock with the step, in silence."""
     run = Storage.open(str(tmp_path / "run"))
     make_step(run, 4)
     inside = tmp_path / "run" / "checkpoints" / "step-000000004"
@@ -306,7 +308,14 @@ def test_train_and_supervise_refuse_a_storage_inside_a_step_before_they_touch_it
         f"ftrain: error: storage {inside} is a step of another run's storage, which that run may "
         f"delete: pass a directory of its own (to train on from that step: resume={inside})"
     ], result.stderr
-    assert sorted(path.name for path in inside.iterdir()) == before
+    logs = command(tmp_path / "other", f"log_dir={inside / 'logs'}")
+    result = subprocess.run(logs, cwd=tmp_path, env=child_env(), capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [
+        f"ftrain: error: log_dir {inside / 'logs'} lies inside {inside}, a step of a run's storage: a file written "
+        "there replaces the step's own or is deleted with it: pass log_dir a path outside the storage's steps"
+    ], result.stderr
+    assert sorted(path.name for path in inside.iterdir()) == before and not (tmp_path / "other").exists()
     assert [info.status for info in scan(run, full=True)] == ["verified"]
 
 
