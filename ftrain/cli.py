@@ -22,10 +22,12 @@ from pathlib import Path
 
 from ftrain import errorfile
 from ftrain.errors import (
+    CONTINUE,
     EXIT_FAILED,
     EXIT_STORAGE_DOWN,
     EXIT_USAGE,
     NO_SPACE,
+    STOPPED,
     StorageError,
     StorageUnavailable,
     Terminated,
@@ -35,7 +37,7 @@ from ftrain.errors import (
     stop_signal,
     stopped,
 )
-from ftrain.lifeline import watch_launcher
+from ftrain.lifeline import SUPERVISOR_ENV, watch_launcher
 from ftrain.process import imports
 from ftrain.proctitle import name_process, rank_role
 from ftrain.redact import display_url, reveal_credentials
@@ -501,9 +503,12 @@ def _dispatch(args: argparse.Namespace) -> int:
         check(config.env, config.hooks)  # refused here, before any rendezvous or the storage is taken
         made = make_local_directories(config)
         try:
-            return train(config)
+            code = train(config)
         finally:
             remove_if_empty(made)
+        if code in STOPPED and not os.environ.get(SUPERVISOR_ENV) and os.environ.get("RANK", "0") == "0":
+            print(f"[ftrain] {CONTINUE}", flush=True)  # a supervisor says it for its workers, once it stops too
+        return code
     if args.command == "supervise":
         from ftrain.supervise.options import SupervisorOptions
         from ftrain.supervise.supervisor import supervise
@@ -601,7 +606,7 @@ def _run_config(args: argparse.Namespace) -> Config:
     from ftrain.ckpt.steps import (
         check_checkpoint_url,
         check_not_a_checkpoints_directory,
-        check_output,
+        check_outside_steps,
         check_storage_place,
     )
     from ftrain.ckpt.storage import Storage
@@ -615,7 +620,7 @@ def _run_config(args: argparse.Namespace) -> Config:
     check_storage_place(config.storage.url)
     storage = local_path(config.storage.url)
     if config.log_dir and not (storage and os.path.abspath(config.log_dir) == os.path.abspath(storage)):
-        check_output(Path(config.log_dir), "log_dir")  # not inside a step that its run's retention deletes
+        check_outside_steps(Path(config.log_dir), "log_dir")  # not inside a step that its run's retention deletes
     check_spool_place(config)
     own = bool(storage) and os.path.isdir(os.path.join(storage, CHECKPOINTS))  # steps of its own: it goes on from them
     if os.path.isdir(storage):  # before a supervisor writes its logs there

@@ -39,6 +39,8 @@ EXIT_INTERRUPTED = 128 + signal.SIGINT
 """Stopped by SIGINT (Ctrl-C) after saving: the same as ``EXIT_PREEMPTED``, with the shell's code for Ctrl-C."""
 STOPPED = (EXIT_PREEMPTED, EXIT_INTERRUPTED)
 """The exit codes of a run stopped by a signal after saving."""
+CONTINUE = "run the same command again to continue"
+"""What a stopped run's last line tells a person: the same command goes on from the step it saved."""
 
 
 NO_SPACE = (errno.ENOSPC, errno.EDQUOT)

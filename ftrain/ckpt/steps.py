@@ -108,7 +108,14 @@ def check_storage_place(url: str) -> None:
 
 def check_output(path: Path, option: str) -> None:
     """UserError unless the file a command writes (``option``: the flag that chose ``path``) can be written and lies
-    outside every step directory of a storage: there it would replace a committed file of the same name (``export -o
+    outside every step directory of a storage (``check_outside_steps``)."""
+    check_outside_steps(path, option)
+    check_writable(path, option)
+
+
+def check_outside_steps(path: Path, option: str) -> None:
+    """UserError if ``path`` (``option``: the flag or key that chose it) lies inside a step directory of a storage,
+    or its ``quarantine/``: there a file would replace a committed one of the same name (``export -o
     .../common.pt``) or go when retention deletes the step."""
     if (found := _enclosing_step_of_any(str(path))) is not None:
         raise UserError(
@@ -120,7 +127,6 @@ def check_output(path: Path, option: str) -> None:
             f"{option} {path} lies inside the {ASIDE}/ of the run in {run}: ftrain ckpt prune --drop-bad deletes "
             f"all of it: pass {option} a path outside it"
         )
-    check_writable(path, option)
 
 
 def _quarantine_around(url: str) -> str | None:

@@ -7,7 +7,14 @@ import math
 import signal
 from dataclasses import dataclass
 
-from ftrain.errors import EXIT_RENDEZVOUS_TIMEOUT, EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, EXIT_USAGE, STOPPED
+from ftrain.errors import (
+    CONTINUE,
+    EXIT_RENDEZVOUS_TIMEOUT,
+    EXIT_STORAGE_DOWN,
+    EXIT_STORAGE_HELD,
+    EXIT_USAGE,
+    STOPPED,
+)
 from ftrain.heartbeat import Phase
 from ftrain.supervise.options import EXIT_DONE, EXIT_INTERRUPTED, EXIT_TOO_FEW_NODES
 
@@ -76,6 +83,13 @@ ENDINGS = {Event.USAGE: "bad input", Event.DONE: "training finished"}
 def newest_step(step: int | None) -> str:
     """The newest committed step, in words: "newest step 40", or "no step committed yet"."""
     return f"newest step {step}" if step is not None else "no step committed yet"
+
+
+def stopped_by(code: int, how: str, committed: int | None) -> Outcome:
+    """A run stopped by a signal (``code``: 130 for SIGINT, "interrupted", else "preempted"), ``how`` its workers
+    ended, and the step the same command goes on from."""
+    event = Event.PREEMPTED
+    return Outcome(event, code, f"{in_words(event, code)}: {how} ({newest_step(committed)}); {CONTINUE}")
 
 
 def finished(step: int | None, how: str = "") -> Outcome:
@@ -150,7 +164,7 @@ def classify(
         saved = bool(phases) and phases <= {Phase.PREEMPTED, Phase.DONE}
         how = "the workers saved" if saved else "the workers did not all confirm a save"
         how = how if phases else "the workers stopped before training began"  # not one heartbeat: nothing to save
-        return Outcome(Event.PREEMPTED, stopped, f"preempted: {how} ({newest_step(committed)})")
+        return stopped_by(stopped, how, committed)
     if orphans:
         return Outcome(Event.FAILED, None, cause)
     if code == 0:
@@ -162,9 +176,7 @@ def classify(
             return Outcome(
                 Event.FAILED, None, "stopped by another node (it failed, or restarted for a node that joined)"
             )
-        return Outcome(
-            Event.PREEMPTED, code, f"preempted: the workers saved ({newest_step(committed)}); rerun to continue"
-        )
+        return stopped_by(code, "the workers saved", committed)
     if code == EXIT_RENDEZVOUS_TIMEOUT and culprit is None:
         return Outcome(
             Event.TOO_FEW_NODES,

@@ -50,7 +50,15 @@ from ftrain.supervise.options import (
     parse_workers,
 )
 from ftrain.supervise.outage import NEWEST_WITHIN, StorageWait, start_of
-from ftrain.supervise.outcome import Event, Outcome, classify, finished, newest_step, not_admitted, peer_ended
+from ftrain.supervise.outcome import (
+    Event,
+    Outcome,
+    classify,
+    finished,
+    not_admitted,
+    peer_ended,
+    stopped_by,
+)
 from ftrain.supervise.plan import Plan, plan_key
 from ftrain.supervise.restarts import RestartPolicy
 from ftrain.terminal import leave_the_terminal
@@ -239,10 +247,8 @@ class Supervisor:
         """The run's ending after a stop signal that came while no workers ran (recorded as a ``preempt``)."""
         self.events("preempt", signal=signal_name(self.signals[0]))
         code = stop_code(self.signals[0])
-        newest = newest_step(self.storage_wait.newest(self.policy.best_committed))  # as every other stop says it
-        return Outcome(
-            Event.PREEMPTED, code, f"preempted: stopped by a signal while no workers ran ({newest}); rerun to continue"
-        )
+        newest = self.storage_wait.newest(self.policy.best_committed)  # as every other stop says it
+        return stopped_by(code, "stopped by a signal while no workers ran", newest)
 
     def _next_plan(self, previous: Plan | None) -> Plan:
         """The next attempt to run (on several nodes: once node 0 has moved on from ``previous``, or ended the run)."""

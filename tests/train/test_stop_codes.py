@@ -74,7 +74,9 @@ def test_a_lone_trainer_stopped_by_ctrl_c_saves_and_exits_130(tmp_path) -> None:
     assert finish(proc) == 130
     step = final_manifest(storage)["step"]
     assert 3 <= step < 100000
-    assert f"[ftrain] stopped by SIGINT: saved step {step}, exiting with code 130" in proc.stdout.read()
+    printed = proc.stdout.read()
+    assert f"[ftrain] stopped by SIGINT: saved step {step}, exiting with code 130" in printed, printed[-2000:]
+    assert printed.splitlines()[-1] == "[ftrain] run the same command again to continue", printed[-2000:]
 
 
 @pytest.mark.parametrize("launcher", ["train", "supervise", "ftrun"])
@@ -200,6 +202,8 @@ def test_ftrain_supervise_exits_130_after_ctrl_c_with_the_real_trainer(tmp_path)
     assert [event["event"] for event in events(storage)][-2:] == ["preempted", "summary"]
     printed, step = proc.stdout.read(), final_manifest(storage)["step"]
     assert "ftrain supervise: interrupted (exit 130): 0 restarts, 0 iterations lost" in printed
+    again = f"ftrain supervise: interrupted: the workers saved (newest step {step}); run the same command again to"
+    assert again in printed and printed.count("run the same command again") == 1, printed  # the workers do not say it
     assert step >= 3
     # the workers got SIGTERM from the supervisor (a SIGINT would reach a warm worker twice), and name the user's Ctrl-C
     said = f"[ftrain] stopped by SIGINT to the supervisor (Ctrl-C), passed on as SIGTERM: saved step {step}, exiting "
@@ -345,7 +349,10 @@ def test_the_supervisors_closing_line_names_the_step_a_rerun_resumes_from(tmp_pa
             time.sleep(draw.uniform(ONE_STOP + 0.1, 1.5))
             proc.send_signal(signal.SIGINT)
         assert finish(proc) in STOPPED, schedule
-        closing = re.findall(r"ftrain supervise: preempted: .*\(newest step (\d+)\)", proc.stdout.read())
+        closing = re.findall(
+            r"ftrain supervise: (?:preempted|interrupted): .*\(newest step (\d+)\); run the same command again to ",
+            proc.stdout.read(),
+        )
         newest = select_resume(Storage.open(str(storage)), log=lambda line: None)[0]
         assert closing == [str(newest)], (schedule, closing, newest)
     print(f"{len(schedules)} schedules checked: {', '.join(schedules)}")
