@@ -681,6 +681,9 @@ def validate(config: Config) -> None:
     for key, (value, minimum) in minimums.items():
         if value < minimum:
             raise UserError(f"{key}={value} must be {'at least 1' if minimum else '0 or more'}")
+    if bad := [step for step in config.checkpoint.pinned if step < 0]:
+        pinned = config.checkpoint.pinned
+        raise UserError(f"checkpoint.pinned={pinned} holds {bad[0]}, which is no step: pin steps 0 or more")
     for key, first, count in (("seed", config.seed, 1), ("eval.seed", config.eval.seed, config.eval.episodes)):
         if not 0 <= first <= SEEDS - count:  # the seeds of numpy and gymnasium; evaluation uses ``count`` of them
             raise UserError(f"{key}={first} is out of range: use a seed from 0 to {SEEDS - count}")

@@ -90,6 +90,7 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
         (["algorithm.gamma=high"], "must be a number"),
         (["iterations=0"], "iterations=0 must be at least 1"),
         (["env.num_envs=-2"], "env.num_envs=-2 must be at least 1"),
+        (["checkpoint.pinned=[4,-1]"], r"checkpoint.pinned=\[4, -1\] holds -1, which is no step"),
         (["noequals"], "is not key=value"),
         (["policy.std_type=exp"], "policy.std_type='exp' is unknown: use scalar or log"),
         (["policy.activation=Relu"], r"policy.activation='Relu' is unknown \(did you mean relu\?\): use elu, "),

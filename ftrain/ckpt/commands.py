@@ -228,9 +228,11 @@ def prune(
     """Apply the retention rules of ``checkpoint.retention_plan`` to a run's storage (``dry_run``: only print), as the
     holder of its lease (``as_lease_holder``; ``force``: without it). A rule left None is the run's own (the
     ``checkpoint`` settings of its newest verified step, as ``ls`` marks them); ``pinned`` adds to the run's."""
-    for name, value in {"keep-last": keep_last, "keep-best": keep_best, "keep-every": keep_every}.items():
-        if value is not None and value < 0:
-            raise UserError(f"--{name}={value} must be 0 or more")
+    for name, value, least in (("keep-last", keep_last, 1), ("keep-best", keep_best, 0), ("keep-every", keep_every, 0)):
+        if value is not None and value < least:  # the newest verified step is always kept, as checkpoint.keep_last
+            raise UserError(f"--{name}={value} must be {'at least 1' if least else '0 or more'}")
+    if bad := [step for step in pinned if step < 0]:
+        raise UserError(f"--pin {bad[0]} is no step: pin a step of the storage (ftrain ckpt ls names them)")
     storage, step = _open(url, options, one_step=False)
     if step is not None:
         raise UserError(f"prune works on a run's storage, not one step: pass {storage.url}")

@@ -169,7 +169,8 @@ def restore(
         why = "allow_config_change=true" if config.allow_config_change else "the learning rate follows iterations"
         if not config.allow_config_change and set(changed_keys(saved, current)) <= ENV_COUNTS:
             why = "the same environments, counted per rank or in all"
-        log(f"changed since step {step} ({why}): {change}")
+        if config.allow_config_change or config.iterations > step:  # a shortened run's horizon trains nothing
+            log(f"changed since step {step} ({why}): {change}")
     if moved := arithmetic_change(manifest.get("arithmetic"), arithmetic or []):
         log(f"step {step} was trained on other arithmetic ({moved}): the run continues, not bit for bit")
     world_sizes = manifest.get("world_sizes") or [[0, manifest["world_size"]]]
@@ -511,10 +512,10 @@ def _check_env_counts(config: Config, step: int, manifest: dict, world_size: int
     total = config.env.in_all(world_size)
     if total == saved_total and (in_all or world_size == saved_world):
         return
-    has = f"checkpoint step {step} has {saved_total} environments in all ({saved_world} ranks x {per_rank})"
+    has = f"checkpoint step {step} has {saved_total} environments in all ({_ranks(saved_world)} x {per_rank})"
     if in_all:
         raise UserError(f"{has}, the config has env.total_envs={total}: set env.total_envs={saved_total}")
-    ranks = f"{world_size} rank{'s' * (world_size != 1)}"
+    ranks = _ranks(world_size)
     resize = ", and a resize hands them on only counted in all" if total == saved_total else ""
     raise UserError(
         f"{has}, the config counts env.num_envs={config.env.num_envs} per rank at {ranks}{resize}: set "
@@ -543,3 +544,7 @@ def _horizon_taken(saved: dict, config: Config, step: int | None) -> bool:
     horizons = (saved["algorithm"].get("schedule_iterations"), config.algorithm.schedule_iterations)
     follows = horizons == (saved.get("iterations"), config.iterations) and horizons[0] != horizons[1]
     return follows and (horizons[1] > horizons[0] or (step is not None and config.iterations <= step))
+
+
+def _ranks(count: int) -> str:
+    return f"{count} rank{'s' * (count != 1)}"

@@ -286,8 +286,9 @@ def test_bad_input_is_a_user_error(run, tmp_path):
         ckpt_commands.verify(f"{run}/checkpoints/step-000000099")
     with pytest.raises(UserError, match="not one step"):
         ckpt_commands.prune(f"{run}/checkpoints/step-000000010", keep_last=1)
-    with pytest.raises(UserError, match="keep-last=-1"):
-        ckpt_commands.prune(run, keep_last=-1)
+    for rule, said in ({"keep_last": 0}, "--keep-last=0 must be at least 1"), ({"pinned": [-1]}, "--pin -1 is no step"):
+        with pytest.raises(UserError, match=said):  # as checkpoint.keep_last and checkpoint.pinned in a config
+            ckpt_commands.prune(run, **rule)
     for dry_run in (True, False):  # a typo, not a step: refused before anything is deleted
         with pytest.raises(UserError, match=rf"^--pin 999: {re.escape(run)} holds no step 999; see ftrain ckpt ls"):
             ckpt_commands.prune(run, keep_last=1, pinned=[10, 999], dry_run=dry_run)

@@ -276,6 +276,7 @@ def test_a_run_lengthened_goes_on_with_its_learning_rate_falling_to_the_new_end_
     before = [path.read_bytes() for path in record]
     idle = run_train(tmp_path / "run", "iterations=3", linear).stdout  # the run is at step 4 already
     assert "nothing to train: the run is already at step 4, asked for iterations=3" in idle, idle
+    assert "changed since" not in idle, idle  # the horizon that followed iterations=3 trains nothing
     assert [path.read_bytes() for path in record] == before, "a start that trains nothing writes nothing"
     run_train(tmp_path / "unfinished", "iterations=2", linear, "algorithm.schedule_iterations=4")
     cases = (  # a horizon set apart from the length; a run shortened before its end
