@@ -637,6 +637,13 @@ def _run_config(args: argparse.Namespace) -> Config:
             check_checkpoint_url(resume)
         except UserError as error:
             raise UserError(f"resume={config.resume}: {error}") from None
+    distills = config.algorithm.class_name == "Distillation" and config.teacher
+    teacher = local_path(config.teacher) if distills else ""
+    if teacher and storage and not own and not resume and not os.path.exists(teacher):  # else a resumed student's
+        try:  # checkpoint holds its teacher; one that is there is checked where it is loaded
+            check_checkpoint_url(teacher)
+        except UserError as error:
+            raise UserError(f"teacher={config.teacher}: {error}") from None
     return config
 
 

@@ -8,7 +8,7 @@ import subprocess
 
 import pytest
 
-from helpers import REPO, child_env, final_manifest, metrics_by_iteration, run_train, train_command
+from helpers import REPO, child_env, final_manifest, metrics_by_iteration, run_train, supervise_command, train_command
 
 pytestmark = pytest.mark.slow
 
@@ -109,6 +109,9 @@ def test_teacher_from_another_environment_is_one_clear_error(tmp_path) -> None:
     ), result.stderr
 
     missing = tmp_path / "no-such-run"
-    command = train_command(tmp_path / "student", f"teacher={missing}", *SMALL, config=DISTILL)
-    result = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
-    assert result.returncode == 2 and result.stderr.startswith(f"ftrain: error: teacher={missing}: {missing} does not")
+    for launch in (train_command, supervise_command):  # refused before a worker starts, nothing made
+        command = launch(tmp_path / launch.__name__, f"teacher={missing}", *SMALL, config=DISTILL)
+        result = subprocess.run(command, cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120)
+        said = f"ftrain: error: teacher={missing}: {missing} does not exist: pass a run's storage or a step directory\n"
+        assert (result.returncode, result.stdout + result.stderr) == (2, said), result.stdout + result.stderr
+        assert not (tmp_path / launch.__name__).exists()
