@@ -512,10 +512,10 @@ def _check_env_counts(config: Config, step: int, manifest: dict, world_size: int
     total = config.env.in_all(world_size)
     if total == saved_total and (in_all or world_size == saved_world):
         return
-    has = f"checkpoint step {step} has {saved_total} environments in all ({_ranks(saved_world)} x {per_rank})"
+    has = f"checkpoint step {step} has {saved_total} environments in all ({_rank_count(saved_world)} x {per_rank})"
     if in_all:
         raise UserError(f"{has}, the config has env.total_envs={total}: set env.total_envs={saved_total}")
-    ranks = _ranks(world_size)
+    ranks = _rank_count(world_size)
     resize = ", and a resize hands them on only counted in all" if total == saved_total else ""
     raise UserError(
         f"{has}, the config counts env.num_envs={config.env.num_envs} per rank at {ranks}{resize}: set "
@@ -546,5 +546,5 @@ def _horizon_taken(saved: dict, config: Config, step: int | None) -> bool:
     return follows and (horizons[1] > horizons[0] or (step is not None and config.iterations <= step))
 
 
-def _ranks(count: int) -> str:
+def _rank_count(count: int) -> str:
     return f"{count} rank{'s' * (count != 1)}"
