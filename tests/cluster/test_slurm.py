@@ -164,8 +164,12 @@ def test_the_time_limit_signal_saves_requeues_and_the_job_completes_with_nothing
     restarts = int(job["Restarts"])
     assert restarts >= 1
     assert [end["JobState"] for end in slurm.ends(job_id)] == ["PENDING"] * restarts + ["COMPLETED"]
-    assert len([e for e in events(storage) if e["event"] == "preempted"]) == 2 * restarts
-    assert "requeueing job" in Path(f"{storage}.out").read_text()  # the script requeued it, not SLURM
+    out = Path(f"{storage}.out").read_text()
+    # a signal as the run ended (its supervisors done, srun's step cancelled around them): one more start, which
+    # finds nothing to train and completes the job (the script cannot tell from srun's code that both ended with 0)
+    late = out.count("; nothing to train: pass iterations=N") // 2
+    assert late <= 1 and len([e for e in events(storage) if e["event"] == "preempted"]) == 2 * (restarts - late)
+    assert "requeueing job" in out  # the script requeued it, not SLURM
     assert_nothing_lost(storage)
     assert_verified_and_equal(storage, reference)
 

@@ -449,7 +449,9 @@ def test_a_run_that_waits_for_a_lock_a_stopped_process_holds_says_who_holds_it_a
         run.send_signal(signal.SIGTERM)  # as SLURM or Ctrl-C would: it stops now, not once the lock is free
         assert finish(run, timeout=60, output=output) == 128 + signal.SIGTERM  # the lock stays held: any bound
         assert re.search(
-            r"stopped by a signal while no workers ran \((newest step \d+|no step committed yet)\); rerun", said()
+            r"preempted: stopped by a signal while no workers ran \((newest step \d+|no step committed yet)\); run the "
+            r"same command again to continue",
+            said(),
         )
         assert [(event["event"], event.get("signal")) for event in events(storage)][:2] == [
             ("preempt", "SIGTERM"),
