@@ -619,8 +619,8 @@ def _run_config(args: argparse.Namespace) -> Config:
     check_env_id(config.env)
     check_storage_place(config.storage.url)
     storage = local_path(config.storage.url)
-    if config.log_dir and not (storage and os.path.abspath(config.log_dir) == os.path.abspath(storage)):
-        check_outside_steps(Path(config.log_dir), "log_dir")  # not inside a step that its run's retention deletes
+    if config.log_dir:  # not inside a step that its run's retention deletes (the storage itself: checked above)
+        check_outside_steps(Path(config.log_dir), "log_dir")
     check_spool_place(config)
     own = bool(storage) and os.path.isdir(os.path.join(storage, CHECKPOINTS))  # steps of its own: it goes on from them
     if os.path.isdir(storage):  # before a supervisor writes its logs there
@@ -631,19 +631,20 @@ def _run_config(args: argparse.Namespace) -> Config:
     for place, option in ((storage, "--storage"), (config.log_dir, "log_dir=")):  # before a lease, a log or a pool
         if place and os.path.isdir(place):  # (one that cannot be made is said where it is made)
             check_writable(Path(place), option, fix if option == "--storage" else "")
+
+    def checkpoint_at(key: str, value: str, path: str) -> None:
+        try:
+            check_checkpoint_url(path)
+        except UserError as error:
+            raise UserError(f"{key}={value}: {error}") from None
+
     resume = local_path(config.resume) if config.resume not in ("auto", "never") else ""
     if resume and storage and not own:  # else it needs the step it began at: a run's storage that holds none is none
-        try:
-            check_checkpoint_url(resume)
-        except UserError as error:
-            raise UserError(f"resume={config.resume}: {error}") from None
+        checkpoint_at("resume", config.resume, resume)
     distills = config.algorithm.class_name == "Distillation" and config.teacher
     teacher = local_path(config.teacher) if distills else ""
     if teacher and storage and not own and not resume and not os.path.exists(teacher):  # else a resumed student's
-        try:  # checkpoint holds its teacher; one that is there is checked where it is loaded
-            check_checkpoint_url(teacher)
-        except UserError as error:
-            raise UserError(f"teacher={config.teacher}: {error}") from None
+        checkpoint_at("teacher", config.teacher, teacher)  # checkpoint holds its teacher; one there is checked at load
     return config
 
 
