@@ -205,6 +205,8 @@ class Attempt:
         """Ranks the supervisor saw die mid-training."""
         self.killed: set[int] = set()
         """Ranks the supervisor then SIGKILLed: doomed by the dead ones."""
+        self.torchrun_stopped: float | None = None
+        """Since when torchrun has been seen stopped with no worker left (``Supervisor._torchrun_stopped_for``)."""
         self.completed = 0
         self.committed: int | None = None
         self.resumed: int | None = None

@@ -158,8 +158,8 @@ def classify(
     node that joined late (the first agent to see the new node stops its workers, and through the iteration boundary
     they agree on, everyone's, before the other agents have looked); ``committed``: the newest step committed.
     """
-    if stopped is not None and phases == {Phase.DONE} and not orphans:  # it came once every worker had finished
-        return finished(committed, "the stop came after the last step")
+    if phases == {Phase.DONE} and not orphans:  # every worker committed the last step: whatever torchrun said after
+        return finished(committed, "the stop came after the last step" if stopped is not None else "")
     if stopped is not None:
         saved = bool(phases) and phases <= {Phase.PREEMPTED, Phase.DONE}
         how = "the workers saved" if saved else "the workers did not all confirm a save"

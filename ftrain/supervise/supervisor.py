@@ -36,7 +36,7 @@ from ftrain.log_dir_lock import claim_log_dir
 from ftrain.redact import hide_credentials, redact_command
 from ftrain.supervise.attempt import Attempt, Launcher, attempt_env, kill, new_log_dir, signal_name
 from ftrain.supervise.events import EventLog
-from ftrain.supervise.hang import ABSENT_AFTER, QUIET_PHASES, HangWatch
+from ftrain.supervise.hang import ABSENT_AFTER, HANG_FLOOR, QUIET_PHASES, HangWatch
 from ftrain.supervise.ledger import Ledger
 from ftrain.supervise.link import connect, makes_plan, node_lease, rendezvous, worker_env
 from ftrain.supervise.options import (
@@ -306,6 +306,12 @@ class Supervisor:
             code = attempt.proc.poll()
             if code is not None:
                 return self._exited(attempt, code)
+            if (seconds := self._torchrun_stopped_for(attempt, now)) > HANG_FLOOR:
+                pid, number = attempt.proc.pid, attempt.plan.attempt
+                message = f"attempt {number}: torchrun (pid {pid}) stopped for {seconds:.1f} s after its workers ended"
+                self.events("hang", f"{message}; killing it", attempt=number, torchrun=pid, seconds=round(seconds, 1))
+                attempt.kill()
+                return self._exited(attempt, attempt.proc.returncode)
             if (lost := self.lease.lost) is not None:  # nothing they train from now on could be committed: stop them
                 attempt.kill()
                 self._log_exit(attempt, "stopped: another generation holds the storage")
@@ -336,6 +342,17 @@ class Supervisor:
                 outcome = self._check_peers(attempt, now)
                 if outcome is not None:
                     return outcome
+
+    @staticmethod
+    def _torchrun_stopped_for(attempt: Attempt, now: float) -> float:
+        """How long torchrun has been stopped (SIGSTOP, a debugger) with none of its workers left, 0 while it is not: it
+        would never exit, and no heartbeat would say so (its workers' have ended). Stopped while they train, it is left
+        alone: they finish, or a hang or a death among them ends the attempt."""
+        if procfs.state(attempt.proc.pid) not in ("T", "t") or attempt.workers():
+            attempt.torchrun_stopped = None
+            return 0.0
+        attempt.torchrun_stopped = now if attempt.torchrun_stopped is None else attempt.torchrun_stopped
+        return now - attempt.torchrun_stopped
 
     def _absent(self, attempt: Attempt, seconds: float) -> None:
         """This supervisor did not run for ``seconds`` (stopped with its workers, a paused VM): it did not watch, so the

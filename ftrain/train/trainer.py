@@ -29,7 +29,7 @@ from ftrain.comm import group
 from ftrain.config import Config, for_launch
 from ftrain.errors import EXIT_STORAGE_DOWN, EXIT_STORAGE_HELD, UserError, stop_code
 from ftrain.files import replace_text
-from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter, read_stop_reason
+from ftrain.heartbeat import ENV_DIR, NODE_ENV, HeartbeatWriter, Phase, read_stop_reason
 from ftrain.policy.model import action_std
 from ftrain.policy.noise_ceiling import build_noise_ceiling
 from ftrain.policy.robot import unsaved_state_notice
@@ -112,7 +112,7 @@ class Trainer:
         self.heartbeat = HeartbeatWriter(os.environ.get(ENV_DIR), info.rank, info.local_rank, info.world_size, nodes)
         self.checkpointer = Checkpointer(config, info, self.log, self.env.robot)
         self.checkpointer.on_commit = lambda step, manifest: self.hooks.call("on_checkpoint", self, step, manifest)
-        self.checkpointer.while_waiting = lambda: self.heartbeat.beat("checkpoint")
+        self.checkpointer.while_waiting = lambda: self.heartbeat.beat(Phase.CHECKPOINT)
         self.checkpointer.stopping = lambda: self.stop.requested
         self._votes = Votes(None, False, False, False)
         self._config_json = json.dumps(config.public_dict())
@@ -251,7 +251,7 @@ class Trainer:
 
     def run(self) -> int:
         self.stop.training()
-        self.heartbeat.beat("start", 0)
+        self.heartbeat.beat(Phase.START, 0)
         resumed = self.checkpointer.restore(self)
         if hasattr(self.alg, "teacher_identity"):  # which teacher a distillation learns from: a resumed one, its own
             if not self.alg.teacher_loaded:  # gone, and no step of this run restored to take its weights from
@@ -277,13 +277,13 @@ class Trainer:
             self._write_resolved_config()
         self.alg.train_mode()
         self.hooks.call("on_start", self)
-        self.heartbeat.beat("start", self.iteration)
+        self.heartbeat.beat(Phase.START, self.iteration)
         self.phases.take()  # the first row counts from here, not from start-up
         while self.iteration < self.config.iterations:
             self._iterate()
             stop, last = self._votes.stop is not None, self.iteration == self.config.iterations
             if stop or last or self._votes.save:
-                self.heartbeat.beat("closing" if stop or last else "checkpoint", self.iteration)
+                self.heartbeat.beat(Phase.CLOSING if stop or last else Phase.CHECKPOINT, self.iteration)
                 hold = stop or last or self._votes.hold
                 self.checkpointer.save(self, wait=stop, hold=hold, store=self._votes.store)
                 self.heartbeat.committed_step = self.checkpointer.committed_step
@@ -297,14 +297,14 @@ class Trainer:
         self.checkpointer.close()
         self.heartbeat.committed_step = self.checkpointer.committed_step
         self.hooks.call("on_end", self)
-        self.heartbeat.beat("preempted" if self.iteration < self.config.iterations else "done", self.iteration)
+        self.heartbeat.beat(Phase.PREEMPTED if self.iteration < self.config.iterations else Phase.DONE, self.iteration)
         if self.iteration < self.config.iterations and self._votes.stop is not None:
             return stop_code(self._votes.stop)
         return 0
 
     def _iterate(self) -> None:
         start = time.perf_counter()
-        self.heartbeat.beat("rollout", self.iteration)
+        self.heartbeat.beat(Phase.ROLLOUT, self.iteration)
         if self.noise_ceiling is not None:  # before the rollout: its noise is the update's
             self.noise_ceiling.apply(self.alg.get_policy().distribution, self.iteration)
         self._collect()
@@ -313,7 +313,7 @@ class Trainer:
                 self.reward_norm.update()
         self.hooks.call("after_rollout", self)
         collected = time.perf_counter()
-        self.heartbeat.beat("update")
+        self.heartbeat.beat(Phase.UPDATE)
         if self.lr_schedule is not None:
             self.lr_schedule.apply(self.alg, self.iteration)
         with self.phases("update"):

@@ -88,3 +88,16 @@ def test_an_ending_names_the_newest_step_in_words_also_when_there_is_none(commit
     for code, stopped, phases in ((143, 143, {"rollout"}), (143, None, {"preempted"}), (6, None, set())):
         outcome = classify(code, "", None, stopped, False, phases, False, committed)
         assert f"({words})" in outcome.message and "None" not in outcome.message, outcome
+
+
+@pytest.mark.parametrize("code", [0, 1, -9, 143])
+@pytest.mark.parametrize("stopped", [None, 143])
+def test_every_worker_done_is_finished_whatever_torchrun_exits_with(code, stopped) -> None:
+    """Every worker beat ``done`` (the last step committed): the run finished, whether torchrun then exited 0, failed
+    in its own exit, was killed (stopped under its workers, ``Supervisor._torchrun_stopped_for``), or got the stop;
+    workers that outlived torchrun, or one not done, keep the attempt's own outcome."""
+    outcome = classify(code, "torchrun killed by SIGKILL", None, stopped, False, {"done"}, False, 40)
+    assert (outcome.event, outcome.code, outcome.failed) == ("done", 0, False), outcome
+    for orphans, phases in ((True, {"done"}), (False, {"done", "rollout"})):
+        other = classify(code, "", None, stopped, orphans, phases, False, 40)
+        assert other.event != "done" or (code == 0 and stopped is None and not orphans), other

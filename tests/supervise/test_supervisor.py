@@ -530,6 +530,26 @@ def test_stopped_worker_is_a_hang(tmp_path):
     assert "recovered" in names(run)
 
 
+@pytest.mark.slow
+def test_a_torchrun_stopped_under_its_workers_is_ended_once_they_finish(tmp_path, capfd):
+    """torchrun stopped (SIGSTOP, a debugger) while its workers train: they train on and finish, and their zombies
+    wait for it; the supervisor kills it a few seconds after its last worker ended, and the run ends finished, with
+    no restart, where it waited for ever."""
+    proc = start_supervisor(tmp_path)
+    run = tmp_path / "run"
+    training(run / "heartbeat", 3, [0, 1])
+    agent = torchrun_pid(proc.pid)
+    os.kill(agent, signal.SIGSTOP)
+    assert finish(proc, timeout=120) == options.EXIT_DONE
+    assert_finished(run)
+    log = events(run)
+    hangs = [(event["torchrun"], event["seconds"] >= HANG_FLOOR) for event in log if event["event"] == "hang"]
+    assert hangs == [(agent, True)], log
+    assert "recovered" not in names(run) and log[-1]["restarts"] == 0, log
+    said = capfd.readouterr().err
+    assert f"torchrun (pid {agent}) stopped for" in said and "training finished (exit 0)" in said, said
+
+
 def continue_supervisor_first(supervisor: int, below: list[int]) -> None:
     """SIGCONT to a stopped supervisor, then 0.5 s later to the processes below it (one it killed meanwhile, the
     defect the callers guard against, is gone)."""
