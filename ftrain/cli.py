@@ -500,7 +500,8 @@ def _dispatch(args: argparse.Namespace) -> int:
             from ftrain.train.trainer import train
             from ftrain.train.user_code import check
 
-        check(config.env, config.hooks)  # refused here, before any rendezvous or the storage is taken
+        trackers = config.log.trackers() if os.environ.get("RANK", "0") == "0" else []  # rank 0 alone tracks
+        check(config.env, config.hooks, trackers)  # refused here, before any rendezvous or the storage is taken
         made = make_local_directories(config)
         try:
             code = train(config)
@@ -518,8 +519,8 @@ def _dispatch(args: argparse.Namespace) -> int:
         config = _run_config(args)
         from ftrain.supervise.user_check import check_in_child, has_user_code
 
-        if has_user_code(config.env, config.hooks):  # checked in a child, before anything is taken
-            check_in_child(config.env, config.hooks)
+        if has_user_code(config.env, config.hooks, config.log.trackers()):  # checked in a child, before anything
+            check_in_child(config.env, config.hooks, config.log.trackers())  # is taken
         name_process("supervisor", config.name)
         return supervise(options, config, train_args)
     if args.command == "bench":

@@ -199,6 +199,10 @@ class LogConfig:
     wandb: WandbConfig = field(default_factory=WandbConfig)
     mlflow: MlflowConfig = field(default_factory=MlflowConfig)
 
+    def trackers(self) -> list[str]:
+        """The optional trackers turned on, by their package's name, which is also their key's (``log.wandb``)."""
+        return [name for name in ("wandb", "mlflow") if getattr(self, name).enabled]
+
 
 @dataclass
 class EvalConfig:
@@ -765,11 +769,10 @@ def validate(config: Config) -> None:
         raise UserError(f"reward.clip={config.reward.clip} must be a positive number")
     if config.log.wandb.mode not in WANDB_MODES:
         raise UserError(f"log.wandb.mode={config.log.wandb.mode!r} is unknown: use online, offline or disabled")
-    for key, tracker, module in (("log.wandb", config.log.wandb, "wandb"), ("log.mlflow", config.log.mlflow, "mlflow")):
-        if tracker.enabled and importlib.util.find_spec(module) is None:
-            raise UserError(
-                f"{key} is set but {module} is not installed: pip install 'ftrain[{module}]', or unset {key}"
-            )
+    for module in config.log.trackers():  # installed; whether it imports is the user code's check (train.user_code)
+        if importlib.util.find_spec(module) is None:
+            fix = f"pip install 'ftrain[{module}]', or unset log.{module}"
+            raise UserError(f"log.{module} is set but {module} is not installed: {fix}")
     before, sqlite, database = config.log.mlflow.tracking_uri.reveal().partition("sqlite:///")
     if config.log.mlflow.enabled and sqlite and not before:  # MLflow retries a file it cannot open for 100 s
         fix = "pass log.mlflow.tracking_uri a sqlite:/// file you can write to"

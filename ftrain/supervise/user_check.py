@@ -20,15 +20,18 @@ TIMEOUT = 120.0
 do values that JSON cannot carry to the child (YAML dates in ``env.kwargs``, say)."""
 
 
-def has_user_code(env: EnvConfig, hooks: list[HookConfig]) -> bool:
-    """Whether the run runs code beyond gymnasium's own envs with their default arguments."""
-    return ":" in env.id or bool(env.imports or env.kwargs or hooks)
+def has_user_code(env: EnvConfig, hooks: list[HookConfig], trackers: list[str]) -> bool:
+    """Whether the run runs code beyond gymnasium's own envs with their default arguments (a tracker's package is
+    the user's install)."""
+    return ":" in env.id or bool(env.imports or env.kwargs or hooks or trackers)
 
 
-def check_in_child(env: EnvConfig, hooks: list[HookConfig]) -> None:
-    """UserError with the child's line if ``env`` cannot be trained or a hook's module does not import."""
+def check_in_child(env: EnvConfig, hooks: list[HookConfig], trackers: list[str]) -> None:
+    """UserError with the child's line if ``env`` cannot be trained, a hook's module or a tracker's package does not
+    import."""
     try:
-        config = {"env": dataclasses.asdict(env), "hooks": [{"target": hook.target} for hook in hooks]}  # not kwargs
+        hooks_named = [{"target": hook.target} for hook in hooks]  # not their kwargs
+        config = {"env": dataclasses.asdict(env), "hooks": hooks_named, "trackers": trackers}
         command = [sys.executable, "-m", "ftrain.train.user_code", json.dumps(config)]
         done = subprocess.run(command, capture_output=True, text=True, timeout=TIMEOUT)
     except (TypeError, subprocess.TimeoutExpired):  # values that JSON cannot carry, or a module that hangs

@@ -9,26 +9,37 @@ CONFIG_JSON`` in a child (``ftrain.supervise.user_check``), which prints the lin
 
 from __future__ import annotations
 
+import importlib
 import json
 import sys
+from collections.abc import Sequence
 
 from ftrain.config import EnvConfig, HookConfig
-from ftrain.errors import UserError
+from ftrain.errors import UserError, error_line
 from ftrain.policy.robot import check_env
 from ftrain.train.hooks import hook_target
 
 
-def check(env: EnvConfig, hooks: list[HookConfig]) -> None:
-    """UserError if ``env`` cannot be trained or a hook's module does not import."""
+def check(env: EnvConfig, hooks: list[HookConfig], trackers: Sequence[str] = ()) -> None:
+    """UserError if ``env`` cannot be trained, a hook's module does not import, or a tracker's package does not (a
+    broken install, which would otherwise leave the run untracked after training began)."""
     check_env(env)
     for hook in hooks:
         hook_target(hook.target)
+    for module in trackers:
+        try:
+            getattr(importlib.import_module(module), "__version__", None)  # runs wandb's code, deferred to first use
+        except Exception as error:  # whatever a broken install raises
+            raise UserError(
+                f"log.{module} is set but {module} does not import ({error_line(error)}): repair it (pip install "
+                f"--force-reinstall 'ftrain[{module}]'), or unset log.{module}"
+            ) from None
 
 
 if __name__ == "__main__":
     given = json.loads(sys.argv[1])
     try:
-        check(EnvConfig(**given["env"]), [HookConfig(**hook) for hook in given["hooks"]])
+        check(EnvConfig(**given["env"]), [HookConfig(**hook) for hook in given["hooks"]], given["trackers"])
     except UserError as error:
         print(error, file=sys.stderr)
         sys.exit(2)

@@ -7,6 +7,7 @@ import csv
 import json
 import math
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -184,6 +185,28 @@ def test_bad_tracker_input_is_one_line_and_exit_2(tmp_path, overrides, fragment)
     result = subprocess.run(command, cwd=REPO, env=child_env(OFFLINE), capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and fragment in result.stderr, result.stderr
     assert "Traceback" not in result.stderr and not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("command", "module", "key"), [("train", "wandb", "mode"), ("supervise", "mlflow", "experiment")]
+)
+def test_a_tracker_that_is_installed_but_does_not_import_is_refused_before_training(tmp_path, command, module, key):
+    """A broken install (here a package that raises on import, as one built against another protobuf does) passed
+    the check of what is installed, and the run trained without its tracker after one warning, exit 0."""
+    broken = tmp_path / "site" / module
+    broken.mkdir(parents=True)
+    (broken / "__init__.py").write_text("raise ImportError('built against another protobuf')\n")
+    options = ["--nproc-per-node", "1"] if command == "supervise" else []
+    args = [command, *options, SMOKE, "--storage", str(tmp_path / "run"), f"log.{module}.{key}=offline"]
+    env = child_env({**OFFLINE, "PYTHONPATH": str(tmp_path / "site")})
+    result = subprocess.run([sys.executable, "-m", "ftrain", *args], cwd=REPO, env=env, capture_output=True, text=True)
+    said = result.stderr.strip().splitlines()
+    assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr
+    where = re.escape(f"{module}/__init__.py, line 1")  # the error's own line, file and line
+    fix = re.escape(f"repair it (pip install --force-reinstall 'ftrain[{module}]'), or unset log.{module}")
+    line = rf"ftrain: error: log\.{module} is set but {module} does not import \(ImportError: built against another"
+    assert len(said) == 1 and re.fullmatch(rf"{line} protobuf \(.*{where}\)\): {fix}", said[0]), said
+    assert not (tmp_path / "run").exists()
 
 
 def test_a_tracker_is_off_until_one_of_its_keys_is_set(monkeypatch):
