@@ -278,8 +278,10 @@ class Config:
     def saved_dict(self) -> dict:
         """``public_dict`` with the local paths a run opens made absolute (its storage, log directory and teacher):
         the run's ``config.yaml``, which continues the run from any working directory. ``resume`` stays as typed: the
-        run's manifests name their origin so, and a run that has its own history no longer opens it."""
-        data = self.public_dict()
+        run's manifests name their origin so, and a run that has its own history no longer opens it.
+        ``allow_config_change`` is not saved: it lets one start through, and a start from this file (edited since,
+        maybe) asks again."""
+        data = {**self.public_dict(), "allow_config_change": False}
         for section, key in ((data["storage"], "url"), (data, "log_dir"), (data, "teacher")):
             section[key] = _absolute(section[key])
         return data

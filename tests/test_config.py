@@ -512,12 +512,20 @@ def test_a_path_written_with_a_tilde_is_the_home_directory_for_checkpoints_logs_
 def test_a_runs_saved_config_names_its_local_paths_absolute(tmp_path, monkeypatch, given, saved, log_dir) -> None:
     """``config.yaml`` continues the run from any directory: the storage, the log directory and the teacher that a
     relative path named from the run's working directory are absolute in it, a URL stays as it is (without its
-    credentials), and ``resume`` stays as typed (the run's manifests name their origin so)."""
+    credentials), ``resume`` stays as typed (the run's manifests name their origin so), and ``allow_config_change``
+    is left out: it let one start through, and a later start from the file, edited since maybe, must ask again."""
     monkeypatch.chdir(tmp_path)
     monkeypatch.setenv("HOME", str(tmp_path / "home"))
     paths = {"cwd": tmp_path, "home": tmp_path / "home", "parent": tmp_path.parent}
-    config = load_config(None, [f"teacher={given}", "algorithm.class_name=Distillation", "resume=../r/step-4"], given)
+    overrides = [
+        f"teacher={given}",
+        "algorithm.class_name=Distillation",
+        "resume=../r/step-4",
+        "allow_config_change=true",
+    ]
+    config = load_config(None, overrides, given)
     data = config.saved_dict()
     expected = saved.format(**paths)
     assert (data["storage"]["url"], data["teacher"], data["resume"]) == (expected, expected, "../r/step-4")
+    assert config.allow_config_change and data["allow_config_change"] is False
     assert data["log_dir"] == log_dir.format(**paths)
