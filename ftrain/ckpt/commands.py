@@ -88,6 +88,8 @@ def ls(url: str, options: dict | None = None) -> int:
             print(_fit(f"set aside: {storage.where(f'{ASIDE}/{directory}')} ({reason})"))
     if any(info.status == INCOMPLETE for info in every) and (holder := saving_now(storage)):
         print(holder)
+    if any(info.status == VERIFIED for info in every):  # prune and resume read its digests: they may find it corrupt
+        print("committed: by its manifest and file sizes; ftrain ckpt verify (the same URL) reads every byte")
     return 0
 
 

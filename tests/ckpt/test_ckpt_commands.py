@@ -45,13 +45,13 @@ def run(tmp_path) -> str:
 
 
 def lines_by_step(text: str) -> dict[int, str]:
-    """The table's row of each step, with the indented lines of problems under it."""
+    """The table's row of each step, with the indented lines of problems under it (not the lines after the table)."""
     rows: dict[int, str] = {}
     for line in text.splitlines()[1:]:
         if line.split()[0].isdigit():
             step = int(line.split()[0])
             rows[step] = line
-        else:
+        elif line.startswith(" "):
             rows[step] += "\n" + line
     return rows
 
@@ -102,7 +102,10 @@ def test_a_committed_step_whose_hash_fails_is_committed_to_every_command_not_ver
     assert ckpt_commands.verify(f"{run}/checkpoints/step-000000030") == 1
     assert "step 30: FAILED" in capsys.readouterr().out
     assert ckpt_commands.ls(run) == 0
-    assert lines_by_step(capsys.readouterr().out)[30].split()[1] == "committed"
+    out = capsys.readouterr().out
+    assert lines_by_step(out)[30].split()[1] == "committed"
+    said = "committed: by its manifest and file sizes; ftrain ckpt verify (the same URL) reads every byte"
+    assert out.splitlines()[-1] == said, out  # as prune and resume read it: corrupt
     with pytest.raises(UserError, match=r"step-000000030 is committed, not quarantined: nothing to lift$"):
         ckpt_commands.unquarantine(f"{run}/checkpoints/step-000000030")
     with pytest.raises(UserError, match=r"^step 99 is not a committed step of this storage: pick one of 30, 20, 10$"):
