@@ -60,14 +60,20 @@ class NumpyStateHook(Hook):
 
 
 class UnpicklableStateHook(Hook):
-    """Keeps what cannot be pickled at all in its state (a lambda, or a lock): it must be refused as the above."""
+    """Keeps what cannot be pickled at all in its state (a lambda, or a lock): it must be refused as the above;
+    ``after``: from that iteration on only, plain data before."""
 
-    def __init__(self, kind: str) -> None:
-        self.kind = kind
+    def __init__(self, kind: str, after: int = 0) -> None:
+        self.kind, self.after, self.done = kind, after, 0
+
+    def after_iteration(self, trainer, metrics: dict) -> None:
+        self.done = trainer.iteration
 
     def state_dict(self) -> dict:
         import threading
 
+        if self.done < self.after:
+            return {"kept": None}
         return {"kept": (lambda x: x) if self.kind == "lambda" else threading.Lock()}
 
 

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
-from ftrain.ckpt.format import human_size, step_dir
+from ftrain.ckpt.format import human_size, step_dir, unloadable_part
 from ftrain.errors import UserError, command, error_line, module_missing
 
 METRICS_CSV = "metrics.csv"
@@ -117,6 +117,7 @@ class Hooks:
 
     def __init__(self, builtin: list[Hook], user: list[Hook] = ()) -> None:
         self.hooks = [*builtin, *user]
+        self.user = list(user)
         self._timed = {
             (id(hook), point)
             for hook in user
@@ -144,6 +145,19 @@ class Hooks:
         for key, hook in self._keyed():
             if key in state:
                 hook.load_state_dict(state[key])
+
+    def check_state(self) -> None:
+        """UserError naming the first hook of the config whose state a checkpoint cannot hold as data: asked before
+        the first iteration, since the first save, which refuses it too, would throw away the iterations before it."""
+        for hook in self.user:
+            state = hook.state_dict()
+            part = unloadable_part({"state": state})
+            if part is not None:
+                where = part.removeprefix("state/") if part.startswith("state/") else f"a {type(state).__name__}"
+                raise UserError(
+                    f"hook {_class_name(hook)}: its state_dict() holds what a checkpoint cannot keep as data ({where}):"
+                    " keep tensors, numbers, strings, lists and dicts in it"
+                )
 
     def _keyed(self) -> list[tuple[str, Hook]]:
         """Each hook's key in a checkpoint: its class and its rank among hooks of that class, so turning a built-in

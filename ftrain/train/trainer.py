@@ -277,6 +277,7 @@ class Trainer:
             self._write_resolved_config()
         self.alg.train_mode()
         self.hooks.call("on_start", self)
+        self.hooks.check_state()
         self.heartbeat.beat(Phase.START, self.iteration)
         self.phases.take()  # the first row counts from here, not from start-up
         while self.iteration < self.config.iterations:
