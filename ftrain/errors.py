@@ -229,13 +229,24 @@ SIZE_MISMATCH = re.compile(
 """torch's words for a tensor of a checkpoint whose shape is not the model's (``load_state_dict``)."""
 
 
+OBSERVATION_SIZED = ("obs_normalizer._mean", "mlp.0.weight")
+"""Tensors of rsl-rl's models whose last dimension is the observation's size; ``ACTION_SIZED``: the action's."""
+ACTION_SIZED = ("distribution.std_param", "distribution.log_std_param")
+
+
 def load_error_line(error: BaseException) -> str:
-    """Why a checkpoint's state did not load into a model, in one line: the first tensor whose shape differs (the
-    environment's observations or actions changed, say) and how many more do, else the error's first 300 characters
+    """Why a checkpoint's state did not load into a model, in one line: the sizes of observations and actions where
+    they differ, the first tensor whose shape differs and how many more do, else the error's first 300 characters
     (torch's account of a shape lists every tensor, pages of it)."""
     found = SIZE_MISMATCH.findall(str(error))
     if not found:
         return f"{type(error).__name__}: {' '.join(str(error).split())[:300]}"
     key, saved, now = found[0]
     more = f", and {len(found) - 1} more tensors" if len(found) > 1 else ""
-    return f"{key} is [{saved}] in the checkpoint but [{now}] in the model built now{more}"
+    line = f"{key} is [{saved}] in the checkpoint but [{now}] in the model built now{more}"
+    sizes = {name: (int(saved.split(",")[-1]), int(now.split(",")[-1])) for name, saved, now in found}
+    observations = next((sizes[name] for name in sizes if name.endswith(OBSERVATION_SIZED)), None)
+    actions = next((sizes[name] for name in sizes if name.endswith(ACTION_SIZED)), None)
+    said = [f"it takes {observations[0]} observations, the env gives {observations[1]}"] if observations else []
+    said += [f"it gives {actions[0]} actions, the env takes {actions[1]}"] if actions else []
+    return f"{'; '.join(said)} ({line})" if said else line

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import random
 import re
 import shutil
 import signal
@@ -16,16 +17,19 @@ import onnx
 import pytest
 import torch
 from rsl_rl.modules import EmpiricalNormalization
+from tensordict import TensorDict
 
 from ftrain.cli import main
-from ftrain.errors import UserError
+from ftrain.config import load_config
+from ftrain.errors import UserError, load_error_line
 from ftrain.policy.export import export, sample_observations
 from ftrain.policy.load import load_policy
-from ftrain.policy.model import ClippedNormalization
+from ftrain.policy.model import OBS_GROUP, ClippedNormalization, build_actor
 from ftrain.policy.play import play
 
 from helpers import (
     REPO,
+    SMOKE,
     as_a_terminal_starts_it,
     child_env,
     final_manifest,
@@ -318,3 +322,29 @@ def test_a_play_stopped_part_way_leaves_no_video_cut_short_and_the_one_before_wh
     assert output.read_text().endswith(f"{said}\n") and "Traceback" not in output.read_text()
     assert video.read_bytes() == b"the video of an earlier play"
     assert sorted(path.name for path in tmp_path.iterdir()) == ["cheetah.mp4", "output.txt"]
+
+
+def test_a_model_for_other_spaces_is_refused_by_its_observations_and_actions() -> None:
+    """A checkpoint of an env whose observations or actions have changed since was refused as tensor shapes
+    (``obs_normalizer._mean is [1, 11] ...``): the line names the sizes first, from rsl-rl's own models, with and
+    without observation normalisation, for either parameterisation of the action noise, over generated sizes."""
+    rng = random.Random(5)
+    checked = 0
+    for _ in range(24):
+        normalized, std_type = rng.choice([True, False]), rng.choice(["scalar", "log"])
+        overrides = [f"policy.obs_normalization={str(normalized).lower()}", f"policy.std_type={std_type}"]
+        config = load_config(SMOKE, overrides)
+        saved, now = (rng.randint(1, 40), rng.randint(1, 8)), (rng.randint(1, 40), rng.randint(1, 8))
+        if saved == now:
+            continue
+        state = build_actor(config, TensorDict({OBS_GROUP: torch.zeros(1, saved[0])}, batch_size=[1]), saved[1])
+        model = build_actor(config, TensorDict({OBS_GROUP: torch.zeros(1, now[0])}, batch_size=[1]), now[1])
+        with pytest.raises(RuntimeError) as refused:
+            model.load_state_dict(state.state_dict())
+        line = load_error_line(refused.value)
+        said = [f"it takes {saved[0]} observations, the env gives {now[0]}"] if saved[0] != now[0] else []
+        said += [f"it gives {saved[1]} actions, the env takes {now[1]}"] if saved[1] != now[1] else []
+        assert line.startswith(f"{'; '.join(said)} (") and " in the model built now" in line, (saved, now, line)
+        checked += 1
+    print(f"{checked} pairs of spaces checked")
+    assert checked >= 20

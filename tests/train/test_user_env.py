@@ -108,7 +108,7 @@ def test_own_robot_trains_supervised_resumes_bit_for_bit_after_sigkill_plays_and
     code.write_text(edited.replace("self.data.qvel, self.target])", "self.data.qvel, self.target, [0.0]])"))
     fix = "the env's code, model file or env.kwargs changed since it was trained: use the env it was trained on"
     for policy, why in (
-        (str(run), "obs_normalizer._mean is [1, 6] in the checkpoint but [1, 7] in the model built now, and "),
+        (str(run), "it takes 6 observations, the env gives 7 (obs_normalizer._mean is [1, 6] in the checkpoint but "),
         ("arm.pt", "it takes 6 observations, the env gives 7"),
     ):
         refused = subprocess.run([str(FTRAIN_SCRIPT), "play", policy], cwd=work, env=child_env(), capture_output=True)
