@@ -11,13 +11,21 @@ import os
 os.environ["SPT_NOENV"] = "1"  # read when setproctitle is imported
 from setproctitle import setproctitle, setthreadtitle
 
+AGENT = "torchrun agent"
+"""The role of torchrun's agent (``ftrain.torchrun``), which the supervisor finds by its title when the warm pool
+forked it."""
+
+
+def title(role: str, run: str | None = None) -> str:
+    return f"ftrain: {role}" + (f" (run {run})" if run else "")
+
 
 def name_process(role: str, run: str | None = None) -> None:
     """The title ``ftrain: ROLE (run RUN)``; the process's short name (``/proc/<pid>/comm``, 15 bytes, what ``top``
     shows by default) ``ftrain-ROLE`` without spaces: tools that split ``/proc/<pid>/stat`` at spaces (SLURM's
     proctrack/linuxproc among them) lose a process whose name has one, and with it its children, which then miss the
     signals of a time limit or a requeue."""
-    setproctitle(f"ftrain: {role}" + (f" (run {run})" if run else ""))
+    setproctitle(title(role, run))
     setthreadtitle("ftrain-" + role.replace("rank ", "r").replace("/", "of").replace(" ", "-"))
 
 

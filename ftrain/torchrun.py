@@ -48,7 +48,7 @@ from ftrain.errors import (
 from ftrain.files import replace_text
 from ftrain.lifeline import die_with_supervisor
 from ftrain.process import imports
-from ftrain.proctitle import name_process
+from ftrain.proctitle import AGENT, name_process
 from ftrain.terminal import outlive_a_hangup
 
 EXIT_WORKERS_FAILED = 1
@@ -83,7 +83,7 @@ def console() -> None:
 def run(argv: list[str]) -> int:
     """torchrun in this process: ``main`` without the tie to the supervisor (the warm pool forks it: ``ftrain/warm``,
     where it ends with the pool)."""
-    name_process("torchrun agent")
+    name_process(AGENT)
     outlive_a_hangup()
     # the agent's own handlers: the stop signals this process takes (a SIGHUP ignored under nohup stays so), SIGQUIT
     os.environ.setdefault(

@@ -31,6 +31,7 @@ from ftrain import errorfile, procfs
 from ftrain.errors import STOPPED
 from ftrain.heartbeat import ENV_DIR, NODE_ENV, STOP_FILE, TOKEN_ENV, read_heartbeats
 from ftrain.lifeline import SUPERVISOR_ENV, supervisor_env
+from ftrain.proctitle import AGENT, title
 from ftrain.supervise.auth import SECRET_ENV
 from ftrain.supervise.options import SupervisorOptions, Workers, parse_workers
 from ftrain.supervise.outcome import FINAL_FIRST, WorkerFailure, blame
@@ -50,6 +51,8 @@ FAILURES = "failures.json"
 OUTPUT = "stderr.log"
 KEPT_LOGS = 5
 """Attempts whose directory is kept."""
+AGENT_TITLE = title(AGENT).encode()
+"""The title torchrun's agent gives itself, by which ``torchruns`` finds the one the warm pool forked."""
 
 
 def attempt_env(
@@ -267,6 +270,18 @@ class Attempt:
                 break  # the supervisor ends: no next attempt to keep from it
             time.sleep(POLL)
         self._read_failures()
+
+    def torchruns(self) -> list[int]:
+        """torchrun's processes: the one launched (the agent, or its warm stand-in) and the agent the warm pool forked
+        for it, in the supervisor's tree by its title."""
+        forked = [pid for pid in procfs.descendants(os.getpid()) if procfs.read(pid, "cmdline").startswith(AGENT_TITLE)]
+        return sorted({self.proc.pid, *forked})
+
+    def stopped_torchrun(self) -> int | None:
+        """A torchrun process of the attempt that is stopped (T) while no other process of it is left, else None."""
+        torchruns = self.torchruns()
+        stopped = next((pid for pid in torchruns if procfs.state(pid) in ("T", "t")), None)
+        return None if stopped is None or set(self.processes()) - set(torchruns) else stopped
 
     def processes(self) -> list[int]:
         """The live processes of the attempt (see ``kill``); a heartbeat's pid counts while it is still a worker's

@@ -306,10 +306,11 @@ class Supervisor:
             code = attempt.proc.poll()
             if code is not None:
                 return self._exited(attempt, code)
-            if (seconds := self._torchrun_stopped_for(attempt, now)) > HANG_FLOOR:
-                pid, number = attempt.proc.pid, attempt.plan.attempt
+            pid, seconds = self._torchrun_stopped(attempt, beats, now)
+            if seconds > HANG_FLOOR:
+                number = attempt.plan.attempt
                 message = f"attempt {number}: torchrun (pid {pid}) stopped for {seconds:.1f} s after its workers ended"
-                self.events("hang", f"{message}; killing it", attempt=number, torchrun=pid, seconds=round(seconds, 1))
+                self.events("hang", f"{message}; killing it", attempt=number, torchrun=pid, seconds=seconds)
                 attempt.kill()
                 return self._exited(attempt, attempt.proc.returncode)
             if (lost := self.lease.lost) is not None:  # nothing they train from now on could be committed: stop them
@@ -344,15 +345,18 @@ class Supervisor:
                     return outcome
 
     @staticmethod
-    def _torchrun_stopped_for(attempt: Attempt, now: float) -> float:
-        """How long torchrun has been stopped (SIGSTOP, a debugger) with none of its workers left, 0 while it is not: it
-        would never exit, and no heartbeat would say so (its workers' have ended). Stopped while they train, it is left
-        alone: they finish, or a hang or a death among them ends the attempt."""
-        if procfs.state(attempt.proc.pid) not in ("T", "t") or attempt.workers():
+    def _torchrun_stopped(attempt: Attempt, beats: dict[int, Heartbeat], now: float) -> tuple[int | None, float]:
+        """A torchrun process stopped (SIGSTOP, a debugger) after its workers ended, and for how long (0.0 while there
+        is none): it would never exit, and no heartbeat says so. Looked for once every worker's heartbeat says it
+        has ended; stopped while they train, torchrun is left alone: they finish, or a hang among them ends the
+        attempt."""
+        ended = bool(beats) and all(beat.phase in QUIET_PHASES for beat in beats.values())
+        pid = attempt.stopped_torchrun() if ended else None
+        if pid is None:
             attempt.torchrun_stopped = None
-            return 0.0
+            return None, 0.0
         attempt.torchrun_stopped = now if attempt.torchrun_stopped is None else attempt.torchrun_stopped
-        return now - attempt.torchrun_stopped
+        return pid, round(now - attempt.torchrun_stopped, 1)
 
     def _absent(self, attempt: Attempt, seconds: float) -> None:
         """This supervisor did not run for ``seconds`` (stopped with its workers, a paused VM): it did not watch, so the

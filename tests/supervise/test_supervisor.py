@@ -32,7 +32,7 @@ from ftrain.config import load_config
 from ftrain.heartbeat import ENV_DIR, HeartbeatWriter, Phase, read_heartbeats
 from ftrain.supervise import coordinator as coordinator_module
 from ftrain.supervise import options
-from ftrain.supervise.attempt import WORKER_MODULE_ENV
+from ftrain.supervise.attempt import AGENT_TITLE, WORKER_MODULE_ENV
 from ftrain.supervise.auth import MAX_MESSAGE, REQUEST, SECRET_ENV, Refused, seal
 from ftrain.supervise.coordinator import CONNECTION_TIMEOUT, GONE_AFTER, POLL, Coordinator, Link
 from ftrain.supervise.events import EventLog
@@ -531,23 +531,35 @@ def test_stopped_worker_is_a_hang(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_torchrun_stopped_under_its_workers_is_ended_once_they_finish(tmp_path, capfd):
-    """torchrun stopped (SIGSTOP, a debugger) while its workers train: they train on and finish, and their zombies
-    wait for it; the supervisor kills it a few seconds after its last worker ended, and the run ends finished, with
-    no restart, where it waited for ever."""
+@pytest.mark.parametrize("which", ["agent", "stand-in"])
+def test_a_torchrun_stopped_under_its_workers_is_ended_once_they_finish(tmp_path, capfd, which):
+    """torchrun stopped (SIGSTOP, a debugger) while its workers train, its agent (which the warm pool forked) or the
+    process the supervisor launched: the workers train on and finish, and then it never exits. The supervisor kills it
+    a few seconds after the workers ended, and the run ends finished, with no restart, where it waited for ever."""
     proc = start_supervisor(tmp_path)
     run = tmp_path / "run"
     training(run / "heartbeat", 3, [0, 1])
-    agent = torchrun_pid(proc.pid)
+    agent = torchrun_pid(proc.pid) if which == "stand-in" else forked_agent(proc.pid)
     os.kill(agent, signal.SIGSTOP)
     assert finish(proc, timeout=120) == options.EXIT_DONE
     assert_finished(run)
     log = events(run)
-    hangs = [(event["torchrun"], event["seconds"] >= HANG_FLOOR) for event in log if event["event"] == "hang"]
+    hangs = [(event["torchrun"], event["seconds"] > HANG_FLOOR) for event in log if event["event"] == "hang"]
     assert hangs == [(agent, True)], log
     assert "recovered" not in names(run) and log[-1]["restarts"] == 0, log
     said = capfd.readouterr().err
     assert f"torchrun (pid {agent}) stopped for" in said and "training finished (exit 0)" in said, said
+    assert procfs.state(agent) == "gone"
+
+
+def forked_agent(supervisor: int) -> int:
+    """The torchrun agent the warm pool of ``supervisor`` forked, by its title."""
+
+    def found() -> int | None:
+        titled = (pid for pid in procfs.descendants(supervisor) if procfs.read(pid, "cmdline").startswith(AGENT_TITLE))
+        return next(titled, None)
+
+    return wait_for(found, "the agent")
 
 
 def continue_supervisor_first(supervisor: int, below: list[int]) -> None:
