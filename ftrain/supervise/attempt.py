@@ -209,7 +209,7 @@ class Attempt:
         self.killed: set[int] = set()
         """Ranks the supervisor then SIGKILLed: doomed by the dead ones."""
         self.torchrun_stopped: float | None = None
-        """Since when torchrun has been seen stopped with no worker left (``Supervisor._torchrun_stopped_for``)."""
+        """Since when torchrun has been seen stopped with no worker left (``Supervisor._torchrun_stopped``)."""
         self.completed = 0
         self.committed: int | None = None
         self.resumed: int | None = None

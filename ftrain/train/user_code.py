@@ -1,7 +1,8 @@
 """The user's code a run needs, checked before anything is taken (a lease, a log directory, a rendezvous): the env
 (``ftrain.policy.robot.check_env``: its module imported, its id registered, its model compiled, its spaces flat, a
 first reset and step with its ``kwargs``), then the modules of its hooks (``hooks.hook_target``), which the env's
-``imports`` may be what they need. Whatever fails is a UserError of one line.
+``imports`` may be what they need, and the packages of the trackers turned on (rank 0's, who tracks: an install that
+raises on import). Whatever fails is a UserError of one line.
 
 ``ftrain train`` calls ``check`` in its own process; ``ftrain supervise`` runs ``python -m ftrain.train.user_code
 CONFIG_JSON`` in a child (``ftrain.supervise.user_check``), which prints the line on stderr and exits 2.

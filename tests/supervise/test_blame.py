@@ -94,7 +94,7 @@ def test_an_ending_names_the_newest_step_in_words_also_when_there_is_none(commit
 @pytest.mark.parametrize("stopped", [None, 143])
 def test_every_worker_done_is_finished_whatever_torchrun_exits_with(code, stopped) -> None:
     """Every worker beat ``done`` (the last step committed): the run finished, whether torchrun then exited 0, failed
-    in its own exit, was killed (stopped under its workers, ``Supervisor._torchrun_stopped_for``), or got the stop;
+    in its own exit, was killed (stopped under its workers, ``Supervisor._torchrun_stopped``), or got the stop;
     workers that outlived torchrun, or one not done, keep the attempt's own outcome."""
     outcome = classify(code, "torchrun killed by SIGKILL", None, stopped, False, {"done"}, False, 40)
     assert (outcome.event, outcome.code, outcome.failed) == ("done", 0, False), outcome
