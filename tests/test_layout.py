@@ -41,6 +41,7 @@ LAYERS = {
         "identity",
         "redact",
         "procfs",
+        "proctitle",
         "progress",
         "lifeline",
         "log_dir_lock",
