@@ -183,3 +183,37 @@ def test_a_stop_while_waiting_for_a_rendezvous_host_that_is_not_up_ends_at_once_
         raise AssertionError(f"still waiting 30 s after {stop.name}: {proc.stderr.read().decode()[-2000:]}") from None
     said = proc.stderr.read().decode()
     assert (code, said.splitlines()[-1:]) == (143, ["ftrain: stopped by SIGTERM"]), said[-2000:]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    ("told", "storage", "said"),
+    [
+        (["seed=7", "algorithm.clip_param=0.1"], "run", "algorithm.clip_param 0.2 -> 0.1; seed 1 -> 7"),
+        (["iterations=9"], "run", "iterations 8 -> 9"),
+        ([], "other", "storage {run} -> {other}"),
+    ],
+    ids=["training-keys", "length", "storage"],
+)
+def test_nodes_started_with_another_run_are_refused_before_anything_is_taken(tmp_path, told, storage, said) -> None:
+    """Two nodes of one rank each, started apart, node 1 told another training key, length or storage: they trained
+    together in silence (their checkpoints claiming rank 0's config), or, on two storages, trained the whole run
+    without one commit and then held for an hour. Refused on both nodes in one line, nothing made in either storage."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    paths = {"run": str(tmp_path / "run"), "other": str(tmp_path / "other")}
+    nodes = []
+    for node, (overrides, where) in enumerate([([], "run"), (told, storage)]):
+        launch = ["--nnodes=2", f"--node-rank={node}", "--nproc-per-node=1", "--master-addr=127.0.0.1"]
+        command = [sys.executable, "-m", TORCHRUN, *launch, f"--master-port={port}", "-m", "ftrain", "train", SMOKE]
+        command += ["--storage", paths[where], "log.console=false", *overrides]
+        nodes.append(subprocess.Popen(command, cwd=REPO, env=child_env(), stderr=subprocess.PIPE, text=True))
+    ended = [(proc.wait(timeout=180), proc.stderr.read()) for proc in nodes]
+    line = (
+        f"ftrain: error: rank 1 was started with another run than rank 0: {said.format(**paths)} (rank 0's -> rank "
+        "1's): start every node with the same config, overrides and --storage"
+    )
+    for code, stderr in ended:
+        assert (code, stderr.splitlines()) == (2, [line]), stderr[-3000:]
+    assert not (tmp_path / "run").exists() and not (tmp_path / "other").exists()

@@ -42,6 +42,7 @@ from ftrain.train.lr_schedule import build_lr_schedule, horizon_notice
 from ftrain.train.phases import Phases
 from ftrain.train.ppo import build_algorithm, load_learned_state
 from ftrain.train.reward_norm import build_reward_normalizer
+from ftrain.train.same_run import check_same_run
 from ftrain.train.snapshot_hook import PolicySnapshotHook
 from ftrain.train.stop import StopRequest
 from ftrain.train.tracking import TrackingHook
@@ -433,6 +434,7 @@ def train(config: Config) -> int:
     info = group.init(config.dist_timeout)
     trainer = claimed = None
     try:
+        check_same_run(config, info)  # before the lease is taken: nodes started apart may have been told otherwise
         claimed = claim(config, info.is_main, lambda outcome: group.broadcast_object(outcome, info), _say)
         trainer = Trainer(config, info, stop, lambda: claimed.lost)
         return trainer.run()
