@@ -286,7 +286,13 @@ class Lease:
                 continue
             if self.generation is None or advance:
                 self.took = advance or not joins
+            gone = record is None and self.generation is not None  # held, and its record deleted since
             self.generation = generation
+            if gone:
+                return (
+                    f"the lease {self.storage.where(LEASE)} was gone (deleted under the run, maybe with the storage's "
+                    f"checkpoints): written again, generation {generation}"
+                )
             replaced = record is not None and bool(record.entries) and not joins and (not ours or bool(others))
             return self._taken_message(record) if replaced else None
         return None

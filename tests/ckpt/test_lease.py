@@ -7,6 +7,7 @@ import dataclasses
 import json
 import os
 import re
+import shutil
 import signal
 import socket
 import subprocess
@@ -275,6 +276,23 @@ def test_a_write_from_a_stale_read_is_refused_by_the_storage(storage):
     current = cas.read(storage, LEASE)
     cas.write(storage, LEASE, foreign("mine", time.time()).encode(), current[1])
     assert record(storage).run_id == "mine"
+
+
+def test_a_lease_deleted_under_its_holder_is_written_again_and_said(storage):
+    """The storage deleted under a run (its checkpoints, the lease with them): the renewal wrote the record again in
+    silence, and the run went on as if nothing had gone."""
+    lease = Lease(storage, "mine", print)
+    lease.acquire()
+    if storage.is_local:
+        shutil.rmtree(storage.url)  # the whole storage
+    else:
+        storage.delete(LEASE)
+    said = lease.renew()
+    assert said == (
+        f"the lease {storage.where(LEASE)} was gone (deleted under the run, maybe with the storage's checkpoints): "
+        "written again, generation 1"
+    ), said
+    assert (record(storage).run_id, record(storage).generation) == ("mine", 1) and lease.renew() is None
 
 
 def test_a_lease_taken_by_another_run_is_lost_for_good_and_said_once(storage):
