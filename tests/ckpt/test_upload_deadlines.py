@@ -44,6 +44,7 @@ def slow_link(request) -> tuple[StoreProxy, Storage]:
         proxy.close()
 
 
+@pytest.mark.waits  # a throttled link: a few percent of it on the CPU
 def test_an_upload_on_a_slow_link_gets_the_time_its_size_needs(slow_link) -> None:
     """gcsfs gave each request its ``requests_timeout`` as a whole, so that a shard (one request up to 50 MiB) failed
     on any link slower than its size over that time (3.4 MB/s for 50 MiB at the default 15 s), retried until the save

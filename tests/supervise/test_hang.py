@@ -220,6 +220,7 @@ def test_a_fixed_timeout_holds_for_every_phase_after_start_up():
 
 
 @pytest.mark.slow
+@pytest.mark.waits  # a slow first iteration, a stopped worker and a slow end: under 30% of it on the CPU
 def test_a_slow_first_iteration_is_not_a_hang_and_a_stopped_worker_is_caught_in_seconds(tmp_path):
     """In one real supervised run: the first iteration of a fresh start sleeps ``FIRST`` s (both ranks), twice the
     floor any later phase gets; later a worker is stopped in the middle of 0.05 s phases and is called hung at the
