@@ -59,7 +59,9 @@ def play(
     results = None
     try:
         act = lambda obs: policy.act(obs, deterministic)  # noqa: E731
-        results = rollout(env, act, episodes, seed, on_observation=observed, on_episode=finished)
+        size = policy.config.eval.episodes  # evaluation's layout: its episode i returns here what it scored there
+        rows = (0, size) if deterministic and episodes <= size else None
+        results = rollout(env, act, episodes, seed, on_observation=observed, on_episode=finished, rows=rows)
     finally:
         progress.progress.clear()
         env.close()

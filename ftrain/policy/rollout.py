@@ -30,6 +30,7 @@ def rollout(
     seed: int,
     on_observation: Callable[[np.ndarray], None] | None = None,
     on_episode: Callable[[int, Episode], None] | None = None,
+    rows: tuple[int, int] | None = None,
 ) -> list[Episode]:
     """Play ``episodes`` episodes seeded ``seed``, ``seed + 1``, ..., returned in that order.
 
@@ -37,6 +38,12 @@ def rollout(
     is then mostly environment stepping); an env whose episode ends starts the next one. ``on_observation`` (for one
     env) sees every observation: after the reset and after each step, so ``sum(length + 1)`` in all; ``on_episode``
     each finished episode with its number (from 1), as it ends.
+
+    ``rows``, ``(first, size)``: each step's observations go into a fresh batch of ``size`` rows of zeros, episode
+    ``i``'s at row ``first + i``. A matrix product's row depends only on its own input for one shape of batch, not on
+    the rows beside it, but it rounds otherwise in another shape: so an episode acts alike whether it runs alone or
+    beside others, on one rank or on several (evaluation shares its episodes among the ranks; ``play`` runs them one
+    after another), and they return the same, bit for bit.
     """
     envs = [envs] if isinstance(envs, gym.Env) else list(envs)
     low, high = envs[0].action_space.low, envs[0].action_space.high
@@ -55,7 +62,14 @@ def rollout(
     for env in envs:
         begin(env)
     while running:
-        actions = act(torch.as_tensor(np.stack([run.obs for run in running]), dtype=torch.float32))
+        observations = torch.as_tensor(np.stack([run.obs for run in running]), dtype=torch.float32)
+        if rows is None:
+            actions = act(observations)
+        else:
+            placed = [rows[0] + run.index for run in running]
+            batch = torch.zeros(rows[1], observations.shape[1])  # fresh: aligned as every tensor, which rounding sees
+            batch[placed] = observations
+            actions = act(batch)[placed]
         for run, action in zip(list(running), actions.numpy().astype(np.float64), strict=True):
             run.obs, reward, terminated, truncated, _ = run.env.step(np.clip(action, low, high))
             if on_observation is not None:

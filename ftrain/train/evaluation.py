@@ -24,7 +24,8 @@ from ftrain.train.hooks import Hook, TrainerView
 class EvalHook(Hook):
     """Every ``eval.every`` iterations and at the run's last: ``eval.episodes`` deterministic episodes with fixed
     seeds, shared by the ranks (a block of consecutive episodes each, all at once in as many environments, one batched
-    forward pass per step), so evaluating takes both cores instead of leaving one rank waiting for rank 0.
+    forward pass per step, each episode in its own row of a batch of all: ``rollout``'s ``rows``), so evaluating takes
+    both cores instead of leaving one rank waiting for rank 0, and scores alike at any world size and as ``play``.
 
     Their mean return becomes ``metrics["eval_return"]``, which the logging hooks after this one write and the
     checkpoint manifest stores (so keep-best retention can rank by it), and the seconds the evaluation took
@@ -49,7 +50,9 @@ class EvalHook(Hook):
         episodes = []
         if count:
             actor = trainer.alg.get_policy()
-            episodes = rollout(self.envs, lambda obs: actor_actions(actor, obs), count, self.config.seed + first)
+            act = lambda obs: actor_actions(actor, obs)  # noqa: E731
+            at = (first, self.config.episodes)  # each episode's row of all: the same returns at any world size
+            episodes = rollout(self.envs, act, count, self.config.seed + first, rows=at)
         (total,) = trainer.comm.sum_values([sum(episode.ret for episode in episodes)])
         metrics["eval_return"] = total / self.config.episodes
         metrics["eval_time"] = time.perf_counter() - started

@@ -5,23 +5,28 @@ from __future__ import annotations
 
 import json
 import math
+import random
 import shutil
 from pathlib import Path
 
 import pytest
 import torch
+from tensordict import TensorDict
 
 from ftrain.cli import main
 from ftrain.comm.group import RankInfo
+from ftrain.config import load_config
 from ftrain.errors import UserError
 from ftrain.policy import snapshots
 from ftrain.policy.export import sample_observations
 from ftrain.policy.load import load_policy
+from ftrain.policy.model import OBS_GROUP, actor_actions, build_actor
+from ftrain.policy.play import play
 from ftrain.policy.robot import make_env
 from ftrain.policy.rollout import rollout
 from ftrain.train.evaluation import episode_share
 
-from helpers import final_manifest, manifests, metrics_by_iteration, run_train
+from helpers import SMOKE, final_manifest, manifests, metrics_by_iteration, run_train
 
 EVAL = ("eval.every=3", "eval.episodes=3", "checkpoint.best_metric=eval_return", "checkpoint.keep_last=1")
 SNAPSHOTS = ("snapshots.every=2", "snapshots.keep_last=2")
@@ -73,15 +78,47 @@ def test_eval_return_every_n_iterations_and_at_the_end_feeds_keep_best(runs) -> 
     for step, manifest in kept.items():
         assert manifest["metrics"]["eval_return"] == scores[step]
 
-    # the score is a function of the weights alone: the checkpoint's policy, evaluated again as the ranks share the
-    # episodes (a block each, all at once, one env each), gets it exactly
+    # the score is a function of the weights alone: ``play`` of the step, with the evaluation's episodes and seed,
+    # one after another in one env, returns it exactly (2 ranks evaluated them: 2 episodes on rank 0, 1 on rank 1)
     policy = load_policy(str(run / "checkpoints" / f"step-{best:09d}"))
-    episodes, seed, total = policy.config.eval.episodes, policy.config.eval.seed, 0.0
-    for rank in range(RANKS):
-        first, count = episode_share(episodes, RankInfo(rank, RANKS, rank))
-        envs = [make_env(policy.config.env) for _ in range(count)]
-        total += sum(episode.ret for episode in rollout(envs, policy.act, count, seed + first))
-    assert total / episodes == scores[best]
+    played = play(policy, policy.config.eval.episodes, seed=policy.config.eval.seed)
+    assert sum(played.returns) / len(played.returns) == scores[best]
+
+
+def test_an_episode_scores_alike_on_any_rank_beside_any_others_and_in_play() -> None:
+    """Generated cases (episodes, world size, seed): the episodes evaluated as the ranks share them (a block each,
+    at once) return, bit for bit, what they return all on one rank and one after another in one env as ``play``
+    runs them, since each keeps its row of one batch of all (``rollout``'s ``rows``). Without the rows an episode
+    acts in batches of other shapes, which round otherwise: the cases where that changed a return are counted too, so
+    that the property is seen to be at stake."""
+    rng = random.Random()
+    torch.manual_seed(rng.randrange(2**31))
+    config = load_config(SMOKE)
+    probe = make_env(config.env)
+    obs, actions = probe.observation_space.shape[0], probe.action_space.shape[0]
+    actor = build_actor(config, TensorDict({OBS_GROUP: torch.zeros(1, obs)}, batch_size=[1]), actions)
+    with torch.no_grad():
+        for parameter in actor.parameters():
+            parameter.mul_(4)  # a policy that acts, not one near zero
+    act = lambda batch: actor_actions(actor, batch)  # noqa: E731
+    envs = [make_env(config.env) for _ in range(8)]
+    checked = changed = 0
+    for _ in range(12):
+        episodes, world, seed = rng.randint(2, 8), rng.randint(2, 4), rng.randrange(10_000)
+        once = [e.ret for e in rollout(envs[:episodes], act, episodes, seed, rows=(0, episodes))]
+        shared, unplaced = [], []
+        for rank in range(world):
+            first, count = episode_share(episodes, RankInfo(rank, world, rank))
+            if count:
+                placed = rollout(envs[:count], act, count, seed + first, rows=(first, episodes))
+                shared += [e.ret for e in placed]
+                unplaced += [e.ret for e in rollout(envs[:count], act, count, seed + first)]
+        alone = [e.ret for e in rollout(probe, act, episodes, seed, rows=(0, episodes))]
+        assert shared == once == alone, (episodes, world, seed)
+        checked += 1
+        changed += unplaced != once
+    print(f"{checked} cases checked; without rows, {changed} of them returned otherwise")
+    assert changed > 0
 
 
 @pytest.mark.filterwarnings("ignore:`torch.jit.load` is deprecated:DeprecationWarning")
