@@ -84,7 +84,7 @@ class Problem:
         return f"{self.file}: {self.reason}"
 
 
-NEVER_COMMITTED = Problem(MANIFEST, "missing: the step was never committed")
+NEVER_COMMITTED = Problem(MANIFEST, "missing: not committed (a save cut short, or in flight)")
 
 
 @dataclass

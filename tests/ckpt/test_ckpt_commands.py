@@ -604,7 +604,8 @@ def test_an_incomplete_step_of_a_storage_held_now_is_said_to_be_maybe_a_save_in_
             str(refused.value).startswith(named) and str(refused.value).endswith(f"or pass {run} for its newest")
         ) == held
         assert (
-            "(MANIFEST.json: missing: the step was never committed): pick another step" in str(refused.value)
+            "(MANIFEST.json: missing: not committed (a save cut short, or in flight)): pick another"
+            in str(refused.value)
         ) != held
 
 
@@ -648,7 +649,10 @@ def test_a_run_with_no_save_yet_and_an_empty_step_directory_are_told_as_what_the
     assert ckpt_commands.verify(step) == 1
     out = capsys.readouterr().out
     assert out.startswith("step 40: incomplete (never committed: no manifest; ") and "1 incomplete" in out, out
-    with pytest.raises(UserError, match=r"does not verify \(MANIFEST.json: missing: the step was never committed"):
+    with pytest.raises(
+        UserError,
+        match=r"does not verify \(MANIFEST.json: missing: not committed \(a save cut short, or in flight\)",
+    ):
         resolve_checkpoint_url(step)
     with pytest.raises(UserError, match=r"step-000000041 does not exist: see ftrain ckpt ls "):
         ckpt_commands.verify(f"{run}/checkpoints/step-000000041")

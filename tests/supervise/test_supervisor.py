@@ -380,7 +380,11 @@ def test_several_nodes_refuse_to_start_without_a_secret_or_off_their_address(tmp
         (["--nnodes", "2", "--rdzv-conf", "protocol=https"], [], "--rdzv-conf is for --rdzv-backend etcd-v2"),
         ([], ["iterations=zero"], "iterations"),
         ([], ["env.id=Pendulum-v1"], "env.id='Pendulum-v1' is not a MuJoCo environment"),
-        ([], ["resume={old}"], "(MANIFEST.json: missing: the step was never committed): pick another step"),
+        (
+            [],
+            ["resume={old}"],
+            "(MANIFEST.json: missing: not committed (a save cut short, or in flight)): pick another",
+        ),
         ([], ["resume={empty}"], "/empty: no verified checkpoint under "),
         ([], ["log_dir=/proc"], "cannot write /proc (it takes no new file: "),  # there, and read-only
     ],
