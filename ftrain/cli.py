@@ -519,8 +519,9 @@ def _dispatch(args: argparse.Namespace) -> int:
         config = _run_config(args)
         from ftrain.supervise.user_check import check_in_child, has_user_code
 
-        if has_user_code(config.env, config.hooks, config.log.trackers()):  # checked in a child, before anything
-            check_in_child(config.env, config.hooks, config.log.trackers())  # is taken
+        trackers = config.log.trackers()
+        if has_user_code(config.env, config.hooks, trackers):  # checked in a child, before anything is taken
+            check_in_child(config.env, config.hooks, trackers)
         name_process("supervisor", config.name)
         return supervise(options, config, train_args)
     if args.command == "bench":

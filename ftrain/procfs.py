@@ -28,10 +28,11 @@ def state(pid: int) -> str:
 
 
 def start_time(pid: int) -> str | None:
-    """When process ``pid`` started (clock ticks after boot), None if it is gone: with the pid, it names one process
-    for good (a pid the kernel hands out again has another start time)."""
+    """When process ``pid`` started (clock ticks after boot), None once it has ended (gone, or a zombie its parent, or
+    an init that reaps late, has not collected yet): with the pid, it names one process for good (a pid the kernel
+    hands out again has another start time)."""
     fields = stat_fields(pid)
-    return fields[19] if fields else None
+    return fields[19] if fields and fields[0] not in ("Z", "X") else None
 
 
 def cpu_seconds(pid: int) -> float:

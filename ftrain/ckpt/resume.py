@@ -50,7 +50,7 @@ from ftrain.ckpt.steps import clear_newer, quarantine, resolve_checkpoint_url, s
 from ftrain.ckpt.storage import Storage, StorageError, StorageUnavailable
 from ftrain.comm import group
 from ftrain.config import Config
-from ftrain.errors import UserError, command, load_error_line
+from ftrain.errors import UserError, command, counted, load_error_line
 from ftrain.redact import display_url
 
 ORIGIN = "origin"
@@ -512,10 +512,11 @@ def _check_env_counts(config: Config, step: int, manifest: dict, world_size: int
     total = config.env.in_all(world_size)
     if total == saved_total and (in_all or world_size == saved_world):
         return
-    has = f"checkpoint step {step} has {saved_total} environments in all ({_rank_count(saved_world)} x {per_rank})"
+    saved_ranks = counted(saved_world, "rank")
+    has = f"checkpoint step {step} has {saved_total} environments in all ({saved_ranks} x {per_rank})"
     if in_all:
         raise UserError(f"{has}, the config has env.total_envs={total}: set env.total_envs={saved_total}")
-    ranks = _rank_count(world_size)
+    ranks = counted(world_size, "rank")
     resize = ", and a resize hands them on only counted in all" if total == saved_total else ""
     raise UserError(
         f"{has}, the config counts env.num_envs={config.env.num_envs} per rank at {ranks}{resize}: set "
@@ -544,7 +545,3 @@ def _horizon_taken(saved: dict, config: Config, step: int | None) -> bool:
     horizons = (saved["algorithm"].get("schedule_iterations"), config.algorithm.schedule_iterations)
     follows = horizons == (saved.get("iterations"), config.iterations) and horizons[0] != horizons[1]
     return follows and (horizons[1] > horizons[0] or (step is not None and config.iterations <= step))
-
-
-def _rank_count(count: int) -> str:
-    return f"{count} rank{'s' * (count != 1)}"

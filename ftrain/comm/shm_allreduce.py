@@ -26,7 +26,7 @@ import torch
 import torch.distributed as dist
 
 from ftrain.comm.group import RankInfo, broadcast_object
-from ftrain.procfs import stat_fields
+from ftrain.procfs import start_time
 
 
 class PeerLost(RuntimeError):
@@ -140,10 +140,10 @@ class SharedMemoryAllReduce:
 
 
 def _owner_tag(pid: int) -> str | None:
-    """``<pid namespace>-<pid>-<start time>``: what names a process for good on this host; None once it is gone, or
-    a zombie (it exited, and its parent, or an init that reaps late, has not collected it yet)."""
-    fields = stat_fields(pid)
-    return None if not fields or fields[0] in ("Z", "X") else f"{_pid_namespace()}-{pid}-{fields[19]}"
+    """``<pid namespace>-<pid>-<start time>``: what names a process for good on this host; None once it has ended
+    (``start_time``: a zombie too)."""
+    start = start_time(pid)
+    return None if start is None else f"{_pid_namespace()}-{pid}-{start}"
 
 
 def _new_prefix() -> str:
