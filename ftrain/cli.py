@@ -33,7 +33,7 @@ from ftrain.errors import (
     Terminated,
     UserError,
     no_space_line,
-    stop_on_sigterm,
+    stop_on_signals,
     stop_signal,
     stopped,
 )
@@ -450,7 +450,7 @@ def _command_parser(parser: argparse.ArgumentParser, args: argparse.Namespace) -
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     outlive_a_hangup()
-    stop_on_sigterm()
+    stop_on_signals()
     _escape_what_stdout_cannot_encode()
     if argv[:1] == ["train"]:  # a worker of ``ftrain supervise``: the credentials come from the environment
         argv = ["train", *reveal_credentials(argv[1:], os.environ)]

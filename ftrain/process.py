@@ -22,7 +22,7 @@ import threading
 from collections.abc import Iterator
 from typing import NoReturn
 
-from ftrain.errors import raise_terminated
+from ftrain.errors import raise_stop
 
 
 @contextlib.contextmanager
@@ -30,13 +30,14 @@ def imports() -> Iterator[None]:
     """Around the imports of the heavy libraries: without the cyclic garbage collector, then what they made frozen.
     A Ctrl-C, SIGTERM or SIGHUP meanwhile raises its exception once they are done (``errors.stop_signal``): raised
     inside a library's import, it may come out as that library's ImportError, or be swallowed by an ``except
-    ImportError`` of an optional one."""
+    ImportError`` of an optional one. It is raised whatever the imports raised: the stop is why (pyGLFW reads each
+    library's version in a child process, which a stop to the process group ends, and then fails its import)."""
     enabled, held = gc.isenabled(), []
     gc.disable()
-    stops = dict.fromkeys((signal.SIGTERM, signal.SIGHUP), raise_terminated)
-    ours = {signal.SIGINT: signal.default_int_handler, **stops}
+    ours = (raise_stop, signal.default_int_handler)
     main = threading.current_thread() is threading.main_thread()
-    holding = {number: handler for number, handler in ours.items() if main and signal.getsignal(number) == handler}
+    stops = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+    holding = {number: handler for number in stops if main and (handler := signal.getsignal(number)) in ours}
     for number in holding:
         signal.signal(number, lambda signum, frame: held.append(signum))
     try:
@@ -47,8 +48,8 @@ def imports() -> Iterator[None]:
             gc.enable()
         for number, handler in holding.items():
             signal.signal(number, handler)
-    if held:
-        holding[held[0]](held[0], None)
+        if held:  # also where an import failed meanwhile: a library's child, signalled with its group, ended with it
+            holding[held[0]](held[0], None)
 
 
 def exit_fast(code: int | None, died_of: int | None = None) -> NoReturn:

@@ -13,7 +13,8 @@ from helpers import REPO
 
 PACKAGE = REPO / "ftrain"
 LAYERS = {
-    "__main__": {"cli", "warm", "proctitle", "process", "errors"},
+    "__main__": {"entry", "cli", "warm", "proctitle", "process"},
+    "entry": {"errors", "process"},
     "cli": {
         "supervise",
         "train",
@@ -79,7 +80,7 @@ LAYERS = {
         "redact",
     },
     "comm": {"errors", "procfs"},
-    "torchrun": {"config", "errors", "errorfile", "files", "lifeline", "process", "proctitle", "terminal"},
+    "torchrun": {"config", "entry", "errors", "errorfile", "files", "lifeline", "process", "proctitle", "terminal"},
     "config": {"values", "errors", "redact", "log_dir_lock"},
     "values": {"errors", "redact"},
     "heartbeat": {"files"},
@@ -98,8 +99,9 @@ LAYERS = {
     "process": {"errors"},
 }
 """What each package (or top-level module) of ftrain may import from the others."""
-LAZY_IMPORTS_ALLOWED = {"ftrain.cli", "ftrain.tools.bench"}
-"""The CLI imports each subcommand's package when it runs, so that ``ftrain --help`` starts fast; the benchmark
+LAZY_IMPORTS_ALLOWED = {"ftrain.entry", "ftrain.__main__", "ftrain.torchrun", "ftrain.cli", "ftrain.tools.bench"}
+"""The commands' entries import inside the stop guard (``ftrain/entry.py``), so that a stop while they import is one
+line; the CLI imports each subcommand's package when it runs, so that ``ftrain --help`` starts fast; the benchmark
 imports what each case measures (torch, rsl-rl, SB3, the envs) in that case, so that ``launch/bench_*.py --help`` does
 too."""
 

@@ -14,7 +14,7 @@ import sys
 import threading
 import typing
 
-from ftrain.errors import Deliveries, stop_code, stop_signals
+from ftrain.errors import Deliveries, raise_lost_stop, stop_code, stop_signals
 from ftrain.terminal import leave_the_terminal
 
 
@@ -39,11 +39,13 @@ class StopRequest:
         return self.signal is not None
 
     def install(self, at_start: typing.Callable[[int], None] = lambda signum: None) -> None:
-        """Take SIGTERM and SIGINT over (``errors.stop_signals``: an ignored SIGINT stays so), and until ``training()``,
-        end this process at once on either, after ``at_start(signum)`` (its line): a Python handler runs only between
-        the main thread's bytecodes, and a rendezvous or a collective that waits for a rank that is gone keeps it in C
-        for its whole timeout (torchrun's SIGTERM went unanswered until its SIGKILL, 30 s later). A thread reads the
-        numbers Python's own C-level handler writes to its wakeup pipe as the signal comes."""
+        """Take SIGTERM and SIGINT over (``errors.stop_signals``: an ignored SIGINT stays so; one received before and
+        lost on the way is raised first, ``errors.raise_lost_stop``), and until ``training()``, end this process at
+        once on either, after ``at_start(signum)`` (its line): a Python handler runs only between the main thread's
+        bytecodes, and a rendezvous or a collective that waits for a rank that is gone keeps it in C for its whole
+        timeout (torchrun's SIGTERM went unanswered until its SIGKILL, 30 s later). A thread reads the numbers
+        Python's own C-level handler writes to its wakeup pipe as the signal comes."""
+        raise_lost_stop()
         for number in stop_signals():
             signal.signal(number, self._handle)
         read, write = os.pipe()

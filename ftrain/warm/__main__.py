@@ -195,8 +195,7 @@ def stand_in_for_torchrun(argv: list[str]) -> int:
     name_process("torchrun stand-in")
     code = handover(TORCHRUN, argv)
     if code is None:
-        module = ENTRIES[TORCHRUN][0]
-        os.execv(sys.executable, [sys.executable, "-m", module, *argv])
+        os.execv(sys.executable, [sys.executable, "-m", "ftrain.torchrun", *argv])
     return code
 
 

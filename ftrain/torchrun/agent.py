@@ -1,23 +1,5 @@
-"""torchrun with ftrain's exit codes: ``python -m ftrain.torchrun [--failures=FILE] <torchrun arguments>``.
-
-This is torchrun itself, in this process, except for how it ends. Stopped by a signal (SIGINT, SIGTERM), it stops the
-workers with it (torchrun's own shutdown: they save) and exits 128 + the signal (130, 143) where torchrun would raise
-and exit 1; when every worker that ended exited 130 or 143 (they were stopped and saved), it exits with that code. So
-a script tells a stop from a failure, which plain ``torchrun`` (exit 1 for both) does not let it. Where a worker
-explained its failure itself (bad input, a storage that does not answer: ``errorfile.report``) and that was the first
-failure, it exits with the worker's code after that one line (printed by rank 0, else here), without torchrun's
-report of the failure or its log lines about it; a crash keeps torchrun's report, with the worker's traceback. An
-elastic launch (``--nnodes MIN:MAX``) tells its workers MIN and MAX (``config.ELASTIC_NODES_ENV``), so that they refuse
-at the start a total of environments that a world of the launch could not share. This is what the docs show for a run
-without a supervisor; ``ftrun`` is the same command.
-
-``ftrain supervise`` runs it with ``--failures=FILE``: instead of raising ChildFailedError (a traceback and a text
-report on stderr), it writes torchrun's own account of every failed worker to FILE, as JSON ``{global rank:
-{"exitcode": code, "error": the JSON of its error file or null}}`` (a negative code: killed by that signal; the error
-file: what the worker recorded, see ``ftrain/errorfile.py``), and exits 1 (or 130, 143, as above). An elastic
-rendezvous that did not gather its minimum of nodes in time is one line on stderr and exit ``EXIT_RENDEZVOUS_TIMEOUT``:
-not a failure to restart, a lack of nodes. It ends with its supervisor, however that ends (``ftrain/lifeline.py``).
-"""
+"""torchrun's agent in this process (``run``), ending as ``ftrain.torchrun`` promises: ftrain's exit codes, one line
+for a failure a worker explained, torchrun's account of the failed workers in the supervisor's file."""
 
 from __future__ import annotations
 
@@ -38,10 +20,8 @@ from ftrain.config import ELASTIC_NODES_ENV
 from ftrain.errors import (
     EXIT_RENDEZVOUS_TIMEOUT,
     STOPPED,
-    Terminated,
+    raise_lost_stop,
     stop_code,
-    stop_on_sigterm,
-    stop_signal,
     stop_signals,
     stopped,
 )
@@ -69,17 +49,6 @@ def main(argv: list[str]) -> int:
     return run(argv)
 
 
-def console() -> None:
-    """``ftrun`` and ``python -m ftrain.torchrun``: a stop before torchrun takes the signals over (while torch
-    imports, or in the rendezvous) is one line and 128 + the signal, not a traceback or a silent death."""
-    stop_on_sigterm()
-    try:
-        code = main(sys.argv[1:])
-    except (KeyboardInterrupt, Terminated) as stop:
-        code = stopped(stop_signal(stop))
-    sys.exit(code)
-
-
 def run(argv: list[str]) -> int:
     """torchrun in this process: ``main`` without the tie to the supervisor (the warm pool forks it: ``ftrain/warm``,
     where it ends with the pool)."""
@@ -100,6 +69,7 @@ def run(argv: list[str]) -> int:
     if failures_path is None:
         _quiet_torchrun()
     _tell_workers_the_nodes(arguments)
+    raise_lost_stop()  # before torchrun takes the signals over
     _watch_for_a_stop_before_the_workers()
     try:
         torchrun(arguments)
@@ -198,7 +168,3 @@ def _quiet_torchrun() -> None:
 def _recorded(error_file: str, data: dict) -> dict | None:
     """What the worker wrote to its error file (torchrun names a missing one ``<N/A>``)."""
     return data if os.path.isfile(error_file) else None
-
-
-if __name__ == "__main__":
-    console()

@@ -1,0 +1,39 @@
+"""Where every command starts (``ftrain``, ``ftrun``, and ``python -m`` of ``ftrain`` or ``ftrain.torchrun``): a stop
+at any moment of it is one line.
+
+A Ctrl-C, SIGTERM or SIGHUP while a command imports (torch takes seconds on a slow machine), and until the command
+takes its signals over, ends it with ``ftrain: interrupted (Ctrl-C)`` or ``ftrain: stopped by SIGTERM`` and 128 + the
+signal (``errors.stopped``), where Python would print a traceback or die without a word. So the entries import
+nothing at their top but this module, which imports nothing but ``sys``: what comes before it is the interpreter's
+own start. It imports the rest inside the guard: an import a stop cut short leaves nothing in ``sys.modules``, so
+``errors`` imports whole in the handler.
+"""
+
+from __future__ import annotations
+
+TYPE_CHECKING = False  # not typing's: its import would take longer than this module's
+if TYPE_CHECKING:
+    from collections.abc import Callable
+    from typing import NoReturn
+
+
+def run_command(start: Callable[[], int | None]) -> NoReturn:
+    """Runs ``start``, which imports what its command needs, and exits with its code, or with a stop's one line,
+    without the interpreter's teardown (``process.exit_fast``). Also so that the code is the one given: a stop inside
+    ``exec`` of a string (dataclasses make their methods so) leaves CPython 3.11 marked for an unhandled Ctrl-C, and
+    its normal exit would end by SIGINT after the one line."""
+    try:
+        from ftrain.errors import stop_on_signals
+        from ftrain.process import exit_fast
+
+        stop_on_signals()
+        exit_fast(start())
+    except SystemExit:
+        raise
+    except BaseException as error:
+        from ftrain.errors import stop_signal, stopped
+        from ftrain.process import exit_fast
+
+        if (signum := stop_signal(error)) is None:
+            raise
+        exit_fast(stopped(signum))

@@ -1,0 +1,3 @@
+from ftrain.torchrun import console
+
+console()
