@@ -22,6 +22,7 @@ import types
 from collections.abc import Iterator
 from pathlib import Path
 
+import botocore.exceptions
 import pytest
 
 from ftrain.ckpt.steps import select_resume
@@ -152,10 +153,7 @@ def test_a_bucket_deleted_under_the_run_is_an_outage_not_bad_input(
     proc = start(url, logs, s3_env, ["checkpoint.max_unsaved=1000", f"checkpoint.spool={str(spool).lower()}"])
     beats = training(logs / "heartbeat", 20)
     client = s3_client(s3_server)
-    for page in client.get_paginator("list_objects_v2").paginate(Bucket=bucket):
-        for item in page.get("Contents", []):
-            client.delete_object(Bucket=bucket, Key=item["Key"])
-    client.delete_bucket(Bucket=bucket)
+    _delete_bucket(client, bucket)
     gone = f"S3 bucket '{bucket}' at {s3_server['endpoint_url']} no longer exists"
     wait_for(lambda: gone in Path(f"{logs}.log").read_text(), "a failed save naming the bucket")
     os.kill(beats[1].pid, signal.SIGKILL)
@@ -170,6 +168,20 @@ def test_a_bucket_deleted_under_the_run_is_an_outage_not_bad_input(
         assert [event["step"] >= 20 for event in found if event["event"] == "recovered"] == [True], found
     else:
         assert "storage_back" in names and "no verified checkpoint" in Path(f"{logs}.log").read_text()
+
+
+def _delete_bucket(client: object, bucket: str) -> None:
+    """Empties and deletes a bucket a run writes to: what it wrote meanwhile (BucketNotEmpty) goes in another round."""
+    while True:
+        for page in client.get_paginator("list_objects_v2").paginate(Bucket=bucket):
+            for item in page.get("Contents", []):
+                client.delete_object(Bucket=bucket, Key=item["Key"])
+        try:
+            client.delete_bucket(Bucket=bucket)
+            return
+        except botocore.exceptions.ClientError as error:
+            if error.response["Error"]["Code"] != "BucketNotEmpty":
+                raise
 
 
 @pytest.mark.waits
