@@ -287,7 +287,7 @@ def test_a_stop_while_any_command_imports_is_one_line(tmp_path) -> None:
         f"python -m {TORCHRUN}": [sys.executable, "-m", TORCHRUN, "--standalone", "--nproc-per-node=1", "-m", "ftrain"],
     }
     interpreter_start = _interpreter_start()
-    for case in range(24):
+    for case in range(12):
         moment, stop = draw.uniform(interpreter_start, interpreter_start + 0.4), draw.choice(STOPS)
         entry = draw.choice(sorted(entries))
         checked.append(f"{stop.name} to {entry} at {moment:.2f} s")
