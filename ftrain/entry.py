@@ -4,7 +4,7 @@ at any moment of it is one line.
 A Ctrl-C, SIGTERM or SIGHUP while a command imports (torch takes seconds on a slow machine), and until the command
 takes its signals over, ends it with ``ftrain: interrupted (Ctrl-C)`` or ``ftrain: stopped by SIGTERM`` and 128 + the
 signal (``errors.stopped``), where Python would print a traceback or die without a word. So the entries import
-nothing at their top but this module, which imports nothing but ``sys``: what comes before it is the interpreter's
+nothing at their top but this module, which itself imports nothing at its top: what comes before it is the interpreter's
 own start. It imports the rest inside the guard: an import a stop cut short leaves nothing in ``sys.modules``, so
 ``errors`` imports whole in the handler.
 """

@@ -94,7 +94,7 @@ def raise_stop(signum: int, frame: object) -> None:
 
 def raise_lost_stop() -> None:
     """Where a command takes its stop signals over (the trainer, torchrun's agent): a stop received before whose
-    exception was lost on the way (one in about 60 stops at random moments of a start, measured) is raised here."""
+    exception was lost on the way is raised here, where it would have stopped nothing."""
     if _received:
         raise KeyboardInterrupt if _received[0] == signal.SIGINT else Terminated
 
