@@ -322,8 +322,9 @@ KEYS_ADDED_LATER += ("env.total_envs", "policy.obs_normalization_until", "policy
 
 
 ELASTIC_NODES_ENV = "FTRAIN_ELASTIC_NODES"
-"""``MIN:MAX``: the node counts of an elastic launch, which ftrun (``ftrain/torchrun.py``) tells its workers, so that a
-total some world of the launch cannot share is refused at the start, not at that world in the middle of the run."""
+"""``MIN:MAX``: the node counts of an elastic launch, which ftrun (``ftrain/torchrun/agent.py``) tells its workers, so
+that a total some world of the launch cannot share is refused at the start, not at that world in the middle of the
+run."""
 
 
 def for_elastic(config: Config, least: int, most: int, per_node: int) -> None:

@@ -4,9 +4,9 @@ at any moment of it is one line.
 A Ctrl-C, SIGTERM or SIGHUP while a command imports (torch takes seconds on a slow machine), and until the command
 takes its signals over, ends it with ``ftrain: interrupted (Ctrl-C)`` or ``ftrain: stopped by SIGTERM`` and 128 + the
 signal (``errors.stopped``), where Python would print a traceback or die without a word. So the entries import
-nothing at their top but this module, which itself imports nothing at its top: what comes before it is the interpreter's
-own start. It imports the rest inside the guard: an import a stop cut short leaves nothing in ``sys.modules``, so
-``errors`` imports whole in the handler.
+nothing at their top but this module, which itself imports nothing at its top: what comes before it is the
+interpreter's own start, and the package's ``__init__`` (a millisecond). It imports the rest inside the guard: an
+import a stop cut short leaves nothing in ``sys.modules``, so ``errors`` imports whole in the handler.
 """
 
 from __future__ import annotations
@@ -19,18 +19,24 @@ if TYPE_CHECKING:
 
 def run_command(start: Callable[[], int | None]) -> NoReturn:
     """Runs ``start``, which imports what its command needs, and exits with its code, or with a stop's one line,
-    without the interpreter's teardown (``process.exit_fast``). Also so that the code is the one given: a stop inside
-    ``exec`` of a string (dataclasses make their methods so) leaves CPython 3.11 marked for an unhandled Ctrl-C, and
-    its normal exit would end by SIGINT after the one line."""
+    without the interpreter's teardown (``process.exit_fast``): also so that the code is the one given, as a stop
+    inside ``exec`` of a string (dataclasses make their methods so) leaves CPython 3.11 marked for an unhandled Ctrl-C,
+    and its normal exit would end by SIGINT after the one line. A crash, and ``sys.exit``, end as Python ends them."""
     try:
         from ftrain.errors import stop_on_signals
         from ftrain.process import exit_fast
+        from ftrain.terminal import outlive_a_hangup
 
+        outlive_a_hangup()  # first: a SIGHUP's line must not fail on the terminal that hung up
         stop_on_signals()
         exit_fast(start())
     except SystemExit:
         raise
     except BaseException as error:
+        import signal
+
+        for number in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # a second stop would cut this one's line
+            signal.signal(number, signal.SIG_IGN)
         from ftrain.errors import stop_signal, stopped
         from ftrain.process import exit_fast
 

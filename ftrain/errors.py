@@ -93,8 +93,9 @@ def raise_stop(signum: int, frame: object) -> None:
 
 
 def raise_lost_stop() -> None:
-    """Where a command takes its stop signals over (the trainer, torchrun's agent): a stop received before whose
-    exception was lost on the way is raised here, where it would have stopped nothing."""
+    """Where a command takes its stop signals over (the trainer, torchrun's agent, the supervisor, a warm pool's
+    stand-in): a stop received before is raised again. A process that got one and is still here lost its exception on
+    the way, as nothing that handles a stop before the takeover goes on."""
     if _received:
         raise KeyboardInterrupt if _received[0] == signal.SIGINT else Terminated
 

@@ -13,8 +13,8 @@ from helpers import REPO
 
 PACKAGE = REPO / "ftrain"
 LAYERS = {
-    "__main__": {"entry", "cli", "warm", "proctitle", "process"},
-    "entry": {"errors", "process"},
+    "__main__": {"entry", "errors", "cli", "warm", "proctitle"},
+    "entry": {"errors", "process", "terminal"},
     "cli": {
         "supervise",
         "train",

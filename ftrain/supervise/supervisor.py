@@ -30,7 +30,15 @@ from ftrain.ckpt import cas
 from ftrain.ckpt.lease import Lease
 from ftrain.ckpt.schedule import STORAGE_WAIT_ENV
 from ftrain.config import Config, for_elastic, make_local_directories, storage_key
-from ftrain.errors import EXIT_STORAGE_HELD, STOPPED, Deliveries, UserError, stop_code, stop_signals
+from ftrain.errors import (
+    EXIT_STORAGE_HELD,
+    STOPPED,
+    Deliveries,
+    UserError,
+    raise_lost_stop,
+    stop_code,
+    stop_signals,
+)
 from ftrain.heartbeat import Heartbeat, read_heartbeats, write_stop_reason
 from ftrain.log_dir_lock import claim_log_dir
 from ftrain.redact import hide_credentials, redact_command
@@ -88,6 +96,7 @@ def supervise(options: SupervisorOptions, config: Config, train_args: list[str])
         return EXIT_PEER_LOST
     if chosen:
         supervisor.events("world", chosen)
+    raise_lost_stop()  # before the supervisor takes the signals over
     for sig in stop_signals():  # to the end of the process: a signal once the run has ended (SLURM's
         signal.signal(sig, supervisor.on_signal)  # time limit as the job finishes) changes nothing, its exit code stays
     cas.stop_waiting_when(supervisor.waiting_stopped)

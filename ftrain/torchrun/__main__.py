@@ -1,3 +1,4 @@
 from ftrain.torchrun import console
 
-console()
+if __name__ == "__main__":
+    console()

@@ -46,7 +46,7 @@ STREAMS = (0, 1, 2)
 FORWARDED = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP, signal.SIGUSR1, signal.SIGUSR2)
 """What a stand-in passes on to its worker (SIGKILL and SIGSTOP cannot be caught: the pool sees the stand-in end)."""
 ENTRIES = {"train": ("ftrain.cli", "main"), "torchrun": ("ftrain.torchrun.agent", "run")}
-"""What a stand-in asks the pool to run: ``ftrain train ARGS`` (a worker), torchrun (``ftrain.torchrun``)."""
+"""What a stand-in asks the pool to run: ``ftrain train ARGS`` (a worker), torchrun (``ftrain.torchrun``'s agent)."""
 
 
 def address(supervisor: str) -> str:

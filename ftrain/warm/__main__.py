@@ -27,7 +27,7 @@ from ftrain.warm import ENTRIES, LISTENER_ENV, PEER, STREAMS, handover, receive_
 
 PRELOAD = ("ftrain.train.trainer", "ftrain.policy.robot", "gymnasium.envs.mujoco", "torch.distributed.run")
 """What ``ftrain train`` imports before its first iteration, MuJoCo's gymnasium environments included, and torchrun
-(``ftrain.torchrun`` imports it when it runs); the entries' modules come first."""
+(``ftrain.torchrun.agent`` imports it when it runs); the entries' modules come first."""
 TORCHRUN = "torchrun"
 """The entry of torchrun's stand-in."""
 REQUEST_TIMEOUT = 10.0
