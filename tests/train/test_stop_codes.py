@@ -400,20 +400,23 @@ BaseException`` does, or C code that clears errors (a dict lookup calling a ``__
 about 60 at random moments of a start was lost so, and the run trained on."""
 
 
-@pytest.mark.parametrize("command", ["train", "supervise"])
+@pytest.mark.parametrize("command", ["train", "supervise", "ftrun"])
 def test_a_stop_whose_exception_was_swallowed_still_stops_the_run(tmp_path, command) -> None:
-    """Where the trainer, or the supervisor, takes the signals over, it raises the stop again."""
+    """Where the trainer, the supervisor or torchrun's agent takes the signals over, it raises the stop again."""
     said = _train_after(SIGTERM_SWALLOWED, tmp_path, command)
     assert said == (143, "swallowed Terminated\nftrain: stopped by SIGTERM\n")
     assert not manifests(tmp_path / "run")
 
 
 def _train_after(prelude: str, tmp_path: Path, command: str = "train") -> tuple[int, str]:
-    """``ftrain train`` (or ``supervise``) a long run, in a Python that runs ``prelude`` first: its exit code and
-    output."""
-    run_ftrain = 'sys.argv[0] = "ftrain"; import runpy; runpy.run_module("ftrain", run_name="__main__", alter_sys=True)'
-    command = (train_command if command == "train" else supervise_command)(tmp_path / "run", LONG)
-    command[1:3] = ["-c", prelude + run_ftrain]
+    """``ftrain train`` a long run (or ``ftrain supervise``, or ``ftrun`` of one rank), in a Python that runs
+    ``prelude`` first: its exit code and output."""
+    arguments = (supervise_command if command == "supervise" else train_command)(tmp_path / "run", LONG)[3:]
+    if command == "ftrun":
+        arguments = ["--standalone", "--nproc-per-node=1", "-m", "ftrain", *arguments]
+    module = TORCHRUN if command == "ftrun" else "ftrain"
+    run = f'import runpy; runpy.run_module("{module}", run_name="__main__", alter_sys=True)'
+    command = [sys.executable, "-c", prelude + run, *arguments]
     proc = start(command, tmp_path / "beats", preexec_fn=as_a_terminal_starts_it)
     output = proc.communicate(timeout=120)[0]
     return proc.returncode, output
