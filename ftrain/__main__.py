@@ -19,13 +19,11 @@ def main() -> NoReturn:
 
 
 def _command() -> int:
-    from ftrain.errors import raise_lost_stop
     from ftrain.proctitle import name_process, rank_role
     from ftrain.warm import handover
 
     if sys.argv[1:2] == ["train"]:
         name_process(rank_role("stand-in"))  # a worker forked by the pool names itself once it knows its run
-        raise_lost_stop()  # before the stand-in passes the signals on to the pool's fork, which never got this one
         code = handover("train", sys.argv[1:])
         if code is not None:
             return code

@@ -13,7 +13,7 @@ from helpers import REPO
 
 PACKAGE = REPO / "ftrain"
 LAYERS = {
-    "__main__": {"entry", "errors", "cli", "warm", "proctitle"},
+    "__main__": {"entry", "cli", "warm", "proctitle"},
     "entry": {"errors", "process", "terminal"},
     "cli": {
         "supervise",
@@ -86,7 +86,7 @@ LAYERS = {
     "heartbeat": {"files"},
     "log_dir_lock": {"errors", "files"},
     "identity": set(),
-    "warm": {"lifeline", "proctitle", "process"},
+    "warm": {"errors", "lifeline", "proctitle", "process"},
     "lifeline": {"procfs", "heartbeat"},
     "procfs": set(),
     "errorfile": {"files"},

@@ -13,7 +13,8 @@ ftrain train ...``). Promises:
   socket's name held by another process: a line) or closes before it forks, the stand-in runs the command cold;
 - a stand-in talks only to its supervisor's socket (``SO_PEERCRED``), the pool only to processes of its user that
   know the secret of ``POOL_ENV``.
-May import: lifeline, proctitle, process. By name, the pool (``__main__.py``) forks the entries cli and torchrun.
+May import: errors, lifeline, proctitle, process. By name, the pool (``__main__.py``) forks the entries cli and
+torchrun.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ import socket
 import struct
 import sys
 
+from ftrain.errors import raise_lost_stop
 from ftrain.lifeline import SUPERVISOR_ENV, named_supervisor
 
 POOL_ENV = "FTRAIN_WARM_POOL"
@@ -94,6 +96,7 @@ def handover(entry: str, argv: list[str]) -> int | None:
     named, secret = named_supervisor(), os.environ.get(POOL_ENV)
     if named is None or not secret:
         return None
+    raise_lost_stop()  # before this process takes the signals over to pass them on: the pool's fork never got it
     _open_streams()
     connection = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     connection.settimeout(START_TIMEOUT)
