@@ -23,13 +23,15 @@ def run_command(start: Callable[[], int | None]) -> NoReturn:
     inside ``exec`` of a string (dataclasses make their methods so) leaves CPython 3.11 marked for an unhandled Ctrl-C,
     and its normal exit would end by SIGINT after the one line. A crash, and ``sys.exit``, end as Python ends them."""
     try:
-        from ftrain.errors import stop_on_signals
+        from ftrain.errors import raise_lost_stop, stop_on_signals
         from ftrain.process import exit_fast
         from ftrain.terminal import outlive_a_hangup
 
         outlive_a_hangup()  # first: a SIGHUP's line must not fail on the terminal that hung up
         stop_on_signals()
-        exit_fast(start())
+        code = start()
+        raise_lost_stop()  # a short command that never took its signals over (``ckpt ls``) may have lost one too
+        exit_fast(code)
     except SystemExit:
         raise
     except BaseException as error:

@@ -94,10 +94,13 @@ def raise_stop(signum: int, frame: object) -> None:
 
 def raise_lost_stop() -> None:
     """Where a command takes its stop signals over (the trainer, torchrun's agent, the supervisor, a warm pool's
-    stand-in): a stop received before is raised again. A process that got one and is still here lost its exception on
-    the way, as nothing that handles a stop before the takeover goes on."""
+    stand-in), and where one that never did ends (``entry.run_command``: ``ckpt ls``): a stop received before and not
+    yet said is raised again. A process that got one and is still here lost its exception on the way, as nothing that
+    handles a stop before the takeover goes on."""
     if _received:
-        raise KeyboardInterrupt if _received[0] == signal.SIGINT else Terminated
+        first = _received[0]
+        _received.clear()
+        raise KeyboardInterrupt if first == signal.SIGINT else Terminated
 
 
 _received: list[int] = []
@@ -109,6 +112,7 @@ def stopped(signum: int) -> int:
     line instead of a traceback or a silent death, and the shell's code, 128 + the signal. A run saves from the
     moment it took them over. Of a launcher's workers, rank 0 alone says it (``errorfile.says_its_stop``)."""
     said = "interrupted (Ctrl-C)" if signum == signal.SIGINT else f"stopped by {signal.Signals(signum).name}"
+    _received.clear()  # handled: not a lost one
     with _SAYING:  # said once, where a launcher's watch (``ftrain.torchrun``) ends a start its main thread could not
         if errorfile.says_its_stop() and not _said:
             _said.append(said)

@@ -1,5 +1,18 @@
-"""torchrun's agent in this process (``run``), ending as ``ftrain.torchrun`` promises: ftrain's exit codes, one line
-for a failure a worker explained, torchrun's account of the failed workers in the supervisor's file."""
+"""torchrun's agent in this process (``run``), ending as ``ftrain.torchrun`` promises.
+
+- Stopped by a signal, it stops the workers with torchrun's own shutdown (they save) and exits 128 + the signal where
+  torchrun would raise and exit 1; when every worker that ended exited 130 or 143 (stopped and saved), with that code.
+- Where a worker explained its failure itself (``errorfile.report``) and that was the first failure, it exits with the
+  worker's code after that one line (printed by rank 0, else here), without torchrun's report or its log lines about
+  it; a crash keeps torchrun's report, with the worker's traceback.
+- With ``--failures=FILE`` (``ftrain supervise``), instead of raising ChildFailedError it writes torchrun's account of
+  every failed worker to FILE as JSON ``{global rank: {"exitcode": code, "error": its error file's JSON or null}}``
+  (a negative code: killed by that signal) and exits 1 (or 130, 143, as above).
+- An elastic rendezvous that did not gather its minimum of nodes in time is one line and ``EXIT_RENDEZVOUS_TIMEOUT``:
+  a lack of nodes, not a failure to restart. An elastic launch (``--nnodes MIN:MAX``) tells its workers MIN and MAX
+  (``config.ELASTIC_NODES_ENV``), so that they refuse at the start a total of environments a world could not share.
+- It ends with its supervisor, however that ends (``ftrain/lifeline.py``).
+"""
 
 from __future__ import annotations
 

@@ -39,6 +39,7 @@ from helpers import (
     manifests,
     metrics_by_iteration,
     probe_hook,
+    run_train,
     supervise_command,
     train_command,
     training,
@@ -408,13 +409,27 @@ def test_a_stop_whose_exception_was_swallowed_still_stops_the_run(tmp_path, comm
     assert not manifests(tmp_path / "run")
 
 
+def test_a_stop_swallowed_in_a_short_command_ends_it_as_stopped(tmp_path) -> None:
+    """A command that never takes its signals over (``ckpt ls``) does its work, then ends with the stop it lost
+    (``entry.run_command``), not with 0 as if nothing had come."""
+    run_train(tmp_path / "run", "iterations=1")
+    code, said = _command_after(SIGTERM_SWALLOWED, tmp_path, "ftrain", ["ckpt", "ls", str(tmp_path / "run")])
+    lines = said.splitlines()  # stdout's and stderr's lines, in either order
+    assert code == 143 and lines.count("ftrain: stopped by SIGTERM") == 1 and "swallowed Terminated" in lines, said
+    assert any(re.fullmatch(r" +1 +committed .* newest", line) for line in lines), said  # it did its work
+
+
 def _train_after(prelude: str, tmp_path: Path, command: str = "train") -> tuple[int, str]:
     """``ftrain train`` a long run (or ``ftrain supervise``, or ``ftrun`` of one rank), in a Python that runs
     ``prelude`` first: its exit code and output."""
     arguments = (supervise_command if command == "supervise" else train_command)(tmp_path / "run", LONG)[3:]
     if command == "ftrun":
         arguments = ["--standalone", "--nproc-per-node=1", "-m", "ftrain", *arguments]
-    module = TORCHRUN if command == "ftrun" else "ftrain"
+    return _command_after(prelude, tmp_path, TORCHRUN if command == "ftrun" else "ftrain", arguments)
+
+
+def _command_after(prelude: str, tmp_path: Path, module: str, arguments: list[str]) -> tuple[int, str]:
+    """``python -m module arguments`` in a Python that runs ``prelude`` first: its exit code and output."""
     run = f'import runpy; runpy.run_module("{module}", run_name="__main__", alter_sys=True)'
     command = [sys.executable, "-c", prelude + run, *arguments]
     proc = start(command, tmp_path / "beats", preexec_fn=as_a_terminal_starts_it)
