@@ -28,6 +28,7 @@ from ftrain.ckpt.fence import guarded
 from ftrain.ckpt.format import COMMON, STATE_FORMAT, is_timing, shard_name
 from ftrain.ckpt.lease import LeaseLost
 from ftrain.ckpt.resume import Checkpointable, CheckpointError
+from ftrain.ckpt.retention import is_milestone
 from ftrain.ckpt.retry import OUTAGE, WaitLines
 from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, Target, snapshot
 from ftrain.ckpt.schedule import DEFAULT_STORAGE_WAIT, STORAGE_WAIT_ENV, SaveSchedule
@@ -92,6 +93,7 @@ class Checkpointer:
             policy.max_overhead,
             parse_amount("checkpoint.max_unsaved", policy.max_unsaved),
             time.monotonic(),
+            promised=lambda step: step in policy.pinned or is_milestone(step, policy.keep_every),
         )
         self.storage_wait = float(os.environ.get(STORAGE_WAIT_ENV, DEFAULT_STORAGE_WAIT))
         self.committed_step: int | None = None
@@ -148,7 +150,8 @@ class Checkpointer:
         """This rank's votes after ``iteration``, which the ranks sum: save now, save to the storage (not to the
         spool alone), hold (train no further until that save commits), and busy (``MAX_IN_FLIGHT`` saves in flight,
         none settled: another save would wait for the oldest, on a storage that hangs for as long as its requests'
-        deadlines; a save due then is left to the next boundary, unless it holds).
+        deadlines; a save due then is left to the next boundary, unless it holds, or retention keeps its step: a
+        pinned step or a milestone waits for the oldest).
 
         While saves fail, and nothing is in flight: to the storage once the failed save's wait is over, or when more
         work than ``checkpoint.max_unsaved`` is unsaved (hold); to the spool alone when the schedule says, and for the
@@ -156,7 +159,7 @@ class Checkpointer:
         self._settle(MAX_IN_FLIGHT)  # the outcomes that have arrived
         now = time.monotonic()
         due = self.schedule.due(iteration, now)
-        busy = len(self._pending) >= MAX_IN_FLIGHT
+        busy = len(self._pending) >= MAX_IN_FLIGHT and not self.schedule.promised(iteration)
         if self._failing is None:
             return due, due, False, busy
         count = self._failing.count

@@ -72,13 +72,17 @@ def kept(
                 (Kept.LAST, index < keep_last),
                 (Kept.BEST, info.step in best),
                 (Kept.PINNED, info.step in pinned),
-                (Kept.MILESTONE, keep_every > 0 and info.step % keep_every == 0),
+                (Kept.MILESTONE, is_milestone(info.step, keep_every)),
             )
             if holds
         ]
         if why:
             reasons[info.step] = why
     return reasons
+
+
+def is_milestone(step: int, keep_every: int) -> bool:
+    return keep_every > 0 and step % keep_every == 0
 
 
 def delete_step(storage: Storage, step: int, files: Iterable[str] = ()) -> None:

@@ -10,11 +10,17 @@ get). Waiting for storage costs no CPU and is not counted.
 ``checkpoint.max_unsaved``: how much work since the newest committed step (iterations, or seconds of training) is
 acceptable while saves fail; past it, training pauses until the newest state is committed.
 
+A step that retention promises to keep (``checkpoint.pinned``, a multiple of ``checkpoint.keep_every``) is saved
+whatever the interval; a save the schedule asked for and did not get (the writer busy with two saves) comes at the
+next boundary.
+
 Clocks differ between ranks, so the schedule only votes: every rank sums the votes in the iteration's all-reduce
 and all save together when any rank voted. Nothing here decides what is trained.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 from ftrain.values import Amount
 
@@ -30,9 +36,20 @@ MAX_AUTO_INTERVAL = 600.0
 class SaveSchedule:
     """One rank's view of when to save: the interval, the cost of recent saves, the newest committed state."""
 
-    def __init__(self, interval: Amount | None, max_overhead: float, max_unsaved: Amount, now: float) -> None:
-        """``interval``: None for ``auto``; ``now``: a monotonic clock reading at the start of training."""
+    def __init__(
+        self,
+        interval: Amount | None,
+        max_overhead: float,
+        max_unsaved: Amount,
+        now: float,
+        promised: Callable[[int], bool] = lambda step: False,
+    ) -> None:
+        """``interval``: None for ``auto``; ``now``: a monotonic clock reading at the start of training; ``promised``:
+        whether retention keeps a step (pinned, a milestone), which is then saved whatever the interval."""
         self.interval = interval
+        self.promised = promised
+        self.owed = False
+        """The schedule asked for a save that has not started since (``due``)."""
         self.max_overhead = max_overhead
         self.max_unsaved = max_unsaved
         self.cost = 0.0
@@ -50,12 +67,16 @@ class SaveSchedule:
         return self.interval.seconds
 
     def due(self, iteration: int, now: float) -> bool:
-        """This rank's vote: is a save due after ``iteration``?"""
+        """This rank's vote: is a save due after ``iteration``? Also when one was due at an earlier boundary and none
+        started since (``owed``), and at a step that retention keeps."""
         if self.interval is not None and self.interval.iterations is not None:
-            return iteration % self.interval.iterations == 0
-        return now - self.last_save >= self.seconds()
+            self.owed |= iteration % self.interval.iterations == 0
+        else:
+            self.owed |= now - self.last_save >= self.seconds()
+        return self.owed or self.promised(iteration)
 
     def started(self, step: int, now: float) -> None:
+        self.owed = False
         self.last_save = now
         self.taken[step] = now
 

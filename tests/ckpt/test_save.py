@@ -4,6 +4,7 @@ stop saves that commit when every process gets SIGTERM, and no process besides t
 from __future__ import annotations
 
 import os
+import random
 import re
 import shutil
 import signal
@@ -208,6 +209,37 @@ def test_a_commit_whose_answer_was_lost_counts_when_its_manifest_landed_and_is_n
         proxy.close()
     direct = Storage.open(url, options)
     assert {info.step: info.status for info in scan(direct)} == {4: VERIFIED, 3: VERIFIED}
+
+
+@pytest.mark.waits  # a throttled link: the run waits for it
+def test_on_a_link_slower_than_training_every_pinned_step_and_milestone_is_saved_and_kept(tmp_path, s3_url) -> None:
+    """Saves slower than iterations (a slow link) keep the writer busy with two in flight: a save due then was dropped,
+    a pinned step's and a milestone's too, with no line, so that retention had nothing to keep. Now such a step waits
+    for the oldest save, and a dropped save comes at the next free boundary. Random intervals, pins and milestones."""
+    url, options = s3_url
+    proxy = StoreProxy(options["endpoint_url"], rate=300_000)  # a save (~120 KB) takes ~0.4 s, an iteration ~0.02 s
+    draw = random.Random()
+    seed = draw.randrange(2**31)
+    draw.seed(seed)
+    cases = []
+    try:
+        for number in range(3):
+            iterations, interval, keep_every = 24, draw.choice([2, 3]), draw.choice([5, 7, 9])
+            pinned = sorted(draw.sample(range(1, iterations), 3))
+            storage = f"{url}-{number}"
+            overrides = [f"iterations={iterations}", f"checkpoint.interval={interval}", "checkpoint.spool=false"]
+            overrides += [f"checkpoint.keep_every={keep_every}", f"checkpoint.pinned={pinned}"]
+            overrides += ["checkpoint.keep_last=1", "checkpoint.keep_best=0", "log.console=false"]
+            overrides += [f"storage.options.{key}={value}" for key, value in options.items() if key != "endpoint_url"]
+            overrides += [f"storage.options.endpoint_url={proxy.endpoint_url}", f"log_dir={tmp_path / str(number)}"]
+            train_here(load_config(SMOKE, overrides, storage=storage))
+            kept = {info.step for info in scan(Storage.open(storage, options)) if info.status == VERIFIED}
+            promised = {*pinned, *range(keep_every, iterations + 1, keep_every), iterations}
+            assert kept == promised, f"seed {seed}: interval {interval}, keep_every {keep_every}, pinned {pinned}"
+            cases.append(f"interval {interval}, keep_every {keep_every}, pinned {pinned}")
+    finally:
+        proxy.close()
+    print(f"every promised step saved and kept in {len(cases)} runs (seed {seed}): {'; '.join(cases)}")
 
 
 def test_a_best_metric_the_run_does_not_record_is_said_once_at_its_first_commit(tmp_path, capsys) -> None:
