@@ -609,6 +609,7 @@ def _run_config(args: argparse.Namespace) -> Config:
         check_checkpoint_url,
         check_not_a_checkpoints_directory,
         check_outside_steps,
+        check_steps_place,
         check_storage_place,
     )
     from ftrain.ckpt.storage import Storage
@@ -627,6 +628,7 @@ def _run_config(args: argparse.Namespace) -> Config:
     own = bool(storage) and os.path.isdir(os.path.join(storage, CHECKPOINTS))  # steps of its own: it goes on from them
     if os.path.isdir(storage):  # before a supervisor writes its logs there
         check_not_a_checkpoints_directory(Storage.open(storage))
+        check_steps_place(storage)
     fix = "make it writable (its permissions, its mount), or pass --storage another directory"
     if own:  # else its saves would fail and hold
         check_writable(Path(storage, CHECKPOINTS), "--storage", fix)

@@ -61,6 +61,10 @@ DIGEST = "manifest_sha256"
 it still parses (a byte of a key or a number) is corrupt, not a step with other counters. A manifest without it (an
 older ftrain's) verifies by its file list and the types of its fields (``_FIELDS``) alone."""
 STEP_DIR = re.compile(r"^step-(\d+)$")
+"""A step's directory in a URL a user names (``step-120`` too)."""
+CANONICAL_STEP_DIR = re.compile(r"^step-(\d{9}|[1-9]\d{9,})$")
+"""A step's directory as ``step_dir`` names it: what a listing counts as a step. Another spelling of its number (a copy
+as ``step-0000000120``) is not one, where two directories would claim one step."""
 _SHA256 = re.compile(r"^[0-9a-f]{64}$")
 _RESERVED = {"format_version", "step", "files", DIGEST}
 
@@ -273,7 +277,9 @@ def newest_generation(storage: Storage) -> int:
     """The generation (``ftrain/identity.py``) that committed the newest step whose manifest reads (0: none), where a
     lease record deleted by hand starts after: on one node no other record of it is kept (``lease.py``)."""
     try:
-        steps = sorted((name for name in storage.list_dirs(CHECKPOINTS) if STEP_DIR.match(name)), reverse=True)
+        steps = sorted(
+            (name for name in storage.list_dirs(CHECKPOINTS) if CANONICAL_STEP_DIR.match(name)), reverse=True
+        )
     except StorageUnavailable:
         raise
     except (OSError, StorageError) as error:

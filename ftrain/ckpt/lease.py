@@ -503,7 +503,13 @@ def lost_message(storage: Storage, record: Record, run_id: str, generation: int)
 
 
 def read_record(storage: Storage) -> tuple[Record, str] | None:
-    current = cas.read(storage, LEASE)
+    try:
+        current = cas.read(storage, LEASE)
+    except IsADirectoryError:
+        raise UserError(
+            f"{storage.where(LEASE)} is a directory where ftrain keeps the storage's lease, a file: if no run uses "
+            "this storage, delete that directory"
+        ) from None
     if current is None:
         return None
     try:

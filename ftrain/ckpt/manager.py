@@ -231,10 +231,11 @@ class Checkpointer:
             waited = time.monotonic() - since
             if waited > self.storage_wait or self.stopping():
                 stop = ", then a stop came" if waited <= self.storage_wait else ""
+                newest = "none" if self.committed_step is None else f"step {self.committed_step}"
                 raise StorageUnavailable(
                     f"the storage {self.storage.url} took no checkpoint for {waited:.0f} s ({why}){stop}; the newest "
-                    f"committed step is {self.committed_step}: run the same command again once it takes writes "
-                    "again (it answers, has room, lets this run write)"
+                    f"committed step: {newest}: run the same command again once it takes writes again (it answers, "
+                    "has room, lets this run write)"
                 )
             delay = OUTAGE.delay(tries)
             iterations, seconds = self.schedule.unsaved(trainer.iteration, time.monotonic())

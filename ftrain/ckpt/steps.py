@@ -19,6 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from ftrain.ckpt.format import (
+    CANONICAL_STEP_DIR,
     CHECKPOINTS,
     CORRUPT,
     INCOMPLETE,
@@ -45,7 +46,7 @@ from ftrain.ckpt.lease import saving_now
 from ftrain.ckpt.lineage import History, generation, history
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.storage import Storage
-from ftrain.config import check_writable, local_path
+from ftrain.config import blocking_file, check_writable, local_path
 from ftrain.errors import UserError, command
 from ftrain.redact import display_url
 
@@ -74,7 +75,7 @@ def _enclosing_step(url: str) -> tuple[str, str, str] | None:
 def check_not_a_checkpoints_directory(storage: Storage) -> None:
     """UserError if ``storage`` holds step directories itself: it is the ``checkpoints/`` of a run (``--storage
     <run>/checkpoints``), where a run would start fresh beside that run's steps."""
-    if steps := sorted(name for name in storage.list_dirs("") if STEP_DIR.match(name)):
+    if steps := sorted(name for name in storage.list_dirs("") if CANONICAL_STEP_DIR.match(name)):
         raise UserError(
             f"storage {storage.url} holds step directories itself ({', '.join(steps[-2:])}): it is the {CHECKPOINTS} "
             "directory of a run, whose storage is the directory above it: pass that to resume it, or a directory "
@@ -104,6 +105,21 @@ def check_storage_place(url: str) -> None:
         f"storage {shown} {place} a step of another run's storage, which that run may delete: pass a directory of "
         f"its own{resume}"
     )
+
+
+def check_steps_place(storage: str) -> None:
+    """UserError where a local storage's ``checkpoints/`` is a file, or holds a symbolic link named as ftrain names a
+    step: every save would fail until someone moves the file (a run held for an hour), or write through the link,
+    outside the storage, into a step that listings do not see."""
+    path = os.path.join(storage, CHECKPOINTS)
+    if (blocking := blocking_file(path)) is not None:
+        raise UserError(f"cannot write {path}: {blocking} is a file where ftrain needs a directory: move it away")
+    entries = os.scandir(path) if os.path.isdir(path) else ()
+    if links := sorted(e.name for e in entries if e.is_symlink() and CANONICAL_STEP_DIR.match(e.name)):
+        raise UserError(
+            f"{os.path.join(path, links[0])} is a symbolic link, where ftrain writes and deletes steps of its own: "
+            f"move it out of {path}"
+        )
 
 
 def check_output(path: Path, option: str) -> None:
@@ -157,7 +173,7 @@ def scan(storage: Storage, full: bool = False) -> list[StepInfo]:
     """Every step directory, newest first. ``full`` checks digests too (reads every file); else sizes only."""
     infos = []
     for name in storage.list_dirs(CHECKPOINTS):
-        match = STEP_DIR.match(name)
+        match = CANONICAL_STEP_DIR.match(name)
         if match is None:
             continue
         step = int(match[1])

@@ -250,6 +250,17 @@ def test_the_cheap_scan_checks_sizes_the_full_one_digests(storage):
     assert [(i.step, i.status) for i in scan(storage, full=True)] == [(20, CORRUPT), (10, CORRUPT)]
 
 
+def test_a_step_copied_under_another_spelling_of_its_number_is_no_step(storage):
+    """A copy of step 10 as ``step-0000000010`` was read as a second step 10 (two histories of one generation, and a
+    ``prune --keep-line`` whose advice refused itself). Only the name ``step_dir`` gives a step is one: nine digits,
+    or more without a leading zero."""
+    for step in (8, 10, 1_000_000_000):
+        make_step(storage, step)
+    for name in storage.list_files(step_dir(10)):
+        storage.write_replace(f"checkpoints/step-0000000010/{name}", storage.read(step_path(10, name)))
+    assert [(i.step, i.status) for i in scan(storage)] == [(1_000_000_000, VERIFIED), (10, VERIFIED), (8, VERIFIED)]
+
+
 class Exploit:
     def __init__(self, marker: pathlib.Path):
         self.marker = marker

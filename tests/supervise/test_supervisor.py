@@ -12,6 +12,7 @@ crash-always / usage / hold-end; rank -1: every rank).
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import os
@@ -46,12 +47,14 @@ from helpers import (
     TESTS,
     ManualClock,
     assert_all_nodes_restarted_once,
+    child_env,
     events,
     final_manifest,
     finish,
     free_port,
     launch,
     manifests,
+    supervise_command,
     torchrun_pid,
     train_command,
     training,
@@ -416,6 +419,43 @@ def test_bad_input_fails_before_launch(tmp_path, options, overrides, fragment):
         )
         assert (alone.returncode, alone.stdout, alone.stderr) == (2, "", done.stderr)
         assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("damage", "fragment"),
+    [
+        ("checkpoints-file", "checkpoints is a file where ftrain needs a directory: move it away"),
+        ("step-link", "step-000000014 is a symbolic link, where ftrain writes and deletes steps of its own: move it"),
+        ("lease-directory", "LEASE.json is a directory where ftrain keeps the storage's lease, a file: if no run"),
+    ],
+)
+@pytest.mark.parametrize("command", ["train", "supervise"])
+def test_what_stands_where_a_storage_keeps_its_steps_or_lease_is_one_line_and_left_as_it_was(
+    tmp_path, damage, fragment, command
+):
+    """A file named ``checkpoints`` was taken for an outage at the first save (the run held for an hour, its line
+    naming step None), a step that is a link was written through (outside the storage, where listings do not see it),
+    and a directory named ``LEASE.json`` was a traceback. Each is one line and exit 2 now, before any training, and
+    the storage keeps what it held."""
+    storage, elsewhere = tmp_path / "run", tmp_path / "elsewhere"
+    storage.mkdir()
+    elsewhere.mkdir()
+    if damage == "checkpoints-file":
+        (storage / "checkpoints").write_text("x")
+    elif damage == "step-link":
+        (storage / "checkpoints").mkdir()
+        (storage / "checkpoints" / "step-000000014").symlink_to(elsewhere)
+    else:
+        (storage / "LEASE.json").mkdir()
+    before = sorted(path.relative_to(storage) for path in storage.rglob("*"))
+    run = train_command if command == "train" else functools.partial(supervise_command, ranks=1)
+    done = subprocess.run(
+        run(storage, "iterations=2"), cwd=REPO, env=child_env(), capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 2 and done.stderr.count("\n") == 1 and fragment in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr and not list(elsewhere.iterdir())
+    left = {path.relative_to(storage) for path in storage.rglob("*")} - {Path("warm-pool.log")}
+    assert sorted(left) == before
 
 
 @pytest.mark.parametrize("last", [ITERATIONS, ITERATIONS // 2])
