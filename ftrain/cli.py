@@ -10,6 +10,7 @@ import argparse
 import codecs
 import contextlib
 import dataclasses
+import errno
 import importlib.metadata
 import io
 import os
@@ -32,6 +33,7 @@ from ftrain.errors import (
     StorageUnavailable,
     Terminated,
     UserError,
+    name_too_long_line,
     no_space_line,
     stop_on_signals,
     stop_signal,
@@ -475,6 +477,9 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
     except OSError as error:
+        if error.errno == errno.ENAMETOOLONG:
+            errorfile.report(name_too_long_line(error))
+            return EXIT_USAGE
         if error.errno not in NO_SPACE:
             errorfile.record_exception(error)
             raise

@@ -54,6 +54,12 @@ def no_space_line(error: OSError) -> str:
     return f"no space left {where} ({error.strerror}): {fix}"
 
 
+def name_too_long_line(error: OSError) -> str:
+    """One line for a path with a name longer than its file system takes (bad input, not a failure)."""
+    where = error.filename or "a path this command was given"
+    return f"{where}: a name in that path is longer than its file system takes (255 bytes on most): use a shorter one"
+
+
 class Terminated(BaseException):
     """SIGTERM before the command took it over (``stop_on_signals``): a BaseException, as KeyboardInterrupt, so that
     no ``except Exception`` on the way swallows it."""

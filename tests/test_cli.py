@@ -325,3 +325,25 @@ def test_storage_options_for_a_local_path_are_refused_by_every_command_that_take
     for remote in ("s3://bucket/run", "gs://bucket/step-000000004"):  # a resume= or teacher= on a remote storage
         check_options_used(["endpoint_url=http://127.0.0.1:9"], [str(local), remote, ""])
     check_options_used([], [str(local)])
+
+
+def test_a_name_longer_than_its_file_system_takes_is_one_line_and_nothing_made(tmp_path, capsys) -> None:
+    """A path with a name of 300 bytes was a traceback (``export -o``, ``play --video``, ``plot -o``, a config, a log
+    directory) or a line with exit 1 and no fix (a storage, ``resume=``)."""
+    long = str(tmp_path / ("x" * 300))
+    run = str(tmp_path / "run")
+    cases = [
+        ["train", f"{long}.yaml"],
+        ["train", SMOKE, "--storage", long],
+        ["train", SMOKE, "--storage", run, f"resume={long}"],
+        ["ckpt", "ls", long],
+        ["plot", run, "-o", f"{long}.png"],
+        ["export", run, "--format", "onnx", "-o", f"{long}.onnx"],
+        ["play", run, "--video", f"{long}.mp4"],
+    ]
+    for args in cases:
+        assert main(args) == 2, args
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "a name in that path is longer than its file system takes" in err, (args, err)
+    assert list(tmp_path.iterdir()) == []
+    print(f"{len(cases)} commands refuse a name of 300 bytes in one line")

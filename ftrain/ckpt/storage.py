@@ -38,7 +38,7 @@ from ftrain.ckpt import localfs, stores
 from ftrain.ckpt.retry import DEFAULT_RETRIES, REQUEST, Backoff, client_errors, is_denied, is_transient
 from ftrain.ckpt.stores import AZURE_PROTOCOLS, GCS_PROTOCOLS, S3_PROTOCOLS
 from ftrain.config import blocking_file, local_path
-from ftrain.errors import NO_SPACE, StorageError, StorageUnavailable, UserError, no_space_line
+from ftrain.errors import NO_SPACE, StorageError, StorageUnavailable, UserError, name_too_long_line, no_space_line
 from ftrain.redact import Url, display_url, scrub, secret_values, url_secrets
 
 log = logging.getLogger(__name__)
@@ -329,6 +329,8 @@ class Storage:
                 raise UserError(
                     f"{what} {self.where(rel)} failed: read-only file system: pass a storage you can write to"
                 ) from None
+            if isinstance(exc, OSError) and exc.errno == errno.ENAMETOOLONG:
+                raise UserError(name_too_long_line(OSError(exc.errno, exc.strerror, self.where(rel)))) from None
             if isinstance(exc, OSError) and exc.errno in NO_SPACE:  # waited for, as an outage: freeing space fixes it
                 raise StorageUnavailable(no_space_line(OSError(exc.errno, exc.strerror, self.where(rel)))) from None
             if is_transient(exc):

@@ -250,7 +250,9 @@ class ConsoleHook(Hook):
         if not trainer.info.is_main:
             return
         storage, step = trainer.checkpointer.storage.url, trainer.checkpointer.committed_step
-        options = trainer.config.storage.options
+        options = (
+            trainer.config.storage.options and not trainer.checkpointer.storage.is_local
+        )  # a local path takes none
         print(
             f"[ftrain] run saved in {storage}: newest step {step if step is not None else '- (none committed)'}; "
             f"logs in {trainer.config.log_dir}\n"

@@ -242,6 +242,17 @@ def test_on_a_link_slower_than_training_every_pinned_step_and_milestone_is_saved
     print(f"every promised step saved and kept in {len(cases)} runs (seed {seed}): {'; '.join(cases)}")
 
 
+def test_the_closing_hint_names_storage_options_only_where_the_storage_takes_them(tmp_path, capsys) -> None:
+    """A local path takes no storage options (``play --storage-option`` refuses them there): the closing line told the
+    user to pass them to ``play`` and ``export`` where a run on a local path had ``storage.options`` in its config."""
+    hint = "(with the storage options of this run: --storage-option KEY=VALUE)"
+    for storage, shown in ((str(tmp_path / "local"), False), (f"memory://ftrain-test/{uuid.uuid4().hex}", True)):
+        overrides = ["iterations=1", "storage.options.key=K", "log.console=false", f"log_dir={tmp_path / str(shown)}"]
+        train_here(load_config(SMOKE, overrides, storage=storage))
+        said = capsys.readouterr().out
+        assert "[ftrain] play it: ftrain play " in said and (hint in said) == shown, said
+
+
 def test_a_best_metric_the_run_does_not_record_is_said_once_at_its_first_commit(tmp_path, capsys) -> None:
     """Hooks add metrics of their own, so only a commit can tell: keep_best would keep no step by such a name."""
     said = {}
