@@ -1,8 +1,9 @@
 """The supervisor's check of the user's code before it launches or creates anything: ``python -m
-ftrain.train.user_code`` in a child (the env made once, the hooks' modules imported), so that the supervisor stays
-free of torch, MuJoCo and the user's modules, whose import may do anything. Asked only where there is user code
-(``has_user_code``): gymnasium's own envs with their default arguments are checked by id. A refusal is the child's one
-line as a UserError; anything else (a crash, a hang past ``TIMEOUT``) is left to the workers, which check again.
+ftrain.train.user_code`` in a child (the env made once, the hooks' modules imported and their kwargs checked), so
+that the supervisor stays free of torch, MuJoCo and the user's modules, whose import may do anything. Asked only where
+there is user code (``has_user_code``): gymnasium's own envs with their default arguments are checked by id. A
+refusal is the child's one line as a UserError; anything else (a crash, a hang past ``TIMEOUT``) is left to the
+workers, which check again.
 """
 
 from __future__ import annotations
@@ -27,13 +28,13 @@ def has_user_code(env: EnvConfig, hooks: list[HookConfig], trackers: list[str]) 
 
 
 def check_in_child(env: EnvConfig, hooks: list[HookConfig], trackers: list[str]) -> None:
-    """UserError with the child's line if ``env`` cannot be trained, a hook's module or a tracker's package does not
-    import."""
+    """UserError with the child's line if ``env`` cannot be trained, a hook does not import or takes no such kwargs,
+    or a tracker's package does not import."""
     try:
-        hooks_named = [{"target": hook.target} for hook in hooks]  # not their kwargs
-        config = {"env": dataclasses.asdict(env), "hooks": hooks_named, "trackers": trackers}
-        command = [sys.executable, "-m", "ftrain.train.user_code", json.dumps(config)]
-        done = subprocess.run(command, capture_output=True, text=True, timeout=TIMEOUT)
+        hooks_given = [{"target": hook.target, "kwargs": hook.kwargs} for hook in hooks]
+        config = {"env": dataclasses.asdict(env), "hooks": hooks_given, "trackers": trackers}
+        command = [sys.executable, "-m", "ftrain.train.user_code"]  # the config on stdin: out of ``ps``, for secrets
+        done = subprocess.run(command, input=json.dumps(config), capture_output=True, text=True, timeout=TIMEOUT)
     except (TypeError, subprocess.TimeoutExpired):  # values that JSON cannot carry, or a module that hangs
         return
     if done.returncode == 2 and done.stderr.strip():

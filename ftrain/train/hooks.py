@@ -12,6 +12,7 @@ import collections
 import contextlib
 import csv
 import importlib
+import inspect
 import io
 import math
 import os
@@ -401,17 +402,25 @@ def hook_target(target: str) -> typing.Callable[..., Hook]:
         raise UserError(f"hook target {target!r} cannot be imported ({error}): fix the import path") from None
 
 
-def load_hook(target: str, kwargs: dict) -> Hook:
+def hook_class(target: str, kwargs: dict) -> type[Hook]:
+    """The class ``target`` names, a Hook whose constructor takes ``kwargs``; UserError where not. Checked with the
+    hook's module (``train.user_code``), before a run takes anything, as it is without making the hook."""
     cls = hook_target(target)
+    if not (isinstance(cls, type) and issubclass(cls, Hook)):
+        raise UserError(f"hook {target!r} is not a subclass of ftrain.train.hooks.Hook: make it one, or name one")
     try:
-        hook = cls(**kwargs)
+        inspect.signature(cls).bind(**kwargs)
     except TypeError as error:
-        raise UserError(f"hook {target!r} rejects its kwargs: {error}") from None
+        raise UserError(f"hook {target!r} rejects its kwargs ({error}): fix its kwargs") from None
+    return cls
+
+
+def load_hook(target: str, kwargs: dict) -> Hook:
+    cls = hook_class(target, kwargs)
+    try:
+        return cls(**kwargs)
     except Exception as error:
         raise UserError(f"hook {target!r} cannot be made: {error_line(error)}: fix the hook or its kwargs") from None
-    if not isinstance(hook, Hook):
-        raise UserError(f"hook {target!r} is not a subclass of ftrain.train.hooks.Hook")
-    return hook
 
 
 def _duration(seconds: float) -> str:

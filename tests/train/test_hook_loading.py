@@ -50,7 +50,7 @@ class NotAHook:
             "hook target 'userhooks_needs:Fine' cannot be imported: ModuleNotFoundError: No module named "
             "'nonexistent_module_xyz' (userhooks_needs.py, line 1): fix the module",
         ),
-        ("userhooks:Fine", {"evry": 2}, "hook 'userhooks:Fine' rejects its kwargs: "),
+        ("userhooks:Fine", {"evry": 2}, "hook 'userhooks:Fine' rejects its kwargs (got an unexpected keyword argument"),
         (
             "userhooks:Raising",
             {},
@@ -75,20 +75,33 @@ def test_a_hook_that_cannot_be_had_is_one_line_naming_it(tmp_path, monkeypatch, 
     assert isinstance(fine, Hook) and fine.every == 3
 
 
+@pytest.mark.parametrize(
+    ("hook", "said"),
+    [
+        (
+            '{target: "userhooks_absent:Fine"}',
+            "hook target 'userhooks_absent:Fine' cannot be imported (No module named 'userhooks_absent'): fix the "
+            "import path",
+        ),
+        ('{target: "os:getcwd"}', "hook 'os:getcwd' is not a subclass of ftrain.train.hooks.Hook: make it one, or "),
+        (
+            '{target: "ftrain.train.hooks:CsvHook", kwargs: {b: 1}}',
+            "hook 'ftrain.train.hooks:CsvHook' rejects its kwargs (got an unexpected keyword argument 'b'): fix its "
+            "kwargs",
+        ),
+    ],
+)
 @pytest.mark.parametrize("command", ["train", "supervise"])
-def test_a_hook_that_does_not_import_is_refused_before_the_run_takes_its_storage(tmp_path, command) -> None:
+def test_a_hook_that_cannot_be_had_is_refused_before_the_run_takes_its_storage(tmp_path, command, hook, said) -> None:
     """Refused after the topology line and the storage's lease, it was two lines and left a lease, a lock and
     storage.txt in a storage that held nothing; under ``supervise``, the workers were launched to find it. Now one
-    line, and no storage made: ``train`` imports the hooks' modules itself, ``supervise`` in a child."""
+    line, and no storage made: ``train`` checks the hooks' modules, classes and kwargs itself, ``supervise`` in a
+    child."""
     storage = tmp_path / "run"
-    hooks = 'hooks=[{target: "userhooks_absent:Fine"}]'
-    argv = [sys.executable, "-m", "ftrain", command, SMOKE, "--storage", str(storage), hooks]
+    argv = [sys.executable, "-m", "ftrain", command, SMOKE, "--storage", str(storage), f"hooks=[{hook}]"]
     result = subprocess.run(argv, cwd=tmp_path, env=child_env(), capture_output=True, text=True, timeout=120)
     assert result.returncode == 2 and result.stdout == "", result.stdout
-    assert result.stderr == (
-        "ftrain: error: hook target 'userhooks_absent:Fine' cannot be imported (No module named 'userhooks_absent'): "
-        "fix the import path\n"
-    )
+    assert result.stderr.startswith(f"ftrain: error: {said}") and result.stderr.count("\n") == 1, result.stderr
     assert not storage.exists()
 
 
