@@ -676,6 +676,7 @@ def validate(config: Config) -> None:
         "algorithm.num_learning_epochs": (config.algorithm.num_learning_epochs, 1),
         "algorithm.num_mini_batches": (config.algorithm.num_mini_batches, 1),
         "algorithm.gradient_length": (config.algorithm.gradient_length, 1),
+        "algorithm.schedule_iterations": (config.algorithm.schedule_iterations, 0),
         "checkpoint.keep_last": (config.checkpoint.keep_last, 1),
         "checkpoint.keep_best": (config.checkpoint.keep_best, 0),
         "checkpoint.keep_every": (config.checkpoint.keep_every, 0),

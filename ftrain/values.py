@@ -102,11 +102,13 @@ def build(cls: type, data: dict, prefix: str) -> Any:
     return cls(**kwargs)
 
 
-def _list_example(item_kind: Any) -> str:
-    """A list of ``item_kind`` as an override writes it."""
+def _list_example(item_kind: Any, given: Any) -> str:
+    """A list of ``item_kind`` as an override writes it: of the one item ``given``, where that is one."""
     if dataclasses.is_dataclass(item_kind):
         first = dataclasses.fields(item_kind)[0].name
         return f"[{{{first}: ...}}]"
+    if isinstance(given, item_kind) and not isinstance(given, bool):
+        return f"[{given}]"
     return {int: "[64,64]", float: "[0.5,0.5]"}.get(item_kind, "[a,b]")
 
 
@@ -119,7 +121,7 @@ def convert(kind: Any, value: Any, key: str, example: float | None = None) -> An
     if origin is list:
         (item_kind,) = typing.get_args(kind)
         if not isinstance(value, list):
-            raise UserError(f"{key}={value!r} must be a list, e.g. {key}={_list_example(item_kind)}")
+            raise UserError(f"{key}={value!r} must be a list, e.g. {key}={_list_example(item_kind, value)}")
         return [convert(item_kind, item, f"{key}[{i}]") for i, item in enumerate(value)]
     if origin in (typing.Union, types.UnionType):
         return value

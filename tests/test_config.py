@@ -90,6 +90,10 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
         (["algorithm.gamma=high"], "must be a number"),
         (["iterations=0"], "iterations=0 must be at least 1"),
         (["env.num_envs=-2"], "env.num_envs=-2 must be at least 1"),
+        (
+            ["algorithm.schedule=adaptive", "algorithm.schedule_iterations=-1"],
+            "algorithm.schedule_iterations=-1 must be 0 or more",
+        ),
         (["checkpoint.pinned=[4,-1]"], r"checkpoint.pinned=\[4, -1\] holds -1, which is no step"),
         (["noequals"], "is not key=value"),
         (["policy.std_type=exp"], "policy.std_type='exp' is unknown: use scalar or log"),
@@ -132,8 +136,11 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
             ["hooks=[nosuch.Hook]"],
             r"^hooks\[0\] must be a mapping of its keys \(target, every, kwargs\), got 'nosuch.Hook'$",
         ),
-        (["log.wandb.tags=x"], r"^log.wandb.tags='x' must be a list, e.g. log.wandb.tags=\[a,b\]$"),
-        (["policy.hidden_dims=5"], r"^policy.hidden_dims=5 must be a list, e.g. policy.hidden_dims=\[64,64\]$"),
+        (["log.wandb.tags=x"], r"^log.wandb.tags='x' must be a list, e.g. log.wandb.tags=\[x\]$"),
+        (["log.wandb.tags=3"], r"^log.wandb.tags=3 must be a list, e.g. log.wandb.tags=\[a,b\]$"),
+        (["checkpoint.pinned=3"], r"^checkpoint.pinned=3 must be a list, e.g. checkpoint.pinned=\[3\]$"),
+        (["policy.hidden_dims=5"], r"^policy.hidden_dims=5 must be a list, e.g. policy.hidden_dims=\[5\]$"),
+        (["policy.hidden_dims=x"], r"^policy.hidden_dims='x' must be a list, e.g. policy.hidden_dims=\[64,64\]$"),
         (
             ["log.wandb.mode=offline", "log.wandb.project=a/b"],
             r"^log.wandb.project='a/b' is no W&B project name \(/\): set log.wandb.project to at most 128 characters "
