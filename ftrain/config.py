@@ -133,8 +133,9 @@ class CheckpointConfig:
     keep_best: int = 1
     best_metric: str = "mean_return"
     keep_every: int = 0
-    """Keep every step that is a multiple of this as a milestone (0: none)."""
+    """Save and keep every step that is a multiple of this, as a milestone, whatever the interval (0: none)."""
     pinned: list[int] = field(default_factory=list)
+    """Steps saved and kept whatever the interval and retention's other rules."""
     async_save: bool = True
     spool: bool = True
     """On a remote storage and one node: every step goes to ``<log_dir>/spool`` on local disk first, and a restart

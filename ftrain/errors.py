@@ -56,8 +56,8 @@ def no_space_line(error: OSError) -> str:
 
 def name_too_long_line(error: OSError) -> str:
     """One line for a path with a name longer than its file system takes (bad input, not a failure)."""
-    where = error.filename or "a path this command was given"
-    return f"{where}: a name in that path is longer than its file system takes (255 bytes on most): use a shorter one"
+    where = error.filename2 or error.filename or "a path this command was given"
+    return f"{where}: that path, or a name in it, is longer than its file system takes: use a shorter one"
 
 
 class Terminated(BaseException):

@@ -103,11 +103,11 @@ def build(cls: type, data: dict, prefix: str) -> Any:
 
 
 def _list_example(item_kind: Any, given: Any) -> str:
-    """A list of ``item_kind`` as an override writes it: of the one item ``given``, where that is one."""
+    """A list of ``item_kind`` as an override writes it: of the one number ``given``, where that is one."""
     if dataclasses.is_dataclass(item_kind):
         first = dataclasses.fields(item_kind)[0].name
         return f"[{{{first}: ...}}]"
-    if isinstance(given, item_kind) and not isinstance(given, bool):
+    if item_kind in (int, float) and isinstance(given, item_kind) and not isinstance(given, bool):
         return f"[{given}]"
     return {int: "[64,64]", float: "[0.5,0.5]"}.get(item_kind, "[a,b]")
 

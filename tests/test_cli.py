@@ -6,6 +6,7 @@ import argparse
 import importlib.metadata
 import os
 import re
+import signal
 import subprocess
 import sys
 
@@ -344,6 +345,28 @@ def test_a_name_longer_than_its_file_system_takes_is_one_line_and_nothing_made(t
     for args in cases:
         assert main(args) == 2, args
         err = capsys.readouterr().err
-        assert err.count("\n") == 1 and "a name in that path is longer than its file system takes" in err, (args, err)
+        assert err.count("\n") == 1 and "that path, or a name in it, is longer than its file system takes" in err, (
+            args,
+            err,
+        )
     assert list(tmp_path.iterdir()) == []
     print(f"{len(cases)} commands refuse a name of 300 bytes in one line")
+
+
+def test_a_lost_stop_is_raised_once_and_a_stop_said_is_not_lost(monkeypatch, capsys) -> None:
+    """``raise_lost_stop`` raises a stop whose exception was lost (a library's ``except BaseException``) where a command
+    takes its signals over or ends, once; a stop that was handled and said (``stopped``) is none."""
+    from ftrain import errors
+
+    monkeypatch.setattr(errors, "_received", [])
+    monkeypatch.setattr(errors, "_said", [])
+    with pytest.raises(errors.Terminated):
+        errors.raise_stop(signal.SIGTERM, None)  # its exception swallowed on the way
+    with pytest.raises(errors.Terminated):
+        errors.raise_lost_stop()
+    errors.raise_lost_stop()  # raised once
+    with pytest.raises(KeyboardInterrupt):
+        errors.raise_stop(signal.SIGINT, None)
+    assert errors.stopped(signal.SIGINT) == 130
+    errors.raise_lost_stop()  # said: not lost
+    assert capsys.readouterr().err == "ftrain: interrupted (Ctrl-C)\n"

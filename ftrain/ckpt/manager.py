@@ -28,7 +28,7 @@ from ftrain.ckpt.fence import guarded
 from ftrain.ckpt.format import COMMON, STATE_FORMAT, is_timing, shard_name
 from ftrain.ckpt.lease import LeaseLost
 from ftrain.ckpt.resume import Checkpointable, CheckpointError
-from ftrain.ckpt.retention import is_milestone
+from ftrain.ckpt.retention import promised
 from ftrain.ckpt.retry import OUTAGE, WaitLines
 from ftrain.ckpt.save import BackgroundWriter, Outcome, Result, StepWriter, Target, snapshot
 from ftrain.ckpt.schedule import DEFAULT_STORAGE_WAIT, STORAGE_WAIT_ENV, SaveSchedule
@@ -93,7 +93,7 @@ class Checkpointer:
             policy.max_overhead,
             parse_amount("checkpoint.max_unsaved", policy.max_unsaved),
             time.monotonic(),
-            promised=lambda step: step in policy.pinned or is_milestone(step, policy.keep_every),
+            promised=lambda step: promised(step, policy.keep_every, policy.pinned),
         )
         self.storage_wait = float(os.environ.get(STORAGE_WAIT_ENV, DEFAULT_STORAGE_WAIT))
         self.committed_step: int | None = None
@@ -151,7 +151,8 @@ class Checkpointer:
         spool alone), hold (train no further until that save commits), and busy (``MAX_IN_FLIGHT`` saves in flight,
         none settled: another save would wait for the oldest, on a storage that hangs for as long as its requests'
         deadlines; a save due then is left to the next boundary, unless it holds, or retention keeps its step: a
-        pinned step or a milestone waits for the oldest).
+        pinned step or a milestone waits for the oldest, which on a hanging storage pauses training for as long as
+        that save's deadlines). While saves fail, the steps tried are the retries' and the spool's.
 
         While saves fail, and nothing is in flight: to the storage once the failed save's wait is over, or when more
         work than ``checkpoint.max_unsaved`` is unsaved (hold); to the spool alone when the schedule says, and for the
@@ -178,6 +179,7 @@ class Checkpointer:
         committed (the save that ends a run, or too much unsaved work): retry until it is, or StorageUnavailable.
         Without ``store`` (and without ``hold``), the state goes to the spool alone.
         """
+        self._settle(MAX_IN_FLIGHT - 1)  # first: the outcome of the oldest save in flight decides the target
         if not (store or hold or self.spool is None):
             self._submit(trainer, wait, Target.SPOOL)
         else:
@@ -231,11 +233,11 @@ class Checkpointer:
             waited = time.monotonic() - since
             if waited > self.storage_wait or self.stopping():
                 stop = ", then a stop came" if waited <= self.storage_wait else ""
-                newest = "none" if self.committed_step is None else f"step {self.committed_step}"
+                step = self.committed_step
+                newest = "no step is committed yet" if step is None else f"the newest committed step is {step}"
                 raise StorageUnavailable(
-                    f"the storage {self.storage.url} took no checkpoint for {waited:.0f} s ({why}){stop}; the newest "
-                    f"committed step: {newest}: run the same command again once it takes writes again (it answers, "
-                    "has room, lets this run write)"
+                    f"the storage {self.storage.url} took no checkpoint for {waited:.0f} s ({why}){stop}; {newest}: "
+                    "run the same command again once it takes writes again (it answers, has room, lets this run write)"
                 )
             delay = OUTAGE.delay(tries)
             iterations, seconds = self.schedule.unsaved(trainer.iteration, time.monotonic())

@@ -82,7 +82,14 @@ def kept(
 
 
 def is_milestone(step: int, keep_every: int) -> bool:
+    """Whether ``checkpoint.keep_every`` makes ``step`` a milestone (0: none is)."""
     return keep_every > 0 and step % keep_every == 0
+
+
+def promised(step: int, keep_every: int, pinned: Iterable[int]) -> bool:
+    """Whether retention keeps ``step`` once it exists (pinned, a milestone): the schedule saves it, whatever the
+    interval (``ftrain.ckpt.schedule``)."""
+    return step in pinned or is_milestone(step, keep_every)
 
 
 def delete_step(storage: Storage, step: int, files: Iterable[str] = ()) -> None:

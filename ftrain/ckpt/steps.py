@@ -112,9 +112,14 @@ def check_steps_place(storage: str) -> None:
     step: every save would fail until someone moves the file (a run held for an hour), or write through the link,
     outside the storage, into a step that listings do not see."""
     path = os.path.join(storage, CHECKPOINTS)
-    if (blocking := blocking_file(path)) is not None:
-        raise UserError(f"cannot write {path}: {blocking} is a file where ftrain needs a directory: move it away")
-    entries = os.scandir(path) if os.path.isdir(path) else ()
+    if (blocking := blocking_file(path)) is not None or (os.path.islink(path) and not os.path.exists(path)):
+        raise UserError(
+            f"cannot write {path}: {blocking or path} is a file where ftrain needs a directory: move it away"
+        )
+    try:
+        entries = list(os.scandir(path)) if os.path.isdir(path) else []
+    except OSError as error:
+        raise UserError(f"cannot read {path} ({error.strerror}): make it readable, or pass --storage another") from None
     if links := sorted(e.name for e in entries if e.is_symlink() and CANONICAL_STEP_DIR.match(e.name)):
         raise UserError(
             f"{os.path.join(path, links[0])} is a symbolic link, where ftrain writes and deletes steps of its own: "
@@ -390,7 +395,7 @@ def part_of_a_storage(storage: Storage) -> str | None:
         head, _, last = where.rstrip("/").rpartition("/")
         parent = head or ("/" if where.startswith("/") else ".")
         above_a_bucket = parent.endswith(":/")  # nothing can lie above a bucket
-        if last == CHECKPOINTS and not above_a_bucket and any(map(_STEP_NAME.match, storage.list_dirs(""))):
+        if last == CHECKPOINTS and not above_a_bucket and any(map(CANONICAL_STEP_DIR.match, storage.list_dirs(""))):
             return f"that is the {CHECKPOINTS}/ directory of {parent}: pass {parent}"
         if _STEP_NAME.match(last) and head.rpartition("/")[2] == POLICIES:
             run = head.rpartition("/")[0] or "."
@@ -453,7 +458,7 @@ def check_checkpoint_url(url: str) -> None:
     storage = Storage.open(root)
     if step is not None:
         _named_step(storage, step, full=False)
-    elif not any(map(_STEP_NAME.match, storage.list_dirs(CHECKPOINTS))):
+    elif not any(map(CANONICAL_STEP_DIR.match, storage.list_dirs(CHECKPOINTS))):
         raise _no_checkpoint(storage)
 
 

@@ -31,7 +31,7 @@ def check_in_child(env: EnvConfig, hooks: list[HookConfig], trackers: list[str])
     """UserError with the child's line if ``env`` cannot be trained, a hook does not import or takes no such kwargs,
     or a tracker's package does not import."""
     try:
-        hooks_given = [{"target": hook.target, "kwargs": hook.kwargs} for hook in hooks]
+        hooks_given = [{"target": hook.target, "kwargs": dict.fromkeys(hook.kwargs)} for hook in hooks]  # names
         config = {"env": dataclasses.asdict(env), "hooks": hooks_given, "trackers": trackers}
         command = [sys.executable, "-m", "ftrain.train.user_code"]  # the config on stdin: out of ``ps``, for secrets
         done = subprocess.run(command, input=json.dumps(config), capture_output=True, text=True, timeout=TIMEOUT)

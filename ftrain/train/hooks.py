@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 from ftrain.ckpt.format import human_size, step_dir, unloadable_part
+from ftrain.config import local_path
 from ftrain.errors import UserError, command, error_line, module_missing
 
 METRICS_CSV = "metrics.csv"
@@ -251,15 +252,13 @@ class ConsoleHook(Hook):
         if not trainer.info.is_main:
             return
         storage, step = trainer.checkpointer.storage.url, trainer.checkpointer.committed_step
-        options = (
-            trainer.config.storage.options and not trainer.checkpointer.storage.is_local
-        )  # a local path takes none
+        shows_options = bool(trainer.config.storage.options) and not local_path(storage)  # a local path takes none
         print(
             f"[ftrain] run saved in {storage}: newest step {step if step is not None else '- (none committed)'}; "
             f"logs in {trainer.config.log_dir}\n"
             f"[ftrain] play it: {command('ftrain', 'play', storage)}   export it: "
             f"{command('ftrain', 'export', storage, '--format', 'onnx')}"
-            f"{'   (with the storage options of this run: --storage-option KEY=VALUE)' if options else ''}",
+            f"{'   (with the storage options of this run: --storage-option KEY=VALUE)' if shows_options else ''}",
             flush=True,
         )
 
@@ -409,7 +408,11 @@ def hook_class(target: str, kwargs: dict) -> type[Hook]:
     if not (isinstance(cls, type) and issubclass(cls, Hook)):
         raise UserError(f"hook {target!r} is not a subclass of ftrain.train.hooks.Hook: make it one, or name one")
     try:
-        inspect.signature(cls).bind(**kwargs)
+        signature = inspect.signature(cls)
+    except (TypeError, ValueError):  # a constructor Python cannot look into: making the hook tells
+        return cls
+    try:
+        signature.bind(**kwargs)
     except TypeError as error:
         raise UserError(f"hook {target!r} rejects its kwargs ({error}): fix its kwargs") from None
     return cls

@@ -583,7 +583,7 @@ def test_a_failed_final_save_holds_and_a_stop_ends_the_hold_as_an_error_not_succ
     _, stderr = proc.communicate(timeout=60)
     assert proc.returncode == EXIT_STORAGE_DOWN
     errors = [line for line in stderr.splitlines() if line.startswith("ftrain: error:")]
-    assert len(errors) == 1 and "took no checkpoint for" in errors[0] and "newest committed step: step 6" in errors[0]
+    assert len(errors) == 1 and "took no checkpoint for" in errors[0] and "newest committed step is 6" in errors[0]
     assert "), then a stop came; " in errors[0] and errors[0].endswith(
         "once it takes writes again (it answers, has room, lets this run write)"
     ), errors[0]
