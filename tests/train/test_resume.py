@@ -432,8 +432,9 @@ def test_failed_saves_are_logged_training_goes_on_and_holds_past_the_unsaved_bou
     assert {2, retried, 12} <= saved <= {2, retried, 6, 8, 10, 12} and saved & {8, 10}, saved
 
     blocked = tmp_path / "blocked"
-    blocked.mkdir()
-    (blocked / "checkpoints").write_text("no step directory can go below a file")
+    (blocked / "checkpoints").mkdir(parents=True)
+    for step in range(1, 13):  # every step of the run (a file named checkpoints is refused at the start)
+        (blocked / "checkpoints" / f"step-{step:09d}").write_text("no step directory can go below a file")
     failed = subprocess.run(
         train_command(blocked, "checkpoint.max_unsaved=3", f"log_dir={tmp_path / 'logs'}"),
         cwd=REPO,
@@ -445,14 +446,18 @@ def test_failed_saves_are_logged_training_goes_on_and_holds_past_the_unsaved_bou
     assert failed.returncode == EXIT_STORAGE_DOWN, failed.stderr
     held = re.search(r"training held at step (\d+): (\d+) iterations.* \((rank 0: .*)\); next try", failed.stdout)
     assert held and held[1] == held[2], failed.stdout  # nothing ever saved: every iteration unsaved
-    said = f"{blocked / 'checkpoints'} is a file where ftrain needs a directory: move it out of the storage"
-    assert said in held[3] and "/blocked/checkpoints/step-" in held[3], "the hold says why, and the fix"
+    said = (
+        rf"{re.escape(str(blocked / 'checkpoints'))}/step-\d{{9}} is a file where ftrain needs a directory: move it out"
+    )
+    assert re.search(said, held[3]), "the hold says why, and the fix"
     # past the bound of 3 at step 4; at 5 where a save's failure is learned an iteration later (saves run in the
     # background: a loaded machine)
     assert int(held[1]) in (4, 5), failed.stdout
     assert f"held at step {int(held[1]) + 1}" not in failed.stdout, "training stays where it is while it holds"
     assert "took no checkpoint for" in failed.stderr and "Traceback" not in failed.stderr
-    assert (blocked / "checkpoints").read_text() == "no step directory can go below a file"
+    assert {path.read_text() for path in (blocked / "checkpoints").iterdir()} == {
+        "no step directory can go below a file"
+    }
 
 
 def test_retention_across_a_resume_cleans_abandoned_and_failed_steps(tmp_path) -> None:
