@@ -112,14 +112,14 @@ def check_steps_place(storage: str) -> None:
     step: every save would fail until someone moves the file (a run held for an hour), or write through the link,
     outside the storage, into a step that listings do not see."""
     path = os.path.join(storage, CHECKPOINTS)
-    if (blocking := blocking_file(path)) is not None or (os.path.islink(path) and not os.path.exists(path)):
-        raise UserError(
-            f"cannot write {path}: {blocking or path} is a file where ftrain needs a directory: move it away"
-        )
+    if (blocking := blocking_file(path)) is not None:
+        raise UserError(f"cannot write {path}: {blocking} is a file where ftrain needs a directory: move it away")
     try:
         entries = list(os.scandir(path)) if os.path.isdir(path) else []
-    except OSError as error:
+    except PermissionError as error:
         raise UserError(f"cannot read {path} ({error.strerror}): make it readable, or pass --storage another") from None
+    except OSError:  # a storage that fails (EIO, a link to itself): its listing says so, as an outage
+        return
     if links := sorted(e.name for e in entries if e.is_symlink() and CANONICAL_STEP_DIR.match(e.name)):
         raise UserError(
             f"{os.path.join(path, links[0])} is a symbolic link, where ftrain writes and deletes steps of its own: "
