@@ -424,6 +424,8 @@ def load_config(path: str | None, overrides: list[str] = (), storage: str | None
             if "=[" in before and "]" not in before:  # key=[64, 64] unquoted: the shell made two words of it
                 raise UserError(f"override {before} {item} has a space: quote it as one word, '{before} {item}'")
             raise UserError(f"override {item!r} is not key=value: write it like env.num_envs=8")
+        if not all(key.strip().split(".")):
+            raise UserError(f"override {item!r} has an empty part in its key: write it like env.num_envs=8")
         value = parse_value(raw)
         _override(data, key.strip(), value, item)
         keys_given |= set(dotted(value, f"{key.strip()}.")) if isinstance(value, dict) else {key.strip()}

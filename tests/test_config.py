@@ -96,6 +96,8 @@ def test_keys_added_later_change_the_hash_only_when_set() -> None:
         ),
         (["checkpoint.pinned=[4,-1]"], r"checkpoint.pinned=\[4, -1\] holds -1, which is no step"),
         (["noequals"], "is not key=value"),
+        ([".=3"], r"override '\.=3' has an empty part in its key: write it like env\.num_envs=8"),
+        (["env..id=x"], r"override 'env\.\.id=x' has an empty part in its key"),
         (["policy.std_type=exp"], "policy.std_type='exp' is unknown: use scalar or log"),
         (["policy.activation=Relu"], r"policy.activation='Relu' is unknown \(did you mean relu\?\): use elu, "),
         (["algorithm.schedule=fixd"], r"algorithm.schedule='fixd' is unknown \(did you mean fixed\?\): use "),

@@ -22,6 +22,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 
+from ftrain.ckpt.format import parse_checkpoint_url
 from ftrain.ckpt.steps import check_output
 from ftrain.ckpt.storage import Storage
 from ftrain.config import default_log_dir, expand_home
@@ -150,6 +151,10 @@ def plot_run(run: str | Path, output: str | Path | None = None, options: dict | 
     run = expand_home(str(run))
     if Path(run).name == METRICS and Path(run).is_file():  # the file itself, for the directory that holds it
         run = str(Path(run).parent)
+    root, step = parse_checkpoint_url(run)
+    if step is not None:  # a step, as play and export take it: its run's curves
+        print(f"ftrain plot: {run} is step {step} of {root}: plotting {root}", file=sys.stderr)
+        run = root
     if output is not None and (Path(output).is_dir() or str(output).endswith(("/", os.sep))):  # a folder, made
         output = Path(output) / "curves.png"
     elif output is not None and not Path(output).suffix:  # what matplotlib writes, and what is said, named alike

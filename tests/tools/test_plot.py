@@ -186,3 +186,6 @@ def test_cli(resumed, tmp_path, capsys) -> None:
     capsys.readouterr()
     assert main(["plot", str(resumed / "metrics.csv"), "-o", str(tmp_path / "curves")]) == 0  # the file, no suffix
     assert capsys.readouterr().out == f"wrote {tmp_path / 'curves.png'}\n" and not (tmp_path / "curves").exists()
+    step = resumed / "checkpoints" / "step-000000008"  # a step, as play and export take it: its run's curves
+    assert main(["plot", str(step), "-o", str(tmp_path / "step.png")]) == 0 and png_size(tmp_path / "step.png")
+    assert capsys.readouterr().err == f"ftrain plot: {step} is step 8 of {resumed}: plotting {resumed}\n"
