@@ -152,7 +152,7 @@ class Checkpointer:
         none settled: another save would wait for the oldest, on a storage that hangs for as long as its requests'
         deadlines; a save due then is left to the next boundary, unless it holds, or retention keeps its step: a
         pinned step or a milestone waits for the oldest, which on a hanging storage pauses training for as long as
-        that save's deadlines). While saves fail, the steps tried are the retries' and the spool's.
+        that save's deadlines).
 
         While saves fail, and nothing is in flight: to the storage once the failed save's wait is over, or when more
         work than ``checkpoint.max_unsaved`` is unsaved (hold); to the spool alone when the schedule says, and for the
@@ -179,7 +179,9 @@ class Checkpointer:
         committed (the save that ends a run, or too much unsaved work): retry until it is, or StorageUnavailable.
         Without ``store`` (and without ``hold``), the state goes to the spool alone.
         """
-        self._settle(MAX_IN_FLIGHT - 1)  # first: the outcome of the oldest save in flight decides the target
+        self._settle(
+            MAX_IN_FLIGHT - 1
+        )  # a slot for this save (waiting for the oldest), whose outcome decides its target
         if not (store or hold or self.spool is None):
             self._submit(trainer, wait, Target.SPOOL)
         else:
@@ -202,7 +204,6 @@ class Checkpointer:
         step = trainer.iteration
         if step == self.committed_step or step in (pending for pending, *_ in self._pending):
             return
-        self._settle(MAX_IN_FLIGHT - 1)
         self.schedule.started(step, time.monotonic())
         files = {shard_name(self.info.rank): trainer.rank_state()}
         meta = None
