@@ -51,7 +51,8 @@ if typing.TYPE_CHECKING:
 EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
 """The reader of stdout went away (``ftrain ... | head``): what a shell reports for a tool killed by SIGPIPE."""
 OVERRIDES_HELP = (
-    "config overrides as dotted key=value, values parsed as YAML (e.g. env.num_envs=8 policy.hidden_dims=[64,64])"
+    "config overrides as dotted key=value, values parsed as YAML (e.g. env.num_envs=8 policy.hidden_dims=[64,64]); "
+    "of a key given twice, the later wins"
 )
 
 
@@ -322,7 +323,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     export.add_argument("url", help=policy_url)
     _add_storage_options(export)
-    export.add_argument("--format", required=True, choices=POLICY_FORMATS, help="the file format")
+    export.add_argument(
+        "--format", choices=POLICY_FORMATS, help="the file format (default: the one -o FILE ends in, .pt or .onnx)"
+    )
     export.add_argument(
         "-o",
         "--output",
@@ -588,9 +591,9 @@ def _dispatch(args: argparse.Namespace) -> int:
         play(policy, args.episodes, deterministic=not args.stochastic, video=args.video, seed=args.seed)
         return 0
     if args.command == "export":
-        from ftrain.policy.options import check_export_options
+        from ftrain.policy.options import export_format
 
-        check_export_options(args.format, args.output)  # before torch's imports and the policy's download
+        export_format(args.format, args.output)  # before torch's imports and the policy's download
         with imports():
             from ftrain.policy.export import export
             from ftrain.policy.load import load_policy

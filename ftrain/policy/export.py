@@ -18,7 +18,7 @@ from ftrain.ckpt.steps import check_output
 from ftrain.config import default_log_dir
 from ftrain.errors import UserError
 from ftrain.policy.load import METADATA, Policy, policy_from_file, torchscript_deprecation_ignored
-from ftrain.policy.options import SUFFIXES, check_export_options, names_a_directory
+from ftrain.policy.options import SUFFIXES, export_format, names_a_directory
 from ftrain.policy.robot import make_env
 from ftrain.policy.rollout import rollout
 from ftrain.progress import Progress
@@ -42,7 +42,7 @@ def output_path(path: str | Path | None, directory: Path, name: str) -> Path:
 def encode(policy: Policy, fmt: str, observations: torch.Tensor) -> bytes:
     """``policy`` as a self-contained ``fmt`` file, verified: loaded back and run on ``observations [N, obs_dim]``,
     its actions must match the actor's deterministic ones (ExportMismatch otherwise)."""
-    check_export_options(fmt, None)
+    export_format(fmt, None)
     if policy.exported is not None:
         raise UserError(
             f"{policy.source} is an exported {policy.exported} policy: export from a checkpoint, a run's storage "
@@ -129,11 +129,11 @@ def sample_observations(policy: Policy, episodes: int = 3, seed: int = 0) -> tor
     return torch.as_tensor(np.stack(seen), dtype=torch.float32)
 
 
-def export(policy: Policy, fmt: str, path: str | Path | None = None) -> Path:
-    """Write ``policy`` as a verified ``fmt`` file to ``path`` and say so on stdout. By default next to the run, in
-    ``<run>/exports/<run name>-step-<N>.pt``/``.onnx`` (for a run on S3, in its local log directory ``runs/<name>``),
-    not in the working directory."""
-    check_export_options(fmt, path)
+def export(policy: Policy, fmt: str | None, path: str | Path | None = None) -> Path:
+    """Write ``policy`` as a verified ``fmt`` file (None: the format ``path`` ends in) to ``path`` and say so on
+    stdout. By default next to the run, in ``<run>/exports/<run name>-step-<N>.pt``/``.onnx`` (for a run on S3, in
+    its local log directory ``runs/<name>``), not in the working directory."""
+    fmt = export_format(fmt, path)
     run = policy.source.rstrip("/").rsplit("/", 2)[0]  # the source is <run>/checkpoints/step-N or <run>/policies/...
     name = f"{policy.config.name}-step-{policy.step}{SUFFIXES[fmt]}"
     path = output_path(path, Path(default_log_dir(run, policy.config.name)) / "exports", name)

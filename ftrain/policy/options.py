@@ -29,20 +29,32 @@ def check_play_options(episodes: int, seed: int, video: str | Path | None) -> No
         check_output(Path(video), "--video")
 
 
-def check_export_options(fmt: str, path: str | Path | None) -> None:
-    """UserError for a format ``export`` does not write, or an output ``path`` it cannot take (a file named for it:
-    a directory, where the file's name comes from the policy, is checked once that is known)."""
-    if fmt not in POLICY_FORMATS:
+def export_format(fmt: str | None, path: str | Path | None) -> str:
+    """The format ``export`` writes: ``fmt`` (``--format``), or else the one the file ``path`` (``-o``) ends in.
+    UserError for a format it does not write, or an output ``path`` it cannot take (a file named for it: a directory,
+    where the file's name comes from the policy, is checked once that is known)."""
+    if fmt is not None and fmt not in POLICY_FORMATS:
         raise UserError(f"unknown policy format {fmt!r}: use {' or '.join(POLICY_FORMATS)}")
+    suffixes = " or ".join(SUFFIXES.values())
     if path is None or names_a_directory(path):
-        return
-    if Path(path).suffix != SUFFIXES[fmt]:  # ``-o README.md`` would write over a file of another kind
+        if fmt is None:
+            raise UserError(f"export needs --format {' or '.join(POLICY_FORMATS)}, or -o a file ending in {suffixes}")
+        return fmt
+    path = Path(path)
+    named = next((named for named, suffix in SUFFIXES.items() if path.suffix == suffix), None)
+    if fmt is None and named is None:
+        raise UserError(
+            f"-o {path}: policy files end in {suffixes}: use -o {path.with_suffix('.pt')} or -o "
+            f"{path.with_suffix('.onnx')}"
+        )
+    if fmt not in (None, named):  # ``-o README.md`` would write over a file of another kind
         other = next(other for other in POLICY_FORMATS if other != fmt)
         raise UserError(
-            f"-o {path}: {fmt} policy files end in {SUFFIXES[fmt]}: use -o {Path(path).with_suffix(SUFFIXES[fmt])}, "
+            f"-o {path}: {fmt} policy files end in {SUFFIXES[fmt]}: use -o {path.with_suffix(SUFFIXES[fmt])}, "
             f"a directory, or --format {other} for a {SUFFIXES[other]} file"
         )
-    check_output(Path(path), "-o")
+    check_output(path, "-o")
+    return fmt or named
 
 
 def names_a_directory(path: str | Path) -> bool:

@@ -35,10 +35,12 @@ def play(
     check_play_options(episodes, seed, video)
     if video is not None:
         os.environ.setdefault("MUJOCO_GL", "egl")  # read when the first renderer is made: headless, no display
-    deterministic = deterministic or policy.exported is not None
+    if not deterministic and policy.exported is not None:
+        raise UserError(
+            f"--stochastic: {policy.source} is an exported {policy.exported} policy, which has only its mean actions: "
+            "play its checkpoint or policy snapshot to sample"
+        )
     mode = "deterministic (mean) actions" if deterministic else "sampled actions"
-    if policy.exported is not None:
-        mode += f" (an exported {policy.exported} policy has no others)"
     rendered = "" if video is None else f", drawing every frame into {video} (far slower than playing alone)"
     print(f"playing {policy.source} (step {policy.step}, {policy.config.env.id}) with {mode}{rendered}", flush=True)
     torch.manual_seed(seed)

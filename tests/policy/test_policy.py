@@ -242,6 +242,12 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
             "cannot write /proc/x.onnx (/proc takes no new file: No such file or directory): pass -o a path",
         ),
         "an exported policy to export": (["export", str(exported), "--format", "torchscript"], "exported onnx policy"),
+        "an exported policy to sample": (["play", str(exported), "--stochastic"], "which has only its mean actions"),
+        "an export of no format": (["export", str(trained)], "export needs --format torchscript or onnx, or -o a"),
+        "an export to a file of no format": (
+            ["export", str(trained), "-o", str(notes)],
+            f"-o {notes}: policy files end in .pt or .onnx: use -o {notes.with_suffix('.pt')} or -o",
+        ),
         "an output of another kind": (
             ["export", str(trained), "--format", "onnx", "-o", str(notes)],
             f"-o {notes}: onnx policy files end in .onnx: use -o {notes.with_suffix('.onnx')}, a directory, or",
@@ -253,6 +259,9 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
         assert err.startswith("ftrain: error: ") and err.count("\n") == 1, f"{case}: {err!r}"
         assert message in err, f"{case}: {err!r}"
     assert notes.read_text() == "not a policy\n"  # not written over
+    for suffix, fmt in ((".pt", "torchscript"), (".onnx", "onnx")):  # -o's suffix names the format
+        assert main(["export", str(trained), "-o", str(tmp_path / f"named{suffix}")]) == 0
+        assert load_policy(str(tmp_path / f"named{suffix}")).exported == fmt
     assert main(["export", str(trained), "--format", "torchscript", "-o", str(tmp_path)]) == 0  # a directory: into it
     assert load_policy(str(tmp_path / f"smoke-step-{load_policy(str(trained)).step}.pt")).step > 0
     assert main(["export", str(trained), "--format", "onnx", "-o", f"{tmp_path / 'new'}/"]) == 0  # a directory to make
