@@ -15,6 +15,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 import os
 import re
 import time
@@ -54,6 +55,12 @@ def is_timing(metric: str) -> bool:
     """A metric that is wall time (``iteration_time``, ``time/env_ms``...): kept out of manifests and policy lineages,
     which identical runs must write alike."""
     return metric.endswith("_time") or metric.startswith("time/")
+
+
+def recorded_metrics(metrics: dict[str, float]) -> dict[str, float | None]:
+    """The metrics a manifest or a policy lineage records: no timing (:func:`is_timing`), and a metric not measured
+    yet (NaN) as null, since JSON has no NaN (``jq`` and most readers refuse the ``NaN`` Python would write)."""
+    return {key: value if math.isfinite(value) else None for key, value in metrics.items() if not is_timing(key)}
 
 
 DIGEST = "manifest_sha256"

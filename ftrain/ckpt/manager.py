@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import math
 import os
 import time
 from collections.abc import Callable
 
 from ftrain.ckpt import arithmetic, resume
 from ftrain.ckpt.fence import guarded
-from ftrain.ckpt.format import COMMON, STATE_FORMAT, is_timing, shard_name
+from ftrain.ckpt.format import COMMON, STATE_FORMAT, recorded_metrics, shard_name
 from ftrain.ckpt.lease import LeaseLost
 from ftrain.ckpt.resume import Checkpointable, CheckpointError
 from ftrain.ckpt.retention import promised
@@ -262,11 +261,7 @@ class Checkpointer:
         return {
             **self._static_meta,
             "iteration": trainer.iteration,
-            "metrics": {  # JSON has no NaN: a metric not measured yet is null
-                key: value if math.isfinite(value) else None
-                for key, value in trainer.metrics.items()
-                if not is_timing(key)
-            },
+            "metrics": recorded_metrics(trainer.metrics),
         }
 
     def _settle(self, keep: int) -> None:

@@ -6,7 +6,7 @@ import json
 
 import torch
 
-from ftrain.ckpt.format import CorruptCheckpoint, commit, encode, is_timing, read_manifest, step_dir, write_file
+from ftrain.ckpt.format import CorruptCheckpoint, commit, encode, read_manifest, recorded_metrics, step_dir, write_file
 from ftrain.ckpt.retention import delete_step
 from ftrain.ckpt.steps import scan
 from ftrain.ckpt.storage import StorageError
@@ -93,7 +93,7 @@ class PolicySnapshotHook(Hook):
             "config_hash": config.training_hash(trainer.env.robot),
             "env_id": config.env.id,
             "robot": trainer.env.robot,
-            "metrics": {key: value for key, value in metrics.items() if not is_timing(key)},
+            "metrics": recorded_metrics(metrics),
         }
         observations = trainer.env.get_observations()[OBS_GROUP]
         try:

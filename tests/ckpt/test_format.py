@@ -25,6 +25,7 @@ from ftrain.ckpt.format import (
     parse_checkpoint_url,
     read_manifest,
     read_verified,
+    recorded_metrics,
     step_dir,
     verify_step,
     write_file,
@@ -522,3 +523,13 @@ def test_a_step_whose_manifest_a_lagging_listing_lacks_is_not_taken_for_abandone
     with pytest.raises(UserError, match="already holds verified checkpoint step 40"):
         clear_newer(reader, 20, log=print)
     assert verify_step(writer, 40).ok
+
+
+def test_recorded_metrics_are_strict_json_without_timing() -> None:
+    """What manifests and policy lineages record: a metric not measured yet (NaN, the mean return before any episode
+    ended) is null, since JSON has no NaN (a snapshot's lineage.json held a bare NaN, which jq refuses)."""
+    metrics = {"mean_return": float("nan"), "loss/value": 0.5, "iteration_time": 1.2, "time/env_ms": 3.0, "x": -1e300}
+    recorded = recorded_metrics(metrics)
+    assert recorded == {"mean_return": None, "loss/value": 0.5, "x": -1e300}
+    assert json.loads(json.dumps(recorded, allow_nan=False)) == recorded
+    assert recorded_metrics({"inf": float("inf")}) == {"inf": None}

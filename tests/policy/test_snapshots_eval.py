@@ -54,7 +54,12 @@ def snapshot_url(run: Path, step: int) -> str:
 
 
 def lineage(run: Path, step: int) -> dict:
-    return json.loads((Path(snapshot_url(run, step)) / "lineage.json").read_text())
+    """A snapshot's lineage.json, read as strict JSON: a NaN, which Python writes and jq refuses, fails it."""
+    return json.loads((Path(snapshot_url(run, step)) / "lineage.json").read_text(), parse_constant=_not_json)
+
+
+def _not_json(word: str) -> None:
+    raise AssertionError(f"lineage.json holds {word}, which is not JSON")
 
 
 def test_evaluation_and_snapshots_leave_training_unchanged(runs) -> None:
