@@ -223,8 +223,10 @@ def test_on_etcd_a_node_paused_mid_commit_across_a_shrink_commits_nothing_when_r
     """Fencing: the node of rank 0 is paused (SIGSTOP on its supervisor, torchrun and worker) with a save's shards
     written and the commit not yet made (``HoldCommitHook``, armed once the run trains at world 3); the other two
     shrink to world 2 and commit at a newer generation. Resumed (SIGCONT), rank 0 goes on with that commit: the fence
-    refuses it, and says so."""
-    storage, iterations, hold = tmp_path / "run", 60, CommitHold(tmp_path)
+    refuses it, and says so. Its workers then wait out ``dist_timeout`` (10 s) and it rejoins: the others train on
+    for longer than that (at least 0.15 s an iteration), since a node that rejoins as the run ends races torchrun's own
+    end (docs/clusters.md: "Known race")."""
+    storage, iterations, hold = tmp_path / "run", 120, CommitHold(tmp_path)
     nodes, paused, index = three_etcd_nodes(storage, etcd_server, iterations, KEEP_ALL, hooks=(PACING, hold.hook))
     worker = hold.held()
     tree = [nodes[index].pid, *procfs.descendants(nodes[index].pid)]
