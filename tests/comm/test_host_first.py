@@ -75,7 +75,7 @@ def test_two_hosts_train_what_one_host_trains(tmp_path, split: bool) -> None:
     Data-parallel, the gradients are summed within each node and then across, (a + b) + (c + d) where one node sums
     ((a + b) + c) + d: the same learning to rounding."""
     overrides = ["reward.normalize=true", "iterations=4", "log.console=false", f"split_update={str(split).lower()}"]
-    run_train(tmp_path / "one", *overrides, ranks=4)
+    run_train(tmp_path / "one", *overrides, ranks=4, supervised=True)  # warm workers: one import, not four
     train = ["-m", "ftrain", "train", SMOKE, "--storage", str(tmp_path / "two"), *overrides]
     nodes = start_nodes([2, 2], train, tmp_path)
     codes = [node.wait(timeout=300) for node in nodes]

@@ -142,7 +142,7 @@ def test_a_run_counted_in_all_goes_on_counted_per_rank_only_with_the_same_enviro
     world size with as many per rank (bit for bit); another total, or the same total at another world size (where only
     a count in all hands the environments on), is refused with the count to set."""
     storage, reference = tmp_path / "run", tmp_path / "reference"
-    run_train(storage, "iterations=4", *EXACT, ranks=2)
+    run_train(storage, "iterations=4", *EXACT, ranks=2, supervised=True)  # warm workers: cheaper
     manifest = final_manifest(storage)
     refusals = {
         1: "(2 ranks x 4), the config counts env.num_envs=8 per rank at 1 rank, and a resize hands them on",
@@ -152,7 +152,7 @@ def test_a_run_counted_in_all_goes_on_counted_per_rank_only_with_the_same_enviro
         config = load_config(SMOKE, ["env.num_envs=8", EXACT[1]])
         with pytest.raises(UserError, match=re.escape(f"checkpoint step 4 has 8 environments in all {refusal}")):
             check_compatible(config, 4, manifest, world)
-    went_on = run_train(storage, "iterations=8", "env.num_envs=4", EXACT[1], ranks=2)
+    went_on = run_train(storage, "iterations=8", "env.num_envs=4", EXACT[1], ranks=2, supervised=True)
     assert "the same environments, counted per rank or in all" in went_on.stdout, went_on.stdout
     run_train(reference, "iterations=8", *EXACT, ranks=1)
     assert final_manifest(storage)["state_sha256"] == final_manifest(reference)["state_sha256"]
