@@ -5,17 +5,15 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 
 import pytest
 
 from ftrain.comm.collectives import Comm
 from ftrain.comm.group import RankInfo
 from ftrain.config import load_config
-from ftrain.supervise.attempt import TORCHRUN
 from ftrain.train.topology import RUN_FILE, describe, summary
 
-from helpers import REPO, SMOKE, child_env
+from helpers import REPO, SMOKE, child_env, supervise_command
 
 
 def line(world: int, *overrides: str, hosts: list[str] | None = None) -> str:
@@ -45,10 +43,9 @@ def test_ranks_on_several_hosts_are_named_by_host() -> None:
 
 @pytest.mark.slow
 def test_a_4_rank_run_says_first_how_its_update_is_split(tmp_path) -> None:
-    storage = tmp_path / "run"
-    command = [sys.executable, "-m", TORCHRUN, "--standalone", "--nproc-per-node=4", "-m", "ftrain", "train", SMOKE]
+    storage = tmp_path / "run"  # supervised: its workers fork from one process that imported torch, not four
     result = subprocess.run(
-        [*command, "--storage", str(storage), "iterations=1"],
+        supervise_command(storage, "iterations=1", "log.console=true", ranks=4),
         cwd=REPO,
         env=child_env(),
         capture_output=True,
@@ -56,7 +53,7 @@ def test_a_4_rank_run_says_first_how_its_update_is_split(tmp_path) -> None:
         timeout=300,
     )
     assert result.returncode == 0, result.stderr[-3000:]
-    first = result.stdout.splitlines()[0]
+    first = next(line for line in result.stdout.splitlines() if line.startswith("[ftrain]"))  # the workers' first
     assert first.startswith("[ftrain] 4 ranks on 1 host (ranks 0-3 on ")
     assert "update split: actor on ranks 0-1, critic on ranks 2-3" in first
     assert "transport shared memory (one host)" in first
