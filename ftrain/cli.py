@@ -308,7 +308,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_storage_options(play)
     play.add_argument("--episodes", type=int, default=1, metavar="N", help="episodes to play (default: %(default)s)")
     play.add_argument(
-        "--stochastic", action="store_true", help="sample actions from the policy's distribution, as in training"
+        "--stochastic",
+        action="store_true",
+        help="sample actions from the policy's distribution, as in training (not for an exported file: it has only "
+        "its mean actions)",
     )
     play.add_argument("--video", help="write a video: out.mp4 or out.gif")
     play.add_argument(
@@ -324,12 +327,16 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("url", help=policy_url)
     _add_storage_options(export)
     export.add_argument(
-        "--format", choices=POLICY_FORMATS, help="the file format (default: the one -o FILE ends in, .pt or .onnx)"
+        "--format",
+        choices=POLICY_FORMATS,
+        help="the file format; needed only where -o names no file (a directory, or none): -o FILE.pt or FILE.onnx "
+        "names it",
     )
     export.add_argument(
         "-o",
         "--output",
-        help="file to write, ending in .pt or .onnx as the format, or a directory to write it into (default: "
+        help="file to write, whose suffix names the format (.pt: torchscript, .onnx: onnx), or a directory to write "
+        "it into (default: "
         "<run>/exports/<run name>-step-<N>.pt or .onnx)",
     )
 
@@ -593,12 +600,12 @@ def _dispatch(args: argparse.Namespace) -> int:
     if args.command == "export":
         from ftrain.policy.options import export_format
 
-        export_format(args.format, args.output)  # before torch's imports and the policy's download
+        fmt = export_format(args.format, args.output)  # before torch's imports and the policy's download
         with imports():
             from ftrain.policy.export import export
             from ftrain.policy.load import load_policy
 
-        export(load_policy(args.url, options, log=_stderr), args.format, args.output)
+        export(load_policy(args.url, options, log=_stderr), fmt, args.output)
         return 0
     if args.command == "plot":
         from ftrain.tools.plot import plot_run

@@ -59,7 +59,8 @@ def is_timing(metric: str) -> bool:
 
 def recorded_metrics(metrics: dict[str, float]) -> dict[str, float | None]:
     """The metrics a manifest or a policy lineage records: no timing (:func:`is_timing`), and a metric not measured
-    yet (NaN) as null, since JSON has no NaN (``jq`` and most readers refuse the ``NaN`` Python would write)."""
+    yet (NaN) or infinite as null, since JSON has neither (``jq`` and most readers refuse the ``NaN`` and ``Infinity``
+    Python would write)."""
     return {key: value if math.isfinite(value) else None for key, value in metrics.items() if not is_timing(key)}
 
 

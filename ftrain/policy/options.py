@@ -15,6 +15,8 @@ from ftrain.errors import UserError
 VIDEO_SUFFIXES = (".mp4", ".gif")
 SUFFIXES = {"torchscript": ".pt", "onnx": ".onnx"}
 """The suffix of each export format's files."""
+FORMATS = {suffix: fmt for fmt, suffix in SUFFIXES.items()}
+"""The format each suffix names (``-o policy.onnx``)."""
 
 
 def check_play_options(episodes: int, seed: int, video: str | Path | None) -> None:
@@ -35,26 +37,34 @@ def export_format(fmt: str | None, path: str | Path | None) -> str:
     where the file's name comes from the policy, is checked once that is known)."""
     if fmt is not None and fmt not in POLICY_FORMATS:
         raise UserError(f"unknown policy format {fmt!r}: use {' or '.join(POLICY_FORMATS)}")
-    suffixes = " or ".join(SUFFIXES.values())
-    if path is None or names_a_directory(path):
-        if fmt is None:
-            raise UserError(f"export needs --format {' or '.join(POLICY_FORMATS)}, or -o a file ending in {suffixes}")
-        return fmt
-    path = Path(path)
-    named = next((named for named, suffix in SUFFIXES.items() if path.suffix == suffix), None)
+    if path is not None and not names_a_directory(path):
+        return _file_format(fmt, Path(path))
+    if fmt is None:
+        where = "export" if path is None else f"-o {path} is a directory: export into it"
+        raise UserError(
+            f"{where} needs --format {' or '.join(POLICY_FORMATS)}, or -o a file ending in {' or '.join(FORMATS)}"
+        )
+    return fmt
+
+
+def _file_format(fmt: str | None, path: Path) -> str:
+    """The format of the file ``path`` that ``export -o`` writes: the one its suffix names, which ``fmt`` must not
+    contradict (``-o README.md`` would write over a file of another kind)."""
+    named = FORMATS.get(path.suffix.lower())
     if fmt is None and named is None:
         raise UserError(
-            f"-o {path}: policy files end in {suffixes}: use -o {path.with_suffix('.pt')} or -o "
+            f"-o {path}: policy files end in {' or '.join(FORMATS)}: use -o {path.with_suffix('.pt')} or -o "
             f"{path.with_suffix('.onnx')}"
         )
-    if fmt not in (None, named):  # ``-o README.md`` would write over a file of another kind
+    if fmt is not None and named != fmt:
         other = next(other for other in POLICY_FORMATS if other != fmt)
+        instead = f", or --format {other}" if named == other else ""
         raise UserError(
-            f"-o {path}: {fmt} policy files end in {SUFFIXES[fmt]}: use -o {path.with_suffix(SUFFIXES[fmt])}, "
-            f"a directory, or --format {other} for a {SUFFIXES[other]} file"
+            f"-o {path}: {fmt} policy files end in {SUFFIXES[fmt]}: use -o {path.with_suffix(SUFFIXES[fmt])} or a "
+            f"directory{instead}"
         )
     check_output(path, "-o")
-    return fmt or named
+    return named
 
 
 def names_a_directory(path: str | Path) -> bool:

@@ -106,6 +106,8 @@ def test_the_commands_refuse_their_options_before_torch_is_imported_or_the_polic
         "video 'x.avi' must end in .mp4 or .gif": ["play", missing, "--video", "x.avi"],
         "-o x.txt: onnx policy files end in .onnx": ["export", missing, "--format", "onnx", "-o", "x.txt"],
         "cannot write /proc/x.pt": ["export", missing, "--format", "torchscript", "-o", "/proc/x.pt"],
+        "export needs --format torchscript or onnx, or -o a file ending in .pt or .onnx": ["export", missing],
+        "-o x.txt: policy files end in .pt or .onnx: use -o x.pt or -o x.onnx": ["export", missing, "-o", "x.txt"],
     }
     script = (
         "import json, sys\nfrom ftrain.cli import main\n"

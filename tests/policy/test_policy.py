@@ -250,7 +250,15 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
         ),
         "an output of another kind": (
             ["export", str(trained), "--format", "onnx", "-o", str(notes)],
-            f"-o {notes}: onnx policy files end in .onnx: use -o {notes.with_suffix('.onnx')}, a directory, or",
+            f"-o {notes}: onnx policy files end in .onnx: use -o {notes.with_suffix('.onnx')} or a directory",
+        ),
+        "an output of the other format": (
+            ["export", str(trained), "--format", "onnx", "-o", str(tmp_path / "x.pt")],
+            f"onnx policy files end in .onnx: use -o {tmp_path / 'x.onnx'} or a directory, or --format torchscript",
+        ),
+        "an export into a directory of no format": (
+            ["export", str(trained), "-o", f"{tmp_path}/"],
+            f"-o {tmp_path}/ is a directory: export into it needs --format torchscript or onnx, or -o a file",
         ),
     }
     for case, (argv, message) in cases.items():
@@ -259,7 +267,7 @@ def test_bad_input_is_one_line_and_exit_code_2(trained, tmp_path, capsys) -> Non
         assert err.startswith("ftrain: error: ") and err.count("\n") == 1, f"{case}: {err!r}"
         assert message in err, f"{case}: {err!r}"
     assert notes.read_text() == "not a policy\n"  # not written over
-    for suffix, fmt in ((".pt", "torchscript"), (".onnx", "onnx")):  # -o's suffix names the format
+    for suffix, fmt in ((".pt", "torchscript"), (".ONNX", "onnx")):  # -o's suffix names the format, in any case
         assert main(["export", str(trained), "-o", str(tmp_path / f"named{suffix}")]) == 0
         assert load_policy(str(tmp_path / f"named{suffix}")).exported == fmt
     assert main(["export", str(trained), "--format", "torchscript", "-o", str(tmp_path)]) == 0  # a directory: into it
