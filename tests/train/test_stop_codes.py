@@ -242,15 +242,18 @@ def test_a_stop_at_any_moment_of_the_start_is_one_line_and_its_exit_code(tmp_pat
     """While it imports torch and builds the run (seconds on a slow machine) a Ctrl-C or SIGTERM is one line, not a
     traceback (Ctrl-C) or a silent death (SIGTERM, a probe's); from the moment the trainer takes them over it saves
     first. So for ``ftrun`` (torchrun's agent: a traceback from its import of torch or its rendezvous, before). Random
-    moments over the whole start, a random signal and launcher each: 128 + the signal every time, no traceback, a
-    line that says the stop, and whatever the storage holds verifies; or, within the interpreter's own start, its own
-    end with nothing made (``_the_interpreters_own_end``)."""
+    moments over the whole start and one at 8 s (training), each signal to each launcher at least once: 128 + the
+    signal every time, no traceback, a line that says the stop, and whatever the storage holds verifies; or, within
+    the interpreter's own start, its own end with nothing made (``_the_interpreters_own_end``)."""
     draw = random.Random(130)
     interpreter_start = _interpreter_start()
     # log-uniform: the start's phases are shorter the earlier they come (imports, rendezvous, building, training)
-    moments, saved, checked = sorted(math.exp(draw.uniform(math.log(0.05), math.log(10.0))) for _ in range(6)), 0, []
-    for moment in moments:
-        stop, ftrun = draw.choice(STOPS), draw.random() < 0.5
+    moments = [*sorted(math.exp(draw.uniform(math.log(0.05), math.log(10.0))) for _ in range(5)), 8.0]
+    pairs = [(stop, ftrun) for stop in STOPS for ftrun in (False, True)]
+    pairs += [(draw.choice(STOPS), draw.random() < 0.5) for _ in range(len(moments) - len(pairs))]
+    draw.shuffle(pairs)
+    saved, checked = 0, []
+    for moment, (stop, ftrun) in zip(moments, pairs, strict=True):
         checked.append(f"{stop.name} to {'ftrun' if ftrun else 'train'} at {moment:.2f} s")
         storage = tmp_path / f"run-{moment:.2f}"
         command, beats = [*train_command(storage, LONG), "log.console=true"], tmp_path / f"beats-{moment:.2f}"
@@ -288,9 +291,9 @@ def test_a_stop_while_any_command_imports_is_one_line(tmp_path) -> None:
         f"python -m {TORCHRUN}": [sys.executable, "-m", TORCHRUN, "--standalone", "--nproc-per-node=1", "-m", "ftrain"],
     }
     interpreter_start = _interpreter_start()
-    for case in range(6):
+    drawn = [*sorted(entries), *(draw.choice(sorted(entries)) for _ in range(2))]  # each entry, and two more
+    for case, entry in enumerate(drawn):
         moment, stop = draw.uniform(interpreter_start, interpreter_start + 0.4), draw.choice(STOPS)
-        entry = draw.choice(sorted(entries))
         checked.append(f"{stop.name} to {entry} at {moment:.2f} s")
         command = [*entries[entry], *train_command(tmp_path / f"run-{case}", LONG)[3:]]
         proc = start(command, tmp_path / f"beats-{case}", preexec_fn=as_a_terminal_starts_it)

@@ -53,7 +53,9 @@ def test_a_4_rank_run_says_first_how_its_update_is_split(tmp_path) -> None:
         timeout=300,
     )
     assert result.returncode == 0, result.stderr[-3000:]
-    first = next(line for line in result.stdout.splitlines() if line.startswith("[ftrain]"))  # the workers' first
+    lines = result.stdout.splitlines()  # the workers' (the supervisor's own lines go to stderr)
+    assert lines, result.stderr[-3000:]
+    first = lines[0]
     assert first.startswith("[ftrain] 4 ranks on 1 host (ranks 0-3 on ")
     assert "update split: actor on ranks 0-1, critic on ranks 2-3" in first
     assert "transport shared memory (one host)" in first
