@@ -427,16 +427,14 @@ def test_failed_saves_are_logged_training_goes_on_and_holds_past_the_unsaved_bou
     assert "checkpoint step 4 not committed, earlier steps intact" in result.stdout
     retried = int(re.search(r"checkpoint step (\d+) committed: saves work again", result.stdout)[1])
     assert retried in (5, 6), "the newest state is retried as soon as the failed save has settled"
-    # then the interval (2) goes on; a boundary met while the retry's save is still in flight (a loaded machine) is
-    # owed: saved at the next step, and only then (not dropped to the next boundary, as before da8c6ea)
+    # then the interval (2) goes on. A boundary met while two saves are in flight (a loaded machine) is owed: saved at
+    # the first step that finds a slot (tests/ckpt/test_schedule.py has the rule over random busy patterns); so a step
+    # off the interval is saved only where a boundary passed since the save before it
     saved = set(manifests(storage))
     assert {2, retried, 12} <= saved <= {2, retried, *range(retried + 1, 13)}, saved
-    for boundary in range(retried + 1, 12):
-        if boundary % 2 == 0:
-            assert saved & {boundary, boundary + 1}, (boundary, saved)
-    owed = {step for step in saved - {2, retried, 12} if step % 2}
-    assert not {step - 1 for step in owed} & saved, saved
-
+    after = sorted(step for step in saved if step > retried)
+    for before, step in zip([retried, *after], after, strict=False):
+        assert step % 2 == 0 or any(b % 2 == 0 for b in range(before + 1, step)), (step, saved)
     blocked = tmp_path / "blocked"
     (blocked / "checkpoints").mkdir(parents=True)
     for step in range(1, 13):  # every step of the run (a file named checkpoints is refused at the start)
