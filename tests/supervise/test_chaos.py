@@ -98,13 +98,17 @@ def test_chaos_ends_bit_for_bit_like_an_uninterrupted_run(tmp_path, reference):
     os.kill(beats[0].pid, signal.SIGSTOP)
     recovered = wait_event(storage, "recovered", 3)
 
-    # 4. the newest checkpoint corrupted before the restart: freeze both ranks (and so their writer threads, which
-    # would go on committing a save in flight), flip a byte of a shard, kill rank 1
+    # 4. the newest checkpoint corrupted before the restart: freeze both ranks (and so their writer threads), flip a
+    # byte of rank 1's shard in it and in any newer step (a save in flight, whose commit rank 0 makes once it runs
+    # again: it then records the digest of what rank 1 wrote, not of the byte flipped), kill rank 1
     beats = training(heartbeats, after(recovered) + 5)
     for beat in beats.values():
         os.kill(beat.pid, signal.SIGSTOP)
     corrupted = final_manifest(storage)["step"]
-    flip_byte(storage / "checkpoints" / f"step-{corrupted:09d}" / "rank-00001.pt")
+    for step in (storage / "checkpoints").glob("step-*"):
+        shard = step / "rank-00001.pt"
+        if int(step.name.removeprefix("step-")) >= corrupted and shard.exists() and shard.stat().st_size:
+            flip_byte(shard)
     os.kill(beats[1].pid, signal.SIGKILL)
     with contextlib.suppress(ProcessLookupError):  # torchrun may have seen rank 1 die and ended rank 0 already
         os.kill(beats[0].pid, signal.SIGCONT)
