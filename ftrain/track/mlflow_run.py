@@ -38,17 +38,20 @@ class MlflowRun:
         experiment = client.get_experiment_by_name(name)
         experiment_id = experiment.experiment_id if experiment else client.create_experiment(name)
         found = client.search_runs([experiment_id], f"tags.`{RUN_TAG}` = '{self.info.run_id}'", max_results=1)
+        logged: dict[str, str] = {}
         if found:
-            self.run_id = found[0].info.run_id
+            self.run_id, logged = found[0].info.run_id, found[0].data.params
             client.update_run(self.run_id, status="RUNNING")
             last = max((metric.step for metric in client.get_metric_history(self.run_id, STEP_METRIC)), default=-1)
-        else:  # params are fixed once logged: the config as it was at the start (config.json follows changes)
+        else:
             tags = {RUN_TAG: self.info.run_id}
             self.run_id = client.create_run(experiment_id, tags=tags, run_name=self.info.name).info.run_id
-            params = [Param(key, str(value)) for key, value in dotted(self.info.config).items()]
-            for start in range(0, len(params), PARAMS_PER_BATCH):
-                client.log_batch(self.run_id, params=params[start : start + PARAMS_PER_BATCH])
             last = -1
+        # params are fixed once logged: the config as it was at the start (config.json follows changes); those a start
+        # killed between making the run and logging them did not log are logged by the next
+        params = [Param(key, str(value)) for key, value in dotted(self.info.config).items() if key not in logged]
+        for start in range(0, len(params), PARAMS_PER_BATCH):
+            client.log_batch(self.run_id, params=params[start : start + PARAMS_PER_BATCH])
         for key, value in self.info.identity.items():
             client.set_tag(self.run_id, f"ftrain.{key}", value)
         client.log_dict(self.run_id, self.info.config, "ftrain/config.json")

@@ -380,3 +380,24 @@ def test_the_supervisors_totals_skip_event_lines_damaged_since() -> None:
         "supervisor/iterations_lost": 3,
         "supervisor/downtime": 1.5,
     }
+
+
+def test_an_mlflow_run_left_without_params_by_a_killed_start_gets_them_from_the_next(tmp_path) -> None:
+    """A start killed between making its MLflow run and logging the config as params (its open is slow on a new
+    store) left the run without them for good: the next start, which finds the run by its tag, logs those missing."""
+    from ftrain.track.mlflow_run import RUN_TAG, MlflowRun
+    from ftrain.track.sender import RunInfo
+    from ftrain.values import dotted
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    client = MlflowClient(uri)
+    experiment = client.create_experiment("smoke")
+    client.create_run(experiment, tags={RUN_TAG: "run-1"})  # what the killed start left
+    config = load_config(SMOKE, [f"log.mlflow.tracking_uri={uri}"])
+    info = RunInfo("run-1", "smoke", config.public_dict(), {"config_hash": "h"}, str(tmp_path))
+    tracker = MlflowRun(config.log.mlflow, info)
+    assert tracker.open() == -1
+    tracker.close(True)
+    (run,) = client.search_runs([experiment])
+    assert run.data.params == {key: str(value) for key, value in dotted(info.config).items()}
+    assert len(run.data.params) > 50, "the whole config"
