@@ -178,9 +178,8 @@ class Checkpointer:
         committed (the save that ends a run, or too much unsaved work): retry until it is, or StorageUnavailable.
         Without ``store`` (and without ``hold``), the state goes to the spool alone.
         """
-        self._settle(
-            MAX_IN_FLIGHT - 1
-        )  # a slot for this save (waiting for the oldest), whose outcome decides its target
+        # a slot for this save (waiting for the oldest), whose outcome decides its target
+        self._settle(MAX_IN_FLIGHT - 1)
         if not (store or hold or self.spool is None):
             self._submit(trainer, wait, Target.SPOOL)
         else:
